@@ -1,0 +1,101 @@
+"""The two numeric backends behind the one kinematic model.
+
+The model (kinematics, tendons, pose error, clearance) is written once, as
+scalar-level code on *entries*: a 3×3 rotation is a tuple of nine entries, a
+point a tuple of three. An entry is whatever the backend calls a number:
+
+- JAX: an array of any batch shape; elementwise arithmetic broadcasts, so the
+  same code is batched over configurations (and over points along a segment,
+  which live on one extra trailing axis). XLA fuses the elementwise graph into
+  a few tight loops.
+- CasADi: an ``SX`` scalar (or a column vector of points along a segment).
+
+Only the handful of functions below differ between the backends; everything
+else is ordinary Python arithmetic.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import casadi as ca
+import jax.numpy as jnp
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Ops:
+    """The functions the model needs beyond ``+ - * /``."""
+
+    name: str
+    sin: Callable[[Any], Any]
+    cos: Callable[[Any], Any]
+    sqrt: Callable[[Any], Any]
+    atan2: Callable[[Any, Any], Any]
+    where: Callable[[Any, Any, Any], Any]
+    fmax: Callable[[Any, Any], Any]
+    fmin: Callable[[Any, Any], Any]
+    entry: Callable[[Any, int], Any]
+    """Entry i of the last axis of a vector (JAX: ``x[..., i]``; CasADi: ``x[i]``)."""
+    stack: Callable[[list[Any]], Any]
+    """Entries back into a vector on the last axis (JAX) or a column (CasADi)."""
+    along: Callable[[Any], Any]
+    """Give an entry one trailing axis so it broadcasts against per-point entries."""
+    fractions: Callable[[np.ndarray], Any]
+    """A constant vector of arc fractions, laid out for per-point entries."""
+    stack_points: Callable[[list[tuple[Any, Any, Any]]], Any]
+    """Stack per-point (x, y, z) entries of each segment into an (N, 3) array."""
+
+
+def _jax_stack_points(per_segment: list[tuple[Any, Any, Any]]) -> Any:
+    return jnp.concatenate([jnp.stack(xyz, axis=-1) for xyz in per_segment], axis=-2)
+
+
+def _casadi_stack_points(per_segment: list[tuple[Any, Any, Any]]) -> Any:
+    return ca.vertcat(*[ca.horzcat(*xyz) for xyz in per_segment])
+
+
+JAX = Ops(
+    name="jax",
+    sin=jnp.sin,
+    cos=jnp.cos,
+    sqrt=jnp.sqrt,
+    atan2=jnp.arctan2,
+    where=jnp.where,
+    fmax=jnp.maximum,
+    fmin=jnp.minimum,
+    entry=lambda x, i: x[..., i],
+    stack=lambda xs: jnp.stack(jnp.broadcast_arrays(*xs), axis=-1),
+    along=lambda x: jnp.asarray(x)[..., None],
+    fractions=lambda s: jnp.asarray(s),
+    stack_points=_jax_stack_points,
+)
+
+CASADI = Ops(
+    name="casadi",
+    sin=ca.sin,
+    cos=ca.cos,
+    sqrt=ca.sqrt,
+    atan2=ca.atan2,
+    where=ca.if_else,
+    fmax=ca.fmax,
+    fmin=ca.fmin,
+    entry=lambda x, i: x[i],
+    stack=lambda xs: ca.vertcat(*xs),
+    along=lambda x: x,
+    fractions=lambda s: ca.DM(np.asarray(s, dtype=float)),
+    stack_points=_casadi_stack_points,
+)
+
+
+def safe_where(ops: Ops, condition: Any, series: Callable[[Any], Any],
+               exact: Callable[[Any], Any], x: Any, safe_value: float) -> Any:
+    """``series(x)`` where ``condition`` holds, else ``exact(x)``, with finite derivatives.
+
+    Both backends evaluate both branches (and differentiate both), so the exact
+    branch is fed a harmless ``safe_value`` wherever the series is used: the
+    classic double-``where`` that keeps NaN out of gradients at the singular point.
+    """
+    x_exact = ops.where(condition, safe_value, x)
+    return ops.where(condition, series(x), exact(x_exact))

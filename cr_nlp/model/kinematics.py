@@ -1,0 +1,284 @@
+"""PCC kinematics, tendon lengths and pose error: written once, evaluated by JAX and CasADi.
+
+Conventions (DESIGN.md §1): segment i has bending angle θᵢ ∈ [0, θmaxᵢ]
+(radians), azimuth φᵢ (radians) and arc length Lᵢ (metres);
+``q = [θ1, φ1, L1, …, θn, φn, Ln]``. The segment transform is
+``R = Rz(φ)·Ry(θ)·Rz(−φ)``, ``d = (L/θ)·[cos φ (1 − cos θ), sin φ (1 − cos θ), sin θ]``.
+
+Internally the model is written on the singularity-free bending vector
+``u = θ·(cos φ, sin φ)``: with t = ‖u‖² = θ²,
+
+    R = I + A(t)·K + B(t)·K²,  K = [[0, 0, ux], [0, 0, uy], [−ux, −uy, 0]],
+    d = L·[B(t)·ux, B(t)·uy, A(t)],
+
+where A = sin θ/θ and B = (1 − cos θ)/θ² are analytic in t. Values and
+derivatives are finite at θ = 0 in both parameterisations. The optimiser's
+variable vector is ``z = [ux1, uy1, L1, …]`` (radians, radians, metres).
+
+The functions prefixed ``model_`` take an ``Ops`` backend and work on entries;
+the public functions at the bottom are the JAX (batched, numpy-friendly) and
+CasADi front ends of the same code.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import Any
+
+import casadi as ca
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._ops import CASADI, JAX, Ops
+from .lie import (
+    Transform,
+    rot_from_quat,
+    se3_log,
+    sinc_of_square,
+    transform_apply,
+    transform_between,
+    transform_compose,
+    versine_of_square,
+)
+from .robot import Robot
+
+# ================================================================ the model, once
+
+def model_q_to_z(ops: Ops, robot: Robot, q: Any) -> list[Any]:
+    """(θ, φ, L) per segment → bending vector entries (ux, uy, L) per segment."""
+    z = []
+    for i in range(robot.n_segments):
+        theta, phi, length = (ops.entry(q, 3 * i + k) for k in range(3))
+        z += [theta * ops.cos(phi), theta * ops.sin(phi), length]
+    return z
+
+
+def model_segment_transform(ops: Ops, ux: Any, uy: Any, length: Any) -> Transform:
+    """Frame i−1 → frame i of one segment with bending vector (ux, uy) rad and length m."""
+    t = ux * ux + uy * uy
+    a = sinc_of_square(ops, t)
+    b = versine_of_square(ops, t)
+    rot = (
+        1.0 - b * ux * ux, -b * ux * uy, a * ux,
+        -b * ux * uy, 1.0 - b * uy * uy, a * uy,
+        -a * ux, -a * uy, 1.0 - b * t,
+    )
+    return rot, (length * b * ux, length * b * uy, length * a)
+
+
+def model_base(robot: Robot) -> Transform:
+    return rot_from_quat(robot.base_wxyz), robot.base_position
+
+
+def model_segment_frames(ops: Ops, robot: Robot, z: list[Any]) -> list[Transform]:
+    """World frames at the base (index 0) and at the end of every segment."""
+    frames = [model_base(robot)]
+    for i in range(robot.n_segments):
+        ux, uy, length = z[3 * i], z[3 * i + 1], z[3 * i + 2]
+        frames.append(transform_compose(frames[-1], model_segment_transform(ops, ux, uy, length)))
+    return frames
+
+
+def model_backbone(ops: Ops, robot: Robot, z: list[Any],
+                   frames: list[Transform] | None = None) -> Any:
+    """Backbone points, ``points_per_segment`` per segment at arc fractions j/k, j = 1…k.
+
+    A point at fraction s of a segment is the segment formula with θ → sθ, L → sL.
+    Returns an (…, n·k, 3) array (JAX) or an (n·k × 3) matrix (CasADi), metres.
+    """
+    frames = model_segment_frames(ops, robot, z) if frames is None else frames
+    k = robot.points_per_segment
+    s = ops.fractions(np.arange(1, k + 1) / k)
+    per_segment = []
+    for i in range(robot.n_segments):
+        ux, uy, length = (ops.along(v) for v in z[3 * i: 3 * i + 3])
+        _, local = model_segment_transform(ops, ux * s, uy * s, length * s)
+        rot, pos = frames[i]
+        base = (tuple(ops.along(v) for v in rot), tuple(ops.along(v) for v in pos))
+        per_segment.append(transform_apply(base, local))
+    return ops.stack_points(per_segment)
+
+
+def tendon_angles(robot: Robot) -> np.ndarray:
+    """(n_segments, m) angular positions α of each segment's tendons, radians."""
+    m = robot.tendons.per_segment
+    base = np.arange(m) * 2.0 * np.pi / m
+    return base[None, :] + np.asarray(robot.tendons.offsets)[:, None]
+
+
+def model_tendon_lengths(ops: Ops, robot: Robot, z: list[Any]) -> list[Any]:
+    """Tendon lengths (metres), ``ℓᵢⱼ = Lᵢ − r·θᵢ·cos(αⱼ − φᵢ) = Lᵢ − r·(uxᵢ cos αⱼ + uyᵢ sin αⱼ)``.
+
+    ``shared``: m tendons, each summed over all segments (segment i's offset
+    applies inside segment i). ``per_segment``: segment k's m tendons end at
+    segment k and sum over segments 1…k; order ``[seg1 tendons, seg2 tendons, …]``.
+    """
+    n, r = robot.n_segments, robot.tendons.radius
+    alpha = tendon_angles(robot)
+
+    def contribution(i: int, angle: float) -> Any:
+        ux, uy, length = z[3 * i], z[3 * i + 1], z[3 * i + 2]
+        return length - r * (ux * float(np.cos(angle)) + uy * float(np.sin(angle)))
+
+    m = robot.tendons.per_segment
+    if robot.tendons.routing == "shared":
+        return [sum(contribution(i, alpha[i, j]) for i in range(n)) for j in range(m)]
+    return [
+        sum(contribution(i, alpha[k, j]) for i in range(k + 1))
+        for k in range(n)
+        for j in range(m)
+    ]
+
+
+def model_pose_error(ops: Ops, tip: Transform, target: Transform) -> tuple[Any, ...]:
+    """The 6-vector log(T_tip⁻¹ · T_target): translation part (m), rotation part (rad)."""
+    return se3_log(ops, transform_between(tip, target))
+
+
+# ================================================================ JAX front end
+
+def _rot_array(rot: Any) -> jax.Array:
+    flat = jnp.stack(jnp.broadcast_arrays(*rot), axis=-1)
+    return flat.reshape(flat.shape[:-1] + (3, 3))
+
+
+def _vec_array(v: Any) -> jax.Array:
+    return jnp.stack(jnp.broadcast_arrays(*v), axis=-1)
+
+
+def _entries_of_rot(r: jax.Array) -> tuple:
+    return tuple(r[..., i, j] for i in range(3) for j in range(3))
+
+
+def _check_q(robot: Robot, q: jax.Array) -> jax.Array:
+    q = jnp.asarray(q)
+    if not jnp.issubdtype(q.dtype, jnp.floating):
+        q = q.astype(jnp.result_type(float))
+    if q.shape[-1:] != (robot.dof,):
+        raise ValueError(
+            f"q must have {robot.dof} entries on its last axis ([θ, φ, L] × {robot.n_segments} "
+            f"segments of {robot.name!r}), got shape {q.shape}"
+        )
+    return q
+
+
+def q_to_z(robot: Robot, q: jax.Array) -> jax.Array:
+    """(…, 3n) configurations (θ, φ, L) → (…, 3n) bending-vector form (ux, uy, L)."""
+    q = _check_q(robot, q)
+    return JAX.stack(model_q_to_z(JAX, robot, q))
+
+
+def z_to_q(robot: Robot, z: jax.Array) -> jax.Array:
+    """(…, 3n) bending-vector form → (θ, φ, L); φ is 0 where θ = 0 (undefined there)."""
+    z = jnp.asarray(z)
+    ux, uy, length = z[..., 0::3], z[..., 1::3], z[..., 2::3]
+    theta = jnp.sqrt(ux * ux + uy * uy)
+    phi = jnp.where(theta > 0, jnp.arctan2(uy, ux), 0.0)
+    return jnp.stack([theta, phi, length], axis=-1).reshape(z.shape)
+
+
+@partial(jax.jit, static_argnums=0)
+def tip_pose_z(robot: Robot, z: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Tip position (…, 3) metres and rotation matrix (…, 3, 3) from bending-vector z."""
+    entries = [z[..., i] for i in range(robot.dof)]
+    rot, pos = model_segment_frames(JAX, robot, entries)[-1]
+    return _vec_array(pos), _rot_array(rot)
+
+
+def tip_pose(robot: Robot, q: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Tip position (…, 3) in metres and rotation (…, 3, 3) in the world frame.
+
+    ``q`` is (…, 3n) as ``[θ1, φ1, L1, …]`` (radians, radians, metres); any
+    leading batch shape; float32 or float64 (the result has q's dtype).
+    """
+    return tip_pose_z(robot, q_to_z(robot, q))
+
+
+@partial(jax.jit, static_argnums=0)
+def backbone_points_z(robot: Robot, z: jax.Array) -> jax.Array:
+    """Backbone points (…, n·k, 3) in metres from bending-vector z."""
+    return model_backbone(JAX, robot, [z[..., i] for i in range(robot.dof)])
+
+
+def backbone_points(robot: Robot, q: jax.Array) -> jax.Array:
+    """Backbone points (…, n·k, 3), metres: k = ``points_per_segment`` per segment at arc
+    fractions j/k (j = 1…k), segment by segment; the base point is not included."""
+    return backbone_points_z(robot, q_to_z(robot, q))
+
+
+@partial(jax.jit, static_argnums=0)
+def tendon_lengths_z(robot: Robot, z: jax.Array) -> jax.Array:
+    """Tendon lengths (…, n_tendons) in metres from bending-vector z."""
+    return JAX.stack(model_tendon_lengths(JAX, robot, [z[..., i] for i in range(robot.dof)]))
+
+
+def tendon_lengths(robot: Robot, q: jax.Array) -> jax.Array:
+    """Tendon lengths (…, n_tendons) in metres for the robot's routing (see DESIGN.md §1)."""
+    return tendon_lengths_z(robot, q_to_z(robot, q))
+
+
+@jax.jit
+def pose_error_vector(position: jax.Array, rotation: jax.Array, target_position: jax.Array,
+                      target_rotation: jax.Array) -> jax.Array:
+    """log(T⁻¹·T_target) as (…, 6): translation part (m) then rotation part (rad)."""
+    tip = (_entries_of_rot(rotation), tuple(position[..., i] for i in range(3)))
+    target = (_entries_of_rot(target_rotation), tuple(target_position[..., i] for i in range(3)))
+    return _vec_array(model_pose_error(JAX, tip, target))
+
+
+def pose_error(position: jax.Array, rotation: jax.Array, target_position: jax.Array,
+               target_rotation: jax.Array) -> jax.Array:
+    """The success metric ‖log(T⁻¹·T_target)‖₂ (…,) (mixed metres/radians, DESIGN.md §1)."""
+    return jnp.linalg.norm(
+        pose_error_vector(position, rotation, target_position, target_rotation), axis=-1
+    )
+
+
+# ================================================================ CasADi front end
+
+class CasadiModel:
+    """CasADi functions of one robot, built from the same model code as the JAX side.
+
+    Every function takes ``q`` (3n, θ/φ/L) and has a twin taking ``z`` (bending vector):
+    ``tip(q) -> (position 3×1, rotation 3×3)``, ``backbone(q) -> N×3``,
+    ``tendons(q) -> n_tendons×1``, ``pose_error(q, target_position, target_rotation) -> 6×1``.
+    """
+
+    def __init__(self, robot: Robot) -> None:
+        self.robot = robot
+        n = robot.dof
+        self.q = ca.SX.sym("q", n)
+        self.z = ca.SX.sym("z", n)
+        target_p = ca.SX.sym("target_position", 3)
+        target_r = ca.SX.sym("target_rotation", 3, 3)
+
+        def build(var: ca.SX, name: str, z_entries: list) -> dict[str, ca.Function]:
+            frames = model_segment_frames(CASADI, robot, z_entries)
+            rot, pos = frames[-1]
+            rot_m = ca.reshape(ca.vertcat(*rot), 3, 3).T  # row-major entries → matrix
+            target = (tuple(target_r[i, j] for i in range(3) for j in range(3)),
+                      tuple(target_p[i] for i in range(3)))
+            err = ca.vertcat(*model_pose_error(CASADI, frames[-1], target))
+            return {
+                "tip": ca.Function(f"tip_{name}", [var], [ca.vertcat(*pos), rot_m]),
+                "backbone": ca.Function(f"backbone_{name}", [var],
+                                        [model_backbone(CASADI, robot, z_entries, frames)]),
+                "tendons": ca.Function(f"tendons_{name}", [var],
+                                       [ca.vertcat(*model_tendon_lengths(CASADI, robot, z_entries))]),
+                "pose_error": ca.Function(f"pose_error_{name}", [var, target_p, target_r], [err]),
+            }
+
+        zq = model_q_to_z(CASADI, robot, self.q)
+        self.functions_q = build(self.q, "q", zq)
+        self.functions_z = build(self.z, "z", [self.z[i] for i in range(n)])
+
+    def tip(self, q: Any) -> tuple[np.ndarray, np.ndarray]:
+        p, r = self.functions_q["tip"](q)
+        return np.asarray(p).ravel(), np.asarray(r)
+
+    def backbone(self, q: Any) -> np.ndarray:
+        return np.asarray(self.functions_q["backbone"](q))
+
+    def tendons(self, q: Any) -> np.ndarray:
+        return np.asarray(self.functions_q["tendons"](q)).ravel()

@@ -1,0 +1,216 @@
+"""Rotations and rigid transforms on entries (see ``_ops``), for both backends.
+
+A rotation is a row-major tuple of nine entries, a vector a tuple of three, a
+transform a ``(rotation, translation)`` pair. Quaternions are ``(w, x, y, z)``.
+Angles are in radians, translations in metres.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ._ops import Ops, safe_where
+
+Vec = tuple[Any, Any, Any]
+Rot = tuple[Any, Any, Any, Any, Any, Any, Any, Any, Any]
+Transform = tuple[Rot, Vec]
+
+# Below this squared angle (rad²) the smooth functions of θ² use their Taylor series.
+SERIES_BELOW = 1e-2
+
+
+# ---------------------------------------------------------------- smooth scalars
+
+def sinc_of_square(ops: Ops, t: Any) -> Any:
+    """sin(θ)/θ as a function of t = θ² (analytic in t, finite derivatives at 0)."""
+
+    def series(t: Any) -> Any:
+        return 1.0 - t / 6.0 * (1.0 - t / 20.0 * (1.0 - t / 42.0 * (1.0 - t / 72.0 * (1.0 - t / 110.0))))
+
+    def exact(t: Any) -> Any:
+        theta = ops.sqrt(t)
+        return ops.sin(theta) / theta
+
+    return safe_where(ops, t < SERIES_BELOW, series, exact, t, 1.0)
+
+
+def versine_of_square(ops: Ops, t: Any) -> Any:
+    """(1 − cos θ)/θ² as a function of t = θ², written as ½·sinc²(θ/2) to avoid cancellation."""
+    half = sinc_of_square(ops, t / 4.0)
+    return 0.5 * half * half
+
+
+# ---------------------------------------------------------------- rotation algebra
+
+def rot_identity() -> Rot:
+    return (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+
+
+def rot_mul(a: Rot, b: Rot) -> Rot:
+    return tuple(
+        a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j]
+        for i in range(3)
+        for j in range(3)
+    )  # type: ignore[return-value]
+
+
+def rot_transpose(a: Rot) -> Rot:
+    return (a[0], a[3], a[6], a[1], a[4], a[7], a[2], a[5], a[8])
+
+
+def rot_apply(r: Rot, v: Vec) -> Vec:
+    return (
+        r[0] * v[0] + r[1] * v[1] + r[2] * v[2],
+        r[3] * v[0] + r[4] * v[1] + r[5] * v[2],
+        r[6] * v[0] + r[7] * v[1] + r[8] * v[2],
+    )
+
+
+def transform_compose(a: Transform, b: Transform) -> Transform:
+    """a · b."""
+    ra, pa = a
+    rb, pb = b
+    moved = rot_apply(ra, pb)
+    return rot_mul(ra, rb), (pa[0] + moved[0], pa[1] + moved[1], pa[2] + moved[2])
+
+
+def transform_apply(a: Transform, v: Vec) -> Vec:
+    r, p = a
+    moved = rot_apply(r, v)
+    return (p[0] + moved[0], p[1] + moved[1], p[2] + moved[2])
+
+
+def transform_between(a: Transform, b: Transform) -> Transform:
+    """a⁻¹ · b: the pose of b seen from a."""
+    ra, pa = a
+    rb, pb = b
+    rat = rot_transpose(ra)
+    return rot_mul(rat, rb), rot_apply(rat, (pb[0] - pa[0], pb[1] - pa[1], pb[2] - pa[2]))
+
+
+# ---------------------------------------------------------------- quaternions
+
+def rot_from_quat(q: tuple[Any, Any, Any, Any]) -> Rot:
+    """Rotation of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = q
+    return (
+        1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
+        2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
+        2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y),
+    )
+
+
+def quat_from_rot(ops: Ops, r: Rot) -> tuple[Any, Any, Any, Any]:
+    """Unit quaternion (w, x, y, z) with w ≥ 0 (Shepperd's method, branch-free form)."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
+    trace = r00 + r11 + r22
+    # Four candidate formulas; the one with the largest 4·q_i² ≥ 1 is well conditioned.
+    cand_w = 1.0 + trace
+    cand_x = 1.0 + r00 - r11 - r22
+    cand_y = 1.0 - r00 + r11 - r22
+    cand_z = 1.0 - r00 - r11 + r22
+
+    def from_w(c: Any) -> tuple[Any, Any, Any, Any]:
+        s = 0.5 / ops.sqrt(ops.fmax(c, 1e-12))
+        return 0.25 / s, (r21 - r12) * s, (r02 - r20) * s, (r10 - r01) * s
+
+    def from_x(c: Any) -> tuple[Any, Any, Any, Any]:
+        s = 0.5 / ops.sqrt(ops.fmax(c, 1e-12))
+        return (r21 - r12) * s, 0.25 / s, (r01 + r10) * s, (r02 + r20) * s
+
+    def from_y(c: Any) -> tuple[Any, Any, Any, Any]:
+        s = 0.5 / ops.sqrt(ops.fmax(c, 1e-12))
+        return (r02 - r20) * s, (r01 + r10) * s, 0.25 / s, (r12 + r21) * s
+
+    def from_z(c: Any) -> tuple[Any, Any, Any, Any]:
+        s = 0.5 / ops.sqrt(ops.fmax(c, 1e-12))
+        return (r10 - r01) * s, (r02 + r20) * s, (r12 + r21) * s, 0.25 / s
+
+    qw, qx, qy, qz = from_w(cand_w), from_x(cand_x), from_y(cand_y), from_z(cand_z)
+    use_w = (cand_w >= cand_x) * (cand_w >= cand_y) * (cand_w >= cand_z)
+    use_x = (cand_x >= cand_y) * (cand_x >= cand_z)
+    use_y = cand_y >= cand_z
+
+    def pick(i: int) -> Any:
+        return ops.where(use_w, qw[i], ops.where(use_x, qx[i], ops.where(use_y, qy[i], qz[i])))
+
+    w, x, y, z = pick(0), pick(1), pick(2), pick(3)
+    sign = ops.where(w < 0.0, -1.0, 1.0)
+    return w * sign, x * sign, y * sign, z * sign
+
+
+# ---------------------------------------------------------------- logarithms
+
+def so3_log(ops: Ops, r: Rot) -> Vec:
+    """Rotation vector ω (radians) with exp([ω]×) = r and ‖ω‖ ≤ π."""
+    w, x, y, z = quat_from_rot(ops, r)
+    n2 = x * x + y * y + z * z
+
+    def series(n2: Any) -> Any:  # 2·atan2(n, w)/n for small n, w ≈ 1
+        w2 = w * w
+        return 2.0 / w * (1.0 - n2 / (3.0 * w2) + n2 * n2 / (5.0 * w2 * w2))
+
+    def exact(n2: Any) -> Any:
+        n = ops.sqrt(n2)
+        return 2.0 * ops.atan2(n, w) / n
+
+    scale = safe_where(ops, n2 < 1e-6, series, exact, n2, 1.0)
+    return x * scale, y * scale, z * scale
+
+
+def se3_log(ops: Ops, t: Transform) -> tuple[Any, Any, Any, Any, Any, Any]:
+    """The 6-vector (v, ω) = log(T): v in metres, ω in radians.
+
+    v = V(ω)⁻¹ p with V⁻¹ = I − ½[ω]× + c(θ)[ω]×², c = (1 − θ sin θ / (2(1 − cos θ)))/θ².
+    """
+    r, p = t
+    wx, wy, wz = so3_log(ops, r)
+    th2 = wx * wx + wy * wy + wz * wz
+
+    def series(th2: Any) -> Any:
+        return 1.0 / 12.0 + th2 / 720.0 + th2 * th2 / 30240.0
+
+    def exact(th2: Any) -> Any:
+        return (1.0 - sinc_of_square(ops, th2) / (2.0 * versine_of_square(ops, th2))) / th2
+
+    c = safe_where(ops, th2 < SERIES_BELOW, series, exact, th2, 1.0)
+    # [ω]× p and [ω]×² p = ω (ω·p) − θ² p
+    cross = (wy * p[2] - wz * p[1], wz * p[0] - wx * p[2], wx * p[1] - wy * p[0])
+    dot = wx * p[0] + wy * p[1] + wz * p[2]
+    v = tuple(
+        p[i] - 0.5 * cross[i] + c * ((wx, wy, wz)[i] * dot - th2 * p[i]) for i in range(3)
+    )
+    return v[0], v[1], v[2], wx, wy, wz
+
+
+def so3_exp(ops: Ops, w: Vec) -> Rot:
+    """Rotation exp([ω]×) of a rotation vector ω (radians), by Rodrigues' formula."""
+    wx, wy, wz = w
+    t = wx * wx + wy * wy + wz * wz
+    a = sinc_of_square(ops, t)
+    b = versine_of_square(ops, t)
+    k = (0.0, -wz, wy, wz, 0.0, -wx, -wy, wx, 0.0)
+    k2 = rot_mul(k, k)
+    eye = rot_identity()
+    return tuple(eye[i] + a * k[i] + b * k2[i] for i in range(9))  # type: ignore[return-value]
+
+
+def se3_exp(ops: Ops, xi: tuple[Any, Any, Any, Any, Any, Any]) -> Transform:
+    """Transform exp(ξ) of a twist ξ = (v, ω) (metres, radians); inverse of ``se3_log``."""
+    v = xi[:3]
+    w = xi[3:]
+    t = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    b = versine_of_square(ops, t)
+
+    def series(t: Any) -> Any:  # (θ − sin θ)/θ³
+        return 1.0 / 6.0 - t / 120.0 + t * t / 5040.0
+
+    def exact(t: Any) -> Any:
+        return (1.0 - sinc_of_square(ops, t)) / t
+
+    c = safe_where(ops, t < SERIES_BELOW, series, exact, t, 1.0)
+    k = (0.0, -w[2], w[1], w[2], 0.0, -w[0], -w[1], w[0], 0.0)
+    k2 = rot_mul(k, k)
+    eye = rot_identity()
+    v_mat = tuple(eye[i] + b * k[i] + c * k2[i] for i in range(9))
+    return so3_exp(ops, w), rot_apply(v_mat, v)  # type: ignore[arg-type]

@@ -1,0 +1,311 @@
+"""Robot model files: schema, validation and the immutable ``Robot``.
+
+A robot file is JSON (schema in ``models/README.md``). Loading checks every
+field and raises one ``ModelFileError`` that names the file, the field and
+what is wrong, before anything reaches JAX or CasADi.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+Routing = Literal["shared", "per_segment"]
+
+
+class ModelFileError(ValueError):
+    """A robot or scene file (or an in-memory dict) that does not follow the schema."""
+
+    def __init__(self, source: str, field_path: str, problem: str) -> None:
+        self.source = source
+        self.field_path = field_path
+        self.problem = problem
+        where = f"{source}: " if source else ""
+        super().__init__(f"{where}field '{field_path}': {problem}")
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One constant-curvature segment.
+
+    Lengths in metres, angles in radians. A fixed segment has
+    ``length_min == length_max``.
+    """
+
+    length_min: float
+    length_max: float
+    theta_max: float
+    phi_min: float = -math.inf
+    phi_max: float = math.inf
+
+    @property
+    def extendable(self) -> bool:
+        return self.length_max > self.length_min
+
+    @property
+    def phi_limited(self) -> bool:
+        return math.isfinite(self.phi_min) or math.isfinite(self.phi_max)
+
+
+@dataclass(frozen=True)
+class Tendons:
+    """Tendon routing: ``per_segment`` tendons per segment at ``radius`` metres
+    from the backbone, at angles (j−1)·2π/m + ``offsets[i]`` radians."""
+
+    per_segment: int
+    radius: float
+    offsets: tuple[float, ...]
+    routing: Routing
+
+
+@dataclass(frozen=True)
+class Robot:
+    """A tendon-driven continuum robot with piecewise constant curvature.
+
+    Configuration order: ``q = [θ1, φ1, L1, …, θn, φn, Ln]`` (radians, radians, metres).
+    """
+
+    name: str
+    segments: tuple[Segment, ...]
+    backbone_radius: float
+    points_per_segment: int
+    tendons: Tendons
+    base_position: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    base_wxyz: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    tendon_speed_max: float = math.inf
+    tendon_accel_max: float = math.inf
+    source: str = field(default="", compare=False)
+
+    # ------------------------------------------------------------ sizes and bounds
+    @property
+    def n_segments(self) -> int:
+        return len(self.segments)
+
+    @property
+    def dof(self) -> int:
+        """Length of q (three entries per segment, fixed lengths included)."""
+        return 3 * self.n_segments
+
+    @property
+    def n_tendons(self) -> int:
+        m = self.tendons.per_segment
+        return m if self.tendons.routing == "shared" else m * self.n_segments
+
+    @property
+    def n_points(self) -> int:
+        """Backbone points returned by ``backbone_points`` (the base is not included)."""
+        return self.points_per_segment * self.n_segments
+
+    @property
+    def total_length_max(self) -> float:
+        """Longest possible backbone, metres."""
+        return float(sum(s.length_max for s in self.segments))
+
+    def q_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper bounds of q; an unlimited azimuth is bounded by ±π for sampling."""
+        lo, hi = [], []
+        for s in self.segments:
+            lo += [0.0, s.phi_min if math.isfinite(s.phi_min) else -math.pi, s.length_min]
+            hi += [s.theta_max, s.phi_max if math.isfinite(s.phi_max) else math.pi, s.length_max]
+        return np.array(lo), np.array(hi)
+
+    def lengths_fixed(self) -> np.ndarray:
+        """Boolean mask over segments: True where the length cannot change."""
+        return np.array([not s.extendable for s in self.segments])
+
+    # ------------------------------------------------------------ construction
+    @classmethod
+    def from_file(cls, path: str | Path) -> Robot:
+        """Load and validate a robot JSON file."""
+        path = Path(path)
+        source = str(path)
+        try:
+            text = path.read_text()
+        except FileNotFoundError:
+            raise ModelFileError(source, "<file>", "file not found") from None
+        except OSError as exc:
+            raise ModelFileError(source, "<file>", f"cannot read: {exc}") from None
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ModelFileError(source, "<file>", f"not valid JSON: {exc}") from None
+        return cls.from_dict(data, source=source)
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str = "") -> Robot:
+        """Validate a robot description (the JSON file's content as a dict)."""
+        return _parse_robot(data, source)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON form of this robot (round-trips through ``from_dict``)."""
+        segs = []
+        for s in self.segments:
+            seg: dict[str, Any] = {
+                "length": s.length_min if not s.extendable else [s.length_min, s.length_max],
+                "theta_max": s.theta_max,
+            }
+            if s.phi_limited:
+                seg["phi_range"] = [s.phi_min, s.phi_max]
+            segs.append(seg)
+        out: dict[str, Any] = {
+            "name": self.name,
+            "segments": segs,
+            "backbone_radius": self.backbone_radius,
+            "points_per_segment": self.points_per_segment,
+            "tendons": {
+                "per_segment": self.tendons.per_segment,
+                "radius": self.tendons.radius,
+                "offsets": list(self.tendons.offsets),
+                "routing": self.tendons.routing,
+            },
+            "base": {"position": list(self.base_position), "wxyz": list(self.base_wxyz)},
+        }
+        if math.isfinite(self.tendon_speed_max):
+            out["tendon_speed_max"] = self.tendon_speed_max
+        if math.isfinite(self.tendon_accel_max):
+            out["tendon_accel_max"] = self.tendon_accel_max
+        return out
+
+
+def load_robot(robot: str | Path | Robot | dict) -> Robot:
+    """A ``Robot`` from a file path, a dict, or a ``Robot`` (returned as is)."""
+    if isinstance(robot, Robot):
+        return robot
+    if isinstance(robot, dict):
+        return Robot.from_dict(robot)
+    return Robot.from_file(robot)
+
+
+# ---------------------------------------------------------------- validation helpers
+
+_TOP_KEYS = {"name", "description", "segments", "backbone_radius", "points_per_segment",
+             "tendons", "base", "tendon_speed_max", "tendon_accel_max"}
+_SEGMENT_KEYS = {"length", "theta_max", "phi_range", "name"}
+_TENDON_KEYS = {"per_segment", "radius", "offsets", "routing"}
+_BASE_KEYS = {"position", "wxyz"}
+
+
+class _Checker:
+    def __init__(self, source: str) -> None:
+        self.source = source
+
+    def fail(self, field_path: str, problem: str) -> ModelFileError:
+        return ModelFileError(self.source, field_path, problem)
+
+    def obj(self, value: Any, path: str, allowed: set[str], required: set[str]) -> dict:
+        if not isinstance(value, dict):
+            raise self.fail(path or "<top>", f"expected an object, got {type(value).__name__}")
+        unknown = sorted(set(value) - allowed)
+        if unknown:
+            raise self.fail(f"{path}.{unknown[0]}" if path else unknown[0],
+                            f"unknown key (allowed: {', '.join(sorted(allowed))})")
+        missing = sorted(required - set(value))
+        if missing:
+            raise self.fail(f"{path}.{missing[0]}" if path else missing[0], "missing required field")
+        return value
+
+    def number(self, value: Any, path: str, *, positive: bool = False,
+               nonnegative: bool = False) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(path, f"expected a number, got {type(value).__name__} {value!r}")
+        x = float(value)
+        if not math.isfinite(x):
+            raise self.fail(path, f"must be finite, got {value!r}")
+        if positive and x <= 0:
+            raise self.fail(path, f"must be positive, got {value!r}")
+        if nonnegative and x < 0:
+            raise self.fail(path, f"must not be negative, got {value!r}")
+        return x
+
+    def integer(self, value: Any, path: str, minimum: int) -> int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.fail(path, f"expected an integer, got {type(value).__name__} {value!r}")
+        if value < minimum:
+            raise self.fail(path, f"must be at least {minimum}, got {value}")
+        return value
+
+    def vector(self, value: Any, path: str, size: int) -> tuple[float, ...]:
+        if not isinstance(value, (list, tuple)) or len(value) != size:
+            raise self.fail(path, f"expected a list of {size} numbers, got {value!r}")
+        return tuple(self.number(v, f"{path}[{i}]") for i, v in enumerate(value))
+
+
+def _parse_robot(data: Any, source: str) -> Robot:
+    c = _Checker(source)
+    d = c.obj(data, "", _TOP_KEYS,
+              {"segments", "backbone_radius", "points_per_segment", "tendons"})
+    name = d.get("name", Path(source).stem if source else "robot")
+    if not isinstance(name, str) or not name:
+        raise c.fail("name", f"expected a non-empty string, got {name!r}")
+
+    raw_segments = d["segments"]
+    if not isinstance(raw_segments, list):
+        raise c.fail("segments", f"expected a list of segments, got {type(raw_segments).__name__}")
+    if not raw_segments:
+        raise c.fail("segments", "the robot needs at least one segment")
+    segments = tuple(_parse_segment(c, s, f"segments[{i}]") for i, s in enumerate(raw_segments))
+    n = len(segments)
+
+    backbone_radius = c.number(d["backbone_radius"], "backbone_radius", positive=True)
+    points = c.integer(d["points_per_segment"], "points_per_segment", 1)
+
+    t = c.obj(d["tendons"], "tendons", _TENDON_KEYS, {"per_segment", "radius"})
+    per_segment = c.integer(t["per_segment"], "tendons.per_segment", 1)
+    radius = c.number(t["radius"], "tendons.radius", positive=True)
+    offsets = c.vector(t.get("offsets", [0.0] * n), "tendons.offsets", n)
+    routing = t.get("routing", "per_segment")
+    if routing not in ("shared", "per_segment"):
+        raise c.fail("tendons.routing", f"must be 'shared' or 'per_segment', got {routing!r}")
+
+    base = c.obj(d.get("base", {}), "base", _BASE_KEYS, set())
+    position = c.vector(base.get("position", [0.0, 0.0, 0.0]), "base.position", 3)
+    wxyz = c.vector(base.get("wxyz", [1.0, 0.0, 0.0, 0.0]), "base.wxyz", 4)
+    norm = math.sqrt(sum(v * v for v in wxyz))
+    if abs(norm - 1.0) > 1e-6:
+        raise c.fail("base.wxyz", f"must be a unit quaternion, its norm is {norm:.6g}")
+
+    speed = c.number(d["tendon_speed_max"], "tendon_speed_max",
+                     positive=True) if "tendon_speed_max" in d else math.inf
+    accel = c.number(d["tendon_accel_max"], "tendon_accel_max",
+                     positive=True) if "tendon_accel_max" in d else math.inf
+
+    return Robot(
+        name=name,
+        segments=segments,
+        backbone_radius=backbone_radius,
+        points_per_segment=points,
+        tendons=Tendons(per_segment, radius, offsets, routing),
+        base_position=position,  # type: ignore[arg-type]
+        base_wxyz=wxyz,  # type: ignore[arg-type]
+        tendon_speed_max=speed,
+        tendon_accel_max=accel,
+        source=source,
+    )
+
+
+def _parse_segment(c: _Checker, raw: Any, path: str) -> Segment:
+    s = c.obj(raw, path, _SEGMENT_KEYS, {"length", "theta_max"})
+    length = s["length"]
+    if isinstance(length, (list, tuple)):
+        lo, hi = c.vector(length, f"{path}.length", 2)
+        if lo <= 0:
+            raise c.fail(f"{path}.length", f"lengths must be positive, got minimum {lo}")
+        if hi < lo:
+            raise c.fail(f"{path}.length", f"range [min, max] has max < min: {list(length)}")
+    else:
+        lo = hi = c.number(length, f"{path}.length", positive=True)
+    theta_max = c.number(s["theta_max"], f"{path}.theta_max", positive=True)
+    if theta_max > math.pi + 1e-6:
+        raise c.fail(f"{path}.theta_max", f"must be at most π (3.14159…), got {theta_max}")
+    theta_max = min(theta_max, math.pi)
+    phi_min, phi_max = -math.inf, math.inf
+    if "phi_range" in s:
+        phi_min, phi_max = c.vector(s["phi_range"], f"{path}.phi_range", 2)
+        if phi_max <= phi_min:
+            raise c.fail(f"{path}.phi_range", f"needs min < max, got {list(s['phi_range'])}")
+    return Segment(lo, hi, theta_max, phi_min, phi_max)
