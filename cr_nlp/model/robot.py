@@ -118,6 +118,47 @@ class Robot:
         """Boolean mask over segments: True where the length cannot change."""
         return np.array([not s.extendable for s in self.segments])
 
+    def full_q(self, values: Any) -> np.ndarray:
+        """A complete q (3n) from user input, checked against the limits.
+
+        Accepts either all 3n entries ``[θ1, φ1, L1, …]``, or the short form that
+        omits L for every fixed-length segment. A given fixed length must equal the
+        segment's length; θ must lie in [0, θmax], L in its range (radians, metres).
+        Raises ``ValueError`` naming the offending entry.
+        """
+        v = np.asarray(values, dtype=float).reshape(-1)
+        fixed = self.lengths_fixed()
+        short = 3 * self.n_segments - int(fixed.sum())
+        if v.size == self.dof:
+            q = v.copy()
+        elif v.size == short and fixed.any():
+            q, k = np.empty(self.dof), 0
+            for i, seg in enumerate(self.segments):
+                take = 2 if fixed[i] else 3
+                q[3 * i: 3 * i + take] = v[k: k + take]
+                if fixed[i]:
+                    q[3 * i + 2] = seg.length_min
+                k += take
+        else:
+            forms = f"{self.dof}" + (f" or {short} (fixed lengths omitted)" if fixed.any() else "")
+            raise ValueError(f"{self.name}: a configuration needs {forms} numbers "
+                             f"[θ1, φ1, L1, …], got {v.size}")
+        if not np.all(np.isfinite(q)):
+            raise ValueError(f"{self.name}: configuration has non-finite entries: {q.tolist()}")
+        for i, seg in enumerate(self.segments):
+            theta, phi, length = q[3 * i: 3 * i + 3]
+            if not 0.0 <= theta <= seg.theta_max + 1e-9:
+                raise ValueError(f"{self.name}: θ{i + 1} = {theta} rad is outside "
+                                 f"[0, {seg.theta_max}]")
+            if not seg.phi_min - 1e-9 <= phi <= seg.phi_max + 1e-9:
+                raise ValueError(f"{self.name}: φ{i + 1} = {phi} rad is outside "
+                                 f"[{seg.phi_min}, {seg.phi_max}]")
+            if not seg.length_min - 1e-9 <= length <= seg.length_max + 1e-9:
+                what = (f"must equal the fixed length {seg.length_min}" if not seg.extendable
+                        else f"is outside [{seg.length_min}, {seg.length_max}]")
+                raise ValueError(f"{self.name}: L{i + 1} = {length} m {what}")
+        return q
+
     # ------------------------------------------------------------ construction
     @classmethod
     def from_file(cls, path: str | Path) -> Robot:

@@ -1,0 +1,138 @@
+"""The ``cr-nlp`` command: one subcommand per task, each a thin front end to the library."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .model import ModelFileError, Robot
+
+
+class UsageError(Exception):
+    """Bad command-line input: printed as one line, exit status 2."""
+
+
+def parse_numbers(text: str, what: str) -> list[float]:
+    """'0.1,0.2,1' → [0.1, 0.2, 1.0], with an error that names ``what``."""
+    try:
+        return [float(v) for v in text.replace(" ", "").split(",") if v != ""]
+    except ValueError:
+        raise UsageError(f"{what}: expected comma-separated numbers, got {text!r}") from None
+
+
+def read_json(path: str | Path, what: str) -> Any:
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise UsageError(f"{what}: file not found: {path}") from None
+    except json.JSONDecodeError as exc:
+        raise UsageError(f"{what}: {path} is not valid JSON: {exc}") from None
+
+
+def write_json(data: Any, path: str | None) -> None:
+    """Write JSON to ``path``, or to stdout when ``path`` is None or '-'."""
+    text = json.dumps(data, indent=2)
+    if path in (None, "-"):
+        print(text)
+    else:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        Path(path).write_text(text + "\n")
+
+
+def configurations_from_args(robot: Robot, q: str | None, q_file: str | None) -> np.ndarray:
+    """(k, 3n) configurations from ``--q`` or ``--q-file`` ({"q": [[...], ...]})."""
+    if (q is None) == (q_file is None):
+        raise UsageError("give exactly one of --q or --q-file")
+    rows = [parse_numbers(q, "--q")] if q is not None else read_json(q_file, "--q-file")
+    if q_file is not None:
+        if not isinstance(rows, dict) or not isinstance(rows.get("q"), list):
+            raise UsageError(f"--q-file: {q_file} must hold {{\"q\": [[...], ...]}}")
+        rows = rows["q"]
+    out = []
+    for i, row in enumerate(rows):
+        try:
+            out.append(robot.full_q(row))
+        except (ValueError, TypeError) as exc:
+            raise UsageError(f"configuration {i}: {exc}") from None
+    return np.array(out)
+
+
+# ---------------------------------------------------------------- fk
+
+def _add_fk(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("fk", help="forward kinematics: tip pose, tendon lengths, backbone")
+    p.add_argument("--robot", required=True, help="robot JSON file")
+    p.add_argument("--q", help="θ1,φ1,L1,... (rad, rad, m); fixed lengths may be omitted")
+    p.add_argument("--q-file", help='JSON file {"q": [[...], ...]}')
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    p.set_defaults(run=_run_fk)
+
+
+def _run_fk(args: argparse.Namespace) -> int:
+    from .model import backbone_points, tendon_lengths, tip_pose
+    from .model.rotations import wxyz_from_matrix
+
+    robot = Robot.from_file(args.robot)
+    qs = configurations_from_args(robot, args.q, args.q_file)
+    pos, rot = (np.asarray(x) for x in tip_pose(robot, qs))
+    lengths = np.asarray(tendon_lengths(robot, qs))
+    points = np.asarray(backbone_points(robot, qs))
+    records = [
+        {"position": pos[i].tolist(), "wxyz": wxyz_from_matrix(rot[i]).tolist(),
+         "tendon_lengths": lengths[i].tolist(), "backbone": points[i].tolist()}
+        for i in range(len(qs))
+    ]
+    if args.json:
+        write_json(records[0] if args.q is not None else records, None)
+        return 0
+    for i, rec in enumerate(records):
+        if len(records) > 1:
+            print(f"# configuration {i}: q = {np.round(qs[i], 6).tolist()}")
+        print(f"robot          {robot.name} ({robot.n_segments} segments, "
+              f"{robot.tendons.routing} routing)")
+        print("tip position   [{:.6f}, {:.6f}, {:.6f}] m".format(*rec["position"]))
+        print("tip wxyz       [{:.6f}, {:.6f}, {:.6f}, {:.6f}]".format(*rec["wxyz"]))
+        m = robot.tendons.per_segment
+        for k in range(0, len(rec["tendon_lengths"]), m):
+            label = "tendons" if robot.tendons.routing == "shared" else f"tendons seg {k // m + 1}"
+            vals = ", ".join(f"{v:.6f}" for v in rec["tendon_lengths"][k: k + m])
+            print(f"{label:<15}[{vals}] m")
+    return 0
+
+
+# ---------------------------------------------------------------- entry point
+
+SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_fk]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="cr-nlp",
+        description="IK, trajectory planning and path following for tendon-driven continuum "
+                    "robots (batched JAX search and refinement, exact CasADi/Ipopt polish).")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in SUBCOMMANDS:
+        add(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from ._jax_setup import enable_compilation_cache
+
+    args = build_parser().parse_args(argv)
+    enable_compilation_cache()
+    try:
+        return args.run(args)
+    except (UsageError, ModelFileError) as exc:
+        print(f"cr-nlp {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,23 @@
+"""Numpy conversions between unit quaternions (w, x, y, z) and rotation matrices."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._ops import JAX
+from .lie import quat_from_rot, rot_from_quat
+
+
+def wxyz_from_matrix(rotation: np.ndarray) -> np.ndarray:
+    """(…, 3, 3) rotation matrices → (…, 4) unit quaternions (w, x, y, z) with w ≥ 0."""
+    r = np.asarray(rotation, dtype=float)
+    entries = tuple(r[..., i, j] for i in range(3) for j in range(3))
+    return np.stack([np.asarray(v) for v in quat_from_rot(JAX, entries)], axis=-1)
+
+
+def matrix_from_wxyz(wxyz: np.ndarray) -> np.ndarray:
+    """(…, 4) unit quaternions (w, x, y, z) → (…, 3, 3) rotation matrices."""
+    q = np.asarray(wxyz, dtype=float)
+    entries = rot_from_quat(tuple(q[..., i] for i in range(4)))
+    return np.stack([np.broadcast_to(e, q.shape[:-1]) for e in entries], axis=-1).reshape(
+        q.shape[:-1] + (3, 3))

@@ -1,0 +1,14 @@
+"""Test-wide settings: float64 for agreement tests, a persistent JAX compilation cache."""
+
+import os
+from pathlib import Path
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+_cache = os.environ.get("CR_NLP_JAX_CACHE", str(Path(__file__).resolve().parent.parent / ".jax_cache"))
+jax.config.update("jax_compilation_cache_dir", _cache)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+ROOT = Path(__file__).resolve().parent.parent
+MODELS = ROOT / "models"

@@ -1,0 +1,67 @@
+"""`cr-nlp fk` as a user runs it."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cr_nlp.cli import main
+
+from .conftest import MODELS
+
+TDCR3 = str(MODELS / "robots" / "tdcr3.json")
+TDCR4 = str(MODELS / "robots" / "tdcr4_ext.json")
+
+
+def test_fk_json_single(capsys: pytest.CaptureFixture) -> None:
+    assert main(["fk", "--robot", TDCR3, "--q", "0,0,1,0,0,1,0,0,1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert set(out) == {"position", "wxyz", "tendon_lengths", "backbone"}
+    np.testing.assert_allclose(out["position"], [0, 0, 3], atol=1e-9)
+    np.testing.assert_allclose(out["wxyz"], [1, 0, 0, 0], atol=1e-9)
+    np.testing.assert_allclose(out["tendon_lengths"], [1, 1, 1, 2, 2, 2, 3, 3, 3], atol=1e-9)
+    assert len(out["backbone"]) == 30
+
+
+def test_fk_fixed_lengths_may_be_omitted(capsys: pytest.CaptureFixture) -> None:
+    main(["fk", "--robot", TDCR3, "--q", "1.5707963267948966,0,0,0,0,0", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    np.testing.assert_allclose(out["position"], [2 + 2 / np.pi, 0, 2 / np.pi], atol=1e-9)
+
+
+def test_fk_text_output(capsys: pytest.CaptureFixture) -> None:
+    assert main(["fk", "--robot", TDCR3, "--q", "0.3,0.1,0.2,0.4,0.5,0.6"]) == 0
+    text = capsys.readouterr().out
+    assert "tip position" in text and "tendons seg 3" in text
+
+
+def test_fk_q_file_gives_a_list(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    qfile = tmp_path / "q.json"
+    qfile.write_text(json.dumps({"q": [[0, 0, 1.0] * 4, [0.5, 1.0, 0.7] * 4]}))
+    assert main(["fk", "--robot", TDCR4, "--q-file", str(qfile), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert isinstance(out, list) and len(out) == 2
+    np.testing.assert_allclose(out[0]["position"], [0, 0, 4], atol=1e-9)
+
+
+@pytest.mark.parametrize(("q", "message"), [
+    ("0,0,1,0,0,1,0,0", "needs 9 or 6"),
+    ("4,0,1,0,0,1,0,0,1", "θ1 = 4.0 rad is outside"),
+    ("0,0,1.2,0,0,1,0,0,1", "must equal the fixed length"),
+    ("0,a,1", "comma-separated numbers"),
+    ("nan,0,0,0,0,0", "non-finite"),
+])
+def test_fk_bad_configurations(q: str, message: str, capsys: pytest.CaptureFixture) -> None:
+    assert main(["fk", "--robot", TDCR3, "--q", q]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_fk_bad_robot_file(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    bad = tmp_path / "robot.json"
+    data = json.loads(Path(TDCR3).read_text())
+    data["segments"] = []
+    bad.write_text(json.dumps(data))
+    assert main(["fk", "--robot", str(bad), "--q", "0,0,1"]) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and "segments" in err
