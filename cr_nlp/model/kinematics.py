@@ -76,7 +76,8 @@ def model_segment_frames(ops: Ops, robot: Robot, z: list[Any]) -> list[Transform
     frames = [model_base(robot)]
     for i in range(robot.n_segments):
         ux, uy, length = z[3 * i], z[3 * i + 1], z[3 * i + 2]
-        frames.append(transform_compose(frames[-1], model_segment_transform(ops, ux, uy, length)))
+        local = ops.materialize(model_segment_transform(ops, ux, uy, length))
+        frames.append(ops.materialize(transform_compose(frames[-1], local)))
     return frames
 
 

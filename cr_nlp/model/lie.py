@@ -102,7 +102,7 @@ def rot_from_quat(q: tuple[Any, Any, Any, Any]) -> Rot:
 
 def quat_from_rot(ops: Ops, r: Rot) -> tuple[Any, Any, Any, Any]:
     """Unit quaternion (w, x, y, z) with w ≥ 0 (Shepperd's method, branch-free form)."""
-    r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = ops.materialize(r)
     trace = r00 + r11 + r22
     # Four candidate formulas; the one with the largest 4·q_i² ≥ 1 is well conditioned.
     cand_w = 1.0 + trace
@@ -134,7 +134,7 @@ def quat_from_rot(ops: Ops, r: Rot) -> tuple[Any, Any, Any, Any]:
     def pick(i: int) -> Any:
         return ops.where(use_w, qw[i], ops.where(use_x, qx[i], ops.where(use_y, qy[i], qz[i])))
 
-    w, x, y, z = pick(0), pick(1), pick(2), pick(3)
+    w, x, y, z = ops.materialize((pick(0), pick(1), pick(2), pick(3)))
     sign = ops.where(w < 0.0, -1.0, 1.0)
     return w * sign, x * sign, y * sign, z * sign
 
@@ -163,8 +163,8 @@ def se3_log(ops: Ops, t: Transform) -> tuple[Any, Any, Any, Any, Any, Any]:
 
     v = V(ω)⁻¹ p with V⁻¹ = I − ½[ω]× + c(θ)[ω]×², c = (1 − θ sin θ / (2(1 − cos θ)))/θ².
     """
-    r, p = t
-    wx, wy, wz = so3_log(ops, r)
+    r, p = ops.materialize(t)
+    wx, wy, wz = ops.materialize(so3_log(ops, r))
     th2 = wx * wx + wy * wy + wz * wz
 
     def series(th2: Any) -> Any:

@@ -1,0 +1,72 @@
+"""Configuration limits in the bending-vector form: exact projection and violation measures."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .robot import Robot
+
+
+def _limit_arrays(robot: Robot, dtype: jnp.dtype) -> tuple[jax.Array, ...]:
+    theta_max = jnp.asarray([s.theta_max for s in robot.segments], dtype)
+    length_lo = jnp.asarray([s.length_min for s in robot.segments], dtype)
+    length_hi = jnp.asarray([s.length_max for s in robot.segments], dtype)
+    return theta_max, length_lo, length_hi
+
+
+def project_z(robot: Robot, z: jax.Array) -> jax.Array:
+    """Nearest point of the limits for (…, 3n) bending-vector configurations.
+
+    ‖uᵢ‖ ≤ θmaxᵢ (radians) by radial scaling, Lᵢ clipped to its range (metres) and,
+    where a segment has an azimuth range, φᵢ clipped to it.
+    """
+    theta_max, length_lo, length_hi = _limit_arrays(robot, z.dtype)
+    seg = z.reshape(z.shape[:-1] + (robot.n_segments, 3))
+    u = seg[..., :2]
+    theta = jnp.sqrt(jnp.sum(u * u, axis=-1))
+    scale = jnp.where(theta > theta_max, theta_max / jnp.maximum(theta, 1e-30), 1.0)
+    u = u * scale[..., None]
+    if any(s.phi_limited for s in robot.segments):
+        lo = jnp.asarray([s.phi_min if math.isfinite(s.phi_min) else -np.inf
+                          for s in robot.segments], z.dtype)
+        hi = jnp.asarray([s.phi_max if math.isfinite(s.phi_max) else np.inf
+                          for s in robot.segments], z.dtype)
+        th = jnp.minimum(theta, theta_max)
+        phi = jnp.clip(jnp.arctan2(u[..., 1], u[..., 0]), lo, hi)
+        u = jnp.stack([th * jnp.cos(phi), th * jnp.sin(phi)], axis=-1)
+    length = jnp.clip(seg[..., 2], length_lo, length_hi)
+    return jnp.concatenate([u, length[..., None]], axis=-1).reshape(z.shape)
+
+
+def limit_violation_q(robot: Robot, q: np.ndarray) -> np.ndarray:
+    """Largest violation of the limits by (…, 3n) configurations (θ, φ, L), in rad or m (≥ 0)."""
+    q = np.asarray(q, dtype=float)
+    seg = q.reshape(q.shape[:-1] + (robot.n_segments, 3))
+    theta, phi, length = seg[..., 0], seg[..., 1], seg[..., 2]
+    theta_max = np.array([s.theta_max for s in robot.segments])
+    lo_l = np.array([s.length_min for s in robot.segments])
+    hi_l = np.array([s.length_max for s in robot.segments])
+    lo_p = np.array([s.phi_min for s in robot.segments])
+    hi_p = np.array([s.phi_max for s in robot.segments])
+    parts = [
+        np.maximum(theta - theta_max, 0.0), np.maximum(-theta, 0.0),
+        np.maximum(length - hi_l, 0.0), np.maximum(lo_l - length, 0.0),
+    ]
+    limited = np.isfinite(lo_p) | np.isfinite(hi_p)
+    # φ is undefined for a straight segment: its range cannot be broken there.
+    bent = theta > 1e-12
+    parts += [np.where(limited & bent, np.maximum(phi - hi_p, 0.0), 0.0),
+              np.where(limited & bent, np.maximum(lo_p - phi, 0.0), 0.0)]
+    return np.max(np.stack(parts, axis=-1), axis=(-1, -2))
+
+
+def clip_to_limits(robot: Robot, q: np.ndarray) -> np.ndarray:
+    """(…, 3n) configurations (θ, φ, L) with θ, L (and limited φ) clipped into their ranges,
+    in float64: removes the round-off a float32 solver leaves at an active limit."""
+    lo, hi = robot.q_bounds()
+    periodic = np.array([[False, not s.phi_limited, False] for s in robot.segments]).ravel()
+    return np.where(periodic, q, np.clip(q, lo, hi))

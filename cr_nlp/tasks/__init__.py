@@ -1,0 +1,1 @@
+"""The tasks, each one problem definition (objective, constraints, result): IK first."""

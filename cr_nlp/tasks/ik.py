@@ -1,0 +1,505 @@
+"""Inverse kinematics: the problem, the batched solver and its result.
+
+Problem (DESIGN.md §2): z = bending-vector configuration; f = ½‖log(T_tip⁻¹·T_target)‖²
+as LM residuals; limits by projection; clearance ≥ δ (penalty in JAX, a real
+constraint in the exact stage); success is judged independently of the optimiser:
+pose error < ``IKConfig.success_tolerance`` re-evaluated in float64, every limit held,
+and, with a scene, collision-free by python-fcl.
+
+Stages: explore (a Sobol seed pool, the K pool entries nearest each target in pose,
+a few coarse LM steps on all of them, a diverse beam of the best), refine (LM on the
+beam, best per target, retries with fresh seeds for the targets still failing),
+polish (optional: Ipopt with the constraints as constraints).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._jax_setup import enable_compilation_cache
+from ..model import Robot, load_robot, q_to_z, z_to_q
+from ..model._ops import JAX
+from ..model.kinematics import model_pose_error, model_q_to_z, model_segment_frames
+from ..model.limits import clip_to_limits, limit_violation_q, project_z
+from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
+from ..stages.explore import SeedPool, select_beam, sobol_configurations
+from ..stages.lm import LMConfig, lm_solve
+from ..world import Scene, check_many, load_scene, scene_arrays
+from ..world._numpy_ops import NUMPY
+from ..world.clearance import body_gap_tolerance, pair_distances_z, self_distances_z
+
+
+@dataclass(frozen=True)
+class IKConfig:
+    """Settings of the batched IK solver. Defaults measured on tdcr3 (README table)."""
+
+    pool_size: int = 4096
+    """Sobol configurations whose tip poses seed the search."""
+    seeds_per_target: int = 12
+    """Pool entries nearest each target (in pose) that start the coarse LM steps."""
+    coarse_iterations: int = 6
+    """LM iterations on every seed before the beam is chosen."""
+    beam_width: int = 3
+    """Candidates per target kept for refinement."""
+    beam_min_distance: float = 0.1
+    """Beam candidates closer than this in bending-vector space (rad, m) count as one."""
+    refine_iterations: int = 40
+    """LM iterations on the beam."""
+    retry_rounds: int = 2
+    """Extra rounds, with fresh random seeds, for the targets that still fail."""
+    retry_seeds: int = 32
+    """Seeds per failing target in a retry round."""
+    success_tolerance: float = 1e-2
+    """A target is reached when the pose error ‖log(T⁻¹T_target)‖ is below this."""
+    converged_error: float = 1e-6
+    """LM stops early once every problem's pose error is below this."""
+    safety_margin: float | None = None
+    """δ, metres: the clearance every answer must keep. Default: the body model's
+    discretisation bound plus 2 mm, so that clearance ≥ δ implies collision-free for the
+    capsule checker (``world.clearance.body_gap_tolerance``)."""
+    clearance_weight: float = 30.0
+    """Penalty weight of a clearance shortfall (per metre) in the JAX stages."""
+    dtype: str = "float32"
+    """JAX dtype of the batched stages ("float64" needs jax_enable_x64)."""
+    seed: int = 0
+    """Seed of the pool and of the retry samples."""
+
+
+@dataclass
+class IKTiming:
+    """Wall-clock seconds per stage (compile apart from steady-state work)."""
+
+    compile: float = 0.0
+    explore: float = 0.0
+    refine: float = 0.0
+    polish: float = 0.0
+    verify: float = 0.0
+
+    @property
+    def total(self) -> float:
+        return self.compile + self.explore + self.refine + self.polish + self.verify
+
+    def as_dict(self) -> dict[str, float]:
+        return {"compile": self.compile, "explore": self.explore, "refine": self.refine,
+                "polish": self.polish, "verify": self.verify, "total": self.total}
+
+
+@dataclass
+class IKResult:
+    """One row per target. Units: rad, m; errors in the pose-error metric, m and rad."""
+
+    robot: Robot
+    q: np.ndarray                  # (T, 3n) θ, φ, L
+    position: np.ndarray           # (T, 3) tip position reached, m
+    wxyz: np.ndarray               # (T, 4) tip orientation reached
+    pose_error: np.ndarray         # (T,) ‖log(T⁻¹ T_target)‖
+    position_error: np.ndarray     # (T,) m
+    rotation_error: np.ndarray     # (T,) rad
+    max_violation: np.ndarray      # (T,) largest limit / clearance shortfall, rad or m
+    clearance: np.ndarray          # (T,) python-fcl signed distance, m (nan without scene)
+    collision_free: np.ndarray     # (T,) bool, python-fcl verdict (True without scene)
+    success: np.ndarray            # (T,) bool
+    stage: list[str]               # which stage produced each answer
+    reason: list[str]              # empty on success, else why it failed
+    timing: IKTiming = field(default_factory=IKTiming)
+    has_scene: bool = False
+
+    def __len__(self) -> int:
+        return len(self.q)
+
+    @property
+    def theta(self) -> np.ndarray:
+        return self.q[:, 0::3]
+
+    @property
+    def phi(self) -> np.ndarray:
+        return self.q[:, 1::3]
+
+    @property
+    def length(self) -> np.ndarray:
+        return self.q[:, 2::3]
+
+    def summary(self) -> dict[str, Any]:
+        ok = self.success
+        finite = np.isfinite(self.pose_error)
+        return {
+            "targets": len(self),
+            "success_rate": float(ok.mean()) if len(self) else 0.0,
+            "mean_pose_error": float(self.pose_error[finite].mean()) if finite.any() else None,
+            "mean_pose_error_success": float(self.pose_error[ok].mean()) if ok.any() else None,
+            "max_violation": float(np.nanmax(self.max_violation)) if len(self) else None,
+            "collision_free_rate": (float(self.collision_free.mean())
+                                    if self.has_scene and len(self) else None),
+        }
+
+    def to_json(self) -> dict[str, Any]:
+        """The RESULT.json form (README: ``cr-nlp ik``)."""
+        rows = []
+        for i in range(len(self)):
+            finite = bool(np.all(np.isfinite(self.q[i])))
+            rows.append({
+                "q": self.q[i].tolist() if finite else None,
+                "theta": self.theta[i].tolist() if finite else None,
+                "phi": self.phi[i].tolist() if finite else None,
+                "length": self.length[i].tolist() if finite else None,
+                "position": self.position[i].tolist() if finite else None,
+                "wxyz": self.wxyz[i].tolist() if finite else None,
+                "pose_error": _num(self.pose_error[i]),
+                "position_error": _num(self.position_error[i]),
+                "rotation_error": _num(self.rotation_error[i]),
+                "success": bool(self.success[i]),
+                "collision_free": bool(self.collision_free[i]) if self.has_scene else None,
+                "clearance": _num(self.clearance[i]) if self.has_scene else None,
+                "max_violation": _num(self.max_violation[i]),
+                "stage": self.stage[i],
+                "reason": self.reason[i] or None,
+            })
+        return {"robot": self.robot.name, "results": rows, "summary": self.summary(),
+                "timing": self.timing.as_dict()}
+
+
+def _num(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+# ---------------------------------------------------------------- the problem
+
+def ik_residual(robot: Robot, margin: float, weight: float, z: jax.Array, target: Any,
+                scene: Any) -> jax.Array:
+    """Residuals of one IK problem: the 6-vector pose error (m, rad) and, with a scene,
+    √weight·max(0, δ − d) for each body sphere's nearest obstacle part and each self pair."""
+    target_position, target_rotation = target
+    tip = model_segment_frames(JAX, robot, [z[i] for i in range(robot.dof)])[-1]
+    goal = (tuple(target_rotation[i] for i in range(9)),
+            tuple(target_position[i] for i in range(3)))
+    pose = jnp.stack(model_pose_error(JAX, tip, goal))
+    if scene is None:
+        return pose
+    parts = [jnp.min(pair_distances_z(robot, scene, z), axis=-1)] if scene.n_parts else []
+    if robot.n_segments >= 3:
+        parts.append(self_distances_z(robot, z))
+    if not parts:
+        return pose
+    shortfall = jnp.maximum(margin - jnp.concatenate(parts), 0.0)
+    return jnp.concatenate([pose, jnp.sqrt(weight) * shortfall])
+
+
+# ---------------------------------------------------------------- targets
+
+def validate_targets(robot: Robot, positions: Any, wxyz: Any) -> tuple[np.ndarray, np.ndarray,
+                                                                       list[str]]:
+    """Check targets; returns positions (T, 3), unit quaternions (T, 4) and a reason per
+    target ("" when valid). Invalid targets get NaN rows instead of raising."""
+    positions = np.asarray(positions, dtype=float).reshape(-1, 3)
+    wxyz = np.asarray(wxyz, dtype=float).reshape(-1, 4)
+    if len(positions) != len(wxyz):
+        raise ValueError(f"{len(positions)} positions but {len(wxyz)} orientations")
+    reasons = [""] * len(positions)
+    base = np.asarray(robot.base_position)
+    reach = robot.total_length_max
+    norms = np.linalg.norm(wxyz, axis=1)
+    for i in range(len(positions)):
+        if not np.all(np.isfinite(positions[i])):
+            reasons[i] = "target position is not finite"
+        elif not np.all(np.isfinite(wxyz[i])):
+            reasons[i] = "target orientation is not finite"
+        elif abs(norms[i] - 1.0) > 1e-3:
+            reasons[i] = f"target wxyz is not a unit quaternion (norm {norms[i]:.6g})"
+        elif np.linalg.norm(positions[i] - base) > reach * (1 + 1e-9):
+            reasons[i] = (f"target is out of reach: {np.linalg.norm(positions[i] - base):.4g} m "
+                          f"from the base, the robot is at most {reach:.4g} m long")
+    bad = np.array([bool(r) for r in reasons], dtype=bool)
+    wxyz = np.where(bad[:, None], np.nan, wxyz / np.where(norms > 0, norms, 1.0)[:, None])
+    positions = np.where(bad[:, None], np.nan, positions)
+    return positions, wxyz, reasons
+
+
+# ---------------------------------------------------------------- the solver
+
+def _bucket(n: int) -> int:
+    """Pad batch sizes to a few shapes so the compiled code is reused."""
+    size = 256
+    while size < n:
+        size *= 2
+    return size
+
+
+class IKSolver:
+    """Batched IK for one robot (and optionally one scene); reuse it across calls.
+
+    ``solve(positions, wxyz, exact=False)`` takes target positions (T, 3) in metres and
+    orientations (T, 4) as unit quaternions (w, x, y, z) and returns an ``IKResult``.
+    """
+
+    def __init__(self, robot: Robot | str | dict, scene: Scene | str | None = None,
+                 config: IKConfig = IKConfig()) -> None:
+        enable_compilation_cache()
+        self.robot = load_robot(robot)
+        self.scene = load_scene(scene) if isinstance(scene, str) else scene
+        self.config = config
+        self.dtype = jnp.dtype(config.dtype)
+        self.margin = (config.safety_margin if config.safety_margin is not None
+                       else body_gap_tolerance(self.robot) + 0.002)
+        self._arrays = (scene_arrays(self.scene, dtype=self.dtype)
+                        if self.scene is not None else None)
+        self._residual = partial(ik_residual, self.robot, float(self.margin),
+                                 float(config.clearance_weight))
+        self._project = partial(project_z, self.robot)
+        free = np.ones(self.robot.dof)
+        free[2::3] = ~self.robot.lengths_fixed()  # a fixed length is not a variable
+        self._free = jnp.asarray(free, self.dtype)
+        self._compiled: dict[tuple, Any] = {}
+        self._pool: SeedPool | None = None
+        self._polisher: Any = None
+        self._rng = np.random.default_rng(config.seed)
+
+    # ------------------------------------------------------------ pieces
+    def _seed_pool(self, timing: IKTiming) -> SeedPool:
+        if self._pool is None:
+            t0 = time.perf_counter()
+            q = sobol_configurations(self.robot, self.config.pool_size, self.config.seed)
+            if self.scene is not None:
+                q = q[self._collision_free(q)]
+            self._pool = SeedPool(self.robot, q)
+            timing.explore += time.perf_counter() - t0
+        return self._pool
+
+    def _collision_free(self, q: np.ndarray) -> np.ndarray:
+        """Which configurations keep clearance ≥ δ by the differentiable clearance (fast)."""
+        from ..world import clearance as clearance_fn
+
+        d = np.asarray(clearance_fn(self.robot, self._arrays, jnp.asarray(q, self.dtype)))
+        return d >= self.margin
+
+    def _lm(self, z0: np.ndarray, positions: np.ndarray, rotations: np.ndarray,
+            iterations: int, timing: IKTiming) -> tuple[np.ndarray, np.ndarray]:
+        """Padded, compiled-once LM over a batch; returns z (B, n) and pose-cost (B,)."""
+        b = len(z0)
+        size = _bucket(b)
+        pad = size - b
+        z0 = np.concatenate([z0, np.repeat(z0[:1], pad, 0)]) if pad else z0
+        positions = np.concatenate([positions, np.repeat(positions[:1], pad, 0)]) if pad else positions
+        rotations = np.concatenate([rotations, np.repeat(rotations[:1], pad, 0)]) if pad else rotations
+        config = LMConfig(iterations=iterations,
+                          cost_tolerance=0.5 * self.config.converged_error ** 2)
+        args = (jnp.asarray(z0, self.dtype),
+                (jnp.asarray(positions, self.dtype),
+                 jnp.asarray(rotations.reshape(-1, 9), self.dtype)),
+                self._arrays, self._free)
+        key = (size, iterations)
+        if key not in self._compiled:
+            t0 = time.perf_counter()
+            self._compiled[key] = lm_solve.lower(self._residual, self._project, args[0], args[1],
+                                                 args[2], args[3], config).compile()
+            timing.compile += time.perf_counter() - t0
+        z, cost, _ = self._compiled[key](*args)
+        z = np.array(z[:b])
+        return z, np.asarray(cost)[:b]
+
+    def _search(self, z_seeds: np.ndarray, positions: np.ndarray, rotations: np.ndarray,
+                timing: IKTiming) -> tuple[np.ndarray, np.ndarray]:
+        """Coarse LM on (T, K) seeds, diverse beam, refinement; best z (T, n), cost (T,)."""
+        t, k, n = z_seeds.shape
+        cfg = self.config
+        t0 = time.perf_counter()
+        c0 = timing.compile
+        z, cost = self._lm(z_seeds.reshape(-1, n), np.repeat(positions, k, 0),
+                           np.repeat(rotations, k, 0), cfg.coarse_iterations, timing)
+        z, cost = z.reshape(t, k, n), cost.reshape(t, k)
+        width = min(cfg.beam_width, k)
+        beam = select_beam(z, cost, width, cfg.beam_min_distance)
+        z_beam = z[np.arange(t)[:, None], beam]
+        timing.explore += time.perf_counter() - t0 - (timing.compile - c0)
+        t1 = time.perf_counter()
+        c1 = timing.compile
+        z, cost = self._lm(z_beam.reshape(-1, n), np.repeat(positions, width, 0),
+                           np.repeat(rotations, width, 0), cfg.refine_iterations, timing)
+        z, cost = z.reshape(t, width, n), cost.reshape(t, width)
+        best = np.argmin(cost, axis=1)
+        timing.refine += time.perf_counter() - t1 - (timing.compile - c1)
+        return z[np.arange(t), best], cost[np.arange(t), best]
+
+    def _random_seeds(self, count: int, per_target: int) -> np.ndarray:
+        q = sobol_configurations(self.robot, count * per_target,
+                                 int(self._rng.integers(1 << 30)))
+        self._rng.shuffle(q)
+        return np.array(q_to_z(self.robot, q)).reshape(count, per_target, -1)
+
+    # ------------------------------------------------------------ verification
+    def verify(self, q: np.ndarray, positions: np.ndarray,
+               wxyz: np.ndarray) -> dict[str, np.ndarray]:
+        """Float64 re-evaluation of answers, independent of the optimiser's numbers:
+        pose error by the numpy backend of the model, limits, python-fcl clearance."""
+        robot = self.robot
+        rot, pos = model_segment_frames(NUMPY, robot, model_q_to_z(NUMPY, robot, q))[-1]
+        rot_m = np.stack(np.broadcast_arrays(*rot), -1).reshape(-1, 3, 3)
+        pos_v = np.stack(np.broadcast_arrays(*pos), -1).reshape(-1, 3)
+        target_r = matrix_from_wxyz(wxyz)
+        goal = (tuple(target_r[:, i, j] for i in range(3) for j in range(3)),
+                tuple(positions[:, i] for i in range(3)))
+        tip = (tuple(rot_m[:, i, j] for i in range(3) for j in range(3)),
+               tuple(pos_v[:, i] for i in range(3)))
+        err = np.stack(np.broadcast_arrays(*model_pose_error(NUMPY, tip, goal)), -1)
+        rel_rot = np.einsum("bji,bjk->bik", rot_m, target_r)
+        cos_angle = np.clip((np.trace(rel_rot, axis1=1, axis2=2) - 1) / 2, -1, 1)
+        violation = limit_violation_q(robot, q)
+        out = {
+            "position": pos_v, "wxyz": wxyz_from_matrix(rot_m),
+            "pose_error": np.linalg.norm(err, axis=1),
+            "position_error": np.linalg.norm(pos_v - positions, axis=1),
+            "rotation_error": np.arccos(cos_angle),
+            "clearance": np.full(len(q), np.nan), "collision_free": np.ones(len(q), bool),
+        }
+        if self.scene is not None:
+            verdict = check_many(robot, self.scene, q)
+            out["clearance"] = verdict.min_distance
+            out["collision_free"] = ~verdict.collision
+            violation = np.maximum(violation, np.maximum(self.margin - verdict.min_distance, 0))
+        out["max_violation"] = violation
+        return out
+
+    # ------------------------------------------------------------ the solve
+    def solve(self, positions: Any, wxyz: Any, exact: bool = False,
+              progress: bool = False) -> IKResult:
+        """Solve a batch of IK targets.
+
+        Args:
+            positions: (T, 3) target tip positions, metres.
+            wxyz: (T, 4) target tip orientations, unit quaternions (w, x, y, z).
+            exact: polish every answer with Ipopt, constraints as constraints.
+            progress: show a progress bar for the exact stage.
+        """
+        timing = IKTiming()
+        cfg = self.config
+        robot = self.robot
+        positions, wxyz, reasons = validate_targets(robot, positions, wxyz)
+        t_all = len(positions)
+        valid = np.array([not r for r in reasons], dtype=bool)
+        q_out = np.full((t_all, robot.dof), np.nan)
+        stage = ["none"] * t_all
+        idx = np.flatnonzero(valid)
+        if len(idx):
+            pos_v, rot_v = positions[idx], matrix_from_wxyz(wxyz[idx])
+            pool = self._seed_pool(timing)
+            t0 = time.perf_counter()
+            nearest = pool.nearest(pos_v, rot_v, cfg.seeds_per_target)
+            timing.explore += time.perf_counter() - t0
+            z_best, cost = self._search(pool.z[nearest], pos_v, rot_v, timing)
+            ok = np.sqrt(2 * cost) < cfg.success_tolerance * 0.1
+            for _ in range(cfg.retry_rounds):
+                todo = np.flatnonzero(~ok)
+                if not len(todo):
+                    break
+                t0 = time.perf_counter()
+                seeds = self._random_seeds(len(todo), cfg.retry_seeds)
+                seeds[:, 0] = z_best[todo]  # keep the best so far in the race
+                timing.explore += time.perf_counter() - t0
+                z_new, c_new = self._search(seeds, pos_v[todo], rot_v[todo], timing)
+                better = c_new < cost[todo]
+                z_best[todo[better]] = z_new[better]
+                cost[todo[better]] = c_new[better]
+                ok = np.sqrt(2 * cost) < cfg.success_tolerance * 0.1
+            q_out[idx] = clip_to_limits(robot, np.asarray(z_to_q(robot, z_best), dtype=float))
+            for i in idx:
+                stage[i] = "refine"
+        result = self._finish(q_out, positions, wxyz, reasons, stage, timing)
+        if exact and len(idx):
+            self._polish(result, positions, wxyz, idx, timing, progress)
+        return result
+
+    def _finish(self, q: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
+                reasons: list[str], stage: list[str], timing: IKTiming) -> IKResult:
+        t0 = time.perf_counter()
+        valid = np.array([not r for r in reasons])
+        n = len(q)
+        fields = {k: np.full(n, np.nan) for k in ("pose_error", "position_error",
+                                                  "rotation_error", "max_violation", "clearance")}
+        position = np.full((n, 3), np.nan)
+        quat = np.full((n, 4), np.nan)
+        collision_free = np.zeros(n, bool)
+        if valid.any():
+            checked = self.verify(q[valid], positions[valid], wxyz[valid])
+            for k in fields:
+                fields[k][valid] = checked[k]
+            position[valid] = checked["position"]
+            quat[valid] = checked["wxyz"]
+            collision_free[valid] = checked["collision_free"]
+        result = IKResult(self.robot, q, position, quat, collision_free=collision_free,
+                          success=np.zeros(n, bool), stage=list(stage), reason=list(reasons),
+                          timing=timing, has_scene=self.scene is not None, **fields)
+        self._judge(result, valid)
+        timing.verify += time.perf_counter() - t0
+        return result
+
+    def _judge(self, result: IKResult, rows: np.ndarray) -> None:
+        """Success flags and failure reasons from the verified numbers (DESIGN.md §1)."""
+        tol = self.config.success_tolerance
+        for i in np.flatnonzero(rows):
+            if result.pose_error[i] >= tol:
+                result.reason[i] = (f"pose error {result.pose_error[i]:.3g} ≥ {tol} (target "
+                                    "possibly unreachable with this robot's limits)")
+            elif not result.collision_free[i]:
+                result.reason[i] = (f"in collision (python-fcl distance "
+                                    f"{result.clearance[i]:.4g} m)")
+            elif limit_violation_q(self.robot, result.q[i]) > 1e-9:
+                result.reason[i] = "breaks a configuration limit"
+            else:
+                result.reason[i] = ""
+            result.success[i] = not result.reason[i]
+
+    def _polish(self, result: IKResult, positions: np.ndarray, wxyz: np.ndarray,
+                idx: np.ndarray, timing: IKTiming, progress: bool) -> None:
+        from ..stages.polish import IKPolisher
+
+        t0 = time.perf_counter()
+        if self._polisher is None:
+            self._polisher = IKPolisher(self.robot, self.scene, safety_margin=self.margin)
+        rotations = matrix_from_wxyz(wxyz)
+        iterator = idx
+        if progress:
+            from tqdm import tqdm
+            iterator = tqdm(idx, desc="polish (Ipopt)", unit="target")
+        polished = np.full_like(result.q, np.nan)
+        good = np.zeros(len(result), bool)
+        for i in iterator:
+            out = self._polisher.solve(result.q[i], positions[i], rotations[i])
+            if out.success:
+                polished[i] = out.q
+                good[i] = True
+            else:
+                result.stage[i] = f"refine (polish failed: {out.status})"
+        timing.polish += time.perf_counter() - t0
+        if good.any():
+            t1 = time.perf_counter()
+            checked = self.verify(polished[good], positions[good], wxyz[good])
+            rows = np.flatnonzero(good)
+            # Keep the polished answer only where the independent check agrees.
+            keep = checked["max_violation"] <= 1e-6
+            for j, i in enumerate(rows):
+                if not keep[j]:
+                    result.stage[i] = "refine (polish rejected by the checker)"
+                    continue
+                result.q[i] = polished[i]
+                result.position[i] = checked["position"][j]
+                result.wxyz[i] = checked["wxyz"][j]
+                for k in ("pose_error", "position_error", "rotation_error", "max_violation",
+                          "clearance"):
+                    getattr(result, k)[i] = checked[k][j]
+                result.collision_free[i] = checked["collision_free"][j]
+                result.stage[i] = "polish"
+            self._judge(result, good)
+            timing.verify += time.perf_counter() - t1
+
+
+def solve_ik(robot: Robot | str | dict, positions: Any, wxyz: Any,
+             scene: Scene | str | None = None, config: IKConfig = IKConfig(),
+             exact: bool = False) -> IKResult:
+    """One-call IK: see ``IKSolver.solve`` (positions in metres, wxyz unit quaternions)."""
+    return IKSolver(robot, scene, config).solve(positions, wxyz, exact=exact)
