@@ -28,20 +28,16 @@ Projection = Callable[[jax.Array], jax.Array]
 
 @dataclass(frozen=True)
 class LMConfig:
-    """Levenberg–Marquardt settings."""
+    """Levenberg–Marquardt settings (the iteration budget is a run-time argument)."""
 
-    iterations: int = 30
-    """Maximum iterations."""
     initial_damping: float = 1e-2
-    """Starting λ relative to the largest diagonal entry of JᵀJ."""
+    """Starting λ relative to the diagonal of JᵀJ (Marquardt scaling)."""
     cost_tolerance: float = 1e-12
     """A problem counts as converged once ½‖r‖² is below this (units of r squared)."""
+    stall_tolerance: float = 1e-6
+    """...or once an accepted step lowers the cost by less than this fraction."""
     stop_when_converged: bool = True
     """End the loop early once every problem in the batch converged or stalled."""
-
-
-class LMState(tuple):
-    """(z, cost, damping, nu, iterations_used)."""
 
 
 def solve_spd(a: jax.Array, b: jax.Array) -> jax.Array:
@@ -74,7 +70,8 @@ def _cost(residual: Residual, z: jax.Array, params: Any, shared: Any) -> jax.Arr
 
 @partial(jax.jit, static_argnames=("residual", "project", "config"))
 def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any, shared: Any,
-             free: jax.Array, config: LMConfig = LMConfig()) -> tuple[jax.Array, jax.Array, jax.Array]:
+             free: jax.Array, iterations: jax.Array,
+             config: LMConfig = LMConfig()) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Run projected LM on a batch.
 
     Args:
@@ -85,7 +82,8 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
         params: pytree whose leaves have leading dimension B.
         shared: pytree passed unbatched to every problem's residual.
         free: (n,) 1.0 for variables the solver may move, 0.0 for fixed ones.
-        config: iteration settings.
+        iterations: maximum iterations (a traced integer: no recompilation per budget).
+        config: tolerances and damping.
 
     Returns:
         z (B, n), final cost ½‖r‖² (B,), iterations used (scalar).
@@ -95,12 +93,17 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
     fixed_diag = jnp.diag(1.0 - free)
     mask = free[:, None] * free[None, :]
     z0 = project(z0)
-    jac = jax.vmap(jax.jacfwd(residual), in_axes=(0, 0, None))
+    def with_value(z: jax.Array, p: Any, sh: Any) -> tuple[jax.Array, jax.Array]:
+        r = residual(z, p, sh)
+        return r, r
+
+    # One forward-mode pass gives the Jacobian and the residual together.
+    jac_and_residual = jax.vmap(jax.jacfwd(with_value, has_aux=True), in_axes=(0, 0, None))
 
     def body(state: tuple) -> tuple:
-        z, cost, lam, nu, it = state
-        r = jax.vmap(residual, in_axes=(0, 0, None))(z, params, shared)
-        j = jac(z, params, shared) * free
+        z, cost, lam, nu, done, it = state
+        j, r = jac_and_residual(z, params, shared)
+        j = j * free
         g = jnp.einsum("bmi,bm->bi", j, r)
         h = jnp.einsum("bmi,bmj->bij", j, j) * mask + fixed_diag
         diag = jnp.diagonal(h, axis1=-2, axis2=-1)
@@ -114,22 +117,25 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
                       + 0.5 * jnp.einsum("bi,bij,bj->b", actual, h, actual))
         rho = (cost - cost_new) / jnp.maximum(predicted, 1e-30)
         accept = (cost_new < cost) & jnp.isfinite(cost_new)
+        stalled = accept & (cost - cost_new < config.stall_tolerance * cost)
+        done = done | stalled | (cost_new < config.cost_tolerance) | (lam > 1e10)
         z = jnp.where(accept[:, None], z_new, z)
         cost = jnp.where(accept, cost_new, cost)
         shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * jnp.clip(rho, 0.0, 1.0) - 1.0) ** 3)
         lam = jnp.where(accept, lam * shrink, lam * nu)
         nu = jnp.where(accept, 2.0, nu * 2.0)
         lam = jnp.clip(lam, 1e-12, 1e12)
-        return z, cost, lam.astype(dtype), nu.astype(dtype), it + 1
+        return z, cost, lam.astype(dtype), nu.astype(dtype), done, it + 1
 
     def running(state: tuple) -> jax.Array:
-        _, cost, lam, _, it = state
-        active = (cost > config.cost_tolerance) & (lam < 1e11)
-        more = jnp.any(active) if config.stop_when_converged else True
-        return (it < config.iterations) & more
+        *_, done, it = state
+        more = ~jnp.all(done) if config.stop_when_converged else True
+        return (it < iterations) & more
 
     cost0 = _cost(residual, z0, params, shared)
     lam0 = jnp.full(cost0.shape, config.initial_damping, dtype)
     nu0 = jnp.full(cost0.shape, 2.0, dtype)
-    z, cost, _, _, it = jax.lax.while_loop(running, body, (z0, cost0, lam0, nu0, jnp.int32(0)))
+    done0 = cost0 < config.cost_tolerance
+    state = (z0, cost0, lam0, nu0, done0, jnp.int32(0))
+    z, cost, _, _, _, it = jax.lax.while_loop(running, body, state)
     return z, cost, it

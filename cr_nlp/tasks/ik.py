@@ -33,7 +33,8 @@ from ..stages.explore import SeedPool, select_beam, sobol_configurations
 from ..stages.lm import LMConfig, lm_solve
 from ..world import Scene, check_many, load_scene, scene_arrays
 from ..world._numpy_ops import NUMPY
-from ..world.clearance import body_gap_tolerance, pair_distances_z, self_distances_z
+from ..world.clearance import body_gap_tolerance
+from ..world.penalty import body_clearances_z
 
 
 @dataclass(frozen=True)
@@ -66,6 +67,8 @@ class IKConfig:
     capsule checker (``world.clearance.body_gap_tolerance``)."""
     clearance_weight: float = 30.0
     """Penalty weight of a clearance shortfall (per metre) in the JAX stages."""
+    chunk_size: int = 1024
+    """Most problems per compiled LM call; larger batches are split into chunks."""
     dtype: str = "float32"
     """JAX dtype of the batched stages ("float64" needs jax_enable_x64)."""
     seed: int = 0
@@ -182,12 +185,7 @@ def ik_residual(robot: Robot, margin: float, weight: float, z: jax.Array, target
     pose = jnp.stack(model_pose_error(JAX, tip, goal))
     if scene is None:
         return pose
-    parts = [jnp.min(pair_distances_z(robot, scene, z), axis=-1)] if scene.n_parts else []
-    if robot.n_segments >= 3:
-        parts.append(self_distances_z(robot, z))
-    if not parts:
-        return pose
-    shortfall = jnp.maximum(margin - jnp.concatenate(parts), 0.0)
+    shortfall = jnp.maximum(margin - body_clearances_z(robot, scene, z), 0.0)
     return jnp.concatenate([pose, jnp.sqrt(weight) * shortfall])
 
 
@@ -223,14 +221,6 @@ def validate_targets(robot: Robot, positions: Any, wxyz: Any) -> tuple[np.ndarra
 
 # ---------------------------------------------------------------- the solver
 
-def _bucket(n: int) -> int:
-    """Pad batch sizes to a few shapes so the compiled code is reused."""
-    size = 256
-    while size < n:
-        size *= 2
-    return size
-
-
 class IKSolver:
     """Batched IK for one robot (and optionally one scene); reuse it across calls.
 
@@ -255,7 +245,7 @@ class IKSolver:
         free = np.ones(self.robot.dof)
         free[2::3] = ~self.robot.lengths_fixed()  # a fixed length is not a variable
         self._free = jnp.asarray(free, self.dtype)
-        self._compiled: dict[tuple, Any] = {}
+        self._compiled: dict[int, Any] = {}
         self._pool: SeedPool | None = None
         self._polisher: Any = None
         self._rng = np.random.default_rng(config.seed)
@@ -280,28 +270,36 @@ class IKSolver:
 
     def _lm(self, z0: np.ndarray, positions: np.ndarray, rotations: np.ndarray,
             iterations: int, timing: IKTiming) -> tuple[np.ndarray, np.ndarray]:
-        """Padded, compiled-once LM over a batch; returns z (B, n) and pose-cost (B,)."""
-        b = len(z0)
-        size = _bucket(b)
-        pad = size - b
-        z0 = np.concatenate([z0, np.repeat(z0[:1], pad, 0)]) if pad else z0
-        positions = np.concatenate([positions, np.repeat(positions[:1], pad, 0)]) if pad else positions
-        rotations = np.concatenate([rotations, np.repeat(rotations[:1], pad, 0)]) if pad else rotations
-        config = LMConfig(iterations=iterations,
-                          cost_tolerance=0.5 * self.config.converged_error ** 2)
-        args = (jnp.asarray(z0, self.dtype),
-                (jnp.asarray(positions, self.dtype),
-                 jnp.asarray(rotations.reshape(-1, 9), self.dtype)),
-                self._arrays, self._free)
-        key = (size, iterations)
-        if key not in self._compiled:
-            t0 = time.perf_counter()
-            self._compiled[key] = lm_solve.lower(self._residual, self._project, args[0], args[1],
-                                                 args[2], args[3], config).compile()
-            timing.compile += time.perf_counter() - t0
-        z, cost, _ = self._compiled[key](*args)
-        z = np.array(z[:b])
-        return z, np.asarray(cost)[:b]
+        """LM over a batch in fixed-size chunks, so one compiled program serves every
+        batch size and budget; returns z (B, n) and cost ½‖r‖² (B,)."""
+        # Power-of-two chunks between 256 and chunk_size: few compiled shapes, little padding.
+        chunk = 256
+        while chunk < min(len(z0), self.config.chunk_size):
+            chunk *= 2
+        config = LMConfig(cost_tolerance=0.5 * self.config.converged_error ** 2)
+        z_out, cost_out = [], []
+        for start in range(0, len(z0), chunk):
+            stop = min(start + chunk, len(z0))
+            pad = chunk - (stop - start)
+
+            def padded(x: np.ndarray, start: int = start, stop: int = stop,
+                       pad: int = pad) -> np.ndarray:
+                part = x[start:stop]
+                return np.concatenate([part, np.repeat(part[:1], pad, 0)]) if pad else part
+
+            args = (jnp.asarray(padded(z0), self.dtype),
+                    (jnp.asarray(padded(positions), self.dtype),
+                     jnp.asarray(padded(rotations).reshape(-1, 9), self.dtype)),
+                    self._arrays, self._free, jnp.int32(iterations))
+            if chunk not in self._compiled:
+                t0 = time.perf_counter()
+                self._compiled[chunk] = lm_solve.lower(self._residual, self._project, *args,
+                                                       config=config).compile()
+                timing.compile += time.perf_counter() - t0
+            z, cost, _ = self._compiled[chunk](*args)
+            z_out.append(np.array(z[: stop - start]))
+            cost_out.append(np.array(cost[: stop - start]))
+        return np.concatenate(z_out), np.concatenate(cost_out)
 
     def _search(self, z_seeds: np.ndarray, positions: np.ndarray, rotations: np.ndarray,
                 timing: IKTiming) -> tuple[np.ndarray, np.ndarray]:
