@@ -106,9 +106,78 @@ def _run_fk(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------- ik
+
+def read_pose_file(path: str, what: str) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Poses from {"poses": [{"position": [x, y, z], "wxyz": [w, x, y, z]}, ...]}.
+
+    A malformed file is a usage error; a malformed entry becomes a NaN row with a reason,
+    so one bad target never sinks the batch."""
+    data = read_json(path, what)
+    if not isinstance(data, dict) or not isinstance(data.get("poses"), list):
+        raise UsageError(f"{what}: {path} must hold {{\"poses\": [{{\"position\": [x, y, z], "
+                         f"\"wxyz\": [w, x, y, z]}}, ...]}}")
+    poses = data["poses"]
+    positions = np.full((len(poses), 3), np.nan)
+    wxyz = np.full((len(poses), 4), np.nan)
+    problems = [""] * len(poses)
+    for i, pose in enumerate(poses):
+        try:
+            if not isinstance(pose, dict):
+                raise ValueError("entry is not an object")
+            p = np.asarray(pose["position"], dtype=float)
+            w = np.asarray(pose.get("wxyz", [1.0, 0.0, 0.0, 0.0]), dtype=float)
+            if p.shape != (3,) or w.shape != (4,):
+                raise ValueError(f"position needs 3 numbers and wxyz 4, got {p.size} and {w.size}")
+            positions[i], wxyz[i] = p, w
+        except (KeyError, TypeError, ValueError) as exc:
+            problems[i] = f"malformed pose entry: {exc}"
+    return positions, wxyz, problems
+
+
+def _add_ik(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("ik", help="inverse kinematics for a batch of target poses")
+    p.add_argument("--robot", required=True, help="robot JSON file")
+    p.add_argument("--targets", required=True,
+                   help='JSON file {"poses": [{"position": [x,y,z], "wxyz": [w,x,y,z]}, ...]}')
+    p.add_argument("--scene", help="scene JSON file (obstacles)")
+    p.add_argument("--exact", action="store_true",
+                   help="polish every answer with Ipopt, constraints as hard constraints")
+    p.add_argument("--seed", type=int, default=0, help="seed of the search (default 0)")
+    p.add_argument("--out", required=True, help="RESULT.json to write ('-' for stdout)")
+    p.set_defaults(run=_run_ik)
+
+
+def _run_ik(args: argparse.Namespace) -> int:
+    from .tasks.ik import IKConfig, IKSolver
+    from .world import load_scene
+
+    robot = Robot.from_file(args.robot)
+    scene = load_scene(args.scene) if args.scene else None
+    positions, wxyz, problems = read_pose_file(args.targets, "--targets")
+    solver = IKSolver(robot, scene, IKConfig(seed=args.seed))
+    result = solver.solve(positions, wxyz, exact=args.exact, progress=sys.stderr.isatty())
+    for i, problem in enumerate(problems):
+        if problem:
+            result.reason[i] = problem
+    data = result.to_json()
+    write_json(data, args.out)
+    summary, timing = data["summary"], data["timing"]
+    print(f"{robot.name}: {summary['targets']} targets, "
+          f"{100 * summary['success_rate']:.1f} % success, mean pose error "
+          f"{_fmt(summary['mean_pose_error_success'])} (successes), max violation "
+          f"{_fmt(summary['max_violation'])}; {timing['total']:.2f} s "
+          f"(compile {timing['compile']:.2f} s)", file=sys.stderr)
+    return 0
+
+
+def _fmt(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.3g}"
+
+
 # ---------------------------------------------------------------- entry point
 
-SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_fk]
+SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_fk, _add_ik]
 
 
 def build_parser() -> argparse.ArgumentParser:

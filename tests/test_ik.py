@@ -1,0 +1,162 @@
+"""IK round trips (sample q → FK → IK → independent check) and bad input."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cr_nlp.cli import main
+from cr_nlp.model import Robot, tip_pose
+from cr_nlp.model.limits import limit_violation_q
+from cr_nlp.model.rotations import wxyz_from_matrix
+from cr_nlp.tasks.ik import IKConfig, IKSolver
+from cr_nlp.world import check_many, load_scene
+
+from .conftest import MODELS
+
+TDCR3 = Robot.from_file(MODELS / "robots" / "tdcr3.json")
+TDCR4 = Robot.from_file(MODELS / "robots" / "tdcr4_ext.json")
+LATTICE = load_scene(MODELS / "scenes" / "lattice.json")
+
+
+def targets_from(robot: Robot, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    p, r = (np.array(x, dtype=float) for x in tip_pose(robot, q))
+    return p, wxyz_from_matrix(r)
+
+
+def free_configurations(robot: Robot, count: int, seed: int, clearance: float) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    lo, hi = robot.q_bounds()
+    q = rng.uniform(lo, hi, (count * 8, robot.dof))
+    verdict = check_many(robot, LATTICE, q)
+    q = q[verdict.min_distance > clearance]
+    assert len(q) >= count
+    return q[:count]
+
+
+@pytest.fixture(scope="module")
+def solver3() -> IKSolver:
+    return IKSolver(TDCR3)
+
+
+@pytest.fixture(scope="module")
+def solver4() -> IKSolver:
+    return IKSolver(TDCR4)
+
+
+@pytest.fixture(scope="module")
+def solver3_lattice() -> IKSolver:
+    return IKSolver(TDCR3, LATTICE)
+
+
+@pytest.mark.parametrize("which", ["solver3", "solver4"])
+def test_round_trip_without_obstacles(which: str, request: pytest.FixtureRequest) -> None:
+    solver: IKSolver = request.getfixturevalue(which)
+    robot = solver.robot
+    rng = np.random.default_rng(11)
+    lo, hi = robot.q_bounds()
+    q = rng.uniform(lo, hi, (200, robot.dof))
+    positions, wxyz = targets_from(robot, q)
+    result = solver.solve(positions, wxyz)
+    assert result.success.mean() >= 0.99
+    # Independent re-check: forward kinematics of the answers (JAX backend) hits the targets.
+    ok = result.success
+    p, r = targets_from(robot, result.q[ok])
+    np.testing.assert_allclose(p, positions[ok], atol=0.01)
+    assert np.all(np.abs(np.abs(np.sum(r * wxyz[ok], axis=1)) - 1) < 1e-4)
+    assert np.all(limit_violation_q(robot, result.q[ok]) == 0.0)
+    assert np.all(result.pose_error[ok] < 0.01)
+    assert np.mean(result.pose_error[ok]) < 5e-4
+
+
+def test_round_trip_in_the_lattice_is_collision_free(solver3_lattice: IKSolver) -> None:
+    q = free_configurations(TDCR3, 30, seed=5, clearance=0.02)
+    positions, wxyz = targets_from(TDCR3, q)
+    result = solver3_lattice.solve(positions, wxyz)
+    assert result.success.mean() >= 0.95
+    verdict = check_many(TDCR3, LATTICE, result.q[result.success])
+    assert not verdict.collision.any()  # the success flag was earned by python-fcl
+    assert np.all(result.collision_free[result.success])
+
+
+def test_extendable_robot_in_the_lattice() -> None:
+    q = free_configurations(TDCR4, 10, seed=8, clearance=0.02)
+    positions, wxyz = targets_from(TDCR4, q)
+    result = IKSolver(TDCR4, LATTICE).solve(positions, wxyz)
+    assert result.success.mean() >= 0.9
+    assert not check_many(TDCR4, LATTICE, result.q[result.success]).collision.any()
+
+
+def test_invalid_targets_fail_alone(solver3: IKSolver) -> None:
+    q = np.array([[0.5, 0.1, 1.0, 0.4, 2.0, 1.0, 0.3, -1.0, 1.0]] * 5)
+    positions, wxyz = targets_from(TDCR3, q)
+    positions[1] = [np.nan, 0.0, 1.0]
+    wxyz[2] = [1.0, 1.0, 0.0, 0.0]          # not unit
+    positions[3] = [10.0, 0.0, 0.0]         # beyond the 3 m robot
+    result = solver3.solve(positions, wxyz)
+    assert list(result.success) == [True, False, False, False, True]
+    assert "not finite" in result.reason[1]
+    assert "unit quaternion" in result.reason[2]
+    assert "out of reach" in result.reason[3]
+    assert np.all(np.isnan(result.q[1:4]))
+
+
+def test_reachable_distance_but_impossible_orientation_is_reported(solver3: IKSolver) -> None:
+    # At full stretch the tip can only point along the stretch: ask for a sideways tip.
+    positions = np.array([[0.0, 0.0, 2.999]])
+    wxyz = np.array([[np.cos(np.pi / 4), np.sin(np.pi / 4), 0.0, 0.0]])
+    result = solver3.solve(positions, wxyz)
+    assert not result.success[0]
+    assert "pose error" in result.reason[0]
+
+
+def test_seed_pool_and_compiled_code_are_reused_between_calls(solver3: IKSolver) -> None:
+    positions, wxyz = targets_from(TDCR3, np.array([[0.3, 0.0, 1.0] * 3]))
+    solver3.solve(positions, wxyz)
+    pool, compiled = solver3._pool, dict(solver3._compiled)
+    again = solver3.solve(positions, wxyz)
+    assert solver3._pool is pool and solver3._compiled == compiled
+    assert again.timing.compile == 0.0
+
+
+# ------------------------------------------------------------------ CLI
+
+def write_targets(path: Path, poses: list) -> None:
+    path.write_text(json.dumps({"poses": poses}))
+
+
+def test_cli_ik_writes_the_documented_result(tmp_path: Path) -> None:
+    q = free_configurations(TDCR3, 4, seed=3, clearance=0.03)
+    positions, wxyz = targets_from(TDCR3, q)
+    poses = [{"position": p.tolist(), "wxyz": w.tolist()} for p, w in zip(positions, wxyz)]
+    poses.append({"position": [0.0, 0.0, 50.0], "wxyz": [1, 0, 0, 0]})
+    poses.append({"position": [0.0, 1.0], "wxyz": [1, 0, 0, 0]})
+    write_targets(tmp_path / "targets.json", poses)
+    out = tmp_path / "result.json"
+    code = main(["ik", "--robot", str(MODELS / "robots" / "tdcr3.json"), "--targets",
+                 str(tmp_path / "targets.json"), "--scene", str(MODELS / "scenes" / "lattice.json"),
+                 "--seed", "1", "--out", str(out)])
+    assert code == 0
+    data = json.loads(out.read_text())
+    rows = data["results"]
+    assert len(rows) == 6 and {"summary", "timing"} <= set(data)
+    for row in rows[:4]:
+        assert row["success"] and row["collision_free"] is True and row["pose_error"] < 0.01
+        assert len(row["q"]) == 9 and len(row["theta"]) == 3 and row["max_violation"] >= 0
+    assert not rows[4]["success"] and "out of reach" in rows[4]["reason"]
+    assert not rows[5]["success"] and "malformed pose" in rows[5]["reason"]
+
+
+@pytest.mark.parametrize(("content", "message"), [
+    ({"targets": []}, "must hold"),
+    ("not json", "not valid JSON"),
+])
+def test_cli_ik_bad_target_files(tmp_path: Path, content: object, message: str,
+                                 capsys: pytest.CaptureFixture) -> None:
+    path = tmp_path / "targets.json"
+    path.write_text(content if isinstance(content, str) else json.dumps(content))
+    code = main(["ik", "--robot", str(MODELS / "robots" / "tdcr3.json"), "--targets", str(path),
+                 "--out", str(tmp_path / "r.json")])
+    assert code == 2
+    assert message in capsys.readouterr().err
