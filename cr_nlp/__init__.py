@@ -1,0 +1,26 @@
+"""cr_nlp: IK, trajectory planning and path following for tendon-driven continuum robots.
+
+Batched JAX search and refinement, an exact CasADi/Ipopt polish, and independent
+verdicts (float64 re-evaluation, python-fcl). Units: metres, radians, seconds.
+"""
+
+from .model import CasadiModel as CasadiModel
+from .model import ModelFileError as ModelFileError
+from .model import Robot as Robot
+from .model import backbone_points as backbone_points
+from .model import load_robot as load_robot
+from .model import pose_error as pose_error
+from .model import tendon_lengths as tendon_lengths
+from .model import tip_pose as tip_pose
+from .model.rotations import matrix_from_wxyz as matrix_from_wxyz
+from .model.rotations import wxyz_from_matrix as wxyz_from_matrix
+from .tasks.ik import IKConfig as IKConfig
+from .tasks.ik import IKResult as IKResult
+from .tasks.ik import IKSolver as IKSolver
+from .tasks.ik import solve_ik as solve_ik
+from .world import Scene as Scene
+from .world import check as check
+from .world import check_many as check_many
+from .world import load_scene as load_scene
+
+__version__ = "0.1.0"

@@ -180,6 +180,15 @@ def _fmt(x: float | None) -> str:
 SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [_add_fk, _add_ik]
 
 
+def _add_show(sub: argparse._SubParsersAction) -> None:
+    from .world_cli import add_show_parser
+
+    add_show_parser(sub)
+
+
+SUBCOMMANDS.append(_add_show)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cr-nlp",

@@ -10,7 +10,7 @@ from cr_nlp.cli import main
 from cr_nlp.model import Robot, tip_pose
 from cr_nlp.model.limits import limit_violation_q
 from cr_nlp.model.rotations import wxyz_from_matrix
-from cr_nlp.tasks.ik import IKConfig, IKSolver
+from cr_nlp.tasks.ik import IKSolver
 from cr_nlp.world import check_many, load_scene
 
 from .conftest import MODELS
@@ -129,7 +129,8 @@ def write_targets(path: Path, poses: list) -> None:
 def test_cli_ik_writes_the_documented_result(tmp_path: Path) -> None:
     q = free_configurations(TDCR3, 4, seed=3, clearance=0.03)
     positions, wxyz = targets_from(TDCR3, q)
-    poses = [{"position": p.tolist(), "wxyz": w.tolist()} for p, w in zip(positions, wxyz)]
+    poses = [{"position": p.tolist(), "wxyz": w.tolist()}
+             for p, w in zip(positions, wxyz, strict=True)]
     poses.append({"position": [0.0, 0.0, 50.0], "wxyz": [1, 0, 0, 0]})
     poses.append({"position": [0.0, 1.0], "wxyz": [1, 0, 0, 0]})
     write_targets(tmp_path / "targets.json", poses)

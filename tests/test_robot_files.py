@@ -12,7 +12,8 @@ from .conftest import MODELS
 
 GOOD = {
     "name": "tdcr3",
-    "segments": [{"length": 1.0, "theta_max": 3.14159}, {"length": [0.5, 1.5], "theta_max": 3.14159}],
+    "segments": [{"length": 1.0, "theta_max": 3.14159},
+                 {"length": [0.5, 1.5], "theta_max": 3.14159}],
     "backbone_radius": 0.1, "points_per_segment": 10,
     "tendons": {"per_segment": 3, "radius": 0.08, "offsets": [0.0, 0.0], "routing": "per_segment"},
     "base": {"position": [0, 0, 0], "wxyz": [1, 0, 0, 0]},

@@ -16,8 +16,9 @@ else is ordinary Python arithmetic.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import casadi as ca
 import jax

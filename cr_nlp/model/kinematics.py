@@ -265,8 +265,9 @@ class CasadiModel:
                 "tip": ca.Function(f"tip_{name}", [var], [ca.vertcat(*pos), rot_m]),
                 "backbone": ca.Function(f"backbone_{name}", [var],
                                         [model_backbone(CASADI, robot, z_entries, frames)]),
-                "tendons": ca.Function(f"tendons_{name}", [var],
-                                       [ca.vertcat(*model_tendon_lengths(CASADI, robot, z_entries))]),
+                "tendons": ca.Function(
+                    f"tendons_{name}", [var],
+                    [ca.vertcat(*model_tendon_lengths(CASADI, robot, z_entries))]),
                 "pose_error": ca.Function(f"pose_error_{name}", [var, target_p, target_r], [err]),
             }
 

@@ -25,7 +25,9 @@ def sinc_of_square(ops: Ops, t: Any) -> Any:
     """sin(θ)/θ as a function of t = θ² (analytic in t, finite derivatives at 0)."""
 
     def series(t: Any) -> Any:
-        return 1.0 - t / 6.0 * (1.0 - t / 20.0 * (1.0 - t / 42.0 * (1.0 - t / 72.0 * (1.0 - t / 110.0))))
+        # Horner form of 1 − t/3! + t²/5! − t³/7! + t⁴/9! − t⁵/11!
+        return 1.0 - t / 6.0 * (1.0 - t / 20.0 * (1.0 - t / 42.0 * (
+            1.0 - t / 72.0 * (1.0 - t / 110.0))))
 
     def exact(t: Any) -> Any:
         theta = ops.sqrt(t)

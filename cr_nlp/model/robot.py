@@ -247,7 +247,8 @@ class _Checker:
                             f"unknown key (allowed: {', '.join(sorted(allowed))})")
         missing = sorted(required - set(value))
         if missing:
-            raise self.fail(f"{path}.{missing[0]}" if path else missing[0], "missing required field")
+            raise self.fail(f"{path}.{missing[0]}" if path else missing[0],
+                            "missing required field")
         return value
 
     def number(self, value: Any, path: str, *, positive: bool = False,

@@ -61,10 +61,10 @@ class IKConfig:
     """A target is reached when the pose error ‖log(T⁻¹T_target)‖ is below this."""
     converged_error: float = 1e-6
     """LM stops early once every problem's pose error is below this."""
-    safety_margin: float | None = None
-    """δ, metres: the clearance every answer must keep. Default: the body model's
-    discretisation bound plus 2 mm, so that clearance ≥ δ implies collision-free for the
-    capsule checker (``world.clearance.body_gap_tolerance``)."""
+    safety_margin: float = 0.002
+    """δ, metres: the clearance every answer must keep, as python-fcl measures it on the
+    capsule body. The optimisers work on the sphere body with δ plus its discretisation
+    bound (``world.clearance.body_gap_tolerance``), which implies it."""
     clearance_weight: float = 30.0
     """Penalty weight of a clearance shortfall (per metre) in the JAX stages."""
     chunk_size: int = 1024
@@ -105,7 +105,8 @@ class IKResult:
     pose_error: np.ndarray         # (T,) ‖log(T⁻¹ T_target)‖
     position_error: np.ndarray     # (T,) m
     rotation_error: np.ndarray     # (T,) rad
-    max_violation: np.ndarray      # (T,) largest limit / clearance shortfall, rad or m
+    max_violation: np.ndarray      # (T,) largest limit violation (rad, m) or python-fcl
+    #                                clearance shortfall below the safety margin (m)
     clearance: np.ndarray          # (T,) python-fcl signed distance, m (nan without scene)
     collision_free: np.ndarray     # (T,) bool, python-fcl verdict (True without scene)
     success: np.ndarray            # (T,) bool
@@ -235,8 +236,9 @@ class IKSolver:
         self.scene = load_scene(scene) if isinstance(scene, str) else scene
         self.config = config
         self.dtype = jnp.dtype(config.dtype)
-        self.margin = (config.safety_margin if config.safety_margin is not None
-                       else body_gap_tolerance(self.robot) + 0.002)
+        # The sphere-body margin the optimisers enforce: implies config.safety_margin for
+        # the capsule body that python-fcl checks.
+        self.margin = config.safety_margin + body_gap_tolerance(self.robot)
         self._arrays = (scene_arrays(self.scene, dtype=self.dtype)
                         if self.scene is not None else None)
         self._residual = partial(ik_residual, self.robot, float(self.margin),
@@ -359,7 +361,8 @@ class IKSolver:
             verdict = check_many(robot, self.scene, q)
             out["clearance"] = verdict.min_distance
             out["collision_free"] = ~verdict.collision
-            violation = np.maximum(violation, np.maximum(self.margin - verdict.min_distance, 0))
+            shortfall = np.maximum(self.config.safety_margin - verdict.min_distance, 0.0)
+            violation = np.maximum(violation, shortfall)
         out["max_violation"] = violation
         return out
 
