@@ -34,7 +34,7 @@ class LMConfig:
     """Starting λ relative to the diagonal of JᵀJ (Marquardt scaling)."""
     cost_tolerance: float = 1e-12
     """A problem counts as converged once ½‖r‖² is below this (units of r squared)."""
-    stall_tolerance: float = 1e-6
+    stall_tolerance: float = 1e-4
     """...or once an accepted step lowers the cost by less than this fraction."""
     stop_when_converged: bool = True
     """End the loop early once every problem in the batch converged or stalled."""

@@ -54,7 +54,8 @@ class IKConfig:
     refine_iterations: int = 40
     """LM iterations on the beam."""
     retry_rounds: int = 2
-    """Extra rounds, with fresh random seeds, for the targets that still fail."""
+    """Extra rounds, with fresh random seeds, for the targets whose penalised residual is
+    still above ``success_tolerance``."""
     retry_seeds: int = 32
     """Seeds per failing target in a retry round."""
     success_tolerance: float = 1e-2
@@ -393,7 +394,7 @@ class IKSolver:
             nearest = pool.nearest(pos_v, rot_v, cfg.seeds_per_target)
             timing.explore += time.perf_counter() - t0
             z_best, cost = self._search(pool.z[nearest], pos_v, rot_v, timing)
-            ok = np.sqrt(2 * cost) < cfg.success_tolerance * 0.1
+            ok = np.sqrt(2 * cost) < cfg.success_tolerance
             for _ in range(cfg.retry_rounds):
                 todo = np.flatnonzero(~ok)
                 if not len(todo):
@@ -406,7 +407,7 @@ class IKSolver:
                 better = c_new < cost[todo]
                 z_best[todo[better]] = z_new[better]
                 cost[todo[better]] = c_new[better]
-                ok = np.sqrt(2 * cost) < cfg.success_tolerance * 0.1
+                ok = np.sqrt(2 * cost) < cfg.success_tolerance
             q_out[idx] = clip_to_limits(robot, np.asarray(z_to_q(robot, z_best), dtype=float))
             for i in idx:
                 stage[i] = "refine"
