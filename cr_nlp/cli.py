@@ -186,7 +186,15 @@ def _add_show(sub: argparse._SubParsersAction) -> None:
     add_show_parser(sub)
 
 
-SUBCOMMANDS.append(_add_show)
+def _add_bench(sub: argparse._SubParsersAction) -> None:
+    from .world_cli import add_bench_clearance
+
+    p = sub.add_parser("bench", help="benchmarks that print tables (not tests)")
+    group = p.add_subparsers(dest="benchmark", required=True)
+    add_bench_clearance(group)
+
+
+SUBCOMMANDS += [_add_show, _add_bench]
 
 
 def build_parser() -> argparse.ArgumentParser:

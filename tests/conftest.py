@@ -5,10 +5,10 @@ from pathlib import Path
 
 import jax
 
-jax.config.update("jax_enable_x64", True)
-_cache = os.environ.get("CR_NLP_JAX_CACHE", str(Path(__file__).resolve().parent.parent / ".jax_cache"))
-jax.config.update("jax_compilation_cache_dir", _cache)
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-
 ROOT = Path(__file__).resolve().parent.parent
 MODELS = ROOT / "models"
+
+jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_compilation_cache_dir",
+                  os.environ.get("CR_NLP_JAX_CACHE", str(ROOT / ".jax_cache")))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)

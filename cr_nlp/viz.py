@@ -1,0 +1,268 @@
+"""Matplotlib 3-D figures: the robot as a tube, its tendons, obstacles, trajectories and
+target frames. Figures are rendered with the Agg backend (no display needed); pass
+your own 3-D ``ax`` to draw into an interactive figure instead. Lengths in metres.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+from .model.kinematics import (
+    model_q_to_z,
+    model_segment_frames,
+    model_segment_transform,
+    tendon_angles,
+)
+from .model.lie import transform_compose
+from .model.robot import Robot
+from .world._numpy_ops import NUMPY
+from .world.scene import (
+    BoxPart,
+    CapsulePart,
+    ConvexPart,
+    CylinderPart,
+    Scene,
+    SpherePart,
+    rotation_z_to,
+)
+
+ROBOT_COLOR = "#d95f02"
+OBSTACLE_COLOR = "#7f8fa6"
+MESH_COLOR = "#c8a77e"
+
+
+# ================================================================ robot geometry
+
+
+def backbone_frames(robot: Robot, q: Any, samples: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    """Frames along the backbone for drawing: positions (M, 3) m and rotations (M, 3, 3),
+    the base followed by ``samples`` frames per segment (M = 1 + n·samples)."""
+    q = np.asarray(q, dtype=float).reshape(robot.dof)
+    z = model_q_to_z(NUMPY, robot, q)
+    frames = model_segment_frames(NUMPY, robot, z)
+    s = np.arange(1, samples + 1) / samples
+    positions = [np.asarray(frames[0][1], dtype=float)[None]]
+    rotations = [np.asarray(frames[0][0], dtype=float).reshape(1, 3, 3)]
+    for i in range(robot.n_segments):
+        ux, uy, length = z[3 * i: 3 * i + 3]
+        with np.errstate(invalid="ignore", divide="ignore"):  # unused safe_where branch
+            local = model_segment_transform(NUMPY, ux * s, uy * s, length * s)
+        rot, pos = transform_compose(frames[i], local)
+        positions.append(np.stack(np.broadcast_arrays(*pos), axis=-1))
+        rotations.append(np.stack(np.broadcast_arrays(*rot), axis=-1).reshape(-1, 3, 3))
+    return np.concatenate(positions), np.concatenate(rotations)
+
+
+def _tube(positions: np.ndarray, rotations: np.ndarray, radius: float,
+          around: int = 16) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    angle = np.linspace(0.0, 2.0 * np.pi, around)
+    ring = np.cos(angle)[None, :, None] * rotations[:, None, :, 0] \
+        + np.sin(angle)[None, :, None] * rotations[:, None, :, 1]
+    surface = positions[:, None, :] + radius * ring
+    return surface[..., 0], surface[..., 1], surface[..., 2]
+
+
+def _tendon_paths(robot: Robot, positions: np.ndarray, rotations: np.ndarray,
+                  samples: int) -> list[np.ndarray]:
+    """Polylines of every tendon (m), at the routing radius in each cross-section."""
+    alpha = tendon_angles(robot)
+    r = robot.tendons.radius
+    n, m = robot.n_segments, robot.tendons.per_segment
+
+    def offset(index: np.ndarray, angles: np.ndarray) -> np.ndarray:
+        local = np.stack([np.cos(angles), np.sin(angles)], axis=-1) * r
+        rot = rotations[index]
+        return positions[index] + local[:, :1] * rot[:, :, 0] + local[:, 1:] * rot[:, :, 1]
+
+    def segment_of(index: np.ndarray) -> np.ndarray:
+        return np.maximum(index - 1, 0) // samples
+
+    paths = []
+    if robot.tendons.routing == "shared":
+        index = np.arange(len(positions))
+        for j in range(m):
+            paths.append(offset(index, alpha[segment_of(index), j]))
+    else:
+        for k in range(n):
+            index = np.arange(1 + (k + 1) * samples)
+            for j in range(m):
+                paths.append(offset(index, np.full(len(index), alpha[k, j])))
+    return paths
+
+
+# ================================================================ obstacle geometry
+
+
+def _sphere_surface(center: np.ndarray, radius: float, n: int = 18) -> tuple[np.ndarray, ...]:
+    u, v = np.meshgrid(np.linspace(0, 2 * np.pi, n), np.linspace(0, np.pi, n // 2 + 1))
+    return (center[0] + radius * np.cos(u) * np.sin(v), center[1] + radius * np.sin(u) * np.sin(v),
+            center[2] + radius * np.cos(v))
+
+
+def _cylinder_surface(a: np.ndarray, b: np.ndarray, radius: float,
+                      n: int = 18) -> tuple[np.ndarray, ...]:
+    rot = rotation_z_to(b - a)
+    angle = np.linspace(0, 2 * np.pi, n)
+    ring = radius * (np.cos(angle)[:, None] * rot[:, 0] + np.sin(angle)[:, None] * rot[:, 1])
+    pts = np.stack([a + ring, b + ring], axis=1)  # (n, 2, 3)
+    return pts[..., 0], pts[..., 1], pts[..., 2]
+
+
+def _box_faces(part: BoxPart) -> np.ndarray:
+    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float)
+    corners = part.center + (signs * part.half_size) @ part.rotation.T
+    quads = [[0, 1, 3, 2], [4, 5, 7, 6], [0, 1, 5, 4], [2, 3, 7, 6], [0, 2, 6, 4], [1, 3, 7, 5]]
+    return corners[np.array(quads)]
+
+
+def _draw_part(ax: Axes, part: Any, color: str, alpha: float, points: list[np.ndarray]) -> None:
+    if isinstance(part, SpherePart):
+        x, y, z = _sphere_surface(part.center, part.radius)
+        ax.plot_surface(x, y, z, color=color, alpha=alpha, linewidth=0, shade=True)
+        points.append(np.c_[x.ravel(), y.ravel(), z.ravel()])
+    elif isinstance(part, BoxPart):
+        faces = _box_faces(part)
+        ax.add_collection3d(Poly3DCollection(list(faces), facecolors=color, alpha=alpha,
+                                             edgecolors="k", linewidths=0.3, shade=True))
+        points.append(faces.reshape(-1, 3))
+    elif isinstance(part, CapsulePart | CylinderPart):
+        x, y, z = _cylinder_surface(part.a, part.b, part.radius)
+        ax.plot_surface(x, y, z, color=color, alpha=alpha, linewidth=0, shade=True)
+        points.append(np.c_[x.ravel(), y.ravel(), z.ravel()])
+        if isinstance(part, CapsulePart):
+            for end in (part.a, part.b):
+                xs, ys, zs = _sphere_surface(end, part.radius, 14)
+                ax.plot_surface(xs, ys, zs, color=color, alpha=alpha, linewidth=0, shade=True)
+    elif isinstance(part, ConvexPart):
+        tris = part.vertices[part.triangles]
+        ax.add_collection3d(Poly3DCollection(list(tris), facecolors=color, alpha=alpha,
+                                             edgecolors=(0, 0, 0, 0.1), linewidths=0.1, shade=True))
+        points.append(part.vertices)
+
+
+def _draw_scene(ax: Axes, scene: Scene, show_parts: bool, points: list[np.ndarray]) -> None:
+    palette = ["#1b9e77", "#7570b3", "#e7298a", "#66a61e", "#e6ab02", "#a6761d", "#666666"]
+    for obstacle in scene.obstacles:
+        if obstacle.mesh is not None and not show_parts:
+            tris = np.asarray(obstacle.mesh.triangles)
+            ax.add_collection3d(Poly3DCollection(list(tris), facecolors=MESH_COLOR, alpha=0.3,
+                                                 edgecolors=(0, 0, 0, 0.0), linewidths=0.0,
+                                                 shade=True))
+            points.append(tris.reshape(-1, 3))
+            continue
+        for i, part in enumerate(obstacle.parts):
+            color = palette[i % len(palette)] if show_parts else OBSTACLE_COLOR
+            _draw_part(ax, part, color, 0.45 if show_parts else 0.6, points)
+
+
+# ================================================================ public API
+
+
+def draw(robot: Robot, q: Any = None, scene: Scene | None = None,
+         trajectory: Sequence[Any] | None = None, targets: Sequence[Any] | None = None,
+         ax: Axes | None = None, *, tendons: bool = False, show_parts: bool = False,
+         title: str | None = None, elev: float = 20.0, azim: float = -135.0) -> Axes:
+    """Draw the robot at q (3n; rad, rad, m) as a tube of radius ``backbone_radius``, with
+    its tendons (``tendons``), the scene's obstacles (meshes as loaded, or their convex
+    parts with ``show_parts``), a trajectory (a sequence of q: faded backbones and the tip
+    path) and target frames (each a 4×4 pose, a (position (3,), rotation (3, 3)) pair or a
+    position). Axes are scaled equally. Returns the 3-D axes (new, Agg-backed, if None)."""
+    if ax is None:
+        fig = Figure(figsize=(7.5, 7.5))
+        FigureCanvasAgg(fig)
+        ax = fig.add_subplot(projection="3d")
+    points: list[np.ndarray] = [np.asarray(robot.base_position, dtype=float)[None]]
+    samples = 24
+
+    if scene is not None:
+        _draw_scene(ax, scene, show_parts, points)
+
+    if trajectory is not None and len(trajectory):
+        colors = _colormap(len(trajectory))
+        tips = []
+        for k, qk in enumerate(trajectory):
+            pos, _ = backbone_frames(robot, qk, samples=8)
+            ax.plot(pos[:, 0], pos[:, 1], pos[:, 2], color=colors[k], alpha=0.55, linewidth=1.2)
+            tips.append(pos[-1])
+            points.append(pos)
+        tips_arr = np.array(tips)
+        ax.plot(tips_arr[:, 0], tips_arr[:, 1], tips_arr[:, 2], color="#ff7f00", linewidth=2.0,
+                label="tip path")
+        if q is None:
+            q = trajectory[-1]
+
+    if q is not None:
+        pos, rot = backbone_frames(robot, q, samples=samples)
+        x, y, z = _tube(pos, rot, robot.backbone_radius)
+        ax.plot_surface(x, y, z, color=ROBOT_COLOR, alpha=0.35 if tendons else 0.95,
+                        linewidth=0, shade=True)
+        points.append(pos)
+        ends = pos[:: samples]
+        ax.scatter(ends[:, 0], ends[:, 1], ends[:, 2], color="k", s=8, depthshade=False)
+        if tendons:
+            for path in _tendon_paths(robot, pos, rot, samples):
+                ax.plot(path[:, 0], path[:, 1], path[:, 2], color="#1f78b4", linewidth=0.8)
+
+    for target in targets or []:
+        position, rotation = _pose(target)
+        points.append(position[None])
+        if rotation is None:
+            ax.scatter(*position, color="#e31a1c", s=20)
+            continue
+        for axis, color in zip(range(3), ("#e41a1c", "#4daf4a", "#377eb8"), strict=True):
+            ax.quiver(*position, *(0.15 * rotation[:, axis]), color=color, linewidth=1.5)
+
+    _equal_axes(ax, np.concatenate(points))
+    ax.view_init(elev=elev, azim=azim)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_zlabel("z (m)")
+    if title:
+        ax.set_title(title)
+    return ax
+
+
+def save_figure(robot: Robot, q: Any = None, scene: Scene | None = None,
+                trajectory: Sequence[Any] | None = None, targets: Sequence[Any] | None = None,
+                *, path: str | Path, dpi: int = 150, **options: Any) -> Path:
+    """Draw as ``draw`` does and save a PNG (or any format matplotlib knows by the
+    suffix) to ``path``; returns the path. ``options`` go to ``draw``."""
+    ax = draw(robot, q, scene, trajectory, targets, **options)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    ax.figure.savefig(path, dpi=dpi, bbox_inches="tight")
+    return path
+
+
+def _colormap(count: int) -> np.ndarray:
+    from matplotlib import colormaps
+
+    return colormaps["viridis"](np.linspace(0.0, 0.9, count))
+
+
+def _pose(target: Any) -> tuple[np.ndarray, np.ndarray | None]:
+    if isinstance(target, tuple | list) and len(target) == 2:
+        return np.asarray(target[0], dtype=float), np.asarray(target[1], dtype=float)
+    t = np.asarray(target, dtype=float)
+    if t.shape == (4, 4):
+        return t[:3, 3], t[:3, :3]
+    return t.reshape(3), None
+
+
+def _equal_axes(ax: Axes, points: np.ndarray) -> None:
+    """Limits around the drawn points with one scale on every axis."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    pad = 0.05 * float(np.max(hi - lo)) + 1e-3
+    lo, hi = lo - pad, hi + pad
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_zlim(lo[2], hi[2])
+    ax.set_box_aspect(tuple(hi - lo))

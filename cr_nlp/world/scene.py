@@ -1,0 +1,456 @@
+"""Scene files: obstacles, mesh loading and the cached convex decomposition.
+
+A scene file is JSON (schema in ``models/README.md``, "Scene files"): a list of
+obstacles, each a sphere, box, capsule, cylinder or triangle mesh. Loading
+validates every field and raises one ``ModelFileError`` naming the file, the
+obstacle (index and name) and what is wrong.
+
+Every obstacle becomes a tuple of convex *parts*, the only thing the distance
+code sees: ``SpherePart``, ``BoxPart``, ``CapsulePart``, ``CylinderPart`` and
+``ConvexPart`` (a convex polytope with its vertices and face planes n·x ≤ b).
+A mesh is decomposed by CoACD into convex parts; the decomposition is cached
+on disk, keyed by the SHA-256 of the mesh file's bytes and the settings, so a
+scene loads in milliseconds after the first time. All lengths are metres.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import math
+import os
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._jax_setup import cache_dir
+from ..model.robot import ModelFileError, _Checker
+from ..model.rotations import matrix_from_wxyz
+
+# ================================================================ parts
+
+
+@dataclass(frozen=True, eq=False)
+class SpherePart:
+    """A ball: ``center`` (3,) m, ``radius`` m."""
+
+    center: np.ndarray
+    radius: float
+
+
+@dataclass(frozen=True, eq=False)
+class BoxPart:
+    """A solid box: ``center`` (3,) m, ``rotation`` (3, 3) world-from-box, ``half_size`` (3,) m."""
+
+    center: np.ndarray
+    rotation: np.ndarray
+    half_size: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class CapsulePart:
+    """All points within ``radius`` m of the segment from ``a`` to ``b`` (3,) m."""
+
+    a: np.ndarray
+    b: np.ndarray
+    radius: float
+
+
+@dataclass(frozen=True, eq=False)
+class CylinderPart:
+    """A solid circular cylinder of ``radius`` m whose axis runs from ``a`` to ``b`` (3,) m."""
+
+    a: np.ndarray
+    b: np.ndarray
+    radius: float
+
+    @property
+    def center(self) -> np.ndarray:
+        return 0.5 * (self.a + self.b)
+
+    @property
+    def half_length(self) -> float:
+        return 0.5 * float(np.linalg.norm(self.b - self.a))
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """World-from-cylinder rotation whose third column is the axis direction."""
+        return rotation_z_to(self.b - self.a)
+
+
+@dataclass(frozen=True, eq=False)
+class ConvexPart:
+    """A convex polytope: ``vertices`` (V, 3) m, outward ``triangles`` (T, 3) of its hull,
+    and its face planes ``normals`` (F, 3) (unit) and ``offsets`` (F,) m: the part is
+    {x : normals·x ≤ offsets}."""
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    normals: np.ndarray
+    offsets: np.ndarray
+
+    @classmethod
+    def from_points(cls, points: np.ndarray) -> ConvexPart:
+        """The convex hull of ``points`` (K, 3) m, with coplanar hull triangles merged
+        into one face plane each."""
+        import trimesh
+
+        hull = trimesh.Trimesh(np.asarray(points, dtype=float)).convex_hull
+        normals = np.asarray(hull.face_normals, dtype=float)
+        offsets = np.einsum("ij,ij->i", normals, hull.triangles[:, 0])
+        # Triangles of one hull face share their plane; one plane per face keeps F small.
+        key = np.round(np.c_[normals, offsets], 6)
+        _, first = np.unique(key, axis=0, return_index=True)
+        first = np.sort(first)
+        return cls(np.asarray(hull.vertices, dtype=float), np.asarray(hull.faces, dtype=np.int64),
+                   normals[first], offsets[first])
+
+
+Part = SpherePart | BoxPart | CapsulePart | CylinderPart | ConvexPart
+
+PART_KINDS: tuple[type, ...] = (SpherePart, BoxPart, CapsulePart, CylinderPart, ConvexPart)
+"""The order of part kinds in every flat list of parts (and in the clearance's pair axis)."""
+
+
+def bounding_sphere(part: Part) -> tuple[np.ndarray, float]:
+    """A ball (centre (3,) m, radius m) that contains the part; used to prune distance queries."""
+    if isinstance(part, SpherePart):
+        return part.center, part.radius
+    if isinstance(part, BoxPart):
+        return part.center, float(np.linalg.norm(part.half_size))
+    if isinstance(part, CapsulePart):
+        return 0.5 * (part.a + part.b), 0.5 * float(np.linalg.norm(part.b - part.a)) + part.radius
+    if isinstance(part, CylinderPart):
+        return part.center, math.hypot(part.half_length, part.radius)
+    center = 0.5 * (part.vertices.min(axis=0) + part.vertices.max(axis=0))
+    return center, float(np.linalg.norm(part.vertices - center, axis=1).max())
+
+
+def rotation_z_to(direction: np.ndarray) -> np.ndarray:
+    """A rotation matrix whose third column is ``direction`` normalised (the shortest turn
+    from +z; a half turn about x for −z)."""
+    d = np.asarray(direction, dtype=float)
+    d = d / np.linalg.norm(d)
+    c = d[2]
+    if c < -1.0 + 1e-12:
+        return np.diag([1.0, -1.0, -1.0])
+    # Rodrigues for the rotation taking e_z to d: R = I + K + K²/(1 + c), K = [e_z × d]×.
+    k = np.array([[0.0, 0.0, d[0]], [0.0, 0.0, d[1]], [-d[0], -d[1], 0.0]])
+    return np.eye(3) + k + k @ k / (1.0 + c)
+
+
+# ================================================================ scene
+
+
+@dataclass(frozen=True, eq=False)
+class Obstacle:
+    """One obstacle of a scene: its ``name``, ``kind`` (the file's ``type``), its convex
+    ``parts``, the placed triangle ``mesh`` for drawing (meshes only) and its ``spec``
+    (the JSON entry it came from)."""
+
+    name: str
+    kind: str
+    parts: tuple[Part, ...]
+    spec: dict[str, Any]
+    mesh: Any = None
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """A set of obstacles (compared by identity, so caches can key on it)."""
+
+    name: str
+    obstacles: tuple[Obstacle, ...]
+    description: str = ""
+    source: str = ""
+
+    @property
+    def parts(self) -> tuple[Part, ...]:
+        """All parts, grouped by kind in ``PART_KINDS`` order (the clearance's part axis)."""
+        return tuple(p for p, _ in self._parts_with_owner())
+
+    @property
+    def part_obstacle(self) -> np.ndarray:
+        """(P,) index of the obstacle each part of ``parts`` belongs to."""
+        return np.array([i for _, i in self._parts_with_owner()], dtype=np.int64)
+
+    def _parts_with_owner(self) -> list[tuple[Part, int]]:
+        out = []
+        for kind in PART_KINDS:
+            for i, obstacle in enumerate(self.obstacles):
+                out += [(p, i) for p in obstacle.parts if isinstance(p, kind)]
+        return out
+
+    @classmethod
+    def from_file(cls, path: str | Path, settings: DecompositionSettings | None = None) -> Scene:
+        """Load and validate a scene JSON file (mesh paths relative to the file)."""
+        path = Path(path)
+        source = str(path)
+        try:
+            text = path.read_text()
+        except FileNotFoundError:
+            raise ModelFileError(source, "<file>", "file not found") from None
+        except OSError as exc:
+            raise ModelFileError(source, "<file>", f"cannot read: {exc}") from None
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ModelFileError(source, "<file>", f"not valid JSON: {exc}") from None
+        return cls.from_dict(data, source=source, base_dir=path.parent, settings=settings)
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str = "", base_dir: str | Path | None = None,
+                  settings: DecompositionSettings | None = None) -> Scene:
+        """Validate a scene description (the JSON file's content). Relative mesh paths
+        are resolved against ``base_dir`` (default: the current directory)."""
+        return _parse_scene(data, source, Path(base_dir) if base_dir is not None else Path.cwd(),
+                            settings or DecompositionSettings())
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON form (mesh paths as given in the file)."""
+        out: dict[str, Any] = {"name": self.name}
+        if self.description:
+            out["description"] = self.description
+        out["obstacles"] = [dict(o.spec) for o in self.obstacles]
+        return out
+
+
+def bundled_scene_path(name: str) -> Path:
+    """Path of a scene bundled in ``models/scenes`` (``name`` without ``.json``)."""
+    return Path(__file__).resolve().parents[2] / "models" / "scenes" / f"{name}.json"
+
+
+def load_scene(scene: str | Path | Scene | dict) -> Scene:
+    """A ``Scene`` from a file path, a bundled scene name (``"shelf"``), a dict, or a
+    ``Scene`` (returned as is)."""
+    if isinstance(scene, Scene):
+        return scene
+    if isinstance(scene, dict):
+        return Scene.from_dict(scene)
+    path = Path(scene)
+    if not path.exists() and path.suffix == "" and bundled_scene_path(str(scene)).exists():
+        path = bundled_scene_path(str(scene))
+    return Scene.from_file(path)
+
+
+# ================================================================ convex decomposition
+
+
+@dataclass(frozen=True)
+class DecompositionSettings:
+    """CoACD settings for mesh obstacles; the defaults decompose a thin shelf in about 2 s.
+
+    Part of the cache key: changing any field recomputes the decomposition.
+    """
+
+    threshold: float = 0.05
+    """Concavity threshold (relative to the mesh size): smaller gives more, tighter parts."""
+    preprocess_mode: str = "off"
+    """"off" skips CoACD's remeshing, which took minutes on thin boards; meshes must be
+    closed (watertight) for "off" to be correct."""
+    resolution: int = 1000
+    """Surface samples per cut evaluation."""
+    mcts_iterations: int = 30
+    """Tree-search iterations per cut (CoACD's default is 150)."""
+    mcts_nodes: int = 10
+    """Child nodes per tree-search node."""
+    mcts_max_depth: int = 2
+    """Tree-search depth."""
+    merge: bool = False
+    """CoACD's merge step; off because merging thin boards made hulls bulge into the
+    compartments between them (measured: 60 % more volume than the shelf)."""
+    seed: int = 0
+    """Random seed, for reproducible parts."""
+
+
+_CACHE_STATS = {"hits": 0, "misses": 0}
+
+
+def coacd_cache_stats() -> dict[str, int]:
+    """How often a mesh decomposition came from the disk cache (``hits``) or was computed
+    (``misses``) in this process."""
+    return dict(_CACHE_STATS)
+
+
+def coacd_cache_dir() -> Path:
+    """Where decompositions are cached: ``$CR_NLP_CACHE_DIR/coacd``, else
+    ``~/.cache/cr_nlp/coacd``."""
+    return cache_dir() / "coacd"
+
+
+def decompose_mesh(vertices: np.ndarray, faces: np.ndarray, content: bytes,
+                   settings: DecompositionSettings) -> list[np.ndarray]:
+    """Convex parts of a closed triangle mesh, as a list of (K, 3) hull vertex arrays
+    (the mesh's own units). ``content`` is the mesh file's bytes: with the settings it
+    forms the cache key."""
+    key = hashlib.sha256(
+        content + json.dumps(asdict(settings), sort_keys=True).encode()).hexdigest()
+    path = coacd_cache_dir() / f"{key}.npz"
+    if path.exists():
+        try:
+            with np.load(path) as data:
+                points, counts = data["points"], data["counts"]
+            _CACHE_STATS["hits"] += 1
+            return np.split(points, np.cumsum(counts)[:-1])
+        except (OSError, KeyError, ValueError):
+            pass  # a damaged cache file is recomputed and overwritten below
+    import coacd
+
+    coacd.set_log_level("error")
+    result = coacd.run_coacd(coacd.Mesh(np.asarray(vertices, dtype=float),
+                                        np.asarray(faces, dtype=np.int32)), **asdict(settings))
+    parts = [np.asarray(v, dtype=float) for v, _ in result]
+    _CACHE_STATS["misses"] += 1
+    path.parent.mkdir(parents=True, exist_ok=True)
+    buffer = io.BytesIO()
+    np.savez(buffer, points=np.concatenate(parts), counts=np.array([len(p) for p in parts]))
+    # Write then rename, so a concurrent reader never sees half a file.
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    with os.fdopen(fd, "wb") as f:
+        f.write(buffer.getvalue())
+    os.replace(tmp, path)
+    return parts
+
+
+# ================================================================ validation
+
+_TOP_KEYS = {"name", "description", "obstacles"}
+_KEYS = {
+    "sphere": ({"type", "name", "center", "radius"}, {"center", "radius"}),
+    "box": ({"type", "name", "center", "size", "wxyz"}, {"center", "size"}),
+    "capsule": ({"type", "name", "a", "b", "radius"}, {"a", "b", "radius"}),
+    "cylinder": ({"type", "name", "a", "b", "radius"}, {"a", "b", "radius"}),
+    "mesh": ({"type", "name", "path", "scale", "position", "wxyz"}, {"path"}),
+}
+
+
+def _parse_scene(data: Any, source: str, base_dir: Path,
+                 settings: DecompositionSettings) -> Scene:
+    c = _Checker(source)
+    d = c.obj(data, "", _TOP_KEYS, {"obstacles"})
+    name = d.get("name", Path(source).stem if source else "scene")
+    if not isinstance(name, str) or not name:
+        raise c.fail("name", f"expected a non-empty string, got {name!r}")
+    description = d.get("description", "")
+    if not isinstance(description, str):
+        raise c.fail("description", f"expected a string, got {type(description).__name__}")
+    raw = d["obstacles"]
+    if not isinstance(raw, list):
+        raise c.fail("obstacles", f"expected a list of obstacles, got {type(raw).__name__}")
+    obstacles = tuple(_parse_obstacle(c, o, i, base_dir, settings) for i, o in enumerate(raw))
+    seen: dict[str, int] = {}
+    for i, o in enumerate(obstacles):
+        if o.name in seen:
+            raise c.fail(f"obstacles[{i}].name",
+                         f"name {o.name!r} is already used by obstacles[{seen[o.name]}]")
+        seen[o.name] = i
+    return Scene(name=name, obstacles=obstacles, description=description, source=source)
+
+
+def _parse_obstacle(c: _Checker, raw: Any, index: int, base_dir: Path,
+                    settings: DecompositionSettings) -> Obstacle:
+    path = f"obstacles[{index}]"
+    if not isinstance(raw, dict):
+        raise c.fail(path, f"expected an object, got {type(raw).__name__}")
+    name = raw.get("name")
+    if name is not None:
+        if not isinstance(name, str) or not name:
+            raise c.fail(f"{path}.name", f"expected a non-empty string, got {name!r}")
+        path = f"{path} ({name})"
+    if "type" not in raw:
+        raise c.fail(f"{path}.type", "missing required field "
+                                     f"(one of: {', '.join(sorted(_KEYS))})")
+    kind = raw["type"]
+    if not isinstance(kind, str) or kind not in _KEYS:
+        raise c.fail(f"{path}.type", f"unknown obstacle type {kind!r} "
+                                     f"(allowed: {', '.join(sorted(_KEYS))})")
+    allowed, required = _KEYS[kind]
+    c.obj(raw, path, allowed, required)
+    name = name or f"{kind}_{index}"
+
+    def vec(key: str) -> np.ndarray:
+        return np.array(c.vector(raw[key], f"{path}.{key}", 3))
+
+    def rotation(key: str) -> np.ndarray:
+        if key not in raw:
+            return np.eye(3)
+        q = np.array(c.vector(raw[key], f"{path}.{key}", 4))
+        norm = float(np.linalg.norm(q))
+        if abs(norm - 1.0) > 1e-3:
+            raise c.fail(f"{path}.{key}", f"must be a unit quaternion (w, x, y, z), "
+                                          f"its norm is {norm:.6g}")
+        return matrix_from_wxyz(q / norm)
+
+    parts: tuple[Part, ...]
+    mesh = None
+    if kind == "sphere":
+        parts = (SpherePart(vec("center"),
+                            c.number(raw["radius"], f"{path}.radius", positive=True)),)
+    elif kind == "box":
+        size = vec("size")
+        if np.any(size <= 0):
+            raise c.fail(f"{path}.size", f"every side must be positive, got {size.tolist()}")
+        parts = (BoxPart(vec("center"), rotation("wxyz"), 0.5 * size),)
+    elif kind in ("capsule", "cylinder"):
+        a, b = vec("a"), vec("b")
+        radius = c.number(raw["radius"], f"{path}.radius", positive=True)
+        if np.linalg.norm(b - a) <= 1e-9:
+            hint = " (use a sphere)" if kind == "capsule" else ""
+            raise c.fail(f"{path}.b", f"the axis end points a and b coincide{hint}")
+        parts = ((CapsulePart if kind == "capsule" else CylinderPart)(a, b, radius),)
+    else:
+        parts, mesh = _parse_mesh(c, raw, path, base_dir, settings, vec, rotation)
+    return Obstacle(name=name, kind=kind, parts=parts, spec=dict(raw), mesh=mesh)
+
+
+def _parse_mesh(c: _Checker, raw: dict, path: str, base_dir: Path,
+                settings: DecompositionSettings, vec: Any, rotation: Any) -> tuple[tuple, Any]:
+    import trimesh
+
+    mesh_path = raw["path"]
+    if not isinstance(mesh_path, str) or not mesh_path:
+        raise c.fail(f"{path}.path", f"expected a file path string, got {mesh_path!r}")
+    file = Path(mesh_path) if Path(mesh_path).is_absolute() else base_dir / mesh_path
+    try:
+        content = file.read_bytes()
+    except FileNotFoundError:
+        raise c.fail(f"{path}.path", f"mesh file not found: {file}") from None
+    except OSError as exc:
+        raise c.fail(f"{path}.path", f"cannot read mesh file {file}: {exc}") from None
+    scale = c.number(raw.get("scale", 1.0), f"{path}.scale", positive=True)
+    position = vec("position") if "position" in raw else np.zeros(3)
+    rot = rotation("wxyz")
+    try:
+        loaded = trimesh.load(io.BytesIO(content), file_type=file.suffix.lstrip(".").lower(),
+                              force="mesh", process=True)
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise c.fail(f"{path}.path", f"cannot read {file} as a mesh: {exc}") from None
+    vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=float)
+    faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64)
+    if len(faces) == 0 or len(vertices) < 4:
+        raise c.fail(f"{path}.path", f"degenerate mesh {file}: it has no faces")
+    if not _has_volume(vertices):
+        raise c.fail(f"{path}.path", f"degenerate mesh {file}: zero volume "
+                                     "(all vertices lie on one plane)")
+    if not loaded.is_watertight:
+        raise c.fail(f"{path}.path", f"mesh {file} is not closed (watertight); the convex "
+                                     "decomposition needs a solid")
+    local_parts = decompose_mesh(vertices, faces, content, settings)
+
+    def place(points: np.ndarray) -> np.ndarray:
+        return (scale * points) @ rot.T + position
+
+    parts = tuple(ConvexPart.from_points(place(p)) for p in local_parts)
+    placed = trimesh.Trimesh(place(vertices), faces, process=False)
+    return parts, placed
+
+
+def _has_volume(vertices: np.ndarray) -> bool:
+    centred = vertices - vertices.mean(axis=0)
+    singular = np.linalg.svd(centred, compute_uv=False)
+    return bool(singular[-1] > 1e-9 * max(singular[0], 1e-300))
+
