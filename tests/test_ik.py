@@ -10,7 +10,7 @@ from cr_nlp.cli import main
 from cr_nlp.model import Robot, tip_pose
 from cr_nlp.model.limits import limit_violation_q
 from cr_nlp.model.rotations import wxyz_from_matrix
-from cr_nlp.tasks.ik import IKSolver
+from cr_nlp.tasks.ik import IKConfig, IKSolver
 from cr_nlp.world import check_many, load_scene
 
 from .conftest import MODELS
@@ -161,3 +161,25 @@ def test_cli_ik_bad_target_files(tmp_path: Path, content: object, message: str,
                  "--out", str(tmp_path / "r.json")])
     assert code == 2
     assert message in capsys.readouterr().err
+
+
+def test_exact_mode_repairs_penalty_answers_that_break_the_margin() -> None:
+    # Without a clearance penalty the JAX answers ignore the spheres; some collide.
+    q = free_configurations(TDCR3, 60, seed=4, clearance=0.03)
+    positions, wxyz = targets_from(TDCR3, q)
+    solver = IKSolver(TDCR3, LATTICE, IKConfig(clearance_weight=0.0))
+    penalty = solver.solve(positions, wxyz)
+    broken = np.flatnonzero(penalty.max_violation > 1e-3)
+    assert len(broken) >= 2, "the setup must produce penalty answers that break the margin"
+    exact = solver.solve(positions, wxyz, exact=True)
+    polished = np.array([s == "polish" for s in exact.stage])
+    # Every answer the polish produced holds every constraint, by python-fcl.
+    assert np.all(exact.max_violation[polished] <= 1e-6)
+    assert not check_many(TDCR3, LATTICE, exact.q[polished]).collision.any()
+    assert np.all(exact.pose_error[polished] < 1e-6)
+    repaired = [i for i in broken if polished[i]]
+    assert len(repaired) >= 1
+    # A polish that fails keeps the JAX answer, marked.
+    for i in np.flatnonzero(~polished):
+        assert exact.stage[i].startswith("refine (polish")
+        np.testing.assert_allclose(exact.q[i], penalty.q[i], atol=1e-6)
