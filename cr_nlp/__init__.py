@@ -4,6 +4,7 @@ Batched JAX search and refinement, an exact CasADi/Ipopt polish, and independent
 verdicts (float64 re-evaluation, python-fcl). Units: metres, radians, seconds.
 """
 
+from ._jax_setup import use_host_devices as use_host_devices
 from .model import CasadiModel as CasadiModel
 from .model import ModelFileError as ModelFileError
 from .model import Robot as Robot

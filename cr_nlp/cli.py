@@ -209,9 +209,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from ._jax_setup import enable_compilation_cache
+    from ._jax_setup import enable_compilation_cache, use_host_devices
 
     args = build_parser().parse_args(argv)
+    use_host_devices()  # both cores for the batched stages (before JAX starts)
     enable_compilation_cache()
     try:
         return args.run(args)

@@ -83,7 +83,8 @@ def add_bench_clearance(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_bench_clearance(args: argparse.Namespace) -> int:
-    from .bench.clearance import main, use_host_devices
+    from ._jax_setup import use_host_devices
+    from .bench.clearance import main
 
     if not use_host_devices(args.devices):
         print("# note: JAX had already started; running on its existing devices")

@@ -133,8 +133,9 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
         return (it < iterations) & more
 
     cost0 = _cost(residual, z0, params, shared)
-    lam0 = jnp.full(cost0.shape, config.initial_damping, dtype)
-    nu0 = jnp.full(cost0.shape, 2.0, dtype)
+    # Derived from cost0 (not jnp.full) so that under shard_map they vary per shard too.
+    lam0 = jnp.zeros_like(cost0) + jnp.asarray(config.initial_damping, dtype)
+    nu0 = jnp.zeros_like(cost0) + jnp.asarray(2.0, dtype)
     done0 = cost0 < config.cost_tolerance
     state = (z0, cost0, lam0, nu0, done0, jnp.int32(0))
     z, cost, _, _, _, it = jax.lax.while_loop(running, body, state)

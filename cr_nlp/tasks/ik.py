@@ -22,6 +22,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh
+from jax.sharding import PartitionSpec as P
 
 from .._jax_setup import enable_compilation_cache
 from ..model import Robot, load_robot, q_to_z, z_to_q
@@ -296,13 +298,27 @@ class IKSolver:
                     self._arrays, self._free, jnp.int32(iterations))
             if chunk not in self._compiled:
                 t0 = time.perf_counter()
-                self._compiled[chunk] = lm_solve.lower(self._residual, self._project, *args,
-                                                       config=config).compile()
+                self._compiled[chunk] = self._lower(args, config).compile()
                 timing.compile += time.perf_counter() - t0
-            z, cost, _ = self._compiled[chunk](*args)
+            z, cost = self._compiled[chunk](*args)[:2]
             z_out.append(np.array(z[: stop - start]))
             cost_out.append(np.array(cost[: stop - start]))
         return np.concatenate(z_out), np.concatenate(cost_out)
+
+    def _lower(self, args: tuple, config: LMConfig) -> Any:
+        """The LM program for one chunk, split over every JAX device (one shard per CPU
+        core with ``use_host_devices``): each device runs its own loop on its share."""
+        devices = jax.devices()
+        solve = partial(lm_solve, self._residual, self._project, config=config)
+        if len(devices) == 1 or len(args[0]) % len(devices):
+            return jax.jit(solve).lower(*args)
+        mesh = Mesh(np.array(devices), ("batch",))
+        batch, whole = P("batch"), P()
+        sharded = jax.shard_map(
+            lambda z, params, shared, free, iterations: solve(z, params, shared, free,
+                                                              iterations)[:2],
+            mesh=mesh, in_specs=(batch, batch, whole, whole, whole), out_specs=(batch, batch))
+        return jax.jit(sharded).lower(*args)
 
     def _search(self, z_seeds: np.ndarray, positions: np.ndarray, rotations: np.ndarray,
                 timing: IKTiming) -> tuple[np.ndarray, np.ndarray]:
