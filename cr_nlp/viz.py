@@ -15,6 +15,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
+from .model._ops import NUMPY
 from .model.kinematics import (
     model_q_to_z,
     model_segment_frames,
@@ -23,7 +24,6 @@ from .model.kinematics import (
 )
 from .model.lie import transform_compose
 from .model.robot import Robot
-from .world._numpy_ops import NUMPY
 from .world.scene import (
     BoxPart,
     CapsulePart,

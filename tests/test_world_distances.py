@@ -8,10 +8,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from cr_nlp.model._ops import NUMPY
 from cr_nlp.model.rotations import matrix_from_wxyz
 from cr_nlp.world import BoxPart, CapsulePart, ConvexPart, CylinderPart, SpherePart
 from cr_nlp.world import distances as dist
-from cr_nlp.world._numpy_ops import NUMPY
 from cr_nlp.world.check import fcl_distance, fcl_object
 
 jax.config.update("jax_enable_x64", True)

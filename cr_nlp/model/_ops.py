@@ -113,3 +113,27 @@ def safe_where(ops: Ops, condition: Any, series: Callable[[Any], Any],
     """
     x_exact = ops.where(condition, safe_value, x)
     return ops.where(condition, series(x), exact(x_exact))
+
+
+# float64 kinematics for verdicts and figures, independent of JAX's precision setting.
+def _numpy_stack_points(per_segment: list[tuple[Any, Any, Any]]) -> np.ndarray:
+    return np.concatenate([np.stack(np.broadcast_arrays(*xyz), axis=-1) for xyz in per_segment],
+                          axis=-2)
+
+
+NUMPY = Ops(
+    name="numpy",
+    sin=np.sin,
+    cos=np.cos,
+    sqrt=np.sqrt,
+    atan2=np.arctan2,
+    where=np.where,
+    fmax=np.maximum,
+    fmin=np.minimum,
+    entry=lambda x, i: x[..., i],
+    stack=lambda xs: np.stack(np.broadcast_arrays(*xs), axis=-1),
+    along=lambda x: np.asarray(x)[..., None],
+    fractions=lambda s: np.asarray(s, dtype=float),
+    stack_points=_numpy_stack_points,
+    materialize=lambda x: x,
+)

@@ -163,19 +163,7 @@ class Robot:
     @classmethod
     def from_file(cls, path: str | Path) -> Robot:
         """Load and validate a robot JSON file."""
-        path = Path(path)
-        source = str(path)
-        try:
-            text = path.read_text()
-        except FileNotFoundError:
-            raise ModelFileError(source, "<file>", "file not found") from None
-        except OSError as exc:
-            raise ModelFileError(source, "<file>", f"cannot read: {exc}") from None
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise ModelFileError(source, "<file>", f"not valid JSON: {exc}") from None
-        return cls.from_dict(data, source=source)
+        return cls.from_dict(read_model_file(path), source=str(path))
 
     @classmethod
     def from_dict(cls, data: Any, source: str = "") -> Robot:
@@ -211,6 +199,22 @@ class Robot:
         if math.isfinite(self.tendon_accel_max):
             out["tendon_accel_max"] = self.tendon_accel_max
         return out
+
+
+def read_model_file(path: str | Path) -> Any:
+    """The parsed JSON of a model file; a missing, unreadable or malformed file raises
+    ``ModelFileError`` naming it."""
+    source = str(path)
+    try:
+        text = Path(path).read_text()
+    except FileNotFoundError:
+        raise ModelFileError(source, "<file>", "file not found") from None
+    except OSError as exc:
+        raise ModelFileError(source, "<file>", f"cannot read: {exc}") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ModelFileError(source, "<file>", f"not valid JSON: {exc}") from None
 
 
 def load_robot(robot: str | Path | Robot | dict) -> Robot:

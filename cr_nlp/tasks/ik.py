@@ -27,14 +27,13 @@ from jax.sharding import PartitionSpec as P
 
 from .._jax_setup import enable_compilation_cache
 from ..model import Robot, load_robot, q_to_z, z_to_q
-from ..model._ops import JAX
+from ..model._ops import JAX, NUMPY
 from ..model.kinematics import model_pose_error, model_q_to_z, model_segment_frames
 from ..model.limits import clip_to_limits, limit_violation_q, project_z
 from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
 from ..stages.explore import SeedPool, select_beam, sobol_configurations
 from ..stages.lm import LMConfig, lm_solve
 from ..world import Scene, check_many, load_scene, scene_arrays
-from ..world._numpy_ops import NUMPY
 from ..world.clearance import body_gap_tolerance
 from ..world.penalty import body_clearances_z
 

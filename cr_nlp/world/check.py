@@ -23,9 +23,9 @@ from typing import Any
 import fcl
 import numpy as np
 
+from ..model._ops import NUMPY
 from ..model.kinematics import model_backbone, model_q_to_z
 from ..model.robot import Robot
-from ._numpy_ops import NUMPY
 from .scene import (
     BoxPart,
     CapsulePart,

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from .._jax_setup import cache_dir
-from ..model.robot import ModelFileError, _Checker
+from ..model.robot import _Checker, read_model_file
 from ..model.rotations import matrix_from_wxyz
 
 # ================================================================ parts
@@ -189,18 +189,8 @@ class Scene:
     def from_file(cls, path: str | Path, settings: DecompositionSettings | None = None) -> Scene:
         """Load and validate a scene JSON file (mesh paths relative to the file)."""
         path = Path(path)
-        source = str(path)
-        try:
-            text = path.read_text()
-        except FileNotFoundError:
-            raise ModelFileError(source, "<file>", "file not found") from None
-        except OSError as exc:
-            raise ModelFileError(source, "<file>", f"cannot read: {exc}") from None
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise ModelFileError(source, "<file>", f"not valid JSON: {exc}") from None
-        return cls.from_dict(data, source=source, base_dir=path.parent, settings=settings)
+        return cls.from_dict(read_model_file(path), source=str(path), base_dir=path.parent,
+                             settings=settings)
 
     @classmethod
     def from_dict(cls, data: Any, source: str = "", base_dir: str | Path | None = None,
