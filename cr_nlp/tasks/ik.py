@@ -410,12 +410,19 @@ class IKSolver:
             timing.explore += time.perf_counter() - t0
             z_best, cost = self._search(pool.z[nearest], pos_v, rot_v, timing)
             ok = np.sqrt(2 * cost) < cfg.success_tolerance
+            used = cfg.seeds_per_target
             for _ in range(cfg.retry_rounds):
                 todo = np.flatnonzero(~ok)
                 if not len(todo):
                     break
                 t0 = time.perf_counter()
+                # Half the retry seeds are the next-nearest pool entries (collision-free,
+                # close in pose), half are fresh random configurations (other branches).
+                near = cfg.retry_seeds // 2
+                nearest = pool.nearest(pos_v[todo], rot_v[todo], used + near)[:, used:]
+                used += near
                 seeds = self._random_seeds(len(todo), cfg.retry_seeds)
+                seeds[:, 1: 1 + nearest.shape[1]] = pool.z[nearest]
                 seeds[:, 0] = z_best[todo]  # keep the best so far in the race
                 timing.explore += time.perf_counter() - t0
                 z_new, c_new = self._search(seeds, pos_v[todo], rot_v[todo], timing)
