@@ -211,7 +211,7 @@ def draw(robot: Robot, q: Any = None, scene: Scene | None = None,
             for path in _tendon_paths(robot, pos, rot, samples):
                 ax.plot(path[:, 0], path[:, 1], path[:, 2], color="#1f78b4", linewidth=0.8)
 
-    for target in targets or []:
+    for target in ([] if targets is None else targets):  # a list, or an (N, 3) array
         position, rotation = _pose(target)
         points.append(position[None])
         if rotation is None:

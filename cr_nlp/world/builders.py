@@ -167,7 +167,8 @@ def random_spheres_scene(seed: int, count: int = 27,
 PATH_SPHERES: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
     "square": ((1.1, 0.0, 0.55), (1.5, -0.95, 1.5)),
     "sine": ((1.1, 0.35, 0.6), (1.45, -0.35, 2.25)),
-    "icra": ((1.05, -0.3, 0.6), (1.5, 1.1, 1.5)),
+    # 1.2 m: the A (tasks/paths.py) ends at y = 0.8 m and the body is 0.1 m thick.
+    "icra": ((1.05, -0.3, 0.6), (1.5, 1.2, 1.5)),
 }
 PATH_REGIONS = {
     "square": "a 1.0 m square in the plane x = 1.5 m, y ∈ [-0.5, 0.5] m, z ∈ [1.0, 2.0] m",
