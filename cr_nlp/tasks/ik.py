@@ -322,6 +322,13 @@ class IKSolver:
     def _search(self, z_seeds: np.ndarray, positions: np.ndarray, rotations: np.ndarray,
                 timing: IKTiming) -> tuple[np.ndarray, np.ndarray]:
         """Coarse LM on (T, K) seeds, diverse beam, refinement; best z (T, n), cost (T,)."""
+        z, cost = self._search_beam(z_seeds, positions, rotations, timing)
+        best = np.argmin(cost, axis=1)
+        return z[np.arange(len(z)), best], cost[np.arange(len(z)), best]
+
+    def _search_beam(self, z_seeds: np.ndarray, positions: np.ndarray, rotations: np.ndarray,
+                     timing: IKTiming) -> tuple[np.ndarray, np.ndarray]:
+        """Coarse LM on (T, K) seeds, diverse beam, refinement: z (T, B, n), cost (T, B)."""
         t, k, n = z_seeds.shape
         cfg = self.config
         t0 = time.perf_counter()
@@ -337,10 +344,30 @@ class IKSolver:
         c1 = timing.compile
         z, cost = self._lm(z_beam.reshape(-1, n), np.repeat(positions, width, 0),
                            np.repeat(rotations, width, 0), cfg.refine_iterations, timing)
-        z, cost = z.reshape(t, width, n), cost.reshape(t, width)
-        best = np.argmin(cost, axis=1)
         timing.refine += time.perf_counter() - t1 - (timing.compile - c1)
-        return z[np.arange(t), best], cost[np.arange(t), best]
+        return z.reshape(t, width, n), cost.reshape(t, width)
+
+    def candidates(self, positions: Any, wxyz: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Several distinct IK answers per target (the refined beam), for callers that
+        choose among them (path following picks the smoothest sequence).
+
+        Args:
+            positions: (T, 3) metres; wxyz: (T, 4) unit quaternions (valid targets only).
+        Returns:
+            q (T, B, 3n) configurations (θ, φ, L) and their penalised residual norms (T, B)
+            (pose error in m/rad plus the clearance penalty), B = ``beam_width``.
+        """
+        positions, wxyz, reasons = validate_targets(self.robot, positions, wxyz)
+        if any(reasons):
+            bad = next(i for i, r in enumerate(reasons) if r)
+            raise ValueError(f"target {bad}: {reasons[bad]}")
+        timing = IKTiming()
+        rotations = matrix_from_wxyz(wxyz)
+        pool = self._seed_pool(timing)
+        nearest = pool.nearest(positions, rotations, self.config.seeds_per_target)
+        z, cost = self._search_beam(pool.z[nearest], positions, rotations, timing)
+        q = clip_to_limits(self.robot, np.asarray(z_to_q(self.robot, z), dtype=float))
+        return q, np.sqrt(2.0 * cost)
 
     def _random_seeds(self, count: int, per_target: int) -> np.ndarray:
         q = sobol_configurations(self.robot, count * per_target,
