@@ -1,1 +1,20 @@
-"""Benchmark suites: each a command that prints a table (DESIGN.md §4)."""
+"""Benchmark suites: each a command that prints a table (DESIGN.md §4).
+
+- ``ik``: ``cr-nlp bench ik`` (``run_ik_benchmark``), cr_nlp's IK against the baselines.
+- ``baselines``: damped Newton–Raphson and a scipy derivative-free method, numpy in/out.
+- ``common``: the environment record and Markdown/CSV tables every benchmark shares.
+- ``clearance``: ``cr-nlp bench clearance``, batched clearance throughput.
+"""
+
+from .baselines import BaselineSolve as BaselineSolve
+from .baselines import DampedNewtonConfig as DampedNewtonConfig
+from .baselines import ScipyConfig as ScipyConfig
+from .baselines import damped_newton_ik as damped_newton_ik
+from .baselines import scipy_ik as scipy_ik
+from .common import Column as Column
+from .common import environment as environment
+from .common import markdown_table as markdown_table
+from .common import write_csv as write_csv
+from .ik import IKBenchSizes as IKBenchSizes
+from .ik import add_bench_ik as add_bench_ik
+from .ik import run_ik_benchmark as run_ik_benchmark

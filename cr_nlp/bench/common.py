@@ -1,0 +1,201 @@
+"""What every benchmark shares: the environment record, robots by name, and the output
+of tables as Markdown and CSV.
+
+A table is a list of row dicts and a list of ``Column``s that say which keys to show,
+under which header, and how to format the numbers. Every table is printed and written
+with the environment it was measured in (DESIGN.md §4, "How to measure").
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime
+import math
+import os
+import platform
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
+
+
+# ================================================================ the environment
+
+
+def cpu_model() -> str:
+    """The CPU's model name from /proc/cpuinfo (Linux), else what ``platform`` knows."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def usable_cores() -> int:
+    """CPU cores this process may run on (its affinity mask, not the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def environment() -> dict[str, str]:
+    """Versions (python, jax, jaxlib, casadi, numpy, scipy), JAX backend and devices, CPU
+    model and usable core count, JAX settings that change timings, the load average and
+    the date: recorded with every table."""
+    import casadi
+    import jax
+    import jaxlib
+    import numpy
+    import scipy
+
+    cache = jax.config.jax_compilation_cache_dir
+    return {
+        "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "jaxlib": jaxlib.__version__,
+        "casadi": casadi.__version__,
+        "numpy": numpy.__version__,
+        "scipy": scipy.__version__,
+        "backend": jax.default_backend(),
+        "devices": ", ".join(str(d) for d in jax.devices()),
+        "cpu": cpu_model(),
+        "cores": str(usable_cores()),
+        "platform": platform.platform(),
+        "jax_enable_x64": str(bool(jax.config.jax_enable_x64)),
+        "jax compilation cache": cache if cache else "off",
+        # Other work on the machine skews timings: say how busy it was.
+        "load average (1, 5, 15 min)": ", ".join(f"{x:.2f}" for x in _load_average()),
+    }
+
+
+def _load_average() -> tuple[float, ...]:
+    try:
+        return os.getloadavg()
+    except OSError:  # not available on this platform
+        return (math.nan, math.nan, math.nan)
+
+
+def environment_markdown(env: dict[str, str]) -> str:
+    """The environment as a Markdown bullet list."""
+    return "\n".join(f"- {key}: {value}" for key, value in env.items())
+
+
+# ================================================================ robots by name
+
+
+def bundled_robot_path(name: str) -> Path:
+    """Path of a robot bundled in ``models/robots`` (``name`` without ``.json``)."""
+    return MODELS_DIR / "robots" / f"{name}.json"
+
+
+def load_robot_by_name(robot: str | Path) -> Any:
+    """A ``Robot`` from a file path or a bundled robot name ("tdcr3", "tdcr4_ext", …)."""
+    from ..model import Robot
+
+    path = Path(robot)
+    if not path.exists() and path.suffix == "" and bundled_robot_path(str(robot)).exists():
+        path = bundled_robot_path(str(robot))
+    return Robot.from_file(path)
+
+
+# ================================================================ tables
+
+
+def format_number(value: Any, digits: int = 3) -> str:
+    """A table cell: ``digits`` significant digits, "—" for None or NaN, text as is."""
+    if value is None:
+        return "—"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "—"
+        if value == 0.0:
+            return "0"
+        if 1e-3 <= abs(value) < 1e5:
+            text = f"{value:.{digits}g}"
+            # %g switches to exponents at 10^digits; write such whole numbers out.
+            return text if "e" not in text else f"{value:.0f}"
+        return f"{value:.{max(digits - 1, 1)}e}"
+    return str(value)
+
+
+@dataclass(frozen=True)
+class Column:
+    """One column of a table: the row key, its header, and how to format a value."""
+
+    key: str
+    header: str
+    format: Callable[[Any], str] = format_number
+
+
+def fixed(decimals: int) -> Callable[[Any], str]:
+    """A cell formatter with a fixed number of decimals ("—" for None/NaN)."""
+
+    def fmt(value: Any) -> str:
+        if value is None or (isinstance(value, float) and math.isnan(value)):
+            return "—"
+        return f"{float(value):.{decimals}f}"
+
+    return fmt
+
+
+def markdown_table(rows: Sequence[dict[str, Any]], columns: Sequence[Column]) -> str:
+    """The rows as a GitHub Markdown table (numbers right-aligned)."""
+    header = "| " + " | ".join(c.header for c in columns) + " |"
+    align = "|" + "|".join("---:" if _numeric(rows, c.key) else "---" for c in columns) + "|"
+    body = ["| " + " | ".join(c.format(row.get(c.key)) for c in columns) + " |" for row in rows]
+    return "\n".join([header, align, *body])
+
+
+def _numeric(rows: Sequence[dict[str, Any]], key: str) -> bool:
+    values = [row.get(key) for row in rows if row.get(key) is not None]
+    return bool(values) and all(isinstance(v, int | float) and not isinstance(v, bool)
+                                for v in values)
+
+
+def write_csv(rows: Sequence[dict[str, Any]], path: str | Path,
+              keys: Sequence[str] | None = None) -> Path:
+    """Write the rows as CSV with a header line (all keys of the rows in first-seen order
+    unless ``keys`` is given); NaN and None become empty cells. Returns the path."""
+    if keys is None:
+        keys = list(dict.fromkeys(k for row in rows for k in row))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(keys), extrasaction="ignore")
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: _csv_cell(row.get(k)) for k in keys})
+    return path
+
+
+def _csv_cell(value: Any) -> Any:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return ""
+    if isinstance(value, float):
+        return repr(value)  # round-trips exactly
+    return value
+
+
+def read_csv(path: str | Path) -> list[dict[str, str]]:
+    """The rows of a CSV written by ``write_csv`` (values as strings)."""
+    with Path(path).open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def write_text(text: str, path: str | Path) -> Path:
+    """Write ``text`` (ending with one newline) to ``path``, creating folders."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text.rstrip("\n") + "\n")
+    return path

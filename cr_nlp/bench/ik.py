@@ -1,0 +1,494 @@
+"""``cr-nlp bench ik``: the IK benchmarks of DESIGN.md §4 on this machine.
+
+Suites:
+
+- ``free``: tdcr3 without obstacles, 1000 targets, each the forward kinematics of a
+  configuration drawn uniformly inside the limits (θ, φ, L independently, fixed seed).
+- ``lattice``: the 3×3×3 sphere lattice (``models/scenes/lattice.json``), 100 targets
+  from configurations whose python-fcl clearance is at least the solver's safety margin
+  δ (``IKSolver.margin``), for tdcr3 and tdcr4_ext.
+- ``scaling``: no obstacles, 200 targets for each of tdcr3, tdcr4_ext, tdcr5_ext and
+  tdcr6_ext (3 to 6 segments).
+
+Rows: cr_nlp with its default ``IKConfig`` ("beam search"), with one seed and no beam
+or retries ("single seed"), with the exact Ipopt polish, and two baselines from
+``bench.baselines`` (damped Newton–Raphson; a scipy derivative-free method on a subset).
+
+Every answer, whoever produced it, is judged the same way: ``IKSolver.verify`` (float64
+pose error, limits, python-fcl) and the library's success rule (pose error < 0.01, limits
+held, collision-free in scenes). Times: a warm-up call on the same targets first (its
+wall time is the "first call" column, its JAX compile time the "compile" column), then
+the median wall time of ``repeats`` further calls; reported quality is from the last call.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._jax_setup import use_host_devices
+from ..model import Robot
+from ..model._ops import NUMPY
+from ..model.kinematics import model_q_to_z, model_segment_frames
+from ..model.limits import limit_violation_q
+from ..model.rotations import wxyz_from_matrix
+from ..tasks.ik import IKConfig, IKSolver
+from ..world import Scene, check_many, load_scene
+from .baselines import (
+    DampedNewtonConfig,
+    ScipyConfig,
+    damped_newton_ik,
+    random_configurations,
+    scipy_ik,
+)
+from .common import (
+    Column,
+    environment,
+    environment_markdown,
+    fixed,
+    load_robot_by_name,
+    markdown_table,
+    write_csv,
+    write_text,
+)
+
+NEWTON_CONFIG = DampedNewtonConfig()
+"""The damped Newton–Raphson baseline's settings in the benchmark (its defaults)."""
+SCIPY_CONFIG = ScipyConfig()
+"""The scipy baseline's settings in the benchmark (its defaults)."""
+
+CR_BEAM = "cr_nlp beam search"
+CR_SINGLE = "cr_nlp single seed"
+CR_EXACT = "cr_nlp + exact polish"
+NEWTON = "damped Newton–Raphson"
+SCIPY = f"scipy {SCIPY_CONFIG.method}"
+METHODS = (CR_BEAM, CR_SINGLE, CR_EXACT, NEWTON, SCIPY)
+"""The rows of every table, in order."""
+
+SUITES = ("free", "lattice", "scaling")
+LATTICE_ROBOTS = ("tdcr3", "tdcr4_ext")
+SCALING_ROBOTS = ("tdcr3", "tdcr4_ext", "tdcr5_ext", "tdcr6_ext")
+
+SINGLE_SEED = IKConfig(seeds_per_target=1, beam_width=1, retry_rounds=0)
+"""The "cr_nlp single seed" configuration: the nearest pool seed, LM, nothing else."""
+
+# Baseline random starts must not be the configurations the targets came from.
+_START_SEED_OFFSET = 7919
+
+
+@dataclass(frozen=True)
+class IKBenchSizes:
+    """How big each suite is."""
+
+    free_targets: int = 1000
+    """Targets of the obstacle-free tdcr3 suite."""
+    lattice_targets: int = 100
+    """Targets per robot in the lattice scene."""
+    scaling_targets: int = 200
+    """Targets per robot of the scaling suite."""
+    scipy_targets: int = 50
+    """The scipy baseline solves only the first this-many targets of each case (it takes
+    0.1–0.6 s per target; with 100 the full run took 18 minutes on 2 busy cores)."""
+    repeats: int = 3
+    """Timed calls after the warm-up; the table reports their median."""
+
+
+FULL = IKBenchSizes()
+QUICK = IKBenchSizes(free_targets=50, lattice_targets=20, scaling_targets=20,
+                     scipy_targets=10, repeats=1)
+
+
+# ================================================================ targets
+
+
+@dataclass
+class Case:
+    """One robot, one scene (or none) and its targets."""
+
+    suite: str
+    robot: Robot
+    scene: Scene | None
+    q: np.ndarray
+    """(T, 3n) configurations the targets are the forward kinematics of (rad, rad, m)."""
+    positions: np.ndarray
+    """(T, 3) target positions, metres."""
+    wxyz: np.ndarray
+    """(T, 4) target orientations, unit quaternions (w, x, y, z)."""
+
+    @property
+    def scene_name(self) -> str:
+        return self.scene.name if self.scene is not None else "none"
+
+
+def forward_kinematics(robot: Robot, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Tip positions (T, 3) m and orientations (T, 4) wxyz of configurations q (T, 3n),
+    float64 numpy (independent of JAX's precision setting)."""
+    q = np.asarray(q, dtype=float).reshape(-1, robot.dof)
+    with np.errstate(invalid="ignore", divide="ignore"):  # the unused branch of safe_where
+        rot, pos = model_segment_frames(NUMPY, robot, model_q_to_z(NUMPY, robot, q))[-1]
+    rotation = np.stack(np.broadcast_arrays(*rot), -1).reshape(-1, 3, 3)
+    return np.stack(np.broadcast_arrays(*pos), -1).reshape(-1, 3), wxyz_from_matrix(rotation)
+
+
+def free_case(robot: Robot, count: int, seed: int, suite: str = "free") -> Case:
+    """``count`` targets from configurations drawn uniformly inside the limits."""
+    q = random_configurations(robot, count, seed)
+    positions, wxyz = forward_kinematics(robot, q)
+    return Case(suite, robot, None, q, positions, wxyz)
+
+
+def lattice_case(robot: Robot, scene: Scene, count: int, margin: float, seed: int,
+                 batch: int = 2000, max_draws: int = 200_000) -> Case:
+    """``count`` targets from uniform configurations whose python-fcl clearance in
+    ``scene`` is at least ``margin`` (m), kept in the order drawn."""
+    rng = np.random.default_rng(seed)
+    lo, hi = robot.q_bounds()
+    kept: list[np.ndarray] = []
+    drawn = 0
+    while sum(len(k) for k in kept) < count:
+        if drawn >= max_draws:
+            raise RuntimeError(f"only {sum(len(k) for k in kept)} of {max_draws} random "
+                               f"configurations of {robot.name} keep {margin} m clearance")
+        q = rng.uniform(lo, hi, (batch, robot.dof))
+        drawn += batch
+        kept.append(q[check_many(robot, scene, q).min_distance >= margin])
+    q = np.concatenate(kept)[:count]
+    positions, wxyz = forward_kinematics(robot, q)
+    return Case("lattice", robot, scene, q, positions, wxyz)
+
+
+# ================================================================ judging
+
+
+def judge(solver: IKSolver, q: np.ndarray, positions: np.ndarray,
+          wxyz: np.ndarray) -> dict[str, np.ndarray]:
+    """``solver.verify`` of answers q (T, 3n) plus the library's success rule: pose error
+    below ``success_tolerance``, every limit held, python-fcl collision-free (scenes)."""
+    checked = solver.verify(np.asarray(q, dtype=float), positions, wxyz)
+    finite = np.all(np.isfinite(q), axis=1)
+    limits_ok = limit_violation_q(solver.robot, q) <= 1e-9
+    checked["success"] = (finite & (checked["pose_error"] < solver.config.success_tolerance)
+                          & checked["collision_free"] & limits_ok)
+    return checked
+
+
+def _quality(pose_error: np.ndarray, success: np.ndarray, max_violation: np.ndarray,
+             collision_free: np.ndarray, has_scene: bool) -> dict[str, Any]:
+    finite = np.isfinite(pose_error)
+    return {
+        "targets": int(len(success)),
+        "success_pct": 100.0 * float(np.mean(success)),
+        "collision_free_pct": 100.0 * float(np.mean(collision_free)) if has_scene else None,
+        "mean_pose_error": float(np.mean(pose_error[finite])) if finite.any() else None,
+        "median_pose_error": float(np.median(pose_error[finite])) if finite.any() else None,
+        "max_violation": float(np.nanmax(max_violation)) if len(max_violation) else None,
+    }
+
+
+def _times(first: float, runs: Sequence[float], compile_s: float | None) -> dict[str, Any]:
+    median = statistics.median(runs)
+    return {"total_s": median, "min_s": min(runs), "max_s": max(runs), "runs": len(runs),
+            "first_call_s": first, "compile_s": compile_s}
+
+
+# ================================================================ measuring
+
+
+def measure_cr_nlp(case: Case, method: str, repeats: int, seed: int = 0) -> dict[str, Any]:
+    """One cr_nlp row: a fresh ``IKSolver``, a warm-up call, ``repeats`` timed calls."""
+    config = {CR_BEAM: IKConfig(), CR_SINGLE: SINGLE_SEED, CR_EXACT: IKConfig()}[method]
+    solver = IKSolver(case.robot, case.scene, replace(config, seed=seed))
+    exact = method == CR_EXACT
+    start = time.perf_counter()
+    result = solver.solve(case.positions, case.wxyz, exact=exact)
+    first = time.perf_counter() - start
+    compile_s = result.timing.compile
+    walls, stages = [], []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = solver.solve(case.positions, case.wxyz, exact=exact)
+        walls.append(time.perf_counter() - start)
+        stages.append(result.timing.as_dict())
+    row = _quality(result.pose_error, result.success, result.max_violation,
+                   result.collision_free, case.scene is not None)
+    row.update(_times(first, walls, compile_s))
+    for stage in ("explore", "refine", "polish", "verify"):
+        row[f"{stage}_s"] = statistics.median(s[stage] for s in stages)
+    if exact:
+        row["polished_pct"] = 100.0 * float(np.mean([s == "polish" for s in result.stage]))
+    return row
+
+
+def measure_newton(case: Case, judge_solver: IKSolver, repeats: int, seed: int,
+                   config: DampedNewtonConfig = NEWTON_CONFIG) -> dict[str, Any]:
+    """The damped Newton–Raphson row: a first call (compiles), ``repeats`` timed calls with
+    the same random starts; compile time is estimated as first call − median."""
+    start_seed = seed + _START_SEED_OFFSET
+    first = damped_newton_ik(case.robot, case.positions, case.wxyz, config,
+                             start_seed).seconds
+    walls = []
+    for _ in range(repeats):
+        solved = damped_newton_ik(case.robot, case.positions, case.wxyz, config, start_seed)
+        walls.append(solved.seconds)
+    return _baseline_row(case, judge_solver, solved.q, case.positions, case.wxyz,
+                         _times(first, walls, max(first - statistics.median(walls), 0.0)))
+
+
+def measure_scipy(case: Case, judge_solver: IKSolver, count: int, seed: int,
+                  config: ScipyConfig = SCIPY_CONFIG) -> dict[str, Any]:
+    """The scipy row on the first ``count`` targets: one run (nothing to compile or warm
+    up), reported as both the first call and the steady-state time."""
+    positions, wxyz = case.positions[:count], case.wxyz[:count]
+    solved = scipy_ik(case.robot, positions, wxyz, config, seed + _START_SEED_OFFSET)
+    return _baseline_row(case, judge_solver, solved.q, positions, wxyz,
+                         _times(solved.seconds, [solved.seconds], None))
+
+
+def _baseline_row(case: Case, judge_solver: IKSolver, q: np.ndarray, positions: np.ndarray,
+                  wxyz: np.ndarray, times: dict[str, Any]) -> dict[str, Any]:
+    start = time.perf_counter()
+    checked = judge(judge_solver, q, positions, wxyz)
+    row = _quality(checked["pose_error"], checked["success"], checked["max_violation"],
+                   checked["collision_free"], case.scene is not None)
+    row.update(times)
+    row["verify_s"] = time.perf_counter() - start  # not part of total_s for baselines
+    return row
+
+
+# ================================================================ the benchmark
+
+
+def _cases(suite: str, sizes: IKBenchSizes, seed: int, lattice_robots: Sequence[str],
+           scaling_robots: Sequence[str]) -> Iterable[tuple[Case, IKSolver]]:
+    """Each case with the solver that judges the baselines (built lazily, suite by suite,
+    so target generation shows up in the progress)."""
+    if suite in ("all", "free"):
+        robot = load_robot_by_name("tdcr3")
+        yield free_case(robot, sizes.free_targets, seed), IKSolver(robot)
+    if suite in ("all", "lattice"):
+        scene = load_scene("lattice")
+        for name in lattice_robots:
+            robot = load_robot_by_name(name)
+            solver = IKSolver(robot, scene)
+            yield lattice_case(robot, scene, sizes.lattice_targets, solver.margin, seed), solver
+    if suite in ("all", "scaling"):
+        for name in scaling_robots:
+            robot = load_robot_by_name(name)
+            yield free_case(robot, sizes.scaling_targets, seed, "scaling"), IKSolver(robot)
+
+
+def run_ik_benchmark(suite: str = "all", quick: bool = False, repeats: int | None = None,
+                     out: str | Path | None = "bench_results/ik", seed: int = 0,
+                     sizes: IKBenchSizes | None = None, methods: Sequence[str] = METHODS,
+                     lattice_robots: Sequence[str] = LATTICE_ROBOTS,
+                     scaling_robots: Sequence[str] = SCALING_ROBOTS,
+                     progress: bool = True, echo: bool = True) -> list[dict[str, Any]]:
+    """Run the IK benchmark and return one dict per (suite, robot, method) row.
+
+    Args:
+        suite: "all", "free", "lattice" or "scaling".
+        quick: small sizes (``QUICK``: 50/20/20 targets, 10 for scipy, 1 repeat).
+        repeats: timed calls per row after the warm-up (default from the sizes).
+        out: folder for ``ik.md``, ``ik.csv`` and ``environment.json``; None writes nothing.
+        seed: seed of the targets (the baselines' random starts use ``seed + 7919``, the
+            cr_nlp solvers ``IKConfig.seed = seed``).
+        sizes: explicit sizes (overrides ``quick``).
+        methods: which rows to run (a subset of ``METHODS``).
+        lattice_robots, scaling_robots: bundled robot names (or files) per suite.
+        progress: tqdm progress bar on stderr.
+        echo: print the Markdown tables to stdout.
+
+    Asks for one JAX CPU device per core (``use_host_devices``) when JAX has not started
+    yet; the devices used are recorded in the environment.
+
+    Row keys: suite, robot, scene, method, targets, success_pct, collision_free_pct
+    (None without a scene), mean_pose_error and median_pose_error (‖log(T⁻¹T_target)‖,
+    mixed m/rad), max_violation (rad or m: limits, and clearance below δ in scenes),
+    total_s (median steady-state wall time), per_target_ms, min_s, max_s, runs,
+    first_call_s, compile_s (None where nothing compiles), explore_s, refine_s,
+    polish_s, verify_s (stage medians, cr_nlp rows), polished_pct (exact row), notes.
+    """
+    use_host_devices()  # both cores, as the CLI does (no effect once JAX has started)
+    if suite not in ("all", *SUITES):
+        raise ValueError(f"suite must be 'all' or one of {SUITES}, got {suite!r}")
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown methods {unknown}; choose from {METHODS}")
+    sizes = sizes or (QUICK if quick else FULL)
+    if repeats is not None:
+        sizes = replace(sizes, repeats=repeats)
+    if sizes.repeats < 1:
+        raise ValueError(f"repeats must be at least 1, got {sizes.repeats}")
+    robots = {"free": 1, "lattice": len(lattice_robots), "scaling": len(scaling_robots)}
+    jobs = sum(n for s, n in robots.items() if suite in ("all", s)) * len(methods)
+
+    from tqdm import tqdm
+
+    bar = tqdm(total=jobs, desc="bench ik", unit="row", disable=not progress, file=sys.stderr)
+    started = time.perf_counter()
+    rows: list[dict[str, Any]] = []
+    for case, judge_solver in _cases(suite, sizes, seed, lattice_robots, scaling_robots):
+        for method in methods:
+            bar.set_postfix_str(f"{case.suite} {case.robot.name} {method}")
+            if method == NEWTON:
+                row = measure_newton(case, judge_solver, sizes.repeats, seed)
+            elif method == SCIPY:
+                row = measure_scipy(case, judge_solver, sizes.scipy_targets, seed)
+            else:
+                row = measure_cr_nlp(case, method, sizes.repeats, seed)
+            row = {"suite": case.suite, "robot": case.robot.name, "scene": case.scene_name,
+                   "method": method, **row}
+            row["per_target_ms"] = 1e3 * row["total_s"] / max(row["targets"], 1)
+            row["notes"] = _row_note(method, case)
+            rows.append(row)
+            bar.update()
+    bar.close()
+    wall = time.perf_counter() - started
+    env = environment()
+    env["benchmark wall time"] = f"{wall:.0f} s"
+    env["settings"] = (f"suite={suite}, seed={seed}, repeats={sizes.repeats}, sizes: "
+                       f"free {sizes.free_targets}, lattice {sizes.lattice_targets}, "
+                       f"scaling {sizes.scaling_targets}, scipy subset {sizes.scipy_targets}")
+    text = format_report(rows, env, sizes)
+    if echo:
+        print(text)
+    if out is not None:
+        out = Path(out)
+        write_text(text, out / "ik.md")
+        write_csv(rows, out / "ik.csv", CSV_KEYS)
+        write_text(json.dumps({"environment": env, "sizes": asdict(sizes)}, indent=2),
+                   out / "environment.json")
+    return rows
+
+
+CSV_KEYS = ("suite", "robot", "scene", "method", "targets", "success_pct",
+            "collision_free_pct", "mean_pose_error", "median_pose_error", "max_violation",
+            "total_s", "per_target_ms", "min_s", "max_s", "runs", "first_call_s", "compile_s",
+            "explore_s", "refine_s", "polish_s", "verify_s", "polished_pct", "notes")
+"""The columns of ``ik.csv``, in order."""
+
+TABLE_COLUMNS = (
+    Column("robot", "robot"),
+    Column("method", "method"),
+    Column("targets", "targets"),
+    Column("success_pct", "success %", fixed(1)),
+    Column("collision_free_pct", "collision-free %", fixed(1)),
+    Column("mean_pose_error", "mean pose error"),
+    Column("max_violation", "max violation"),
+    Column("total_s", "time s (median)"),
+    Column("per_target_ms", "ms / target"),
+    Column("first_call_s", "first call s"),
+    Column("compile_s", "compile s"),
+    Column("notes", "notes"),
+)
+"""The columns of the Markdown tables."""
+
+_TITLES = {
+    "free": "IK without obstacles (tdcr3, targets from uniform configurations)",
+    "lattice": "IK among obstacles (3×3×3 sphere lattice, targets from configurations whose "
+               "python-fcl clearance ≥ the solver's sphere margin `IKSolver.margin`)",
+    "scaling": "IK scaling with the number of segments (no obstacles)",
+}
+
+
+def _row_note(method: str, case: Case) -> str:
+    notes = []
+    if method == SCIPY:
+        notes.append("subset: first targets only (see targets), one start, one run")
+    if method in (NEWTON, SCIPY) and case.scene is not None:
+        notes.append("ignores obstacles")
+    return "; ".join(notes)
+
+
+def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str],
+                  sizes: IKBenchSizes) -> str:
+    """The Markdown report: one table per suite, the notes, and the environment."""
+    parts = ["# cr-nlp bench ik"]
+    for suite in SUITES:
+        chosen = [r for r in rows if r["suite"] == suite]
+        if not chosen:
+            continue
+        parts += [f"## {_TITLES[suite]}", markdown_table(chosen, TABLE_COLUMNS)]
+    d, s = NEWTON_CONFIG, SCIPY_CONFIG
+    parts += ["## Notes", "\n".join([
+        "- success %: pose error ‖log(T⁻¹·T_target)‖ < 0.01 re-evaluated in float64, every "
+        "limit held and, in the lattice, collision-free by python-fcl; one rule "
+        "(`IKSolver.verify` + the library's success test) for every row.",
+        "- mean pose error over all targets (mixed m/rad); max violation: largest limit "
+        "violation, and in the lattice also the clearance shortfall below the safety margin "
+        "δ (m), over all targets.",
+        f"- time s: median wall time of {sizes.repeats} call(s) after a warm-up call on the "
+        "same targets; cr_nlp times include its own float64 verification, baseline times "
+        "do not. first call s: the warm-up call's wall time (seed pool, compilation or "
+        "loading from JAX's persistent cache, and the exact polisher's CasADi build). "
+        "compile s: JAX compile time inside the first call (cr_nlp: `IKResult.timing."
+        "compile`; damped Newton: first call − median).",
+        "- cr_nlp beam search: default `IKConfig`; single seed: `IKConfig(seeds_per_target=1,"
+        " beam_width=1, retry_rounds=0)`; exact polish: `solve(exact=True)` (Ipopt per "
+        "target, sequential).",
+        f"- damped Newton–Raphson: Δz = −Jᵀ(JJᵀ + λ²I)⁻¹r with λ = {d.damping}, "
+        f"{d.iterations} iterations from {d.starts} uniform random starts per target (best "
+        "kept), batched in JAX (jacfwd, float32), on the bending vector with projection onto "
+        "the limits.",
+        f"- scipy {s.method}: one uniform random start per target, bounded θ and L, at most "
+        f"{s.max_evaluations} evaluations, CasADi-evaluated pose error; run once on the first "
+        f"{sizes.scipy_targets} targets of each case (it is slow).",
+        "- The baselines ignore obstacles; in the lattice their answers are judged by "
+        "python-fcl like every other row.",
+    ])]
+    parts += ["## Environment", environment_markdown(env)]
+    return "\n\n".join(parts)
+
+
+# ================================================================ command line
+
+
+def add_bench_ik(bench_subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add ``ik`` to a ``cr-nlp bench`` subcommand group; returns its parser. The parsed
+    namespace's ``run(args)`` runs the benchmark and returns the exit status."""
+    p = bench_subparsers.add_parser(
+        "ik", help="IK benchmark: cr_nlp vs damped Newton–Raphson and scipy (DESIGN.md §4)",
+        description="Runs the IK suites, prints Markdown tables and writes ik.md, ik.csv and "
+                    "environment.json to --out.")
+    p.add_argument("--suite", choices=("all", *SUITES), default="all",
+                   help="which suite (default all)")
+    p.add_argument("--quick", action="store_true",
+                   help="small sizes for CI and notebooks (50/20/20 targets, 1 repeat)")
+    p.add_argument("--repeats", type=int, default=None,
+                   help=f"timed runs per row after the warm-up (default {FULL.repeats}, "
+                        f"{QUICK.repeats} with --quick)")
+    p.add_argument("--out", default="bench_results/ik",
+                   help="output folder (default bench_results/ik)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the targets (default 0)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(run=run_bench_ik_command)
+    return p
+
+
+def run_bench_ik_command(args: argparse.Namespace) -> int:
+    """The ``cr-nlp bench ik`` action."""
+    run_ik_benchmark(suite=args.suite, quick=args.quick, repeats=args.repeats, out=args.out,
+                     seed=args.seed, progress=not args.no_progress)
+    print(f"wrote {Path(args.out) / 'ik.md'}, ik.csv and environment.json", file=sys.stderr)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m cr_nlp.bench.ik``: the same options as ``cr-nlp bench ik``."""
+    parser = argparse.ArgumentParser(prog="python -m cr_nlp.bench")
+    add_bench_ik(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["ik", *(sys.argv[1:] if argv is None else argv)])
+    return args.run(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
