@@ -157,3 +157,20 @@ def test_distances_have_finite_gradients_at_singular_points() -> None:
 
     g = jax.grad(total)(jnp.zeros(3))
     assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_capsule_sphere_closed_form_matches_fcl_and_handles_a_centre_on_the_axis() -> None:
+    from cr_nlp.world.check import capsule_object, capsule_sphere_distance
+
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        a, b, c = rng.normal(size=(3, 3))
+        r, rs = rng.uniform(0.05, 0.3, 2)
+        exact = capsule_sphere_distance(a, b, r, c, rs)
+        if exact > 1e-3:  # fcl's separated-pair query is accurate; compare there
+            fcl_d = fcl_distance(capsule_object(a, b, r), fcl_object(SpherePart(c, rs)))
+            assert abs(exact - fcl_d) < 1e-6
+    # The degenerate case fcl's penetration query hung on: the centre on the axis.
+    a, b = np.zeros(3), np.array([0.0, 0.0, 1.0])
+    on_axis = capsule_sphere_distance(a, b, 0.1, np.array([0.0, 0.0, 0.4]), 0.02)
+    assert on_axis == pytest.approx(-0.12)

@@ -124,6 +124,9 @@ class _FclScene:
         parts = scene.parts
         owner = scene.part_obstacle
         self.objects = [fcl_object(p) for p in parts]
+        # Spheres get the exact closed form instead of fcl (see capsule_sphere_distance).
+        self.sphere = [(np.asarray(p.center, dtype=float), float(p.radius))
+                       if isinstance(p, SpherePart) else None for p in parts]
         spheres = [bounding_sphere(p) for p in parts]
         self.centres = np.array([c for c, _ in spheres], dtype=float).reshape(-1, 3)
         self.radii = np.array([r for _, r in spheres], dtype=float)
@@ -174,6 +177,19 @@ def _min_over_pairs(lower: np.ndarray, distance: Any) -> tuple[float, int]:
     return best, best_index
 
 
+def capsule_sphere_distance(a: np.ndarray, b: np.ndarray, radius: float, centre: np.ndarray,
+                            sphere_radius: float) -> float:
+    """Exact signed distance (m) between the capsule of ``radius`` around segment a–b and a
+    sphere: the distance from the centre to the segment minus both radii.
+
+    Used instead of fcl for spheres: fcl's penetration query (EPA) was seen to never
+    return when a sphere's centre lies on the capsule's axis."""
+    ab = b - a
+    denominator = float(ab @ ab)
+    t = 0.0 if denominator <= 0.0 else min(max(float((centre - a) @ ab) / denominator, 0.0), 1.0)
+    return float(np.linalg.norm(centre - (a + t * ab))) - radius - sphere_radius
+
+
 def _check_chain(robot: Robot, fscene: _FclScene, chain: np.ndarray) -> CheckResult:
     r = robot.backbone_radius
     a, b = chain[:-1], chain[1:]
@@ -191,8 +207,14 @@ def _check_chain(robot: Robot, fscene: _FclScene, chain: np.ndarray) -> CheckRes
     if n_parts:
         lower = (np.linalg.norm(mid[:, None, :] - fscene.centres[None], axis=-1)
                  - reach[:, None] - fscene.radii[None])
-        obstacle, index = _min_over_pairs(
-            lower, lambda k: fcl_distance(capsule(k // n_parts), fscene.objects[k % n_parts]))
+        def pair(k: int) -> float:
+            i, j = divmod(k, n_parts)
+            sphere = fscene.sphere[j]
+            if sphere is not None:
+                return capsule_sphere_distance(a[i], b[i], r, *sphere)
+            return fcl_distance(capsule(i), fscene.objects[j])
+
+        obstacle, index = _min_over_pairs(lower, pair)
         closest = fscene.names[index % n_parts] if index >= 0 else ""
 
     own = np.inf
