@@ -187,14 +187,24 @@ def _add_show(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_bench(sub: argparse._SubParsersAction) -> None:
+    from .bench.ik import add_bench_ik
+    from .bench.plan import add_bench_plan
     from .world_cli import add_bench_clearance
 
     p = sub.add_parser("bench", help="benchmarks that print tables (not tests)")
     group = p.add_subparsers(dest="benchmark", required=True)
+    add_bench_ik(group)
+    add_bench_plan(group)
     add_bench_clearance(group)
 
 
-SUBCOMMANDS += [_add_show, _add_bench]
+def _add_plan(sub: argparse._SubParsersAction) -> None:
+    from .tasks.trajectory_cli import add_plan_parser
+
+    add_plan_parser(sub)
+
+
+SUBCOMMANDS += [_add_plan, _add_show, _add_bench]
 
 
 def build_parser() -> argparse.ArgumentParser:

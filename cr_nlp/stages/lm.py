@@ -18,6 +18,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import jax.scipy.linalg
 
 Residual = Callable[[jax.Array, Any, Any], jax.Array]
 """r(z, params, shared) for ONE problem: z (n,), params this problem's pytree, shared the
@@ -38,6 +39,15 @@ class LMConfig:
     """...or once an accepted step lowers the cost by less than this fraction."""
     stop_when_converged: bool = True
     """End the loop early once every problem in the batch converged or stalled."""
+    linear_solver: str = "unrolled"
+    """How the damped normal equations are solved: ``"unrolled"`` (``solve_spd``, fastest
+    for n ≲ 24 but its program grows as n³) or ``"cholesky"`` (batched LAPACK
+    ``cho_factor``/``cho_solve``, for large n such as a whole trajectory)."""
+
+    def __post_init__(self) -> None:
+        if self.linear_solver not in ("unrolled", "cholesky"):
+            raise ValueError(f"linear_solver must be 'unrolled' or 'cholesky', "
+                             f"got {self.linear_solver!r}")
 
 
 def solve_spd(a: jax.Array, b: jax.Array) -> jax.Array:
@@ -61,6 +71,13 @@ def solve_spd(a: jax.Array, b: jax.Array) -> jax.Array:
     for i in reversed(range(n)):
         x[i] = (y[i] - sum(chol[k][i] * x[k] for k in range(i + 1, n))) / chol[i][i]
     return jnp.stack(x, axis=-1)
+
+
+def solve_spd_cholesky(a: jax.Array, b: jax.Array) -> jax.Array:
+    """Solve A x = b for a batch of symmetric positive-definite A (…, n, n), b (…, n) with
+    batched LAPACK Cholesky (``jax.scipy.linalg.cho_factor``/``cho_solve``)."""
+    factor = jax.scipy.linalg.cho_factor(a, lower=True)
+    return jax.scipy.linalg.cho_solve(factor, b[..., None])[..., 0]
 
 
 def _cost(residual: Residual, z: jax.Array, params: Any, shared: Any) -> jax.Array:
@@ -109,7 +126,8 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
         diag = jnp.diagonal(h, axis1=-2, axis2=-1)
         # Marquardt scaling with a floor so a vanishing column still gets damped.
         scale = jnp.maximum(diag, 1e-9 * jnp.max(diag, axis=-1, keepdims=True) + 1e-12)
-        step = solve_spd(h + lam[:, None, None] * jax.vmap(jnp.diag)(scale), -g)
+        solve = solve_spd_cholesky if config.linear_solver == "cholesky" else solve_spd
+        step = solve(h + lam[:, None, None] * jax.vmap(jnp.diag)(scale), -g)
         z_new = project(z + step)
         cost_new = _cost(residual, z_new, params, shared)
         actual = z_new - z

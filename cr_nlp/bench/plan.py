@@ -1,0 +1,426 @@
+"""``cr-nlp bench plan``: the trajectory-planning benchmark of DESIGN.md §4 on this machine.
+
+Problems: tdcr3 in the shelf, cabinet and random (``models/scenes/random_27.json``)
+scenes; per scene, start/goal pairs of configurations that are collision-free by
+python-fcl (distance ≥ 2 mm) and by the planner's sphere model (clearance ≥ the
+planner's margin), whose tip positions are at least 0.1 × the robot's total length
+apart (fixed seed; 100 pairs per scene by default, 3 with ``--quick``).
+
+Rows: ``TrajectoryPlanner`` with the roadmap initial guess ("roadmap+opt"), with the
+straight line and its perturbations only ("straight-line+opt"), with the exact Ipopt
+polish ("roadmap+opt+exact"), and the RRT-Connect baseline (``bench.baselines_plan``,
+no shortcutting, resampled to the same waypoints and Δt). Every answer is judged by the
+same float64 verdict, ``tasks.trajectory.verify_trajectory`` (python-fcl along the
+interpolated motion, limits, tendon speed and acceleration over Δt).
+
+Times: the planner rows run the same batch once as a warm-up (compilation, roadmap load;
+without the polish for the exact row), then the whole batch is timed; "time/problem" is
+the batch wall time over its size (the planner is batched) and "median time" the median
+of the per-problem stage timings. RRT times are
+per problem (it plans one at a time), after one warm-up problem. The roadmap build time
+is reported apart.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from ..model import Robot, q_to_z, tip_pose
+from ..tasks.trajectory import TrajectoryConfig, TrajectoryPlanner, verify_trajectory
+from ..world import Scene, check_many, clearance_z, load_scene, scene_arrays
+from .baselines_plan import RRTConnect, RRTConnectConfig
+from .common import (
+    Column,
+    environment,
+    environment_markdown,
+    fixed,
+    load_robot_by_name,
+    markdown_table,
+    write_csv,
+    write_text,
+)
+
+SCENES = ("shelf", "cabinet", "random_27")
+ROADMAP_OPT = "roadmap+opt"
+STRAIGHT_OPT = "straight-line+opt"
+RRT = "RRT-Connect"
+EXACT = "roadmap+opt+exact"
+METHODS = (ROADMAP_OPT, STRAIGHT_OPT, RRT, EXACT)
+# The exact row needs the Ipopt trajectory stage, which is still to be written (issue 5).
+DEFAULT_METHODS = (ROADMAP_OPT, STRAIGHT_OPT, RRT)
+"""The rows of every table, in order."""
+
+RRT_CONFIG = RRTConnectConfig(time_limit=10.0)
+"""The RRT-Connect baseline's settings in the benchmark (10 s per problem)."""
+MIN_TIP_DISTANCE_FRACTION = 0.1
+"""Start and goal tips are at least this fraction of the robot's total length apart."""
+FCL_CLEARANCE = 0.002
+"""python-fcl distance (m) every start and goal keeps."""
+
+
+@dataclass(frozen=True)
+class PlanBenchSizes:
+    """Problem counts of one benchmark run."""
+
+    pairs_per_scene: int
+    iteration_budgets: tuple[int, ...]
+
+
+FULL = PlanBenchSizes(pairs_per_scene=100, iteration_budgets=(0, 10, 25, 50, 100))
+QUICK = PlanBenchSizes(pairs_per_scene=3, iteration_budgets=(0, 25))
+
+
+# ================================================================ problems
+
+
+def plan_problems(robot: Robot, scene: Scene, count: int, margin: float,
+                  seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` start/goal pairs (two (count, 3n) arrays θ, φ, L) for ``scene``: both
+    ends with sphere clearance ≥ ``margin`` (m) and python-fcl distance ≥ 2 mm, tips at
+    least 0.1 × total length apart."""
+    rng = np.random.default_rng(seed)
+    lo, hi = robot.q_bounds()
+    arrays = scene_arrays(scene)
+    free_q: list[np.ndarray] = []
+    need = 2 * count
+    for _ in range(200):
+        if sum(len(f) for f in free_q) >= need:
+            break
+        q = rng.uniform(lo, hi, size=(max(256, 4 * need), robot.dof))
+        # θ uniform over the bending-vector disk, as the roadmap samples it.
+        q[:, 0::3] = hi[0::3] * np.sqrt(rng.random((len(q), robot.n_segments)))
+        sphere = np.asarray(clearance_z(robot, arrays, q_to_z(robot, q)))
+        q = q[sphere >= margin]
+        if len(q):
+            q = q[check_many(robot, scene, q).min_distance >= FCL_CLEARANCE]
+        free_q.append(q)
+    pool = np.concatenate(free_q)
+    tips = np.asarray(tip_pose(robot, pool)[0])
+    starts, goals = [], []
+    order = rng.permutation(len(pool))
+    used = np.zeros(len(pool), dtype=bool)
+    min_gap = MIN_TIP_DISTANCE_FRACTION * robot.total_length_max
+    for i in order:
+        if len(starts) == count:
+            break
+        if used[i]:
+            continue
+        far = np.flatnonzero(~used & (np.linalg.norm(tips - tips[i], axis=1) >= min_gap))
+        if len(far) == 0:
+            continue
+        j = int(rng.choice(far))
+        used[i] = used[j] = True
+        starts.append(pool[i])
+        goals.append(pool[j])
+    if len(starts) < count:
+        raise RuntimeError(f"{scene.name}: found only {len(starts)} of {count} start/goal pairs")
+    return np.array(starts), np.array(goals)
+
+
+# ================================================================ measuring
+
+
+def _summary(scene: str, method: str, verdicts: Sequence[dict[str, Any]],
+             per_problem: Sequence[float], time_per_problem: float,
+             first_call: float) -> dict[str, Any]:
+    success = [bool(v["success"]) for v in verdicts]
+    lengths = [v["path_length"] for v in verdicts if v["success"]]
+    return {
+        "scene": scene, "method": method, "problems": len(verdicts),
+        "success_pct": 100.0 * float(np.mean(success)) if verdicts else float("nan"),
+        "collision_free_pct": 100.0 * float(np.mean([bool(v["collision_free"])
+                                                      for v in verdicts])),
+        "median_path_length": float(np.median(lengths)) if lengths else float("nan"),
+        "time_per_problem": time_per_problem,
+        "median_time": float(np.median(per_problem)) if per_problem else float("nan"),
+        "max_violation": float(max((v["max_violation"] for v in verdicts
+                                    if v["max_violation"] == v["max_violation"]), default=0.0)),
+        "first_call": first_call,
+    }
+
+
+def _judge(planner: TrajectoryPlanner, q: np.ndarray | None, dt: float) -> dict[str, Any]:
+    """The shared verdict (``verify_trajectory``), or a failure without a trajectory."""
+    if q is None:
+        return {"success": False, "collision_free": False, "path_length": float("nan"),
+                "max_violation": float("nan")}
+    return verify_trajectory(planner.robot, planner.scene, q, dt,
+                             planner.config.safety_margin, planner.config.verify_samples)
+
+
+def measure_planner(planner: TrajectoryPlanner, scene: str, method: str, starts: np.ndarray,
+                    goals: np.ndarray) -> tuple[dict[str, Any], list[Any]]:
+    """One planner row: a warm-up on the same batch (the compiled LM depends on the batch
+    size; the exact row warms up without its polish), then the whole batch timed."""
+    exact = method == EXACT
+    init = "straight" if method == STRAIGHT_OPT else "roadmap"
+    t0 = time.perf_counter()
+    planner.plan(starts, goals, exact=False, init=init)
+    first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    results = planner.plan(starts, goals, exact=exact, init=init, progress=exact)
+    wall = time.perf_counter() - t0
+    verdicts = [_judge(planner, r.q, r.dt) for r in results]
+    per_problem = [sum(v for k, v in r.timing.items() if k != "compile") for r in results]
+    return _summary(scene, method, verdicts, per_problem, wall / len(starts), first), results
+
+
+def measure_rrt(planner: TrajectoryPlanner, scene: str, starts: np.ndarray, goals: np.ndarray,
+                config: RRTConnectConfig = RRT_CONFIG,
+                progress: bool = True) -> tuple[dict[str, Any], list[float]]:
+    """The RRT-Connect row and the path lengths (m) of its successes: one problem at a
+    time, resampled to the planner's waypoints and judged with its Δt (one warm-up problem
+    first, its time the "first call")."""
+    roadmap = planner.roadmap()
+    rrt = RRTConnect(planner.robot, planner.scene, replace(config, margin=planner.margin),
+                     checker=None if roadmap is None else roadmap.checker)
+    n, dt = planner.config.waypoints, planner.config.dt
+    t0 = time.perf_counter()
+    rrt.plan(starts[0], goals[0], n)
+    first = time.perf_counter() - t0
+    verdicts, seconds = [], []
+    for start, goal in tqdm(list(zip(starts, goals, strict=True)), desc=f"{scene} RRT",
+                            disable=not progress, leave=False):
+        q, result = rrt.plan(start, goal, n)
+        seconds.append(result.seconds)
+        verdicts.append(_judge(planner, q, dt))
+    row = _summary(scene, RRT, verdicts, seconds, float(np.mean(seconds)), first)
+    return row, [v["path_length"] for v in verdicts if v["success"]]
+
+
+def iteration_sweep(planner: TrajectoryPlanner, scene: str, starts: np.ndarray,
+                    goals: np.ndarray, budgets: Sequence[int]) -> list[dict[str, Any]]:
+    """Success % and median path length of "roadmap+opt" for each LM iteration budget
+    (the iteration count is a run-time argument: no recompilation)."""
+    base = planner.config
+    rows = []
+    try:
+        for budget in budgets:
+            planner.config = replace(base, iterations=int(budget))
+            results = planner.plan(starts, goals, init="roadmap")
+            verdicts = [_judge(planner, r.q, r.dt) for r in results]
+            row = _summary(scene, ROADMAP_OPT, verdicts, [], float("nan"), float("nan"))
+            rows.append({"scene": scene, "iterations": int(budget),
+                         "success_pct": row["success_pct"],
+                         "median_path_length": row["median_path_length"]})
+    finally:
+        planner.config = base
+    return rows
+
+
+def _pooled(rows: Sequence[dict[str, Any]], verdict_rows: dict[str, list[dict[str, Any]]]
+            ) -> list[dict[str, Any]]:
+    """One "all scenes" row per method, weighted by the problem counts."""
+    out = []
+    for method in METHODS:
+        mine = [r for r in rows if r["method"] == method]
+        if not mine:
+            continue
+        total = sum(r["problems"] for r in mine)
+
+        def weighted(key: str, rows_: list[dict[str, Any]] = mine, total_: int = total) -> float:
+            return float(sum(r[key] * r["problems"] for r in rows_) / total_)
+
+        out.append({
+            "scene": "all", "method": method, "problems": total,
+            "success_pct": weighted("success_pct"),
+            "collision_free_pct": weighted("collision_free_pct"),
+            "median_path_length": float(np.median(verdict_rows[method]))
+            if verdict_rows[method] else float("nan"),
+            "time_per_problem": weighted("time_per_problem"),
+            "median_time": statistics.median(r["median_time"] for r in mine),
+            "max_violation": max(r["max_violation"] for r in mine),
+            "first_call": max(r["first_call"] for r in mine),
+        })
+    return out
+
+
+def run_plan_benchmark(quick: bool = False, pairs_per_scene: int | None = None,
+                       scenes: Sequence[str] = SCENES, robot: str = "tdcr3",
+                       out: str | Path | None = "bench_results/plan", seed: int = 0,
+                       methods: Sequence[str] = DEFAULT_METHODS,
+                       iteration_budgets: Sequence[int] | None = None,
+                       config: TrajectoryConfig | None = None,
+                       rrt_config: RRTConnectConfig = RRT_CONFIG,
+                       progress: bool = True) -> list[dict[str, Any]]:
+    """Run the benchmark; returns the rows (per scene, then "all"), prints the Markdown
+    report and, with ``out``, writes plan.md, plan.csv, iterations.csv and
+    iterations.png there. ``config``: the planner's settings (default ``TrajectoryConfig()``);
+    ``rrt_config``: the baseline's (its margin is replaced by the planner's)."""
+    sizes = QUICK if quick else FULL
+    pairs = pairs_per_scene or sizes.pairs_per_scene
+    budgets = tuple(iteration_budgets if iteration_budgets is not None
+                    else sizes.iteration_budgets)
+    robot_model = load_robot_by_name(robot)
+    rows: list[dict[str, Any]] = []
+    sweep: list[dict[str, Any]] = []
+    builds: list[dict[str, Any]] = []
+    lengths: dict[str, list[float]] = {m: [] for m in METHODS}
+    for name in tqdm(scenes, desc="scenes", disable=not progress):
+        scene = load_scene(name)
+        planner = TrajectoryPlanner(robot_model, scene, config or TrajectoryConfig())
+        t0 = time.perf_counter()
+        roadmap = planner.roadmap()
+        builds.append({"scene": name, "build_seconds": roadmap.build_seconds,
+                       "loaded_seconds": time.perf_counter() - t0,
+                       "from_cache": roadmap.loaded_from_cache,
+                       "nodes": len(roadmap.nodes_z), "edges": roadmap.edge_count})
+        starts, goals = plan_problems(robot_model, scene, pairs, planner.margin, seed)
+        for method in tqdm([m for m in METHODS if m in methods], desc=name,
+                           disable=not progress, leave=False):
+            if method == RRT:
+                row, found = measure_rrt(planner, name, starts, goals, rrt_config, progress)
+            else:
+                row, results = measure_planner(planner, name, method, starts, goals)
+                found = [r.path_length for r in results if r.success]
+            rows.append(row)
+            lengths[method] += found
+        if budgets:
+            sweep += iteration_sweep(planner, name, starts, goals, budgets)
+    rows += _pooled(rows, lengths)
+    env = environment()
+    report = format_report(rows, builds, sweep, env, robot, pairs)
+    print(report)
+    if out is not None:
+        out = Path(out)
+        write_text(report, out / "plan.md")
+        write_csv(rows, out / "plan.csv")
+        write_csv(builds, out / "roadmap_build.csv")
+        if sweep:
+            write_csv(sweep, out / "iterations.csv")
+            plot_iterations(sweep, out / "iterations.png")
+    return rows
+
+
+# ================================================================ output
+
+
+def plot_iterations(sweep: Sequence[dict[str, Any]], path: str | Path) -> Path:
+    """Success % and median path length (m) against the LM iteration budget, one line
+    per scene; saved to ``path``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(9, 3.5))
+    for scene in dict.fromkeys(r["scene"] for r in sweep):
+        mine = [r for r in sweep if r["scene"] == scene]
+        its = [r["iterations"] for r in mine]
+        left.plot(its, [r["success_pct"] for r in mine], "o-", label=scene)
+        right.plot(its, [r["median_path_length"] for r in mine], "o-", label=scene)
+    left.set(xlabel="LM iterations", ylabel="success (%)", ylim=(0, 105))
+    right.set(xlabel="LM iterations", ylabel="median tip path length (m)")
+    left.legend()
+    fig.suptitle("roadmap+opt: success and path length vs optimisation iterations")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+COLUMNS = (
+    Column("scene", "scene"), Column("method", "method"), Column("problems", "problems"),
+    Column("success_pct", "success %", fixed(1)),
+    Column("collision_free_pct", "collision-free %", fixed(1)),
+    Column("median_path_length", "median path (m)", fixed(3)),
+    Column("time_per_problem", "time/problem (s)", fixed(3)),
+    Column("median_time", "median time (s)", fixed(3)),
+    Column("max_violation", "max violation"),
+    Column("first_call", "first call (s)", fixed(2)),
+)
+
+
+def format_report(rows: Sequence[dict[str, Any]], builds: Sequence[dict[str, Any]],
+                  sweep: Sequence[dict[str, Any]], env: dict[str, str], robot: str,
+                  pairs: int) -> str:
+    """The Markdown report: results, roadmap builds, iteration sweep, environment."""
+    parts = [f"# Trajectory planning benchmark ({robot}, {pairs} start/goal pairs per scene)",
+             markdown_table(rows, COLUMNS),
+             "Success and collision-free are judged by `verify_trajectory` (python-fcl along "
+             "the interpolated motion, limits, tendon speed/acceleration over Δt) for every "
+             "row. time/problem: batch wall time / problems (RRT: mean per problem); median "
+             "time: median of per-problem times; first call: warm-up (compilation, roadmap "
+             "load). RRT-Connect is not shortcut; it uses the planner's waypoints and Δt.",
+             "## Roadmap build",
+             markdown_table(builds, (Column("scene", "scene"),
+                                     Column("build_seconds", "build (s)", fixed(2)),
+                                     Column("from_cache", "loaded from cache"),
+                                     Column("loaded_seconds", "load (s)", fixed(2)),
+                                     Column("nodes", "nodes"), Column("edges", "edges")))]
+    if sweep:
+        parts += ["## Success and path length vs LM iterations (roadmap+opt)",
+                  markdown_table(sweep, (Column("scene", "scene"),
+                                         Column("iterations", "iterations"),
+                                         Column("success_pct", "success %", fixed(1)),
+                                         Column("median_path_length", "median path (m)",
+                                                fixed(3))))]
+    parts += ["## Environment", environment_markdown(env)]
+    return "\n\n".join(parts)
+
+
+# ================================================================ command line
+
+
+def add_bench_plan(bench_subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add ``plan`` to a ``cr-nlp bench`` subcommand group; returns its parser. The parsed
+    namespace's ``run(args)`` runs the benchmark and returns the exit status."""
+    p = bench_subparsers.add_parser(
+        "plan", help="trajectory benchmark: roadmap/straight-line + LM, exact, RRT-Connect",
+        description="Runs the trajectory-planning benchmark (DESIGN.md §4), prints Markdown "
+                    "tables and writes plan.md, plan.csv, roadmap_build.csv, iterations.csv "
+                    "and iterations.png to --out.")
+    p.add_argument("--quick", action="store_true",
+                   help=f"small sizes ({QUICK.pairs_per_scene} pairs per scene)")
+    p.add_argument("--pairs", type=int, default=None,
+                   help=f"start/goal pairs per scene (default {FULL.pairs_per_scene})")
+    p.add_argument("--scenes", nargs="+", default=list(SCENES),
+                   help="scene names or files (default: shelf cabinet random_27)")
+    p.add_argument("--robot", default="tdcr3", help="robot name or file (default tdcr3)")
+    p.add_argument("--methods", nargs="+", choices=METHODS, default=list(DEFAULT_METHODS),
+                   help="rows to run (default all)")
+    p.add_argument("--iterations", type=int, nargs="*", default=None,
+                   help="LM iteration budgets of the sweep figure (none: no sweep)")
+    p.add_argument("--out", default="bench_results/plan",
+                   help="output folder (default bench_results/plan)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the problems (default 0)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(run=run_bench_plan_command)
+    return p
+
+
+def run_bench_plan_command(args: argparse.Namespace) -> int:
+    """The ``cr-nlp bench plan`` action."""
+    run_plan_benchmark(quick=args.quick, pairs_per_scene=args.pairs, scenes=args.scenes,
+                       robot=args.robot, out=args.out, seed=args.seed, methods=args.methods,
+                       iteration_budgets=args.iterations, progress=not args.no_progress)
+    print(f"wrote {Path(args.out) / 'plan.md'} and its CSV files", file=sys.stderr)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m cr_nlp.bench.plan``: the same options as ``cr-nlp bench plan``."""
+    from .._jax_setup import enable_compilation_cache, use_host_devices
+
+    use_host_devices()
+    enable_compilation_cache()
+    parser = argparse.ArgumentParser(prog="python -m cr_nlp.bench")
+    add_bench_plan(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["plan", *(sys.argv[1:] if argv is None else argv)])
+    return args.run(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

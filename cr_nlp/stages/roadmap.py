@@ -1,0 +1,428 @@
+"""Stage 1 for trajectories: a probabilistic roadmap (PRM) per (robot, scene), searched
+with Dijkstra.
+
+Build (once per robot, scene and ``RoadmapConfig``; cached on disk):
+
+1. Sobol configurations are drawn in batches and kept when their clearance (the JAX
+   sphere-model ``clearance_z``, float32) is at least the margin.
+2. Each node is joined to its ``neighbours`` nearest nodes (``cKDTree``) in the
+   roadmap metric below.
+3. An edge is kept when ``edge_checks`` interpolated configurations along it keep the
+   margin (checked in fixed-size batches, split over every JAX device).
+
+Query: start and goal are attached to their nearest nodes by collision-free edges
+(``neighbours`` nearest, widened 4× at a time while none connects), Dijkstra (scipy)
+finds the shortest path, and the edges of that path are checked
+again densely (every ``query_step`` in the metric); an edge that fails is dropped
+and the search repeats (lazy PRM). The path is resampled uniformly by arc length.
+
+Metric: the Euclidean distance in the bending-vector form z = [ux, uy, L]·n
+(radians for u = θ(cos φ, sin φ), metres for L). It has no azimuth wrap-around and no
+singularity at θ = 0 (every φ at θ = 0 is one point), straight-line interpolation in z
+stays inside the limits ‖u‖ ≤ θmax (a disk is convex), and one radian of bending weighs
+like one metre of length, which moves a 1 m segment's tip by about as much.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.sparse as sp
+from jax.sharding import Mesh
+from jax.sharding import PartitionSpec as P
+from scipy.sparse.csgraph import dijkstra
+from scipy.spatial import cKDTree
+
+from .._jax_setup import cache_dir
+from ..model import Robot, q_to_z, z_to_q
+from ..world import Scene, body_gap_tolerance, clearance_z, scene_arrays
+from ..world.clearance import SceneArrays
+from .explore import sobol_configurations
+
+CHECK_CHUNK = 4096
+"""Configurations per clearance call (fixed, so the check compiles once per scene)."""
+CHUNKS = (64, 512, CHECK_CHUNK)
+"""Compiled batch sizes: a request uses the smallest that holds it (RRT steps and
+query-time checks are small), else chunks of ``CHECK_CHUNK``."""
+FORMAT_VERSION = 2
+"""Bumped when the cached file's content or the build procedure changes."""
+
+_CACHE_STATS = {"hits": 0, "builds": 0}
+
+
+def roadmap_cache_stats() -> dict[str, int]:
+    """How often ``Roadmap.build`` loaded a roadmap from disk (``hits``) or built one
+    (``builds``) in this process."""
+    return dict(_CACHE_STATS)
+
+
+def roadmap_cache_dir() -> Path:
+    """Where roadmaps are cached: ``cache_dir()/roadmaps``."""
+    return cache_dir() / "roadmaps"
+
+
+@dataclass(frozen=True)
+class RoadmapConfig:
+    """Settings of the roadmap build and query."""
+
+    nodes: int = 2048
+    """Collision-free configurations to keep (Sobol draws continue until this many keep
+    the margin, at most ``max_draws_factor`` × nodes draws)."""
+    neighbours: int = 10
+    """k of the k-nearest-neighbour edges (per node, and per attached start/goal)."""
+    edge_checks: int = 8
+    """Interpolated configurations checked inside each edge at build time."""
+    margin: float | None = None
+    """Clearance (m, sphere model) every node and checked sample must keep; None means
+    ``body_gap_tolerance(robot) + 0.002``, which makes the capsule body (python-fcl)
+    at least 2 mm clear at the checked samples."""
+    seed: int = 0
+    """Seed of the Sobol draws."""
+    query_step: float = 0.02
+    """Spacing (rad or m in z) of the dense re-check of a path's edges at query time."""
+    max_query_rounds: int = 2000
+    """Most Dijkstra searches per query (each drops the path's edges that fail the dense
+    check); queries that run out return None."""
+    max_draws_factor: int = 16
+    """Give up drawing nodes after this many × ``nodes`` draws (very cluttered scenes)."""
+
+
+def resolved_margin(robot: Robot, config: RoadmapConfig) -> float:
+    """The margin (m) a roadmap built with ``config`` keeps."""
+    return float(config.margin if config.margin is not None
+                 else body_gap_tolerance(robot) + 0.002)
+
+
+# ================================================================ helpers
+
+
+def interpolate_z(za: np.ndarray, zb: np.ndarray, count: int) -> np.ndarray:
+    """(…, count, 3n) configurations evenly spaced on the straight line from ``za`` to
+    ``zb`` (…, 3n) in the bending-vector form, both ends included (count ≥ 2)."""
+    za, zb = np.asarray(za, dtype=float), np.asarray(zb, dtype=float)
+    t = np.linspace(0.0, 1.0, count)[:, None]
+    return za[..., None, :] + t * (zb - za)[..., None, :]
+
+
+def resample_polyline(points_z: np.ndarray, count: int) -> np.ndarray:
+    """(count, 3n) configurations spaced uniformly by arc length (roadmap metric) along
+    the polyline through ``points_z`` (K, 3n), first and last points kept."""
+    points_z = np.asarray(points_z, dtype=float)
+    if len(points_z) == 1:
+        return np.repeat(points_z, count, axis=0)
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points_z, axis=0), axis=1))])
+    if arc[-1] <= 0.0:
+        return np.repeat(points_z[:1], count, axis=0)
+    s = np.linspace(0.0, arc[-1], count)
+    return np.stack([np.interp(s, arc, points_z[:, d]) for d in range(points_z.shape[1])],
+                    axis=1)
+
+
+def polyline_length(points_z: np.ndarray) -> float:
+    """Length of a polyline (K, 3n) in the roadmap metric (rad and m mixed, see module)."""
+    return float(np.sum(np.linalg.norm(np.diff(np.asarray(points_z), axis=0), axis=1)))
+
+
+@lru_cache(maxsize=16)
+def _chunk_program(robot: Robot, device_count: int) -> Any:
+    """clearance_z over a (CHECK_CHUNK, 3n) float32 chunk, split over the JAX devices."""
+    def f(arrays: SceneArrays, z: jax.Array) -> jax.Array:
+        return clearance_z(robot, arrays, z)
+
+    if device_count == 1:
+        return jax.jit(f)
+    mesh = Mesh(np.array(jax.devices()), ("batch",))
+    return jax.jit(jax.shard_map(f, mesh=mesh, in_specs=(P(), P("batch")),
+                                 out_specs=P("batch")))
+
+
+class ClearanceChecker:
+    """Batched float32 sphere-model clearance of bending-vector configurations, in
+    fixed-size chunks (one compilation per robot and scene part counts)."""
+
+    def __init__(self, robot: Robot, scene: Scene) -> None:
+        self.robot = robot
+        self.arrays = scene_arrays(scene, jnp.float32)
+        devices = len(jax.devices())
+        # Tiny chunks stay on one device: splitting them costs more than it saves.
+        self.programs = {chunk: _chunk_program(robot, devices if chunk >= 512
+                                               and chunk % devices == 0 else 1)
+                         for chunk in CHUNKS}
+        self.calls = 0
+
+    def __call__(self, z: np.ndarray) -> np.ndarray:
+        """(B,) clearances (m) of z (B, 3n)."""
+        z = np.asarray(z, dtype=np.float32).reshape(-1, self.robot.dof)
+        out = np.empty(len(z), dtype=np.float64)
+        chunk = next((c for c in CHUNKS if len(z) <= c), CHECK_CHUNK)
+        for start in range(0, len(z), chunk):
+            block = z[start:start + chunk]
+            padded = np.empty((chunk, self.robot.dof), dtype=np.float32)
+            padded[:len(block)] = block
+            padded[len(block):] = block[:1]
+            values = self.programs[chunk](self.arrays, jnp.asarray(padded))
+            out[start:start + len(block)] = np.asarray(values)[:len(block)]
+            self.calls += 1
+        return out
+
+
+def _edge_free(checker: ClearanceChecker, za: np.ndarray, zb: np.ndarray, counts: np.ndarray,
+               margin: float) -> np.ndarray:
+    """(E,) True where every interior sample of the edge za→zb (E, 3n) keeps the margin;
+    edge e has ``counts[e]`` interior samples, evenly spaced."""
+    counts = np.asarray(counts, dtype=np.int64)
+    edge = np.repeat(np.arange(len(za)), counts)
+    offsets = np.arange(len(edge)) - np.repeat(np.cumsum(counts) - counts, counts)
+    t = (offsets + 1.0) / (counts[edge] + 1.0)
+    samples = za[edge] + t[:, None] * (zb[edge] - za[edge])
+    ok = checker(samples) >= margin
+    bad = np.zeros(len(za), dtype=bool)
+    np.logical_or.at(bad, edge[~ok], True)
+    return ~bad
+
+
+def _scene_key(robot: Robot, scene: Scene, config: RoadmapConfig) -> str:
+    """sha256 of the robot, the scene (its file form and its parts' geometry, which
+    covers mesh contents and their decomposition) and the settings."""
+    h = hashlib.sha256()
+    h.update(json.dumps({"version": FORMAT_VERSION, "robot": robot.to_dict(),
+                         "scene": scene.to_dict(), "config": asdict(config),
+                         "margin": resolved_margin(robot, config), "chunk": CHECK_CHUNK},
+                        sort_keys=True, default=str).encode())
+    for array in scene_arrays(scene, as_numpy=True):
+        h.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
+    return h.hexdigest()
+
+
+# ================================================================ the roadmap
+
+
+class Roadmap:
+    """Collision-free configurations (``nodes_z``, (N, 3n) bending-vector form) joined
+    by collision-free straight edges (``edges``, (N, N) symmetric CSR of edge lengths
+    in the roadmap metric). Build with ``Roadmap.build``."""
+
+    def __init__(self, robot: Robot, scene: Scene, config: RoadmapConfig,
+                 nodes_z: np.ndarray, edges: sp.csr_matrix, build_seconds: float) -> None:
+        self.robot = robot
+        self.scene = scene
+        self.config = config
+        self.margin = resolved_margin(robot, config)
+        self.nodes_z = np.asarray(nodes_z, dtype=float)
+        self.edges = edges.tocsr()
+        self.build_seconds = float(build_seconds)
+        """Seconds the build took (when loaded from the cache: the original build's)."""
+        self.loaded_from_cache = False
+        self.tree = cKDTree(self.nodes_z)
+        self._checker: ClearanceChecker | None = None
+        self._dense_ok: dict[tuple[int, int], bool] = {}
+        self.last_query_rounds = 0
+        """Dijkstra searches the last query needed (lazy edge checks)."""
+
+    @property
+    def checker(self) -> ClearanceChecker:
+        if self._checker is None:
+            self._checker = ClearanceChecker(self.robot, self.scene)
+        return self._checker
+
+    @property
+    def edge_count(self) -> int:
+        """Undirected edges."""
+        return int(self.edges.nnz // 2)
+
+    # ------------------------------------------------------------ build
+
+    @classmethod
+    def build(cls, robot: Robot, scene: Scene, config: RoadmapConfig = RoadmapConfig(),
+              cache: bool = True) -> Roadmap:
+        """The roadmap of ``robot`` in ``scene``: loaded from ``roadmap_cache_dir()`` when
+        one with the same robot, scene and settings is there (``cache``), else built
+        (and written there)."""
+        path = roadmap_cache_dir() / f"{_scene_key(robot, scene, config)}.npz"
+        if cache and path.exists():
+            try:
+                with np.load(path) as data:
+                    nodes_z = data["nodes_z"]
+                    edges = sp.csr_matrix((data["data"], data["indices"], data["indptr"]),
+                                          shape=(len(nodes_z), len(nodes_z)))
+                    seconds = float(data["build_seconds"])
+                _CACHE_STATS["hits"] += 1
+                roadmap = cls(robot, scene, config, nodes_z, edges, seconds)
+                roadmap.loaded_from_cache = True
+                return roadmap
+            except (OSError, KeyError, ValueError):
+                pass  # a damaged cache file is rebuilt and overwritten
+        roadmap = cls._build(robot, scene, config)
+        _CACHE_STATS["builds"] += 1
+        if cache:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            buffer = io.BytesIO()
+            e = roadmap.edges
+            np.savez(buffer, nodes_z=roadmap.nodes_z, data=e.data, indices=e.indices,
+                     indptr=e.indptr, build_seconds=roadmap.build_seconds)
+            # Write then rename, so a concurrent reader never sees half a file.
+            fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+            with os.fdopen(fd, "wb") as f:
+                f.write(buffer.getvalue())
+            os.replace(tmp, path)
+        return roadmap
+
+    @classmethod
+    def _build(cls, robot: Robot, scene: Scene, config: RoadmapConfig) -> Roadmap:
+        start = time.perf_counter()
+        margin = resolved_margin(robot, config)
+        checker = ClearanceChecker(robot, scene)
+        kept: list[np.ndarray] = []
+        total, drawn, round_ = 0, 0, 0
+        while total < config.nodes and drawn < config.max_draws_factor * config.nodes:
+            # A power of two keeps the Sobol points balanced.
+            batch = 1 << int(np.ceil(np.log2(max(CHECK_CHUNK, 2 * (config.nodes - total)))))
+            q = sobol_configurations(robot, batch, seed=config.seed * 7919 + round_)
+            z = np.asarray(q_to_z(robot, q), dtype=float)
+            free = z[checker(z) >= margin]
+            kept.append(free)
+            total += len(free)
+            drawn += batch
+            round_ += 1
+        nodes_z = np.concatenate(kept)[:config.nodes] if kept else np.zeros((0, robot.dof))
+        n = len(nodes_z)
+        k = min(config.neighbours, n - 1)
+        if k < 1:
+            return cls(robot, scene, config, nodes_z, sp.csr_matrix((n, n)),
+                       time.perf_counter() - start)
+        tree = cKDTree(nodes_z)
+        _, idx = tree.query(nodes_z, k=k + 1)
+        i = np.repeat(np.arange(n), k)
+        j = idx[:, 1:].ravel()
+        pairs = np.unique(np.sort(np.c_[i, j], axis=1), axis=0)
+        pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+        ok = _edge_free(checker, nodes_z[pairs[:, 0]], nodes_z[pairs[:, 1]],
+                        np.full(len(pairs), config.edge_checks), margin)
+        pairs = pairs[ok]
+        length = np.linalg.norm(nodes_z[pairs[:, 0]] - nodes_z[pairs[:, 1]], axis=1)
+        # Lengths are > 0 (distinct Sobol points): csgraph reads explicit zeros as no edge.
+        edges = sp.coo_matrix((np.r_[length, length], (np.r_[pairs[:, 0], pairs[:, 1]],
+                                                        np.r_[pairs[:, 1], pairs[:, 0]])),
+                              shape=(n, n)).tocsr()
+        roadmap = cls(robot, scene, config, nodes_z, edges, time.perf_counter() - start)
+        roadmap._checker = checker
+        return roadmap
+
+    # ------------------------------------------------------------ query
+
+    def dense_free(self, za: np.ndarray, zb: np.ndarray) -> np.ndarray:
+        """(E,) True where the straight edge za → zb (E, 3n each) keeps the margin at
+        every ``query_step`` (one batched clearance call for all edges)."""
+        za, zb = np.atleast_2d(za), np.atleast_2d(zb)
+        counts = np.maximum(1, np.ceil(np.linalg.norm(zb - za, axis=1)
+                                       / self.config.query_step).astype(np.int64))
+        return _edge_free(self.checker, za, zb, counts, self.margin)
+
+    def _attach(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Indices and lengths of nearby nodes that z connects to without collision: the
+        ``neighbours`` nearest first, then 4×, 16×, … as many until one connects
+        (configurations deep in a narrow space have few free straight lines)."""
+        count, done = self.config.neighbours, 0
+        while done < len(self.nodes_z):
+            k = min(count, len(self.nodes_z))
+            dist, idx = self.tree.query(z, k=k)
+            dist, idx = np.atleast_1d(dist)[done:], np.atleast_1d(idx)[done:]
+            # Coarse check of every candidate, then the dense one on the nearest survivors.
+            coarse = _edge_free(self.checker, np.repeat(z[None], len(idx), axis=0),
+                                self.nodes_z[idx], np.full(len(idx), self.config.edge_checks),
+                                self.margin)
+            dist, idx = dist[coarse][:self.config.neighbours], idx[coarse][:self.config.neighbours]
+            steps = np.ceil(dist / self.config.query_step).astype(np.int64)
+            ok = _edge_free(self.checker, np.repeat(z[None], len(idx), axis=0),
+                            self.nodes_z[idx], np.maximum(self.config.edge_checks, steps),
+                            self.margin)
+            if ok.any():
+                return idx[ok], np.maximum(dist[ok], 1e-12)
+            done, count = k, 4 * count
+        return np.zeros(0, dtype=np.int64), np.zeros(0)
+
+    def query_z(self, z_start: np.ndarray, z_goal: np.ndarray) -> np.ndarray | None:
+        """The shortest roadmap path from ``z_start`` to ``z_goal`` (3n, bending-vector
+        form) as its corner points (K, 3n), start and goal included, every edge
+        re-checked densely; None if either end cannot be attached or no path exists."""
+        z_start = np.asarray(z_start, dtype=float).reshape(self.robot.dof)
+        z_goal = np.asarray(z_goal, dtype=float).reshape(self.robot.dof)
+        if self.dense_free(z_start, z_goal)[0]:
+            return np.stack([z_start, z_goal])
+        if len(self.nodes_z) == 0:
+            return None
+        start_idx, start_len = self._attach(z_start)
+        goal_idx, goal_len = self._attach(z_goal)
+        if len(start_idx) == 0 or len(goal_idx) == 0:
+            return None
+        n = len(self.nodes_z)
+        s, g = n, n + 1
+        extra = sp.coo_matrix(
+            (np.r_[start_len, start_len, goal_len, goal_len],
+             (np.r_[np.full(len(start_idx), s), start_idx, np.full(len(goal_idx), g), goal_idx],
+              np.r_[start_idx, np.full(len(start_idx), s), goal_idx, np.full(len(goal_idx), g)])),
+            shape=(n + 2, n + 2))
+        graph = (sp.block_diag([self.edges, sp.csr_matrix((2, 2))]) + extra).tolil()
+        for (a, b), ok in self._dense_ok.items():
+            if not ok:
+                graph[a, b] = 0.0
+                graph[b, a] = 0.0
+        points = np.vstack([self.nodes_z, z_start, z_goal])
+        # Lazy PRM: a path edge that fails the dense check is removed, then search again.
+        self.last_query_rounds = 0
+        for _ in range(self.config.max_query_rounds):
+            self.last_query_rounds += 1
+            _, pred = dijkstra(graph.tocsr(), directed=False, indices=s,
+                               return_predecessors=True)
+            if pred[g] < 0:
+                return None
+            path = [g]
+            while path[-1] != s:
+                path.append(int(pred[path[-1]]))
+            path.reverse()
+            hops = [(min(a, b), max(a, b)) for a, b in zip(path[:-1], path[1:], strict=True)]
+            # Edges between roadmap nodes keep their verdict for later queries.
+            unknown = [h for h in hops if h[1] >= n or h not in self._dense_ok]
+            if unknown:
+                pairs = np.array(unknown)
+                verdicts = self.dense_free(points[pairs[:, 0]], points[pairs[:, 1]])
+                known = {h: bool(v) for h, v in zip(unknown, verdicts, strict=True)}
+                self._dense_ok.update({h: v for h, v in known.items() if h[1] < n})
+            else:
+                known = {}
+            failed = [h for h in hops if not known.get(h, self._dense_ok.get(h, False))]
+            for a, b in failed:
+                graph[a, b] = 0.0
+                graph[b, a] = 0.0
+            if not failed:
+                return points[path]
+        return None
+
+    def query(self, q_start: np.ndarray, q_goal: np.ndarray, waypoints: int) -> np.ndarray | None:
+        """A collision-free path from ``q_start`` to ``q_goal`` (3n each; rad, rad, m) as
+        (waypoints, 3n) configurations (θ, φ, L): the roadmap path (``query_z``) resampled
+        uniformly by arc length in z. None if start or goal cannot be attached or no
+        path exists. The resampled polyline cuts the path's corners slightly: check the
+        result where that matters."""
+        z_start = np.asarray(q_to_z(self.robot, np.asarray(q_start, dtype=float)))
+        z_goal = np.asarray(q_to_z(self.robot, np.asarray(q_goal, dtype=float)))
+        corners = self.query_z(z_start, z_goal)
+        if corners is None:
+            return None
+        z = resample_polyline(corners, waypoints)
+        q = np.array(z_to_q(self.robot, z), dtype=float)
+        # Keep the given end points bit for bit (the z round trip moves φ at θ = 0).
+        q[0], q[-1] = np.asarray(q_start, dtype=float), np.asarray(q_goal, dtype=float)
+        return q

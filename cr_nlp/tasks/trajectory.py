@@ -1,0 +1,869 @@
+"""Trajectory planning: the problem, the batched solver, the independent verification.
+
+Problem (DESIGN.md §2): z = (z₀, …, z_H), one bending-vector configuration per waypoint
+(``waypoints = H + 1``), the time step Δt between waypoints fixed; start z₀ and goal z_H
+fixed; f = end-effector path; c = clearance ≥ δ at every waypoint and along the motion
+between them, tendon speed |Δℓ/Δt| ≤ v_max and acceleration |Δ²ℓ/Δt²| ≤ a_max (finite
+differences of the tendon lengths over the waypoints); limits by projection.
+
+Between waypoints the robot moves linearly in z. Tendon lengths are linear in z
+(``ℓ = L − r·(ux cos α + uy sin α)``), so this is exactly the motion of a controller that
+interpolates the tendon-length series linearly (``TrajectoryResult.save_csv``).
+
+Objective. The LM stage minimises Σₖ ‖p(zₖ₊₁) − p(zₖ)‖² (tip displacements squared), not
+the length Σₖ ‖p(zₖ₊₁) − p(zₖ)‖: the squared form is a smooth least-squares residual (the
+length's gradient is undefined where two waypoints coincide) and, by Cauchy–Schwarz,
+(length)² ≤ H·Σₖ‖Δp‖² with equality for evenly spaced waypoints, so it shortens the path
+and spreads the waypoints evenly at once. A small joint-space term Σ‖zₖ₊₁ − zₖ‖² fixes
+the body's shape where the tip alone leaves it free (three of six bending DOF for tdcr3).
+
+Stages: init (roadmap query, straight line in z, perturbed straight lines), refine (LM
+on all guesses of all problems at once, penalties for clearance and tendon limits),
+verify (python-fcl along the densely interpolated motion, float64 tendon finite
+differences, limits), optional polish (``stages.polish_trajectory``: Ipopt with the
+constraints as constraints).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from dataclasses import dataclass, field, replace
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._jax_setup import enable_compilation_cache
+from ..model import Robot, load_robot
+from ..model._ops import JAX, NUMPY
+from ..model.kinematics import model_segment_frames, model_tendon_lengths
+from ..model.limits import limit_violation_q, project_z
+from ..stages.lm import LMConfig, lm_solve
+from ..world import Scene, check_many, load_scene, scene_arrays
+from ..world.clearance import (
+    SceneArrays,
+    _centres,
+    _kind_blocks,
+    body_gap_tolerance,
+    body_segments,
+    self_pairs,
+)
+from ..world.penalty import body_clearances_z
+
+
+@dataclass(frozen=True)
+class TrajectoryConfig:
+    """Settings of the trajectory planner. Defaults measured on tdcr3 in the bundled scenes."""
+
+    waypoints: int = 24
+    """H + 1 configurations per trajectory, start and goal included."""
+    dt: float = 0.35
+    """Δt, seconds between waypoints (default duration 23 × 0.35 = 8.05 s). Measured on
+    400 start/goal pairs per bundled scene (tips ≥ 0.3 m apart): the straight line in z
+    needs a tendon travel of 0.37 m (median), 0.85 m (99th percentile) and 0.98 m (max);
+    at tdcr3's 0.2 m/s the default duration allows 1.6 m, room for detours."""
+    guesses: int = 4
+    """Initial trajectories per problem: the roadmap's (with ``init="roadmap"``), the
+    straight line in z, then straight lines bent by random bumps."""
+    perturbation: float = 0.6
+    """Radians: amplitude of the half-sine bump added to the bending vectors of a
+    perturbed guess (largest at the middle waypoint, zero at start and goal)."""
+    iterations: int = 60
+    """LM iterations on every guess."""
+    path_weight: float = 1.0
+    """Weight of the squared tip displacements (m²)."""
+    smoothness_weight: float = 0.01
+    """Weight of the squared joint-space steps ‖zₖ₊₁ − zₖ‖² (rad², m²)."""
+    clearance_weight: float = 1000.0
+    """Penalty weight of a clearance shortfall (per m²) at waypoints and check points."""
+    tendon_weight: float = 10.0
+    """Penalty weight of a relative tendon speed/acceleration overshoot (dimensionless)."""
+    tendon_limit_fraction: float = 0.95
+    """The LM stage aims for this fraction of the tendon limits, so that a penalty
+    answer's small overshoot still lies inside the real limits."""
+    safety_margin: float = 0.002
+    """δ, metres: the clearance every answer must keep, as python-fcl measures it on the
+    capsule body. The optimisers work on the sphere body with δ plus its discretisation
+    bound (``world.clearance.body_gap_tolerance``), which implies it."""
+    interpolation_checks: int = 1
+    """Clearance check points inside each interval for the optimisers (1: the midpoint),
+    so that thin obstacles are not tunnelled between waypoints."""
+    verify_samples: int = 4
+    """The verification splits every interval into this many pieces (fcl at each)."""
+    chunk_size: int = 16
+    """Most trajectories per compiled LM call; larger batches are split into chunks. Small
+    chunks waste little on padding and on waiting for the chunk's slowest trajectory."""
+    dtype: str = "float32"
+    """JAX dtype of the LM stage ("float64" needs jax_enable_x64)."""
+    seed: int = 0
+    """Seed of the perturbed guesses."""
+    roadmap_cache: bool = True
+    """Let ``Roadmap.build`` reuse a roadmap cached on disk."""
+
+    def __post_init__(self) -> None:
+        if self.waypoints < 3:
+            raise ValueError(f"waypoints must be at least 3, got {self.waypoints}")
+        if not self.dt > 0:
+            raise ValueError(f"dt must be positive, got {self.dt}")
+        if self.guesses < 1 or self.verify_samples < 1 or self.interpolation_checks < 0:
+            raise ValueError("guesses and verify_samples must be ≥ 1, interpolation_checks ≥ 0")
+
+
+# ================================================================ residuals
+
+
+def _tip_value(robot: Robot, z: jax.Array) -> jax.Array:
+    _, pos = model_segment_frames(JAX, robot, [z[i] for i in range(robot.dof)])[-1]
+    return jnp.stack(jnp.broadcast_arrays(*pos)).astype(z.dtype)
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _tip_position(robot: Robot, z: jax.Array) -> jax.Array:
+    """Tip position (3,) m of one waypoint z (3n,)."""
+    return _tip_value(robot, z)
+
+
+@_tip_position.defjvp
+def _tip_position_jvp(robot: Robot, primals: tuple, tangents: tuple) -> tuple:
+    # The waypoint's own 3 × 3n Jacobian, computed from the primal only: under the LM's
+    # jacfwd over all H·3n directions it is evaluated once, not once per direction.
+    (z,), (z_dot,) = primals, tangents
+    jac = jax.jacfwd(partial(_tip_value, robot))(z)
+    return _tip_value(robot, z), jac @ z_dot
+
+
+def _safe_norm(x: jax.Array) -> jax.Array:
+    eps = jnp.asarray(1e-9, x.dtype)
+    return jnp.sqrt(jnp.sum(x * x, axis=-1) + eps * eps) - eps
+
+
+def _groups(robot: Robot, arrays: SceneArrays | None) -> list[np.ndarray]:
+    """Index sets into ``body_clearances_z``'s output, one per residual group: each
+    segment's body spheres (nearest-obstacle rows), then all self pairs."""
+    out, offset = [], 0
+    if arrays is not None and arrays.n_parts > 0:
+        out += list(body_segments(robot))
+        offset = robot.n_points + 1
+    if robot.n_segments >= 3:
+        out.append(offset + np.arange(len(self_pairs(robot))))
+    return out
+
+
+def _group_values(robot: Robot, margin: float, arrays: SceneArrays | None,
+                  z: jax.Array) -> jax.Array:
+    """Grouped clearance shortfalls (m) of one configuration z (3n,): for each segment, the
+    norm of max(0, δ − d) over its body spheres' nearest-obstacle distances
+    (``body_clearances_z``), then the norm over the self pairs. Grouping keeps the LM's
+    residual count (hence the cost of JᵀJ) small; ½‖group‖² equals the per-sphere
+    penalty, so the gradient is unchanged."""
+    shortfall = jnp.maximum(margin - body_clearances_z(robot, arrays, z), 0.0)
+    return jnp.stack([_safe_norm(shortfall[idx]) for idx in _groups(robot, arrays)])
+
+
+# Fields of ``SceneArrays`` per part kind, in ``_kind_blocks`` order.
+_KIND_FIELDS = (("sphere_center", "sphere_radius"),
+                ("box_center", "box_rotation", "box_half_size"),
+                ("capsule_a", "capsule_b", "capsule_radius"),
+                ("cylinder_center", "cylinder_rotation", "cylinder_radius",
+                 "cylinder_half_length"),
+                ("convex_planes",))
+
+
+def _nearest_and_gradient(robot: Robot, arrays: SceneArrays,
+                          centres: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Each body sphere's nearest-obstacle distance (N,) m and its gradient (N, 3) with
+    respect to the sphere's centre. The gradient of a min is that of its argmin, so only
+    the nearest part of each kind is differentiated (measured 10–20× cheaper than the
+    reverse pass over every (sphere, part) pair)."""
+    blocks = _kind_blocks(robot, arrays, centres, 0.0)
+    present = [k for k, f in enumerate(_KIND_FIELDS) if getattr(arrays, f[0]).shape[0]]
+    picked = dict(arrays._asdict())
+    axes = dict.fromkeys(picked)
+    for kind, block in zip(present, blocks, strict=True):
+        nearest = jnp.argmin(block, axis=-1)[:, None]          # (N, 1): one part per sphere
+        for name in _KIND_FIELDS[kind]:
+            picked[name] = getattr(arrays, name)[nearest]
+            axes[name] = 0
+    per_sphere = SceneArrays(**picked)
+
+    def distance(one: SceneArrays, centre: jax.Array) -> jax.Array:
+        rows = _kind_blocks(robot, one, centre[None], 0.0)
+        return jnp.min(jnp.concatenate([b.reshape(-1) for b in rows]))
+
+    return jax.vmap(jax.value_and_grad(distance, argnums=1),
+                    in_axes=(SceneArrays(**axes), 0))(per_sphere, centres)
+
+
+def _group_jacobian(robot: Robot, margin: float, arrays: SceneArrays | None,
+                    z: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``_group_values`` (G,) and its Jacobian (G, 3n), from the body spheres' centre
+    Jacobian and per-sphere distance gradients (no pass over every tangent direction)."""
+    centres = _centres(robot, z, False)
+    jac_centres = jax.jacfwd(lambda x: _centres(robot, x, False))(z)      # (N, 3, 3n)
+    values, rows = [], []
+    if arrays is not None and arrays.n_parts > 0:
+        d, grad = _nearest_and_gradient(robot, arrays, centres)
+        values.append(d)
+        rows.append(jnp.einsum("nk,nkj->nj", grad, jac_centres))
+    if robot.n_segments >= 3:
+        pairs = self_pairs(robot)
+        diff = centres[pairs[:, 0]] - centres[pairs[:, 1]]
+        norm = jnp.sqrt(jnp.maximum(jnp.sum(diff * diff, axis=-1), 1e-30))
+        values.append(norm - 2.0 * robot.backbone_radius)
+        unit = diff / norm[:, None]
+        rows.append(jnp.einsum("nk,nkj->nj", unit,
+                               jac_centres[pairs[:, 0]] - jac_centres[pairs[:, 1]]))
+    d, jac_d = jnp.concatenate(values), jnp.concatenate(rows)
+    shortfall = jnp.maximum(margin - d, 0.0)
+    out, jac = [], []
+    eps = jnp.asarray(1e-9, z.dtype)
+    for idx in _groups(robot, arrays):
+        s = shortfall[idx]
+        root = jnp.sqrt(jnp.sum(s * s) + eps * eps)
+        out.append(root - eps)
+        jac.append(-(s / root) @ jac_d[idx])
+    return jnp.stack(out), jnp.stack(jac)
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0, 1))
+def _clearance_groups(robot: Robot, margin: float, arrays: SceneArrays | None,
+                      z: jax.Array) -> jax.Array:
+    return _group_values(robot, margin, arrays, z)
+
+
+@_clearance_groups.defjvp
+def _clearance_groups_jvp(robot: Robot, margin: float, primals: tuple,
+                          tangents: tuple) -> tuple:
+    # As for the tip: the configuration's own Jacobian from the primal, then one product.
+    arrays, z = primals
+    z_dot = tangents[1]
+    values, jac = _group_jacobian(robot, margin, arrays, z)
+    return values, jac @ z_dot
+
+
+def _has_clearance(robot: Robot, arrays: SceneArrays | None) -> bool:
+    return (arrays is not None and arrays.n_parts > 0) or robot.n_segments >= 3
+
+
+def trajectory_residual(robot: Robot, waypoints: int, checks: int, margin: float,
+                        weights: tuple[float, float, float, float], limit_fraction: float,
+                        z: jax.Array, dt: jax.Array, scene: SceneArrays | None) -> jax.Array:
+    """Residuals of one trajectory z (waypoints·3n,) with time step dt (s):
+
+    - √w_path · (p(zₖ₊₁) − p(zₖ)) (m), the tip displacements;
+    - √w_smooth · (zₖ₊₁ − zₖ) (rad, m);
+    - √w_clear · grouped clearance shortfalls (m) at every waypoint and at ``checks``
+      evenly spaced points inside every interval;
+    - √w_tendon · max(0, |v|/(f·v_max) − 1) per tendon and interval, and the same for the
+      acceleration (dimensionless), f = ``limit_fraction``.
+
+    ``weights`` = (path, smoothness, clearance, tendon).
+    """
+    w_path, w_smooth, w_clear, w_tendon = weights
+    way = z.reshape(waypoints, robot.dof)
+    tips = jax.vmap(partial(_tip_position, robot))(way)
+    out = [math.sqrt(w_path) * (tips[1:] - tips[:-1]).reshape(-1),
+           math.sqrt(w_smooth) * (way[1:] - way[:-1]).reshape(-1)]
+    if _has_clearance(robot, scene):
+        step = way[1:] - way[:-1]
+        configs = [way] + [way[:-1] + (c / (checks + 1)) * step for c in range(1, checks + 1)]
+        groups = jax.vmap(partial(_clearance_groups, robot, margin, scene))(
+            jnp.concatenate(configs))
+        out.append(math.sqrt(w_clear) * groups.reshape(-1))
+    lengths = jnp.stack(model_tendon_lengths(JAX, robot, [way[:, i] for i in range(robot.dof)]),
+                        axis=-1).astype(z.dtype)
+    if math.isfinite(robot.tendon_speed_max):
+        speed = (lengths[1:] - lengths[:-1]) / dt
+        over = jnp.abs(speed) / (limit_fraction * robot.tendon_speed_max) - 1.0
+        out.append(math.sqrt(w_tendon) * jnp.maximum(over, 0.0).reshape(-1))
+    if math.isfinite(robot.tendon_accel_max):
+        accel = (lengths[2:] - 2.0 * lengths[1:-1] + lengths[:-2]) / (dt * dt)
+        over = jnp.abs(accel) / (limit_fraction * robot.tendon_accel_max) - 1.0
+        out.append(math.sqrt(w_tendon) * jnp.maximum(over, 0.0).reshape(-1))
+    return jnp.concatenate(out)
+
+
+def _project_waypoints(robot: Robot, waypoints: int, z: jax.Array) -> jax.Array:
+    """``project_z`` on every waypoint of a (B, waypoints·3n) batch."""
+    return project_z(robot, z.reshape(z.shape[:-1] + (waypoints, robot.dof))).reshape(z.shape)
+
+
+# ================================================================ float64 verification
+
+_NO_OBSTACLES = Scene("empty", ())
+"""For self-collision checks of a robot planned without a scene."""
+
+
+def _q_to_z(q: np.ndarray) -> np.ndarray:
+    theta, phi = q[..., 0::3], q[..., 1::3]
+    z = q.copy()
+    z[..., 0::3], z[..., 1::3] = theta * np.cos(phi), theta * np.sin(phi)
+    return z
+
+
+def _z_to_q(z: np.ndarray) -> np.ndarray:
+    ux, uy = z[..., 0::3], z[..., 1::3]
+    theta = np.hypot(ux, uy)
+    q = z.copy()
+    q[..., 0::3], q[..., 1::3] = theta, np.where(theta > 0.0, np.arctan2(uy, ux), 0.0)
+    return q
+
+
+def interpolate_trajectory(q: np.ndarray, samples: int) -> np.ndarray:
+    """The motion between waypoints, linear in the bending vector z (hence linear in the
+    tendon lengths): (H·samples + 1, 3n) configurations (rad, rad, m), each interval split
+    into ``samples`` pieces, waypoints included."""
+    z = _q_to_z(np.asarray(q, dtype=np.float64))
+    s = np.arange(samples)[:, None] / samples
+    inner = (z[:-1, None, :] + s[None, :, :] * (z[1:] - z[:-1])[:, None, :]).reshape(-1, z.shape[1])
+    return _z_to_q(np.concatenate([inner, z[-1:]]))
+
+
+def tip_positions(robot: Robot, q: np.ndarray) -> np.ndarray:
+    """(B, 3) tip positions (m) of (B, 3n) configurations, float64 numpy."""
+    z = _q_to_z(np.asarray(q, dtype=np.float64))
+    _, pos = model_segment_frames(NUMPY, robot, [z[:, i] for i in range(robot.dof)])[-1]
+    return np.stack(np.broadcast_arrays(*pos), axis=-1).reshape(-1, 3)
+
+
+def tendon_series(robot: Robot, q: np.ndarray) -> np.ndarray:
+    """(B, n_tendons) tendon lengths (m) of (B, 3n) configurations, float64 numpy."""
+    z = _q_to_z(np.asarray(q, dtype=np.float64))
+    values = model_tendon_lengths(NUMPY, robot, [z[:, i] for i in range(robot.dof)])
+    return np.stack(np.broadcast_arrays(*values), axis=-1).reshape(len(z), -1)
+
+
+def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
+                      margin: float = 0.002, samples: int = 4,
+                      tolerance: float = 1e-6) -> dict[str, Any]:
+    """Float64 verdict on a trajectory, independent of any optimiser.
+
+    Args:
+        robot: the robot.
+        scene: obstacles, or None.
+        q: (H+1, 3n) waypoints θ, φ, L (rad, rad, m).
+        dt: seconds between waypoints.
+        margin: δ, metres; a python-fcl distance below it counts as a clearance violation.
+        samples: each interval is split into this many pieces (linear in z) and python-fcl
+            checks every piece's end, so the whole motion, not only the waypoints, is judged.
+        tolerance: the largest limit and tendon-limit violation a success may have.
+
+    Returns a dict: ``success`` (collision-free by fcl along the whole motion, limits and
+    tendon limits within ``tolerance``), ``reason`` ("" on success), ``violations``
+    (largest violation per constraint family: ``clearance`` m below δ, ``limits`` rad or
+    m, ``tendon_speed`` m/s, ``tendon_accel`` m/s²), ``max_violation`` (their maximum),
+    ``min_clearance`` (m, fcl, +inf without obstacles), ``collision_free``,
+    ``path_length`` (m, the tip path along the dense motion), ``tendon_lengths``
+    (H+1, n_tendons) m, ``tendon_speed`` and ``tendon_accel`` (largest |value|, m/s and
+    m/s²) and ``first_collision`` (index into the dense motion, −1 if none).
+    """
+    q = np.asarray(q, dtype=np.float64)
+    if q.ndim != 2 or q.shape[1] != robot.dof or len(q) < 2:
+        raise ValueError(f"q must be (H+1, {robot.dof}) with H ≥ 1, got {q.shape}")
+    dense = interpolate_trajectory(q, samples)
+    tips = tip_positions(robot, dense)
+    path_length = float(np.sum(np.linalg.norm(np.diff(tips, axis=0), axis=1)))
+    lengths = tendon_series(robot, q)
+    speed = np.diff(lengths, axis=0) / dt
+    accel = (np.diff(lengths, 2, axis=0) / (dt * dt) if len(q) > 2
+             else np.zeros((0, lengths.shape[1])))
+    speed_max = float(np.max(np.abs(speed))) if speed.size else 0.0
+    accel_max = float(np.max(np.abs(accel))) if accel.size else 0.0
+    violations = {
+        "clearance": 0.0,
+        "limits": float(np.max(limit_violation_q(robot, q))),
+        "tendon_speed": max(0.0, speed_max - robot.tendon_speed_max),
+        "tendon_accel": max(0.0, accel_max - robot.tendon_accel_max),
+    }
+    min_clearance, first_collision = math.inf, -1
+    if scene is not None or robot.n_segments >= 3:
+        verdict = check_many(robot, scene if scene is not None else _NO_OBSTACLES, dense)
+        min_clearance = float(np.min(verdict.min_distance))
+        hits = np.flatnonzero(verdict.collision)
+        first_collision = int(hits[0]) if len(hits) else -1
+        violations["clearance"] = max(0.0, margin - min_clearance)
+    reasons = []
+    if first_collision >= 0:
+        where = first_collision / samples
+        reasons.append(f"collision by python-fcl at t = {where * dt:.3f} s (interval "
+                       f"{int(where)}, distance {min_clearance:.4g} m)")
+    if violations["limits"] > tolerance:
+        reasons.append(f"breaks a configuration limit by {violations['limits']:.3g}")
+    if violations["tendon_speed"] > tolerance:
+        reasons.append(f"tendon speed {speed_max:.4g} m/s > {robot.tendon_speed_max} m/s")
+    if violations["tendon_accel"] > tolerance:
+        reasons.append(f"tendon acceleration {accel_max:.4g} m/s² > "
+                       f"{robot.tendon_accel_max} m/s²")
+    return {
+        "success": not reasons, "reason": "; ".join(reasons), "violations": violations,
+        "max_violation": max(violations.values()), "min_clearance": min_clearance,
+        "collision_free": first_collision < 0, "path_length": path_length,
+        "tendon_lengths": lengths, "tendon_speed": speed_max, "tendon_accel": accel_max,
+        "first_collision": first_collision,
+    }
+
+
+# ================================================================ results
+
+
+@dataclass
+class TrajectoryResult:
+    """One planned trajectory (or the reason there is none). Units: rad, m, s."""
+
+    robot: Robot
+    q: np.ndarray | None
+    """(H+1, 3n) waypoints θ, φ, L; None when the problem was rejected before planning."""
+    dt: float
+    """Seconds between waypoints."""
+    success: bool
+    """Verified: collision-free by python-fcl along the whole motion, limits and tendon
+    speed/acceleration limits within 1e-6 (and, for ``stage == "polish"``, every
+    violation including the clearance margin ≤ 1e-6)."""
+    reason: str
+    """"" on success, else why it failed."""
+    stage: str
+    """What produced ``q``: "lm (roadmap)", "lm (straight)", "lm (perturbed)", "polish",
+    or an lm stage with the polish's failure noted; "rejected" for bad input."""
+    path_length: float = math.nan
+    """Tip path length along the interpolated motion, m."""
+    min_clearance: float = math.nan
+    """Smallest python-fcl distance along the motion, m (+inf without obstacles)."""
+    max_violation: float = math.nan
+    """Largest of ``violations``."""
+    violations: dict[str, float] = field(default_factory=dict)
+    """Largest violation per family: clearance (m below δ), limits (rad or m),
+    tendon_speed (m/s), tendon_accel (m/s²)."""
+    tendon_lengths: np.ndarray | None = None
+    """(H+1, n_tendons) tendon lengths at the waypoints, m."""
+    tendon_speed: float = math.nan
+    """Largest |tendon speed| by finite differences, m/s."""
+    tendon_accel: float = math.nan
+    """Largest |tendon acceleration| by finite differences, m/s²."""
+    cost: float = math.nan
+    """The LM stage's final penalised cost ½‖r‖² of the chosen guess."""
+    timing: dict[str, float] = field(default_factory=dict)
+    """Seconds per stage for this problem (shared batch work split evenly)."""
+
+    @property
+    def times(self) -> np.ndarray:
+        """(H+1,) time of each waypoint, seconds."""
+        n = 0 if self.q is None else len(self.q)
+        return np.arange(n) * self.dt
+
+    def to_json(self) -> dict[str, Any]:
+        """One entry of RESULT.json's ``results`` list."""
+        ok = self.q is not None
+        return {
+            "success": bool(self.success),
+            "q": self.q.tolist() if ok else None,
+            "dt": float(self.dt),
+            "times": self.times.tolist() if ok else None,
+            "tendon_lengths": self.tendon_lengths.tolist() if self.tendon_lengths is not None
+            else None,
+            "path_length": _num(self.path_length),
+            "min_clearance": _num(self.min_clearance),
+            "max_violation": _num(self.max_violation),
+            "violations": {k: _num(v) for k, v in self.violations.items()},
+            "tendon_speed": _num(self.tendon_speed),
+            "tendon_accel": _num(self.tendon_accel),
+            "stage": self.stage,
+            "reason": self.reason or None,
+            "timing": dict(self.timing),
+        }
+
+    def save_csv(self, path: str | Path) -> None:
+        """The tendon-length series for a controller: a ``time_s`` column, then one column
+        per tendon (``tendon_<segment>_<j>`` for per-segment routing, ``tendon_<j>`` for
+        shared), lengths in metres, one row per waypoint."""
+        if self.tendon_lengths is None:
+            raise ValueError(f"no trajectory to save ({self.reason})")
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with path.open("w", newline="") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(["time_s", *tendon_names(self.robot)])
+            for t, row in zip(self.times, self.tendon_lengths, strict=True):
+                writer.writerow([f"{t:.6f}", *(f"{v:.9f}" for v in row)])
+
+    def save_npz(self, path: str | Path) -> None:
+        """q, times, dt, tendon lengths and the scalar verdicts as a numpy .npz file."""
+        n_t = self.robot.n_tendons
+        np.savez(path, q=self.q if self.q is not None else np.zeros((0, self.robot.dof)),
+                 times=self.times, dt=self.dt, success=self.success,
+                 tendon_lengths=(self.tendon_lengths if self.tendon_lengths is not None
+                                 else np.zeros((0, n_t))),
+                 path_length=self.path_length, min_clearance=self.min_clearance,
+                 max_violation=self.max_violation, reason=self.reason, stage=self.stage)
+
+
+def _num(x: float) -> float | None:
+    return float(x) if x is not None and np.isfinite(x) else None
+
+
+def tendon_names(robot: Robot) -> list[str]:
+    """Column names of the tendon-length series (CSV), in ``tendon_lengths`` order."""
+    m = robot.tendons.per_segment
+    if robot.tendons.routing == "shared":
+        return [f"tendon_{j + 1}" for j in range(m)]
+    return [f"tendon_{k + 1}_{j + 1}" for k in range(robot.n_segments) for j in range(m)]
+
+
+def results_to_json(results: list[TrajectoryResult],
+                    timing: dict[str, float] | None = None) -> dict[str, Any]:
+    """The RESULT.json form (``cr-nlp plan``): results, a summary and the batch timing."""
+    ok = [r.success for r in results]
+    lengths = [r.path_length for r in results if r.success]
+    return {
+        "robot": results[0].robot.name if results else None,
+        "results": [r.to_json() for r in results],
+        "summary": {"problems": len(results),
+                    "success_rate": float(np.mean(ok)) if results else 0.0,
+                    "median_path_length": float(np.median(lengths)) if lengths else None},
+        "timing": dict(timing or {}),
+    }
+
+
+def save_results(results: list[TrajectoryResult], path: str | Path,
+                 timing: dict[str, float] | None = None) -> None:
+    """Write ``results_to_json`` to ``path`` (.json) or every result to one .npz
+    (``q_<i>``, ``tendon_lengths_<i>``, ``success``, ``dt``) by the file's suffix."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix == ".npz":
+        arrays: dict[str, Any] = {
+            "success": np.array([r.success for r in results]),
+            "dt": np.array([r.dt for r in results]),
+            "path_length": np.array([r.path_length for r in results]),
+            "max_violation": np.array([r.max_violation for r in results]),
+        }
+        for i, r in enumerate(results):
+            if r.q is not None:
+                arrays[f"q_{i}"] = r.q
+                arrays[f"tendon_lengths_{i}"] = r.tendon_lengths
+        np.savez(path, **arrays)
+    else:
+        path.write_text(json.dumps(results_to_json(results, timing), indent=2) + "\n")
+
+
+# ================================================================ the planner
+
+
+@dataclass
+class PlanTiming:
+    """Wall-clock seconds per stage of one ``plan`` call (compile apart)."""
+
+    compile: float = 0.0
+    init: float = 0.0
+    refine: float = 0.0
+    verify: float = 0.0
+    polish: float = 0.0
+
+    @property
+    def total(self) -> float:
+        return self.compile + self.init + self.refine + self.verify + self.polish
+
+    def as_dict(self) -> dict[str, float]:
+        return {"compile": self.compile, "init": self.init, "refine": self.refine,
+                "verify": self.verify, "polish": self.polish, "total": self.total}
+
+
+class TrajectoryPlanner:
+    """Batched trajectory planning for one robot in one scene; reuse it across calls.
+
+    ``plan(starts, goals)`` takes (P, 3n) start and goal configurations θ, φ, L (rad,
+    rad, m; fixed lengths may be omitted, see ``Robot.full_q``) and returns one
+    ``TrajectoryResult`` per problem. The LM program is compiled once per chunk shape.
+    """
+
+    def __init__(self, robot: Robot | str | dict, scene: Scene | str | None = None,
+                 config: TrajectoryConfig = TrajectoryConfig()) -> None:
+        enable_compilation_cache()
+        self.robot = load_robot(robot)
+        self.scene = load_scene(scene) if isinstance(scene, (str, Path, dict)) else scene
+        self.config = config
+        self.dtype = jnp.dtype(config.dtype)
+        self.margin = config.safety_margin + body_gap_tolerance(self.robot)
+        """The sphere-body clearance (m) the optimisers enforce."""
+        self._arrays = (scene_arrays(self.scene, dtype=self.dtype)
+                        if self.scene is not None else None)
+        n = config.waypoints
+        weights = (config.path_weight, config.smoothness_weight, config.clearance_weight,
+                   config.tendon_weight)
+        self._residual = partial(trajectory_residual, self.robot, n, config.interpolation_checks,
+                                 float(self.margin), weights, config.tendon_limit_fraction)
+        self._project = partial(_project_waypoints, self.robot, n)
+        free = np.ones((n, self.robot.dof))
+        free[:, 2::3] = ~self.robot.lengths_fixed()
+        free[0] = free[-1] = 0.0                       # start and goal are fixed
+        self._free = jnp.asarray(free.reshape(-1), self.dtype)
+        self._compiled: dict[int, Any] = {}
+        self._roadmap: Any = None
+        self._polisher: Any = None
+        self._rng = np.random.default_rng(config.seed)
+
+    # ------------------------------------------------------------ pieces
+    def roadmap(self) -> Any:
+        """The scene's roadmap (built, or loaded from the cache, on first use); None if
+        ``cr_nlp.stages.roadmap`` is not available."""
+        if self._roadmap is None:
+            try:
+                from ..stages.roadmap import Roadmap, RoadmapConfig
+            except ImportError:
+                return None
+            self._roadmap = Roadmap.build(self.robot, self.scene, RoadmapConfig(),
+                                          cache=self.config.roadmap_cache)
+        return self._roadmap
+
+    def _guesses(self, z_start: np.ndarray, z_goal: np.ndarray, init: str,
+                 q_start: np.ndarray, q_goal: np.ndarray) -> tuple[np.ndarray, list[str]]:
+        """(G, waypoints, 3n) initial trajectories in z and what each one is."""
+        cfg = self.config
+        n = cfg.waypoints
+        s = np.linspace(0.0, 1.0, n)[:, None]
+        straight = z_start[None] + s * (z_goal - z_start)[None]
+        guesses, kinds = [], []
+        if init == "roadmap":
+            roadmap = self.roadmap()
+            path = None if roadmap is None else roadmap.query(q_start, q_goal, n)
+            if path is not None:
+                z = _q_to_z(np.asarray(path, dtype=np.float64).reshape(n, -1))
+                z[0], z[-1] = z_start, z_goal
+                guesses.append(z)
+                kinds.append("roadmap")
+        guesses.append(straight)
+        kinds.append("straight")
+        bump = np.sin(np.pi * s)
+        bending = np.zeros(self.robot.dof, bool)
+        bending[0::3] = bending[1::3] = True
+        while len(guesses) < cfg.guesses:
+            direction = self._rng.normal(size=self.robot.dof) * bending
+            direction *= cfg.perturbation / max(np.linalg.norm(direction), 1e-12)
+            direction *= math.sqrt(self.robot.n_segments)   # ≈ perturbation per segment
+            guesses.append(straight + bump * direction[None])
+            kinds.append("perturbed")
+        return np.stack(guesses[: cfg.guesses]), kinds[: cfg.guesses]
+
+    def _lm(self, z0: np.ndarray, dt: np.ndarray, timing: PlanTiming) -> tuple[np.ndarray,
+                                                                                np.ndarray]:
+        """LM over (B, waypoints·3n) trajectories in fixed-size chunks; z and cost (B,)."""
+        # One chunk size per planner (one compiled program); a batch smaller than a chunk
+        # gets the smallest power of two (≥ the device count) that holds it.
+        devices = len(jax.devices())
+        chunk = max(2, devices)
+        while chunk < min(len(z0), self.config.chunk_size):
+            chunk *= 2
+        chunk = max(chunk, min(self._compiled, default=0))
+        z_out, cost_out = [], []
+        for start in range(0, len(z0), chunk):
+            stop = min(start + chunk, len(z0))
+            pad = chunk - (stop - start)
+
+            def padded(x: np.ndarray, start: int = start, stop: int = stop,
+                       pad: int = pad) -> np.ndarray:
+                part = x[start:stop]
+                return np.concatenate([part, np.repeat(part[:1], pad, 0)]) if pad else part
+
+            args = (jnp.asarray(padded(z0), self.dtype), jnp.asarray(padded(dt), self.dtype),
+                    self._arrays, self._free, jnp.int32(self.config.iterations))
+            if chunk not in self._compiled:
+                t0 = time.perf_counter()
+                self._compiled[chunk] = self._lower(args).compile()
+                timing.compile += time.perf_counter() - t0
+            z, cost = self._compiled[chunk](*args)[:2]
+            z_out.append(np.array(z[: stop - start], dtype=np.float64))
+            cost_out.append(np.array(cost[: stop - start], dtype=np.float64))
+        return np.concatenate(z_out), np.concatenate(cost_out)
+
+    def _lower(self, args: tuple) -> Any:
+        """The LM program for one chunk, on one device. Unlike IK it is not split with
+        ``shard_map`` over host devices: measured with jax 0.10 on 2 CPU host devices,
+        the sharded program of a 16-trajectory chunk never returned (every thread waiting
+        on a futex), while the same program unsharded, where XLA's own thread pool
+        parallelises the large JᵀJ products, runs normally."""
+        config = LMConfig(cost_tolerance=0.0, linear_solver="cholesky")
+        solve = partial(lm_solve, self._residual, self._project, config=config)
+        return jax.jit(lambda *a: solve(*a)[:2]).lower(*args)
+
+    def validate(self, start: Any, goal: Any) -> tuple[np.ndarray | None, np.ndarray | None, str]:
+        """Full (3n,) start and goal, or a reason why the problem cannot be planned."""
+        try:
+            q_start = self.robot.full_q(start)
+        except (ValueError, TypeError) as exc:
+            return None, None, f"bad start: {exc}"
+        try:
+            q_goal = self.robot.full_q(goal)
+        except (ValueError, TypeError) as exc:
+            return None, None, f"bad goal: {exc}"
+        if self.scene is not None or self.robot.n_segments >= 3:
+            scene = self.scene if self.scene is not None else _NO_OBSTACLES
+            verdict = check_many(self.robot, scene, np.stack([q_start, q_goal]))
+            for name, hit, d in zip(("start", "goal"), verdict.collision,
+                                    verdict.min_distance, strict=True):
+                if hit:
+                    return None, None, (f"{name} is in collision by python-fcl (distance "
+                                        f"{d:.4g} m)")
+        return q_start, q_goal, ""
+
+    def verify(self, q: np.ndarray, dt: float) -> dict[str, Any]:
+        """``verify_trajectory`` with this planner's scene, δ and sampling."""
+        return verify_trajectory(self.robot, self.scene, q, dt, self.config.safety_margin,
+                                 self.config.verify_samples)
+
+    # ------------------------------------------------------------ the solve
+    def plan(self, starts: Any, goals: Any, exact: bool = False, init: str = "roadmap",
+             progress: bool = False, dt: float | None = None) -> list[TrajectoryResult]:
+        """Plan one trajectory per (start, goal) pair.
+
+        Args:
+            starts: (P, 3n) start configurations θ, φ, L (rad, rad, m), or the short form
+                without fixed lengths; a list of rows of mixed lengths is allowed (a bad
+                row is a failed result, not an exception).
+            goals: (P, 3n) goal configurations, same form.
+            exact: polish every trajectory with Ipopt, the constraints as constraints.
+                NOT AVAILABLE YET: the Ipopt trajectory stage is still to be written
+                (issue 5); ``exact=True`` raises ``NotImplementedError`` at once.
+            init: "roadmap" (roadmap path, straight line, perturbed) or "straight"
+                (straight line and perturbed ones only).
+            progress: show a progress bar for the exact stage.
+            dt: seconds between waypoints (default ``config.dt``).
+        """
+        if init not in ("roadmap", "straight"):
+            raise ValueError(f"init must be 'roadmap' or 'straight', got {init!r}")
+        if exact:
+            try:
+                import cr_nlp.stages.polish_trajectory  # noqa: F401
+            except ImportError:
+                raise NotImplementedError(
+                    "exact mode for trajectories is not available yet: the Ipopt "
+                    "trajectory stage (cr_nlp.stages.polish_trajectory) is still to be "
+                    "written; plan without exact=True for the penalty answer") from None
+        if len(starts) != len(goals):
+            raise ValueError(f"{len(starts)} starts but {len(goals)} goals")
+        cfg = self.config
+        dt = float(cfg.dt if dt is None else dt)
+        timing = PlanTiming()
+        self.last_timing = timing
+        results: list[TrajectoryResult | None] = [None] * len(starts)
+        valid: list[tuple[int, np.ndarray, np.ndarray]] = []
+        t0 = time.perf_counter()
+        for i, (start, goal) in enumerate(zip(starts, goals, strict=True)):
+            q_start, q_goal, reason = self.validate(start, goal)
+            if reason:
+                results[i] = TrajectoryResult(self.robot, None, dt, False, reason, "rejected")
+            else:
+                valid.append((i, q_start, q_goal))
+        timing.verify += time.perf_counter() - t0
+        if valid:
+            self._plan_valid(valid, results, dt, init, timing)
+        if exact and valid:
+            self._polish(valid, results, dt, timing, progress)
+        return [r for r in results if r is not None]
+
+    def _plan_valid(self, valid: list[tuple[int, np.ndarray, np.ndarray]],
+                    results: list[TrajectoryResult | None], dt: float, init: str,
+                    timing: PlanTiming) -> None:
+        cfg = self.config
+        n, dof = cfg.waypoints, self.robot.dof
+        t0 = time.perf_counter()
+        guesses, kinds = [], []
+        for _, q_start, q_goal in valid:
+            g, k = self._guesses(_q_to_z(q_start), _q_to_z(q_goal), init, q_start, q_goal)
+            guesses.append(g)
+            kinds.append(k)
+        timing.init += time.perf_counter() - t0
+        g_count = cfg.guesses
+        z0 = np.stack(guesses).reshape(-1, n * dof)
+        t1 = time.perf_counter()
+        c1 = timing.compile
+        z, cost = self._lm(z0, np.full(len(z0), dt), timing)
+        timing.refine += time.perf_counter() - t1 - (timing.compile - c1)
+        z = z.reshape(len(valid), g_count, n, dof)
+        cost = cost.reshape(len(valid), g_count)
+        share = {"init": timing.init / len(valid), "refine": timing.refine / len(valid),
+                 "compile": timing.compile / len(valid)}
+        for row, (i, q_start, q_goal) in enumerate(valid):
+            t2 = time.perf_counter()
+            best: tuple[dict[str, Any], int, np.ndarray] | None = None
+            # Best by the independent verdict, then by cost: the first success in cost order.
+            for g in np.argsort(cost[row], kind="stable"):
+                q = _z_to_q(z[row, g])
+                q[0], q[-1] = q_start, q_goal
+                verdict = self.verify(q, dt)
+                if best is None or (verdict["success"], -verdict["max_violation"]) > (
+                        best[0]["success"], -best[0]["max_violation"]):
+                    best = (verdict, int(g), q)
+                if verdict["success"]:
+                    break
+            assert best is not None
+            verdict, g, q = best
+            seconds = time.perf_counter() - t2
+            timing.verify += seconds
+            results[i] = _result(self.robot, q, dt, verdict, f"lm ({kinds[row][g]})",
+                                 float(cost[row, g]), {**share, "verify": seconds})
+
+    def _polish(self, valid: list[tuple[int, np.ndarray, np.ndarray]],
+                results: list[TrajectoryResult | None], dt: float, timing: PlanTiming,
+                progress: bool) -> None:
+        from ..stages.polish_trajectory import TrajectoryPolisher
+
+        t0 = time.perf_counter()
+        if self._polisher is None:
+            self._polisher = TrajectoryPolisher(self.robot, self.scene, self.config.waypoints,
+                                                safety_margin=self.margin)
+        rows = valid
+        if progress:
+            from tqdm.auto import tqdm
+            rows = tqdm(valid, desc="polish (Ipopt)", unit="trajectory")
+        for i, _, _ in rows:
+            previous = results[i]
+            assert previous is not None and previous.q is not None
+            t1 = time.perf_counter()
+            out = self._polisher.solve(previous.q, dt)
+            verdict = self.verify(out.q, dt) if out.success else None
+            seconds = time.perf_counter() - t1
+            timing_i = {**previous.timing, "polish": seconds}
+            # Keep the polished answer only where the independent check agrees fully.
+            if verdict is not None and verdict["success"] and verdict["max_violation"] <= 1e-6:
+                results[i] = _result(self.robot, out.q, dt, verdict, "polish", previous.cost,
+                                     timing_i)
+            else:
+                why = (out.status if not out.success else
+                       f"rejected by the checker: max violation {verdict['max_violation']:.3g}")
+                previous.stage = f"{previous.stage} (polish failed: {why})"
+                previous.timing = timing_i
+        timing.polish += time.perf_counter() - t0
+
+
+def _result(robot: Robot, q: np.ndarray, dt: float, verdict: dict[str, Any], stage: str,
+            cost: float, timing: dict[str, float]) -> TrajectoryResult:
+    return TrajectoryResult(
+        robot, q, dt, bool(verdict["success"]), verdict["reason"], stage,
+        path_length=verdict["path_length"], min_clearance=verdict["min_clearance"],
+        max_violation=verdict["max_violation"], violations=dict(verdict["violations"]),
+        tendon_lengths=verdict["tendon_lengths"], tendon_speed=verdict["tendon_speed"],
+        tendon_accel=verdict["tendon_accel"], cost=cost, timing=timing)
+
+
+def plan_trajectories(robot: Robot | str | dict, starts: Any, goals: Any,
+                      scene: Scene | str | None = None,
+                      config: TrajectoryConfig = TrajectoryConfig(), exact: bool = False,
+                      init: str = "roadmap") -> list[TrajectoryResult]:
+    """One-call planning: see ``TrajectoryPlanner.plan`` (configurations in rad, m)."""
+    return TrajectoryPlanner(robot, scene, config).plan(starts, goals, exact=exact, init=init)
+
+
+def with_horizon(config: TrajectoryConfig, waypoints: int | None,
+                 dt: float | None) -> TrajectoryConfig:
+    """``config`` with another number of waypoints and/or time step (None: unchanged)."""
+    changes: dict[str, Any] = {}
+    if waypoints is not None:
+        changes["waypoints"] = int(waypoints)
+    if dt is not None:
+        changes["dt"] = float(dt)
+    return replace(config, **changes)

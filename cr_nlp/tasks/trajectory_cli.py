@@ -1,0 +1,97 @@
+"""``cr-nlp plan``: trajectory planning from a PROBLEMS.json file (thin front end).
+
+PROBLEMS.json::
+
+    {"problems": [{"start": [q...], "goal": [q...]}, ...],
+     "horizon": 23,      # optional: intervals H (waypoints = H + 1)
+     "dt": 0.35}         # optional: seconds between waypoints
+
+q is ``[θ1, φ1, L1, …]`` (rad, rad, m); fixed lengths may be omitted (``Robot.full_q``).
+A malformed problem (wrong length, outside the limits, start or goal in collision by
+python-fcl) becomes a failed result with its reason, never a crash of the batch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from ..cli import UsageError, read_json, write_json
+
+
+def add_plan_parser(sub: argparse._SubParsersAction) -> None:
+    """Register ``cr-nlp plan`` on the CLI's subparsers."""
+    p = sub.add_parser("plan", help="trajectory planning between start/goal configurations")
+    p.add_argument("--robot", required=True, help="robot JSON file")
+    p.add_argument("--scene", help="scene JSON file or bundled scene name (obstacles)")
+    p.add_argument("--problems", required=True,
+                   help='JSON file {"problems": [{"start": [q], "goal": [q]}, ...], '
+                        '"horizon": H (optional), "dt": seconds (optional)}')
+    p.add_argument("--exact", action="store_true",
+                   help="polish every trajectory with Ipopt (not available yet for "
+                        "trajectories: reports an error)")
+    p.add_argument("--init", choices=("roadmap", "straight"), default="roadmap",
+                   help="initial trajectories: roadmap path + straight + perturbed (default), "
+                        "or straight + perturbed")
+    p.add_argument("--seed", type=int, default=0, help="seed of the perturbed guesses")
+    p.add_argument("--out", required=True, help="RESULT.json to write ('-' for stdout)")
+    p.add_argument("--csv", help="directory for one tendon-length CSV per result "
+                                 "(problem_<i>.csv: time_s, then one column per tendon, m)")
+    p.set_defaults(run=run_plan)
+
+
+def read_problems(path: str) -> tuple[list[Any], list[Any], int | None, float | None]:
+    """Starts, goals (raw rows, validated later per problem), horizon and dt."""
+    data = read_json(path, "--problems")
+    if not isinstance(data, dict) or not isinstance(data.get("problems"), list):
+        raise UsageError(f'--problems: {path} must hold {{"problems": [{{"start": [...], '
+                         f'"goal": [...]}}, ...]}}')
+    horizon, dt = data.get("horizon"), data.get("dt")
+    if horizon is not None and (not isinstance(horizon, int) or horizon < 2):
+        raise UsageError(f"--problems: horizon must be an integer ≥ 2, got {horizon!r}")
+    if dt is not None and (not isinstance(dt, (int, float)) or not dt > 0):
+        raise UsageError(f"--problems: dt must be a positive number of seconds, got {dt!r}")
+    starts, goals = [], []
+    for entry in data["problems"]:
+        ok = isinstance(entry, dict)
+        starts.append(entry.get("start") if ok else None)
+        goals.append(entry.get("goal") if ok else None)
+    return starts, goals, horizon, (float(dt) if dt is not None else None)
+
+
+def run_plan(args: argparse.Namespace) -> int:
+    from ..model import Robot
+    from ..world import load_scene
+    from .trajectory import TrajectoryConfig, TrajectoryPlanner, results_to_json
+
+    robot = Robot.from_file(args.robot)
+    scene = load_scene(args.scene) if args.scene else None
+    starts, goals, horizon, dt = read_problems(args.problems)
+    config = TrajectoryConfig(seed=args.seed)
+    if horizon is not None:
+        config = TrajectoryConfig(waypoints=horizon + 1, seed=args.seed)
+    if dt is not None:
+        config = TrajectoryConfig(waypoints=config.waypoints, dt=dt, seed=args.seed)
+    planner = TrajectoryPlanner(robot, scene, config)
+    # None entries (a problem without "start"/"goal") fail validation with a reason.
+    starts = [s if s is not None else [] for s in starts]
+    goals = [g if g is not None else [] for g in goals]
+    try:
+        results = planner.plan(starts, goals, exact=args.exact, init=args.init,
+                               progress=sys.stderr.isatty())
+    except NotImplementedError as exc:
+        raise UsageError(str(exc)) from None
+    data = results_to_json(results, planner.last_timing.as_dict())
+    write_json(data, args.out)
+    if args.csv:
+        folder = Path(args.csv)
+        for i, result in enumerate(results):
+            if result.q is not None:
+                result.save_csv(folder / f"problem_{i}.csv")
+    summary, timing = data["summary"], data["timing"]
+    print(f"{robot.name}: {summary['problems']} problems, "
+          f"{100 * summary['success_rate']:.1f} % success; {timing['total']:.2f} s "
+          f"(compile {timing['compile']:.2f} s)", file=sys.stderr)
+    return 0

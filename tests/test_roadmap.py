@@ -1,0 +1,92 @@
+"""The roadmap (stages/roadmap.py): a path across the shelf's divider that python-fcl
+accepts, the disk cache, and the interpolation helpers."""
+
+import numpy as np
+import pytest
+
+from cr_nlp.model import load_robot, q_to_z, tip_pose, z_to_q
+from cr_nlp.stages.explore import sobol_configurations
+from cr_nlp.stages.roadmap import (
+    Roadmap,
+    RoadmapConfig,
+    interpolate_z,
+    polyline_length,
+    resample_polyline,
+    roadmap_cache_stats,
+)
+from cr_nlp.world import check_many, clearance, load_scene, scene_arrays
+
+from .conftest import MODELS
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_robot(MODELS / "robots" / "tdcr3.json")
+
+
+@pytest.fixture(scope="module")
+def shelf():
+    return load_scene("shelf")
+
+
+@pytest.fixture(autouse=True)
+def private_cache(tmp_path_factory, monkeypatch):
+    monkeypatch.setenv("CR_NLP_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "cache"))
+
+
+def dense_motion(robot, q: np.ndarray, pieces: int) -> np.ndarray:
+    """The waypoints and ``pieces − 1`` configurations inside every interval, linear in z."""
+    z = np.asarray(q_to_z(robot, q))
+    parts = [interpolate_z(z[i], z[i + 1], pieces + 1)[:-1] for i in range(len(z) - 1)]
+    return np.asarray(z_to_q(robot, np.concatenate(parts + [z[-1:]])))
+
+
+def test_query_crosses_the_shelf_divider_collision_free(robot, shelf):
+    roadmap = Roadmap.build(robot, shelf)
+    # Tips in the middle compartments, one on each side of the vertical divider (y = 0).
+    q = sobol_configurations(robot, 1 << 14, seed=3)
+    tips = np.asarray(tip_pose(robot, q)[0])
+    inside = ((tips[:, 0] > 1.0) & (tips[:, 2] > 0.9) & (tips[:, 2] < 1.5)
+              & (np.abs(tips[:, 1]) > 0.2) & (np.abs(tips[:, 1]) < 0.85))
+    q, tips = q[inside], tips[inside]
+    q = q[np.asarray(clearance(robot, scene_arrays(shelf), q)) >= roadmap.margin + 0.01]
+    tips = np.asarray(tip_pose(robot, q)[0])
+    start, goal = q[np.flatnonzero(tips[:, 1] > 0)[0]], q[np.flatnonzero(tips[:, 1] < 0)[0]]
+    straight = dense_motion(robot, np.stack([start, goal]), 30)
+    assert check_many(robot, shelf, straight).collision.any()  # the divider is in the way
+
+    path = roadmap.query(start, goal, 24)
+    assert path is not None and path.shape == (24, robot.dof)
+    np.testing.assert_array_equal(path[0], start)
+    np.testing.assert_array_equal(path[-1], goal)
+    verdict = check_many(robot, shelf, dense_motion(robot, path, 4))
+    assert not verdict.collision.any()
+    assert verdict.min_distance.min() > 0.0
+
+
+def test_second_build_loads_from_the_disk_cache(robot):
+    scene = load_scene(MODELS / "scenes" / "random_27.json")
+    config = RoadmapConfig(nodes=128, neighbours=5, seed=11)
+    before = roadmap_cache_stats()
+    first = Roadmap.build(robot, scene, config)
+    middle = roadmap_cache_stats()
+    second = Roadmap.build(robot, scene, config)
+    after = roadmap_cache_stats()
+    assert middle["builds"] == before["builds"] + 1 and middle["hits"] == before["hits"]
+    assert after["hits"] == middle["hits"] + 1 and after["builds"] == middle["builds"]
+    assert second.loaded_from_cache and not first.loaded_from_cache
+    np.testing.assert_array_equal(first.nodes_z, second.nodes_z)
+    assert (first.edges != second.edges).nnz == 0
+    # Other settings are another roadmap.
+    Roadmap.build(robot, scene, RoadmapConfig(nodes=128, neighbours=5, seed=12))
+    assert roadmap_cache_stats()["builds"] == after["builds"] + 1
+
+
+def test_interpolation_and_resampling():
+    za, zb = np.zeros(3), np.array([3.0, 0.0, 4.0])
+    line = interpolate_z(za, zb, 6)
+    np.testing.assert_allclose(line[:, 0], [0.0, 0.6, 1.2, 1.8, 2.4, 3.0])
+    corners = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [1.0, 2.0, 1.0]])
+    assert polyline_length(corners) == pytest.approx(3.0)
+    even = resample_polyline(corners, 4)
+    np.testing.assert_allclose(even, [[0, 0, 1], [1, 0, 1], [1, 1, 1], [1, 2, 1]], atol=1e-12)
