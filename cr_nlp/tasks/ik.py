@@ -36,6 +36,7 @@ from ..stages.lm import LMConfig, lm_solve
 from ..world import Scene, check_many, load_scene, scene_arrays
 from ..world.clearance import body_gap_tolerance
 from ..world.penalty import body_clearances_z
+from ._timing import StageTiming
 
 
 @dataclass(frozen=True)
@@ -78,7 +79,7 @@ class IKConfig:
 
 
 @dataclass
-class IKTiming:
+class IKTiming(StageTiming):
     """Wall-clock seconds per stage (compile apart from steady-state work)."""
 
     compile: float = 0.0
@@ -86,14 +87,6 @@ class IKTiming:
     refine: float = 0.0
     polish: float = 0.0
     verify: float = 0.0
-
-    @property
-    def total(self) -> float:
-        return self.compile + self.explore + self.refine + self.polish + self.verify
-
-    def as_dict(self) -> dict[str, float]:
-        return {"compile": self.compile, "explore": self.explore, "refine": self.refine,
-                "polish": self.polish, "verify": self.verify, "total": self.total}
 
 
 @dataclass

@@ -55,6 +55,7 @@ from ..world.clearance import (
     self_pairs,
 )
 from ..world.penalty import body_clearances_z
+from ._timing import StageTiming
 
 
 @dataclass(frozen=True)
@@ -555,7 +556,7 @@ def save_results(results: list[TrajectoryResult], path: str | Path,
 
 
 @dataclass
-class PlanTiming:
+class PlanTiming(StageTiming):
     """Wall-clock seconds per stage of one ``plan`` call (compile apart)."""
 
     compile: float = 0.0
@@ -563,14 +564,6 @@ class PlanTiming:
     refine: float = 0.0
     verify: float = 0.0
     polish: float = 0.0
-
-    @property
-    def total(self) -> float:
-        return self.compile + self.init + self.refine + self.verify + self.polish
-
-    def as_dict(self) -> dict[str, float]:
-        return {"compile": self.compile, "init": self.init, "refine": self.refine,
-                "verify": self.verify, "polish": self.polish, "total": self.total}
 
 
 class TrajectoryPlanner:
