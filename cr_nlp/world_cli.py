@@ -3,20 +3,8 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from .model.robot import Robot
-
-
-def _robot(name_or_path: str) -> Robot:
-    """A robot file path, or the name of a bundled robot (``tdcr3``)."""
-    path = Path(name_or_path)
-    if not path.exists() and path.suffix == "":
-        bundled = Path(__file__).resolve().parents[1] / "models" / "robots" / f"{name_or_path}.json"
-        if bundled.exists():
-            path = bundled
-    return Robot.from_file(path)
-
+from .model.robot import load_robot
 
 # ---------------------------------------------------------------- show
 
@@ -45,7 +33,7 @@ def _run_show(args: argparse.Namespace) -> int:
     from .world.check import check
     from .world.scene import load_scene
 
-    robot = _robot(args.robot)
+    robot = load_robot(args.robot)
     if args.q is None:
         q = np.array([v for s in robot.segments for v in (0.0, 0.0, s.length_min)])
     else:
@@ -88,8 +76,5 @@ def _run_bench_clearance(args: argparse.Namespace) -> int:
 
     if not use_host_devices(args.devices):
         print("# note: JAX had already started; running on its existing devices")
-    robot = args.robot
-    if not Path(robot).exists():
-        robot = str(Path(__file__).resolve().parents[1] / "models" / "robots" / f"{robot}.json")
-    return main(robot=robot, scenes=tuple(args.scene), configs=args.configs,
+    return main(robot=args.robot, scenes=tuple(args.scene), configs=args.configs,
                 dtypes=tuple(args.dtype), repeats=args.repeats)

@@ -90,3 +90,11 @@ def test_unreadable_files(tmp_path: Path) -> None:
     (tmp_path / "bad.json").write_text("{not json")
     with pytest.raises(ModelFileError, match="not valid JSON"):
         Robot.from_file(tmp_path / "bad.json")
+
+
+def test_load_robot_takes_a_bundled_name_or_a_path() -> None:
+    from cr_nlp.model import load_robot
+
+    assert load_robot("tdcr4_ext") == Robot.from_file(MODELS / "robots" / "tdcr4_ext.json")
+    with pytest.raises(ModelFileError, match="file not found"):
+        load_robot("no_such_robot")

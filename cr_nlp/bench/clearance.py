@@ -11,8 +11,6 @@ XLA's CPU backend gets one device per core.
 
 from __future__ import annotations
 
-import os
-import platform
 import statistics
 import time
 from dataclasses import dataclass
@@ -21,6 +19,8 @@ from typing import Any
 import numpy as np
 
 from .._jax_setup import use_host_devices
+from ..model import load_robot
+from .common import environment
 
 
 @dataclass(frozen=True)
@@ -54,7 +54,7 @@ def bench_clearance(robot: str = "tdcr3", scene: str = "lattice", configs: int =
     from ..world.clearance import clearance, scene_arrays
     from ..world.scene import load_scene
 
-    rob = _load_robot(robot)
+    rob = load_robot(robot)
     world = load_scene(scene)
     float_type = {"float32": jnp.float32, "float64": jnp.float64}[dtype]
     if dtype == "float64" and not jax.config.jax_enable_x64:
@@ -87,40 +87,6 @@ def bench_clearance(robot: str = "tdcr3", scene: str = "lattice", configs: int =
                              devices=len(devices), compile_s=compile_s,
                              median_s=statistics.median(times), min_s=min(times),
                              max_s=max(times))
-
-
-def _load_robot(robot: str) -> Any:
-    from pathlib import Path
-
-    from ..model.robot import Robot
-
-    path = Path(robot)
-    if not path.exists() and path.suffix == "":
-        path = Path(__file__).resolve().parents[2] / "models" / "robots" / f"{robot}.json"
-    return Robot.from_file(path)
-
-
-def environment() -> dict[str, str]:
-    """Versions, device and core count, recorded with every table."""
-    import jax
-    import jaxlib
-
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    return {
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-        "jaxlib": jaxlib.__version__,
-        "numpy": np.__version__,
-        "backend": jax.default_backend(),
-        "devices": ", ".join(str(d) for d in jax.devices()),
-        "cpu": cpu,
-        "cores": str(len(os.sched_getaffinity(0))),
-    }
 
 
 def format_table(rows: list[ClearanceBenchRow], env: dict[str, str]) -> str:

@@ -18,9 +18,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
-
-
 # ================================================================ the environment
 
 
@@ -88,21 +85,6 @@ def environment_markdown(env: dict[str, str]) -> str:
 
 
 # ================================================================ robots by name
-
-
-def bundled_robot_path(name: str) -> Path:
-    """Path of a robot bundled in ``models/robots`` (``name`` without ``.json``)."""
-    return MODELS_DIR / "robots" / f"{name}.json"
-
-
-def load_robot_by_name(robot: str | Path) -> Any:
-    """A ``Robot`` from a file path or a bundled robot name ("tdcr3", "tdcr4_ext", …)."""
-    from ..model import Robot
-
-    path = Path(robot)
-    if not path.exists() and path.suffix == "" and bundled_robot_path(str(robot)).exists():
-        path = bundled_robot_path(str(robot))
-    return Robot.from_file(path)
 
 
 # ================================================================ tables

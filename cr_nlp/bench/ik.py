@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from .._jax_setup import use_host_devices
-from ..model import Robot
+from ..model import Robot, load_robot
 from ..model._ops import NUMPY
 from ..model.kinematics import model_q_to_z, model_segment_frames
 from ..model.limits import limit_violation_q
@@ -55,7 +55,6 @@ from .common import (
     environment,
     environment_markdown,
     fixed,
-    load_robot_by_name,
     markdown_table,
     write_csv,
     write_text,
@@ -272,17 +271,17 @@ def _cases(suite: str, sizes: IKBenchSizes, seed: int, lattice_robots: Sequence[
     """Each case with the solver that judges the baselines (built lazily, suite by suite,
     so target generation shows up in the progress)."""
     if suite in ("all", "free"):
-        robot = load_robot_by_name("tdcr3")
+        robot = load_robot("tdcr3")
         yield free_case(robot, sizes.free_targets, seed), IKSolver(robot)
     if suite in ("all", "lattice"):
         scene = load_scene("lattice")
         for name in lattice_robots:
-            robot = load_robot_by_name(name)
+            robot = load_robot(name)
             solver = IKSolver(robot, scene)
             yield lattice_case(robot, scene, sizes.lattice_targets, solver.margin, seed), solver
     if suite in ("all", "scaling"):
         for name in scaling_robots:
-            robot = load_robot_by_name(name)
+            robot = load_robot(name)
             yield free_case(robot, sizes.scaling_targets, seed, "scaling"), IKSolver(robot)
 
 

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from ..model import Robot, q_to_z, tip_pose
+from ..model import Robot, load_robot, q_to_z, tip_pose
 from ..tasks.trajectory import TrajectoryConfig, TrajectoryPlanner, verify_trajectory
 from ..world import Scene, check_many, clearance_z, load_scene, scene_arrays
 from .baselines_plan import RRTConnect, RRTConnectConfig
@@ -44,7 +44,6 @@ from .common import (
     environment,
     environment_markdown,
     fixed,
-    load_robot_by_name,
     markdown_table,
     write_csv,
     write_text,
@@ -261,7 +260,7 @@ def run_plan_benchmark(quick: bool = False, pairs_per_scene: int | None = None,
     pairs = pairs_per_scene or sizes.pairs_per_scene
     budgets = tuple(iteration_budgets if iteration_budgets is not None
                     else sizes.iteration_budgets)
-    robot_model = load_robot_by_name(robot)
+    robot_model = load_robot(robot)
     rows: list[dict[str, Any]] = []
     sweep: list[dict[str, Any]] = []
     builds: list[dict[str, Any]] = []

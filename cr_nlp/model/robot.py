@@ -217,13 +217,22 @@ def read_model_file(path: str | Path) -> Any:
         raise ModelFileError(source, "<file>", f"not valid JSON: {exc}") from None
 
 
+def bundled_robot_path(name: str) -> Path:
+    """Path of a robot bundled in ``models/robots`` (``name`` without ``.json``)."""
+    return Path(__file__).resolve().parents[2] / "models" / "robots" / f"{name}.json"
+
+
 def load_robot(robot: str | Path | Robot | dict) -> Robot:
-    """A ``Robot`` from a file path, a dict, or a ``Robot`` (returned as is)."""
+    """A ``Robot`` from a file path, a bundled robot name ("tdcr3", "tdcr4_ext", …), a
+    dict, or a ``Robot`` (returned as is)."""
     if isinstance(robot, Robot):
         return robot
     if isinstance(robot, dict):
         return Robot.from_dict(robot)
-    return Robot.from_file(robot)
+    path = Path(robot)
+    if not path.exists() and path.suffix == "" and bundled_robot_path(str(robot)).exists():
+        path = bundled_robot_path(str(robot))
+    return Robot.from_file(path)
 
 
 # ---------------------------------------------------------------- validation helpers
