@@ -15,6 +15,8 @@ from typing import Any, Literal
 
 import numpy as np
 
+from .._resources import bundled_file
+
 Routing = Literal["shared", "per_segment"]
 
 
@@ -219,7 +221,7 @@ def read_model_file(path: str | Path) -> Any:
 
 def bundled_robot_path(name: str) -> Path:
     """Path of a robot bundled in ``models/robots`` (``name`` without ``.json``)."""
-    return Path(__file__).resolve().parents[2] / "models" / "robots" / f"{name}.json"
+    return bundled_file("robots", name)
 
 
 def load_robot(robot: str | Path | Robot | dict) -> Robot:

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from .._resources import bundled_file, models_root
 from ..model.robot import ModelFileError, _Checker, read_model_file
 
 PLANE_X = 1.5
@@ -89,7 +90,7 @@ def load_path(path: str | Path | ReferencePath) -> ReferencePath:
         return path
     candidate = Path(path)
     if not candidate.exists() and candidate.suffix == "" and str(path) in SHAPES:
-        candidate = Path(__file__).resolve().parents[2] / "models" / "paths" / f"{path}.json"
+        candidate = bundled_file("paths", str(path))
     if not candidate.exists():
         raise ModelFileError(str(path), "<file>", "file not found")
     return ReferencePath.from_file(candidate)
@@ -170,7 +171,7 @@ SHAPES = {"square": square_path, "sine": sine_path, "icra": icra_path}
 
 def write_bundled_paths(root: str | Path | None = None) -> list[Path]:
     """Write ``models/paths/{square,sine,icra}.json`` (150 waypoints each)."""
-    root = Path(root) if root else Path(__file__).resolve().parents[2] / "models" / "paths"
+    root = Path(root) if root else models_root() / "paths"
     root.mkdir(parents=True, exist_ok=True)
     return [make().save(root / f"{name}.json") for name, make in SHAPES.items()]
 

@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from .._resources import models_root
+
 Box = tuple[tuple[float, float, float], tuple[float, float, float]]
 
 # ================================================================ meshes from boards
@@ -211,7 +213,7 @@ def furniture_scene(kind: str) -> dict[str, Any]:
 def write_bundled(models_dir: str | Path | None = None) -> list[Path]:
     """Write every bundled scene and mesh under ``models_dir`` (default: the repository's
     ``models/``); returns the written paths."""
-    root = Path(models_dir) if models_dir else Path(__file__).resolve().parents[2] / "models"
+    root = Path(models_dir) if models_dir else models_root()
     (root / "scenes").mkdir(parents=True, exist_ok=True)
     (root / "meshes").mkdir(parents=True, exist_ok=True)
     written = []

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from .._jax_setup import cache_dir
+from .._resources import bundled_file
 from ..model.robot import _Checker, read_model_file
 from ..model.rotations import matrix_from_wxyz
 
@@ -211,7 +212,7 @@ class Scene:
 
 def bundled_scene_path(name: str) -> Path:
     """Path of a scene bundled in ``models/scenes`` (``name`` without ``.json``)."""
-    return Path(__file__).resolve().parents[2] / "models" / "scenes" / f"{name}.json"
+    return bundled_file("scenes", name)
 
 
 def load_scene(scene: str | Path | Scene | dict) -> Scene:
