@@ -5,6 +5,8 @@ verdicts (float64 re-evaluation, python-fcl). Units: metres, radians, seconds.
 """
 
 from ._jax_setup import use_host_devices as use_host_devices
+from ._resources import bundled_file as bundled_file
+from ._resources import models_root as models_root
 from .model import CasadiModel as CasadiModel
 from .model import ModelFileError as ModelFileError
 from .model import Robot as Robot
@@ -19,6 +21,8 @@ from .tasks.ik import IKConfig as IKConfig
 from .tasks.ik import IKResult as IKResult
 from .tasks.ik import IKSolver as IKSolver
 from .tasks.ik import solve_ik as solve_ik
+from .tasks.trajectory import TrajectoryConfig as TrajectoryConfig
+from .tasks.trajectory import TrajectoryPlanner as TrajectoryPlanner
 from .world import Scene as Scene
 from .world import check as check
 from .world import check_many as check_many
