@@ -158,3 +158,26 @@ def test_results_json_and_npz_round_trip(tmp_path, shelf_planner):
     arrays = np.load(tmp_path / "r.npz")
     np.testing.assert_allclose(arrays["q_0"], results[0].q)
     assert arrays["success"][0] == results[0].success
+
+
+def test_exact_mode_respects_tendon_limits_where_the_penalty_answer_breaks_them(robot):
+    # A nearly free tendon penalty: the LM answer shortens the tip path and overshoots the
+    # tendon speed/acceleration limits; Ipopt holds them as constraints. The straight line
+    # in z between the ends needs 0.167 m/s at dt = 0.12 s (limit 0.2 m/s): feasible.
+    start = [0.5, 0.3, 1.0, 0.6, 1.0, 1.0, 0.4, 2.0, 1.0]
+    goal = [1.2, -0.5, 1.0, 0.9, 2.0, 1.0, 1.0, -1.0, 1.0]
+    config = TrajectoryConfig(waypoints=10, dt=0.12, guesses=1, tendon_weight=1e-9,
+                              tendon_limit_fraction=1.0)
+    planner = TrajectoryPlanner(robot, None, config)
+    penalty = planner.plan([start], [goal], init="straight")[0]
+    verdict = verify_trajectory(robot, None, penalty.q, config.dt)
+    assert not verdict["success"] and "tendon" in verdict["reason"]
+    assert max(verdict["violations"]["tendon_speed"],
+               verdict["violations"]["tendon_accel"]) > 1e-3
+    exact = planner.plan([start], [goal], init="straight", exact=True)[0]
+    assert exact.stage == "polish", exact.stage
+    assert exact.success and exact.max_violation <= 1e-6
+    checked = verify_trajectory(robot, None, exact.q, config.dt)
+    assert checked["success"] and checked["max_violation"] <= 1e-6
+    np.testing.assert_allclose(exact.q[0], start, atol=1e-9)
+    np.testing.assert_allclose(exact.q[-1], goal, atol=1e-9)

@@ -250,6 +250,99 @@ class _Attempt:
     pair_distances: np.ndarray         # (N·P + M,) at z (m), all pairs
 
 
+def make_pools(robot: Robot, scene: Scene | None, max_pairs: int,
+               include_self: bool) -> tuple[list[_Pool], SceneArrays | None]:
+    """The slot pools of ``robot`` in ``scene``: one per part kind present (in
+    ``SceneArrays`` order), then, with ``include_self`` and n ≥ 3 segments, one for self
+    pairs; each holds at most ``max_pairs`` rows. Also the scene's float64 arrays (None
+    without a scene)."""
+    n_bodies = robot.n_points + 1
+    pools: list[_Pool] = []
+    arrays: SceneArrays | None = None
+    if scene is not None:
+        numeric = scene_arrays(scene, as_numpy=True)
+        counts = [numeric.sphere_radius.shape[0], numeric.box_center.shape[0],
+                  numeric.capsule_radius.shape[0], numeric.cylinder_radius.shape[0],
+                  numeric.convex_planes.shape[0]]
+        first = 0
+        for kind, count in zip(_KINDS, counts, strict=True):
+            if count:
+                pools.append(_Pool(kind, min(max_pairs, count * n_bodies), first,
+                                   _part_table(kind, numeric), numeric.convex_planes.shape[1]))
+            first += count
+        with jax.enable_x64(True):
+            arrays = scene_arrays(scene, dtype=jnp.float64)
+    n_self = len(self_pairs(robot)) if robot.n_segments >= 3 else 0
+    if include_self and n_self:
+        pools.append(_Pool("self", min(max_pairs, n_self), 0, np.zeros((0, 0))))
+    return pools, arrays
+
+
+def clearance_rows(model: CasadiModel, pools: list[_Pool], z: Any, slots: list[Any],
+                   face_smoothing: float) -> Any:
+    """The slot rows of one configuration z (3n, bending vector; SX or MX): for each pool,
+    the (capacity,) signed distances (m) of its slots' pairs. ``slots``: per pool, the
+    (capacity × width) slot parameters (``select_slots``)."""
+    if not pools:
+        return ca.SX(0, 1)
+    robot = model.robot
+    n_bodies, r = robot.n_points + 1, robot.backbone_radius
+    backbone = model.functions_z["backbone"](z)                        # (N − 1) × 3
+    base = ca.DM(np.asarray(robot.base_position, dtype=float)).T
+    flat = ca.vec(ca.vertcat(base, backbone))           # x of every sphere, then y, then z
+
+    def centre(index: Any) -> tuple[Any, Any, Any]:
+        return tuple(flat[index + k * n_bodies] for k in range(3))
+
+    rows = []
+    for pool, slot in zip(pools, slots, strict=True):
+        if pool.kind == "self":
+            rows.append(dist.sphere_to_sphere(CASADI, centre(slot[:, 0]), r,
+                                              centre(slot[:, 1]), r))
+        else:
+            rows.append(_slot_distances(pool, centre(slot[:, 0]), r, slot[:, 1:],
+                                        face_smoothing))
+    return ca.vertcat(*rows)
+
+
+def select_slots(pools: list[_Pool], n_bodies: int, self_pair_table: np.ndarray,
+                 near_margin: float, margin: float, distances: np.ndarray) -> _Selection:
+    """Assign the pairs nearer than ``near_margin`` (m) at one configuration (nearest
+    first) to the slots; switched-on rows get the lower bound ``margin`` (m).
+
+    ``distances``: (N·P + M,) obstacle pair distances (body-major) then the M self
+    distances (``self_pair_table`` rows), metres.
+    """
+    n_self = len(self_pair_table)
+    n_parts = (len(distances) - n_self) // n_bodies
+    parameters, lower, chosen = [], [], []
+    for pool in pools:
+        if pool.kind == "self":
+            flat = n_bodies * n_parts + np.arange(n_self)
+        else:
+            body = np.arange(n_bodies)[:, None]
+            part = np.arange(pool.first, pool.first + len(pool.table))[None, :]
+            flat = (body * n_parts + part).reshape(-1)
+        flat = flat[distances[flat] < near_margin]
+        flat = flat[np.argsort(distances[flat], kind="stable")][: pool.capacity]
+        rows = np.zeros((pool.capacity, pool.width))
+        if pool.kind == "self":
+            rows[:] = self_pair_table[0]                          # harmless filler
+            rows[: len(flat)] = self_pair_table[flat - n_bodies * n_parts]
+        else:
+            rows[:, 1:] = pool.table[0]                           # base sphere ↔ first part
+            rows[: len(flat), 0] = flat // n_parts
+            rows[: len(flat), 1:] = pool.table[flat % n_parts - pool.first]
+        bound = np.full(pool.capacity, -np.inf)
+        bound[: len(flat)] = margin
+        parameters.append(rows)
+        lower.append(bound)
+        chosen.append(flat)
+    if not pools:
+        return _Selection([], np.zeros(0), np.zeros(0, dtype=np.int64))
+    return _Selection(parameters, np.concatenate(lower), np.concatenate(chosen))
+
+
 # ================================================================ the polisher
 
 
@@ -285,22 +378,8 @@ class IKPolisher:
         self._n_bodies = robot.n_points + 1
         self._self_pairs = self_pairs(robot) if n >= 3 else np.zeros((0, 2), dtype=np.int64)
 
-        self._pools: list[_Pool] = []
-        self._arrays: SceneArrays | None = None
-        if self.scene is not None:
-            numeric = scene_arrays(self.scene, as_numpy=True)
-            first = 0
-            for kind, count in zip(_KINDS, self._kind_counts(numeric), strict=True):
-                if count:
-                    self._pools.append(_Pool(
-                        kind, min(config.max_pairs, count * self._n_bodies), first,
-                        _part_table(kind, numeric), numeric.convex_planes.shape[1]))
-                first += count
-            with jax.enable_x64(True):
-                self._arrays = scene_arrays(self.scene, dtype=jnp.float64)
-        if self.scene is not None and len(self._self_pairs):
-            self._pools.append(_Pool("self", min(config.max_pairs, len(self._self_pairs)), 0,
-                                     np.zeros((0, 0))))
+        self._pools, self._arrays = make_pools(robot, self.scene, config.max_pairs,
+                                               include_self=self.scene is not None)
 
         self._model = CasadiModel(robot)
         self._solvers = {mode: self._build(mode) for mode in config.modes}
@@ -309,11 +388,6 @@ class IKPolisher:
                        np.zeros(3), np.eye(3))
 
     # ------------------------------------------------------------ building
-
-    @staticmethod
-    def _kind_counts(a: SceneArrays) -> list[int]:
-        return [a.sphere_radius.shape[0], a.box_center.shape[0], a.capsule_radius.shape[0],
-                a.cylinder_radius.shape[0], a.convex_planes.shape[0]]
 
     def _build(self, mode: str) -> ca.Function:
         """The Ipopt solver of one mode. Parameters: target position (3), target rotation
@@ -358,26 +432,7 @@ class IKPolisher:
 
     def _clearance_rows(self, z: Any, slots: list[Any]) -> Any:
         """All slot rows: for each pool, the (capacity,) signed distances (m)."""
-        if not self._pools:
-            return ca.SX(0, 1)
-        robot = self.robot
-        n_bodies, r = self._n_bodies, robot.backbone_radius
-        backbone = self._model.functions_z["backbone"](z)                # (N − 1) × 3
-        base = ca.DM(np.asarray(robot.base_position, dtype=float)).T
-        flat = ca.vec(ca.vertcat(base, backbone))       # x of every sphere, then y, then z
-
-        def centre(index: Any) -> tuple[Any, Any, Any]:
-            return tuple(flat[index + k * n_bodies] for k in range(3))
-
-        rows = []
-        for pool, slot in zip(self._pools, slots, strict=True):
-            if pool.kind == "self":
-                rows.append(dist.sphere_to_sphere(CASADI, centre(slot[:, 0]), r,
-                                                  centre(slot[:, 1]), r))
-            else:
-                rows.append(_slot_distances(pool, centre(slot[:, 0]), r, slot[:, 1:],
-                                            self.config.face_smoothing))
-        return ca.vertcat(*rows)
+        return clearance_rows(self._model, self._pools, z, slots, self.config.face_smoothing)
 
     # ------------------------------------------------------------ per solve
 
@@ -386,34 +441,8 @@ class IKPolisher:
 
         ``distances``: (N·P + M,) obstacle pair distances (body-major) then self distances.
         """
-        n_bodies = self._n_bodies
-        n_parts = (len(distances) - len(self._self_pairs)) // n_bodies
-        parameters, lower, chosen = [], [], []
-        for pool in self._pools:
-            if pool.kind == "self":
-                flat = n_bodies * n_parts + np.arange(len(self._self_pairs))
-            else:
-                body = np.arange(n_bodies)[:, None]
-                part = np.arange(pool.first, pool.first + len(pool.table))[None, :]
-                flat = (body * n_parts + part).reshape(-1)
-            flat = flat[distances[flat] < self.config.near_margin]
-            flat = flat[np.argsort(distances[flat], kind="stable")][: pool.capacity]
-            rows = np.zeros((pool.capacity, pool.width))
-            if pool.kind == "self":
-                rows[:] = self._self_pairs[0]                     # harmless filler
-                rows[: len(flat)] = self._self_pairs[flat - n_bodies * n_parts]
-            else:
-                rows[:, 1:] = pool.table[0]                       # base sphere ↔ first part
-                rows[: len(flat), 0] = flat // n_parts
-                rows[: len(flat), 1:] = pool.table[flat % n_parts - pool.first]
-            bound = np.full(pool.capacity, -np.inf)
-            bound[: len(flat)] = self.safety_margin
-            parameters.append(rows)
-            lower.append(bound)
-            chosen.append(flat)
-        if not self._pools:
-            return _Selection([], np.zeros(0), np.zeros(0, dtype=np.int64))
-        return _Selection(parameters, np.concatenate(lower), np.concatenate(chosen))
+        return select_slots(self._pools, self._n_bodies, self._self_pairs,
+                            self.config.near_margin, self.safety_margin, distances)
 
     def _slot_values(self, q_near: Any, q: Any) -> tuple[np.ndarray, np.ndarray]:
         """The clearance rows switched on for the warm start ``q_near``, evaluated at ``q``

@@ -30,8 +30,9 @@ def add_plan_parser(sub: argparse._SubParsersAction) -> None:
                    help='JSON file {"problems": [{"start": [q], "goal": [q]}, ...], '
                         '"horizon": H (optional), "dt": seconds (optional)}')
     p.add_argument("--exact", action="store_true",
-                   help="polish every trajectory with Ipopt (not available yet for "
-                        "trajectories: reports an error)")
+                   help="polish every trajectory with Ipopt, tendon limits and clearance "
+                        "as hard constraints (stage 'polish'; the LM answer is kept, "
+                        "marked, where the polish fails)")
     p.add_argument("--init", choices=("roadmap", "straight"), default="roadmap",
                    help="initial trajectories: roadmap path + straight + perturbed (default), "
                         "or straight + perturbed")
@@ -78,11 +79,8 @@ def run_plan(args: argparse.Namespace) -> int:
     # None entries (a problem without "start"/"goal") fail validation with a reason.
     starts = [s if s is not None else [] for s in starts]
     goals = [g if g is not None else [] for g in goals]
-    try:
-        results = planner.plan(starts, goals, exact=args.exact, init=args.init,
-                               progress=sys.stderr.isatty())
-    except NotImplementedError as exc:
-        raise UsageError(str(exc)) from None
+    results = planner.plan(starts, goals, exact=args.exact, init=args.init,
+                           progress=sys.stderr.isatty())
     data = results_to_json(results, planner.last_timing.as_dict())
     write_json(data, args.out)
     if args.csv:
