@@ -55,9 +55,8 @@ STRAIGHT_OPT = "straight-line+opt"
 RRT = "RRT-Connect"
 EXACT = "roadmap+opt+exact"
 METHODS = (ROADMAP_OPT, STRAIGHT_OPT, RRT, EXACT)
-# The exact row needs the Ipopt trajectory stage, which is still to be written (issue 5).
-DEFAULT_METHODS = (ROADMAP_OPT, STRAIGHT_OPT, RRT)
 """The rows of every table, in order."""
+DEFAULT_METHODS = METHODS
 
 RRT_CONFIG = RRTConnectConfig(time_limit=10.0)
 """The RRT-Connect baseline's settings in the benchmark (10 s per problem)."""
