@@ -187,6 +187,7 @@ def _add_show(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_bench(sub: argparse._SubParsersAction) -> None:
+    from .bench.follow import add_bench_follow
     from .bench.ik import add_bench_ik
     from .bench.plan import add_bench_plan
     from .world_cli import add_bench_clearance
@@ -196,6 +197,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     add_bench_ik(group)
     add_bench_plan(group)
     add_bench_clearance(group)
+    add_bench_follow(group)
 
 
 def _add_plan(sub: argparse._SubParsersAction) -> None:
@@ -204,7 +206,19 @@ def _add_plan(sub: argparse._SubParsersAction) -> None:
     add_plan_parser(sub)
 
 
-SUBCOMMANDS += [_add_plan, _add_show, _add_bench]
+def _add_demo(sub: argparse._SubParsersAction) -> None:
+    from .demo import add_demo_parser
+
+    add_demo_parser(sub)
+
+
+def _add_follow(sub: argparse._SubParsersAction) -> None:
+    from .tasks.follow_cli import add_follow_parser
+
+    add_follow_parser(sub)
+
+
+SUBCOMMANDS += [_add_plan, _add_follow, _add_show, _add_bench, _add_demo]
 
 
 def build_parser() -> argparse.ArgumentParser:

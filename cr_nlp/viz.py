@@ -266,3 +266,101 @@ def _equal_axes(ax: Axes, points: np.ndarray) -> None:
     ax.set_ylim(lo[1], hi[1])
     ax.set_zlim(lo[2], hi[2])
     ax.set_box_aspect(tuple(hi - lo))
+
+
+# ================================================================ time series and errors
+
+
+def _axes_2d(ax: Axes | None, figsize: tuple[float, float] = (7.0, 3.2)) -> Axes:
+    if ax is not None:
+        return ax
+    fig = Figure(figsize=figsize)
+    FigureCanvasAgg(fig)
+    return fig.add_subplot()
+
+
+def plot_tendon_lengths(times: Any, lengths: Any, names: Sequence[str] | None = None,
+                        ax: Axes | None = None, columns: Sequence[int] | None = None,
+                        title: str | None = None) -> Axes:
+    """Tendon lengths over time: ``times`` (T,) seconds, ``lengths`` (T, n_tendons) metres,
+    one line per tendon in ``columns`` (default all), labelled by ``names``. A trajectory
+    result's series is what a controller consumes (``TrajectoryResult.save_csv``)."""
+    ax = _axes_2d(ax)
+    times = np.asarray(times, dtype=float)
+    lengths = np.asarray(lengths, dtype=float).reshape(len(times), -1)
+    columns = range(lengths.shape[1]) if columns is None else columns
+    for j in columns:
+        label = names[j] if names is not None else f"tendon {j + 1}"
+        ax.plot(times, lengths[:, j], marker=".", markersize=3, linewidth=1.2, label=label)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("tendon length (m)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize="small", ncol=min(3, len(list(columns))))
+    if title:
+        ax.set_title(title)
+    return ax
+
+
+def plot_error_boxes(errors: dict[str, Any], ax: Axes | None = None, ylabel: str = "",
+                     title: str | None = None, log: bool = False) -> Axes:
+    """One box plot per entry of ``errors`` (label → values), e.g. per-waypoint position
+    errors in mm for the penalty and the exact answer; whiskers at the 5th and 95th
+    percentiles, every value beyond them drawn."""
+    ax = _axes_2d(ax, (4.5, 3.2))
+    labels = list(errors)
+    data = [np.asarray(errors[k], dtype=float).reshape(-1) for k in labels]
+    ax.boxplot(data, whis=(5, 95), showmeans=True)
+    ax.set_xticks(range(1, len(labels) + 1), labels)
+    ax.set_ylabel(ylabel)
+    if log:
+        ax.set_yscale("log")
+    ax.grid(alpha=0.3, axis="y")
+    if title:
+        ax.set_title(title)
+    return ax
+
+
+# ================================================================ task figures
+
+
+def trajectory_figure(result: Any, scene: Scene | None = None, names: Sequence[str] | None = None,
+                      title: str | None = None) -> Figure:
+    """A planned trajectory (a ``TrajectoryResult``: ``robot``, ``q`` (H+1, 3n), ``times``
+    s, ``tendon_lengths`` m): left the robot's motion and tip path in the scene, right the
+    first segment's tendon lengths over time."""
+    fig = Figure(figsize=(13, 5.5))
+    FigureCanvasAgg(fig)
+    draw(result.robot, None, scene, trajectory=list(result.q),
+         ax=fig.add_subplot(1, 2, 1, projection="3d"), title=title)
+    plot_tendon_lengths(result.times, result.tendon_lengths, names,
+                        ax=fig.add_subplot(1, 2, 2),
+                        columns=range(result.robot.tendons.per_segment),
+                        title="tendon lengths, segment 1")
+    fig.tight_layout()
+    return fig
+
+
+def follow_figure(result: Any, scene: Scene | None = None, names: Sequence[str] | None = None,
+                  snapshots: int = 8, title: str | None = None) -> Figure:
+    """A followed path (a ``FollowResult``: ``robot``, ``path`` with ``positions`` m and
+    ``dt`` s, ``q`` (T, 3n), ``position_error_mm``, ``rotation_error_deg``,
+    ``tendon_lengths`` m): the reference waypoints with the robot at ``snapshots`` evenly
+    spaced waypoints, box plots of the per-waypoint errors, and the first segment's
+    tendon lengths over time."""
+    fig = Figure(figsize=(15, 5.5))
+    FigureCanvasAgg(fig)
+    spec = fig.add_gridspec(2, 3, width_ratios=(1.4, 0.6, 1.0))
+    every = max(1, len(result.q) // snapshots)
+    draw(result.robot, result.q[-1], scene, trajectory=list(result.q[::every]),
+         targets=list(result.path.positions), ax=fig.add_subplot(spec[:, 0], projection="3d"),
+         azim=-160.0, title=title)
+    plot_error_boxes({"position": result.position_error_mm}, ax=fig.add_subplot(spec[0, 1]),
+                     ylabel="mm", title="tracking error per waypoint")
+    plot_error_boxes({"rotation": result.rotation_error_deg}, ax=fig.add_subplot(spec[1, 1]),
+                     ylabel="degrees")
+    times = np.arange(len(result.q)) * result.path.dt
+    plot_tendon_lengths(times, result.tendon_lengths, names, ax=fig.add_subplot(spec[:, 2]),
+                        columns=range(result.robot.tendons.per_segment),
+                        title="tendon lengths, segment 1")
+    fig.tight_layout()
+    return fig

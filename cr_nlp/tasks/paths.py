@@ -154,7 +154,7 @@ def _letter_strokes() -> list[np.ndarray]:
     return [i_stroke, c_stroke, r_stroke, a_stroke, a_bar]
 
 
-def icra_path(count: int = 150, dt: float = 0.1) -> ReferencePath:
+def icra_path(count: int = 150, dt: float = 0.3) -> ReferencePath:
     """The letters "ICRA" (z ∈ [1.2, 1.8] m, y ∈ [−0.8, 0.8] m), stroke by stroke, joined
     by straight pen-up moves (``pen_down`` False) that the tip follows too."""
     points, down = [], []

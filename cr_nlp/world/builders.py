@@ -164,13 +164,15 @@ def random_spheres_scene(seed: int, count: int = 27,
 
 # Path-following scenes: the reference paths lie in the plane x = 1.5 m facing the robot,
 # inside y ∈ [−0.8, 0.8] m, z ∈ [1.0, 2.0] m. Each scene places two spheres (r = 0.3 m)
-# close to its path but off it: one between the robot and the lower part of the path,
-# which the body has to pass, and one beside the path.
+# close to the robot's body but off it: one below the path, near the lower body, and one
+# beside the path. Placed against tdcr3 following the path without obstacles: each
+# sphere is 6–10 cm from that motion's body (python-fcl), so the path stays trackable
+# while the clearance is tight. (A first placement, between the robot and the path,
+# blocked every IK branch of the paths: no collision-free motion tracked them.)
 PATH_SPHERES: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
-    "square": ((1.1, 0.0, 0.55), (1.5, -0.95, 1.5)),
-    "sine": ((1.1, 0.35, 0.6), (1.45, -0.35, 2.25)),
-    # 1.2 m: the A (tasks/paths.py) ends at y = 0.8 m and the body is 0.1 m thick.
-    "icra": ((1.05, -0.3, 0.6), (1.5, 1.2, 1.5)),
+    "square": ((1.1, 0.0, 0.2), (1.5, -1.0, 1.5)),
+    "sine": ((1.1, 0.35, 0.15), (1.45, -0.35, 2.25)),
+    "icra": ((1.7, -0.3, 0.6), (1.5, 1.2, 1.5)),
 }
 PATH_REGIONS = {
     "square": "a 1.0 m square in the plane x = 1.5 m, y ∈ [-0.5, 0.5] m, z ∈ [1.0, 2.0] m",

@@ -1,0 +1,171 @@
+"""``cr-nlp bench follow``: the path-following benchmark of DESIGN.md §4 on this machine.
+
+tdcr3 follows the three bundled shapes (``models/paths/{square,sine,icra}.json``, 150
+waypoints, Δt = 0.1 s) among the two spheres of their scenes (``follow_square`` …).
+Rows: the penalty answer (stages 1–2, JAX) and the exact answer (Ipopt polish). Columns:
+per-waypoint position error (mean, std, max; mm) and rotation error (mean, max;
+degrees), time per path (median of ``--repeats`` timed runs after a warm-up, compile
+apart), collision-free by python-fcl along the whole motion, max violation, and how many
+waypoints missed the tolerances.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from ..tasks.paths import load_path
+from .common import (
+    Column,
+    environment,
+    environment_markdown,
+    fixed,
+    markdown_table,
+    write_csv,
+    write_text,
+)
+
+SHAPES = ("square", "sine", "icra")
+MODES = ("penalty", "exact")
+
+
+def measure_follow(follower: Any, shape: str, exact: bool, repeats: int,
+                   path: Any = None) -> tuple[dict[str, Any], Any]:
+    """One row for a ``PathFollower``: a warm-up run (compilation, Ipopt build; its time
+    is "first call"), then ``repeats`` timed runs; the last run's result is judged."""
+    reference = load_path(shape if path is None else path)
+    t0 = time.perf_counter()
+    result = follower.follow(reference, exact=exact)
+    first = time.perf_counter() - t0
+    seconds = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        result = follower.follow(reference, exact=exact)
+        seconds.append(time.perf_counter() - t0)
+    pos, rot = result.position_error_mm, result.rotation_error_deg
+    return {
+        "shape": reference.name, "mode": "exact" if exact else "penalty",
+        "waypoints": len(reference),
+        "mean_position_mm": float(np.mean(pos)), "std_position_mm": float(np.std(pos)),
+        "max_position_mm": float(np.max(pos)),
+        "mean_rotation_deg": float(np.mean(rot)), "max_rotation_deg": float(np.max(rot)),
+        "unreached": int(np.sum(~np.asarray(result.reached))),
+        "collision_free": bool(result.collision_free),
+        "min_clearance_mm": 1e3 * float(result.min_clearance),
+        "max_violation": float(result.max_violation),
+        "stage": result.stage,
+        "time_per_path": statistics.median(seconds) if seconds else float("nan"),
+        "first_call": first,
+    }, result
+
+
+COLUMNS = (
+    Column("shape", "shape"), Column("mode", "mode"),
+    Column("mean_position_mm", "position mean (mm)", fixed(2)),
+    Column("std_position_mm", "position std (mm)", fixed(2)),
+    Column("max_position_mm", "position max (mm)", fixed(2)),
+    Column("mean_rotation_deg", "rotation mean (°)", fixed(3)),
+    Column("max_rotation_deg", "rotation max (°)", fixed(3)),
+    Column("unreached", "missed waypoints"),
+    Column("collision_free", "collision-free"),
+    Column("min_clearance_mm", "min clearance (mm)", fixed(1)),
+    Column("max_violation", "max violation"),
+    Column("time_per_path", "time/path (s)", fixed(3)),
+    Column("first_call", "first call (s)", fixed(1)),
+)
+
+
+def run_follow_benchmark(shapes: Sequence[str] = SHAPES, modes: Sequence[str] = MODES,
+                         repeats: int = 3, robot: str = "tdcr3",
+                         out: str | Path | None = "bench_results/follow",
+                         config: Any = None,
+                         progress: bool = True) -> list[dict[str, Any]]:
+    """Run the benchmark; returns the rows, prints the Markdown report and, with ``out``,
+    writes follow.md, follow.csv and one figure per shape and mode there. A shape is a
+    bundled name (its scene is ``follow_<name>``) or a path file (followed without
+    obstacles). ``config``: a ``FollowConfig`` (default settings when None)."""
+    from ..tasks.follow import FollowConfig, PathFollower
+
+    rows = []
+    jobs = [(s, m) for s in shapes for m in modes]
+    followers: dict[str, Any] = {}
+    for shape, mode in tqdm(jobs, desc="bench follow", unit="row", disable=not progress):
+        scene = f"follow_{shape}" if shape in SHAPES else None
+        if shape not in followers:
+            followers[shape] = PathFollower(robot, scene, config or FollowConfig())
+        row, result = measure_follow(followers[shape], shape, mode == "exact", repeats)
+        rows.append(row)
+        if out is not None:
+            from ..tasks.trajectory import tendon_names
+            from ..viz import follow_figure
+
+            figure = follow_figure(result, followers[shape].scene,
+                                   tendon_names(followers[shape].robot),
+                                   title=f"{row['shape']} ({mode}): {result.stage}")
+            Path(out).mkdir(parents=True, exist_ok=True)
+            figure.savefig(Path(out) / f"{row['shape']}_{mode}.png", dpi=110)
+    env = environment()
+    report = format_report(rows, env, robot, repeats)
+    print(report)
+    if out is not None:
+        out = Path(out)
+        write_text(report, out / "follow.md")
+        write_csv(rows, out / "follow.csv")
+    return rows
+
+
+def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str], robot: str,
+                  repeats: int) -> str:
+    """The Markdown report: the table, how it was measured, the environment."""
+    return "\n\n".join([
+        f"# Path-following benchmark ({robot})",
+        markdown_table(rows, COLUMNS),
+        "Errors are per waypoint (position: distance of the tip to the reference point; "
+        "rotation: angle between the tip frame and the reference frame). collision-free "
+        "and min clearance: python-fcl along the interpolated motion; max violation: the "
+        "largest of clearance below δ (m), limits, tendon speed (m/s) and acceleration "
+        f"(m/s²) over Δt. time/path: median of {repeats} runs after a warm-up; first call: "
+        "the warm-up (compilation or JAX cache load, Ipopt build).",
+        "## Environment", environment_markdown(env)])
+
+
+# ================================================================ command line
+
+
+def add_bench_follow(bench_subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add ``follow`` to a ``cr-nlp bench`` subcommand group; returns its parser."""
+    p = bench_subparsers.add_parser(
+        "follow", help="path-following benchmark: square, sine, ICRA; penalty and exact",
+        description="Runs the path-following benchmark (DESIGN.md §4), prints a Markdown "
+                    "table and writes follow.md, follow.csv and figures to --out.")
+    p.add_argument("--shapes", nargs="+", default=list(SHAPES),
+                   help="bundled shapes (square sine icra) or path files (no obstacles)")
+    p.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES),
+                   help="rows to run (default penalty and exact)")
+    p.add_argument("--repeats", type=int, default=3,
+                   help="timed runs per row after the warm-up (default 3)")
+    p.add_argument("--robot", default="tdcr3", help="robot name or file (default tdcr3)")
+    p.add_argument("--out", default="bench_results/follow",
+                   help="output folder (default bench_results/follow)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(run=run_bench_follow_command)
+    return p
+
+
+def run_bench_follow_command(args: argparse.Namespace) -> int:
+    """The ``cr-nlp bench follow`` action."""
+    if args.repeats < 1:
+        print("cr-nlp bench follow: error: --repeats must be at least 1", file=sys.stderr)
+        return 2
+    run_follow_benchmark(args.shapes, args.modes, args.repeats, args.robot, args.out,
+                         progress=not args.no_progress)
+    print(f"wrote {Path(args.out) / 'follow.md'} and follow.csv", file=sys.stderr)
+    return 0

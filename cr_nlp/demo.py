@@ -1,0 +1,161 @@
+"""``cr-nlp demo``: the three tasks on the bundled defaults, with a summary table and figures.
+
+1. IK: the 20 targets of ``models/targets/tdcr3_lattice.json`` for tdcr3 among the 27
+   spheres of the lattice scene.
+2. Trajectory planning: the first start/goal pair of ``models/problems/tdcr3_shelf.json``
+   in the shelf scene.
+3. Path following: the letters "ICRA" (``models/paths/icra.json``, 150 waypoints) in the
+   ``follow_icra`` scene.
+
+Every task runs in exact mode (Ipopt polish) unless ``--penalty-only`` is given, and every
+answer is judged by the independent checks (python-fcl, float64 limits and tendon
+limits). Each task's result is written as JSON (and the tendon series as CSV), and one
+figure per task as PNG, into ``--out``. The first run compiles the JAX programs (cached on
+disk for the next runs: see ``cr_nlp._jax_setup``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ._resources import bundled_file
+
+
+@dataclass
+class DemoRow:
+    """One line of the summary table."""
+
+    task: str
+    problem: str
+    success: str
+    accuracy: str
+    max_violation: float
+    seconds: float
+    files: list[str]
+
+
+def _ik(out: Path, exact: bool) -> DemoRow:
+    from .cli import read_pose_file
+    from .model import load_robot
+    from .tasks.ik import IKSolver
+    from .viz import save_figure
+    from .world import load_scene
+
+    robot, scene = load_robot("tdcr3"), load_scene("lattice")
+    positions, wxyz, _ = read_pose_file(str(bundled_file("targets", "tdcr3_lattice")),
+                                        "targets")
+    start = time.perf_counter()
+    result = IKSolver(robot, scene).solve(positions, wxyz, exact=exact)
+    seconds = time.perf_counter() - start
+    (out / "ik_result.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
+    from .model.rotations import matrix_from_wxyz
+
+    targets = list(zip(positions, matrix_from_wxyz(wxyz), strict=True))
+    save_figure(robot, result.q[0], scene, trajectory=None, targets=targets[:6],
+                path=out / "ik.png", title="IK: tdcr3 in the lattice (first answer)")
+    summary = result.summary()
+    return DemoRow("IK", f"{len(positions)} targets, lattice",
+                   f"{int(result.success.sum())}/{len(result)}",
+                   f"mean pose error {np.mean(result.pose_error):.1e}",
+                   float(summary["max_violation"]), seconds, ["ik_result.json", "ik.png"])
+
+
+def _plan(out: Path, exact: bool) -> DemoRow:
+    from .tasks.trajectory import TrajectoryPlanner, save_results, tendon_names
+    from .viz import trajectory_figure
+
+    problems = json.loads(bundled_file("problems", "tdcr3_shelf").read_text())["problems"]
+    planner = TrajectoryPlanner("tdcr3", "shelf")
+    start = time.perf_counter()
+    (result,) = planner.plan([problems[0]["start"]], [problems[0]["goal"]], exact=exact)
+    seconds = time.perf_counter() - start
+    save_results([result], out / "plan_result.json", planner.last_timing.as_dict())
+    files = ["plan_result.json"]
+    if result.q is not None:
+        result.save_csv(out / "plan_tendons.csv")
+        trajectory_figure(result, planner.scene, tendon_names(planner.robot),
+                          title=f"shelf: {result.stage}, {result.path_length:.2f} m tip path"
+                          ).savefig(out / "plan.png", dpi=120)
+        files += ["plan_tendons.csv", "plan.png"]
+    return DemoRow("plan", "shelf, problem 0", "yes" if result.success else
+                   f"no ({result.reason})", f"tip path {result.path_length:.2f} m",
+                   float(result.max_violation), seconds, files)
+
+
+def _follow(out: Path, exact: bool) -> DemoRow:
+    from .tasks.follow import PathFollower
+    from .tasks.trajectory import tendon_names
+    from .viz import follow_figure
+
+    follower = PathFollower("tdcr3", "follow_icra")
+    start = time.perf_counter()
+    result = follower.follow("icra", exact=exact)
+    seconds = time.perf_counter() - start
+    result.save(out / "follow_result.json")
+    result.save_csv(out / "follow_tendons.csv")
+    follow_figure(result, follower.scene, tendon_names(follower.robot),
+                  title=f"{result.path.name}: {result.stage}").savefig(out / "follow.png", dpi=120)
+    err = result.position_error_mm
+    return DemoRow("follow", f"'{result.path.name}', {len(err)} waypoints",
+                   "yes" if result.success else f"no ({result.reason})",
+                   f"position error mean {np.mean(err):.2f} mm, max {np.max(err):.2f} mm",
+                   float(result.max_violation), seconds,
+                   ["follow_result.json", "follow_tendons.csv", "follow.png"])
+
+
+TASKS: dict[str, Callable[[Path, bool], DemoRow]] = {"ik": _ik, "plan": _plan,
+                                                     "follow": _follow}
+
+
+def format_table(rows: list[DemoRow]) -> str:
+    """The summary as a Markdown table."""
+    lines = ["| task | problem | success | accuracy | max violation | time (s, compile included) |",
+             "|---|---|---|---|---|---|"]
+    lines += [f"| {r.task} | {r.problem} | {r.success} | {r.accuracy} | "
+              f"{r.max_violation:.1e} | {r.seconds:.1f} |" for r in rows]
+    return "\n".join(lines)
+
+
+def run_demo(out: str | Path = "demo_output", exact: bool = True,
+             tasks: tuple[str, ...] = tuple(TASKS), progress: bool = True) -> list[DemoRow]:
+    """Run the demo tasks, write their files into ``out`` and return the summary rows."""
+    from tqdm.auto import tqdm
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    bar = tqdm(tasks, desc="cr-nlp demo", unit="task", disable=not progress)
+    for name in bar:
+        bar.set_postfix_str(name)
+        rows.append(TASKS[name](out, exact))
+    (out / "summary.md").write_text(format_table(rows) + "\n")
+    return rows
+
+
+def add_demo_parser(sub: argparse._SubParsersAction) -> None:
+    """Register ``cr-nlp demo`` on the CLI's subparsers."""
+    p = sub.add_parser("demo", help="IK, planning and path following on the bundled defaults")
+    p.add_argument("--out", default="demo_output",
+                   help="folder for results (JSON, CSV) and figures (PNG); default demo_output")
+    p.add_argument("--penalty-only", action="store_true",
+                   help="skip the exact Ipopt polish (faster, constraints only as penalties)")
+    p.add_argument("--tasks", nargs="+", choices=list(TASKS), default=list(TASKS),
+                   help="which tasks to run (default all three)")
+    p.set_defaults(run=run_demo_command)
+
+
+def run_demo_command(args: argparse.Namespace) -> int:
+    rows = run_demo(args.out, exact=not args.penalty_only, tasks=tuple(args.tasks),
+                    progress=True)
+    print(format_table(rows))
+    print(f"\nfiles in {args.out}/: " + ", ".join(f for r in rows for f in r.files)
+          + ", summary.md", file=sys.stderr)
+    return 0

@@ -1,0 +1,1062 @@
+"""Path following: the tip traces a reference path while the body avoids obstacles and
+the tendons move smoothly.
+
+Problem (DESIGN.md §2): z = (z₀, …, z_{T−1}), one bending-vector configuration per
+waypoint of the path (time step Δt between waypoints); f = Σₜ pose error to the
+reference pose (the 6-vector log(T_tip⁻¹·T_ref), DESIGN.md §1) plus a small smoothness
+term; c = clearance ≥ δ at every waypoint and along the motion between waypoints,
+tendon speed |Δℓ/Δt| ≤ v_max and acceleration |Δ²ℓ/Δt²| ≤ a_max; limits by projection.
+Between waypoints the robot moves linearly in z (as ``tasks.trajectory``: linear in the
+tendon lengths).
+
+Stages:
+
+1. explore: IK at every waypoint in one batch (``IKSolver.candidates``: a refined beam
+   of distinct answers per waypoint), then the sequence with the smallest configuration
+   jumps (``stages.sequence.smoothest_sequence``, dynamic programming).
+2. refine: all waypoints jointly by the block-banded LM (``stages.banded_lm``): every
+   residual depends on at most three consecutive waypoints (tracking and clearance: one;
+   smoothness, tendon speed, clearance between waypoints: two; tendon acceleration:
+   three), so each iteration costs O(T), not O(T³). Constraints are penalties here.
+3. polish (``exact=True``): Ipopt with the constraints as constraints, minimising the
+   tracking error, warm-started from stage 2 (``stages.polish_trajectory``); a polish
+   that fails, or that the independent check rejects, returns the stage-2 answer,
+   marked in ``FollowResult.stage``.
+
+Every answer is judged in float64 independently of the optimisers:
+``tasks.trajectory.verify_trajectory`` (python-fcl along the interpolated motion, limits,
+tendon finite differences) and the tip poses by the numpy backend of the model.
+
+Waypoints outside the robot's reach (farther from the base than its longest length)
+cannot be tracked: their tracking residual is switched off, the motion there is set by
+its neighbours, and the result reports them (``reached`` False), never an exception.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import threading
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.monitoring
+import jax.numpy as jnp
+import numpy as np
+
+from .._jax_setup import enable_compilation_cache
+from ..model import Robot, load_robot
+from ..model._ops import JAX, NUMPY
+from ..model.kinematics import (
+    model_base,
+    model_q_to_z,
+    model_segment_frames,
+    model_segment_transform,
+    model_tendon_lengths,
+)
+from ..model.lie import so3_log
+from ..model.limits import clip_to_limits, project_z
+from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
+from ..stages.banded_lm import ChainResidual, banded_lm_solve
+from ..stages.lm import LMConfig, lm_solve
+from ..stages.sequence import smoothest_sequence
+from ..world import Scene, load_scene, scene_arrays
+from ..world.clearance import SceneArrays, body_gap_tolerance, self_pairs
+from ._timing import StageTiming
+from .ik import IKConfig, IKSolver, validate_targets
+from .paths import ReferencePath, load_path
+from .trajectory import (
+    _groups,
+    _has_clearance,
+    _nearest_and_gradient,
+    tendon_names,
+    tendon_series,
+    verify_trajectory,
+)
+
+
+@dataclass(frozen=True)
+class FollowConfig:
+    """Settings of the path follower. Defaults measured on tdcr3 with the bundled
+    square/sine/icra paths in their ``follow_*`` scenes (README)."""
+
+    iterations: int = 40
+    """Most LM iterations of stage 2 (it stops earlier once the cost stalls)."""
+    tracking_weight: float = 1.0
+    """Overall weight of the tracking residuals (multiplies the next two)."""
+    position_weight: float = 1.0
+    """Weight of the translation part of the pose error (per m²)."""
+    rotation_weight: float = 1.0
+    """Weight of the rotation part of the pose error (per rad²)."""
+    smoothness_weight: float = 1e-6
+    """Weight of the squared joint-space steps ‖zₜ₊₁ − zₜ‖² (per rad², m²): only breaks
+    ties where the tip pose leaves the body free; large values cost tracking accuracy."""
+    clearance_weight: float = 1e4
+    """Penalty weight of a clearance shortfall (per m²) at waypoints and check points."""
+    tendon_weight: float = 10.0
+    """Penalty weight of a relative tendon speed/acceleration overshoot (dimensionless)."""
+    tendon_limit_fraction: float = 0.95
+    """The LM stage aims for this fraction of the tendon limits, so that a penalty
+    answer's small overshoot still lies inside the real limits."""
+    safety_margin: float = 0.002
+    """δ, metres: the clearance every answer must keep, as python-fcl measures it on the
+    capsule body (the optimisers add ``world.clearance.body_gap_tolerance``)."""
+    interpolation_checks: int = 0
+    """Clearance check points inside each interval for the optimiser (1: the midpoint).
+    0 by default: the waypoints of a path are dense (the bundled paths move the tip
+    ~2.7 cm per step), so the waypoints' margin covers the motion between them; the
+    verification checks the motion itself either way."""
+    verify_samples: int = 4
+    """The verification splits every interval into this many pieces (python-fcl at each)."""
+    position_tolerance_mm: float = 5.0
+    """A waypoint is reached when its tip position error is at most this, millimetres..."""
+    rotation_tolerance_deg: float = 1.0
+    """...and its tip rotation error at most this, degrees."""
+    ik_pool_size: int = 4096
+    """Stage 1: Sobol configurations whose tip poses seed the per-waypoint IK."""
+    ik_seeds_per_target: int = 8
+    """Stage 1: pool entries nearest each waypoint that start the coarse LM steps."""
+    ik_coarse_iterations: int = 6
+    """Stage 1: LM iterations on every seed before the beam is chosen."""
+    ik_beam_width: int = 3
+    """Stage 1: distinct IK answers per waypoint among which the sequence is chosen."""
+    ik_refine_iterations: int = 30
+    """Stage 1: LM iterations on the beam."""
+    continuation_iterations: int = 6
+    """Stage 1: LM iterations per waypoint of the continuation chains that carry an IK
+    branch across waypoints where the independent per-waypoint IK missed it."""
+    continuation_rounds: int = 2
+    """Stage 1: rounds of (find the jumps of the chosen sequence, continue the branches on
+    both sides of each, choose again)."""
+    max_jumps: int = 4
+    """Stage 1: most jumps continued per round (the largest first)."""
+    ik_tolerance: float = 1e-2
+    """Stage 1: candidates with a residual norm (pose error, m/rad, plus clearance
+    penalty) at or above this are used only where a waypoint has no better one."""
+    dtype: str = "float32"
+    """JAX dtype of the batched stages ("float64" needs jax_enable_x64)."""
+    seed: int = 0
+    """Seed of the IK seed pool."""
+
+    def __post_init__(self) -> None:
+        if self.iterations < 0 or self.verify_samples < 1 or self.interpolation_checks < 0:
+            raise ValueError("iterations ≥ 0, verify_samples ≥ 1 and interpolation_checks ≥ 0")
+        if not 0.0 < self.tendon_limit_fraction <= 1.0:
+            raise ValueError(f"tendon_limit_fraction must be in (0, 1], got "
+                             f"{self.tendon_limit_fraction}")
+        weights = (self.tracking_weight, self.position_weight, self.rotation_weight,
+                   self.smoothness_weight, self.clearance_weight, self.tendon_weight)
+        if min(weights) < 0:
+            raise ValueError("weights must not be negative")
+
+    def ik_config(self, clearance_weight: float = 30.0) -> IKConfig:
+        """The stage-1 ``IKConfig`` these settings describe."""
+        return IKConfig(pool_size=self.ik_pool_size, seeds_per_target=self.ik_seeds_per_target,
+                        coarse_iterations=self.ik_coarse_iterations,
+                        beam_width=self.ik_beam_width,
+                        refine_iterations=self.ik_refine_iterations,
+                        success_tolerance=self.ik_tolerance,
+                        safety_margin=self.safety_margin, clearance_weight=clearance_weight,
+                        dtype=self.dtype, seed=self.seed)
+
+
+# ================================================================ per-waypoint Jacobians
+#
+# The LM needs, per waypoint, a 6 × 3n tracking Jacobian and a G × 3n clearance Jacobian.
+# Pushing 3n tangents through the model's entry-by-entry code costs thousands of small
+# XLA operations per call; here the same model functions (``model_segment_transform``,
+# ``model_base``) are evaluated on whole arrays (one 3 × 3 matrix product per segment),
+# and the residuals get their Jacobians from the primal alone (``jax.custom_jvp``), so
+# the banded LM's forward-mode pass over a window costs one matrix product.
+
+
+def _stack_transform(transform: Any, dtype: Any) -> tuple[jax.Array, jax.Array]:
+    # The barrier stops XLA's fusion from recomputing the entries in every consumer
+    # (as ``Ops.materialize`` in the model; measured 5–10× here).
+    rot, pos = jax.lax.optimization_barrier(transform)
+    rot = jnp.stack(jnp.broadcast_arrays(*rot), axis=-1).astype(dtype)
+    pos = jnp.stack(jnp.broadcast_arrays(*pos), axis=-1).astype(dtype)
+    return rot.reshape(rot.shape[:-1] + (3, 3)), pos
+
+
+def waypoint_kinematics(robot: Robot, z: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Tip rotation (3, 3), tip position (3,) m and body-sphere centres (N, 3) m of one
+    bending-vector configuration z (3n,): the model's kinematics (``model_segment_frames``,
+    ``world.clearance._centres`` order: the base, then ``points_per_segment`` points per
+    segment) evaluated in array form."""
+    dtype = z.dtype
+    k = robot.points_per_segment
+    fractions = jnp.arange(1, k + 1, dtype=dtype) / k
+    rot, pos = _stack_transform(model_base(robot), dtype)
+    centres = [pos[None]]
+    for i in range(robot.n_segments):
+        ux, uy, length = z[3 * i], z[3 * i + 1], z[3 * i + 2]
+        _, points = _stack_transform(model_segment_transform(
+            JAX, ux * fractions, uy * fractions, length * fractions), dtype)
+        centres.append(pos + points @ rot.T)
+        local_rot, local_pos = _stack_transform(model_segment_transform(JAX, ux, uy, length),
+                                                dtype)
+        rot, pos = rot @ local_rot, pos + rot @ local_pos
+    return rot, pos, jnp.concatenate(centres)
+
+
+def _segment_local(robot: Robot, u: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """One segment's local transform (rotation (3, 3), translation (3,)) and its body
+    points (k, 3) at arc fractions j/k, from u = (ux, uy, L)."""
+    k = robot.points_per_segment
+    fractions = jnp.arange(1, k + 1, dtype=u.dtype) / k
+    rot, pos = _stack_transform(model_segment_transform(JAX, u[0], u[1], u[2]), u.dtype)
+    _, points = _stack_transform(model_segment_transform(
+        JAX, u[0] * fractions, u[1] * fractions, u[2] * fractions), u.dtype)
+    return rot, pos, points
+
+
+def waypoint_jacobians(robot: Robot, z: jax.Array) -> dict[str, jax.Array]:
+    """``waypoint_kinematics`` and its derivatives for one z (3n,), by the geometric
+    (twist) Jacobian: each variable of segment m moves everything beyond segment m
+    rigidly, dx = ω × (x − p_m) + v, and the points of segment m by its own local
+    derivative. Returns ``rotation`` (3, 3), ``position`` (3,), ``centres`` (N, 3),
+    ``d_position`` (3, 3n), ``body_rates`` (3, 3n) (Rᵀ∂R/∂z_k as vectors) and
+    ``d_centres`` (N, 3, 3n)."""
+    n, k = robot.n_segments, robot.points_per_segment
+    dtype = z.dtype
+    seg = z.reshape(n, 3)
+    local = jax.vmap(partial(_segment_local, robot))
+    rot_l, pos_l, pts_l = local(seg)                                   # (n,3,3) (n,3) (n,k,3)
+    d_rot_l, d_pos_l, d_pts_l = jax.lax.optimization_barrier(
+        jax.vmap(jax.jacfwd(partial(_segment_local, robot)))(seg))
+    base_rot, base_pos = _stack_transform(model_base(robot), dtype)
+    frame_rot, frame_pos = [base_rot], [base_pos]
+    for m in range(n):
+        frame_pos.append(frame_pos[-1] + frame_rot[-1] @ pos_l[m])
+        frame_rot.append(frame_rot[-1] @ rot_l[m])
+    rot_m, pos_m = jnp.stack(frame_rot[:n]), jnp.stack(frame_pos[:n])   # segment bases
+    tip_rot, tip_pos = frame_rot[n], frame_pos[n]
+    points = pos_m[:, None, :] + jnp.einsum("mij,mkj->mki", rot_m, pts_l)  # (n, k, 3)
+    centres = jnp.concatenate([base_pos[None], points.reshape(n * k, 3)])
+    # Local twist of variable a of segment m: Ω = ∂R·Rᵀ, v = ∂p − ω × p; then to world.
+    spin = jnp.einsum("mija,mlj->mila", d_rot_l, rot_l)                  # (n, 3, 3, 3)
+    omega_l = jnp.stack([spin[:, 2, 1], spin[:, 0, 2], spin[:, 1, 0]], axis=1)  # (n, 3, a)
+    v_l = d_pos_l - jnp.cross(omega_l, pos_l[:, :, None], axis=1)
+    omega_w = jnp.einsum("mij,mja->mia", rot_m, omega_l)                 # (n, 3, a)
+    v_w = jnp.einsum("mij,mja->mia", rot_m, v_l)
+
+    def moved(x: jax.Array) -> jax.Array:
+        """d x / d z for points x (P, 3) beyond every segment: (P, 3, n, 3)."""
+        arm = x[:, None, :, None] - pos_m[None, :, :, None]              # (P, n, 3, 1)
+        rate = jnp.cross(omega_w[None], arm, axis=2) + v_w[None]          # (P, n, 3, a)
+        return jnp.moveaxis(rate, 1, 2)
+
+    d_tip = moved(tip_pos[None])[0].reshape(3, 3 * n)
+    body_rates = (tip_rot.T @ omega_w.transpose(1, 0, 2).reshape(3, 3 * n))
+    beyond = moved(points.reshape(n * k, 3)).reshape(n, k, 3, n, 3)
+    own = jnp.einsum("mij,mkja->mkia", rot_m, d_pts_l)                   # (n, k, 3, a)
+    seg_of_point, seg_of_var = jnp.arange(n)[:, None], jnp.arange(n)[None, :]
+    later = (seg_of_var < seg_of_point).astype(dtype)[:, None, None, :, None]
+    same = (seg_of_var == seg_of_point).astype(dtype)[:, None, None, :, None]
+    d_points = beyond * later + own[:, :, :, None, :] * same
+    d_centres = jnp.concatenate([jnp.zeros((1, 3, 3 * n), dtype),
+                                 d_points.reshape(n * k, 3, 3 * n)])
+    return {"rotation": tip_rot, "position": tip_pos, "centres": centres,
+            "d_position": d_tip, "body_rates": body_rates, "d_centres": d_centres}
+
+
+def _hat(w: jax.Array) -> jax.Array:
+    zero = jnp.zeros_like(w[..., 0])
+    return jnp.stack([jnp.stack([zero, -w[..., 2], w[..., 1]], -1),
+                      jnp.stack([w[..., 2], zero, -w[..., 0]], -1),
+                      jnp.stack([-w[..., 1], w[..., 0], zero], -1)], -2)
+
+
+def _rotation_log(rotation: jax.Array) -> jax.Array:
+    """Rotation vector (3,) rad of a rotation matrix (``model.lie.so3_log``)."""
+    entries = tuple(rotation[i, j] for i in range(3) for j in range(3))
+    return jnp.stack(so3_log(JAX, entries)).astype(rotation.dtype)
+
+
+def _right_jacobian_inverse(e: jax.Array) -> jax.Array:
+    """J_r⁻¹(e) = I + ½[e]× + c(θ)[e]×², c = 1/θ² − (1 + cos θ)/(2θ sin θ): the
+    derivative of log(R·exp([ω]×)) with respect to ω at ω = 0, R = exp([e]×)."""
+    th2 = jnp.sum(e * e)
+    theta = jnp.sqrt(jnp.maximum(th2, 1e-12))
+    # Close to π the exact coefficient diverges; the LM only needs a descent direction there.
+    theta_c = jnp.minimum(theta, 3.0)
+    exact = 1.0 / (theta_c * theta_c) - (1.0 + jnp.cos(theta_c)) / (
+        2.0 * theta_c * jnp.sin(theta_c))
+    c = jnp.where(th2 < 1e-4, 1.0 / 12.0 + th2 / 720.0, exact)
+    hat = _hat(e)
+    return jnp.eye(3, dtype=e.dtype) + 0.5 * hat + c * hat @ hat
+
+
+def _tracking_from(rot: jax.Array, pos: jax.Array, target: Any) -> jax.Array:
+    target_position, target_rotation, _ = target
+    error = target_rotation.reshape(3, 3).T @ rot
+    return jnp.concatenate([pos - target_position, _rotation_log(error)])
+
+
+def _tracking_jacobian(kin: dict[str, jax.Array], error: jax.Array) -> jax.Array:
+    """(6, d) Jacobian of ``tracking_error`` from ``waypoint_jacobians`` and the error."""
+    return jnp.concatenate([kin["d_position"],
+                            _right_jacobian_inverse(error[3:]) @ kin["body_rates"]])
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0,))
+def tracking_error(robot: Robot, z: jax.Array, target: Any) -> jax.Array:
+    """The tracking error of one waypoint z (3n,): the tip position minus the reference
+    position (3,) m, then log(R_refᵀ·R_tip) (3,) rad. Their norms are the reported
+    position and rotation errors. ``target`` = (position (3,), rotation (9,) row major,
+    tracking switch); only z is differentiated."""
+    rot, pos, _ = waypoint_kinematics(robot, z)
+    return _tracking_from(rot, pos, target)
+
+
+@tracking_error.defjvp
+def _tracking_error_jvp(robot: Robot, primals: tuple, tangents: tuple) -> tuple:
+    z, target = primals
+    z_dot = tangents[0]
+    kin = waypoint_jacobians(robot, z)
+    value = _tracking_from(kin["rotation"], kin["position"], target)
+    return value, _tracking_jacobian(kin, value) @ z_dot
+
+
+def _groups_from(robot: Robot, margin: float, arrays: SceneArrays | None, centres: jax.Array,
+                 jac_centres: jax.Array | None) -> tuple[jax.Array, jax.Array | None]:
+    """Grouped clearance shortfalls (G,) m (``trajectory._group_values``: per segment the
+    norm of max(0, δ − d) over its spheres' nearest-obstacle distances, then the norm over
+    the self pairs) and, given the centres' Jacobian (N, 3, d), theirs (G, d)."""
+    values, rows = [], []
+    if arrays is not None and arrays.n_parts > 0:
+        d, grad = _nearest_and_gradient(robot, arrays, centres)
+        values.append(d)
+        if jac_centres is not None:
+            rows.append(jnp.einsum("nk,nkj->nj", grad, jac_centres))
+    if robot.n_segments >= 3:
+        pairs = self_pairs(robot)
+        diff = centres[pairs[:, 0]] - centres[pairs[:, 1]]
+        norm = jnp.sqrt(jnp.maximum(jnp.sum(diff * diff, axis=-1), 1e-30))
+        values.append(norm - 2.0 * robot.backbone_radius)
+        if jac_centres is not None:
+            unit = diff / norm[:, None]
+            rows.append(jnp.einsum("nk,nkj->nj", unit,
+                                   jac_centres[pairs[:, 0]] - jac_centres[pairs[:, 1]]))
+    d = jnp.concatenate(values)
+    shortfall = jnp.maximum(margin - d, 0.0)
+    jac_d = jnp.concatenate(rows) if jac_centres is not None else None
+    out, jac = [], []
+    eps = jnp.asarray(1e-9, centres.dtype)
+    for idx in _groups(robot, arrays):
+        s = shortfall[idx]
+        root = jnp.sqrt(jnp.sum(s * s) + eps * eps)
+        out.append(root - eps)
+        if jac_d is not None:
+            jac.append(-(s / root) @ jac_d[idx])
+    return jnp.stack(out), (jnp.stack(jac) if jac_d is not None else None)
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0, 1))
+def clearance_groups(robot: Robot, margin: float, arrays: SceneArrays | None,
+                     z: jax.Array) -> jax.Array:
+    """Grouped clearance shortfalls (G,) m of one configuration z (3n,) below the sphere
+    margin (m); differentiable in z with a Jacobian built from the primal."""
+    return _groups_from(robot, margin, arrays, waypoint_kinematics(robot, z)[2], None)[0]
+
+
+@clearance_groups.defjvp
+def _clearance_groups_jvp(robot: Robot, margin: float, primals: tuple,
+                          tangents: tuple) -> tuple:
+    arrays, z = primals
+    z_dot = tangents[1]
+    kin = waypoint_jacobians(robot, z)
+    values, jac = _groups_from(robot, margin, arrays, kin["centres"], kin["d_centres"])
+    return values, jac @ z_dot
+
+
+# ================================================================ residuals
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0, 1))
+def waypoint_residual(robot: Robot, margin: float, z: jax.Array, target: Any,
+                      arrays: SceneArrays | None) -> jax.Array:
+    """``tracking_error`` (6,) then ``clearance_groups`` (G,) of one waypoint z (3n,),
+    sharing one kinematics Jacobian (the LM's per-waypoint term)."""
+    rot, pos, centres = waypoint_kinematics(robot, z)
+    out = [_tracking_from(rot, pos, target)]
+    if _has_clearance(robot, arrays):
+        out.append(_groups_from(robot, margin, arrays, centres, None)[0])
+    return jnp.concatenate(out)
+
+
+@waypoint_residual.defjvp
+def _waypoint_residual_jvp(robot: Robot, margin: float, primals: tuple,
+                           tangents: tuple) -> tuple:
+    z, target, arrays = primals
+    z_dot = tangents[0]
+    kin = waypoint_jacobians(robot, z)
+    error = _tracking_from(kin["rotation"], kin["position"], target)
+    values, jac = [error], [_tracking_jacobian(kin, error)]
+    if _has_clearance(robot, arrays):
+        groups, groups_jac = _groups_from(robot, margin, arrays, kin["centres"],
+                                          kin["d_centres"])
+        values.append(groups)
+        jac.append(groups_jac)
+    return jnp.concatenate(values), jnp.concatenate(jac) @ z_dot
+
+
+def _lengths(robot: Robot, z: jax.Array) -> jax.Array:
+    """Tendon lengths (n_tendons,) m of one configuration z (linear in z)."""
+    values = model_tendon_lengths(JAX, robot, [z[i] for i in range(robot.dof)])
+    return jnp.stack(jnp.broadcast_arrays(*values)).astype(z.dtype)
+
+
+def follow_unary(robot: Robot, margin: float, weights: tuple[float, float, float],
+                 z: jax.Array, target: Any, shared: Any) -> jax.Array:
+    """Residuals of one waypoint z (3n,): √w_p·(p_tip − p_ref) (m) and √w_r·log(R_refᵀR_tip)
+    (rad) (``tracking_error``), both times the waypoint's tracking switch (1, or 0 for an
+    untrackable waypoint), then √w_c·grouped clearance shortfalls (m).
+
+    ``weights`` = (√w_p, √w_r, √w_c); ``target`` = (position (3,), rotation (9,) row
+    major, tracking switch ()); ``shared`` = (scene arrays or None, Δt)."""
+    sqrt_pos, sqrt_rot, sqrt_clear = weights
+    arrays, _ = shared
+    track = target[2]
+    values = waypoint_residual(robot, margin, z, target, arrays)
+    scale = jnp.concatenate([jnp.full(3, sqrt_pos), jnp.full(3, sqrt_rot)]).astype(z.dtype)
+    return jnp.concatenate([track * scale * values[:6], sqrt_clear * values[6:]])
+
+
+def follow_pair(robot: Robot, margin: float, checks: int, weights: tuple[float, float, float],
+                limit_fraction: float, z_a: jax.Array, z_b: jax.Array, target: Any,
+                shared: Any) -> jax.Array:
+    """Residuals of one interval (z_a → z_b): √w_s·(z_b − z_a) (rad, m); √w_c·grouped
+    clearance shortfalls (m) at ``checks`` evenly spaced points inside the interval;
+    √w_t·max(0, |Δℓ/Δt|/(f·v_max) − 1) per tendon (dimensionless).
+
+    ``weights`` = (√w_s, √w_c, √w_t); f = ``limit_fraction``."""
+    sqrt_smooth, sqrt_clear, sqrt_tendon = weights
+    arrays, dt = shared
+    step = z_b - z_a
+    out = [sqrt_smooth * step]
+    if checks and _has_clearance(robot, arrays):
+        for c in range(1, checks + 1):
+            out.append(sqrt_clear * clearance_groups(robot, margin, arrays,
+                                                     z_a + (c / (checks + 1)) * step))
+    if math.isfinite(robot.tendon_speed_max):
+        speed = (_lengths(robot, z_b) - _lengths(robot, z_a)) / dt
+        over = jnp.abs(speed) / (limit_fraction * robot.tendon_speed_max) - 1.0
+        out.append(sqrt_tendon * jnp.maximum(over, 0.0))
+    return jnp.concatenate(out)
+
+
+def follow_triple(robot: Robot, sqrt_tendon: float, limit_fraction: float, z_a: jax.Array,
+                  z_b: jax.Array, z_c: jax.Array, target: Any, shared: Any) -> jax.Array:
+    """√w_t·max(0, |Δ²ℓ/Δt²|/(f·a_max) − 1) per tendon at the middle waypoint z_b."""
+    _, dt = shared
+    accel = (_lengths(robot, z_c) - 2.0 * _lengths(robot, z_b) + _lengths(robot, z_a)) / (dt * dt)
+    over = jnp.abs(accel) / (limit_fraction * robot.tendon_accel_max) - 1.0
+    return sqrt_tendon * jnp.maximum(over, 0.0)
+
+
+def follow_terms(robot: Robot, margin: float, config: FollowConfig) -> ChainResidual:
+    """The path-following residual as window terms for ``stages.banded_lm``."""
+    sqrt = math.sqrt
+    track = config.tracking_weight
+    unary = partial(follow_unary, robot, float(margin),
+                    (sqrt(track * config.position_weight), sqrt(track * config.rotation_weight),
+                     sqrt(config.clearance_weight)))
+    pair = partial(follow_pair, robot, float(margin), config.interpolation_checks,
+                   (sqrt(config.smoothness_weight), sqrt(config.clearance_weight),
+                    sqrt(config.tendon_weight)), config.tendon_limit_fraction)
+    triple = (partial(follow_triple, robot, sqrt(config.tendon_weight),
+                      config.tendon_limit_fraction)
+              if math.isfinite(robot.tendon_accel_max) else None)
+    return ChainResidual(unary, pair, triple)
+
+
+def _project_chain(robot: Robot, z: jax.Array) -> jax.Array:
+    """``project_z`` on every waypoint of a (T, 3n) chain."""
+    return project_z(robot, z)
+
+
+def _continue_chains(robot: Robot, margin: float, weights: tuple[float, float, float],
+                     iterations: int, z_start: jax.Array, start_step: jax.Array,
+                     forward: jax.Array, positions: jax.Array, rotations: jax.Array,
+                     track: jax.Array, shared: Any, free: jax.Array) -> tuple[jax.Array, ...]:
+    """Numerical continuation of C IK answers along the path (stage 1's branch keeper).
+
+    Chain c starts at its own step ``start_step[c]`` from ``z_start[c]`` and walks the
+    waypoints forward (``forward[c]``) or backward, a few LM steps per waypoint from the
+    previous waypoint's answer, so it stays on one branch of the IK solutions. Returns
+    z (T, C, 3n) and residual norms (T, C) in chain-local order (step τ is waypoint τ,
+    or T − 1 − τ for a backward chain), and which entries the chain has reached (T, C).
+    """
+    t = positions.shape[0]
+    residual = partial(follow_unary, robot, margin, weights)
+    project = partial(project_z, robot)
+    config = LMConfig(cost_tolerance=1e-14)
+
+    def step(z: jax.Array, tau: jax.Array) -> tuple[jax.Array, tuple]:
+        index = jnp.where(forward, tau, t - 1 - tau)
+        target = (positions[index], rotations[index], track[index])
+        solved, cost, _ = lm_solve(residual, project, z, target, shared, free,
+                                   jnp.int32(iterations), config=config)
+        active = (tau >= start_step)[:, None]
+        z_out = jnp.where(active, solved, z_start)
+        return z_out, (z_out, jnp.sqrt(2.0 * cost), tau >= start_step)
+
+    _, out = jax.lax.scan(step, z_start, jnp.arange(t))
+    return out
+
+
+# ================================================================ measures (float64)
+
+
+def _z_of(robot: Robot, q: np.ndarray) -> np.ndarray:
+    """(B, 3n) bending-vector form of (B, 3n) configurations, float64 numpy."""
+    q = np.asarray(q, dtype=np.float64)
+    entries = model_q_to_z(NUMPY, robot, q)
+    return np.stack(np.broadcast_arrays(*entries), axis=-1).reshape(q.shape)
+
+
+def _q_of(z: np.ndarray) -> np.ndarray:
+    """(B, 3n) configurations (θ, φ, L) of bending vectors z, float64 numpy (φ = 0 where
+    θ = 0)."""
+    z = np.asarray(z, dtype=np.float64)
+    theta = np.hypot(z[..., 0::3], z[..., 1::3])
+    q = z.copy()
+    q[..., 0::3] = theta
+    q[..., 1::3] = np.where(theta > 0.0, np.arctan2(z[..., 1::3], z[..., 0::3]), 0.0)
+    return q
+
+
+def tip_poses(robot: Robot, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Tip positions (B, 3) m and rotation matrices (B, 3, 3) of (B, 3n) configurations
+    (θ, φ, L), float64 numpy."""
+    z = _z_of(robot, q)
+    rot, pos = model_segment_frames(NUMPY, robot, [z[:, i] for i in range(robot.dof)])[-1]
+    position = np.stack(np.broadcast_arrays(*pos), axis=-1).reshape(-1, 3)
+    rotation = np.stack(np.broadcast_arrays(*rot), axis=-1).reshape(-1, 3, 3)
+    return position, rotation
+
+
+def tracking_errors(robot: Robot, q: np.ndarray, positions: np.ndarray,
+                    wxyz: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-waypoint tip pose and its distance to the reference, float64: ``tip_positions``
+    (T, 3) m, ``tip_wxyz`` (T, 4), ``position_error_mm`` (T,) and ``rotation_error_deg``
+    (T,) (the angle of R_tipᵀ·R_ref)."""
+    position, rotation = tip_poses(robot, q)
+    relative = np.einsum("tji,tjk->tik", rotation, matrix_from_wxyz(wxyz))
+    cos_angle = np.clip((np.trace(relative, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    return {"tip_positions": position, "tip_wxyz": wxyz_from_matrix(rotation),
+            "position_error_mm": 1e3 * np.linalg.norm(position - positions, axis=1),
+            "rotation_error_deg": np.degrees(np.arccos(cos_angle))}
+
+
+def unreached_stretches(reached: np.ndarray) -> list[tuple[int, int]]:
+    """Runs of consecutive unreached waypoints as (first, last) indices, inclusive."""
+    out, start = [], None
+    for i, ok in enumerate(np.asarray(reached, bool)):
+        if not ok and start is None:
+            start = i
+        elif ok and start is not None:
+            out.append((start, i - 1))
+            start = None
+    if start is not None:
+        out.append((start, len(reached) - 1))
+    return out
+
+
+# ================================================================ the result
+
+
+@dataclass
+class FollowTiming(StageTiming):
+    """Wall-clock seconds per stage of one ``follow`` call (compile apart)."""
+
+    compile: float = 0.0
+    explore: float = 0.0
+    refine: float = 0.0
+    polish: float = 0.0
+    verify: float = 0.0
+
+
+@dataclass
+class FollowResult:
+    """A followed path. Units: rad, m, s; errors in mm and degrees."""
+
+    robot: Robot
+    path: ReferencePath
+    """The reference (positions m, unit quaternions, Δt s)."""
+    q: np.ndarray
+    """(T, 3n) configurations θ, φ, L, one per waypoint."""
+    tip_positions: np.ndarray
+    """(T, 3) tip positions reached, m."""
+    tip_wxyz: np.ndarray
+    """(T, 4) tip orientations reached, unit quaternions (w, x, y, z)."""
+    position_error_mm: np.ndarray
+    """(T,) ‖p_tip − p_ref‖, millimetres."""
+    rotation_error_deg: np.ndarray
+    """(T,) rotation angle between the tip and reference frames, degrees."""
+    reached: np.ndarray
+    """(T,) bool: position error ≤ ``FollowConfig.position_tolerance_mm`` (default 5 mm)
+    and rotation error ≤ ``FollowConfig.rotation_tolerance_deg`` (default 1°)."""
+    tendon_lengths: np.ndarray
+    """(T, n_tendons) tendon lengths at the waypoints, m."""
+    tendon_speed: float
+    """Largest |tendon speed| by finite differences, m/s."""
+    tendon_accel: float
+    """Largest |tendon acceleration| by finite differences, m/s²."""
+    collision_free: bool
+    """python-fcl: no contact anywhere along the interpolated motion."""
+    min_clearance: float
+    """Smallest python-fcl distance along the motion, m (+inf with nothing to hit)."""
+    max_violation: float
+    """Largest of ``violations``."""
+    violations: dict[str, float]
+    """Largest violation per family (``verify_trajectory``): clearance (m below δ),
+    limits (rad or m), tendon_speed (m/s), tendon_accel (m/s²)."""
+    success: bool
+    """Every waypoint reached, collision-free along the motion, limits and tendon limits
+    within 1e-6 (as ``verify_trajectory`` judges them)."""
+    reason: str
+    """"" on success, else why not (unreached waypoints, collision, limits)."""
+    stage: str
+    """What produced ``q``: "lm", "polish", or "lm (polish failed: <why>)"."""
+    timing: dict[str, float] = field(default_factory=dict)
+    """Seconds: compile, explore, refine, polish, verify, total."""
+    scene_name: str | None = None
+    """The scene's name, or None without obstacles."""
+    safety_margin: float = 0.002
+    """δ, metres, used by the verdict."""
+
+    @property
+    def dt(self) -> float:
+        """Seconds between waypoints."""
+        return float(self.path.dt)
+
+    @property
+    def times(self) -> np.ndarray:
+        """(T,) time of each waypoint, seconds."""
+        return np.arange(len(self.q)) * self.dt
+
+    def summary(self) -> dict[str, Any]:
+        """Tracking statistics: mean/std/max position error (mm), mean/max rotation error
+        (degrees), reached count, unreached waypoint indices and stretches."""
+        pos, rot = self.position_error_mm, self.rotation_error_deg
+        return {
+            "waypoints": len(self.q),
+            "mean_position_error_mm": float(np.mean(pos)),
+            "std_position_error_mm": float(np.std(pos)),
+            "max_position_error_mm": float(np.max(pos)),
+            "mean_rotation_error_deg": float(np.mean(rot)),
+            "max_rotation_error_deg": float(np.max(rot)),
+            "reached": int(np.count_nonzero(self.reached)),
+            "unreached": np.flatnonzero(~self.reached).tolist(),
+            "unreached_stretches": [list(s) for s in unreached_stretches(self.reached)],
+        }
+
+    def to_json(self) -> dict[str, Any]:
+        """The RESULT.json form of ``cr-nlp follow``."""
+        return {
+            "robot": self.robot.name,
+            "path": self.path.name,
+            "scene": self.scene_name,
+            "success": bool(self.success),
+            "reason": self.reason or None,
+            "stage": self.stage,
+            "dt": self.dt,
+            "times": self.times.tolist(),
+            "q": self.q.tolist(),
+            "tip_positions": self.tip_positions.tolist(),
+            "tip_wxyz": self.tip_wxyz.tolist(),
+            "position_error_mm": self.position_error_mm.tolist(),
+            "rotation_error_deg": self.rotation_error_deg.tolist(),
+            "reached": self.reached.tolist(),
+            "tendon_names": tendon_names(self.robot),
+            "tendon_lengths": self.tendon_lengths.tolist(),
+            "tendon_speed": _num(self.tendon_speed),
+            "tendon_accel": _num(self.tendon_accel),
+            "collision_free": bool(self.collision_free),
+            "min_clearance": _num(self.min_clearance),
+            "safety_margin": self.safety_margin,
+            "max_violation": _num(self.max_violation),
+            "violations": {k: _num(v) for k, v in self.violations.items()},
+            "summary": self.summary(),
+            "timing": dict(self.timing),
+        }
+
+    def save(self, path: str | Path) -> Path:
+        """Write ``to_json`` (.json, or any other suffix) or the arrays as a numpy .npz
+        (by the file's suffix); returns the path."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if path.suffix == ".npz":
+            np.savez(path, q=self.q, times=self.times, dt=self.dt,
+                     tip_positions=self.tip_positions, tip_wxyz=self.tip_wxyz,
+                     target_positions=self.path.positions, target_wxyz=self.path.wxyz,
+                     position_error_mm=self.position_error_mm,
+                     rotation_error_deg=self.rotation_error_deg, reached=self.reached,
+                     tendon_lengths=self.tendon_lengths, collision_free=self.collision_free,
+                     min_clearance=self.min_clearance, max_violation=self.max_violation,
+                     success=self.success, stage=self.stage, reason=self.reason)
+        else:
+            path.write_text(json.dumps(self.to_json(), indent=2) + "\n")
+        return path
+
+    def save_csv(self, path: str | Path) -> Path:
+        """The tendon-length series for a controller: ``time_s``, then one column per
+        tendon (``trajectory.tendon_names``), lengths in metres, one row per waypoint."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with path.open("w", newline="") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(["time_s", *tendon_names(self.robot)])
+            for t, row in zip(self.times, self.tendon_lengths, strict=True):
+                writer.writerow([f"{t:.6f}", *(f"{v:.9f}" for v in row)])
+        return path
+
+
+def _num(x: float) -> float | None:
+    return float(x) if x is not None and np.isfinite(x) else None
+
+
+# ================================================================ compile-time accounting
+
+_COMPILE = threading.local()
+
+
+def _on_duration(event: str, duration: float, **_: Any) -> None:
+    if event.startswith("/jax/core/compile/") and getattr(_COMPILE, "active", False):
+        _COMPILE.seconds += duration
+
+
+jax.monitoring.register_event_duration_secs_listener(_on_duration)
+
+
+@contextmanager
+def _compile_seconds() -> Any:
+    """Collects JAX's tracing/lowering/compile durations inside the block (this thread):
+    yields a one-element list that holds the total once the block ends."""
+    out = [0.0]
+    previous = (getattr(_COMPILE, "active", False), getattr(_COMPILE, "seconds", 0.0))
+    _COMPILE.active, _COMPILE.seconds = True, 0.0
+    try:
+        yield out
+    finally:
+        out[0] = _COMPILE.seconds
+        _COMPILE.active, _COMPILE.seconds = previous[0], previous[1] + out[0]
+
+
+# ================================================================ the follower
+
+
+class PathFollower:
+    """Path following for one robot in one scene; reuse it across paths (the LM program
+    is compiled once per path length, the IK seed pool built once).
+
+    ``follow(path)`` takes a ``ReferencePath``, a bundled path name ("square", "sine",
+    "icra") or a path file, and returns a ``FollowResult``.
+    """
+
+    def __init__(self, robot: Robot | str | dict, scene: Scene | str | Path | dict | None = None,
+                 config: FollowConfig = FollowConfig()) -> None:
+        enable_compilation_cache()
+        self.robot = load_robot(robot)
+        self.scene = load_scene(scene) if scene is not None else None
+        self.config = config
+        self.dtype = jnp.dtype(config.dtype)
+        self.margin = config.safety_margin + body_gap_tolerance(self.robot)
+        """The sphere-body clearance (m) the optimisers enforce."""
+        self._arrays: SceneArrays | None = (scene_arrays(self.scene, dtype=self.dtype)
+                                            if self.scene is not None else None)
+        self._terms = follow_terms(self.robot, self.margin, config)
+        self._project = partial(_project_chain, self.robot)
+        free = np.ones(self.robot.dof)
+        free[2::3] = ~self.robot.lengths_fixed()   # a fixed length is not a variable
+        self._free = jnp.asarray(free, self.dtype)
+        self._compiled: dict[Any, Any] = {}
+        self._ik: IKSolver | None = None
+        self._polishers: dict[int, Any] = {}
+        self.last_timing = FollowTiming()
+
+    @property
+    def ik_solver(self) -> IKSolver:
+        """Stage 1's batched IK solver (built on first use)."""
+        if self._ik is None:
+            self._ik = IKSolver(self.robot, self.scene, self.config.ik_config())
+        return self._ik
+
+    # ------------------------------------------------------------ stage 1
+    def initial_sequence(self, positions: np.ndarray, wxyz: np.ndarray,
+                         trackable: np.ndarray, dt: float) -> np.ndarray:
+        """Stage 1: (T, 3n) configurations (θ, φ, L), one IK answer per trackable waypoint
+        chosen for the smallest jumps; untrackable waypoints are interpolated in z between
+        their trackable neighbours (the nearest one's at the ends; straight if none).
+
+        The per-waypoint IK finds each waypoint's branches independently and can miss the
+        one its neighbours use; then the chosen sequence jumps (a tendon would have to move
+        faster than ``tendon_speed_max``). Each such jump is bridged by continuation: the
+        answers on both sides are carried across, waypoint by waypoint, and added to the
+        candidates before choosing again (``continuation_rounds`` times)."""
+        t = len(positions)
+        z = np.zeros((t, self.robot.dof))
+        z[:, 2::3] = [0.5 * (s.length_min + s.length_max) for s in self.robot.segments]
+        rows = np.flatnonzero(trackable)
+        if len(rows):
+            candidates, errors = self.ik_solver.candidates(positions[rows], wxyz[rows])
+            z_cand = _z_of(self.robot, candidates)                       # (R, B, 3n)
+            tol = self.config.ik_tolerance
+            choice = smoothest_sequence(self.robot, candidates, errors, tol)
+            first = True
+            for _ in range(self.config.continuation_rounds):
+                chosen = z_cand[np.arange(len(rows)), choice]
+                jumps = self._jumps(chosen, dt * np.diff(rows))
+                if not len(jumps):
+                    break
+                ends = (z_cand[0], z_cand[-1]) if first else None
+                first = False
+                extra_z, extra_err = self._bridge(chosen, jumps, positions[rows], wxyz[rows],
+                                                  dt, ends)
+                z_cand = np.concatenate([z_cand, extra_z], axis=1)
+                errors = np.concatenate([errors, extra_err], axis=1)
+                candidates = _q_of(z_cand)
+                choice = smoothest_sequence(self.robot, candidates, errors, tol)
+            z_rows = z_cand[np.arange(len(rows)), choice]
+            for k in range(self.robot.dof):
+                z[:, k] = np.interp(np.arange(t), rows, z_rows[:, k])
+        return _q_of(z)
+
+    def _jumps(self, z: np.ndarray, seconds: np.ndarray) -> np.ndarray:
+        """Intervals (indices i: between rows i and i+1) of a (R, 3n) sequence whose tendon
+        speed exceeds the limit, the largest first (at most ``max_jumps``)."""
+        lengths = tendon_series(self.robot, _q_of(z))
+        speed = np.max(np.abs(np.diff(lengths, axis=0)), axis=1) / seconds
+        limit = self.robot.tendon_speed_max if math.isfinite(self.robot.tendon_speed_max) \
+            else np.inf
+        bad = np.flatnonzero(speed > limit)
+        return bad[np.argsort(-speed[bad])][: self.config.max_jumps]
+
+    def _bridge(self, z: np.ndarray, jumps: np.ndarray, positions: np.ndarray,
+                wxyz: np.ndarray, dt: float,
+                ends: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
+        """Continuation candidates (R, C, 3n) and their residual norms (R, C) (inf where a
+        chain has not started): from each jump's left answer forward and its right
+        answer backward, and (``ends``: the (B, 3n) candidates of the first and last
+        waypoints) from every first candidate forward and every last one backward.
+        C = 2·``max_jumps`` + 2B (unused chains repeat the first)."""
+        r = len(z)
+        width = self.config.ik_beam_width
+        chains = 2 * self.config.max_jumps + 2 * width
+        starts, steps, forward = [], [], []
+        if ends is not None:
+            for first, last in zip(ends[0], ends[1], strict=True):
+                starts += [first, last]
+                steps += [0, 0]
+                forward += [True, False]
+        for i in jumps:
+            starts += [z[i], z[i + 1]]
+            steps += [i, r - 1 - (i + 1)]
+            forward += [True, False]
+        while len(starts) < chains:
+            starts.append(starts[0])
+            steps.append(steps[0])
+            forward.append(forward[0])
+        rotations = matrix_from_wxyz(wxyz).reshape(-1, 9)
+        args = (jnp.asarray(np.array(starts), self.dtype), jnp.asarray(steps, jnp.int32),
+                jnp.asarray(forward), jnp.asarray(positions, self.dtype),
+                jnp.asarray(rotations, self.dtype), jnp.ones(r, self.dtype),
+                (self._arrays, jnp.asarray(dt, self.dtype)), self._free)
+        key = ("chains", r)
+        if key not in self._compiled:
+            weights = (1.0, 1.0, math.sqrt(self.config.ik_config().clearance_weight))
+            fn = partial(_continue_chains, self.robot, float(self.margin), weights,
+                         self.config.continuation_iterations)
+            self._compiled[key] = jax.jit(fn).lower(*args).compile()
+        z_out, err, valid = (np.array(x) for x in self._compiled[key](*args))
+        backward = ~np.array(forward)
+        z_out[:, backward], err[:, backward] = z_out[::-1, backward], err[::-1, backward]
+        valid[:, backward] = valid[::-1, backward]
+        err = np.where(valid & np.isfinite(err), err, np.inf)
+        return z_out.astype(np.float64), err.astype(np.float64)
+
+    # ------------------------------------------------------------ stage 2
+    def refine(self, q0: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
+               trackable: np.ndarray, dt: float) -> tuple[np.ndarray, float, int]:
+        """Stage 2: the banded LM over all waypoints from (T, 3n) q0. Returns q (T, 3n),
+        the final penalised cost ½‖r‖² and the iterations used."""
+        args = self._lm_args(q0, positions, wxyz, trackable, dt)
+        t = len(q0)
+        if t not in self._compiled:
+            # A small stall tolerance: the last millimetres of tracking are cheap steps.
+            config = LMConfig(cost_tolerance=0.0, stall_tolerance=1e-7)
+            solve = partial(banded_lm_solve, self._terms, self._project, config=config)
+            self._compiled[t] = jax.jit(solve).lower(*args).compile()
+        z, cost, iterations = self._compiled[t](*args)
+        q = _q_of(np.asarray(z, dtype=np.float64))
+        return clip_to_limits(self.robot, q), float(cost), int(iterations)
+
+    def _lm_args(self, q0: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
+                 trackable: np.ndarray, dt: float) -> tuple:
+        dtype = self.dtype
+        safe_positions = np.where(trackable[:, None], positions, 0.0)
+        safe_rotations = np.where(trackable[:, None, None], matrix_from_wxyz(
+            np.where(trackable[:, None], wxyz, [1.0, 0.0, 0.0, 0.0])), np.eye(3))
+        params = (jnp.asarray(safe_positions, dtype),
+                  jnp.asarray(safe_rotations.reshape(-1, 9), dtype),
+                  jnp.asarray(trackable, dtype))
+        z0 = jnp.asarray(_z_of(self.robot, q0), dtype)
+        shared = (self._arrays, jnp.asarray(dt, dtype))
+        return z0, params, shared, self._free, jnp.int32(self.config.iterations)
+
+    # ------------------------------------------------------------ verification
+    def verify(self, q: np.ndarray, path: ReferencePath, dt: float) -> dict[str, Any]:
+        """Float64 verdict on (T, 3n) q against the reference: ``verify_trajectory``'s
+        dict plus ``tracking_errors``' arrays and ``reached``."""
+        verdict = verify_trajectory(self.robot, self.scene, q, dt, self.config.safety_margin,
+                                    self.config.verify_samples)
+        verdict.update(tracking_errors(self.robot, q, path.positions, path.wxyz))
+        verdict["reached"] = ((verdict["position_error_mm"] <= self.config.position_tolerance_mm)
+                              & (verdict["rotation_error_deg"]
+                                 <= self.config.rotation_tolerance_deg))
+        return verdict
+
+    def _result(self, q: np.ndarray, path: ReferencePath, verdict: dict[str, Any], stage: str,
+                why_untrackable: dict[int, str]) -> FollowResult:
+        reached = np.asarray(verdict["reached"], bool)
+        reasons = []
+        unreached = np.flatnonzero(~reached)
+        if len(unreached):
+            stretches = ", ".join(f"{a}" if a == b else f"{a}–{b}"
+                                  for a, b in unreached_stretches(reached))
+            reasons.append(f"{len(unreached)} of {len(q)} waypoints not reached (waypoints "
+                           f"{stretches})")
+            for i, why in sorted(why_untrackable.items())[:3]:
+                reasons.append(f"waypoint {i}: {why}")
+        if verdict["reason"]:
+            reasons.append(verdict["reason"])
+        return FollowResult(
+            self.robot, path, q, verdict["tip_positions"], verdict["tip_wxyz"],
+            verdict["position_error_mm"], verdict["rotation_error_deg"], reached,
+            verdict["tendon_lengths"], verdict["tendon_speed"], verdict["tendon_accel"],
+            bool(verdict["collision_free"]), float(verdict["min_clearance"]),
+            float(verdict["max_violation"]), dict(verdict["violations"]),
+            success=bool(verdict["success"]) and bool(reached.all()),
+            reason="; ".join(reasons), stage=stage,
+            scene_name=self.scene.name if self.scene is not None else None,
+            safety_margin=self.config.safety_margin)
+
+    # ------------------------------------------------------------ the solve
+    def follow(self, path: ReferencePath | str | Path, exact: bool = False,
+               progress: bool = False, dt: float | None = None) -> FollowResult:
+        """Follow a reference path.
+
+        Args:
+            path: a ``ReferencePath``, a bundled name ("square", "sine", "icra") or a
+                path file (``tasks.paths`` format).
+            exact: polish with Ipopt, the constraints as constraints, minimising the
+                tracking error (``stages.polish_trajectory``); a failed or rejected
+                polish returns the LM answer with ``stage`` "lm (polish failed: …)".
+            progress: print the polish stage's progress to stderr.
+            dt: seconds between waypoints (default: the path's own ``dt``).
+
+        Raises:
+            ValueError: a reference pose that is not finite or not a unit quaternion,
+                a non-positive ``dt``, or fewer than 2 waypoints.
+        """
+        path = load_path(path)
+        dt = float(path.dt if dt is None else dt)
+        if not dt > 0 or not math.isfinite(dt):
+            raise ValueError(f"dt must be a positive number of seconds, got {dt}")
+        positions = np.asarray(path.positions, dtype=np.float64)
+        wxyz = np.asarray(path.wxyz, dtype=np.float64)
+        if len(positions) < 2:
+            raise ValueError(f"a path needs at least 2 waypoints, got {len(positions)}")
+        bad = np.flatnonzero(~np.isfinite(positions).all(1) | ~np.isfinite(wxyz).all(1))
+        if len(bad):
+            raise ValueError(f"waypoint {bad[0]}: the reference pose is not finite")
+        norms = np.linalg.norm(wxyz, axis=1)
+        bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-6)
+        if len(bad):
+            raise ValueError(f"waypoint {bad[0]}: wxyz is not a unit quaternion "
+                             f"(norm {norms[bad[0]]:.6g})")
+        if dt != path.dt:
+            path = ReferencePath(path.name, positions, wxyz, dt, path.pen_down)
+        _, _, reasons = validate_targets(self.robot, positions, wxyz)
+        trackable = np.array([not r for r in reasons], bool)
+        why = {i: r for i, r in enumerate(reasons) if r}
+
+        timing = FollowTiming()
+        self.last_timing = timing
+        t0 = time.perf_counter()
+        with _compile_seconds() as compiled:
+            q0 = self.initial_sequence(positions, wxyz, trackable, dt)
+        timing.compile += compiled[0]
+        timing.explore = time.perf_counter() - t0 - compiled[0]
+        t1 = time.perf_counter()
+        with _compile_seconds() as compiled:
+            q, _, _ = self.refine(q0, positions, wxyz, trackable, dt)
+        timing.compile += compiled[0]
+        timing.refine = time.perf_counter() - t1 - compiled[0]
+        t2 = time.perf_counter()
+        verdict = self.verify(q, path, dt)
+        result = self._result(q, path, verdict, "lm", why)
+        timing.verify = time.perf_counter() - t2
+        if exact:
+            result = self._polish(result, path, trackable, why, timing, progress)
+        result.timing = timing.as_dict()
+        return result
+
+    def _polish(self, lm: FollowResult, path: ReferencePath, trackable: np.ndarray,
+                why: dict[int, str], timing: FollowTiming, progress: bool) -> FollowResult:
+        """Stage 3: Ipopt from the LM answer; keep it only if the independent verdict
+        agrees (collision-free, every violation ≤ 1e-6)."""
+        try:
+            from ..stages.polish_trajectory import TrajectoryPolisher
+        except ImportError:
+            lm.stage = ("lm (polish failed: the Ipopt trajectory stage "
+                        "cr_nlp.stages.polish_trajectory is not available)")
+            return lm
+        import sys
+
+        t0 = time.perf_counter()
+        t = len(lm.q)
+        if t not in self._polishers:
+            self._polishers[t] = TrajectoryPolisher(self.robot, self.scene, t,
+                                                    safety_margin=self.margin,
+                                                    objective="tracking")
+        if progress:
+            print(f"polish (Ipopt): {t} waypoints …", file=sys.stderr)
+        # Untrackable waypoints keep the LM's reference: its own tip pose (zero error).
+        positions = np.where(trackable[:, None], path.positions, lm.tip_positions)
+        rotations = matrix_from_wxyz(np.where(trackable[:, None], path.wxyz, lm.tip_wxyz))
+        try:
+            out = self._polishers[t].solve(lm.q, path.dt, positions, rotations)
+        except Exception as exc:  # noqa: BLE001 — a crashed polish must not lose the answer
+            lm.stage = f"lm (polish failed: {type(exc).__name__}: {exc})"
+            timing.polish += time.perf_counter() - t0
+            return lm
+        timing.polish += time.perf_counter() - t0
+        if not out.success:
+            lm.stage = f"lm (polish failed: {out.status})"
+            return lm
+        t1 = time.perf_counter()
+        q = clip_to_limits(self.robot, np.asarray(out.q, dtype=np.float64))
+        verdict = self.verify(q, path, path.dt)
+        timing.verify += time.perf_counter() - t1
+        if not verdict["collision_free"] or verdict["max_violation"] > 1e-6:
+            lm.stage = (f"lm (polish failed: rejected by the checker: max violation "
+                        f"{verdict['max_violation']:.3g})")
+            return lm
+        return self._result(q, path, verdict, "polish", why)
+
+
+def follow_path(robot: Robot | str | dict, path: ReferencePath | str | Path,
+                scene: Scene | str | None = None, config: FollowConfig = FollowConfig(),
+                exact: bool = False) -> FollowResult:
+    """One-call path following: see ``PathFollower.follow``."""
+    return PathFollower(robot, scene, config).follow(path, exact=exact)

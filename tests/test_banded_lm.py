@@ -1,0 +1,110 @@
+"""The block-banded LM for chains of waypoints against the dense LM and dense algebra."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cr_nlp.stages.banded_lm import (
+    BandedMatrix,
+    ChainResidual,
+    banded_lm_solve,
+    banded_matvec,
+    banded_to_dense,
+    chain_jacobians,
+    chain_residuals,
+    normal_equations,
+    solve_banded,
+)
+from cr_nlp.stages.lm import lm_solve
+
+
+def unary(z, p, shared):
+    return jnp.concatenate([jnp.sin(z) - p, z[:1] * z[1:2]])
+
+
+def pair(a, b, p, shared):
+    return jnp.concatenate([b - a, (a * b)[:2]])
+
+
+def triple(a, b, c, p, shared):
+    return 0.3 * (a - 2.0 * b + c) ** 2
+
+
+TERMS = ChainResidual(unary, pair, triple)
+
+
+def problem(t: int, d: int = 3, seed: int = 0) -> tuple[jax.Array, jax.Array]:
+    rng = np.random.default_rng(seed)
+    return (jnp.asarray(rng.normal(size=(t, d)), jnp.float64),
+            jnp.asarray(0.5 * rng.normal(size=(t, d)), jnp.float64))
+
+
+def dense_residual(z_flat, p, shape):
+    return jnp.concatenate([r.reshape(-1) for r in
+                            chain_residuals(TERMS, z_flat.reshape(shape), p, None)])
+
+
+@pytest.mark.parametrize("t", [2, 7])
+def test_normal_equations_match_the_dense_jacobian(t: int) -> None:
+    z, p = problem(t)
+    h, g = jax.jit(lambda z, p: normal_equations(chain_jacobians(TERMS, z, p, None), t))(z, p)
+    jac = jax.jacfwd(dense_residual)(z.reshape(-1), p, z.shape)
+    r = dense_residual(z.reshape(-1), p, z.shape)
+    np.testing.assert_allclose(banded_to_dense(h), jac.T @ jac, atol=1e-12)
+    np.testing.assert_allclose(g.reshape(-1), jac.T @ r, atol=1e-12)
+    x = jnp.asarray(np.random.default_rng(1).normal(size=z.shape))
+    np.testing.assert_allclose(banded_matvec(h, x).reshape(-1), jac.T @ jac @ x.reshape(-1),
+                               atol=1e-12)
+
+
+@pytest.mark.parametrize("t", [1, 2, 5, 8])
+def test_block_cholesky_solves_like_numpy(t: int) -> None:
+    d = 4
+    rng = np.random.default_rng(t)
+
+    factor = np.zeros((t * d, t * d))
+    for i in range(t):
+        for j in range(max(0, i - 2), i + 1):
+            factor[i * d:(i + 1) * d, j * d:(j + 1) * d] = rng.normal(size=(d, d))
+        factor[i * d:(i + 1) * d, i * d:(i + 1) * d] += 3.0 * np.eye(d)
+    dense = factor @ factor.T                # bandwidth 2 blocks: block pentadiagonal
+    blocks = [[dense[i * d:(i + 1) * d, j * d:(j + 1) * d] for j in range(t)] for i in range(t)]
+    h = BandedMatrix(jnp.asarray(np.array([blocks[i][i] for i in range(t)])),
+                     jnp.asarray(np.array([blocks[i][i + 1] for i in range(t - 1)])
+                                 .reshape(-1, d, d)),
+                     jnp.asarray(np.array([blocks[i][i + 2] for i in range(t - 2)])
+                                 .reshape(-1, d, d)))
+    np.testing.assert_allclose(banded_to_dense(h), dense, atol=1e-12)
+    rhs = rng.normal(size=(t, d))
+    x = solve_banded(h, jnp.asarray(rhs))
+    np.testing.assert_allclose(np.asarray(x).reshape(-1), np.linalg.solve(dense, rhs.reshape(-1)),
+                               rtol=1e-9, atol=1e-9)
+
+
+def test_banded_lm_takes_the_dense_lm_steps() -> None:
+    t, d = 7, 3
+    z, p = problem(t)
+
+    def flat(z_flat, params, shared):
+        return dense_residual(z_flat, params, (t, d))
+
+    free = jnp.ones(d).at[2].set(0.0)        # one fixed variable per waypoint
+    for budget in (1, 30):
+        zb, cb, ib = banded_lm_solve(TERMS, lambda x: x, z, p, None, free, jnp.int32(budget))
+        zd, cd, idd = lm_solve(flat, lambda x: x, z.reshape(1, -1), p[None], None,
+                               jnp.tile(free, t), jnp.int32(budget))
+        np.testing.assert_allclose(np.asarray(zb).reshape(-1), np.asarray(zd[0]), atol=1e-10)
+        assert float(cb) == pytest.approx(float(cd[0]), rel=1e-10)
+        assert int(ib) == int(idd)
+    np.testing.assert_array_equal(np.asarray(zb)[:, 2], np.asarray(z)[:, 2])
+    assert float(cb) < 0.5 * float(jnp.sum(dense_residual(z.reshape(-1), p, (t, d)) ** 2))
+
+
+def test_projection_is_applied_every_step() -> None:
+    z, p = problem(6)
+    box = lambda x: jnp.clip(x, -0.2, 0.2)  # noqa: E731
+    zb, _, _ = banded_lm_solve(TERMS, box, z, p, None, jnp.ones(3), jnp.int32(20))
+    assert float(jnp.max(jnp.abs(zb))) <= 0.2 + 1e-15

@@ -1,0 +1,170 @@
+"""Path following: tracking a reachable path, clearance past an obstacle, unreachable
+waypoints reported per waypoint, the per-waypoint Jacobians, result files, the CLI."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cr_nlp.cli import main
+from cr_nlp.model import load_robot, tip_pose_z
+from cr_nlp.model.rotations import wxyz_from_matrix
+from cr_nlp.tasks import follow as F
+from cr_nlp.tasks.follow import FollowConfig, PathFollower, unreached_stretches
+from cr_nlp.tasks.paths import ReferencePath
+from cr_nlp.tasks.trajectory import _group_jacobian
+from cr_nlp.world import load_scene, scene_arrays
+
+ROBOT = load_robot("tdcr3")
+WAYPOINTS = 24
+DT = 0.1
+# Light stage-1 settings: the test paths are short and reachable.
+CONFIG = FollowConfig(ik_pool_size=1024, ik_seeds_per_target=4, ik_refine_iterations=20)
+# A configuration line: its forward kinematics is a smooth, reachable 6-DOF path.
+Q_A = np.array([0.6, 0.3, 1.0, 0.5, 1.2, 1.0, 0.4, -0.6, 1.0])
+Q_B = np.array([0.9, 0.5, 1.0, 0.3, 1.0, 1.0, 0.7, -0.3, 1.0])
+# A sphere that the body passes 2.6 cm from at the end of the line (δ = 2 mm; the
+# optimiser keeps δ plus the sphere-body tolerance, 1.4 cm in all).
+OBSTACLE = {"name": "passing", "obstacles": [
+    {"type": "sphere", "name": "ball", "center": [0.55, 0.6, 1.2], "radius": 0.13}]}
+
+
+def line_path() -> ReferencePath:
+    s = np.linspace(0.0, 1.0, WAYPOINTS)[:, None]
+    q = Q_A + s * (Q_B - Q_A)
+    from cr_nlp.model import q_to_z
+
+    pos, rot = tip_pose_z(ROBOT, q_to_z(ROBOT, jnp.asarray(q)))
+    return ReferencePath("line", np.asarray(pos), wxyz_from_matrix(np.asarray(rot)), DT,
+                         np.ones(WAYPOINTS, bool))
+
+
+@pytest.fixture(scope="module")
+def follower() -> PathFollower:
+    return PathFollower(ROBOT, load_scene(OBSTACLE), CONFIG)
+
+
+@pytest.fixture(scope="module")
+def followed(follower):
+    return follower.follow(line_path())
+
+
+def test_obstacle_is_near_the_reference_body() -> None:
+    # The test below means something only if the obstacle is close to the motion.
+    from cr_nlp.tasks.trajectory import interpolate_trajectory
+    from cr_nlp.world import check_many
+
+    s = np.linspace(0.0, 1.0, WAYPOINTS)[:, None]
+    dense = interpolate_trajectory(Q_A + s * (Q_B - Q_A), 4)
+    verdict = check_many(ROBOT, load_scene(OBSTACLE), dense)
+    assert 0.014 < np.min(verdict.min_distance) < 0.04
+
+
+def test_reachable_path_is_tracked_sub_millimetre_clear_of_the_obstacle(followed) -> None:
+    r = followed
+    assert r.position_error_mm.shape == (WAYPOINTS,)
+    assert np.max(r.position_error_mm) < 1.0, r.position_error_mm
+    assert np.max(r.rotation_error_deg) < 0.1, r.rotation_error_deg
+    assert r.reached.all() and r.success, r.reason
+    assert r.collision_free and r.min_clearance >= 0.002
+    assert r.max_violation <= 1e-6 and r.stage == "lm"
+    assert r.tendon_speed <= ROBOT.tendon_speed_max
+    assert r.tendon_lengths.shape == (WAYPOINTS, ROBOT.n_tendons)
+    assert set(r.timing) >= {"compile", "explore", "refine", "polish", "verify", "total"}
+
+
+def test_unreachable_waypoints_are_reported_per_waypoint(follower) -> None:
+    path = line_path()
+    positions = path.positions.copy()
+    positions[10:13] += [10.0, 0.0, 0.0]                   # 10 m away: out of reach
+    far = ReferencePath("far", positions, path.wxyz, DT, path.pen_down)
+    r = follower.follow(far)
+    assert not r.success and "not reached" in r.reason
+    np.testing.assert_array_equal(np.flatnonzero(~r.reached), [10, 11, 12])
+    assert r.summary()["unreached_stretches"] == [[10, 12]]
+    assert np.all(r.position_error_mm[10:13] > 9000.0)
+    assert np.max(r.position_error_mm[:8]) < 1.0 and np.max(r.position_error_mm[15:]) < 1.0
+
+
+def test_result_files(followed, tmp_path: Path) -> None:
+    data = json.loads(followed.save(tmp_path / "r.json").read_text())
+    for key in ("q", "position_error_mm", "rotation_error_deg", "tendon_lengths",
+                "collision_free", "min_clearance", "max_violation", "timing", "reached"):
+        assert key in data
+    assert len(data["q"]) == WAYPOINTS and data["summary"]["unreached"] == []
+    arrays = np.load(followed.save(tmp_path / "r.npz"))
+    np.testing.assert_allclose(arrays["q"], followed.q)
+    rows = list(csv.reader(followed.save_csv(tmp_path / "r.csv").open()))
+    assert rows[0][0] == "time_s" and len(rows) == WAYPOINTS + 1
+    assert len(rows[0]) == 1 + ROBOT.n_tendons
+
+
+def test_waypoint_jacobians_match_autodiff_and_the_model() -> None:
+    z = jnp.asarray([0.7, -0.4, 1.0, 1.1, 0.9, 1.0, -0.3, 0.8, 1.0])
+    rot, pos, centres = F.waypoint_kinematics(ROBOT, z)
+    pos_m, rot_m = tip_pose_z(ROBOT, z)
+    np.testing.assert_allclose(pos, pos_m, atol=1e-12)
+    np.testing.assert_allclose(rot, rot_m, atol=1e-12)
+    kin = F.waypoint_jacobians(ROBOT, z)
+    d_rot, d_pos, d_centres = jax.jacfwd(lambda x: F.waypoint_kinematics(ROBOT, x))(z)
+    np.testing.assert_allclose(kin["d_position"], d_pos, atol=1e-12)
+    np.testing.assert_allclose(kin["d_centres"], d_centres, atol=1e-12)
+    target = (jnp.asarray([1.5, 0.2, 1.3]), jnp.asarray(np.eye(3).reshape(-1)), 1.0)
+    analytic = jax.jacfwd(lambda x: F.tracking_error(ROBOT, x, target))(z)
+    auto = jax.jacfwd(lambda x: F._tracking_from(*F.waypoint_kinematics(ROBOT, x)[:2],
+                                                 target))(z)
+    np.testing.assert_allclose(analytic, auto, atol=1e-10)
+    arrays = scene_arrays(load_scene("follow_square"))
+    values, jac = _group_jacobian(ROBOT, 1.5, arrays, z)    # a margin that every group feels
+    assert np.all(np.asarray(values) > 0)
+    np.testing.assert_allclose(F.clearance_groups(ROBOT, 1.5, arrays, z), values, atol=1e-12)
+    np.testing.assert_allclose(jax.jacfwd(lambda x: F.clearance_groups(ROBOT, 1.5, arrays, x))(z),
+                               jac, atol=1e-12)
+
+
+def test_unreached_stretches() -> None:
+    assert unreached_stretches(np.array([1, 0, 0, 1, 0], bool)) == [(1, 2), (4, 4)]
+    assert unreached_stretches(np.ones(3, bool)) == []
+
+
+# ---------------------------------------------------------------- the CLI
+
+def test_cli_happy_path(tmp_path: Path, capsys) -> None:
+    path_file = line_path().save(tmp_path / "line.json")
+    scene_file = tmp_path / "scene.json"
+    scene_file.write_text(json.dumps(OBSTACLE))
+    out = tmp_path / "result.json"
+    code = main(["follow", "--robot", "tdcr3", "--path", str(path_file), "--scene",
+                 str(scene_file), "--out", str(out), "--csv", str(tmp_path / "t.csv")])
+    assert code == 0
+    data = json.loads(out.read_text())
+    assert len(data["q"]) == WAYPOINTS and data["collision_free"] is True
+    assert max(data["position_error_mm"]) < 1.0
+    assert (tmp_path / "t.csv").exists()
+    assert "waypoints reached" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("content", "message"), [
+    (None, "file not found"),
+    ("{not json", "not valid JSON"),
+    ({"dt": 0.1, "poses": [{"position": [1, 0, 2], "wxyz": [1, 1, 0, 0]}] * 2},
+     "unit quaternion"),
+    ('{"dt": 0.1, "poses": [{"position": [NaN, 0, 2], "wxyz": [1, 0, 0, 0]}, '
+     '{"position": [1, 0, 2], "wxyz": [1, 0, 0, 0]}]}', "must be finite"),
+    ({"dt": -1, "poses": [{"position": [1, 0, 2], "wxyz": [1, 0, 0, 0]}] * 2}, "dt"),
+])
+def test_cli_bad_path_input(tmp_path: Path, capsys, content, message: str) -> None:
+    path_file = tmp_path / "path.json"
+    if content is not None:
+        path_file.write_text(content if isinstance(content, str) else json.dumps(content))
+    code = main(["follow", "--robot", "tdcr3", "--path", str(path_file),
+                 "--out", str(tmp_path / "r.json")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and message in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "r.json").exists()
