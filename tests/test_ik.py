@@ -183,3 +183,83 @@ def test_exact_mode_repairs_penalty_answers_that_break_the_margin() -> None:
     for i in np.flatnonzero(~polished):
         assert exact.stage[i].startswith("refine (polish")
         np.testing.assert_allclose(exact.q[i], penalty.q[i], atol=1e-6)
+
+
+# ---------------------------------------------------------------- speed machinery
+
+
+@pytest.mark.parametrize("count", [1, 127, 128, 129, 300, 1200, 3000, 12000])
+@pytest.mark.parametrize("largest", [1024, 256, 1000])
+def test_chunk_plan_covers_every_problem_with_little_padding(count: int, largest: int) -> None:
+    from cr_nlp.tasks.ik import SMALLEST_CHUNK, chunk_plan
+
+    plan = chunk_plan(count, largest)
+    assert sum(plan) >= count
+    assert sum(plan) - count < SMALLEST_CHUNK
+    for size in plan:
+        assert size >= SMALLEST_CHUNK and size & (size - 1) == 0  # a power of two
+        assert size <= max(largest, SMALLEST_CHUNK)
+    assert chunk_plan(0, largest) == []
+
+
+@pytest.mark.parametrize("robot", [TDCR3, TDCR4], ids=["tdcr3", "tdcr4_ext"])
+def test_per_sphere_clearances_and_jacobian_match_the_pair_distances(robot: Robot) -> None:
+    """The IK penalty's per-sphere distances (nearest obstacle part, nearest self
+    partner) and their custom Jacobian against plain autodiff of the world's pair
+    distances; and ``penalty_self_pairs`` is ``self_pairs`` reordered."""
+    import jax
+    import jax.numpy as jnp
+
+    from cr_nlp.model import q_to_z
+    from cr_nlp.world.clearance import (
+        pair_distances_z,
+        scene_arrays,
+        self_distances_z,
+        self_pairs,
+    )
+    from cr_nlp.world.penalty import (
+        _self_partners,
+        body_clearances_z,
+        penalty_self_pairs,
+        sphere_clearances_z,
+    )
+
+    pairs = self_pairs(robot)
+    ordered = penalty_self_pairs(robot)
+    assert len(ordered) == len(pairs)
+    assert set(map(tuple, ordered)) == set(map(tuple, pairs))
+    order = np.array([np.flatnonzero((pairs == p).all(1))[0] for p in ordered])
+    rows, _ = _self_partners(robot)
+    arrays = scene_arrays(LATTICE, dtype=jnp.float64)
+
+    def per_pair(z: jax.Array) -> jax.Array:
+        return jnp.concatenate([pair_distances_z(robot, arrays, z).min(-1),
+                                self_distances_z(robot, z)[order]])
+
+    def per_sphere(z: jax.Array) -> jax.Array:
+        own = self_distances_z(robot, z)
+        nearest = [jnp.min(own[(pairs[:, 0] == r) | (pairs[:, 1] == r)]) for r in rows]
+        return jnp.concatenate([pair_distances_z(robot, arrays, z).min(-1),
+                                jnp.stack(nearest)])
+
+    rng = np.random.default_rng(3)
+    lo, hi = robot.q_bounds()
+    for q in rng.uniform(lo, hi, (3, robot.dof)):
+        z = jnp.asarray(np.asarray(q_to_z(robot, q)), jnp.float64)
+        for mine, ref in ((lambda x: body_clearances_z(robot, arrays, x), per_pair),
+                          (lambda x: sphere_clearances_z(robot, arrays, x), per_sphere)):
+            np.testing.assert_allclose(mine(z), ref(z), atol=1e-12)
+            np.testing.assert_allclose(jax.jacfwd(mine)(z), jax.jacfwd(ref)(z), atol=1e-9)
+
+
+def test_refinement_rounds_drop_finished_problems() -> None:
+    """The refinement runs in rounds and later rounds get only the unfinished
+    candidates: the calls after the first refine round are smaller."""
+    solver = IKSolver(TDCR4, LATTICE, IKConfig(refine_round=5))
+    q = free_configurations(TDCR4, 8, seed=5, clearance=0.05)
+    result = solver.solve(*targets_from(TDCR4, q))
+    assert result.success.all()
+    refine = [call for call in solver.lm_calls if call[2] == 5]
+    assert refine, solver.lm_calls
+    assert refine[0][0] == 8 * solver.config.beam_width
+    assert len(refine) > 1 and all(later[0] < refine[0][0] for later in refine[1:])
