@@ -133,6 +133,19 @@ class PolishResult:
     mode: str
     """The pose formulation that produced ``q``: ``"equality"`` or ``"minimize"``."""
 
+    def failure(self, pose_tolerance: float = 1e-6, violation_tolerance: float = 1e-6) -> str:
+        """Why the polish did not succeed, in words ("" if it did): Ipopt's status when
+        Ipopt failed; otherwise which independent re-evaluation rejected its answer."""
+        if self.success:
+            return ""
+        if self.status not in ("Solve_Succeeded", "Solved_To_Acceptable_Level"):
+            return f"Ipopt: {self.status}"
+        if self.max_violation > violation_tolerance:
+            return (f"Ipopt converged, but the float64 re-evaluation finds a constraint "
+                    f"violated by {self.max_violation:.2g}")
+        return (f"Ipopt converged to a point {self.pose_error:.2g} (m/rad) from the target: "
+                f"the pose is not reachable while keeping every constraint")
+
 
 # ================================================================ float64 re-evaluation
 

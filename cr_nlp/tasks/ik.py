@@ -602,7 +602,9 @@ class IKSolver:
                 polished[i] = out.q
                 good[i] = True
             else:
-                result.stage[i] = f"refine (polish failed: {out.status})"
+                cfg = self._polisher.config
+                why = out.failure(cfg.pose_tolerance, cfg.violation_tolerance)
+                result.stage[i] = f"refine (polish failed: {why})"
         timing.polish += time.perf_counter() - t0
         if good.any():
             t1 = time.perf_counter()
