@@ -106,26 +106,29 @@ def test_result_files(followed, tmp_path: Path) -> None:
 
 
 def test_waypoint_jacobians_match_autodiff_and_the_model() -> None:
+    # Each check is jitted: op-by-op, the model's entry-by-entry code took most of a minute.
     z = jnp.asarray([0.7, -0.4, 1.0, 1.1, 0.9, 1.0, -0.3, 0.8, 1.0])
-    rot, pos, centres = F.waypoint_kinematics(ROBOT, z)
-    pos_m, rot_m = tip_pose_z(ROBOT, z)
+    kinematics = jax.jit(lambda x: F.waypoint_kinematics(ROBOT, x))
+    rot, pos, centres = kinematics(z)
+    pos_m, rot_m = jax.jit(lambda x: tip_pose_z(ROBOT, x))(z)
     np.testing.assert_allclose(pos, pos_m, atol=1e-12)
     np.testing.assert_allclose(rot, rot_m, atol=1e-12)
-    kin = F.waypoint_jacobians(ROBOT, z)
-    d_rot, d_pos, d_centres = jax.jacfwd(lambda x: F.waypoint_kinematics(ROBOT, x))(z)
+    kin = jax.jit(lambda x: F.waypoint_jacobians(ROBOT, x))(z)
+    d_rot, d_pos, d_centres = jax.jit(jax.jacfwd(lambda x: F.waypoint_kinematics(ROBOT, x)))(z)
     np.testing.assert_allclose(kin["d_position"], d_pos, atol=1e-12)
     np.testing.assert_allclose(kin["d_centres"], d_centres, atol=1e-12)
     target = (jnp.asarray([1.5, 0.2, 1.3]), jnp.asarray(np.eye(3).reshape(-1)), 1.0)
-    analytic = jax.jacfwd(lambda x: F.tracking_error(ROBOT, x, target))(z)
-    auto = jax.jacfwd(lambda x: F._tracking_from(*F.waypoint_kinematics(ROBOT, x)[:2],
-                                                 target))(z)
+    analytic = jax.jit(jax.jacfwd(lambda x: F.tracking_error(ROBOT, x, target)))(z)
+    auto = jax.jit(jax.jacfwd(lambda x: F._tracking_from(*F.waypoint_kinematics(ROBOT, x)[:2],
+                                                         target)))(z)
     np.testing.assert_allclose(analytic, auto, atol=1e-10)
     arrays = scene_arrays(load_scene("follow_square"))
-    values, jac = _group_jacobian(ROBOT, 1.5, arrays, z)    # a margin that every group feels
+    # A margin of 1.5 m that every group feels.
+    values, jac = jax.jit(lambda x: _group_jacobian(ROBOT, 1.5, arrays, x))(z)
     assert np.all(np.asarray(values) > 0)
-    np.testing.assert_allclose(F.clearance_groups(ROBOT, 1.5, arrays, z), values, atol=1e-12)
-    np.testing.assert_allclose(jax.jacfwd(lambda x: F.clearance_groups(ROBOT, 1.5, arrays, x))(z),
-                               jac, atol=1e-12)
+    groups = jax.jit(lambda x: F.clearance_groups(ROBOT, 1.5, arrays, x))
+    np.testing.assert_allclose(groups(z), values, atol=1e-12)
+    np.testing.assert_allclose(jax.jit(jax.jacfwd(groups))(z), jac, atol=1e-12)
 
 
 def test_unreached_stretches() -> None:
@@ -135,7 +138,16 @@ def test_unreached_stretches() -> None:
 
 # ---------------------------------------------------------------- the CLI
 
-def test_cli_happy_path(tmp_path: Path, capsys) -> None:
+def test_cli_happy_path(tmp_path: Path, capsys, follower, monkeypatch) -> None:
+    # The CLI builds its follower from the files; the module's follower (same robot, same
+    # scene, light IK settings, programs compiled) stands in for it.
+    built = []
+
+    def reuse(robot, scene, config):
+        built.append((robot.name, scene.name, [o.name for o in scene.obstacles], config.seed))
+        return follower
+
+    monkeypatch.setattr(F, "PathFollower", reuse)
     path_file = line_path().save(tmp_path / "line.json")
     scene_file = tmp_path / "scene.json"
     scene_file.write_text(json.dumps(OBSTACLE))
@@ -143,6 +155,7 @@ def test_cli_happy_path(tmp_path: Path, capsys) -> None:
     code = main(["follow", "--robot", "tdcr3", "--path", str(path_file), "--scene",
                  str(scene_file), "--out", str(out), "--csv", str(tmp_path / "t.csv")])
     assert code == 0
+    assert built == [("tdcr3", "passing", ["ball"], 0)]
     data = json.loads(out.read_text())
     assert len(data["q"]) == WAYPOINTS and data["collision_free"] is True
     assert max(data["position_error_mm"]) < 1.0

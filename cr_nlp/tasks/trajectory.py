@@ -206,35 +206,49 @@ def _nearest_and_gradient(robot: Robot, arrays: SceneArrays,
                     in_axes=(SceneArrays(**axes), 0))(per_sphere, centres)
 
 
+def _groups_from(robot: Robot, margin: float, arrays: SceneArrays | None, centres: jax.Array,
+                 jac_centres: jax.Array | None) -> tuple[jax.Array, jax.Array | None]:
+    """Grouped clearance shortfalls (G,) m of the body spheres' centres (N, 3) m
+    (``_group_values``: per segment the norm of max(0, δ − d) over its spheres'
+    nearest-obstacle distances, then the norm over the self pairs) and, given the centres'
+    Jacobian (N, 3, d), theirs (G, d) (else None). Shared by this module's LM and
+    ``tasks.follow``, which build the centre Jacobian differently."""
+    values, rows = [], []
+    if arrays is not None and arrays.n_parts > 0:
+        d, grad = _nearest_and_gradient(robot, arrays, centres)
+        values.append(d)
+        if jac_centres is not None:
+            rows.append(jnp.einsum("nk,nkj->nj", grad, jac_centres))
+    if robot.n_segments >= 3:
+        pairs = self_pairs(robot)
+        diff = centres[pairs[:, 0]] - centres[pairs[:, 1]]
+        norm = jnp.sqrt(jnp.maximum(jnp.sum(diff * diff, axis=-1), 1e-30))
+        values.append(norm - 2.0 * robot.backbone_radius)
+        if jac_centres is not None:
+            unit = diff / norm[:, None]
+            rows.append(jnp.einsum("nk,nkj->nj", unit,
+                                   jac_centres[pairs[:, 0]] - jac_centres[pairs[:, 1]]))
+    d = jnp.concatenate(values)
+    shortfall = jnp.maximum(margin - d, 0.0)
+    jac_d = jnp.concatenate(rows) if jac_centres is not None else None
+    out, jac = [], []
+    eps = jnp.asarray(1e-9, centres.dtype)
+    for idx in _groups(robot, arrays):
+        s = shortfall[idx]
+        root = jnp.sqrt(jnp.sum(s * s) + eps * eps)
+        out.append(root - eps)
+        if jac_d is not None:
+            jac.append(-(s / root) @ jac_d[idx])
+    return jnp.stack(out), (jnp.stack(jac) if jac_d is not None else None)
+
+
 def _group_jacobian(robot: Robot, margin: float, arrays: SceneArrays | None,
                     z: jax.Array) -> tuple[jax.Array, jax.Array]:
     """``_group_values`` (G,) and its Jacobian (G, 3n), from the body spheres' centre
     Jacobian and per-sphere distance gradients (no pass over every tangent direction)."""
     centres = _centres(robot, z, False)
     jac_centres = jax.jacfwd(lambda x: _centres(robot, x, False))(z)      # (N, 3, 3n)
-    values, rows = [], []
-    if arrays is not None and arrays.n_parts > 0:
-        d, grad = _nearest_and_gradient(robot, arrays, centres)
-        values.append(d)
-        rows.append(jnp.einsum("nk,nkj->nj", grad, jac_centres))
-    if robot.n_segments >= 3:
-        pairs = self_pairs(robot)
-        diff = centres[pairs[:, 0]] - centres[pairs[:, 1]]
-        norm = jnp.sqrt(jnp.maximum(jnp.sum(diff * diff, axis=-1), 1e-30))
-        values.append(norm - 2.0 * robot.backbone_radius)
-        unit = diff / norm[:, None]
-        rows.append(jnp.einsum("nk,nkj->nj", unit,
-                               jac_centres[pairs[:, 0]] - jac_centres[pairs[:, 1]]))
-    d, jac_d = jnp.concatenate(values), jnp.concatenate(rows)
-    shortfall = jnp.maximum(margin - d, 0.0)
-    out, jac = [], []
-    eps = jnp.asarray(1e-9, z.dtype)
-    for idx in _groups(robot, arrays):
-        s = shortfall[idx]
-        root = jnp.sqrt(jnp.sum(s * s) + eps * eps)
-        out.append(root - eps)
-        jac.append(-(s / root) @ jac_d[idx])
-    return jnp.stack(out), jnp.stack(jac)
+    return _groups_from(robot, margin, arrays, centres, jac_centres)
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(0, 1))
