@@ -345,15 +345,16 @@ def follow_figure(result: Any, scene: Scene | None = None, names: Sequence[str] 
     """A followed path (a ``FollowResult``: ``robot``, ``path`` with ``positions`` m and
     ``dt`` s, ``q`` (T, 3n), ``position_error_mm``, ``rotation_error_deg``,
     ``tendon_lengths`` m): the reference waypoints with the robot at ``snapshots`` evenly
-    spaced waypoints, box plots of the per-waypoint errors, and the first segment's
-    tendon lengths over time."""
+    spaced waypoints (seen from behind the drawing plane, so that letters read left to
+    right), box plots of the per-waypoint errors, and the first segment's tendon lengths
+    over time."""
     fig = Figure(figsize=(15, 5.5))
     FigureCanvasAgg(fig)
     spec = fig.add_gridspec(2, 3, width_ratios=(1.4, 0.6, 1.0))
     every = max(1, len(result.q) // snapshots)
     draw(result.robot, result.q[-1], scene, trajectory=list(result.q[::every]),
          targets=list(result.path.positions), ax=fig.add_subplot(spec[:, 0], projection="3d"),
-         azim=-160.0, title=title)
+         azim=20.0, elev=15.0, title=title)
     plot_error_boxes({"position": result.position_error_mm}, ax=fig.add_subplot(spec[0, 1]),
                      ylabel="mm", title="tracking error per waypoint")
     plot_error_boxes({"rotation": result.rotation_error_deg}, ax=fig.add_subplot(spec[1, 1]),

@@ -80,6 +80,7 @@ COLUMNS = (
     Column("max_violation", "max violation"),
     Column("time_per_path", "time/path (s)", fixed(3)),
     Column("first_call", "first call (s)", fixed(1)),
+    Column("stage", "stage"),
 )
 
 
