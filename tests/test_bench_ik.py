@@ -92,6 +92,7 @@ def test_lattice_targets_keep_the_solver_margin() -> None:
     np.testing.assert_allclose(positions, case.positions)
 
 
+@pytest.mark.slow  # a benchmark run or a repeat of covered work: `pytest -m slow`
 def test_benchmark_writes_csv_and_markdown(free_rows: tuple) -> None:
     rows, out = free_rows
     assert [r["method"] for r in rows] == list(METHODS)
@@ -114,6 +115,7 @@ def test_benchmark_writes_csv_and_markdown(free_rows: tuple) -> None:
         assert row["collision_free_pct"] is None  # no scene in this suite
 
 
+@pytest.mark.slow  # a benchmark run or a repeat of covered work: `pytest -m slow`
 def test_benchmark_success_is_the_shared_judge(free_rows: tuple) -> None:
     """The baseline's success column is recomputed from its answers by the same judge,
     and that judge agrees with the library's own success flags."""

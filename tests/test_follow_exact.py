@@ -3,13 +3,10 @@ answer breaks, and the independent verdict agrees."""
 
 from __future__ import annotations
 
-import json
-
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cr_nlp._resources import bundled_file
 from cr_nlp.model import load_robot, q_to_z, tip_pose_z
 from cr_nlp.model.rotations import wxyz_from_matrix
 from cr_nlp.tasks.follow import FollowConfig, PathFollower
@@ -17,37 +14,31 @@ from cr_nlp.tasks.paths import ReferencePath
 from cr_nlp.tasks.trajectory import tendon_series, verify_trajectory
 
 WAYPOINTS = 12
-DT = 0.1
 Q_A = np.array([0.6, 0.3, 1.0, 0.5, 1.2, 1.0, 0.4, -0.6, 1.0])
 Q_B = np.array([0.9, 0.5, 1.0, 0.3, 1.0, 1.0, 0.7, -0.3, 1.0])
 LINE = Q_A + np.linspace(0.0, 1.0, WAYPOINTS)[:, None] * (Q_B - Q_A)
 
 
-def _robot_with_speed_limit(fraction: float):
-    """tdcr3 whose tendon speed limit is ``fraction`` of what tracking LINE needs (m/s)."""
-    base = load_robot("tdcr3")
-    needed = float(np.max(np.abs(np.diff(tendon_series(base, LINE), axis=0)))) / DT
-    data = json.loads(bundled_file("robots", "tdcr3").read_text())
-    data["tendon_speed_max"] = fraction * needed
-    return load_robot(data), needed
-
-
 @pytest.fixture(scope="module")
 def slow_robot_runs():
-    robot, needed = _robot_with_speed_limit(0.7)
+    # tdcr3 itself (its compiled IK programs are shared with the other follow tests),
+    # with Δt chosen so that tracking LINE needs 1/0.7 of the tendon speed limit.
+    robot = load_robot("tdcr3")
+    step = float(np.max(np.abs(np.diff(tendon_series(robot, LINE), axis=0))))   # m
+    dt = step / (robot.tendon_speed_max / 0.7)
     pos, rot = tip_pose_z(robot, q_to_z(robot, jnp.asarray(LINE)))
-    path = ReferencePath("line", np.asarray(pos), wxyz_from_matrix(np.asarray(rot)), DT,
+    path = ReferencePath("line", np.asarray(pos), wxyz_from_matrix(np.asarray(rot)), dt,
                          np.ones(WAYPOINTS, bool))
     # A weak tendon penalty aimed at the real limit: the penalty answer trades the limit
     # for tracking, which is what a penalty may do.
     config = FollowConfig(tendon_weight=1e-4, tendon_limit_fraction=1.0,
                           ik_pool_size=1024, ik_seeds_per_target=4, ik_refine_iterations=20)
     follower = PathFollower(robot, None, config)
-    return robot, needed, path, follower.follow(path), follower.follow(path, exact=True)
+    return robot, path, follower.follow(path), follower.follow(path, exact=True)
 
 
 def test_penalty_answer_breaks_the_tendon_speed_bound(slow_robot_runs) -> None:
-    robot, needed, _, penalty, _ = slow_robot_runs
+    robot, _, penalty, _ = slow_robot_runs
     assert penalty.tendon_speed > robot.tendon_speed_max + 1e-3, (penalty.tendon_speed,
                                                                   robot.tendon_speed_max)
     assert penalty.violations["tendon_speed"] > 1e-3
@@ -55,7 +46,7 @@ def test_penalty_answer_breaks_the_tendon_speed_bound(slow_robot_runs) -> None:
 
 
 def test_exact_mode_keeps_the_bound_and_the_checker_agrees(slow_robot_runs) -> None:
-    robot, _, path, penalty, exact = slow_robot_runs
+    robot, path, penalty, exact = slow_robot_runs
     assert exact.stage == "polish", exact.stage
     assert exact.max_violation <= 1e-6, exact.violations
     assert exact.tendon_speed <= robot.tendon_speed_max + 1e-6

@@ -203,6 +203,7 @@ def test_chunk_plan_covers_every_problem_with_little_padding(count: int, largest
 
 
 @pytest.mark.parametrize("robot", [TDCR3, TDCR4], ids=["tdcr3", "tdcr4_ext"])
+@pytest.mark.slow  # a benchmark run or a repeat of covered work: `pytest -m slow`
 def test_per_sphere_clearances_and_jacobian_match_the_pair_distances(robot: Robot) -> None:
     """The IK penalty's per-sphere distances (nearest obstacle part, nearest self
     partner) and their custom Jacobian against plain autodiff of the world's pair
@@ -252,6 +253,7 @@ def test_per_sphere_clearances_and_jacobian_match_the_pair_distances(robot: Robo
             np.testing.assert_allclose(jax.jacfwd(mine)(z), jax.jacfwd(ref)(z), atol=1e-9)
 
 
+@pytest.mark.slow  # a benchmark run or a repeat of covered work: `pytest -m slow`
 def test_refinement_rounds_drop_finished_problems() -> None:
     """The refinement runs in rounds and later rounds get only the unfinished
     candidates: the calls after the first refine round are smaller."""

@@ -117,7 +117,8 @@ def test_per_segment_tendons_closed_form() -> None:
 
 # ------------------------------------------------------------------ JAX vs CasADi
 
-@pytest.mark.parametrize("robot", [TDCR3, TDCR4], ids=["tdcr3", "tdcr4_ext"])
+@pytest.mark.parametrize("robot", [TDCR3, pytest.param(TDCR4, marks=pytest.mark.slow)],
+                         ids=["tdcr3", "tdcr4_ext"])
 def test_jax_and_casadi_agree_values_and_jacobians(robot: Robot) -> None:
     rng = np.random.default_rng(7)
     qs = random_q(robot, rng, 200)

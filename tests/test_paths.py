@@ -54,7 +54,8 @@ def test_resample_polyline_keeps_length_and_ends() -> None:
     np.testing.assert_allclose(np.linalg.norm(np.diff(out, axis=0), axis=1), 0.1, atol=1e-12)
 
 
-@pytest.mark.parametrize("name", sorted(SHAPES))
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n == "icra" else n
+                                  for n in sorted(SHAPES)])
 def test_every_waypoint_is_reachable_collision_free(name: str) -> None:
     path = load_path(MODELS / "paths" / f"{name}.json")
     scene = load_scene(MODELS / "scenes" / f"follow_{name}.json")

@@ -41,6 +41,7 @@ def dense_motion(robot, q: np.ndarray, pieces: int) -> np.ndarray:
     return np.asarray(z_to_q(robot, np.concatenate(parts + [z[-1:]])))
 
 
+@pytest.mark.slow  # a benchmark run or a repeat of covered work: `pytest -m slow`
 def test_query_crosses_the_shelf_divider_collision_free(robot, shelf):
     roadmap = Roadmap.build(robot, shelf)
     # Tips in the middle compartments, one on each side of the vertical divider (y = 0).
