@@ -76,6 +76,7 @@ from .paths import ReferencePath, load_path
 from .trajectory import (
     _groups_from,
     _has_clearance,
+    _z_to_q,
     tendon_names,
     tendon_series,
     verify_trajectory,
@@ -500,17 +501,6 @@ def _z_of(robot: Robot, q: np.ndarray) -> np.ndarray:
     return np.stack(np.broadcast_arrays(*entries), axis=-1).reshape(q.shape)
 
 
-def _q_of(z: np.ndarray) -> np.ndarray:
-    """(B, 3n) configurations (θ, φ, L) of bending vectors z, float64 numpy (φ = 0 where
-    θ = 0)."""
-    z = np.asarray(z, dtype=np.float64)
-    theta = np.hypot(z[..., 0::3], z[..., 1::3])
-    q = z.copy()
-    q[..., 0::3] = theta
-    q[..., 1::3] = np.where(theta > 0.0, np.arctan2(z[..., 1::3], z[..., 0::3]), 0.0)
-    return q
-
-
 def tip_poses(robot: Robot, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Tip positions (B, 3) m and rotation matrices (B, 3, 3) of (B, 3n) configurations
     (θ, φ, L), float64 numpy."""
@@ -792,7 +782,7 @@ class PathFollower:
             z_cand, errors = self.waypoint_candidates(positions[rows], wxyz[rows], dt)
             width = self.config.ik_beam_width
             tol = self.config.ik_tolerance
-            choice = smoothest_sequence(self.robot, _q_of(z_cand), errors, tol)
+            choice = smoothest_sequence(self.robot, _z_to_q(z_cand), errors, tol)
             first, bridged = True, set()
             for _ in range(self.config.continuation_rounds):
                 chosen = z_cand[np.arange(len(rows)), choice]
@@ -811,11 +801,11 @@ class PathFollower:
                                                   dt, ends)
                 z_cand = np.concatenate([z_cand, extra_z], axis=1)
                 errors = np.concatenate([errors, extra_err], axis=1)
-                choice = smoothest_sequence(self.robot, _q_of(z_cand), errors, tol)
+                choice = smoothest_sequence(self.robot, _z_to_q(z_cand), errors, tol)
             z_rows = z_cand[np.arange(len(rows)), choice]
             for k in range(self.robot.dof):
                 z[:, k] = np.interp(np.arange(t), rows, z_rows[:, k])
-        return _q_of(z)
+        return _z_to_q(z)
 
     def waypoint_candidates(self, positions: np.ndarray, wxyz: np.ndarray,
                             dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -894,7 +884,7 @@ class PathFollower:
     def _jumps(self, z: np.ndarray, seconds: np.ndarray) -> np.ndarray:
         """Intervals (indices i: between rows i and i+1) of a (R, 3n) sequence whose tendon
         speed exceeds the limit, the largest first (at most ``max_jumps``)."""
-        lengths = tendon_series(self.robot, _q_of(z))
+        lengths = tendon_series(self.robot, _z_to_q(z))
         speed = np.max(np.abs(np.diff(lengths, axis=0)), axis=1) / seconds
         limit = self.robot.tendon_speed_max if math.isfinite(self.robot.tendon_speed_max) \
             else np.inf
@@ -948,7 +938,7 @@ class PathFollower:
             solve = partial(banded_lm_solve, self._terms, self._project, config=config)
             self._compiled[t] = jax.jit(solve).lower(*args).compile()
         z, cost, iterations = self._compiled[t](*args)
-        q = _q_of(np.asarray(z, dtype=np.float64))
+        q = _z_to_q(np.asarray(z, dtype=np.float64))
         return clip_to_limits(self.robot, q), float(cost), int(iterations)
 
     def _lm_args(self, q0: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,

@@ -328,6 +328,9 @@ def _q_to_z(q: np.ndarray) -> np.ndarray:
 
 
 def _z_to_q(z: np.ndarray) -> np.ndarray:
+    """(…, 3n) configurations (θ, φ, L) of bending vectors z, float64 numpy (φ = 0 where
+    θ = 0)."""
+    z = np.asarray(z, dtype=np.float64)
     ux, uy = z[..., 0::3], z[..., 1::3]
     theta = np.hypot(ux, uy)
     q = z.copy()
