@@ -22,10 +22,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh
-from jax.sharding import PartitionSpec as P
 
-from .._jax_setup import enable_compilation_cache
+from .._jax_setup import enable_compilation_cache, split_over_devices
 from ..model import Robot, load_robot, q_to_z, z_to_q
 from ..model._ops import JAX, NUMPY
 from ..model.kinematics import model_pose_error, model_q_to_z, model_segment_frames
@@ -338,18 +336,10 @@ class IKSolver:
     def _lower(self, args: tuple, config: LMConfig) -> Any:
         """The LM program for one chunk, split over every JAX device (one shard per CPU
         core with ``use_host_devices``): each device runs its own loop on its share."""
-        devices = jax.devices()
         solve = partial(lm_solve, self._residual, self._project, config=config)
-        if len(devices) == 1 or len(args[0]) % len(devices):
-            return jax.jit(lambda *a: _with_count(solve(*a))).lower(*args)
-        mesh = Mesh(np.array(devices), ("batch",))
-        batch, whole = P("batch"), P()
-        sharded = jax.shard_map(
-            lambda z, params, shared, free, iterations: _with_count(
-                solve(z, params, shared, free, iterations)),
-            mesh=mesh, in_specs=(batch, batch, whole, whole, whole),
-            out_specs=(batch, batch, batch))
-        return jax.jit(sharded).lower(*args)
+        program = split_over_devices(lambda *a: _with_count(solve(*a)),
+                                     (True, True, False, False, False), len(args[0]), outputs=3)
+        return program.lower(*args)
 
     def _refine(self, z0: np.ndarray, positions: np.ndarray, rotations: np.ndarray,
                 width: int, per_target: bool, timing: IKTiming) -> tuple[np.ndarray,
