@@ -13,12 +13,14 @@ no shortcutting, resampled to the same waypoints and Δt). Every answer is judge
 same float64 verdict, ``tasks.trajectory.verify_trajectory`` (python-fcl along the
 interpolated motion, limits, tendon speed and acceleration over Δt).
 
-Times: the planner rows run the same batch once as a warm-up (compilation, roadmap load;
-without the polish for the exact row), then the whole batch is timed; "time/problem" is
-the batch wall time over its size (the planner is batched) and "median time" the median
-of the per-problem stage timings. RRT times are
-per problem (it plans one at a time), after one warm-up problem. The roadmap build time
-is reported apart.
+Times: the planner rows first run a warm-up on the first ``WARMUP_PAIRS`` problems
+(compilation of the one LM chunk shape, roadmap load, the exact row's Ipopt build), then
+the whole batch is timed; "time/problem" is the batch wall time over its size (the
+planner is batched) and "median time" the median of the per-problem stage timings. RRT
+times are per problem (it plans one at a time), after one warm-up problem. The roadmap
+build time is reported apart. The iteration sweep (success and path length against the
+LM budget) runs on the first ``sweep_pairs`` problems of each scene. Results are written
+after every scene, so an interrupted run keeps the scenes it finished.
 """
 
 from __future__ import annotations
@@ -66,16 +68,24 @@ FCL_CLEARANCE = 0.002
 """python-fcl distance (m) every start and goal keeps."""
 
 
+WARMUP_PAIRS = 8
+"""Problems of a planner row's warm-up: 16 LM guesses, one whole chunk of the default
+``TrajectoryConfig.chunk_size``, so the timed run compiles nothing."""
+
+
 @dataclass(frozen=True)
 class PlanBenchSizes:
     """Problem counts of one benchmark run."""
 
     pairs_per_scene: int
     iteration_budgets: tuple[int, ...]
+    sweep_pairs: int
+    """Problems per scene of the iteration sweep (its first ones)."""
 
 
-FULL = PlanBenchSizes(pairs_per_scene=100, iteration_budgets=(0, 10, 25, 50, 100))
-QUICK = PlanBenchSizes(pairs_per_scene=3, iteration_budgets=(0, 25))
+FULL = PlanBenchSizes(pairs_per_scene=100, iteration_budgets=(0, 10, 25, 50, 100),
+                      sweep_pairs=20)
+QUICK = PlanBenchSizes(pairs_per_scene=3, iteration_budgets=(0, 25), sweep_pairs=3)
 
 
 # ================================================================ problems
@@ -158,12 +168,12 @@ def _judge(planner: TrajectoryPlanner, q: np.ndarray | None, dt: float) -> dict[
 
 def measure_planner(planner: TrajectoryPlanner, scene: str, method: str, starts: np.ndarray,
                     goals: np.ndarray) -> tuple[dict[str, Any], list[Any]]:
-    """One planner row: a warm-up on the same batch (the compiled LM depends on the batch
-    size; the exact row warms up without its polish), then the whole batch timed."""
+    """One planner row: a warm-up on the first ``WARMUP_PAIRS`` problems (compilation,
+    roadmap, the exact row's Ipopt build), then the whole batch timed."""
     exact = method == EXACT
     init = "straight" if method == STRAIGHT_OPT else "roadmap"
     t0 = time.perf_counter()
-    planner.plan(starts, goals, exact=False, init=init)
+    planner.plan(starts[:WARMUP_PAIRS], goals[:WARMUP_PAIRS], exact=exact, init=init)
     first = time.perf_counter() - t0
     t0 = time.perf_counter()
     results = planner.plan(starts, goals, exact=exact, init=init, progress=exact)
@@ -248,17 +258,21 @@ def run_plan_benchmark(quick: bool = False, pairs_per_scene: int | None = None,
                        out: str | Path | None = "bench_results/plan", seed: int = 0,
                        methods: Sequence[str] = DEFAULT_METHODS,
                        iteration_budgets: Sequence[int] | None = None,
+                       sweep_pairs: int | None = None,
                        config: TrajectoryConfig | None = None,
                        rrt_config: RRTConnectConfig = RRT_CONFIG,
                        progress: bool = True) -> list[dict[str, Any]]:
     """Run the benchmark; returns the rows (per scene, then "all"), prints the Markdown
     report and, with ``out``, writes plan.md, plan.csv, iterations.csv and
-    iterations.png there. ``config``: the planner's settings (default ``TrajectoryConfig()``);
-    ``rrt_config``: the baseline's (its margin is replaced by the planner's)."""
+    iterations.png there (after every scene). ``sweep_pairs``: problems per scene of the
+    iteration sweep (default: the size's ``sweep_pairs``, at most ``pairs``). ``config``:
+    the planner's settings (default ``TrajectoryConfig()``); ``rrt_config``: the
+    baseline's (its margin is replaced by the planner's)."""
     sizes = QUICK if quick else FULL
     pairs = pairs_per_scene or sizes.pairs_per_scene
     budgets = tuple(iteration_budgets if iteration_budgets is not None
                     else sizes.iteration_budgets)
+    sweep_count = min(pairs, sweep_pairs or sizes.sweep_pairs)
     robot_model = load_robot(robot)
     rows: list[dict[str, Any]] = []
     sweep: list[dict[str, Any]] = []
@@ -284,20 +298,30 @@ def run_plan_benchmark(quick: bool = False, pairs_per_scene: int | None = None,
             rows.append(row)
             lengths[method] += found
         if budgets:
-            sweep += iteration_sweep(planner, name, starts, goals, budgets)
+            sweep += iteration_sweep(planner, name, starts[:sweep_count],
+                                     goals[:sweep_count], budgets)
+        if out is not None:
+            _write(rows + _pooled(rows, lengths), builds, sweep, robot, pairs, sweep_count,
+                   Path(out))
     rows += _pooled(rows, lengths)
-    env = environment()
-    report = format_report(rows, builds, sweep, env, robot, pairs)
+    report = format_report(rows, builds, sweep, environment(), robot, pairs, sweep_count)
     print(report)
     if out is not None:
-        out = Path(out)
-        write_text(report, out / "plan.md")
-        write_csv(rows, out / "plan.csv")
-        write_csv(builds, out / "roadmap_build.csv")
-        if sweep:
-            write_csv(sweep, out / "iterations.csv")
-            plot_iterations(sweep, out / "iterations.png")
+        _write(rows, builds, sweep, robot, pairs, sweep_count, Path(out))
     return rows
+
+
+def _write(rows: Sequence[dict[str, Any]], builds: Sequence[dict[str, Any]],
+           sweep: Sequence[dict[str, Any]], robot: str, pairs: int, sweep_pairs: int,
+           out: Path) -> None:
+    """plan.md, plan.csv, roadmap_build.csv and the sweep's CSV and figure in ``out``."""
+    write_text(format_report(rows, builds, sweep, environment(), robot, pairs, sweep_pairs),
+               out / "plan.md")
+    write_csv(rows, out / "plan.csv")
+    write_csv(builds, out / "roadmap_build.csv")
+    if sweep:
+        write_csv(sweep, out / "iterations.csv")
+        plot_iterations(sweep, out / "iterations.png")
 
 
 # ================================================================ output
@@ -343,7 +367,7 @@ COLUMNS = (
 
 def format_report(rows: Sequence[dict[str, Any]], builds: Sequence[dict[str, Any]],
                   sweep: Sequence[dict[str, Any]], env: dict[str, str], robot: str,
-                  pairs: int) -> str:
+                  pairs: int, sweep_pairs: int | None = None) -> str:
     """The Markdown report: results, roadmap builds, iteration sweep, environment."""
     parts = [f"# Trajectory planning benchmark ({robot}, {pairs} start/goal pairs per scene)",
              markdown_table(rows, COLUMNS),
@@ -359,7 +383,8 @@ def format_report(rows: Sequence[dict[str, Any]], builds: Sequence[dict[str, Any
                                      Column("loaded_seconds", "load (s)", fixed(2)),
                                      Column("nodes", "nodes"), Column("edges", "edges")))]
     if sweep:
-        parts += ["## Success and path length vs LM iterations (roadmap+opt)",
+        parts += ["## Success and path length vs LM iterations (roadmap+opt"
+                  + (f", first {sweep_pairs} pairs per scene" if sweep_pairs else "") + ")",
                   markdown_table(sweep, (Column("scene", "scene"),
                                          Column("iterations", "iterations"),
                                          Column("success_pct", "success %", fixed(1)),
@@ -391,6 +416,8 @@ def add_bench_plan(bench_subparsers: argparse._SubParsersAction) -> argparse.Arg
                    help="rows to run (default all)")
     p.add_argument("--iterations", type=int, nargs="*", default=None,
                    help="LM iteration budgets of the sweep figure (none: no sweep)")
+    p.add_argument("--sweep-pairs", type=int, default=None,
+                   help=f"pairs per scene of the sweep (default {FULL.sweep_pairs})")
     p.add_argument("--out", default="bench_results/plan",
                    help="output folder (default bench_results/plan)")
     p.add_argument("--seed", type=int, default=0, help="seed of the problems (default 0)")
@@ -403,7 +430,8 @@ def run_bench_plan_command(args: argparse.Namespace) -> int:
     """The ``cr-nlp bench plan`` action."""
     run_plan_benchmark(quick=args.quick, pairs_per_scene=args.pairs, scenes=args.scenes,
                        robot=args.robot, out=args.out, seed=args.seed, methods=args.methods,
-                       iteration_budgets=args.iterations, progress=not args.no_progress)
+                       iteration_budgets=args.iterations, sweep_pairs=args.sweep_pairs,
+                       progress=not args.no_progress)
     print(f"wrote {Path(args.out) / 'plan.md'} and its CSV files", file=sys.stderr)
     return 0
 
