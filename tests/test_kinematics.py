@@ -245,3 +245,27 @@ def test_pose_error_is_zero_at_target_and_symmetric(segments: list[tuple[float, 
     assert float(pose_error(p, r, p, r)) < 1e-7
     p2, r2 = tip_pose(TDCR3, q[::-1].copy() % np.pi)
     np.testing.assert_allclose(pose_error(p, r, p2, r2), pose_error(p2, r2, p, r), atol=1e-9)
+
+
+def test_numpy_q_z_pair_matches_jax_and_round_trips():
+    from cr_nlp.model import q_to_z_numpy, z_to_q_numpy
+
+    robot = TDCR4
+    rng = np.random.default_rng(3)
+    lo, hi = robot.q_bounds()
+    q = rng.uniform(lo, hi, size=(5, 7, robot.dof))
+    q[0, 0, 0::3] = 0.0                          # straight segments: φ is reported as 0
+    q[0, 0, 1::3] = 0.0
+    z = q_to_z_numpy(q)
+    assert z.shape == q.shape and z.dtype == np.float64
+    np.testing.assert_allclose(z, np.asarray(q_to_z(robot, q)), atol=1e-6)
+    back = z_to_q_numpy(z)
+    np.testing.assert_allclose(np.asarray(z_to_q(robot, z)), back, atol=1e-6)
+    # φ is defined modulo 2π: compare the bending vectors of the round trip, and θ, L.
+    np.testing.assert_allclose(q_to_z_numpy(back), z, atol=1e-12)
+    np.testing.assert_allclose(back[..., 0::3], q[..., 0::3], atol=1e-12)
+    np.testing.assert_allclose(back[..., 2::3], q[..., 2::3], atol=1e-12)
+    assert np.all(back[0, 0, 1::3] == 0.0)
+    one = q[1, 1]
+    np.testing.assert_allclose(q_to_z_numpy(one), z[1, 1])    # a single (3n,) row
+    assert q_to_z_numpy(one) is not one and np.all(one == q[1, 1])  # input untouched

@@ -179,6 +179,25 @@ def z_to_q(robot: Robot, z: jax.Array) -> jax.Array:
     return jnp.stack([theta, phi, length], axis=-1).reshape(z.shape)
 
 
+def q_to_z_numpy(q: Any) -> np.ndarray:
+    """``q_to_z`` in float64 numpy (no JAX), for the float64 checks and the CasADi stages:
+    (…, 3n) configurations (θ, φ, L) → bending vectors (ux, uy, L) (rad, rad, m)."""
+    z = np.array(q, dtype=np.float64)
+    theta, phi = z[..., 0::3].copy(), z[..., 1::3]
+    z[..., 0::3], z[..., 1::3] = theta * np.cos(phi), theta * np.sin(phi)
+    return z
+
+
+def z_to_q_numpy(z: Any) -> np.ndarray:
+    """``z_to_q`` in float64 numpy: (…, 3n) bending vectors → (θ, φ, L); φ is 0 where
+    θ = 0."""
+    q = np.array(z, dtype=np.float64)
+    ux, uy = q[..., 0::3].copy(), q[..., 1::3].copy()
+    theta = np.hypot(ux, uy)
+    q[..., 0::3], q[..., 1::3] = theta, np.where(theta > 0.0, np.arctan2(uy, ux), 0.0)
+    return q
+
+
 @partial(jax.jit, static_argnums=0)
 def tip_pose_z(robot: Robot, z: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Tip position (…, 3) metres and rotation matrix (…, 3, 3) from bending-vector z."""

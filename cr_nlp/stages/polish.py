@@ -47,7 +47,15 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from ..model import CasadiModel, Robot, load_robot, pose_error, tip_pose_z
+from ..model import (
+    CasadiModel,
+    Robot,
+    load_robot,
+    pose_error,
+    q_to_z_numpy,
+    tip_pose_z,
+    z_to_q_numpy,
+)
 from ..model._ops import CASADI
 from ..model.limits import limit_violation_q
 from ..world import distances as dist
@@ -160,20 +168,6 @@ def _measures(robot: Robot, arrays: SceneArrays | None, z: jax.Array, target_pos
              else jnp.zeros((robot.n_points + 1, 0), z.dtype))
     own = self_distances_z(robot, z) if robot.n_segments >= 3 else jnp.zeros((0,), z.dtype)
     return error, pairs, own
-
-
-def _q_to_z(q: np.ndarray) -> np.ndarray:
-    """(3n,) θ, φ, L → bending vector (ux, uy, L), float64."""
-    theta, phi, length = q[0::3], q[1::3], q[2::3]
-    return np.stack([theta * np.cos(phi), theta * np.sin(phi), length], axis=-1).reshape(-1)
-
-
-def _z_to_q(z: np.ndarray) -> np.ndarray:
-    """Bending vector → (θ, φ, L); φ = 0 where θ = 0."""
-    ux, uy, length = z[0::3], z[1::3], z[2::3]
-    theta = np.hypot(ux, uy)
-    phi = np.where(theta > 0.0, np.arctan2(uy, ux), 0.0)
-    return np.stack([theta, phi, length], axis=-1).reshape(-1)
 
 
 # ================================================================ pair slots
@@ -462,7 +456,7 @@ class IKPolisher:
         (3n, rad/m) as the NLP sees them, and the world's ``pair_distances`` /
         ``self_distances`` of the same pairs (m, convex parts with ``face_smoothing``):
         the two must agree."""
-        z_near, z = (_q_to_z(np.asarray(x, dtype=np.float64).reshape(-1)) for x in (q_near, q))
+        z_near, z = (q_to_z_numpy(np.asarray(x, dtype=np.float64).reshape(-1)) for x in (q_near, q))
         selection = self._select(self._evaluate(z_near, np.zeros(3), np.eye(3))[3])
         symbol = ca.MX.sym("z", self.robot.dof)
         slots = [ca.MX.sym(f"slots_{p.kind}", p.capacity, p.width) for p in self._pools]
@@ -483,7 +477,7 @@ class IKPolisher:
             error, pairs, own = _measures(self.robot, self._arrays, z, target_position,
                                           target_rotation)
         distances = np.concatenate([np.asarray(pairs).reshape(-1), np.asarray(own)])
-        limits = float(limit_violation_q(self.robot, _z_to_q(z)))
+        limits = float(limit_violation_q(self.robot, z_to_q_numpy(z)))
         shortfall = 0.0
         if self.scene is not None and distances.size:
             shortfall = max(0.0, self.safety_margin - float(np.min(distances)))
@@ -549,7 +543,7 @@ class IKPolisher:
             return PolishResult(q0, False, "non-finite input", math.inf, math.inf, 0,
                                 time.perf_counter() - start, self.config.modes[0])
 
-        z_start = _q_to_z(q0)
+        z_start = q_to_z_numpy(q0)
         _, _, _, near = self._evaluate(z_start, target_position, target_rotation)
         selection = self._select(near)
         switched_on = np.zeros(near.shape, dtype=bool)
@@ -579,7 +573,7 @@ class IKPolisher:
 
         best = min(attempts, key=rank)
         return PolishResult(
-            q=_z_to_q(best.z),
+            q=z_to_q_numpy(best.z),
             success=self._succeeded(best),
             status=best.status,
             max_violation=best.max_violation,

@@ -49,7 +49,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..model import CasadiModel, Robot, load_robot, pose_error, tip_pose_z
+from ..model import (
+    CasadiModel,
+    Robot,
+    load_robot,
+    pose_error,
+    q_to_z_numpy,
+    tip_pose_z,
+    z_to_q_numpy,
+)
 from ..model._ops import CASADI, NUMPY
 from ..model.kinematics import model_tendon_lengths
 from ..model.limits import limit_violation_q
@@ -64,10 +72,8 @@ from ..world.clearance import (
 from ..world.scene import Scene, load_scene
 from .polish import (
     _Pool,
-    _q_to_z,
     _Selection,
     _slot_distances,
-    _z_to_q,
     make_pools,
     select_slots,
 )
@@ -552,7 +558,7 @@ class TrajectoryPolisher:
         violations = {
             "clearance": (max(0.0, self.safety_margin - float(np.min(distances)))
                           if distances.size else 0.0),
-            "limits": float(np.max(limit_violation_q(robot, _z_to_q_rows(z)))),
+            "limits": float(np.max(limit_violation_q(robot, z_to_q_numpy(z)))),
             "tendon_speed": max(0.0, float(np.max(speed, initial=0.0)) - robot.tendon_speed_max),
             "tendon_accel": max(0.0, float(np.max(accel, initial=0.0)) - robot.tendon_accel_max),
         }
@@ -606,7 +612,7 @@ class TrajectoryPolisher:
             return TrajectoryPolishResult(q0, False, "non-finite input", math.inf,
                                           seconds=time.perf_counter() - start)
         cfg, w, dof = self.config, self.waypoints, self.robot.dof
-        z0 = np.stack([_q_to_z(row) for row in q0])
+        z0 = np.stack([q_to_z_numpy(row) for row in q0])
         lbx, ubx = np.tile(self._lbx, (w, 1)), np.tile(self._ubx, (w, 1))
         if self.objective == "path":
             lbx[0] = ubx[0] = z0[0]
@@ -668,7 +674,7 @@ class TrajectoryPolisher:
                 errors = np.asarray(_pose_errors(self.robot, z, positions, rotations),
                                     dtype=np.float64)
         return TrajectoryPolishResult(
-            q=_z_to_q_rows(z),
+            q=z_to_q_numpy(z),
             success=ipopt_success and max_violation <= cfg.violation_tolerance,
             status=status,
             max_violation=max_violation,
@@ -686,7 +692,7 @@ class TrajectoryPolisher:
         at ``q`` (W, 3n) by the NLP's own mapped CasADi function, and the world's float64
         distances of the same pairs (m, convex parts with ``face_smoothing``): the two
         must agree."""
-        z_near, z = (np.stack([_q_to_z(r) for r in np.asarray(x, dtype=np.float64)])
+        z_near, z = (np.stack([q_to_z_numpy(r) for r in np.asarray(x, dtype=np.float64)])
                      for x in (q_near, q))
         slots, lower, chosen = self._select(self._all_distances(z_near), fixed_ends=False)
         one = configuration_clearance(self._model, self._pools, self.config.face_smoothing)
@@ -701,11 +707,6 @@ class TrajectoryPolisher:
         world = np.concatenate([np.asarray(pairs), np.asarray(own)], axis=1)
         expected = np.concatenate([world[c, flat] for c, flat in enumerate(chosen)])
         return values[np.isfinite(lower)], expected
-
-
-def _z_to_q_rows(z: np.ndarray) -> np.ndarray:
-    """(W, 3n) bending vectors → (W, 3n) θ, φ, L."""
-    return np.stack([_z_to_q(row) for row in z])
 
 
 def _band_assembly(dof: int, waypoints: int) -> tuple[ca.Sparsity, ca.DM]:

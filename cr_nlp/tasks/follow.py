@@ -53,11 +53,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jax_setup import enable_compilation_cache, split_over_devices
-from ..model import Robot, load_robot
+from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import JAX, NUMPY
 from ..model.kinematics import (
     model_base,
-    model_q_to_z,
     model_segment_frames,
     model_segment_transform,
     model_tendon_lengths,
@@ -76,7 +75,6 @@ from .paths import ReferencePath, load_path
 from .trajectory import (
     _groups_from,
     _has_clearance,
-    _z_to_q,
     tendon_names,
     tendon_series,
     verify_trajectory,
@@ -496,17 +494,10 @@ def _continue_chains(robot: Robot, margin: float, weights: tuple[float, float, f
 # ================================================================ measures (float64)
 
 
-def _z_of(robot: Robot, q: np.ndarray) -> np.ndarray:
-    """(B, 3n) bending-vector form of (B, 3n) configurations, float64 numpy."""
-    q = np.asarray(q, dtype=np.float64)
-    entries = model_q_to_z(NUMPY, robot, q)
-    return np.stack(np.broadcast_arrays(*entries), axis=-1).reshape(q.shape)
-
-
 def tip_poses(robot: Robot, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Tip positions (B, 3) m and rotation matrices (B, 3, 3) of (B, 3n) configurations
     (θ, φ, L), float64 numpy."""
-    z = _z_of(robot, q)
+    z = q_to_z_numpy(q)
     rot, pos = model_segment_frames(NUMPY, robot, [z[:, i] for i in range(robot.dof)])[-1]
     position = np.stack(np.broadcast_arrays(*pos), axis=-1).reshape(-1, 3)
     rotation = np.stack(np.broadcast_arrays(*rot), axis=-1).reshape(-1, 3, 3)
@@ -784,7 +775,7 @@ class PathFollower:
             z_cand, errors = self.waypoint_candidates(positions[rows], wxyz[rows], dt)
             width = self.config.ik_beam_width
             tol = self.config.ik_tolerance
-            choice = smoothest_sequence(self.robot, _z_to_q(z_cand), errors, tol)
+            choice = smoothest_sequence(self.robot, z_to_q_numpy(z_cand), errors, tol)
             first, bridged = True, set()
             for _ in range(self.config.continuation_rounds):
                 chosen = z_cand[np.arange(len(rows)), choice]
@@ -803,11 +794,11 @@ class PathFollower:
                                                   dt, ends)
                 z_cand = np.concatenate([z_cand, extra_z], axis=1)
                 errors = np.concatenate([errors, extra_err], axis=1)
-                choice = smoothest_sequence(self.robot, _z_to_q(z_cand), errors, tol)
+                choice = smoothest_sequence(self.robot, z_to_q_numpy(z_cand), errors, tol)
             z_rows = z_cand[np.arange(len(rows)), choice]
             for k in range(self.robot.dof):
                 z[:, k] = np.interp(np.arange(t), rows, z_rows[:, k])
-        return _z_to_q(z)
+        return z_to_q_numpy(z)
 
     def waypoint_candidates(self, positions: np.ndarray, wxyz: np.ndarray,
                             dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -823,7 +814,7 @@ class PathFollower:
         stride = max(int(self.config.ik_stride), 1)
         anchors = np.unique(np.r_[np.arange(0, r, stride), r - 1])
         q, err = self.ik_solver.candidates(positions[anchors], wxyz[anchors])
-        z_anchor = _z_of(self.robot, q)                                   # (A, B, 3n)
+        z_anchor = q_to_z_numpy(q)                                   # (A, B, 3n)
         if len(anchors) == r:
             return z_anchor, err
         width = z_anchor.shape[1]
@@ -889,7 +880,7 @@ class PathFollower:
     def _jumps(self, z: np.ndarray, seconds: np.ndarray) -> np.ndarray:
         """Intervals (indices i: between rows i and i+1) of a (R, 3n) sequence whose tendon
         speed exceeds the limit, the largest first (at most ``max_jumps``)."""
-        lengths = tendon_series(self.robot, _z_to_q(z))
+        lengths = tendon_series(self.robot, z_to_q_numpy(z))
         speed = np.max(np.abs(np.diff(lengths, axis=0)), axis=1) / seconds
         limit = self.robot.tendon_speed_max if math.isfinite(self.robot.tendon_speed_max) \
             else np.inf
@@ -943,7 +934,7 @@ class PathFollower:
             solve = partial(banded_lm_solve, self._terms, self._project, config=config)
             self._compiled[t] = jax.jit(solve).lower(*args).compile()
         z, cost, iterations = self._compiled[t](*args)
-        q = _z_to_q(np.asarray(z, dtype=np.float64))
+        q = z_to_q_numpy(np.asarray(z, dtype=np.float64))
         return clip_to_limits(self.robot, q), float(cost), int(iterations)
 
     def _lm_args(self, q0: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
@@ -955,7 +946,7 @@ class PathFollower:
         params = (jnp.asarray(safe_positions, dtype),
                   jnp.asarray(safe_rotations.reshape(-1, 9), dtype),
                   jnp.asarray(trackable, dtype))
-        z0 = jnp.asarray(_z_of(self.robot, q0), dtype)
+        z0 = jnp.asarray(q_to_z_numpy(q0), dtype)
         shared = (self._arrays, jnp.asarray(dt, dtype))
         return z0, params, shared, self._free, jnp.int32(self.config.iterations)
 

@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jax_setup import enable_compilation_cache
-from ..model import Robot, load_robot
+from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import JAX, NUMPY
 from ..model.kinematics import model_segment_frames, model_tendon_lengths
 from ..model.limits import limit_violation_q, project_z
@@ -320,44 +320,26 @@ _NO_OBSTACLES = Scene("empty", ())
 """For self-collision checks of a robot planned without a scene."""
 
 
-def _q_to_z(q: np.ndarray) -> np.ndarray:
-    theta, phi = q[..., 0::3], q[..., 1::3]
-    z = q.copy()
-    z[..., 0::3], z[..., 1::3] = theta * np.cos(phi), theta * np.sin(phi)
-    return z
-
-
-def _z_to_q(z: np.ndarray) -> np.ndarray:
-    """(…, 3n) configurations (θ, φ, L) of bending vectors z, float64 numpy (φ = 0 where
-    θ = 0)."""
-    z = np.asarray(z, dtype=np.float64)
-    ux, uy = z[..., 0::3], z[..., 1::3]
-    theta = np.hypot(ux, uy)
-    q = z.copy()
-    q[..., 0::3], q[..., 1::3] = theta, np.where(theta > 0.0, np.arctan2(uy, ux), 0.0)
-    return q
-
-
 def interpolate_trajectory(q: np.ndarray, samples: int) -> np.ndarray:
     """The motion between waypoints, linear in the bending vector z (hence linear in the
     tendon lengths): (H·samples + 1, 3n) configurations (rad, rad, m), each interval split
     into ``samples`` pieces, waypoints included."""
-    z = _q_to_z(np.asarray(q, dtype=np.float64))
+    z = q_to_z_numpy(np.asarray(q, dtype=np.float64))
     s = np.arange(samples)[:, None] / samples
     inner = (z[:-1, None, :] + s[None, :, :] * (z[1:] - z[:-1])[:, None, :]).reshape(-1, z.shape[1])
-    return _z_to_q(np.concatenate([inner, z[-1:]]))
+    return z_to_q_numpy(np.concatenate([inner, z[-1:]]))
 
 
 def tip_positions(robot: Robot, q: np.ndarray) -> np.ndarray:
     """(B, 3) tip positions (m) of (B, 3n) configurations, float64 numpy."""
-    z = _q_to_z(np.asarray(q, dtype=np.float64))
+    z = q_to_z_numpy(np.asarray(q, dtype=np.float64))
     _, pos = model_segment_frames(NUMPY, robot, [z[:, i] for i in range(robot.dof)])[-1]
     return np.stack(np.broadcast_arrays(*pos), axis=-1).reshape(-1, 3)
 
 
 def tendon_series(robot: Robot, q: np.ndarray) -> np.ndarray:
     """(B, n_tendons) tendon lengths (m) of (B, 3n) configurations, float64 numpy."""
-    z = _q_to_z(np.asarray(q, dtype=np.float64))
+    z = q_to_z_numpy(np.asarray(q, dtype=np.float64))
     values = model_tendon_lengths(NUMPY, robot, [z[:, i] for i in range(robot.dof)])
     return np.stack(np.broadcast_arrays(*values), axis=-1).reshape(len(z), -1)
 
@@ -647,7 +629,7 @@ class TrajectoryPlanner:
             roadmap = self.roadmap()
             path = None if roadmap is None else roadmap.query(q_start, q_goal, n)
             if path is not None:
-                z = _q_to_z(np.asarray(path, dtype=np.float64).reshape(n, -1))
+                z = q_to_z_numpy(np.asarray(path, dtype=np.float64).reshape(n, -1))
                 z[0], z[-1] = z_start, z_goal
                 guesses.append(z)
                 kinds.append("roadmap")
@@ -787,7 +769,7 @@ class TrajectoryPlanner:
         t0 = time.perf_counter()
         guesses, kinds = [], []
         for _, q_start, q_goal in valid:
-            g, k = self._guesses(_q_to_z(q_start), _q_to_z(q_goal), init, q_start, q_goal)
+            g, k = self._guesses(q_to_z_numpy(q_start), q_to_z_numpy(q_goal), init, q_start, q_goal)
             guesses.append(g)
             kinds.append(k)
         timing.init += time.perf_counter() - t0
@@ -818,7 +800,7 @@ class TrajectoryPlanner:
                 # Best by the independent verdict, then by cost: the first success in
                 # cost order.
                 for g in np.argsort(cost[k], kind="stable"):
-                    q = _z_to_q(z[k, g])
+                    q = z_to_q_numpy(z[k, g])
                     q[0], q[-1] = q_start, q_goal
                     verdict = self.verify(q, dt)
                     b = best[row]
