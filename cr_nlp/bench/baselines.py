@@ -32,8 +32,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
-from jax.sharding import Mesh, PartitionSpec
 
+from .._jax_setup import split_over_devices
 from ..model import CasadiModel, Robot, load_robot, q_to_z, z_to_q
 from ..model._ops import JAX
 from ..model.kinematics import model_pose_error, model_segment_frames
@@ -125,17 +125,11 @@ def _damped_newton(robot: Robot, iterations: int, z0: jax.Array, target_position
 
 
 @functools.cache
-def _compiled_newton(robot: Robot, iterations: int, devices: int) -> Any:
-    """The jitted batch iteration, split over ``devices`` JAX devices (one per CPU core
-    with ``use_host_devices``) as cr_nlp's LM is, so the baseline uses every core too."""
+def _compiled_newton(robot: Robot, iterations: int, batch_size: int) -> Any:
+    """The jitted batch iteration, split over the JAX devices (one per CPU core with
+    ``use_host_devices``) as cr_nlp's LM is, so the baseline uses every core too."""
     solve = partial(_damped_newton, robot, iterations)
-    if devices == 1:
-        return jax.jit(solve)
-    mesh = Mesh(np.array(jax.devices()[:devices]), ("batch",))
-    batch, whole = PartitionSpec("batch"), PartitionSpec()
-    return jax.jit(jax.shard_map(solve, mesh=mesh,
-                                 in_specs=(batch, batch, batch, whole, whole),
-                                 out_specs=(batch, batch)))
+    return split_over_devices(solve, (True, True, True, False, False), batch_size, outputs=2)
 
 
 def damped_newton_ik(robot: Robot | str, positions: Any, wxyz: Any,
@@ -183,7 +177,7 @@ def damped_newton_ik(robot: Robot | str, positions: Any, wxyz: Any,
         z0, target_position, target_rotation = (
             np.concatenate([x, np.repeat(x[:1], pad, 0)])
             for x in (z0, target_position, target_rotation))
-    solve = _compiled_newton(robot, config.iterations, devices)
+    solve = _compiled_newton(robot, config.iterations, len(z0))
     z, cost = solve(jnp.asarray(z0, dtype), jnp.asarray(target_position, dtype),
                     jnp.asarray(target_rotation, dtype), jnp.asarray(free, dtype),
                     jnp.asarray(config.damping, dtype))

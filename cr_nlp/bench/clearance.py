@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from .._jax_setup import use_host_devices
+from .._jax_setup import split_over_devices, use_host_devices
 from ..model import load_robot
 from .common import environment
 
@@ -48,7 +48,6 @@ def bench_clearance(robot: str = "tdcr3", scene: str = "lattice", configs: int =
     (bundled names or file paths), sharded over all JAX devices."""
     import jax
     import jax.numpy as jnp
-    from jax.sharding import Mesh, PartitionSpec
 
     from ..model.robot import Robot
     from ..world.clearance import clearance, scene_arrays
@@ -64,11 +63,8 @@ def bench_clearance(robot: str = "tdcr3", scene: str = "lattice", configs: int =
     devices = jax.devices()
     batch = configs - configs % len(devices)   # equal shards
     qs = np.random.default_rng(seed).uniform(lo, hi, (batch, rob.dof))
-    mesh = Mesh(np.array(devices), ("batch",))
     # Each device evaluates its slice of the batch with the scene replicated.
-    sharded = jax.jit(jax.shard_map(lambda a, q: clearance(rob, a, q), mesh=mesh,
-                                    in_specs=(PartitionSpec(), PartitionSpec("batch")),
-                                    out_specs=PartitionSpec("batch")))
+    sharded = split_over_devices(lambda a, q: clearance(rob, a, q), (False, True), batch)
     q_all = jnp.asarray(qs, float_type)
 
     def run() -> Any:

@@ -40,12 +40,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
-from jax.sharding import Mesh
-from jax.sharding import PartitionSpec as P
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
-from .._jax_setup import cache_dir
+from .._jax_setup import cache_dir, split_over_devices
 from ..model import Robot, q_to_z, z_to_q
 from ..world import Scene, body_gap_tolerance, clearance_z, scene_arrays
 from ..world.clearance import SceneArrays
@@ -136,16 +134,13 @@ def polyline_length(points_z: np.ndarray) -> float:
 
 
 @lru_cache(maxsize=16)
-def _chunk_program(robot: Robot, device_count: int) -> Any:
-    """clearance_z over a (CHECK_CHUNK, 3n) float32 chunk, split over the JAX devices."""
+def _chunk_program(robot: Robot, chunk: int) -> Any:
+    """clearance_z over a (chunk, 3n) float32 batch; chunks of 512 and more are split over
+    the JAX devices (splitting tiny ones costs more than it saves)."""
     def f(arrays: SceneArrays, z: jax.Array) -> jax.Array:
         return clearance_z(robot, arrays, z)
 
-    if device_count == 1:
-        return jax.jit(f)
-    mesh = Mesh(np.array(jax.devices()), ("batch",))
-    return jax.jit(jax.shard_map(f, mesh=mesh, in_specs=(P(), P("batch")),
-                                 out_specs=P("batch")))
+    return jax.jit(f) if chunk < 512 else split_over_devices(f, (False, True), chunk)
 
 
 class ClearanceChecker:
@@ -155,11 +150,7 @@ class ClearanceChecker:
     def __init__(self, robot: Robot, scene: Scene) -> None:
         self.robot = robot
         self.arrays = scene_arrays(scene, jnp.float32)
-        devices = len(jax.devices())
-        # Tiny chunks stay on one device: splitting them costs more than it saves.
-        self.programs = {chunk: _chunk_program(robot, devices if chunk >= 512
-                                               and chunk % devices == 0 else 1)
-                         for chunk in CHUNKS}
+        self.programs = {chunk: _chunk_program(robot, chunk) for chunk in CHUNKS}
         self.calls = 0
 
     def __call__(self, z: np.ndarray) -> np.ndarray:
