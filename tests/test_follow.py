@@ -17,6 +17,7 @@ from cr_nlp.model import load_robot, tip_pose_z
 from cr_nlp.model.rotations import wxyz_from_matrix
 from cr_nlp.tasks import follow as F
 from cr_nlp.tasks.follow import FollowConfig, PathFollower, unreached_stretches
+from cr_nlp.tasks.ik import IKConfig
 from cr_nlp.tasks.paths import ReferencePath
 from cr_nlp.tasks.trajectory import _group_jacobian
 from cr_nlp.world import load_scene, scene_arrays
@@ -25,7 +26,7 @@ ROBOT = load_robot("tdcr3")
 WAYPOINTS = 24
 DT = 0.1
 # Light stage-1 settings: the test paths are short and reachable.
-CONFIG = FollowConfig(ik_pool_size=1024, ik_seeds_per_target=4, ik_refine_iterations=20)
+CONFIG = FollowConfig(ik=IKConfig(pool_size=1024, seeds_per_target=4, refine_iterations=20))
 # A configuration line: its forward kinematics is a smooth, reachable 6-DOF path.
 Q_A = np.array([0.6, 0.3, 1.0, 0.5, 1.2, 1.0, 0.4, -0.6, 1.0])
 Q_B = np.array([0.9, 0.5, 1.0, 0.3, 1.0, 1.0, 0.7, -0.3, 1.0])

@@ -10,6 +10,7 @@ import pytest
 from cr_nlp.model import load_robot, q_to_z, tip_pose_z
 from cr_nlp.model.rotations import wxyz_from_matrix
 from cr_nlp.tasks.follow import FollowConfig, PathFollower
+from cr_nlp.tasks.ik import IKConfig
 from cr_nlp.tasks.paths import ReferencePath
 from cr_nlp.tasks.trajectory import tendon_series, verify_trajectory
 
@@ -32,7 +33,7 @@ def slow_robot_runs():
     # A weak tendon penalty aimed at the real limit: the penalty answer trades the limit
     # for tracking, which is what a penalty may do.
     config = FollowConfig(tendon_weight=1e-4, tendon_limit_fraction=1.0,
-                          ik_pool_size=1024, ik_seeds_per_target=4, ik_refine_iterations=20)
+                          ik=IKConfig(pool_size=1024, seeds_per_target=4, refine_iterations=20))
     follower = PathFollower(robot, None, config)
     return robot, path, follower.follow(path), follower.follow(path, exact=True)
 

@@ -42,7 +42,7 @@ import math
 import threading
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -79,6 +79,12 @@ from .trajectory import (
     tendon_series,
     verify_trajectory,
 )
+
+FOLLOW_IK = IKConfig(seeds_per_target=8, refine_iterations=10)
+"""Stage 1's default IK settings: fewer seeds and refinement iterations than a plain IK
+solve, since the continuation chains and stage 2 finish the job. Measured on
+square/sine/icra (tdcr3): 10 refinement iterations gave the same final errors as 30 and
+saved two LM calls (0.1–0.2 s per path)."""
 
 
 @dataclass(frozen=True)
@@ -122,18 +128,12 @@ class FollowConfig:
     """A waypoint is reached when its tip position error is at most this, millimetres..."""
     rotation_tolerance_deg: float = 1.0
     """...and its tip rotation error at most this, degrees."""
-    ik_pool_size: int = 4096
-    """Stage 1: Sobol configurations whose tip poses seed the per-waypoint IK."""
-    ik_seeds_per_target: int = 8
-    """Stage 1: pool entries nearest each waypoint that start the coarse LM steps."""
-    ik_coarse_iterations: int = 6
-    """Stage 1: LM iterations on every seed before the beam is chosen."""
-    ik_beam_width: int = 3
-    """Stage 1: distinct IK answers per waypoint among which the sequence is chosen."""
-    ik_refine_iterations: int = 10
-    """Stage 1: LM iterations on the beam. The continuation chains and stage 2 finish the
-    job: measured on square/sine/icra (tdcr3), 10 gave the same final errors as 30 and
-    saved two LM calls (0.1–0.2 s per path)."""
+    ik: IKConfig = FOLLOW_IK
+    """Stage 1's per-waypoint IK (``IKSolver.candidates``): its ``beam_width`` is the
+    number of distinct answers per waypoint among which the sequence is chosen, and
+    candidates with a residual norm (pose error, m/rad, plus clearance penalty) at or
+    above its ``success_tolerance`` are used only where a waypoint has no better one.
+    Its ``safety_margin``, ``dtype`` and ``seed`` are replaced by this config's."""
     continuation_iterations: int = 6
     """Stage 1: LM iterations per waypoint of the continuation chains that carry an IK
     branch across waypoints where the independent per-waypoint IK missed it."""
@@ -150,9 +150,6 @@ class FollowConfig:
     """Stage 1: the full IK runs on every ``ik_stride``-th trackable waypoint (and the
     last); the waypoints between are reached by continuation from both neighbouring
     anchors (``PathFollower.waypoint_candidates``). 1: IK on every waypoint."""
-    ik_tolerance: float = 1e-2
-    """Stage 1: candidates with a residual norm (pose error, m/rad, plus clearance
-    penalty) at or above this are used only where a waypoint has no better one."""
     dtype: str = "float32"
     """JAX dtype of the batched stages ("float64" needs jax_enable_x64)."""
     seed: int = 0
@@ -169,15 +166,10 @@ class FollowConfig:
         if min(weights) < 0:
             raise ValueError("weights must not be negative")
 
-    def ik_config(self, clearance_weight: float = 30.0) -> IKConfig:
-        """The stage-1 ``IKConfig`` these settings describe."""
-        return IKConfig(pool_size=self.ik_pool_size, seeds_per_target=self.ik_seeds_per_target,
-                        coarse_iterations=self.ik_coarse_iterations,
-                        beam_width=self.ik_beam_width,
-                        refine_iterations=self.ik_refine_iterations,
-                        success_tolerance=self.ik_tolerance,
-                        safety_margin=self.safety_margin, clearance_weight=clearance_weight,
-                        dtype=self.dtype, seed=self.seed)
+    def ik_config(self) -> IKConfig:
+        """The stage-1 ``IKConfig``: ``ik`` with this config's margin, dtype and seed."""
+        return replace(self.ik, safety_margin=self.safety_margin, dtype=self.dtype,
+                       seed=self.seed)
 
 
 # ================================================================ per-waypoint Jacobians
@@ -773,8 +765,8 @@ class PathFollower:
         rows = np.flatnonzero(trackable)
         if len(rows):
             z_cand, errors = self.waypoint_candidates(positions[rows], wxyz[rows], dt)
-            width = self.config.ik_beam_width
-            tol = self.config.ik_tolerance
+            width = self.config.ik.beam_width
+            tol = self.config.ik.success_tolerance
             choice = smoothest_sequence(self.robot, z_to_q_numpy(z_cand), errors, tol)
             first, bridged = True, set()
             for _ in range(self.config.continuation_rounds):
