@@ -80,6 +80,34 @@ def test_reachable_path_is_tracked_sub_millimetre_clear_of_the_obstacle(followed
     assert set(r.timing) >= {"compile", "explore", "refine", "polish", "verify", "total"}
 
 
+def test_redundant_robot_steers_its_body_around_a_ball_on_the_reference_motion() -> None:
+    # tdcr4_ext has six more variables than a pose fixes. A ball sits on the body of the
+    # configuration line whose forward kinematics is the path, so that motion, the obvious
+    # answer, collides at most waypoints: the follower must find another body shape.
+    from cr_nlp.model import q_to_z
+    from cr_nlp.world import check_many
+    from cr_nlp.world.check import body_chain
+
+    robot = load_robot("tdcr4_ext")
+    q_a = np.array([0.5, 0.3, 1.0, 0.4, 1.2, 1.0, 0.3, -0.6, 1.0, 0.3, 0.5, 1.0])
+    q_b = np.array([0.3, 0.8, 1.1, 0.6, 1.0, 0.9, 0.5, -0.2, 1.0, 0.2, 0.9, 1.1])
+    q_ref = q_a + np.linspace(0.0, 1.0, WAYPOINTS)[:, None] * (q_b - q_a)
+    pos, rot = tip_pose_z(robot, q_to_z(robot, jnp.asarray(q_ref)))
+    path = ReferencePath("line4", np.asarray(pos), wxyz_from_matrix(np.asarray(rot)), 1.0,
+                         np.ones(WAYPOINTS, bool))
+    centre = body_chain(robot, q_ref[WAYPOINTS // 2])[2 * robot.points_per_segment]
+    scene = load_scene({"name": "ball_on_body", "obstacles": [
+        {"type": "sphere", "name": "ball", "center": centre.tolist(), "radius": 0.05}]})
+    assert check_many(robot, scene, q_ref).collision.sum() > WAYPOINTS // 2
+
+    r = PathFollower(robot, scene, CONFIG).follow(path)
+    assert r.success and r.reached.all(), r.reason
+    assert np.max(r.position_error_mm) < 1.0 and np.max(r.rotation_error_deg) < 0.1
+    verdict = check_many(robot, scene, r.q)
+    assert r.collision_free and np.min(verdict.obstacle_distance) >= 0.002
+    assert r.max_violation <= 1e-6
+
+
 def test_unreachable_waypoints_are_reported_per_waypoint(follower) -> None:
     path = line_path()
     positions = path.positions.copy()
