@@ -1,9 +1,13 @@
-"""Test-wide settings: float64 for agreement tests, a persistent JAX compilation cache."""
+"""Test-wide settings: float64 for agreement tests, a persistent JAX compilation cache;
+helpers shared by the world tests."""
 
+import json
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import jax
+import numpy as np
 
 from cr_nlp._jax_setup import use_host_devices
 
@@ -15,3 +19,31 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("CR_NLP_JAX_CACHE", str(ROOT / ".jax_cache")))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+def write_mixed_scene(root: Path, extra: Sequence[dict] = ()) -> "Scene":  # noqa: F821
+    """One obstacle of every kind (sphere, box, capsule, cylinder, mesh), all within reach
+    of tdcr3, plus ``extra`` obstacles, written to ``root/mixed.json`` and loaded."""
+    from cr_nlp.world import Scene, union_of_boxes
+
+    union_of_boxes([((0, 0, 0), (0.6, 0.1, 0.5)), ((0, 0, 0), (0.1, 0.5, 0.5))]).export(
+        root / "corner.obj")
+    data = {"obstacles": [
+        {"type": "sphere", "name": "ball", "center": [0.9, 0.3, 1.5], "radius": 0.25},
+        {"type": "box", "name": "crate", "center": [-0.8, 0.2, 1.2], "size": [0.4, 0.6, 0.3],
+         "wxyz": [0.9238795, 0.0, 0.3826834, 0.0]},
+        *extra,
+        {"type": "capsule", "name": "pipe", "a": [-0.5, -1.0, 2.2], "b": [0.6, -0.6, 2.0],
+         "radius": 0.12},
+        {"type": "cylinder", "name": "post", "a": [0.4, -0.9, 0.0], "b": [0.5, -0.8, 1.4],
+         "radius": 0.15},
+        {"type": "mesh", "name": "corner", "path": "corner.obj", "position": [0.5, 0.6, 0.6]},
+    ]}
+    (root / "mixed.json").write_text(json.dumps(data))
+    return Scene.from_file(root / "mixed.json")
+
+
+def random_q(robot: "Robot", count: int, seed: int) -> np.ndarray:  # noqa: F821
+    """``count`` configurations drawn uniformly inside the robot's limits (rad, rad, m)."""
+    lo, hi = robot.q_bounds()
+    return np.random.default_rng(seed).uniform(lo, hi, (count, robot.dof))

@@ -2,14 +2,13 @@
 plain per-configuration reference (every pair measured, no pruning)."""
 
 import importlib
-import json
 
 import fcl
 import numpy as np
 import pytest
 
 from cr_nlp.model import Robot
-from cr_nlp.world import Scene, SpherePart, load_scene, union_of_boxes
+from cr_nlp.world import Scene, SpherePart, load_scene
 from cr_nlp.world.check import (
     body_chain,
     capsule_capsule_distance,
@@ -23,7 +22,7 @@ from cr_nlp.world.check import (
     segment_distance,
 )
 
-from .conftest import MODELS
+from .conftest import MODELS, random_q, write_mixed_scene
 
 check_module = importlib.import_module("cr_nlp.world.check")
 
@@ -38,26 +37,8 @@ def robots() -> dict[str, Robot]:
 def mixed_scene(tmp_path_factory: pytest.TempPathFactory) -> Scene:
     """One obstacle of every kind, within reach of the robots."""
     root = tmp_path_factory.mktemp("mixed_check")
-    union_of_boxes([((0, 0, 0), (0.6, 0.1, 0.5)), ((0, 0, 0), (0.1, 0.5, 0.5))]).export(
-        root / "corner.obj")
-    data = {"obstacles": [
-        {"type": "sphere", "name": "ball", "center": [0.9, 0.3, 1.5], "radius": 0.25},
-        {"type": "box", "name": "crate", "center": [-0.8, 0.2, 1.2], "size": [0.4, 0.6, 0.3],
-         "wxyz": [0.9238795, 0.0, 0.3826834, 0.0]},
-        {"type": "box", "name": "slab", "center": [0.0, 0.9, 2.4], "size": [0.8, 0.3, 0.2]},
-        {"type": "capsule", "name": "pipe", "a": [-0.5, -1.0, 2.2], "b": [0.6, -0.6, 2.0],
-         "radius": 0.12},
-        {"type": "cylinder", "name": "post", "a": [0.4, -0.9, 0.0], "b": [0.5, -0.8, 1.4],
-         "radius": 0.15},
-        {"type": "mesh", "name": "corner", "path": "corner.obj", "position": [0.5, 0.6, 0.6]},
-    ]}
-    (root / "mixed.json").write_text(json.dumps(data))
-    return Scene.from_file(root / "mixed.json")
-
-
-def random_q(robot: Robot, count: int, seed: int) -> np.ndarray:
-    lo, hi = robot.q_bounds()
-    return np.random.default_rng(seed).uniform(lo, hi, (count, robot.dof))
+    slab = {"type": "box", "name": "slab", "center": [0.0, 0.9, 2.4], "size": [0.8, 0.3, 0.2]}
+    return write_mixed_scene(root, [slab])
 
 
 # ---------------------------------------------------------------- closed forms

@@ -1,7 +1,5 @@
 """The differentiable clearance: against the python-fcl verdict, and JAX against CasADi."""
 
-import json
-from pathlib import Path
 
 import casadi as ca
 import jax
@@ -25,12 +23,11 @@ from cr_nlp.world import (
     self_distances,
     self_pairs,
     soft_clearance,
-    union_of_boxes,
 )
 
-jax.config.update("jax_enable_x64", True)
+from .conftest import MODELS, random_q, write_mixed_scene
 
-MODELS = Path(__file__).resolve().parent.parent / "models"
+jax.config.update("jax_enable_x64", True)
 
 
 @pytest.fixture(scope="module")
@@ -42,25 +39,7 @@ def tdcr3() -> Robot:
 def mixed_scene(tmp_path_factory: pytest.TempPathFactory) -> Scene:
     """One obstacle of every kind, all within reach of tdcr3."""
     root = tmp_path_factory.mktemp("mixed")
-    union_of_boxes([((0, 0, 0), (0.6, 0.1, 0.5)), ((0, 0, 0), (0.1, 0.5, 0.5))]).export(
-        root / "corner.obj")
-    data = {"obstacles": [
-        {"type": "sphere", "name": "ball", "center": [0.9, 0.3, 1.5], "radius": 0.25},
-        {"type": "box", "name": "crate", "center": [-0.8, 0.2, 1.2], "size": [0.4, 0.6, 0.3],
-         "wxyz": [0.9238795, 0.0, 0.3826834, 0.0]},
-        {"type": "capsule", "name": "pipe", "a": [-0.5, -1.0, 2.2], "b": [0.6, -0.6, 2.0],
-         "radius": 0.12},
-        {"type": "cylinder", "name": "post", "a": [0.4, -0.9, 0.0], "b": [0.5, -0.8, 1.4],
-         "radius": 0.15},
-        {"type": "mesh", "name": "corner", "path": "corner.obj", "position": [0.5, 0.6, 0.6]},
-    ]}
-    (root / "mixed.json").write_text(json.dumps(data))
-    return Scene.from_file(root / "mixed.json")
-
-
-def random_q(robot: Robot, count: int, seed: int) -> np.ndarray:
-    lo, hi = robot.q_bounds()
-    return np.random.default_rng(seed).uniform(lo, hi, (count, robot.dof))
+    return write_mixed_scene(root)
 
 
 # ---------------------------------------------------------------- against the verdict
