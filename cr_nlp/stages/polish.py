@@ -456,7 +456,7 @@ class IKPolisher:
         (3n, rad/m) as the NLP sees them, and the world's ``pair_distances`` /
         ``self_distances`` of the same pairs (m, convex parts with ``face_smoothing``):
         the two must agree."""
-        z_near, z = (q_to_z_numpy(np.asarray(x, dtype=np.float64).reshape(-1)) for x in (q_near, q))
+        z_near, z = (q_to_z_numpy(np.reshape(x, -1)) for x in (q_near, q))
         selection = self._select(self._evaluate(z_near, np.zeros(3), np.eye(3))[3])
         symbol = ca.MX.sym("z", self.robot.dof)
         slots = [ca.MX.sym(f"slots_{p.kind}", p.capacity, p.width) for p in self._pools]

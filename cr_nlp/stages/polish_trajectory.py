@@ -612,7 +612,7 @@ class TrajectoryPolisher:
             return TrajectoryPolishResult(q0, False, "non-finite input", math.inf,
                                           seconds=time.perf_counter() - start)
         cfg, w, dof = self.config, self.waypoints, self.robot.dof
-        z0 = np.stack([q_to_z_numpy(row) for row in q0])
+        z0 = q_to_z_numpy(q0)
         lbx, ubx = np.tile(self._lbx, (w, 1)), np.tile(self._ubx, (w, 1))
         if self.objective == "path":
             lbx[0] = ubx[0] = z0[0]
@@ -692,8 +692,7 @@ class TrajectoryPolisher:
         at ``q`` (W, 3n) by the NLP's own mapped CasADi function, and the world's float64
         distances of the same pairs (m, convex parts with ``face_smoothing``): the two
         must agree."""
-        z_near, z = (np.stack([q_to_z_numpy(r) for r in np.asarray(x, dtype=np.float64)])
-                     for x in (q_near, q))
+        z_near, z = (q_to_z_numpy(x) for x in (q_near, q))
         slots, lower, chosen = self._select(self._all_distances(z_near), fixed_ends=False)
         one = configuration_clearance(self._model, self._pools, self.config.face_smoothing)
         configs = self._interpolated(z.T)

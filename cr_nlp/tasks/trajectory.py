@@ -328,7 +328,7 @@ def interpolate_trajectory(q: np.ndarray, samples: int) -> np.ndarray:
     """The motion between waypoints, linear in the bending vector z (hence linear in the
     tendon lengths): (H·samples + 1, 3n) configurations (rad, rad, m), each interval split
     into ``samples`` pieces, waypoints included."""
-    z = q_to_z_numpy(np.asarray(q, dtype=np.float64))
+    z = q_to_z_numpy(q)
     s = np.arange(samples)[:, None] / samples
     inner = (z[:-1, None, :] + s[None, :, :] * (z[1:] - z[:-1])[:, None, :]).reshape(-1, z.shape[1])
     return z_to_q_numpy(np.concatenate([inner, z[-1:]]))
@@ -336,14 +336,14 @@ def interpolate_trajectory(q: np.ndarray, samples: int) -> np.ndarray:
 
 def tip_positions(robot: Robot, q: np.ndarray) -> np.ndarray:
     """(B, 3) tip positions (m) of (B, 3n) configurations, float64 numpy."""
-    z = q_to_z_numpy(np.asarray(q, dtype=np.float64))
+    z = q_to_z_numpy(q)
     _, pos = model_segment_frames(NUMPY, robot, [z[:, i] for i in range(robot.dof)])[-1]
     return np.stack(np.broadcast_arrays(*pos), axis=-1).reshape(-1, 3)
 
 
 def tendon_series(robot: Robot, q: np.ndarray) -> np.ndarray:
     """(B, n_tendons) tendon lengths (m) of (B, 3n) configurations, float64 numpy."""
-    z = q_to_z_numpy(np.asarray(q, dtype=np.float64))
+    z = q_to_z_numpy(q)
     values = model_tendon_lengths(NUMPY, robot, [z[:, i] for i in range(robot.dof)])
     return np.stack(np.broadcast_arrays(*values), axis=-1).reshape(len(z), -1)
 
@@ -633,7 +633,7 @@ class TrajectoryPlanner:
             roadmap = self.roadmap()
             path = None if roadmap is None else roadmap.query(q_start, q_goal, n)
             if path is not None:
-                z = q_to_z_numpy(np.asarray(path, dtype=np.float64).reshape(n, -1))
+                z = q_to_z_numpy(np.reshape(path, (n, -1)))
                 z[0], z[-1] = z_start, z_goal
                 guesses.append(z)
                 kinds.append("roadmap")
