@@ -73,6 +73,7 @@ from ._timing import StageTiming
 from .ik import IKConfig, IKSolver, validate_targets
 from .paths import ReferencePath, load_path
 from .trajectory import (
+    EXACT_TOLERANCE,
     _groups_from,
     _has_clearance,
     tendon_names,
@@ -858,7 +859,7 @@ class PathFollower:
                 (self._arrays, jnp.asarray(dt, self.dtype)), self._free)
         key = ("chains", padded, length, rows)
         if key not in self._compiled:
-            weights = (1.0, 1.0, math.sqrt(self.config.ik_config().clearance_weight))
+            weights = (1.0, 1.0, math.sqrt(self.config.ik.clearance_weight))
             fn = partial(_continue_chains, self.robot, float(self.margin), weights,
                          self.config.continuation_iterations)
             # Chains are independent: split over the devices like the IK's LM (measured:
@@ -926,7 +927,7 @@ class PathFollower:
             solve = partial(banded_lm_solve, self._terms, self._project, config=config)
             self._compiled[t] = jax.jit(solve).lower(*args).compile()
         z, cost, iterations = self._compiled[t](*args)
-        q = z_to_q_numpy(np.asarray(z, dtype=np.float64))
+        q = z_to_q_numpy(z)
         return clip_to_limits(self.robot, q), float(cost), int(iterations)
 
     def _lm_args(self, q0: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
@@ -1052,7 +1053,8 @@ class PathFollower:
             return lm
         import sys
 
-        if lm.max_violation <= 1e-6 and lm.collision_free and bool(np.all(lm.reached)):
+        if lm.max_violation <= EXACT_TOLERANCE and lm.collision_free and \
+                bool(np.all(lm.reached)):
             # Every constraint already holds (verified independently) and every waypoint is
             # tracked: Ipopt has nothing to enforce. Measured on the bundled shapes, its
             # interior-point iterates left such an answer for another branch (square: mean
@@ -1084,13 +1086,13 @@ class PathFollower:
         q = clip_to_limits(self.robot, np.asarray(out.q, dtype=np.float64))
         verdict = self.verify(q, path, path.dt)
         timing.verify += time.perf_counter() - t1
-        if not verdict["collision_free"] or verdict["max_violation"] > 1e-6:
+        if not verdict["collision_free"] or verdict["max_violation"] > EXACT_TOLERANCE:
             lm.stage = (f"lm (polish failed: rejected by the checker: max violation "
                         f"{verdict['max_violation']:.3g})")
             return lm
         polished = self._result(q, path, verdict, "polish", why)
-        if lm.max_violation <= 1e-6 and lm.collision_free and _tracking_cost(polished) > \
-                _tracking_cost(lm):
+        if lm.max_violation <= EXACT_TOLERANCE and lm.collision_free and \
+                _tracking_cost(polished) > _tracking_cost(lm):
             # Both feasible: keep the one that tracks the path better.
             lm.stage = "lm (feasible; the polished answer tracked worse)"
             return lm
