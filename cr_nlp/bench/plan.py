@@ -182,8 +182,10 @@ def measure_planner(planner: TrajectoryPlanner, scene: str, method: str, starts:
     wall = time.perf_counter() - t0
     # The planner's own success may be stricter than the shared verdict (exact mode
     # also demands the clearance margin): a row counts a success only if both agree.
-    verdicts = [{**v, "success": v["success"] and r.success}
-                for v, r in ((_judge(planner, r.q, r.dt), r) for r in results)]
+    verdicts = []
+    for r in results:
+        verdict = _judge(planner, r.q, r.dt)
+        verdicts.append({**verdict, "success": verdict["success"] and r.success})
     per_problem = [sum(v for k, v in r.timing.items() if k != "compile") for r in results]
     return _summary(scene, method, verdicts, per_problem, wall / len(starts), first), results
 
@@ -281,6 +283,8 @@ def run_plan_benchmark(quick: bool = False, pairs_per_scene: int | None = None,
     sweep_count = min(pairs, sweep_pairs or sizes.sweep_pairs)
     robot_model = load_robot(robot)
     rows: list[dict[str, Any]] = []
+    all_rows: list[dict[str, Any]] = []       # rows + the pooled "all" rows
+    report = ""
     sweep: list[dict[str, Any]] = []
     builds: list[dict[str, Any]] = []
     lengths: dict[str, list[float]] = {m: [] for m in METHODS}
@@ -306,23 +310,21 @@ def run_plan_benchmark(quick: bool = False, pairs_per_scene: int | None = None,
         if budgets:
             sweep += iteration_sweep(planner, name, starts[:sweep_count],
                                      goals[:sweep_count], budgets)
+        # Written after every scene: an interrupted run keeps the scenes it finished.
+        all_rows = rows + _pooled(rows, lengths)
+        report = format_report(all_rows, builds, sweep, environment(), robot, pairs,
+                               sweep_count)
         if out is not None:
-            _write(rows + _pooled(rows, lengths), builds, sweep, robot, pairs, sweep_count,
-                   Path(out))
-    rows += _pooled(rows, lengths)
-    report = format_report(rows, builds, sweep, environment(), robot, pairs, sweep_count)
+            _write(report, all_rows, builds, sweep, Path(out))
     print(report)
-    if out is not None:
-        _write(rows, builds, sweep, robot, pairs, sweep_count, Path(out))
-    return rows
+    return all_rows
 
 
-def _write(rows: Sequence[dict[str, Any]], builds: Sequence[dict[str, Any]],
-           sweep: Sequence[dict[str, Any]], robot: str, pairs: int, sweep_pairs: int,
-           out: Path) -> None:
-    """plan.md, plan.csv, roadmap_build.csv and the sweep's CSV and figure in ``out``."""
-    write_text(format_report(rows, builds, sweep, environment(), robot, pairs, sweep_pairs),
-               out / "plan.md")
+def _write(report: str, rows: Sequence[dict[str, Any]], builds: Sequence[dict[str, Any]],
+           sweep: Sequence[dict[str, Any]], out: Path) -> None:
+    """plan.md (``report``), plan.csv, roadmap_build.csv and the sweep's CSV and figure in
+    ``out``."""
+    write_text(report, out / "plan.md")
     write_csv(rows, out / "plan.csv")
     write_csv(builds, out / "roadmap_build.csv")
     if sweep:
