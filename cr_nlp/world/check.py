@@ -14,8 +14,8 @@ What is computed how, for a whole batch of configurations at once:
   both radii), vectorised over (configuration, piece, sphere). Exact, and it avoids
   fcl's penetration query (EPA), which was seen to never return for a sphere centre
   on a capsule's axis.
-- Self-collision: closed form (segment–segment distance minus 2r, which is also the
-  exact penetration depth of two capsules), vectorised over (configuration, far pair).
+- Self-collision: closed form (segment–segment distance minus 2r; negative when the
+  capsules overlap), vectorised over (configuration, far pair).
 - Box, capsule, cylinder and mesh (convex) parts: python-fcl (``fcl_distance``), per
   configuration. Lower bounds are computed vectorised for the batch: the part's
   bounding sphere against the piece's segment, tightened by the part's face planes
@@ -319,10 +319,11 @@ def segment_distance(p0: Any, p1: Any, q0: Any, q1: Any) -> np.ndarray:
 
 def capsule_capsule_distance(a0: Any, b0: Any, r0: Any, a1: Any, b1: Any,
                              r1: Any) -> np.ndarray:
-    """Exact signed distance (m) between capsules of radius r0 around a0–b0 and r1 around
-    a1–b1 (broadcast, (…, 3) points): the segment distance minus both radii. Negative
-    values are the exact penetration depth (moving the capsules apart along their
-    closest-point direction by that much separates them)."""
+    """Signed distance (m) between capsules of radius r0 around a0–b0 and r1 around a1–b1
+    (broadcast, (…, 3) points): the segment distance minus both radii, exact when they
+    are apart. A negative value says they overlap (exactly where the sign changes), and
+    moving them apart along their closest-point direction by its magnitude separates
+    them; a shorter separating move may exist (e.g. off a segment's end)."""
     return segment_distance(a0, b0, a1, b1) - r0 - r1
 
 
