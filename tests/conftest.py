@@ -1,15 +1,22 @@
 """Test-wide settings: float64 for agreement tests, a persistent JAX compilation cache;
 helpers shared by the world tests."""
 
+from __future__ import annotations
+
 import json
 import os
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import jax
 import numpy as np
 
 from cr_nlp._jax_setup import use_host_devices
+
+if TYPE_CHECKING:  # the world and model modules are imported lazily, after the settings
+    from cr_nlp.model import Robot
+    from cr_nlp.world import Scene
 
 ROOT = Path(__file__).resolve().parent.parent
 MODELS = ROOT / "models"
@@ -21,7 +28,7 @@ jax.config.update("jax_compilation_cache_dir",
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
-def write_mixed_scene(root: Path, extra: Sequence[dict] = ()) -> "Scene":  # noqa: F821
+def write_mixed_scene(root: Path, extra: Sequence[dict] = ()) -> Scene:
     """One obstacle of every kind (sphere, box, capsule, cylinder, mesh), all within reach
     of tdcr3, plus ``extra`` obstacles, written to ``root/mixed.json`` and loaded."""
     from cr_nlp.world import Scene, union_of_boxes
@@ -43,7 +50,7 @@ def write_mixed_scene(root: Path, extra: Sequence[dict] = ()) -> "Scene":  # noq
     return Scene.from_file(root / "mixed.json")
 
 
-def random_q(robot: "Robot", count: int, seed: int) -> np.ndarray:  # noqa: F821
+def random_q(robot: Robot, count: int, seed: int) -> np.ndarray:
     """``count`` configurations drawn uniformly inside the robot's limits (rad, rad, m)."""
     lo, hi = robot.q_bounds()
     return np.random.default_rng(seed).uniform(lo, hi, (count, robot.dof))
