@@ -64,6 +64,17 @@ def limit_violation_q(robot: Robot, q: np.ndarray) -> np.ndarray:
     return np.max(np.stack(parts, axis=-1), axis=(-1, -2))
 
 
+def project_bending(robot: Robot, q: np.ndarray) -> np.ndarray:
+    """(…, 3n) configurations (θ, φ, L) with θ clipped into [0, θmax] (the bending disk)
+    and L into its range, float64; φ unchanged (an azimuth range is not a simple set in
+    the optimisers' variables). Removes the ~1e-8 that Ipopt's bound relaxation leaves
+    outside an active bound, before the answer is judged."""
+    lo, hi = robot.q_bounds()
+    simple = np.array([[True, False, True] for _ in robot.segments]).ravel()
+    q = np.asarray(q, dtype=np.float64)
+    return np.where(simple, np.clip(q, lo, hi), q)
+
+
 def clip_to_limits(robot: Robot, q: np.ndarray) -> np.ndarray:
     """(…, 3n) configurations (θ, φ, L) with θ, L (and limited φ) clipped into their ranges,
     in float64: removes the round-off a float32 solver leaves at an active limit."""

@@ -45,7 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..model._ops import CASADI, JAX, Ops
+from ..model._ops import CASADI, JAX, NUMPY, Ops
 from ..model.kinematics import model_backbone, model_q_to_z, q_to_z
 from ..model.robot import Robot
 from . import distances as dist
@@ -153,13 +153,14 @@ def body_gap_tolerance(robot: Robot) -> float:
 
 
 def _body_centres(ops: Ops, robot: Robot, z: list[Any]) -> Any:
-    """(…, N, 3) JAX array, or an N × 3 CasADi matrix, of body-sphere centres."""
+    """(…, N, 3) JAX or NumPy array, or an N × 3 CasADi matrix, of body-sphere centres."""
     points = model_backbone(ops, robot, z)
     if ops is CASADI:
         return ca.vertcat(ca.DM(np.array(robot.base_position, dtype=float)).T, points)
-    base = jnp.broadcast_to(jnp.asarray(robot.base_position, dtype=points.dtype),
-                            points.shape[:-2] + (1, 3))
-    return jnp.concatenate([base, points], axis=-2)
+    xp = np if ops is NUMPY else jnp
+    base = xp.broadcast_to(xp.asarray(robot.base_position, dtype=points.dtype),
+                           points.shape[:-2] + (1, 3))
+    return xp.concatenate([base, points], axis=-2)
 
 
 # ================================================================ pair distances, JAX
@@ -173,37 +174,39 @@ def _rot_entries(r: Any) -> tuple[Any, ...]:
 
 
 def _kind_blocks(robot: Robot, arrays: SceneArrays, centres: Any,
-                 smoothing: float) -> list[Any]:
-    """Per part kind, the (…, N, count) distances of every body sphere to every part."""
+                 smoothing: float, ops: Ops = JAX) -> list[Any]:
+    """Per part kind, the (…, N, count) distances of every body sphere to every part
+    (``ops``: JAX, or NUMPY for float64 numpy arrays)."""
     c = tuple(centres[..., :, None, i] for i in range(3))
     r = robot.backbone_radius
     a = arrays
     blocks = []
     if a.sphere_radius.shape[0]:
-        blocks.append(dist.sphere_to_sphere(JAX, c, r, _cols(a.sphere_center), a.sphere_radius))
+        blocks.append(dist.sphere_to_sphere(ops, c, r, _cols(a.sphere_center), a.sphere_radius))
     if a.box_center.shape[0]:
-        blocks.append(dist.sphere_to_box(JAX, c, r, _cols(a.box_center),
+        blocks.append(dist.sphere_to_box(ops, c, r, _cols(a.box_center),
                                          _rot_entries(a.box_rotation), _cols(a.box_half_size)))
     if a.capsule_radius.shape[0]:
-        blocks.append(dist.sphere_to_capsule(JAX, c, r, _cols(a.capsule_a), _cols(a.capsule_b),
+        blocks.append(dist.sphere_to_capsule(ops, c, r, _cols(a.capsule_a), _cols(a.capsule_b),
                                              a.capsule_radius))
     if a.cylinder_radius.shape[0]:
         blocks.append(dist.sphere_to_cylinder(
-            JAX, c, r, _cols(a.cylinder_center), _rot_entries(a.cylinder_rotation),
+            ops, c, r, _cols(a.cylinder_center), _rot_entries(a.cylinder_rotation),
             a.cylinder_radius, a.cylinder_half_length))
     if a.convex_planes.shape[0]:
         # Faces on a trailing axis: (…, N, C, F) plane values, reduced over F.
         c_faces = tuple(x[..., None] for x in c)
-        blocks.append(dist.sphere_to_convex(JAX, c_faces, r, _cols(a.convex_planes),
+        blocks.append(dist.sphere_to_convex(ops, c_faces, r, _cols(a.convex_planes),
                                             a.convex_planes.shape[1], smoothing))
     return blocks
 
 
-def _self_block(robot: Robot, centres: Any) -> Any:
-    pairs = self_pairs(robot)
+def _self_block(robot: Robot, centres: Any, ops: Ops = JAX,
+                pairs: np.ndarray | None = None) -> Any:
+    pairs = self_pairs(robot) if pairs is None else pairs
     r = robot.backbone_radius
     ci, cj = centres[..., pairs[:, 0], :], centres[..., pairs[:, 1], :]
-    return dist.sphere_to_sphere(JAX, _cols(ci), r, _cols(cj), r)
+    return dist.sphere_to_sphere(ops, _cols(ci), r, _cols(cj), r)
 
 
 def _centres(robot: Robot, x: jax.Array, is_q: bool) -> jax.Array:
@@ -311,6 +314,122 @@ def soft_clearance_z(robot: Robot, arrays: SceneArrays, z: jax.Array, temperatur
                      face_smoothing: float = 0.0) -> jax.Array:
     """``soft_clearance`` of the bending-vector form z (…, 3n)."""
     return _soft_clearance(robot, arrays, z, False, temperature, face_smoothing)
+
+
+def all_pair_distances_numpy(robot: Robot, arrays: SceneArrays | None, z: Any,
+                             face_smoothing: float = 0.0,
+                             include_self: bool = True) -> np.ndarray:
+    """Float64 numpy, every pair of the exact stage: (…, N·P + M) signed distances (m) of
+    the bending-vector configurations z (…, 3n), the N·P obstacle pairs body-major
+    (``pair_distances_z`` flattened), then, with ``include_self`` and n ≥ 3 segments, the
+    M self pairs (``self_distances_z``). ``arrays``: numpy ``SceneArrays`` or None."""
+    z = np.asarray(z, dtype=np.float64)
+    centres = _body_centres(NUMPY, robot, [z[..., i] for i in range(robot.dof)])
+    rows = []
+    if arrays is not None:
+        blocks = _kind_blocks(robot, arrays, centres, face_smoothing, NUMPY)
+        if blocks:
+            pairs = np.concatenate(blocks, axis=-1)
+            rows.append(pairs.reshape(pairs.shape[:-2] + (-1,)))
+    if include_self and robot.n_segments >= 3:
+        rows.append(_self_block(robot, centres, NUMPY))
+    if not rows:
+        return np.zeros(z.shape[:-1] + (0,))
+    return np.concatenate(rows, axis=-1)
+
+
+class PairDistances:
+    """Float64 numpy distances of every pair of the exact stage, with a broad phase.
+
+    ``near(z)`` returns (…, N·P + M) signed distances (m) for bending-vector
+    configurations z (…, 3n): the N·P obstacle pairs body-major (the order of
+    ``pair_distances_z`` flattened), then, with n ≥ 3 segments, the M self pairs
+    (``self_pairs``). A pair whose lower bound from the part's bounding ball is at least
+    ``margin`` gets that lower bound (≥ margin) instead of its distance: the values are
+    exact below ``margin`` and never above the exact ones, which is all that choosing the
+    pairs near a configuration and measuring a shortfall below δ ≤ margin need.
+
+    Args:
+        robot: the robot.
+        scene: the obstacles, or None (self pairs only).
+        face_smoothing: metres, μ of the convex parts' face-plane max (a lower bound).
+    """
+
+    def __init__(self, robot: Robot, scene: Scene | None, face_smoothing: float = 0.0) -> None:
+        from .scene import bounding_sphere
+
+        self.robot = robot
+        self.face_smoothing = float(face_smoothing)
+        self.arrays = scene_arrays(scene, as_numpy=True) if scene is not None else None
+        parts = scene.parts if scene is not None else ()
+        balls = [bounding_sphere(p) for p in parts]
+        self._ball_centres = np.array([c for c, _ in balls], dtype=float).reshape(-1, 3)
+        self._ball_radii = np.array([r for _, r in balls], dtype=float)
+        a = self.arrays
+        counts = ([a.sphere_radius.shape[0], a.box_center.shape[0], a.capsule_radius.shape[0],
+                   a.cylinder_radius.shape[0], a.convex_planes.shape[0]] if a is not None
+                  else [0] * 5)
+        self._kind_starts = np.cumsum([0] + counts)
+        self._self_pairs = self_pairs(robot) if robot.n_segments >= 3 else np.zeros((0, 2), int)
+
+    @property
+    def size(self) -> int:
+        """N·P + M: pairs per configuration."""
+        return (self.robot.n_points + 1) * len(self._ball_radii) + len(self._self_pairs)
+
+    def centres(self, z: Any) -> np.ndarray:
+        """(…, N, 3) body-sphere centres (m) of z (…, 3n), float64."""
+        z = np.asarray(z, dtype=np.float64)
+        return _body_centres(NUMPY, self.robot, [z[..., i] for i in range(self.robot.dof)])
+
+    def near(self, z: Any, margin: float, centres: np.ndarray | None = None) -> np.ndarray:
+        """The (…, N·P + M) distances of z (…, 3n), exact where below ``margin`` (m);
+        ``centres`` may pass ``self.centres(z)`` when the caller has them."""
+        centres = self.centres(z) if centres is None else np.asarray(centres, dtype=np.float64)
+        batch = centres.shape[:-2]
+        flat = centres.reshape(-1, centres.shape[-2], 3)
+        r = self.robot.backbone_radius
+        rows = []
+        if len(self._ball_radii):
+            gap = flat[:, :, None, :] - self._ball_centres[None, None]
+            bound = np.sqrt(np.einsum("bnpk,bnpk->bnp", gap, gap)) - self._ball_radii - r
+            exact = np.argwhere(bound < margin)
+            bound[tuple(exact.T)] = self._exact(flat[exact[:, 0], exact[:, 1]], exact[:, 2])
+            rows.append(bound.reshape(len(flat), -1))
+        if len(self._self_pairs):
+            rows.append(_self_block(self.robot, flat, NUMPY, self._self_pairs))
+        out = (np.concatenate(rows, axis=-1) if rows else np.zeros((len(flat), 0)))
+        return out.reshape(batch + (out.shape[-1],))
+
+    def _exact(self, centres: np.ndarray, parts: np.ndarray) -> np.ndarray:
+        """Signed distances (m) of K body spheres (K, 3) to K parts (flat indices)."""
+        a, r, out = self.arrays, self.robot.backbone_radius, np.empty(len(parts))
+        starts = self._kind_starts
+        for kind in range(5):
+            mine = np.flatnonzero((parts >= starts[kind]) & (parts < starts[kind + 1]))
+            if not len(mine):
+                continue
+            j = parts[mine] - starts[kind]
+            c = _cols(centres[mine])
+            if kind == 0:
+                d = dist.sphere_to_sphere(NUMPY, c, r, _cols(a.sphere_center[j]),
+                                          a.sphere_radius[j])
+            elif kind == 1:
+                d = dist.sphere_to_box(NUMPY, c, r, _cols(a.box_center[j]),
+                                       _rot_entries(a.box_rotation[j]), _cols(a.box_half_size[j]))
+            elif kind == 2:
+                d = dist.sphere_to_capsule(NUMPY, c, r, _cols(a.capsule_a[j]),
+                                           _cols(a.capsule_b[j]), a.capsule_radius[j])
+            elif kind == 3:
+                d = dist.sphere_to_cylinder(NUMPY, c, r, _cols(a.cylinder_center[j]),
+                                            _rot_entries(a.cylinder_rotation[j]),
+                                            a.cylinder_radius[j], a.cylinder_half_length[j])
+            else:
+                planes = a.convex_planes[j]
+                d = dist.sphere_to_convex(NUMPY, tuple(x[:, None] for x in c), r, _cols(planes),
+                                          planes.shape[1], self.face_smoothing)
+            out[mine] = d
+        return out
 
 
 # ================================================================ CasADi
