@@ -244,11 +244,13 @@ def test_slot_rows_equal_the_world_pair_distances(tdcr3, lattice):
 
 def test_failure_reason_names_what_rejected_the_answer() -> None:
     def result(success: bool, status: str, violation: float, error: float) -> PolishResult:
-        return PolishResult(np.zeros(9), success, status, violation, error, 3, 0.01, "equality")
+        return PolishResult(np.zeros(9), success, status, violation, error, 3, 0.01, "equality",
+                            {"limits": 0.0, "clearance": violation})
 
     assert result(True, "Solve_Succeeded", 0.0, 1e-9).failure() == ""
     assert result(False, "Infeasible_Problem_Detected", 0.1, 0.2).failure() == \
         "Ipopt: Infeasible_Problem_Detected"
-    assert "violated by 0.003" in result(False, "Solve_Succeeded", 3e-3, 1e-9).failure()
+    rejected = result(False, "Solve_Succeeded", 3e-3, 1e-9).failure()
+    assert "breaks the clearance by 0.003 m" in rejected and "limit" not in rejected
     unreachable = result(False, "Solve_Succeeded", 0.0, 0.05).failure()
     assert "0.05" in unreachable and "not reachable" in unreachable

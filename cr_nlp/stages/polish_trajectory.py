@@ -18,21 +18,28 @@ Constraints (DESIGN.md §2):
 - tendon speed ``|ℓ(z_{k+1}) − ℓ(z_k)|/Δt ≤ v_max`` and acceleration
   ``|ℓ_{k+1} − 2ℓ_k + ℓ_{k−1}|/Δt² ≤ a_max`` per tendon. Tendon lengths are linear in z
   (``ℓ = A·z + b``), so these are linear rows ``A·Δz·(1/Δt)`` with 1/Δt an NLP parameter:
-  the rows are in m/s and m/s² whatever Δt is (Ipopt's ``constr_viol_tol`` then means the
-  same thing for every Δt), and a new Δt needs no rebuild. A family whose limit is
-  infinite has no rows;
+  the rows are in m/s and m/s² whatever Δt is, and a new Δt needs no rebuild. A family
+  whose limit is infinite has no rows;
 - clearance ``d ≥ δ`` at every waypoint and at ``interpolation_checks`` evenly spaced
-  points inside every interval (linear in z, the motion the planner verifies), with the
-  pair slots of ``stages.polish``: per configuration and part kind (and for self pairs) a
-  pool of ``max_pairs`` rows whose body sphere and part are parameters, assigned per
-  solve to the pairs nearer than ``near_margin`` at the warm start, the rest switched off
-  with ``lbg = −∞``. One configuration's rows are one ``ca.Function``, mapped over all
-  configurations, so the graph does not grow with the number of waypoints.
+  points inside every interval (linear in z, the motion the planner verifies). The
+  planner sets ``interpolation_checks = verify_samples − 1``, so the polish constrains
+  every configuration the python-fcl verification checks: a motion that cuts an
+  obstacle between two waypoints is a violated row of the NLP, not only a rejection
+  afterwards. The rows are the pair slots of ``stages.slots``, one configuration's rows
+  one CasADi function mapped over all configurations.
 
-The NLP is built once per polisher (robot, scene, waypoints, objective) and re-solved
-with new parameters (1/Δt, targets, slots) and bounds. Every answer is re-evaluated in
-float64 independently of Ipopt (JAX kinematics and the world's distances over ALL pairs,
-numpy limits and tendon finite differences) before it is called a success.
+Derivatives (``stages.slots``): exact first derivatives; the Hessian of the Lagrangian
+holds the objective's and the bending disks' exact second derivatives, assembled from
+per-waypoint and per-interval element Hessians into its block-tridiagonal band, and not
+the clearance rows' curvature (measured on the shelf: the same optima, the Hessian 20×
+cheaper; the stage-wise structure is then cheap enough that the general sparse MUMPS
+factorisation of the band is not the bottleneck).
+
+The NLP is built once per polisher (robot, scene, waypoints, objective, checks) and
+re-solved with new parameters (1/Δt, targets, slots) and bounds. Every answer is projected
+onto the simple limits and re-evaluated in float64 independently of Ipopt (the world's
+distances over all pairs at every waypoint and check point, numpy limits and tendon
+finite differences) before it is called a success.
 """
 
 from __future__ import annotations
@@ -40,43 +47,20 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from functools import partial
 from pathlib import Path
 from typing import Any
 
 import casadi as ca
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from ..model import (
-    CasadiModel,
-    Robot,
-    load_robot,
-    pose_error,
-    q_to_z_numpy,
-    tip_pose_z,
-    z_to_q_numpy,
-)
-from ..model._ops import CASADI, NUMPY
+from ..model import CasadiModel, Robot, load_robot, q_to_z_numpy, z_to_q_numpy
+from ..model._ops import NUMPY
 from ..model.kinematics import model_tendon_lengths
-from ..model.limits import limit_violation_q
-from ..world import distances as dist
-from ..world.clearance import (
-    SceneArrays,
-    body_gap_tolerance,
-    pair_distances_z,
-    self_distances_z,
-    self_pairs,
-)
+from ..model.limits import limit_violation_q, project_bending
+from ..world.clearance import PairDistances, body_gap_tolerance, self_pairs
 from ..world.scene import Scene, load_scene
-from .polish import (
-    _Pool,
-    _Selection,
-    _slot_distances,
-    make_pools,
-    select_slots,
-)
+from ..world.verdict import VIOLATION_TOLERANCE
+from .slots import SlotRows, make_pools, select_slots
 
 OBJECTIVES = ("path", "tracking")
 
@@ -98,12 +82,27 @@ class TrajectoryPolishConfig:
     max_pairs: int = 8
     """Constraint slots per pool and per configuration (one pool per part kind of the
     scene, one for self pairs); when more pairs are near, the nearest get the slots."""
-    reselections: int = 2
-    """How many times a solve may re-assign the slots and go on when a pair without a
-    slot came closer than δ."""
-    interpolation_checks: int = 1
-    """Clearance check points inside each interval (1: the midpoint; 3: the quarter
-    points, the samples ``verify_trajectory`` checks with its default 4)."""
+    reselections: int = 4
+    """How many times a solve may go on from its answer with re-placed check points and
+    re-assigned slots: when a pair without a slot (or a sample without a check point)
+    came closer than δ, or the answer stopped at the step limit."""
+    step_limit: float = 0.5
+    """Per round, every body sphere may move at most about ``step_limit·near_margin``
+    metres: each variable stays within that distance divided by the largest lever
+    Σⱼ‖∂c/∂zⱼ‖ (m per rad or m) at the warm start; a round stopped by the limit goes on in
+    the next. Pairs farther than ``near_margin`` have no rows; without the limit a solve
+    pulled paths straight through such obstacles (measured on random_27: 0.2–0.4 m
+    deep). The last round is free of it when only the limit stopped the one before."""
+    interpolation_checks: int = 3
+    """Clearance check points inside each interval, at the ``verify_samples`` samples
+    where the motion comes closest to an obstacle (all of them with the default 3 and 4,
+    so the polish constrains every configuration the verification checks). Fewer points
+    are placed per solve and moved when the answer comes closer elsewhere; measured on
+    random_27, one point per interval left 9/10 answers failing at the other samples
+    (the motion slides along a sphere: the chord between two checked points cuts it)."""
+    verify_samples: int = 4
+    """Every interval is re-evaluated at fractions j/``verify_samples`` (the samples
+    ``verify_trajectory`` checks with python-fcl); a polish succeeds only if all keep δ."""
     face_smoothing: float = 0.002
     """Metres: smoothing μ of the max over a convex part's face planes, a conservative
     lower bound at most ⌈log₂ F⌉·μ/2 below the unsmoothed distance."""
@@ -119,9 +118,19 @@ class TrajectoryPolishConfig:
     """``"tracking"``: weight of Σ‖z_{k+1} − z_k‖² (rad², m²); tiny, it only picks one of
     equally good bodies. It biases reachable poses by about weight·‖Δz‖/‖J‖: 1e-4 was
     measured to leave 1e-3 pose errors on an 8-waypoint tdcr3 path, 1e-8 below 1e-6."""
+    clearance_curvature: str = "full"
+    """The clearance rows' second derivatives in the Hessian: ``"full"`` (exact:
+    through the parts' shape and the kinematics), ``"parts"`` (the parts' shape only) or
+    ``"none"``."""
+    compile: bool = True
+    """Compile the per-configuration clearance functions to machine code, cached on disk
+    (``stages.compiled``: about 3× faster evaluations; 5–20 s once per robot and scene
+    structure). False, or no C compiler: CasADi's virtual machine, the same numbers."""
     hessian: str = "exact"
-    """Ipopt's ``hessian_approximation``: ``"exact"`` or ``"limited-memory"``."""
-    violation_tolerance: float = 1e-6
+    """Ipopt's ``hessian_approximation``: ``"exact"`` (the structured Hessian of the
+    module docstring: exact objective and bending terms, no clearance curvature) or
+    ``"limited-memory"`` (L-BFGS)."""
+    violation_tolerance: float = VIOLATION_TOLERANCE
     """Largest re-evaluated ``max_violation`` of a successful polish (rad, m, m/s, m/s²)."""
     print_level: int = 0
     """Ipopt's ``print_level`` (0: silent)."""
@@ -131,6 +140,13 @@ class TrajectoryPolishConfig:
             raise ValueError(f"max_pairs must be at least 1, got {self.max_pairs}")
         if self.interpolation_checks < 0 or self.reselections < 0:
             raise ValueError("interpolation_checks and reselections must be ≥ 0")
+        if self.verify_samples < 1 or self.interpolation_checks > self.verify_samples - 1:
+            raise ValueError("verify_samples must be ≥ 1 and interpolation_checks ≤ "
+                             f"verify_samples − 1, got {self.verify_samples} and "
+                             f"{self.interpolation_checks}")
+        if self.clearance_curvature not in ("full", "parts", "none"):
+            raise ValueError("clearance_curvature must be 'full', 'parts' or 'none', got "
+                             f"{self.clearance_curvature!r}")
         if self.hessian not in ("exact", "limited-memory"):
             raise ValueError(f"hessian must be 'exact' or 'limited-memory', got {self.hessian!r}")
 
@@ -140,11 +156,12 @@ class TrajectoryPolishResult:
     """The outcome of one trajectory polish (never raised: a failure is ``success=False``)."""
 
     q: np.ndarray
-    """(W, 3n) waypoints θ, φ, L (rad, rad, m): Ipopt's answer, or the warm start if Ipopt
-    produced nothing finite."""
+    """(W, 3n) waypoints θ, φ, L (rad, rad, m): Ipopt's answer projected onto the simple
+    limits, or the warm start if Ipopt produced nothing finite."""
     success: bool
-    """Ipopt reported success and the re-evaluated ``max_violation`` ≤
-    ``violation_tolerance``."""
+    """The re-evaluated ``max_violation`` ≤ ``violation_tolerance``: every constraint
+    holds at every waypoint and sample, whatever Ipopt reported (``status``; an answer
+    that is valid is not thrown away because Ipopt stopped early)."""
     status: str
     """Ipopt's return status, or why no solve ran."""
     max_violation: float
@@ -162,30 +179,9 @@ class TrajectoryPolishResult:
     pose_errors: np.ndarray | None = None
     """``"tracking"`` only: (W,) ‖log(T_tip⁻¹·T_target)‖ per waypoint (mixed m/rad),
     float64."""
-
-
-# ================================================================ float64 re-evaluation
-
-
-@partial(jax.jit, static_argnums=(0, 2))
-def _distances(robot: Robot, arrays: SceneArrays | None, with_self: bool,
-               z: jax.Array) -> jax.Array:
-    """(C, N·P + M) distances (m) of C configurations: obstacle pairs body-major, then the
-    self pairs (the order ``select_slots`` expects)."""
-    rows = []
-    if arrays is not None:
-        rows.append(pair_distances_z(robot, arrays, z).reshape(z.shape[0], -1))
-    if with_self:
-        rows.append(self_distances_z(robot, z))
-    return jnp.concatenate(rows, axis=1) if rows else jnp.zeros((z.shape[0], 0), z.dtype)
-
-
-@partial(jax.jit, static_argnums=0)
-def _pose_errors(robot: Robot, z: jax.Array, positions: jax.Array,
-                 rotations: jax.Array) -> jax.Array:
-    """(W,) pose errors of (W, 3n) waypoints against (W, 3) and (W, 3, 3) targets."""
-    position, rotation = jax.vmap(partial(tip_pose_z, robot))(z)
-    return pose_error(position, rotation, positions, rotations)
+    warm_start_violations: dict[str, float] = field(default_factory=dict)
+    """``violations`` of the warm start, as the NLP's constraints see it (the same
+    families, the same configurations)."""
 
 
 def _tendon_lengths(robot: Robot, z: np.ndarray) -> np.ndarray:
@@ -194,54 +190,21 @@ def _tendon_lengths(robot: Robot, z: np.ndarray) -> np.ndarray:
     return np.stack(np.broadcast_arrays(*values), axis=-1).reshape(len(z), -1)
 
 
-# ================================================================ clearance rows
-
-
-def _one_hot_width(pool: _Pool, n_bodies: int) -> int:
-    """Parameters per slot in the one-hot form: one (self: two) N-wide body-sphere
-    selectors, then the part's row."""
-    return 2 * n_bodies if pool.kind == "self" else n_bodies + pool.table.shape[1]
-
-
-def _one_hot(pool: _Pool, n_bodies: int, slots: np.ndarray) -> np.ndarray:
-    """``select_slots``' (capacity × width) slot parameters, body-sphere indices replaced
-    by one-hot selector rows."""
-    eye = np.eye(n_bodies)
-    if pool.kind == "self":
-        return np.hstack([eye[slots[:, 0].astype(int)], eye[slots[:, 1].astype(int)]])
-    return np.hstack([eye[slots[:, 0].astype(int)], slots[:, 1:]])
-
-
-def configuration_clearance(model: CasadiModel, pools: list[_Pool],
-                            face_smoothing: float) -> ca.Function:
-    """One configuration's slot rows as an SX ``ca.Function(z, *slots) -> rows``: z (3n,)
-    bending vector, one (capacity × ``_one_hot_width``) parameter matrix per pool; rows:
-    for each pool, the (capacity,) signed distances (m) of its slots' pairs.
-
-    A slot picks its body sphere by a one-hot row (a product with the N × 3 centres)
-    instead of a parametric index, so the whole function is SX: its exact Hessian, mapped
-    over all configurations, was measured far cheaper than the MX graph with indices."""
-    robot = model.robot
-    n_bodies, r = robot.n_points + 1, robot.backbone_radius
-    z = ca.SX.sym("z", robot.dof)
-    slots = [ca.SX.sym(f"slots_{p.kind}", p.capacity, _one_hot_width(p, n_bodies))
-             for p in pools]
-    base = ca.DM(np.asarray(robot.base_position, dtype=float)).T
-    centres = ca.vertcat(base, model.functions_z["backbone"](z))           # N × 3
-
-    def centre(selector: ca.SX) -> tuple[Any, Any, Any]:
-        picked = ca.mtimes(selector, centres)                              # capacity × 3
-        return picked[:, 0], picked[:, 1], picked[:, 2]
-
-    rows = []
-    for pool, slot in zip(pools, slots, strict=True):
-        if pool.kind == "self":
-            rows.append(dist.sphere_to_sphere(CASADI, centre(slot[:, :n_bodies]), r,
-                                              centre(slot[:, n_bodies:]), r))
-        else:
-            rows.append(_slot_distances(pool, centre(slot[:, :n_bodies]), r,
-                                        slot[:, n_bodies:], face_smoothing))
-    return ca.Function("clearance_rows", [z, *slots], [ca.vertcat(*rows)])
+def interpolated(way: Any, fractions: Any) -> Any:
+    """The (3n × C) configurations of a (3n × W) trajectory (numpy or CasADi): the W
+    waypoints, then interval after interval its check points, (1 − s)·z_k + s·z_{k+1} for
+    the (checks × (W − 1)) ``fractions`` s, C = W + checks·(W − 1)."""
+    checks = fractions.shape[0]
+    if checks == 0:
+        return way
+    step = way[:, 1:] - way[:, :-1]
+    if isinstance(way, (ca.MX, ca.SX)):
+        inner = [way[:, :-1] + step * ca.repmat(fractions[c, :], way.shape[0], 1)
+                 for c in range(checks)]
+        # Column k of the stack holds interval k's points one above the other.
+        return ca.horzcat(way, ca.reshape(ca.vertcat(*inner), way.shape[0], -1))
+    inner = way[:, :-1, None] + step[:, :, None] * np.asarray(fractions).T[None]
+    return np.hstack([way, inner.reshape(way.shape[0], -1)])
 
 
 # ================================================================ the polisher
@@ -275,7 +238,7 @@ class TrajectoryPolisher:
             raise ValueError(f"waypoints must be an integer ≥ 2, got {waypoints!r}")
         self.robot = robot = load_robot(robot)
         self.scene = (load_scene(scene) if isinstance(scene, (str, Path, dict)) else scene)
-        self.waypoints = int(waypoints)
+        self.waypoints = w = int(waypoints)
         self.objective = objective
         self.config = config
         self.safety_margin = float(body_gap_tolerance(robot) + 0.002 if safety_margin is None
@@ -283,17 +246,18 @@ class TrajectoryPolisher:
         self.builds = 0
         """How many ``nlpsol`` solvers this polisher constructed."""
 
-        w, checks = self.waypoints, config.interpolation_checks
-        self._n_configs = w + checks * (w - 1)
+        self._n_configs = w + config.interpolation_checks * (w - 1)
+        self._samples = np.arange(1, config.verify_samples) / config.verify_samples
         self._n_bodies = robot.n_points + 1
         self._self_pairs = (self_pairs(robot) if robot.n_segments >= 3
                             else np.zeros((0, 2), dtype=np.int64))
-        self._pools, self._arrays = make_pools(robot, self.scene, config.max_pairs,
-                                               include_self=True)
+        self._pools, _ = make_pools(robot, self.scene, config.max_pairs, include_self=True)
+        self._pairs = PairDistances(robot, self.scene)
         self._theta_max = np.array([s.theta_max for s in robot.segments])
         self._lbx = np.ravel([[-s.theta_max, -s.theta_max, s.length_min] for s in robot.segments])
         self._ubx = np.ravel([[s.theta_max, s.theta_max, s.length_max] for s in robot.segments])
         self._model = CasadiModel(robot)
+        self._rows = SlotRows(self._model, self._pools, config.face_smoothing)
         # ℓ = A·z + b exactly (linear), A from the model's own CasADi tendon function.
         self._tendon_matrix = np.asarray(ca.Function(
             "tendon_jacobian", [self._model.z],
@@ -301,70 +265,33 @@ class TrajectoryPolisher:
         )(np.zeros(robot.dof)))
         self._speed = math.isfinite(robot.tendon_speed_max)
         self._accel = math.isfinite(robot.tendon_accel_max) and w >= 3
+        self._pose_errors = self._model.functions_z["pose_error"].map(w)
         self._solver = self._build()
-        # Compile the float64 re-evaluation now, so that no solve pays for it.
-        rest = np.tile(np.ravel([[0.0, 0.0, s.length_min] for s in robot.segments]),
-                       (w, 1))
-        self._all_distances(rest)
-        if objective == "tracking":
-            with jax.enable_x64(True):
-                _pose_errors(robot, rest, np.zeros((w, 3)), np.tile(np.eye(3), (w, 1, 1)))
 
     # ------------------------------------------------------------ building
 
-    def _interpolated(self, way: Any) -> Any:
-        """The (3n × C) configurations of a (3n × W) trajectory: the W waypoints, then
-        interval after interval its ``checks`` points at fractions c/(checks + 1)."""
-        checks = self.config.interpolation_checks
-        if checks == 0:
-            return way
-        step = way[:, 1:] - way[:, :-1]
-        inner = [way[:, :-1] + (c / (checks + 1)) * step for c in range(1, checks + 1)]
-        if isinstance(way, (ca.MX, ca.SX)):
-            # Column k of the stack holds interval k's points one above the other.
-            return ca.horzcat(way, ca.reshape(ca.vertcat(*inner), way.shape[0], -1))
-        stacked = np.stack(inner, axis=2)                       # 3n × (W − 1) × checks
-        return np.hstack([way, stacked.reshape(way.shape[0], -1)])
+    def _elements(self) -> tuple[ca.Function, ca.Function]:
+        """The Hessians of the Lagrangian's smooth elements (SX functions): one per
+        waypoint k (bending rows and, for ``"tracking"``, its pose-error term) and one per
+        interval (the ``"path"`` terms, or the tracking smoothness term). Tendon rows are
+        linear; clearance curvature is left out (module docstring).
 
-    def _elements(self) -> tuple[ca.Function, ca.Function, list[ca.SX], list[ca.SX]]:
-        """The Lagrangian split into elements (SX functions): one per waypoint k
-        (objective part, bending rows, clearance rows of z_k) and one per interval
-        (objective part, clearance rows of its check points). Tendon rows are linear and
-        add nothing to the Hessian.
-
-        Returns (waypoint element, interval element, their symbolic inputs): each element
-        is ``Function(z…, lam_f, multipliers…, slots…, targets…) -> value``."""
-        robot, cfg, checks = self.robot, self.config, self.config.interpolation_checks
-        fz, dof, n = self._model.functions_z, robot.dof, robot.n_segments
-        one = (configuration_clearance(self._model, self._pools, cfg.face_smoothing)
-               if self._pools else None)
-        rows_per_config = sum(p.capacity for p in self._pools)
-        widths = [_one_hot_width(p, self._n_bodies) for p in self._pools]
+        Returns ``waypoint(z_k, lam_f, lam_bending, *targets) -> H (3n × 3n)`` and
+        ``interval(z_k, z_next, lam_f) -> H (6n × 6n)``."""
+        cfg, dof, n = self.config, self.robot.dof, self.robot.n_segments
+        fz = self._model.functions_z
         z_k, z_next = ca.SX.sym("z_k", dof), ca.SX.sym("z_next", dof)
-        lam_f = ca.SX.sym("lam_f")
-
-        # Waypoint element.
-        lam_bend = ca.SX.sym("lam_bending", n)
-        lam_way = ca.SX.sym("lam_clearance", rows_per_config)
-        slots_way = [ca.SX.sym(f"slots_{p.kind}", p.capacity, wd)
-                     for p, wd in zip(self._pools, widths, strict=True)]
+        lam_f, lam_bend = ca.SX.sym("lam_f"), ca.SX.sym("lam_bending", n)
         targets: list[ca.SX] = []
-        bending = ca.vertcat(*[z_k[3 * i] ** 2 + z_k[3 * i + 1] ** 2 for i in range(n)])
-        value = ca.dot(lam_bend, bending)
+        value = ca.dot(lam_bend, ca.vertcat(*[z_k[3 * i] ** 2 + z_k[3 * i + 1] ** 2
+                                               for i in range(n)]))
         if self.objective == "tracking":
             targets = [ca.SX.sym("target_position", 3), ca.SX.sym("target_rotation", 3, 3)]
             error = fz["pose_error"](z_k, *targets)
             value += lam_f * (0.5 * cfg.translation_weight * ca.sumsqr(error[:3])
                               + 0.5 * cfg.rotation_weight * ca.sumsqr(error[3:]))
-        if one is not None:
-            value += ca.dot(lam_way, one(z_k, *slots_way))
-        way_inputs = [z_k, lam_f, lam_bend, lam_way, *slots_way, *targets]
-        waypoint = ca.Function("waypoint_element", way_inputs, [value])
-
-        # Interval element.
-        lam_int = ca.SX.sym("lam_clearance", rows_per_config, checks)
-        slots_int = [ca.SX.sym(f"slots_{p.kind}", p.capacity, wd * checks)
-                     for p, wd in zip(self._pools, widths, strict=True)]
+        waypoint = ca.Function("waypoint_hessian", [z_k, lam_f, lam_bend, *targets],
+                               [ca.hessian(value, z_k)[0]])
         step = z_next - z_k
         if self.objective == "path":
             tip_k, tip_next = fz["tip"](z_k)[0], fz["tip"](z_next)[0]
@@ -372,15 +299,10 @@ class TrajectoryPolisher:
                              + cfg.smoothness_weight * ca.sumsqr(step))
         else:
             value = lam_f * cfg.tracking_smoothness_weight * ca.sumsqr(step)
-        if one is not None:
-            for c in range(checks):
-                z_c = z_k + ((c + 1) / (checks + 1)) * step
-                value += ca.dot(lam_int[:, c], one(z_c, *[
-                    slot[:, c * wd:(c + 1) * wd] for slot, wd in zip(slots_int, widths,
-                                                                      strict=True)]))
-        int_inputs = [z_k, z_next, lam_f, lam_int, *slots_int]
-        interval = ca.Function("interval_element", int_inputs, [value])
-        return waypoint, interval, way_inputs, int_inputs
+        pair = ca.vertcat(z_k, z_next)
+        interval = ca.Function("interval_hessian", [z_k, z_next, lam_f],
+                               [ca.hessian(value, pair)[0]])
+        return waypoint, interval
 
     def _objective(self, way: ca.MX, targets: list[ca.MX]) -> ca.MX:
         """f of a (3n × W) trajectory: the path or tracking objective (module docstring)."""
@@ -391,31 +313,30 @@ class TrajectoryPolisher:
             tips = fz["tip"].map(w)(way)[0]                                    # 3 × W
             return (cfg.path_weight * ca.sumsqr(tips[:, 1:] - tips[:, :-1])
                     + cfg.smoothness_weight * ca.sumsqr(step))
-        error = fz["pose_error"].map(w)(way, *targets)                         # 6 × W
+        error = self._pose_errors(way, *targets)                               # 6 × W
         return (0.5 * cfg.translation_weight * ca.sumsqr(error[:3, :])
                 + 0.5 * cfg.rotation_weight * ca.sumsqr(error[3:, :])
                 + cfg.tracking_smoothness_weight * ca.sumsqr(step))
 
     def _build(self) -> ca.Function:
         """The Ipopt solver. Parameters: 1/Δt (1/s), then for ``"tracking"`` the target
-        positions (3 × W) and rotations (3 × 3W), then each pool's one-hot slots
-        (capacity × width·C), configuration after configuration (``_interpolated``).
+        positions (3 × W) and rotations (3 × 3W), then each pool's slots
+        (capacity × width·C), configuration after configuration (``interpolated``), then
+        the check points' fractions (checks × (W − 1)).
 
-        The exact Hessian of the Lagrangian is assembled from per-element Hessians (SX,
-        mapped over the waypoints and intervals) into its block-tridiagonal pattern:
-        CasADi's own Hessian of the mapped graph colours the whole band and re-evaluates
-        every configuration per colour (measured 5 s per solve for 150 waypoints, and
-        2 minutes to build when expanded to SX)."""
+        The constraint Jacobian is given as a function: the linear rows' constant
+        Jacobian, and the clearance rows' per-configuration Jacobians (``SlotRows``,
+        mapped) chained through the interpolation by a constant assembly matrix. The
+        Hessian is assembled from the element Hessians into its band: CasADi's own
+        Hessian of the mapped graph colours the whole band and re-evaluates every
+        configuration per colour (measured 5 s per solve for 150 waypoints)."""
         robot, cfg, w = self.robot, self.config, self.waypoints
         dof, n, checks = robot.dof, robot.n_segments, cfg.interpolation_checks
-        waypoint, interval, way_inputs, int_inputs = self._elements()
-        widths = [_one_hot_width(p, self._n_bodies) for p in self._pools]
-        rows_per_config = sum(p.capacity for p in self._pools)
-        n_t = self._tendon_matrix.shape[0]
+        rows_per_config = self._rows.count
 
         x = ca.MX.sym("x", dof * w)
         n_p = 1 + (12 * w if self.objective == "tracking" else 0) + sum(
-            p.capacity * wd * self._n_configs for p, wd in zip(self._pools, widths, strict=True))
+            p.capacity * p.width * self._n_configs for p in self._pools) + checks * (w - 1)
         p = ca.MX.sym("p", n_p)
         way = ca.reshape(x, dof, w)                             # column k: waypoint k
         inv_dt = p[0]
@@ -426,33 +347,14 @@ class TrajectoryPolisher:
                        ca.reshape(p[offset + 3 * w:offset + 12 * w], 3, 3 * w)]
             offset += 12 * w
         slots = []
-        for pool, wd in zip(self._pools, widths, strict=True):
-            size = pool.capacity * wd * self._n_configs
+        for pool in self._pools:
+            size = pool.capacity * pool.width * self._n_configs
             slots.append(ca.reshape(p[offset:offset + size], pool.capacity,
-                                    wd * self._n_configs))
+                                    pool.width * self._n_configs))
             offset += size
-        slots_way = [s[:, :wd * w] for s, wd in zip(slots, widths, strict=True)]
-        slots_int = [s[:, wd * w:] for s, wd in zip(slots, widths, strict=True)]
-
-        def elements(lam_f: Any, lam_bend: Any, lam_clear: Any, fn: str) -> tuple[Any, Any]:
-            """Mapped waypoint and interval elements (or their Hessians with fn)."""
-            fw = waypoint if fn == "value" else ca.Function(
-                "waypoint_hessian", way_inputs,
-                [ca.hessian(waypoint(*way_inputs), way_inputs[0])[0]])
-            pair = ca.vertcat(int_inputs[0], int_inputs[1])
-            fi = interval if fn == "value" else ca.Function(
-                "interval_hessian", int_inputs,
-                [ca.hessian(interval(*int_inputs), pair)[0]])
-            lam_way = lam_clear[:, :w]
-            lam_int = lam_clear[:, w:]
-            out_w = fw.map(w)(way, ca.repmat(lam_f, 1, w), lam_bend, lam_way, *slots_way,
-                              *targets)
-            out_i = fi.map(w - 1)(way[:, :-1], way[:, 1:], ca.repmat(lam_f, 1, w - 1),
-                                  lam_int, *slots_int)
-            return out_w, out_i
+        fractions = ca.reshape(p[offset:offset + checks * (w - 1)], checks, w - 1)
 
         objective = self._objective(way, targets)
-
         bending = ca.vertcat(*[way[3 * i, :] ** 2 + way[3 * i + 1, :] ** 2 for i in range(n)])
         rows = [ca.vec(bending)]                                # n × W, waypoint-major
         lengths = ca.mtimes(ca.DM(self._tendon_matrix), way)                   # n_t × W
@@ -461,37 +363,44 @@ class TrajectoryPolisher:
         if self._accel:
             rows.append(ca.vec((lengths[:, 2:] - 2 * lengths[:, 1:-1] + lengths[:, :-2])
                                * inv_dt ** 2))
-        linear_rows = ca.vertcat(*rows)
-        g, jacobian = linear_rows, ca.jacobian(linear_rows, x)
+        smooth_rows = ca.vertcat(*rows)
+        g, jacobian = smooth_rows, ca.jacobian(smooth_rows, x)
         if self._pools:
-            # Rows and their Jacobian per configuration (SX, mapped), chained through the
-            # interpolation by a constant assembly matrix (as for the Hessian below).
-            one = configuration_clearance(self._model, self._pools, cfg.face_smoothing)
-            z_one = ca.SX.sym("z", dof)
-            slots_one = [ca.SX.sym(f"slots_{q.kind}", q.capacity, wd)
-                         for q, wd in zip(self._pools, widths, strict=True)]
-            values = one(z_one, *slots_one)
-            with_jacobian = ca.Function("clearance_jacobian", [z_one, *slots_one],
-                                        [values, ca.jacobian(values, z_one)])
-            configs = self._interpolated(way)
+            values, with_jacobian, curvature = self._rows.functions(
+                cfg.clearance_curvature == "full", cfg.compile)
+            configs = interpolated(way, fractions)
             clearance, blocks = with_jacobian.map(self._n_configs)(configs, *slots)
+            # A check point's Jacobian block enters waypoint k with weight 1 − s and
+            # waypoint k + 1 with weight s.
+            inner = blocks[:, dof * w:]
+            right = inner * ca.repmat(ca.kron(ca.vec(fractions).T, ca.DM.ones(1, dof)),
+                                      rows_per_config, 1)
+            sources = ca.vertcat(ca.vec(blocks[:, :dof * w]), ca.vec(inner - right),
+                                 ca.vec(right))
             pattern, assembly = _rows_assembly(rows_per_config, dof, w, checks)
             jac_g = ca.Function("jac_g", [x, p], [
                 ca.vertcat(g, ca.vec(clearance)),
-                ca.vertcat(jacobian, ca.MX(pattern, ca.mtimes(assembly, ca.vec(blocks))))],
+                ca.vertcat(jacobian, ca.MX(pattern, ca.mtimes(assembly, sources)))],
                 ["x", "p"], ["g", "jac_g_x"])
             # configuration after configuration
-            g = ca.vertcat(g, ca.vec(one.map(self._n_configs)(configs, *slots)))
+            g = ca.vertcat(g, ca.vec(values.map(self._n_configs)(configs, *slots)))
         else:
             jac_g = ca.Function("jac_g", [x, p], [g, jacobian], ["x", "p"], ["g", "jac_g_x"])
 
         # The Hessian of the Lagrangian, assembled from the element Hessians.
+        waypoint, interval = self._elements()
         lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", g.size1())
         lam_bend = ca.reshape(lam_g[:n * w], n, w)
-        start = n * w + (n_t * (w - 1) if self._speed else 0) + (
-            n_t * (w - 2) if self._accel else 0)
-        lam_clear = ca.reshape(lam_g[start:], rows_per_config, self._n_configs)
-        h_w, h_i = elements(lam_f, lam_bend, lam_clear, "hessian")
+        h_w = waypoint.map(w)(way, ca.repmat(lam_f, 1, w), lam_bend, *targets)
+        h_i = interval.map(w - 1)(way[:, :-1], way[:, 1:], ca.repmat(lam_f, 1, w - 1))
+        if self._pools and cfg.clearance_curvature != "none":
+            lam_clear = ca.reshape(lam_g[g.size1() - rows_per_config * self._n_configs:],
+                                   rows_per_config, self._n_configs)
+            h_c = curvature.map(self._n_configs)(configs, *slots, lam_clear)  # 3n × 3n·C
+            h_w = h_w + h_c[:, :dof * w]
+            if checks:
+                h_i = h_i + _interval_curvature(dof, checks).map(w - 1)(h_c[:, dof * w:],
+                                                                        fractions)
         pattern, assembly = _band_assembly(dof, w)
         hessian = ca.MX(pattern, ca.mtimes(assembly, ca.vertcat(ca.vec(h_w), ca.vec(h_i))))
         hess_lag = ca.Function("hess_lag", [x, p, lam_f, lam_g], [hessian],
@@ -504,12 +413,21 @@ class TrajectoryPolisher:
             "ipopt.linear_solver": "mumps",      # HSL solvers are absent: never select them
             "ipopt.hessian_approximation": cfg.hessian,
             "ipopt.mu_strategy": "adaptive",
+            # The warm start is stage 2's answer, usually feasible or nearly: start there
+            # instead of pushing it 1e-2 into the interior (measured on the shelf: median
+            # 0.31 → 0.12 s, the same optima; neutral on cabinet and random_27).
+            "ipopt.warm_start_init_point": "yes",
+            "ipopt.warm_start_bound_push": 1e-6,
+            "ipopt.warm_start_mult_bound_push": 1e-6,
             "ipopt.print_level": cfg.print_level,
             "ipopt.sb": "yes",
             "print_time": cfg.print_level > 0,
             "error_on_fail": False,
+            "jac_g": jac_g,
+            # The multipliers of p are not used; their derivative graph is not built.
+            "no_nlp_grad": True,
+            "calc_lam_p": False,
         }
-        options["jac_g"] = jac_g
         if cfg.hessian == "exact":
             options["hess_lag"] = hess_lag
         self.builds += 1
@@ -518,25 +436,50 @@ class TrajectoryPolisher:
 
     # ------------------------------------------------------------ per solve
 
+    def _grid(self, z: np.ndarray) -> np.ndarray:
+        """(G, 3n) configurations the re-evaluation checks, of a (W, 3n) trajectory in z:
+        the waypoints, then interval after interval its samples at fractions
+        j/``verify_samples``; G = W + (S − 1)(W − 1)."""
+        fractions = np.repeat(self._samples[:, None], self.waypoints - 1, axis=1)
+        return np.ascontiguousarray(interpolated(z.T, fractions).T)
+
     def _all_distances(self, z: np.ndarray) -> np.ndarray:
-        """(C, N·P + M) float64 distances (m, convex parts unsmoothed) at the waypoints and
-        check points of a (W, 3n) trajectory in z."""
-        configs = np.ascontiguousarray(self._interpolated(z.T).T)
-        with jax.enable_x64(True):
-            out = _distances(self.robot, self._arrays, len(self._self_pairs) > 0, configs)
-        return np.asarray(out, dtype=np.float64)
+        """(G, N·P + M) float64 pair distances (m) at the ``_grid`` configurations of a
+        (W, 3n) trajectory in z: exact below ``near_margin`` (and δ), lower bounds above
+        (``PairDistances.near``)."""
+        return self._pairs.near(self._grid(z), max(self.config.near_margin, self.safety_margin))
+
+    def _lever(self, z: np.ndarray) -> float:
+        """The largest Σⱼ‖∂c_b/∂zⱼ‖ over the body spheres b at the (W, 3n) waypoints z:
+        metres a sphere moves at most when every variable moves by one (rad or m)."""
+        levers = []
+        for row in z:
+            jacobian = np.asarray(self._rows._centres_jacobian(row)[1])        # 3N × 3n
+            blocks = jacobian.reshape(3, self._n_bodies, -1)
+            levers.append(np.max(np.sum(np.linalg.norm(blocks, axis=0), axis=1)))
+        return max(float(np.max(levers)), 1e-9)
+
+    def _place(self, near: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where the check points go: per interval, at the ``interpolation_checks``
+        samples with the smallest pair distance in ``near`` (G, pairs). Returns their
+        (checks × (W − 1)) fractions and the NLP configurations' (C,) rows of the grid."""
+        w, checks, per = self.waypoints, self.config.interpolation_checks, len(self._samples)
+        closest = (np.min(near, axis=1) if near.shape[1] else np.zeros(len(near)))
+        picked = np.sort(np.argsort(closest[w:].reshape(w - 1, per), axis=1,
+                                    kind="stable")[:, :checks], axis=1)      # (W − 1, checks)
+        grid_rows = w + np.arange(w - 1)[:, None] * per + picked
+        return self._samples[picked].T, np.concatenate([np.arange(w), grid_rows.reshape(-1)])
 
     def _select(self, distances: np.ndarray, fixed_ends: bool = True
                 ) -> tuple[list[np.ndarray], np.ndarray, list[np.ndarray]]:
         """Slot parameters per pool (capacity × width·C), the clearance lbg (config-major)
         and, per configuration, the switched-on pair indices in row order. With
         ``fixed_ends`` the rows of a ``"path"`` problem's fixed start and goal are off."""
-        selections: list[_Selection] = [
-            select_slots(self._pools, self._n_bodies, self._self_pairs,
-                         self.config.near_margin, self.safety_margin, row) for row in distances]
-        parameters = [np.hstack([_one_hot(pool, self._n_bodies, s.parameters[p])
-                                 for s in selections])
-                      for p, pool in enumerate(self._pools)]
+        selections = [select_slots(self._pools, self._n_bodies, self._self_pairs,
+                                   self.config.near_margin, self.safety_margin, row)
+                      for row in distances]
+        parameters = [np.hstack([s.parameters[p] for s in selections])
+                      for p in range(len(self._pools))]
         lower = np.concatenate([s.lower for s in selections]) if selections else np.zeros(0)
         if fixed_ends and self.objective == "path" and len(lower):
             # Start and goal are fixed: their rows are constants Ipopt cannot change (and a
@@ -617,7 +560,8 @@ class TrajectoryPolisher:
         if self.objective == "path":
             lbx[0] = ubx[0] = z0[0]
             lbx[-1] = ubx[-1] = z0[-1]
-        fixed = [1.0 / dt]
+        step = cfg.step_limit * cfg.near_margin / self._lever(z0) if self._pools else np.inf
+        fixed = [np.array([1.0 / dt])]
         if positions is not None:
             fixed += [positions.T.ravel(order="F"),
                       np.hstack(list(rotations)).ravel(order="F")]
@@ -631,51 +575,71 @@ class TrajectoryPolisher:
             lower.append(np.full(n_t * (w - 2), -self.robot.tendon_accel_max))
             upper.append(-lower[-1])
 
-        near = self._all_distances(z0)
-        z, status, ipopt_success, iterations, objective = z0, "not run", False, 0, math.nan
-        violations, distances = self._evaluate(z0, dt)
-        for _ in range(cfg.reselections + 1):
-            slots, clearance_lower, chosen = self._select(near)
-            parameters = np.concatenate([np.ravel(fixed[0]), *fixed[1:],
-                                         *[s.ravel(order="F") for s in slots]])
+        z, status, iterations, objective = z0, "not run", 0, math.nan
+        warm_violations, near = self._evaluate(z0, dt)
+        violations = warm_violations
+        best: tuple[float, np.ndarray, dict[str, float], str, float] | None = None
+        for round_ in range(cfg.reselections + 1):
+            low, high = np.maximum(lbx, z - step), np.minimum(ubx, z + step)
+            fractions, rows = self._place(near)
+            slots, clearance_lower, chosen = self._select(near[rows])
+            parameters = np.concatenate([*fixed, *[s.ravel(order="F") for s in slots],
+                                         fractions.ravel(order="F")])
             try:
                 solution = self._solver(
-                    x0=z.reshape(-1), p=parameters, lbx=lbx.reshape(-1), ubx=ubx.reshape(-1),
+                    x0=z.reshape(-1), p=parameters, lbx=low.reshape(-1), ubx=high.reshape(-1),
                     lbg=np.concatenate([*lower, clearance_lower]),
                     ubg=np.concatenate([*upper, np.full(clearance_lower.size, np.inf)]))
                 stats = self._solver.stats()
                 answer = np.asarray(solution["x"], dtype=np.float64).reshape(w, dof)
                 status = str(stats.get("return_status", "unknown"))
-                ipopt_success = bool(stats.get("success", False))
                 iterations += int(stats.get("iter_count", 0))
                 objective = float(solution["f"])
             except RuntimeError as exc:                # a numerical failure is a result
-                answer, status, ipopt_success = z, f"error: {exc}", False
+                answer, status = z, f"error: {exc}"
             if not np.all(np.isfinite(answer)):
-                status, ipopt_success = f"{status} (non-finite iterate)", False
+                status = f"{status} (non-finite iterate)"
                 break
-            z = answer
+            # Ipopt's bound relaxation leaves the box bounds up to ~1e-8 outside: project.
+            z = q_to_z_numpy(project_bending(self.robot, z_to_q_numpy(answer)))
             violations, distances = self._evaluate(z, dt)
+            worst = max(violations.values())
+            if best is None or worst < best[0] or worst <= cfg.violation_tolerance:
+                best = (worst, z, violations, status, objective)
             if not self._pools:
                 break
             switched_on = np.zeros(distances.shape, dtype=bool)
-            for c, flat in enumerate(chosen):
-                switched_on[c, flat] = True
+            for row, flat in zip(rows, chosen, strict=True):
+                switched_on[row, flat] = True
             violated = distances < self.safety_margin - cfg.violation_tolerance
-            if not np.any(violated & ~switched_on):
+            limited = np.any((answer <= low + 1e-7) & (low > lbx)) or np.any(
+                (answer >= high - 1e-7) & (high < ubx))
+            unseen = np.any(violated & ~switched_on)
+            if not (unseen or limited) or (worst <= cfg.violation_tolerance
+                                           and self.objective == "path"):
+                # A valid path stopped by the step limit is kept as it is (measured on
+                # random_27: going on to the unlimited optimum took 4–5× the time, every
+                # round ~15 more iterations); tracking goes on, its objective is the
+                # pose error.
                 break
-            # A pair without a slot came too close: give the pairs near either point the
-            # slots and go on from here.
+            # A pair without a slot, or a sample without a check point, came too close, or
+            # the step limit stopped the answer: place the checks and slots where either
+            # point is near, and go on from here. The last round is free of the step limit
+            # if only the limit stopped the one before (the best round is kept anyway).
             near = np.minimum(near, distances)
+            if round_ == cfg.reselections - 1 and not unseen:
+                step = np.inf
+        if best is not None:
+            # The round that came out best: valid (the last valid one) or least violated.
+            _, z, violations, status, objective = best
         max_violation = max(violations.values())
         errors = None
         if positions is not None:
-            with jax.enable_x64(True):
-                errors = np.asarray(_pose_errors(self.robot, z, positions, rotations),
-                                    dtype=np.float64)
+            errors = np.linalg.norm(np.asarray(self._pose_errors(
+                z.T, positions.T, np.hstack(list(rotations)))), axis=0)
         return TrajectoryPolishResult(
             q=z_to_q_numpy(z),
-            success=ipopt_success and max_violation <= cfg.violation_tolerance,
+            success=max_violation <= cfg.violation_tolerance,
             status=status,
             max_violation=max_violation,
             violations=violations,
@@ -683,29 +647,45 @@ class TrajectoryPolisher:
             iterations=iterations,
             seconds=time.perf_counter() - start,
             pose_errors=errors,
+            warm_start_violations=warm_violations,
         )
 
     # ------------------------------------------------------------ checks
 
     def _slot_values(self, q_near: Any, q: Any) -> tuple[np.ndarray, np.ndarray]:
         """The clearance rows switched on for the warm start ``q_near`` (W, 3n), evaluated
-        at ``q`` (W, 3n) by the NLP's own mapped CasADi function, and the world's float64
-        distances of the same pairs (m, convex parts with ``face_smoothing``): the two
-        must agree."""
+        at ``q`` (W, 3n) by the NLP's own mapped CasADi function at the same check points,
+        and the world's float64 distances of the same pairs (m, convex parts with
+        ``face_smoothing``): the two must agree."""
+        from ..world.clearance import all_pair_distances_numpy
+
         z_near, z = (q_to_z_numpy(x) for x in (q_near, q))
-        slots, lower, chosen = self._select(self._all_distances(z_near), fixed_ends=False)
-        one = configuration_clearance(self._model, self._pools, self.config.face_smoothing)
-        configs = self._interpolated(z.T)
-        values = np.asarray(one.map(self._n_configs)(configs, *slots)).reshape(-1, order="F")
-        with jax.enable_x64(True):
-            pairs = pair_distances_z(self.robot, self._arrays, configs.T,
-                                     self.config.face_smoothing).reshape(self._n_configs, -1) \
-                if self._arrays is not None else np.zeros((self._n_configs, 0))
-            own = (self_distances_z(self.robot, configs.T) if len(self._self_pairs)
-                   else np.zeros((self._n_configs, 0)))
-        world = np.concatenate([np.asarray(pairs), np.asarray(own)], axis=1)
+        near = self._all_distances(z_near)
+        fractions, rows = self._place(near)
+        slots, lower, chosen = self._select(near[rows], fixed_ends=False)
+        configs = interpolated(z.T, fractions)                               # 3n × C
+        values = np.asarray(self._rows.functions()[0].map(self._n_configs)(
+            configs, *slots)).reshape(-1, order="F")
+        world = all_pair_distances_numpy(self.robot, self._pairs.arrays,
+                                         np.ascontiguousarray(configs.T),
+                                         self.config.face_smoothing)
         expected = np.concatenate([world[c, flat] for c, flat in enumerate(chosen)])
         return values[np.isfinite(lower)], expected
+
+
+def _interval_curvature(dof: int, checks: int) -> ca.Function:
+    """(3n × 3n·checks) Hessians of one interval's check points and their (checks,)
+    fractions s → their (6n × 6n) Hessian with respect to the interval's two waypoints: a
+    point (1 − s)·z_k + s·z_{k+1} with Hessian H enters as
+    [[(1−s)², (1−s)s], [(1−s)s, s²]] ⊗ H."""
+    h, fractions = ca.SX.sym("h", dof, dof * checks), ca.SX.sym("fractions", checks)
+    total = ca.SX(2 * dof, 2 * dof)
+    for c in range(checks):
+        s = fractions[c]
+        block = h[:, c * dof:(c + 1) * dof]
+        total += ca.vertcat(ca.horzcat((1 - s) ** 2 * block, (1 - s) * s * block),
+                            ca.horzcat((1 - s) * s * block, s ** 2 * block))
+    return ca.Function("interval_curvature", [h, fractions], [total])
 
 
 def _band_assembly(dof: int, waypoints: int) -> tuple[ca.Sparsity, ca.DM]:
@@ -739,33 +719,34 @@ def _band_assembly(dof: int, waypoints: int) -> tuple[ca.Sparsity, ca.DM]:
 def _rows_assembly(rows: int, dof: int, waypoints: int, checks: int) -> tuple[ca.Sparsity,
                                                                               ca.DM]:
     """The sparsity of the clearance rows' Jacobian (``rows`` per configuration, the
-    configurations of ``TrajectoryPolisher._interpolated``) with respect to the (dof·W)
-    waypoint variables, and the constant matrix that maps the per-configuration
-    Jacobians (rows × dof·C, column-major) to its nonzeros: a check point at fraction s of
-    interval k depends on waypoint k with weight 1 − s and on waypoint k + 1 with s."""
-    entries: list[tuple[int, int, int, float]] = []     # (row, column, source, weight)
+    configurations of ``interpolated``) with respect to the (dof·W) waypoint variables,
+    and the constant 0/1 matrix that maps its sources to its nonzeros. The sources,
+    stacked column-major: the waypoints' Jacobians (rows × dof·W), then the check points'
+    Jacobians weighted by 1 − s (rows × dof·checks·(W − 1), for waypoint k), then the
+    same weighted by s (for waypoint k + 1)."""
+    entries: list[tuple[int, int, int]] = []            # (row, column, source)
+    inner = rows * dof * checks * (waypoints - 1)
 
-    def block(config: int, waypoint: int, weight: float) -> None:
+    def block(config: int, waypoint: int, source: int) -> None:
         for j in range(dof):
             for i in range(rows):
-                entries.append((config * rows + i, waypoint * dof + j,
-                                (config * dof + j) * rows + i, weight))
+                entries.append((config * rows + i, waypoint * dof + j, source + j * rows + i))
 
     for k in range(waypoints):
-        block(k, k, 1.0)
-    config = waypoints
+        block(k, k, k * dof * rows)
+    base = rows * dof * waypoints
     for k in range(waypoints - 1):
-        for c in range(1, checks + 1):
-            s = c / (checks + 1)
-            block(config, k, 1.0 - s)
-            block(config, k + 1, s)
-            config += 1
-    keys = sorted({(r, c) for r, c, _, _ in entries}, key=lambda rc: (rc[1], rc[0]))
-    index = {rc: i for i, rc in enumerate(keys)}
-    pattern = ca.Sparsity.triplet(rows * config, dof * waypoints,
+        for c in range(checks):
+            index = k * checks + c
+            block(waypoints + index, k, base + index * dof * rows)
+            block(waypoints + index, k + 1, base + inner + index * dof * rows)
+    configs = waypoints + checks * (waypoints - 1)
+    keys = sorted({(r, c) for r, c, _ in entries}, key=lambda rc: (rc[1], rc[0]))
+    index_of = {rc: i for i, rc in enumerate(keys)}
+    pattern = ca.Sparsity.triplet(rows * configs, dof * waypoints,
                                   [r for r, _ in keys], [c for _, c in keys])
-    assembly = ca.DM(ca.Sparsity.triplet(len(keys), rows * dof * config,
-                                         [index[(r, c)] for r, c, _, _ in entries],
-                                         [src for _, _, src, _ in entries]),
-                     [weight for _, _, _, weight in entries])
+    assembly = ca.DM(ca.Sparsity.triplet(len(keys), base + 2 * inner,
+                                         [index_of[(r, c)] for r, c, _ in entries],
+                                         [src for _, _, src in entries]),
+                     np.ones(len(entries)))
     return pattern, assembly
