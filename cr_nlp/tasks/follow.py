@@ -69,13 +69,14 @@ from ..stages.lm import LMConfig, lm_solve
 from ..stages.sequence import smoothest_sequence
 from ..world import Scene, load_scene, scene_arrays
 from ..world.clearance import SceneArrays, body_gap_tolerance
+from ..world.verdict import VIOLATION_TOLERANCE
 from ._timing import StageTiming
 from .ik import IKConfig, IKSolver, validate_targets
 from .paths import ReferencePath, load_path
 from .trajectory import (
-    EXACT_TOLERANCE,
     _groups_from,
     _has_clearance,
+    describe_polish,
     tendon_names,
     tendon_series,
     verify_trajectory,
@@ -574,8 +575,9 @@ class FollowResult:
     """Largest violation per family (``verify_trajectory``): clearance (m below δ),
     limits (rad or m), tendon_speed (m/s), tendon_accel (m/s²)."""
     success: bool
-    """Every waypoint reached, collision-free along the motion, limits and tendon limits
-    within 1e-6 (as ``verify_trajectory`` judges them)."""
+    """Every waypoint reached and every violation ≤ 1e-6 (``verify_trajectory``, the one
+    verdict of ``world.verdict``): clearance ≥ δ along the motion, limits, tendon
+    limits."""
     reason: str
     """"" on success, else why not (unreached waypoints, collision, limits)."""
     stage: str
@@ -1046,14 +1048,14 @@ class PathFollower:
         """Stage 3: Ipopt from the LM answer; keep it only if the independent verdict
         agrees (collision-free, every violation ≤ 1e-6)."""
         try:
-            from ..stages.polish_trajectory import TrajectoryPolisher
+            from ..stages.polish_trajectory import TrajectoryPolishConfig, TrajectoryPolisher
         except ImportError:
             lm.stage = ("lm (polish failed: the Ipopt trajectory stage "
                         "cr_nlp.stages.polish_trajectory is not available)")
             return lm
         import sys
 
-        if lm.max_violation <= EXACT_TOLERANCE and lm.collision_free and \
+        if lm.max_violation <= VIOLATION_TOLERANCE and lm.collision_free and \
                 bool(np.all(lm.reached)):
             # Every constraint already holds (verified independently) and every waypoint is
             # tracked: Ipopt has nothing to enforce. Measured on the bundled shapes, its
@@ -1064,9 +1066,11 @@ class PathFollower:
         t0 = time.perf_counter()
         t = len(lm.q)
         if t not in self._polishers:
-            self._polishers[t] = TrajectoryPolisher(self.robot, self.scene, t,
-                                                    safety_margin=self.margin,
-                                                    objective="tracking")
+            samples = self.config.verify_samples
+            self._polishers[t] = TrajectoryPolisher(
+                self.robot, self.scene, t, safety_margin=self.margin, objective="tracking",
+                config=TrajectoryPolishConfig(interpolation_checks=samples - 1,
+                                              verify_samples=samples))
         if progress:
             print(f"polish (Ipopt): {t} waypoints …", file=sys.stderr)
         # Untrackable waypoints keep the LM's reference: its own tip pose (zero error).
@@ -1080,18 +1084,17 @@ class PathFollower:
             return lm
         timing.polish += time.perf_counter() - t0
         if not out.success:
-            lm.stage = f"lm (polish failed: {out.status})"
+            lm.stage = f"lm (polish failed: {describe_polish(out)})"
             return lm
         t1 = time.perf_counter()
         q = clip_to_limits(self.robot, np.asarray(out.q, dtype=np.float64))
         verdict = self.verify(q, path, path.dt)
         timing.verify += time.perf_counter() - t1
-        if not verdict["collision_free"] or verdict["max_violation"] > EXACT_TOLERANCE:
-            lm.stage = (f"lm (polish failed: rejected by the checker: max violation "
-                        f"{verdict['max_violation']:.3g})")
+        if not verdict["success"]:
+            lm.stage = f"lm (polish failed: rejected by the checker: {verdict['reason']})"
             return lm
         polished = self._result(q, path, verdict, "polish", why)
-        if lm.max_violation <= EXACT_TOLERANCE and lm.collision_free and \
+        if lm.max_violation <= VIOLATION_TOLERANCE and lm.collision_free and \
                 _tracking_cost(polished) > _tracking_cost(lm):
             # Both feasible: keep the one that tracks the path better.
             lm.stage = "lm (feasible; the polished answer tracked worse)"

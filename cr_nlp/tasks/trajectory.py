@@ -55,11 +55,8 @@ from ..world.clearance import (
     self_pairs,
 )
 from ..world.penalty import body_clearances_z
+from ..world.verdict import VIOLATION_TOLERANCE, describe_violations, failure_reason
 from ._timing import StageTiming
-
-EXACT_TOLERANCE = 1e-6
-"""Exact mode: the largest violation (m, rad, m/s, m/s²) of any constraint, the clearance
-margin included, that a successful answer may have."""
 
 
 @dataclass(frozen=True)
@@ -104,7 +101,14 @@ class TrajectoryConfig:
     """Clearance check points inside each interval for the optimisers (1: the midpoint),
     so that thin obstacles are not tunnelled between waypoints."""
     verify_samples: int = 4
-    """The verification splits every interval into this many pieces (fcl at each)."""
+    """The verification splits every interval into this many pieces (fcl at each); the
+    exact stage constrains the clearance at the same samples."""
+    polish_attempts: int = 3
+    """Exact mode: LM candidates (best first) the polish starts from in turn until one
+    polish passes the verification."""
+    polish_workers: int = 1
+    """Exact mode: processes that polish problems in parallel (``stages.pool``); 1 polishes
+    in this process. The answers are the same either way."""
     chunk_size: int = 16
     """Most trajectories per compiled LM call; larger batches are split into chunks. Small
     chunks waste little on padding and on waiting for the chunk's slowest trajectory."""
@@ -350,8 +354,8 @@ def tendon_series(robot: Robot, q: np.ndarray) -> np.ndarray:
 
 def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
                       margin: float = 0.002, samples: int = 4,
-                      tolerance: float = 1e-6) -> dict[str, Any]:
-    """Float64 verdict on a trajectory, independent of any optimiser.
+                      tolerance: float = VIOLATION_TOLERANCE) -> dict[str, Any]:
+    """Float64 verdict on a trajectory, independent of any optimiser (``world.verdict``).
 
     Args:
         robot: the robot.
@@ -361,10 +365,11 @@ def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
         margin: δ, metres; a python-fcl distance below it counts as a clearance violation.
         samples: each interval is split into this many pieces (linear in z) and python-fcl
             checks every piece's end, so the whole motion, not only the waypoints, is judged.
-        tolerance: the largest limit and tendon-limit violation a success may have.
+        tolerance: the largest violation of any family a success may have.
 
-    Returns a dict: ``success`` (collision-free by fcl along the whole motion, limits and
-    tendon limits within ``tolerance``), ``reason`` ("" on success), ``violations``
+    Returns a dict: ``success`` (every violation ≤ ``tolerance``: clearance ≥ δ − tolerance
+    by fcl along the whole motion, limits and tendon limits), ``reason`` ("" on success,
+    else each failed check and by how much), ``violations``
     (largest violation per constraint family: ``clearance`` m below δ, ``limits`` rad or
     m, ``tendon_speed`` m/s, ``tendon_accel`` m/s²), ``max_violation`` (their maximum),
     ``min_clearance`` (m, fcl, +inf without obstacles), ``collision_free``,
@@ -397,20 +402,14 @@ def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
         hits = np.flatnonzero(verdict.collision)
         first_collision = int(hits[0]) if len(hits) else -1
         violations["clearance"] = max(0.0, margin - min_clearance)
-    reasons = []
+    where = ""
     if first_collision >= 0:
-        where = first_collision / samples
-        reasons.append(f"collision by python-fcl at t = {where * dt:.3f} s (interval "
-                       f"{int(where)}, distance {min_clearance:.4g} m)")
-    if violations["limits"] > tolerance:
-        reasons.append(f"breaks a configuration limit by {violations['limits']:.3g}")
-    if violations["tendon_speed"] > tolerance:
-        reasons.append(f"tendon speed {speed_max:.4g} m/s > {robot.tendon_speed_max} m/s")
-    if violations["tendon_accel"] > tolerance:
-        reasons.append(f"tendon acceleration {accel_max:.4g} m/s² > "
-                       f"{robot.tendon_accel_max} m/s²")
+        at = first_collision / samples
+        where = f"at t = {at * dt:.3f} s (interval {int(at)})"
+    reason = failure_reason(violations, min_clearance=min_clearance if first_collision >= 0
+                            else None, collision_where=where, tolerance=tolerance)
     return {
-        "success": not reasons, "reason": "; ".join(reasons), "violations": violations,
+        "success": not reason, "reason": reason, "violations": violations,
         "max_violation": max(violations.values()), "min_clearance": min_clearance,
         "collision_free": first_collision < 0, "path_length": path_length,
         "tendon_lengths": lengths, "tendon_speed": speed_max, "tendon_accel": accel_max,
@@ -431,9 +430,9 @@ class TrajectoryResult:
     dt: float
     """Seconds between waypoints."""
     success: bool
-    """Verified: collision-free by python-fcl along the whole motion, limits and tendon
-    speed/acceleration limits within 1e-6; in exact mode (``plan(exact=True)``) also the
-    clearance margin: every violation ≤ 1e-6, whichever stage produced ``q``."""
+    """Verified (``world.verdict``, both modes): every violation ≤ 1e-6 along the whole
+    motion by python-fcl and float64 re-evaluation: clearance ≥ δ, limits, tendon speed
+    and acceleration limits."""
     reason: str
     """"" on success, else why it failed."""
     stage: str
@@ -606,6 +605,7 @@ class TrajectoryPlanner:
         self._compiled: dict[int, Any] = {}
         self._roadmap: Any = None
         self._polisher: Any = None
+        self._polish_pool: Any = None
         self._rng = np.random.default_rng(config.seed)
 
     # ------------------------------------------------------------ pieces
@@ -731,11 +731,12 @@ class TrajectoryPlanner:
             goals: (P, 3n) goal configurations, same form.
             exact: polish every trajectory with Ipopt (``stages.polish_trajectory``), the
                 constraints as constraints: tendon speed and acceleration limits, bending
-                limits, and clearance ≥ ``margin`` at every waypoint and at the
-                ``interpolation_checks`` points inside every interval. A polished answer
-                replaces the LM answer only when the python-fcl verification accepts it with every
-                violation ≤ 1e-6 (``stage == "polish"``); otherwise the LM answer stays,
-                its ``stage`` noting why the polish failed.
+                limits, and clearance ≥ ``margin`` at every waypoint and at every sample
+                the verification checks. A polished answer replaces the LM answer only
+                when the verification accepts it (``stage == "polish"``); a failed polish
+                is retried from the next LM candidate (``polish_attempts``), and if none
+                passes, the LM answer stays with its own verdict, its ``stage`` noting why
+                each polish failed.
             init: "roadmap" (roadmap path, straight line, perturbed) or "straight"
                 (straight line and perturbed ones only).
             progress: show a progress bar for the exact stage.
@@ -759,15 +760,19 @@ class TrajectoryPlanner:
             else:
                 valid.append((i, q_start, q_goal))
         timing.verify += time.perf_counter() - t0
+        candidates: list[list[tuple[np.ndarray, str]]] = []
         if valid:
-            self._plan_valid(valid, results, dt, init, timing)
+            candidates = self._plan_valid(valid, results, dt, init, timing)
         if exact and valid:
-            self._polish(valid, results, dt, timing, progress)
+            self._polish(valid, candidates, results, dt, timing, progress)
         return [r for r in results if r is not None]
 
     def _plan_valid(self, valid: list[tuple[int, np.ndarray, np.ndarray]],
                     results: list[TrajectoryResult | None], dt: float, init: str,
-                    timing: PlanTiming) -> None:
+                    timing: PlanTiming) -> list[list[tuple[np.ndarray, str]]]:
+        """The LM stage for the valid problems; fills ``results`` and returns, per
+        problem, every refined guess (q, stage name), best first: the candidates the
+        exact stage polishes in turn."""
         cfg = self.config
         n, dof = cfg.waypoints, self.robot.dof
         t0 = time.perf_counter()
@@ -781,6 +786,8 @@ class TrajectoryPlanner:
         g_count = all_guesses.shape[1]
         first = min(max(cfg.first_round, 1), g_count)
         best: list[tuple[dict[str, Any], int, np.ndarray, float] | None] = [None] * len(valid)
+        # Every refined guess: (not verified valid, max violation, cost, q, guess index).
+        tried: list[list[tuple[bool, float, float, np.ndarray, int]]] = [[] for _ in valid]
         verify_seconds = np.zeros(len(valid))
         # Round 1: the first guesses of every problem; round 2: the other guesses, only for
         # the problems that round 1 did not solve.
@@ -803,16 +810,26 @@ class TrajectoryPlanner:
                 t2 = time.perf_counter()
                 # Best by the independent verdict, then by cost: the first success in
                 # cost order.
+                verified = set()
                 for g in np.argsort(cost[k], kind="stable"):
                     q = z_to_q_numpy(z[k, g])
                     q[0], q[-1] = q_start, q_goal
                     verdict = self.verify(q, dt)
+                    verified.add(int(g))
+                    tried[row].append((not verdict["success"], verdict["max_violation"],
+                                       float(cost[k, g]), q, int(group[g])))
                     b = best[row]
                     if b is None or (verdict["success"], -verdict["max_violation"]) > (
                             b[0]["success"], -b[0]["max_violation"]):
                         best[row] = (verdict, int(group[g]), q, float(cost[k, g]))
                     if verdict["success"]:
                         break
+                for g in range(len(group)):
+                    if g not in verified:      # not verified: ranked after the verified
+                        q = z_to_q_numpy(z[k, g])
+                        q[0], q[-1] = q_start, q_goal
+                        tried[row].append((True, math.inf, float(cost[k, g]), q,
+                                           int(group[g])))
                 verify_seconds[row] += time.perf_counter() - t2
         timing.verify += float(verify_seconds.sum())
         share = {"init": timing.init / len(valid), "refine": timing.refine / len(valid),
@@ -823,51 +840,104 @@ class TrajectoryPlanner:
             verdict, g, q, cost_g = found
             results[i] = _result(self.robot, q, dt, verdict, f"lm ({kinds[row][g]})", cost_g,
                                  {**share, "verify": float(verify_seconds[row])})
+        return [[(q, f"lm ({kinds[row][g]})") for *_, q, g in
+                 sorted(tried[row], key=lambda t: t[:3])] for row in range(len(valid))]
 
-    def _polish(self, valid: list[tuple[int, np.ndarray, np.ndarray]],
-                results: list[TrajectoryResult | None], dt: float, timing: PlanTiming,
-                progress: bool) -> None:
+    def polisher(self) -> Any:
+        """The trajectory polisher of this planner (built on first use): rows at every
+        waypoint and at every sample the verification checks."""
         from ..stages.polish_trajectory import TrajectoryPolishConfig, TrajectoryPolisher
 
-        t0 = time.perf_counter()
         if self._polisher is None:
-            # Clearance rows at the waypoints and the LM's check points. Rows at every
-            # point the verification samples (3 per interval) were measured 20–40× slower
-            # on the shelf (31–62 s per problem); the verification below still judges the
-            # whole motion, and a polished answer it rejects is not used.
+            cfg = self.config
             self._polisher = TrajectoryPolisher(
-                self.robot, self.scene, self.config.waypoints, safety_margin=self.margin,
-                config=TrajectoryPolishConfig(
-                    interpolation_checks=self.config.interpolation_checks))
-        rows = valid
+                self.robot, self.scene, cfg.waypoints, safety_margin=self.margin,
+                config=TrajectoryPolishConfig(interpolation_checks=cfg.verify_samples - 1,
+                                              verify_samples=cfg.verify_samples))
+        return self._polisher
+
+    def _polish(self, valid: list[tuple[int, np.ndarray, np.ndarray]],
+                candidates: list[list[tuple[np.ndarray, str]]],
+                results: list[TrajectoryResult | None], dt: float, timing: PlanTiming,
+                progress: bool) -> None:
+        """Exact stage: polish each problem's best LM candidate; when the polish fails or
+        the verification rejects it, the next candidate (up to
+        ``config.polish_attempts``). The first verified polish is the answer; if none
+        is, the LM answer stays (it keeps its own verdict: exact mode never succeeds
+        less often than the LM stage)."""
+        t0 = time.perf_counter()
+        cfg = self.config
+        items = [(candidates[row][: cfg.polish_attempts], dt, cfg.safety_margin,
+                  cfg.verify_samples) for row in range(len(valid))]
+        bar = None
         if progress:
             from tqdm.auto import tqdm
-            rows = tqdm(valid, desc="polish (Ipopt)", unit="trajectory")
-        for i, _, _ in rows:
+            bar = tqdm(total=len(items), desc="polish (Ipopt)", unit="trajectory")
+        if cfg.polish_workers > 1 and len(items) > 1:
+            if self._polish_pool is None:
+                from ..stages.pool import PolishPool
+                self._polish_pool = PolishPool(_trajectory_polisher, (
+                    self.robot, self.scene, cfg.waypoints, self.margin, cfg.verify_samples),
+                    cfg.polish_workers)
+            outcomes = self._polish_pool.map(polish_candidates, items, bar)
+        else:
+            polisher = self.polisher()
+            outcomes = []
+            for item in items:
+                outcomes.append(polish_candidates(polisher, *item))
+                if bar is not None:
+                    bar.update(1)
+        if bar is not None:
+            bar.close()
+        for (i, _, _), (q, verdict, failures, seconds) in zip(valid, outcomes, strict=True):
             previous = results[i]
-            assert previous is not None and previous.q is not None
-            t1 = time.perf_counter()
-            out = self._polisher.solve(previous.q, dt)
-            verdict = self.verify(out.q, dt) if out.success else None
-            seconds = time.perf_counter() - t1
-            timing_i = {**previous.timing, "polish": seconds}
-            # Keep the polished answer only where the independent check agrees fully.
-            if verdict is not None and verdict["success"] and \
-                    verdict["max_violation"] <= EXACT_TOLERANCE:
-                results[i] = _result(self.robot, out.q, dt, verdict, "polish", previous.cost,
-                                     timing_i)
+            assert previous is not None
+            if q is not None:
+                results[i] = _result(self.robot, q, dt, verdict, "polish", previous.cost,
+                                     previous.timing)
             else:
-                why = (out.status if not out.success else
-                       f"rejected by the checker: max violation {verdict['max_violation']:.3g}")
-                previous.stage = f"{previous.stage} (polish failed: {why})"
-                previous.timing = timing_i
-                if previous.success and previous.max_violation > EXACT_TOLERANCE:
-                    # Exact mode promises every constraint, the margin δ included.
-                    previous.success = False
-                    previous.reason = (f"exact mode: the polish failed ({why}) and the LM "
-                                       f"answer keeps the clearance margin only to within "
-                                       f"{previous.max_violation:.3g} m")
+                previous.stage = f"{previous.stage} (polish failed: {'; '.join(failures)})"
+            result = results[i]
+            assert result is not None
+            result.timing = {**previous.timing, "polish": seconds}
         timing.polish += time.perf_counter() - t0
+
+
+def _trajectory_polisher(robot: Robot, scene: Scene | None, waypoints: int, margin: float,
+                         samples: int) -> Any:
+    """The planner's polisher (rows at the verification's samples), for pool workers."""
+    from ..stages.polish_trajectory import TrajectoryPolishConfig, TrajectoryPolisher
+
+    return TrajectoryPolisher(robot, scene, waypoints, safety_margin=margin,
+                              config=TrajectoryPolishConfig(interpolation_checks=samples - 1,
+                                                            verify_samples=samples))
+
+
+def polish_candidates(polisher: Any, candidates: list[tuple[np.ndarray, str]], dt: float,
+                      margin: float, samples: int) -> tuple[np.ndarray | None,
+                                                            dict[str, Any] | None,
+                                                            list[str], float]:
+    """Polish the candidates (q, stage name) in turn until one passes
+    ``verify_trajectory`` (δ = ``margin`` m, ``samples`` per interval). Returns (its q,
+    its verdict, why each earlier one failed, seconds), q None if none passed."""
+    t0 = time.perf_counter()
+    failures = []
+    for q0, stage in candidates:
+        out = polisher.solve(q0, dt)
+        if not out.success:
+            failures.append(f"from {stage}: {describe_polish(out)}")
+            continue
+        verdict = verify_trajectory(polisher.robot, polisher.scene, out.q, dt, margin, samples)
+        if verdict["success"]:
+            return out.q, verdict, failures, time.perf_counter() - t0
+        failures.append(f"from {stage}: rejected by the checker: {verdict['reason']}")
+    return None, None, failures, time.perf_counter() - t0
+
+
+def describe_polish(out: Any) -> str:
+    """Why a trajectory polish failed: Ipopt's status and the violations it left."""
+    broken = describe_violations(out.violations)
+    return f"Ipopt {out.status}" + (f", {broken}" if broken else "")
 
 
 def _result(robot: Robot, q: np.ndarray, dt: float, verdict: dict[str, Any], stage: str,
