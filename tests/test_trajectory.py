@@ -183,30 +183,33 @@ def test_exact_mode_respects_tendon_limits_where_the_penalty_answer_breaks_them(
     np.testing.assert_allclose(exact.q[-1], goal, atol=1e-9)
 
 
-def test_exact_mode_never_calls_a_margin_violation_a_success(shelf_planner, monkeypatch):
-    # When the polish fails, exact mode returns the LM answer, marked; it may still be a
-    # success for the penalty planner (collision-free, limits held) while its python-fcl
-    # clearance is short of δ, and exact mode promises every constraint: it is a failure.
+def test_one_verdict_a_margin_violation_is_a_failure_in_both_modes(shelf_planner,
+                                                                   monkeypatch):
+    # A failed polish returns the LM answer with its own verdict. An answer 1 mm closer
+    # to the shelf than δ (still collision-free) fails that verdict in both modes, and
+    # the reason says which check failed by how much.
     from cr_nlp.stages.polish_trajectory import TrajectoryPolisher
     from cr_nlp.tasks import trajectory as T
 
     class Failed:
-        success, status, q = False, "Infeasible_Problem_Detected", None
+        success, status, q, violations = False, "Infeasible_Problem_Detected", None, {}
 
     monkeypatch.setattr(TrajectoryPolisher, "solve", lambda self, q, dt, *a, **k: Failed())
-    penalty = shelf_planner.plan([SHELF_START], [SHELF_GOAL])[0]
-    assert penalty.success
+    assert shelf_planner.plan([SHELF_START], [SHELF_GOAL])[0].success
     true_verify = T.verify_trajectory
 
     def verify_with_a_short_margin(robot, scene, q, dt, margin, samples, *a, **k):
-        # As if the answer came 1 mm closer to the shelf than δ (still collision-free).
         verdict = true_verify(robot, scene, q, dt, margin, samples, *a, **k)
         verdict["violations"]["clearance"] = 1e-3
         verdict["max_violation"] = max(verdict["violations"].values())
+        verdict["reason"] = T.failure_reason(verdict["violations"])
+        verdict["success"] = not verdict["reason"]
         return verdict
 
     monkeypatch.setattr(T, "verify_trajectory", verify_with_a_short_margin)
+    penalty = shelf_planner.plan([SHELF_START], [SHELF_GOAL])[0]
     exact = shelf_planner.plan([SHELF_START], [SHELF_GOAL], exact=True)[0]
-    assert exact.stage.endswith("(polish failed: Infeasible_Problem_Detected)")
-    assert exact.max_violation > 1e-6
-    assert not exact.success and "exact mode" in exact.reason
+    assert "polish failed: from lm" in exact.stage and "Infeasible_Problem_Detected" in exact.stage
+    for result in (penalty, exact):
+        assert not result.success and result.max_violation > 1e-6
+        assert "breaks the clearance by 0.001 m" in result.reason

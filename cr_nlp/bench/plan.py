@@ -26,6 +26,7 @@ after every scene, so an interrupted run keeps the scenes it finished.
 from __future__ import annotations
 
 import argparse
+import math
 import statistics
 import sys
 import time
@@ -187,7 +188,12 @@ def measure_planner(planner: TrajectoryPlanner, scene: str, method: str, starts:
         verdict = _judge(planner, r.q, r.dt)
         verdicts.append({**verdict, "success": verdict["success"] and r.success})
     per_problem = [sum(v for k, v in r.timing.items() if k != "compile") for r in results]
-    return _summary(scene, method, verdicts, per_problem, wall / len(starts), first), results
+    row = _summary(scene, method, verdicts, per_problem, wall / len(starts), first)
+    if exact:
+        row["median_polish"] = float(np.median([r.timing.get("polish", np.nan)
+                                                for r in results]))
+        row["polished_pct"] = 100.0 * float(np.mean([r.stage == "polish" for r in results]))
+    return row, results
 
 
 def measure_rrt(planner: TrajectoryPlanner, scene: str, starts: np.ndarray, goals: np.ndarray,
@@ -257,6 +263,10 @@ def _pooled(rows: Sequence[dict[str, Any]], verdict_rows: dict[str, list[dict[st
             "max_violation": max(r["max_violation"] for r in mine),
             "max_violation_success": max(r["max_violation_success"] for r in mine),
             "first_call": max(r["first_call"] for r in mine),
+            "median_polish": statistics.median(r.get("median_polish", math.nan)
+                                               for r in mine),
+            "polished_pct": weighted("polished_pct") if all(
+                "polished_pct" in r for r in mine) else math.nan,
         })
     return out
 
@@ -368,6 +378,8 @@ COLUMNS = (
     Column("median_path_length", "median path (m)", fixed(3)),
     Column("time_per_problem", "time/problem (s)", fixed(3)),
     Column("median_time", "median time (s)", fixed(3)),
+    Column("median_polish", "exact stage median (s)", fixed(3)),
+    Column("polished_pct", "polished %", fixed(1)),
     Column("max_violation", "max violation"),
     Column("max_violation_success", "max violation (successes)"),
     Column("first_call", "first call (s)", fixed(2)),
