@@ -477,6 +477,13 @@ class IKSolver:
         out["max_violation"] = violation
         return out
 
+    def close(self) -> None:
+        """Stop the polish pool's worker processes (``polish_workers`` > 1), if any; the
+        next exact solve starts a new pool. Also done at interpreter exit."""
+        if self._polish_pool is not None:
+            self._polish_pool.close()
+            self._polish_pool = None
+
     # ------------------------------------------------------------ the solve
     def solve(self, positions: Any, wxyz: Any, exact: bool = False,
               progress: bool = False) -> IKResult:

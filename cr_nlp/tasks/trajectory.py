@@ -843,6 +843,13 @@ class TrajectoryPlanner:
         return [[(q, f"lm ({kinds[row][g]})") for *_, q, g in
                  sorted(tried[row], key=lambda t: t[:3])] for row in range(len(valid))]
 
+    def close(self) -> None:
+        """Stop the polish pool's worker processes (``polish_workers`` > 1), if any; the
+        next exact solve starts a new pool. Also done at interpreter exit."""
+        if self._polish_pool is not None:
+            self._polish_pool.close()
+            self._polish_pool = None
+
     def polisher(self) -> Any:
         """The trajectory polisher of this planner (built on first use): rows at every
         waypoint and at every sample the verification checks."""
