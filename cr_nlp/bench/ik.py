@@ -9,6 +9,10 @@ Suites:
   δ (``IKSolver.margin``), for tdcr3 and tdcr4_ext.
 - ``scaling``: no obstacles, 200 targets for each of tdcr3, tdcr4_ext, tdcr5_ext and
   tdcr6_ext (3 to 6 segments).
+- ``polish``: the exact stage on its own terms: the lattice targets for tdcr3 and
+  tdcr6_ext, exact mode with the polishes in one process and in a pool of 2 worker
+  processes (``IKConfig.polish_workers``); its column "polish ms / target" is the
+  polish stage's median time divided by the targets.
 
 Rows: cr_nlp with its default ``IKConfig`` ("beam search"), with one seed and no beam
 or retries ("single seed"), with the exact Ipopt polish, and two baselines from
@@ -43,6 +47,7 @@ from ..model.limits import limit_violation_q
 from ..model.rotations import wxyz_from_matrix
 from ..tasks.ik import IKConfig, IKSolver
 from ..world import Scene, check_many, load_scene
+from ..world.verdict import VIOLATION_TOLERANCE
 from .baselines import (
     DampedNewtonConfig,
     ScipyConfig,
@@ -68,14 +73,18 @@ SCIPY_CONFIG = ScipyConfig()
 CR_BEAM = "cr_nlp beam search"
 CR_SINGLE = "cr_nlp single seed"
 CR_EXACT = "cr_nlp + exact polish"
+CR_EXACT_POOL = "cr_nlp + exact polish, 2 workers"
 NEWTON = "damped Newton–Raphson"
 SCIPY = f"scipy {SCIPY_CONFIG.method}"
 METHODS = (CR_BEAM, CR_SINGLE, CR_EXACT, NEWTON, SCIPY)
 """The rows of every table, in order."""
 
-SUITES = ("free", "lattice", "scaling")
+SUITES = ("free", "lattice", "scaling", "polish")
 LATTICE_ROBOTS = ("tdcr3", "tdcr4_ext")
 SCALING_ROBOTS = ("tdcr3", "tdcr4_ext", "tdcr5_ext", "tdcr6_ext")
+POLISH_ROBOTS = ("tdcr3", "tdcr6_ext")
+POLISH_METHODS = (CR_EXACT, CR_EXACT_POOL)
+"""The rows of the ``polish`` suite (it runs these instead of ``methods``)."""
 
 SINGLE_SEED = IKConfig(seeds_per_target=1, beam_width=1, retry_rounds=0)
 """The "cr_nlp single seed" configuration: the nearest pool seed, LM, nothing else."""
@@ -146,7 +155,7 @@ def free_case(robot: Robot, count: int, seed: int, suite: str = "free") -> Case:
 
 
 def lattice_case(robot: Robot, scene: Scene, count: int, margin: float, seed: int,
-                 batch: int = 2000, max_draws: int = 200_000) -> Case:
+                 batch: int = 2000, max_draws: int = 200_000, suite: str = "lattice") -> Case:
     """``count`` targets from uniform configurations whose python-fcl clearance in
     ``scene`` is at least ``margin`` (m), kept in the order drawn."""
     rng = np.random.default_rng(seed)
@@ -162,7 +171,7 @@ def lattice_case(robot: Robot, scene: Scene, count: int, margin: float, seed: in
         kept.append(q[check_many(robot, scene, q).min_distance >= margin])
     q = np.concatenate(kept)[:count]
     positions, wxyz = forward_kinematics(robot, q)
-    return Case("lattice", robot, scene, q, positions, wxyz)
+    return Case(suite, robot, scene, q, positions, wxyz)
 
 
 # ================================================================ judging
@@ -174,7 +183,7 @@ def judge(solver: IKSolver, q: np.ndarray, positions: np.ndarray,
     below ``success_tolerance``, every limit held, python-fcl collision-free (scenes)."""
     checked = solver.verify(np.asarray(q, dtype=float), positions, wxyz)
     finite = np.all(np.isfinite(q), axis=1)
-    limits_ok = limit_violation_q(solver.robot, q) <= 1e-9
+    limits_ok = limit_violation_q(solver.robot, q) <= VIOLATION_TOLERANCE
     checked["success"] = (finite & (checked["pose_error"] < solver.config.success_tolerance)
                           & checked["collision_free"] & limits_ok)
     return checked
@@ -204,9 +213,10 @@ def _times(first: float, runs: Sequence[float], compile_s: float | None) -> dict
 
 def measure_cr_nlp(case: Case, method: str, repeats: int, seed: int = 0) -> dict[str, Any]:
     """One cr_nlp row: a fresh ``IKSolver``, a warm-up call, ``repeats`` timed calls."""
-    config = {CR_BEAM: IKConfig(), CR_SINGLE: SINGLE_SEED, CR_EXACT: IKConfig()}[method]
+    config = {CR_BEAM: IKConfig(), CR_SINGLE: SINGLE_SEED, CR_EXACT: IKConfig(),
+              CR_EXACT_POOL: IKConfig(polish_workers=2)}[method]
     solver = IKSolver(case.robot, case.scene, replace(config, seed=seed))
-    exact = method == CR_EXACT
+    exact = method in (CR_EXACT, CR_EXACT_POOL)
     start = time.perf_counter()
     result = solver.solve(case.positions, case.wxyz, exact=exact)
     first = time.perf_counter() - start
@@ -224,6 +234,8 @@ def measure_cr_nlp(case: Case, method: str, repeats: int, seed: int = 0) -> dict
         row[f"{stage}_s"] = statistics.median(s[stage] for s in stages)
     if exact:
         row["polished_pct"] = 100.0 * float(np.mean([s == "polish" for s in result.stage]))
+        row["polish_ms"] = 1e3 * row["polish_s"] / max(len(result.success), 1)
+    solver.close()
     return row
 
 
@@ -283,6 +295,13 @@ def _cases(suite: str, sizes: IKBenchSizes, seed: int, lattice_robots: Sequence[
         for name in scaling_robots:
             robot = load_robot(name)
             yield free_case(robot, sizes.scaling_targets, seed, "scaling"), IKSolver(robot)
+    if suite in ("all", "polish"):
+        scene = load_scene("lattice")
+        for name in POLISH_ROBOTS:
+            robot = load_robot(name)
+            solver = IKSolver(robot, scene)
+            yield lattice_case(robot, scene, sizes.lattice_targets, solver.margin, seed,
+                               suite="polish"), solver
 
 
 def run_ik_benchmark(suite: str = "all", quick: bool = False, repeats: int | None = None,
@@ -294,7 +313,7 @@ def run_ik_benchmark(suite: str = "all", quick: bool = False, repeats: int | Non
     """Run the IK benchmark and return one dict per (suite, robot, method) row.
 
     Args:
-        suite: "all", "free", "lattice" or "scaling".
+        suite: "all", "free", "lattice", "scaling" or "polish".
         quick: small sizes (``QUICK``: 50/20/20 targets, 10 for scipy, 1 repeat).
         repeats: timed calls per row after the warm-up (default from the sizes).
         out: folder for ``ik.md``, ``ik.csv`` and ``environment.json``; None writes nothing.
@@ -314,7 +333,8 @@ def run_ik_benchmark(suite: str = "all", quick: bool = False, repeats: int | Non
     mixed m/rad), max_violation (rad or m: limits, and clearance below δ in scenes),
     total_s (median steady-state wall time), per_target_ms, min_s, max_s, runs,
     first_call_s, compile_s (None where nothing compiles), explore_s, refine_s,
-    polish_s, verify_s (stage medians, cr_nlp rows), polished_pct (exact row), notes.
+    polish_s, verify_s (stage medians, cr_nlp rows), polished_pct and polish_ms (the
+    polish stage per target, exact rows), notes.
     """
     use_host_devices()  # both cores, as the CLI does (no effect once JAX has started)
     if suite not in ("all", *SUITES):
@@ -329,6 +349,8 @@ def run_ik_benchmark(suite: str = "all", quick: bool = False, repeats: int | Non
         raise ValueError(f"repeats must be at least 1, got {sizes.repeats}")
     robots = {"free": 1, "lattice": len(lattice_robots), "scaling": len(scaling_robots)}
     jobs = sum(n for s, n in robots.items() if suite in ("all", s)) * len(methods)
+    if suite in ("all", "polish"):
+        jobs += len(POLISH_ROBOTS) * len(POLISH_METHODS)
 
     from tqdm import tqdm
 
@@ -336,7 +358,7 @@ def run_ik_benchmark(suite: str = "all", quick: bool = False, repeats: int | Non
     started = time.perf_counter()
     rows: list[dict[str, Any]] = []
     for case, judge_solver in _cases(suite, sizes, seed, lattice_robots, scaling_robots):
-        for method in methods:
+        for method in (POLISH_METHODS if case.suite == "polish" else methods):
             bar.set_postfix_str(f"{case.suite} {case.robot.name} {method}")
             if method == NEWTON:
                 row = measure_newton(case, judge_solver, sizes.repeats, seed)
@@ -372,7 +394,8 @@ def run_ik_benchmark(suite: str = "all", quick: bool = False, repeats: int | Non
 CSV_KEYS = ("suite", "robot", "scene", "method", "targets", "success_pct",
             "collision_free_pct", "mean_pose_error", "median_pose_error", "max_violation",
             "total_s", "per_target_ms", "min_s", "max_s", "runs", "first_call_s", "compile_s",
-            "explore_s", "refine_s", "polish_s", "verify_s", "polished_pct", "notes")
+            "explore_s", "refine_s", "polish_s", "verify_s", "polished_pct", "polish_ms",
+            "notes")
 """The columns of ``ik.csv``, in order."""
 
 TABLE_COLUMNS = (
@@ -387,6 +410,7 @@ TABLE_COLUMNS = (
     Column("per_target_ms", "ms / target"),
     Column("first_call_s", "first call s"),
     Column("compile_s", "compile s"),
+    Column("polish_ms", "polish ms / target"),
     Column("notes", "notes"),
 )
 """The columns of the Markdown tables."""
@@ -396,6 +420,8 @@ _TITLES = {
     "lattice": "IK among obstacles (3×3×3 sphere lattice, targets from configurations whose "
                "python-fcl clearance ≥ the solver's sphere margin `IKSolver.margin`)",
     "scaling": "IK scaling with the number of segments (no obstacles)",
+    "polish": "The exact stage: IK polish among the lattice's spheres, one process and a "
+              "pool of 2",
 }
 
 
@@ -433,7 +459,8 @@ def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str],
         "compile`; damped Newton: first call − median).",
         "- cr_nlp beam search: default `IKConfig`; single seed: `IKConfig(seeds_per_target=1,"
         " beam_width=1, retry_rounds=0)`; exact polish: `solve(exact=True)` (Ipopt per "
-        "target, sequential).",
+        "target, one process); 2 workers: `IKConfig(polish_workers=2)` (a process pool). "
+        "polish ms / target: the polish stage's median time over the targets.",
         f"- damped Newton–Raphson: Δz = −Jᵀ(JJᵀ + λ²I)⁻¹r with λ = {d.damping}, "
         f"{d.iterations} iterations from {d.starts} uniform random starts per target (best "
         "kept), batched in JAX (jacfwd, float32), on the bending vector with projection onto "
