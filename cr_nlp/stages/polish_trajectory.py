@@ -35,11 +35,12 @@ the clearance rows' curvature (measured on the shelf: the same optima, the Hessi
 cheaper; the stage-wise structure is then cheap enough that the general sparse MUMPS
 factorisation of the band is not the bottleneck).
 
-The NLP is built once per polisher (robot, scene, waypoints, objective, checks) and
-re-solved with new parameters (1/Δt, targets, slots) and bounds. Every answer is projected
-onto the simple limits and re-evaluated in float64 independently of Ipopt (the world's
-distances over all pairs at every waypoint and check point, numpy limits and tendon
-finite differences) before it is called a success.
+The NLP is built once per polisher (robot, scene, waypoints, objective, checks) and set of
+clearance-row capacities (the rows of a pool that no near pair needs are left out of
+Ipopt's KKT system), and re-solved with new parameters (1/Δt, targets, slots) and
+bounds. Every answer is projected onto the simple limits and re-evaluated in float64
+independently of Ipopt (the world's distances over all pairs at every waypoint and check
+point, numpy limits and tendon finite differences) before it is called a success.
 """
 
 from __future__ import annotations
@@ -213,8 +214,9 @@ def interpolated(way: Any, fractions: Any) -> Any:
 class TrajectoryPolisher:
     """Ipopt polish of whole trajectories for one robot, scene and number of waypoints.
 
-    The NLP is built once here and re-solved by ``solve`` with new parameters; ``builds``
-    counts ``nlpsol`` constructions (1).
+    The NLP is built on first use, once per set of clearance-row capacities (a power of
+    two per pool, fitted to the pairs that are near), and re-solved by ``solve`` with new
+    parameters; ``builds`` counts ``nlpsol`` constructions.
 
     Args:
         robot: a ``Robot`` or a robot file / bundled name.
@@ -258,6 +260,7 @@ class TrajectoryPolisher:
         self._ubx = np.ravel([[s.theta_max, s.theta_max, s.length_max] for s in robot.segments])
         self._model = CasadiModel(robot)
         self._rows = SlotRows(self._model, self._pools, config.face_smoothing)
+        self._slot_rows = {(True,) * len(self._pools): self._rows}
         # ℓ = A·z + b exactly (linear), A from the model's own CasADi tendon function.
         self._tendon_matrix = np.asarray(ca.Function(
             "tendon_jacobian", [self._model.z],
@@ -266,7 +269,7 @@ class TrajectoryPolisher:
         self._speed = math.isfinite(robot.tendon_speed_max)
         self._accel = math.isfinite(robot.tendon_accel_max) and w >= 3
         self._pose_errors = self._model.functions_z["pose_error"].map(w)
-        self._solver = self._build()
+        self._solvers: dict[tuple[int, ...], tuple[ca.Function, np.ndarray]] = {}
 
     # ------------------------------------------------------------ building
 
@@ -318,11 +321,35 @@ class TrajectoryPolisher:
                 + 0.5 * cfg.rotation_weight * ca.sumsqr(error[3:, :])
                 + cfg.tracking_smoothness_weight * ca.sumsqr(step))
 
-    def _build(self) -> ca.Function:
-        """The Ipopt solver. Parameters: 1/Δt (1/s), then for ``"tracking"`` the target
-        positions (3 × W) and rotations (3 × 3W), then each pool's slots
-        (capacity × width·C), configuration after configuration (``interpolated``), then
-        the check points' fractions (checks × (W − 1)).
+    def _solver(self, capacities: tuple[int, ...]) -> tuple[ca.Function, np.ndarray]:
+        """The Ipopt solver with ``capacities[i]`` clearance rows per configuration for
+        pool i (built on first use, then reused), and the indices of those rows among one
+        configuration's rows of all pools (``_select``'s layout)."""
+        if capacities not in self._solvers:
+            self._solvers[capacities] = self._build(capacities)
+        return self._solvers[capacities]
+
+    def _capacities(self, lower: np.ndarray) -> tuple[int, ...]:
+        """Rows per configuration and pool that hold every switched-on slot of the
+        config-major ``lower`` (``_select``): the largest count over the configurations,
+        rounded up to a power of two (a few solver variants, not one per solve). Slots
+        are filled from the first, so the first rows of each pool suffice. Every row,
+        switched on or not, is a row of Ipopt's KKT system: measured on a 150-waypoint
+        path, the unused self-pair pool's rows doubled the time per iteration."""
+        switched = np.isfinite(lower.reshape(self._n_configs, self._rows.count))
+        out, start = [], 0
+        for pool in self._pools:
+            needed = int(np.max(np.sum(switched[:, start:start + pool.capacity], axis=1),
+                                initial=0))
+            start += pool.capacity
+            out.append(0 if needed == 0 else min(pool.capacity, 1 << (needed - 1).bit_length()))
+        return tuple(out)
+
+    def _build(self, capacities: tuple[int, ...]) -> tuple[ca.Function, np.ndarray]:
+        """The Ipopt solver and its kept rows (``_solver``). Parameters: 1/Δt (1/s), then
+        for ``"tracking"`` the target positions (3 × W) and rotations (3 × 3W), then each
+        pool's slots (capacity × width·C), configuration after configuration
+        (``interpolated``), then the check points' fractions (checks × (W − 1)).
 
         The constraint Jacobian is given as a function: the linear rows' constant
         Jacobian, and the clearance rows' per-configuration Jacobians (``SlotRows``,
@@ -332,11 +359,25 @@ class TrajectoryPolisher:
         configuration per colour (measured 5 s per solve for 150 waypoints)."""
         robot, cfg, w = self.robot, self.config, self.waypoints
         dof, n, checks = robot.dof, robot.n_segments, cfg.interpolation_checks
-        rows_per_config = self._rows.count
+        # A pool without rows is left out of the functions too (its slots cost as much
+        # to evaluate as the rows in use); within a pool, the first rows are kept.
+        on = tuple(c > 0 for c in capacities)
+        pools = [pool for pool, used in zip(self._pools, on, strict=True) if used]
+        if on not in self._slot_rows:
+            self._slot_rows[on] = SlotRows(self._model, pools, cfg.face_smoothing)
+        slot_rows = self._slot_rows[on]
+        full_starts = np.cumsum([0] + [pool.capacity for pool in self._pools])
+        keep_all = np.concatenate([np.arange(c) + start for c, start in
+                                   zip(capacities, full_starts, strict=False)] + [[]])
+        starts = np.cumsum([0] + [pool.capacity for pool in pools])
+        keep = np.concatenate([np.arange(c) + start for c, start in
+                               zip([c for c in capacities if c], starts, strict=False)] + [[]])
+        keep, keep_all = keep.astype(np.int64), keep_all.astype(np.int64)
+        rows_per_config = len(keep)
 
         x = ca.MX.sym("x", dof * w)
         n_p = 1 + (12 * w if self.objective == "tracking" else 0) + sum(
-            p.capacity * p.width * self._n_configs for p in self._pools) + checks * (w - 1)
+            p.capacity * p.width * self._n_configs for p in pools) + checks * (w - 1)
         p = ca.MX.sym("p", n_p)
         way = ca.reshape(x, dof, w)                             # column k: waypoint k
         inv_dt = p[0]
@@ -347,7 +388,7 @@ class TrajectoryPolisher:
                        ca.reshape(p[offset + 3 * w:offset + 12 * w], 3, 3 * w)]
             offset += 12 * w
         slots = []
-        for pool in self._pools:
+        for pool in pools:
             size = pool.capacity * pool.width * self._n_configs
             slots.append(ca.reshape(p[offset:offset + size], pool.capacity,
                                     pool.width * self._n_configs))
@@ -365,11 +406,12 @@ class TrajectoryPolisher:
                                * inv_dt ** 2))
         smooth_rows = ca.vertcat(*rows)
         g, jacobian = smooth_rows, ca.jacobian(smooth_rows, x)
-        if self._pools:
-            values, with_jacobian, curvature = self._rows.functions(
+        if rows_per_config:
+            values, with_jacobian, curvature = slot_rows.functions(
                 cfg.clearance_curvature == "full", cfg.compile)
             configs = interpolated(way, fractions)
             clearance, blocks = with_jacobian.map(self._n_configs)(configs, *slots)
+            clearance, blocks = clearance[list(keep), :], blocks[list(keep), :]
             # A check point's Jacobian block enters waypoint k with weight 1 − s and
             # waypoint k + 1 with weight s.
             inner = blocks[:, dof * w:]
@@ -383,7 +425,7 @@ class TrajectoryPolisher:
                 ca.vertcat(jacobian, ca.MX(pattern, ca.mtimes(assembly, sources)))],
                 ["x", "p"], ["g", "jac_g_x"])
             # configuration after configuration
-            g = ca.vertcat(g, ca.vec(values.map(self._n_configs)(configs, *slots)))
+            g = ca.vertcat(g, ca.vec(values.map(self._n_configs)(configs, *slots)[list(keep), :]))
         else:
             jac_g = ca.Function("jac_g", [x, p], [g, jacobian], ["x", "p"], ["g", "jac_g_x"])
 
@@ -393,9 +435,13 @@ class TrajectoryPolisher:
         lam_bend = ca.reshape(lam_g[:n * w], n, w)
         h_w = waypoint.map(w)(way, ca.repmat(lam_f, 1, w), lam_bend, *targets)
         h_i = interval.map(w - 1)(way[:, :-1], way[:, 1:], ca.repmat(lam_f, 1, w - 1))
-        if self._pools and cfg.clearance_curvature != "none":
-            lam_clear = ca.reshape(lam_g[g.size1() - rows_per_config * self._n_configs:],
-                                   rows_per_config, self._n_configs)
+        if rows_per_config and cfg.clearance_curvature != "none":
+            lam_kept = ca.reshape(lam_g[g.size1() - rows_per_config * self._n_configs:],
+                                  rows_per_config, self._n_configs)
+            # The rows left out have zero multipliers.
+            scatter = np.zeros((slot_rows.count, rows_per_config))
+            scatter[keep, np.arange(rows_per_config)] = 1.0
+            lam_clear = ca.mtimes(ca.DM(scatter), lam_kept)
             h_c = curvature.map(self._n_configs)(configs, *slots, lam_clear)  # 3n × 3n·C
             h_w = h_w + h_c[:, :dof * w]
             if checks:
@@ -431,8 +477,10 @@ class TrajectoryPolisher:
         if cfg.hessian == "exact":
             options["hess_lag"] = hess_lag
         self.builds += 1
-        return ca.nlpsol(f"polish_trajectory_{robot.name}_{self.objective}_{w}", "ipopt",
-                         {"x": x, "p": p, "f": objective, "g": g}, options)
+        name = "_".join(["polish_trajectory", robot.name, self.objective, str(w),
+                         *map(str, capacities)])
+        return ca.nlpsol(name, "ipopt", {"x": x, "p": p, "f": objective, "g": g},
+                         options), keep_all
 
     # ------------------------------------------------------------ per solve
 
@@ -583,14 +631,18 @@ class TrajectoryPolisher:
             low, high = np.maximum(lbx, z - step), np.minimum(ubx, z + step)
             fractions, rows = self._place(near)
             slots, clearance_lower, chosen = self._select(near[rows])
+            capacities = self._capacities(clearance_lower)
+            solver, keep = self._solver(capacities)
+            clearance_lower = clearance_lower.reshape(self._n_configs, -1)[:, keep].ravel()
+            slots = [s for s, c in zip(slots, capacities, strict=True) if c]
             parameters = np.concatenate([*fixed, *[s.ravel(order="F") for s in slots],
                                          fractions.ravel(order="F")])
             try:
-                solution = self._solver(
+                solution = solver(
                     x0=z.reshape(-1), p=parameters, lbx=low.reshape(-1), ubx=high.reshape(-1),
                     lbg=np.concatenate([*lower, clearance_lower]),
                     ubg=np.concatenate([*upper, np.full(clearance_lower.size, np.inf)]))
-                stats = self._solver.stats()
+                stats = solver.stats()
                 answer = np.asarray(solution["x"], dtype=np.float64).reshape(w, dof)
                 status = str(stats.get("return_status", "unknown"))
                 iterations += int(stats.get("iter_count", 0))
