@@ -61,7 +61,7 @@ from ..model.limits import limit_violation_q, project_bending
 from ..world.clearance import PairDistances, body_gap_tolerance, self_pairs
 from ..world.scene import Scene, load_scene
 from ..world.verdict import VIOLATION_TOLERANCE
-from .slots import SlotRows, make_pools, select_slots
+from .slots import SlotRows, make_pools, select_slots_batch
 
 OBJECTIVES = ("path", "tracking")
 
@@ -523,12 +523,12 @@ class TrajectoryPolisher:
         """Slot parameters per pool (capacity × width·C), the clearance lbg (config-major)
         and, per configuration, the switched-on pair indices in row order. With
         ``fixed_ends`` the rows of a ``"path"`` problem's fixed start and goal are off."""
-        selections = [select_slots(self._pools, self._n_bodies, self._self_pairs,
-                                   self.config.near_margin, self.safety_margin, row)
-                      for row in distances]
-        parameters = [np.hstack([s.parameters[p] for s in selections])
-                      for p in range(len(self._pools))]
-        lower = np.concatenate([s.lower for s in selections]) if selections else np.zeros(0)
+        batch, lower, chosen = select_slots_batch(
+            self._pools, self._n_bodies, self._self_pairs, self.config.near_margin,
+            self.safety_margin, distances)
+        # (C, capacity, width) → (capacity, width·C), configuration after configuration.
+        parameters = [np.transpose(b, (1, 0, 2)).reshape(b.shape[1], -1) for b in batch]
+        lower = lower.reshape(-1)
         if fixed_ends and self.objective == "path" and len(lower):
             # Start and goal are fixed: their rows are constants Ipopt cannot change (and a
             # start closer than δ must not make the whole NLP infeasible); the
@@ -536,7 +536,7 @@ class TrajectoryPolisher:
             width = len(lower) // self._n_configs
             lower[:width] = -np.inf
             lower[(self.waypoints - 1) * width: self.waypoints * width] = -np.inf
-        return parameters, lower, [s.chosen for s in selections]
+        return parameters, lower, chosen
 
     def _evaluate(self, z: np.ndarray, dt: float) -> tuple[dict[str, float], np.ndarray]:
         """Float64, independent of Ipopt: the violation per family and all distances."""

@@ -131,13 +131,27 @@ def select_slots(pools: list[Pool], n_bodies: int, self_pair_table: np.ndarray,
     ``distances``: (N·P + M,) obstacle pair distances (body-major) then the M self
     distances (``self_pair_table`` rows), metres.
     """
+    parameters, lower, chosen = select_slots_batch(pools, n_bodies, self_pair_table,
+                                                   near_margin, margin, distances[None])
+    return Selection([p[0] for p in parameters], lower[0], chosen[0])
+
+
+def select_slots_batch(pools: list[Pool], n_bodies: int, self_pair_table: np.ndarray,
+                       near_margin: float, margin: float, distances: np.ndarray
+                       ) -> tuple[list[np.ndarray], np.ndarray, list[np.ndarray]]:
+    """``select_slots`` for K configurations at once: ``distances`` (K, N·P + M).
+
+    Returns per pool the (K, capacity, width) slot parameters, the (K, Σ capacity) lower
+    bounds (pool after pool) and per configuration the switched-on pair indices in row
+    order."""
+    k_configs = len(distances)
     n_self = len(self_pair_table)
-    n_parts = (len(distances) - n_self) // n_bodies
-    parameters, lower, chosen = [], [], []
+    n_parts = (distances.shape[1] - n_self) // n_bodies
+    parameters, lower, picked = [], [], []
     for pool in pools:
         if pool.kind == "self":
             flat = n_bodies * n_parts + np.arange(n_self)
-            later = np.zeros(n_self, dtype=bool)
+            later = np.zeros((k_configs, n_self), dtype=bool)
         else:
             body = np.arange(n_bodies)[:, None]
             part = np.arange(pool.first, pool.first + len(pool.table))[None, :]
@@ -145,28 +159,30 @@ def select_slots(pools: list[Pool], n_bodies: int, self_pair_table: np.ndarray,
             # A part's nearest spheres along the backbone (local minima of the distance)
             # first, then the others: every near part gets a slot before a second sphere
             # of one part does.
-            d = distances[flat].reshape(n_bodies, -1)
-            padded = np.pad(d, ((1, 1), (0, 0)), constant_values=np.inf)
-            later = ~((d <= padded[:-2]) & (d <= padded[2:])).reshape(-1)
-        near = distances[flat] < near_margin
-        flat, later = flat[near], later[near]
-        flat = flat[np.lexsort((distances[flat], later))][: pool.capacity]
-        rows = np.zeros((pool.capacity, pool.width))
+            d = distances[:, flat].reshape(k_configs, n_bodies, -1)
+            padded = np.pad(d, ((0, 0), (1, 1), (0, 0)), constant_values=np.inf)
+            later = ~((d <= padded[:, :-2]) & (d <= padded[:, 2:])).reshape(k_configs, -1)
+        d = distances[:, flat]
+        # Near pairs ordered by (later, distance), ties in pair order; the rest last.
+        key = np.where(d < near_margin, d + 1e6 * later, np.inf)
+        order = np.argsort(key, axis=1, kind="stable")[:, : pool.capacity]
+        used = np.isfinite(np.take_along_axis(key, order, axis=1))
+        pairs = np.where(used, flat[order], -1)
+        rows = np.zeros((k_configs, pool.capacity, pool.width))
         if pool.kind == "self":
-            rows[:] = self_pair_table[0]                          # harmless filler
-            rows[: len(flat)] = self_pair_table[flat - n_bodies * n_parts]
+            table = self_pair_table[np.where(used, pairs - n_bodies * n_parts, 0)]
+            rows[:] = np.where(used[..., None], table, self_pair_table[0])   # filler: harmless
         else:
-            rows[:, 1:] = pool.table[0]                           # base sphere ↔ first part
-            rows[: len(flat), 0] = flat // n_parts
-            rows[: len(flat), 1:] = pool.table[flat % n_parts - pool.first]
-        bound = np.full(pool.capacity, -np.inf)
-        bound[: len(flat)] = margin
+            rows[:, :, 0] = np.where(used, pairs // n_parts, 0)
+            rows[:, :, 1:] = pool.table[np.where(used, pairs % n_parts - pool.first, 0)]
         parameters.append(rows)
-        lower.append(bound)
-        chosen.append(flat)
+        lower.append(np.where(used, margin, -np.inf))
+        picked.append(pairs)
     if not pools:
-        return Selection([], np.zeros(0), np.zeros(0, dtype=np.int64))
-    return Selection(parameters, np.concatenate(lower), np.concatenate(chosen))
+        return [], np.zeros((k_configs, 0)), [np.zeros(0, dtype=np.int64)] * k_configs
+    all_pairs = np.concatenate(picked, axis=1)
+    chosen = [row[row >= 0] for row in all_pairs]
+    return parameters, np.concatenate(lower, axis=1), chosen
 
 
 class SlotRows:
