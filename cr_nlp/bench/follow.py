@@ -16,6 +16,7 @@ import statistics
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -38,18 +39,23 @@ MODES = ("penalty", "exact")
 
 
 def measure_follow(follower: Any, shape: str, exact: bool, repeats: int,
-                   path: Any = None) -> tuple[dict[str, Any], Any]:
+                   path: Any = None, dt: float | None = None) -> tuple[dict[str, Any], Any]:
     """One row for a ``PathFollower``: a warm-up run (compilation, Ipopt build; its time
-    is "first call"), then ``repeats`` timed runs; the last run's result is judged."""
+    is "first call"), then ``repeats`` timed runs; the last run's result is judged.
+    ``dt``: seconds between waypoints instead of the path file's (a smaller Δt asks the
+    tendons to move faster, so that their speed limit binds)."""
     reference = load_path(shape if path is None else path)
+    if dt is not None:
+        reference = replace(reference, dt=float(dt))
     t0 = time.perf_counter()
     result = follower.follow(reference, exact=exact)
     first = time.perf_counter() - t0
-    seconds = []
+    seconds, polish = [], []
     for _ in range(repeats):
         t0 = time.perf_counter()
         result = follower.follow(reference, exact=exact)
         seconds.append(time.perf_counter() - t0)
+        polish.append(result.timing.get("polish", 0.0))
     pos, rot = result.position_error_mm, result.rotation_error_deg
     return {
         "shape": reference.name, "mode": "exact" if exact else "penalty",
@@ -63,12 +69,14 @@ def measure_follow(follower: Any, shape: str, exact: bool, repeats: int,
         "max_violation": float(result.max_violation),
         "stage": result.stage,
         "time_per_path": statistics.median(seconds) if seconds else float("nan"),
+        "polish_seconds": statistics.median(polish) if exact and polish else float("nan"),
+        "dt": reference.dt,
         "first_call": first,
     }, result
 
 
 COLUMNS = (
-    Column("shape", "shape"), Column("mode", "mode"),
+    Column("shape", "shape"), Column("mode", "mode"), Column("dt", "Δt (s)", fixed(2)),
     Column("mean_position_mm", "position mean (mm)", fixed(2)),
     Column("std_position_mm", "position std (mm)", fixed(2)),
     Column("max_position_mm", "position max (mm)", fixed(2)),
@@ -79,6 +87,7 @@ COLUMNS = (
     Column("min_clearance_mm", "min clearance (mm)", fixed(1)),
     Column("max_violation", "max violation"),
     Column("time_per_path", "time/path (s)", fixed(3)),
+    Column("polish_seconds", "polish (s)", fixed(3)),
     Column("first_call", "first call (s)", fixed(1)),
     Column("stage", "stage"),
 )
@@ -88,11 +97,12 @@ def run_follow_benchmark(shapes: Sequence[str] = SHAPES, modes: Sequence[str] = 
                          repeats: int = 3, robot: str = "tdcr3",
                          out: str | Path | None = "bench_results/follow",
                          config: Any = None,
-                         progress: bool = True) -> list[dict[str, Any]]:
+                         progress: bool = True, dt: float | None = None) -> list[dict[str, Any]]:
     """Run the benchmark; returns the rows, prints the Markdown report and, with ``out``,
     writes follow.md, follow.csv and one figure per shape and mode there. A shape is a
     bundled name (its scene is ``follow_<name>``) or a path file (followed without
-    obstacles). ``config``: a ``FollowConfig`` (default settings when None)."""
+    obstacles). ``config``: a ``FollowConfig`` (default settings when None). ``dt``:
+    seconds between waypoints instead of each path file's."""
     from ..tasks.follow import FollowConfig, PathFollower
 
     rows = []
@@ -102,7 +112,8 @@ def run_follow_benchmark(shapes: Sequence[str] = SHAPES, modes: Sequence[str] = 
         scene = f"follow_{shape}" if shape in SHAPES else None
         if shape not in followers:
             followers[shape] = PathFollower(robot, scene, config or FollowConfig())
-        row, result = measure_follow(followers[shape], shape, mode == "exact", repeats)
+        row, result = measure_follow(followers[shape], shape, mode == "exact", repeats,
+                                     dt=dt)
         rows.append(row)
         if out is not None:
             from ..tasks.trajectory import tendon_names
@@ -114,7 +125,7 @@ def run_follow_benchmark(shapes: Sequence[str] = SHAPES, modes: Sequence[str] = 
             Path(out).mkdir(parents=True, exist_ok=True)
             figure.savefig(Path(out) / f"{row['shape']}_{mode}.png", dpi=110)
     env = environment()
-    report = format_report(rows, env, robot, repeats)
+    report = format_report(rows, env, robot, repeats, dt)
     print(report)
     if out is not None:
         out = Path(out)
@@ -124,7 +135,7 @@ def run_follow_benchmark(shapes: Sequence[str] = SHAPES, modes: Sequence[str] = 
 
 
 def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str], robot: str,
-                  repeats: int) -> str:
+                  repeats: int, dt: float | None = None) -> str:
     """The Markdown report: the table, how it was measured, the environment."""
     return "\n\n".join([
         f"# Path-following benchmark ({robot})",
@@ -133,8 +144,11 @@ def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str], robot: st
         "rotation: angle between the tip frame and the reference frame). collision-free "
         "and min clearance: python-fcl along the interpolated motion; max violation: the "
         "largest of clearance below δ (m), limits, tendon speed (m/s) and acceleration "
-        f"(m/s²) over Δt. time/path: median of {repeats} runs after a warm-up; first call: "
-        "the warm-up (compilation or JAX cache load, Ipopt build).",
+        f"(m/s²) over Δt. time/path: median of {repeats} runs after a warm-up; polish: the "
+        "exact stage's part of it (0 where the penalty answer already met every "
+        "constraint and reached every waypoint: nothing to polish); first call: "
+        "the warm-up (compilation or JAX cache load, Ipopt build). Δt: "
+        + ("each path file's" if dt is None else f"{dt} s instead of the path files'") + ".",
         "## Environment", environment_markdown(env)])
 
 
@@ -156,6 +170,9 @@ def add_bench_follow(bench_subparsers: argparse._SubParsersAction) -> argparse.A
     p.add_argument("--robot", default="tdcr3", help="robot name or file (default tdcr3)")
     p.add_argument("--out", default="bench_results/follow",
                    help="output folder (default bench_results/follow)")
+    p.add_argument("--dt", type=float, default=None,
+                   help="seconds between waypoints instead of the path files' (smaller: "
+                        "faster tendons, the speed limit binds and exact mode polishes)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(run=run_bench_follow_command)
     return p
@@ -166,7 +183,11 @@ def run_bench_follow_command(args: argparse.Namespace) -> int:
     if args.repeats < 1:
         print("cr-nlp bench follow: error: --repeats must be at least 1", file=sys.stderr)
         return 2
+    if args.dt is not None and not args.dt > 0:
+        print(f"cr-nlp bench follow: error: --dt must be a positive number of seconds, got "
+              f"{args.dt}", file=sys.stderr)
+        return 2
     run_follow_benchmark(args.shapes, args.modes, args.repeats, args.robot, args.out,
-                         progress=not args.no_progress)
+                         progress=not args.no_progress, dt=args.dt)
     print(f"wrote {Path(args.out) / 'follow.md'} and follow.csv", file=sys.stderr)
     return 0
