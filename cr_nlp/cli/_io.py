@@ -14,6 +14,7 @@ if TYPE_CHECKING:
     import numpy as np
 
     from ..model import Robot
+    from ..world import Scene
 
 
 class UsageError(Exception):
@@ -37,7 +38,7 @@ def load_robot_arg(value: str, option: str = "--robot") -> Robot:
     return Robot.from_file(resolve(value, "robots", option))
 
 
-def load_scene_arg(value: str | None, option: str = "--scene") -> Any:
+def load_scene_arg(value: str | None, option: str = "--scene") -> Scene | None:
     """The scene of a ``--scene`` value (file or bundled name), None without one."""
     if value is None:
         return None
