@@ -26,3 +26,37 @@ def models_root() -> Path:
 def bundled_file(kind: str, name: str, suffix: str = ".json") -> Path:
     """``models/<kind>/<name><suffix>``, e.g. ``bundled_file("scenes", "shelf")``."""
     return models_root() / kind / f"{name}{suffix}"
+
+
+BUNDLED_KINDS = ("robots", "scenes", "paths", "targets", "problems")
+"""The kinds of bundled file a name can stand for (folders of ``models/``)."""
+
+
+def bundled_names(kind: str) -> list[str]:
+    """The bundled names of one kind, e.g. ``bundled_names("robots")`` → ["tdcr3", …]."""
+    folder = models_root() / kind
+    return sorted(p.stem for p in folder.glob("*.json")) if folder.is_dir() else []
+
+
+def resolve_file(value: str | Path, kind: str) -> Path:
+    """The one resolver of the file arguments: ``value`` as a path when that file exists,
+    else, for a bare name (no folder, no suffix), the bundled ``models/<kind>/<value>.json``.
+
+    Works from any directory, in a checkout and after a plain ``pip install .``.
+
+    Raises:
+        FileNotFoundError: neither a file nor a bundled name; the message names the
+            bundled choices of ``kind``.
+    """
+    if kind not in BUNDLED_KINDS:
+        raise ValueError(f"kind must be one of {BUNDLED_KINDS}, got {kind!r}")
+    path = Path(value)
+    if path.is_file():
+        return path
+    bare = path.suffix == "" and path.name == str(value)
+    if bare and bundled_file(kind, str(value)).is_file():
+        return bundled_file(kind, str(value))
+    names = ", ".join(bundled_names(kind)) or "none"
+    singular = kind.removesuffix("s")
+    raise FileNotFoundError(f"{value}: file not found, and not a bundled {singular} name "
+                            f"(bundled: {names})")

@@ -1,4 +1,5 @@
-"""``cr-nlp demo``: the three tasks on the bundled defaults, with a summary table and figures.
+"""The demo (``run_demo``, ``cr-nlp demo``): the three tasks on the bundled defaults, with a
+summary table and figures.
 
 1. IK: the 20 targets of ``models/targets/tdcr3_lattice.json`` for tdcr3 among the 27
    spheres of the lattice scene.
@@ -16,9 +17,7 @@ disk for the next runs: see ``cr_nlp._jax_setup``).
 
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -43,15 +42,13 @@ class DemoRow:
 
 
 def _ik(out: Path, exact: bool) -> DemoRow:
-    from .cli import read_pose_file
     from .model import load_robot
-    from .tasks.ik import IKSolver
+    from .tasks.ik import IKSolver, read_targets
     from .viz import save_figure
     from .world import load_scene
 
     robot, scene = load_robot("tdcr3"), load_scene("lattice")
-    positions, wxyz, _ = read_pose_file(str(bundled_file("targets", "tdcr3_lattice")),
-                                        "targets")
+    positions, wxyz, _ = read_targets(bundled_file("targets", "tdcr3_lattice"))
     start = time.perf_counter()
     result = IKSolver(robot, scene).solve(positions, wxyz, exact=exact)
     seconds = time.perf_counter() - start
@@ -138,24 +135,3 @@ def run_demo(out: str | Path = "demo_output", exact: bool = True,
         rows.append(TASKS[name](out, exact))
     (out / "summary.md").write_text(format_table(rows) + "\n")
     return rows
-
-
-def add_demo_parser(sub: argparse._SubParsersAction) -> None:
-    """Register ``cr-nlp demo`` on the CLI's subparsers."""
-    p = sub.add_parser("demo", help="IK, planning and path following on the bundled defaults")
-    p.add_argument("--out", default="demo_output",
-                   help="folder for results (JSON, CSV) and figures (PNG); default demo_output")
-    p.add_argument("--penalty-only", action="store_true",
-                   help="skip the exact Ipopt polish (faster, constraints only as penalties)")
-    p.add_argument("--tasks", nargs="+", choices=list(TASKS), default=list(TASKS),
-                   help="which tasks to run (default all three)")
-    p.set_defaults(run=run_demo_command)
-
-
-def run_demo_command(args: argparse.Namespace) -> int:
-    rows = run_demo(args.out, exact=not args.penalty_only, tasks=tuple(args.tasks),
-                    progress=True)
-    print(format_table(rows))
-    print(f"\nfiles in {args.out}/: " + ", ".join(f for r in rows for f in r.files)
-          + ", summary.md", file=sys.stderr)
-    return 0

@@ -1,8 +1,6 @@
 """The IK benchmark and its baselines on tiny sizes: the baselines solve easy targets, the
 benchmark writes its documented files, and its numbers come from the shared judge."""
 
-import argparse
-
 import numpy as np
 import pytest
 
@@ -17,13 +15,13 @@ from cr_nlp.bench.ik import (
     NEWTON_CONFIG,
     SCIPY,
     IKBenchSizes,
-    add_bench_ik,
     forward_kinematics,
     free_case,
     judge,
     lattice_case,
     run_ik_benchmark,
 )
+from cr_nlp.cli import build_parser
 from cr_nlp.model import Robot
 from cr_nlp.model.limits import limit_violation_q
 from cr_nlp.tasks.ik import IKSolver
@@ -150,11 +148,10 @@ def test_table_formatting() -> None:
 
 
 def test_cli_parser_defaults() -> None:
-    parser = argparse.ArgumentParser()
-    add_bench_ik(parser.add_subparsers(dest="bench"))
-    args = parser.parse_args(["ik", "--quick", "--suite", "lattice"])
+    parser = build_parser()
+    args = parser.parse_args(["bench", "ik", "--quick", "--suite", "lattice"])
     assert (args.suite, args.quick, args.repeats, args.out, args.seed) == (
         "lattice", True, None, "bench_results/ik", 0)
     assert callable(args.run)
     with pytest.raises(SystemExit):
-        parser.parse_args(["ik", "--suite", "nowhere"])
+        parser.parse_args(["bench", "ik", "--suite", "nowhere"])

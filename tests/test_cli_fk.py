@@ -65,3 +65,60 @@ def test_fk_bad_robot_file(tmp_path: Path, capsys: pytest.CaptureFixture) -> Non
     assert main(["fk", "--robot", str(bad), "--q", "0,0,1"]) == 2
     err = capsys.readouterr().err
     assert str(bad) in err and "segments" in err
+
+
+# ---------------------------------------------------------------- bundled names (one resolver)
+
+
+def test_fk_takes_a_bundled_robot_name_from_any_directory(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture) -> None:
+    q = "0.3,0.1,0.2,0.4,0.5,0.6"
+    assert main(["fk", "--robot", TDCR3, "--q", q, "--json"]) == 0
+    from_file = json.loads(capsys.readouterr().out)
+    monkeypatch.chdir(tmp_path)  # no models/ folder here
+    assert main(["fk", "--robot", "tdcr3", "--q", q, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == from_file
+
+
+def test_a_file_beats_a_bundled_name_and_an_unknown_name_lists_the_choices(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture) -> None:
+    data = json.loads(Path(TDCR3).read_text())
+    data["name"] = "local_tdcr3"
+    monkeypatch.chdir(tmp_path)
+    Path("tdcr3").write_text(json.dumps(data))  # a local file called like the bundled robot
+    assert main(["fk", "--robot", "tdcr3", "--q", "0,0,0,0,0,0"]) == 0
+    assert "local_tdcr3" in capsys.readouterr().out
+    assert main(["fk", "--robot", "tdcr9", "--q", "0,0,0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("cr-nlp fk: error: --robot: tdcr9: file not found")
+    assert "tdcr3, tdcr4_ext" in err and len(err.splitlines()) == 1
+
+
+@pytest.mark.parametrize(("kind", "name"), [
+    ("robots", "tdcr6_ext"), ("scenes", "cabinet"), ("paths", "sine"),
+    ("targets", "tdcr3_lattice"), ("problems", "tdcr3_shelf")])
+def test_the_resolver_finds_every_kind_of_bundled_file(
+        kind: str, name: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from cr_nlp._resources import resolve_file
+
+    monkeypatch.chdir(tmp_path)
+    assert resolve_file(name, kind) == MODELS / kind / f"{name}.json"
+    with pytest.raises(FileNotFoundError, match=f"not a bundled {kind[:-1]} name"):
+        resolve_file(f"{name}_missing", kind)
+    with pytest.raises(FileNotFoundError):  # a path is never looked up among the bundled
+        resolve_file(f"somewhere/{name}", kind)
+
+
+def test_plan_and_ik_inputs_take_bundled_names(tmp_path: Path,
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    from cr_nlp.cli._io import resolve
+    from cr_nlp.cli.plan import read_problems
+    from cr_nlp.tasks.ik import read_targets
+
+    monkeypatch.chdir(tmp_path)
+    starts, goals, _, _ = read_problems(resolve("tdcr3_shelf", "problems", "--problems"))
+    assert len(starts) == len(goals) > 0
+    positions, wxyz, problems = read_targets(resolve("tdcr3_lattice", "targets", "--targets"))
+    assert positions.shape == (20, 3) and wxyz.shape == (20, 4) and not any(problems)

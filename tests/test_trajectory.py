@@ -11,6 +11,7 @@ import math
 import numpy as np
 import pytest
 
+from cr_nlp.cli import plan as plan_command
 from cr_nlp.model import load_robot
 from cr_nlp.tasks.trajectory import (
     TrajectoryConfig,
@@ -21,7 +22,6 @@ from cr_nlp.tasks.trajectory import (
     tip_positions,
     verify_trajectory,
 )
-from cr_nlp.tasks.trajectory_cli import add_plan_parser
 from cr_nlp.world import load_scene
 
 from .conftest import MODELS
@@ -93,7 +93,7 @@ def test_verify_measures_tendon_speed_and_acceleration(robot):
 
 def _run_cli(argv: list[str]) -> int:
     parser = argparse.ArgumentParser()
-    add_plan_parser(parser.add_subparsers(dest="command", required=True))
+    plan_command.add_parser(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(argv)
     return args.run(args)
 

@@ -89,4 +89,4 @@ def test_bench_clearance_function_measures(tdcr3: Robot) -> None:
                           dtype="float64", repeats=2)
     assert row.parts == 27 and row.configs > 0 and row.median_s > 0
     table = format_table([row], environment())
-    assert "configs/s" in table and "# jax:" in table and "lattice" in table
+    assert "configs/s" in table and "- jax:" in table and "lattice" in table

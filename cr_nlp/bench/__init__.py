@@ -4,6 +4,9 @@
 - ``baselines``: damped Newton–Raphson and a scipy derivative-free method, numpy in/out.
 - ``common``: the environment record and Markdown/CSV tables every benchmark shares.
 - ``clearance``: ``cr-nlp bench clearance``, batched clearance throughput.
+
+The command-line options live in ``cr_nlp.cli.bench`` (one shared set-up); every suite
+writes its report through ``common.write_report``.
 """
 
 from .baselines import BaselineSolve as BaselineSolve
@@ -15,6 +18,6 @@ from .common import Column as Column
 from .common import environment as environment
 from .common import markdown_table as markdown_table
 from .common import write_csv as write_csv
+from .common import write_report as write_report
 from .ik import IKBenchSizes as IKBenchSizes
-from .ik import add_bench_ik as add_bench_ik
 from .ik import run_ik_benchmark as run_ik_benchmark

@@ -1,26 +1,34 @@
 """Benchmark: batched clearance of many configurations against a scene (JAX).
 
-Prints a table of configurations per second for ``clearance(robot, arrays, q)`` over a
-batch of random configurations drawn inside the limits (fixed seed): compile time
-(first call) apart from steady state, a warm-up call, ``block_until_ready`` before
-every clock stop, the median (and range) of repeated runs, and the versions, device and
-core count. The batch is sharded over all host devices: call ``use_host_devices`` (or
-run through the ``cr-nlp bench clearance`` command, which does) before JAX starts, so
-XLA's CPU backend gets one device per core.
+``cr-nlp bench clearance`` prints a table of configurations per second for
+``clearance(robot, arrays, q)`` over a batch of random configurations drawn inside the
+limits (fixed seed): compile time (first call) apart from steady state, a warm-up call,
+``block_until_ready`` before every clock stop, the median (and range) of repeated runs,
+and the versions, device and core count. The batch is sharded over all host devices:
+call ``use_host_devices`` (or run through the ``cr-nlp bench clearance`` command, which
+does) before JAX starts, so XLA's CPU backend gets one device per core.
 """
 
 from __future__ import annotations
 
 import statistics
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from .._jax_setup import split_over_devices, use_host_devices
 from ..model import load_robot
-from .common import environment
+from .common import (
+    Column,
+    environment,
+    environment_markdown,
+    fixed,
+    markdown_table,
+    write_report,
+)
 
 
 @dataclass(frozen=True)
@@ -85,29 +93,44 @@ def bench_clearance(robot: str = "tdcr3", scene: str = "lattice", configs: int =
                              max_s=max(times))
 
 
-def format_table(rows: list[ClearanceBenchRow], env: dict[str, str]) -> str:
-    """The benchmark table as text."""
-    lines = [f"# {k}: {v}" for k, v in env.items()]
-    header = (f"{'scene':<10} {'parts':>5} {'configs':>8} {'dtype':<8} {'dev':>3} "
-              f"{'compile s':>9} {'median s':>9} {'min s':>7} {'max s':>7} {'configs/s':>11}")
-    lines += [header, "-" * len(header)]
-    for r in rows:
-        lines.append(f"{r.scene:<10} {r.parts:>5} {r.configs:>8} {r.dtype:<8} {r.devices:>3} "
-                     f"{r.compile_s:>9.3f} {r.median_s:>9.4f} {r.min_s:>7.4f} {r.max_s:>7.4f} "
-                     f"{r.configs_per_s:>11.3g}")
-    return "\n".join(lines)
+COLUMNS = (
+    Column("scene", "scene"), Column("parts", "parts"), Column("configs", "configs"),
+    Column("dtype", "dtype"), Column("devices", "devices"),
+    Column("compile_s", "compile s", fixed(3)), Column("median_s", "median s", fixed(4)),
+    Column("min_s", "min s", fixed(4)), Column("max_s", "max s", fixed(4)),
+    Column("configs_per_s", "configs/s"),
+)
 
 
-def main(robot: str = "tdcr3", scenes: tuple[str, ...] = ("lattice",), configs: int = 100_000,
-         dtypes: tuple[str, ...] = ("float32",), repeats: int = 7) -> int:
-    """Run the benchmark for every scene × dtype and print the table."""
+def _row_dict(row: ClearanceBenchRow) -> dict[str, Any]:
+    return {**asdict(row), "configs_per_s": row.configs_per_s}
+
+
+def format_table(rows: list[ClearanceBenchRow], env: dict[str, str], robot: str = "tdcr3",
+                 repeats: int = 7) -> str:
+    """The Markdown report: the table, how it was measured, the environment."""
+    return "\n\n".join([
+        f"# Clearance benchmark ({robot})",
+        markdown_table([_row_dict(r) for r in rows], COLUMNS),
+        "Random configurations inside the limits (seed 0); compile: the first call; "
+        f"median, min and max of {repeats} runs after a warm-up; the batch is sharded over "
+        "the JAX devices.",
+        "## Environment", environment_markdown(env)])
+
+
+def run_clearance_benchmark(robot: str = "tdcr3", scenes: tuple[str, ...] = ("lattice",),
+                            configs: int = 100_000, dtypes: tuple[str, ...] = ("float32",),
+                            repeats: int = 7, out: str | Path | None = "bench_results/clearance",
+                            echo: bool = True) -> list[ClearanceBenchRow]:
+    """Run the benchmark for every scene × dtype; print the Markdown report and, with
+    ``out``, write clearance.md, clearance.csv and environment.json there."""
     rows = [bench_clearance(robot, s, configs, d, repeats) for s in scenes for d in dtypes]
-    print(f"clearance benchmark: robot {robot}, random configurations inside the limits "
-          f"(seed 0), median of {repeats} runs after compile and warm-up")
-    print(format_table(rows, environment()))
-    return 0
+    env = environment()
+    write_report("clearance", format_table(rows, env, robot, repeats), out,
+                 {"clearance": [_row_dict(r) for r in rows]}, env, echo=echo)
+    return rows
 
 
 if __name__ == "__main__":
     use_host_devices()
-    raise SystemExit(main())
+    run_clearance_benchmark()

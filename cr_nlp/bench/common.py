@@ -1,5 +1,5 @@
-"""What every benchmark shares: the environment record, robots by name, and the output
-of tables as Markdown and CSV.
+"""What every benchmark shares: the environment record, tables as Markdown and CSV, and
+the one report writer (``write_report``).
 
 A table is a list of row dicts and a list of ``Column``s that say which keys to show,
 under which header, and how to format the numbers. Every table is printed and written
@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import csv
 import datetime
+import json
 import math
 import os
 import platform
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -82,9 +83,6 @@ def _load_average() -> tuple[float, ...]:
 def environment_markdown(env: dict[str, str]) -> str:
     """The environment as a Markdown bullet list."""
     return "\n".join(f"- {key}: {value}" for key, value in env.items())
-
-
-# ================================================================ robots by name
 
 
 # ================================================================ tables
@@ -180,4 +178,30 @@ def write_text(text: str, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text.rstrip("\n") + "\n")
+    return path
+
+
+# ================================================================ the report
+
+
+def write_report(name: str, report: str, out: str | Path | None,
+                 tables: Mapping[str, Sequence[dict[str, Any]]] | None = None,
+                 env: dict[str, str] | None = None, settings: dict[str, Any] | None = None,
+                 csv_keys: Mapping[str, Sequence[str]] | None = None,
+                 echo: bool = True) -> Path | None:
+    """The one report writer of the benchmarks: print the Markdown ``report`` (with
+    ``echo``) and, with an ``out`` folder, write ``<name>.md``, one ``<table>.csv`` per
+    entry of ``tables`` (columns from ``csv_keys[table]`` where given) and
+    ``environment.json`` (``{"environment": env, **settings}``). Returns the Markdown
+    file's path, None without ``out``."""
+    if echo:
+        print(report)
+    if out is None:
+        return None
+    out = Path(out)
+    path = write_text(report, out / f"{name}.md")
+    for table, rows in (tables or {}).items():
+        write_csv(rows, out / f"{table}.csv", (csv_keys or {}).get(table))
+    record = {"environment": env if env is not None else environment(), **(settings or {})}
+    write_text(json.dumps(record, indent=2), out / "environment.json")
     return path

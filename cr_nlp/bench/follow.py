@@ -11,9 +11,7 @@ waypoints missed the tolerances.
 
 from __future__ import annotations
 
-import argparse
 import statistics
-import sys
 import time
 from collections.abc import Sequence
 from dataclasses import replace
@@ -30,8 +28,7 @@ from .common import (
     environment_markdown,
     fixed,
     markdown_table,
-    write_csv,
-    write_text,
+    write_report,
 )
 
 SHAPES = ("square", "sine", "icra")
@@ -125,12 +122,7 @@ def run_follow_benchmark(shapes: Sequence[str] = SHAPES, modes: Sequence[str] = 
             Path(out).mkdir(parents=True, exist_ok=True)
             figure.savefig(Path(out) / f"{row['shape']}_{mode}.png", dpi=110)
     env = environment()
-    report = format_report(rows, env, robot, repeats, dt)
-    print(report)
-    if out is not None:
-        out = Path(out)
-        write_text(report, out / "follow.md")
-        write_csv(rows, out / "follow.csv")
+    write_report("follow", format_report(rows, env, robot, repeats, dt), out, {"follow": rows}, env)
     return rows
 
 
@@ -150,44 +142,3 @@ def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str], robot: st
         "the warm-up (compilation or JAX cache load, Ipopt build). Δt: "
         + ("each path file's" if dt is None else f"{dt} s instead of the path files'") + ".",
         "## Environment", environment_markdown(env)])
-
-
-# ================================================================ command line
-
-
-def add_bench_follow(bench_subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Add ``follow`` to a ``cr-nlp bench`` subcommand group; returns its parser."""
-    p = bench_subparsers.add_parser(
-        "follow", help="path-following benchmark: square, sine, ICRA; penalty and exact",
-        description="Runs the path-following benchmark (DESIGN.md §4), prints a Markdown "
-                    "table and writes follow.md, follow.csv and figures to --out.")
-    p.add_argument("--shapes", nargs="+", default=list(SHAPES),
-                   help="bundled shapes (square sine icra) or path files (no obstacles)")
-    p.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES),
-                   help="rows to run (default penalty and exact)")
-    p.add_argument("--repeats", type=int, default=3,
-                   help="timed runs per row after the warm-up (default 3)")
-    p.add_argument("--robot", default="tdcr3", help="robot name or file (default tdcr3)")
-    p.add_argument("--out", default="bench_results/follow",
-                   help="output folder (default bench_results/follow)")
-    p.add_argument("--dt", type=float, default=None,
-                   help="seconds between waypoints instead of the path files' (smaller: "
-                        "faster tendons, the speed limit binds and exact mode polishes)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(run=run_bench_follow_command)
-    return p
-
-
-def run_bench_follow_command(args: argparse.Namespace) -> int:
-    """The ``cr-nlp bench follow`` action."""
-    if args.repeats < 1:
-        print("cr-nlp bench follow: error: --repeats must be at least 1", file=sys.stderr)
-        return 2
-    if args.dt is not None and not args.dt > 0:
-        print(f"cr-nlp bench follow: error: --dt must be a positive number of seconds, got "
-              f"{args.dt}", file=sys.stderr)
-        return 2
-    run_follow_benchmark(args.shapes, args.modes, args.repeats, args.robot, args.out,
-                         progress=not args.no_progress, dt=args.dt)
-    print(f"wrote {Path(args.out) / 'follow.md'} and follow.csv", file=sys.stderr)
-    return 0

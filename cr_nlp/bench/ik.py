@@ -27,8 +27,6 @@ the median wall time of ``repeats`` further calls; reported quality is from the 
 
 from __future__ import annotations
 
-import argparse
-import json
 import statistics
 import sys
 import time
@@ -61,8 +59,7 @@ from .common import (
     environment_markdown,
     fixed,
     markdown_table,
-    write_csv,
-    write_text,
+    write_report,
 )
 
 NEWTON_CONFIG = DampedNewtonConfig()
@@ -379,15 +376,8 @@ def run_ik_benchmark(suite: str = "all", quick: bool = False, repeats: int | Non
     env["settings"] = (f"suite={suite}, seed={seed}, repeats={sizes.repeats}, sizes: "
                        f"free {sizes.free_targets}, lattice {sizes.lattice_targets}, "
                        f"scaling {sizes.scaling_targets}, scipy subset {sizes.scipy_targets}")
-    text = format_report(rows, env, sizes)
-    if echo:
-        print(text)
-    if out is not None:
-        out = Path(out)
-        write_text(text, out / "ik.md")
-        write_csv(rows, out / "ik.csv", CSV_KEYS)
-        write_text(json.dumps({"environment": env, "sizes": asdict(sizes)}, indent=2),
-                   out / "environment.json")
+    write_report("ik", format_report(rows, env, sizes), out, {"ik": rows}, env,
+                 {"sizes": asdict(sizes)}, {"ik": CSV_KEYS}, echo=echo)
     return rows
 
 
@@ -473,48 +463,3 @@ def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str],
     ])]
     parts += ["## Environment", environment_markdown(env)]
     return "\n\n".join(parts)
-
-
-# ================================================================ command line
-
-
-def add_bench_ik(bench_subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Add ``ik`` to a ``cr-nlp bench`` subcommand group; returns its parser. The parsed
-    namespace's ``run(args)`` runs the benchmark and returns the exit status."""
-    p = bench_subparsers.add_parser(
-        "ik", help="IK benchmark: cr_nlp vs damped Newton–Raphson and scipy (DESIGN.md §4)",
-        description="Runs the IK suites, prints Markdown tables and writes ik.md, ik.csv and "
-                    "environment.json to --out.")
-    p.add_argument("--suite", choices=("all", *SUITES), default="all",
-                   help="which suite (default all)")
-    p.add_argument("--quick", action="store_true",
-                   help="small sizes for CI and notebooks (50/20/20 targets, 1 repeat)")
-    p.add_argument("--repeats", type=int, default=None,
-                   help=f"timed runs per row after the warm-up (default {FULL.repeats}, "
-                        f"{QUICK.repeats} with --quick)")
-    p.add_argument("--out", default="bench_results/ik",
-                   help="output folder (default bench_results/ik)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the targets (default 0)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(run=run_bench_ik_command)
-    return p
-
-
-def run_bench_ik_command(args: argparse.Namespace) -> int:
-    """The ``cr-nlp bench ik`` action."""
-    run_ik_benchmark(suite=args.suite, quick=args.quick, repeats=args.repeats, out=args.out,
-                     seed=args.seed, progress=not args.no_progress)
-    print(f"wrote {Path(args.out) / 'ik.md'}, ik.csv and environment.json", file=sys.stderr)
-    return 0
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m cr_nlp.bench.ik``: the same options as ``cr-nlp bench ik``."""
-    parser = argparse.ArgumentParser(prog="python -m cr_nlp.bench")
-    add_bench_ik(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(["ik", *(sys.argv[1:] if argv is None else argv)])
-    return args.run(args)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

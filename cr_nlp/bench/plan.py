@@ -25,10 +25,8 @@ after every scene, so an interrupted run keeps the scenes it finished.
 
 from __future__ import annotations
 
-import argparse
 import math
 import statistics
-import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -48,8 +46,7 @@ from .common import (
     environment_markdown,
     fixed,
     markdown_table,
-    write_csv,
-    write_text,
+    write_report,
 )
 
 SCENES = ("shelf", "cabinet", "random_27")
@@ -322,24 +319,16 @@ def run_plan_benchmark(quick: bool = False, pairs_per_scene: int | None = None,
                                      goals[:sweep_count], budgets)
         # Written after every scene: an interrupted run keeps the scenes it finished.
         all_rows = rows + _pooled(rows, lengths)
-        report = format_report(all_rows, builds, sweep, environment(), robot, pairs,
-                               sweep_count)
-        if out is not None:
-            _write(report, all_rows, builds, sweep, Path(out))
+        env = environment()
+        report = format_report(all_rows, builds, sweep, env, robot, pairs, sweep_count)
+        tables = {"plan": all_rows, "roadmap_build": builds}
+        if sweep:
+            tables["iterations"] = sweep
+        write_report("plan", report, out, tables, env, echo=False)
+        if out is not None and sweep:
+            plot_iterations(sweep, Path(out) / "iterations.png")
     print(report)
     return all_rows
-
-
-def _write(report: str, rows: Sequence[dict[str, Any]], builds: Sequence[dict[str, Any]],
-           sweep: Sequence[dict[str, Any]], out: Path) -> None:
-    """plan.md (``report``), plan.csv, roadmap_build.csv and the sweep's CSV and figure in
-    ``out``."""
-    write_text(report, out / "plan.md")
-    write_csv(rows, out / "plan.csv")
-    write_csv(builds, out / "roadmap_build.csv")
-    if sweep:
-        write_csv(sweep, out / "iterations.csv")
-        plot_iterations(sweep, out / "iterations.png")
 
 
 # ================================================================ output
@@ -413,61 +402,3 @@ def format_report(rows: Sequence[dict[str, Any]], builds: Sequence[dict[str, Any
                                                 fixed(3))))]
     parts += ["## Environment", environment_markdown(env)]
     return "\n\n".join(parts)
-
-
-# ================================================================ command line
-
-
-def add_bench_plan(bench_subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Add ``plan`` to a ``cr-nlp bench`` subcommand group; returns its parser. The parsed
-    namespace's ``run(args)`` runs the benchmark and returns the exit status."""
-    p = bench_subparsers.add_parser(
-        "plan", help="trajectory benchmark: roadmap/straight-line + LM, exact, RRT-Connect",
-        description="Runs the trajectory-planning benchmark (DESIGN.md §4), prints Markdown "
-                    "tables and writes plan.md, plan.csv, roadmap_build.csv, iterations.csv "
-                    "and iterations.png to --out.")
-    p.add_argument("--quick", action="store_true",
-                   help=f"small sizes ({QUICK.pairs_per_scene} pairs per scene)")
-    p.add_argument("--pairs", type=int, default=None,
-                   help=f"start/goal pairs per scene (default {FULL.pairs_per_scene})")
-    p.add_argument("--scenes", nargs="+", default=list(SCENES),
-                   help="scene names or files (default: shelf cabinet random_27)")
-    p.add_argument("--robot", default="tdcr3", help="robot name or file (default tdcr3)")
-    p.add_argument("--methods", nargs="+", choices=METHODS, default=list(DEFAULT_METHODS),
-                   help="rows to run (default all)")
-    p.add_argument("--iterations", type=int, nargs="*", default=None,
-                   help="LM iteration budgets of the sweep figure (none: no sweep)")
-    p.add_argument("--sweep-pairs", type=int, default=None,
-                   help=f"pairs per scene of the sweep (default {FULL.sweep_pairs})")
-    p.add_argument("--out", default="bench_results/plan",
-                   help="output folder (default bench_results/plan)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the problems (default 0)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    p.set_defaults(run=run_bench_plan_command)
-    return p
-
-
-def run_bench_plan_command(args: argparse.Namespace) -> int:
-    """The ``cr-nlp bench plan`` action."""
-    run_plan_benchmark(quick=args.quick, pairs_per_scene=args.pairs, scenes=args.scenes,
-                       robot=args.robot, out=args.out, seed=args.seed, methods=args.methods,
-                       iteration_budgets=args.iterations, sweep_pairs=args.sweep_pairs,
-                       progress=not args.no_progress)
-    print(f"wrote {Path(args.out) / 'plan.md'} and its CSV files", file=sys.stderr)
-    return 0
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m cr_nlp.bench.plan``: the same options as ``cr-nlp bench plan``."""
-    from .._jax_setup import enable_compilation_cache, use_host_devices
-
-    use_host_devices()
-    enable_compilation_cache()
-    parser = argparse.ArgumentParser(prog="python -m cr_nlp.bench")
-    add_bench_plan(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(["plan", *(sys.argv[1:] if argv is None else argv)])
-    return args.run(args)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

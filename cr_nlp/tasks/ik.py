@@ -17,6 +17,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from functools import partial
+from pathlib import Path
 from typing import Any
 
 import jax
@@ -666,3 +667,43 @@ def solve_ik(robot: Robot | str | dict, positions: Any, wxyz: Any,
              exact: bool = False) -> IKResult:
     """One-call IK: see ``IKSolver.solve`` (positions in metres, wxyz unit quaternions)."""
     return IKSolver(robot, scene, config).solve(positions, wxyz, exact=exact)
+
+
+def read_targets(path: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Target poses from a file ``{"poses": [{"position": [x, y, z], "wxyz": [w, x, y, z]},
+    ...]}`` (positions in metres, unit quaternions; ``wxyz`` defaults to the identity).
+
+    Returns (positions (k, 3), wxyz (k, 4), problems): a malformed entry becomes a NaN row
+    with its reason in ``problems`` (empty strings elsewhere), so one bad target never
+    sinks the batch.
+
+    Raises:
+        ValueError: the file is missing, not JSON, or not of that shape.
+    """
+    import json
+
+    try:
+        data = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise ValueError(f"file not found: {path}") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path} is not valid JSON: {exc}") from None
+    if not isinstance(data, dict) or not isinstance(data.get("poses"), list):
+        raise ValueError(f"{path} must hold {{\"poses\": [{{\"position\": [x, y, z], "
+                         f"\"wxyz\": [w, x, y, z]}}, ...]}}")
+    poses = data["poses"]
+    positions = np.full((len(poses), 3), np.nan)
+    wxyz = np.full((len(poses), 4), np.nan)
+    problems = [""] * len(poses)
+    for i, pose in enumerate(poses):
+        try:
+            if not isinstance(pose, dict):
+                raise ValueError("entry is not an object")
+            p = np.asarray(pose["position"], dtype=float)
+            w = np.asarray(pose.get("wxyz", [1.0, 0.0, 0.0, 0.0]), dtype=float)
+            if p.shape != (3,) or w.shape != (4,):
+                raise ValueError(f"position needs 3 numbers and wxyz 4, got {p.size} and {w.size}")
+            positions[i], wxyz[i] = p, w
+        except (KeyError, TypeError, ValueError) as exc:
+            problems[i] = f"malformed pose entry: {exc}"
+    return positions, wxyz, problems

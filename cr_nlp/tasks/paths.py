@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from .._resources import bundled_file, models_root
+from .._resources import models_root, resolve_file
 from ..model.robot import ModelFileError, _Checker, read_model_file
 
 PLANE_X = 1.5
@@ -85,14 +85,14 @@ class ReferencePath:
 
 
 def load_path(path: str | Path | ReferencePath) -> ReferencePath:
-    """A ``ReferencePath`` from a file, or the bundled name "square", "sine" or "icra"."""
+    """A ``ReferencePath`` from a file, or a bundled path name ("square", "sine", "icra")."""
     if isinstance(path, ReferencePath):
         return path
-    candidate = Path(path)
-    if not candidate.exists() and candidate.suffix == "" and str(path) in SHAPES:
-        candidate = bundled_file("paths", str(path))
-    if not candidate.exists():
-        raise ModelFileError(str(path), "<file>", "file not found")
+    try:
+        candidate = resolve_file(path, "paths")
+    except FileNotFoundError as exc:
+        raise ModelFileError(str(path), "<file>",
+                             str(exc).removeprefix(f"{path}: ")) from None
     return ReferencePath.from_file(candidate)
 
 

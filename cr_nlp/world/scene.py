@@ -28,8 +28,8 @@ from typing import Any
 import numpy as np
 
 from .._jax_setup import cache_dir
-from .._resources import bundled_file
-from ..model.robot import _Checker, read_model_file
+from .._resources import bundled_file, resolve_file
+from ..model.robot import ModelFileError, _Checker, read_model_file
 from ..model.rotations import matrix_from_wxyz
 
 # ================================================================ parts
@@ -222,9 +222,11 @@ def load_scene(scene: str | Path | Scene | dict) -> Scene:
         return scene
     if isinstance(scene, dict):
         return Scene.from_dict(scene)
-    path = Path(scene)
-    if not path.exists() and path.suffix == "" and bundled_scene_path(str(scene)).exists():
-        path = bundled_scene_path(str(scene))
+    try:
+        path = resolve_file(scene, "scenes")
+    except FileNotFoundError as exc:
+        raise ModelFileError(str(scene), "<file>",
+                             str(exc).removeprefix(f"{scene}: ")) from None
     return Scene.from_file(path)
 
 

@@ -1,6 +1,6 @@
 """``cr-nlp plan``: trajectory planning from a PROBLEMS.json file (thin front end).
 
-PROBLEMS.json::
+PROBLEMS.json (a file, or the bundled name ``tdcr3_shelf``)::
 
     {"problems": [{"start": [q...], "goal": [q...]}, ...],
      "horizon": 23,      # optional: intervals H (waypoints = H + 1)
@@ -18,17 +18,18 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ..cli import UsageError, read_json, write_json
+from ._io import UsageError, load_robot_arg, load_scene_arg, read_json, resolve, write_json
 
 
-def add_plan_parser(sub: argparse._SubParsersAction) -> None:
-    """Register ``cr-nlp plan`` on the CLI's subparsers."""
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register ``cr-nlp plan`` on the command's subparsers."""
     p = sub.add_parser("plan", help="trajectory planning between start/goal configurations")
-    p.add_argument("--robot", required=True, help="robot JSON file")
+    p.add_argument("--robot", required=True, help="robot JSON file or bundled name (tdcr3)")
     p.add_argument("--scene", help="scene JSON file or bundled scene name (obstacles)")
     p.add_argument("--problems", required=True,
                    help='JSON file {"problems": [{"start": [q], "goal": [q]}, ...], '
-                        '"horizon": H (optional), "dt": seconds (optional)}')
+                        '"horizon": H (optional), "dt": seconds (optional)}, or bundled '
+                        "name (tdcr3_shelf)")
     p.add_argument("--exact", action="store_true",
                    help="polish every trajectory with Ipopt, tendon limits and clearance "
                         "as hard constraints (stage 'polish'; the LM answer is kept, "
@@ -40,10 +41,10 @@ def add_plan_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="RESULT.json to write ('-' for stdout)")
     p.add_argument("--csv", help="directory for one tendon-length CSV per result "
                                  "(problem_<i>.csv: time_s, then one column per tendon, m)")
-    p.set_defaults(run=run_plan)
+    p.set_defaults(run=run)
 
 
-def read_problems(path: str) -> tuple[list[Any], list[Any], int | None, float | None]:
+def read_problems(path: str | Path) -> tuple[list[Any], list[Any], int | None, float | None]:
     """Starts, goals (raw rows, validated later per problem), horizon and dt."""
     data = read_json(path, "--problems")
     if not isinstance(data, dict) or not isinstance(data.get("problems"), list):
@@ -62,14 +63,13 @@ def read_problems(path: str) -> tuple[list[Any], list[Any], int | None, float | 
     return starts, goals, horizon, (float(dt) if dt is not None else None)
 
 
-def run_plan(args: argparse.Namespace) -> int:
-    from ..model import Robot
-    from ..world import load_scene
-    from .trajectory import TrajectoryConfig, TrajectoryPlanner, results_to_json
+def run(args: argparse.Namespace) -> int:
+    """Plan, write RESULT.json (and the CSVs) and print a one-line summary on stderr."""
+    from ..tasks.trajectory import TrajectoryConfig, TrajectoryPlanner, results_to_json
 
-    robot = Robot.from_file(args.robot)
-    scene = load_scene(args.scene) if args.scene else None
-    starts, goals, horizon, dt = read_problems(args.problems)
+    robot = load_robot_arg(args.robot)
+    scene = load_scene_arg(args.scene)
+    starts, goals, horizon, dt = read_problems(resolve(args.problems, "problems", "--problems"))
     config = TrajectoryConfig(seed=args.seed)
     if horizon is not None:
         config = TrajectoryConfig(waypoints=horizon + 1, seed=args.seed)

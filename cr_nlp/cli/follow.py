@@ -1,7 +1,7 @@
 """``cr-nlp follow``: path following from a path file (thin front end).
 
 PATH.json is the ``tasks.paths`` format (``{"poses": [{"position": [x, y, z], "wxyz":
-[w, x, y, z]}, ...], "dt": seconds}``) or a bundled shape name ("square", "sine",
+[w, x, y, z]}, ...], "dt": seconds}``) or a bundled path name ("square", "sine",
 "icra"). RESULT.json (``FollowResult.to_json``) holds one row per waypoint: ``q``,
 ``position_error_mm``, ``rotation_error_deg``, ``reached``, ``tendon_lengths``, and the
 verdict ``collision_free``, ``min_clearance`` (m), ``max_violation``, ``timing`` (s).
@@ -15,11 +15,11 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..cli import UsageError
+from ._io import UsageError, load_robot_arg, load_scene_arg, resolve
 
 
-def add_follow_parser(sub: argparse._SubParsersAction) -> None:
-    """Register ``cr-nlp follow`` on the CLI's subparsers."""
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register ``cr-nlp follow`` on the command's subparsers."""
     p = sub.add_parser("follow", help="path following: the tip traces a reference path")
     p.add_argument("--robot", required=True, help="robot JSON file or bundled robot name")
     p.add_argument("--path", required=True,
@@ -36,22 +36,21 @@ def add_follow_parser(sub: argparse._SubParsersAction) -> None:
                         "arrays, a .csv suffix the tendon-length series")
     p.add_argument("--csv", help="also write the tendon-length series (time_s, one column per "
                                  "tendon, m) to this CSV file")
-    p.set_defaults(run=run_follow)
+    p.set_defaults(run=run)
 
 
-def run_follow(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
+    """Follow the path, write RESULT and print a one-line summary on stderr."""
     import json
     import math
 
-    from ..model import load_robot
-    from ..world import load_scene
-    from .follow import FollowConfig, PathFollower
-    from .paths import load_path
+    from ..tasks.follow import FollowConfig, PathFollower
+    from ..tasks.paths import load_path
 
-    robot = load_robot(args.robot)
-    scene = load_scene(args.scene) if args.scene else None
+    robot = load_robot_arg(args.robot)
+    scene = load_scene_arg(args.scene)
     try:
-        path = load_path(args.path)
+        path = load_path(resolve(args.path, "paths", "--path"))
     except json.JSONDecodeError as exc:
         raise UsageError(f"--path: {args.path} is not valid JSON: {exc}") from None
     if args.dt is not None and not (math.isfinite(args.dt) and args.dt > 0):

@@ -1,0 +1,100 @@
+"""What the subcommands share: the usage error, number and JSON input/output, the resolver
+of file-or-bundled-name arguments. Imports no subcommand (and nothing heavy: JAX starts
+only when a subcommand runs)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from .._resources import resolve_file
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from ..model import Robot
+    from ..world import Scene
+
+
+class UsageError(Exception):
+    """Bad command-line input: printed as one line, exit status 2."""
+
+
+def resolve(value: str, kind: str, option: str) -> Path:
+    """The file behind a ``--robot``/``--scene``/``--path``/``--targets``/``--problems``
+    value: a file path, or a bundled name of ``kind`` (``"robots"``, ``"scenes"``,
+    ``"paths"``, ``"targets"``, ``"problems"``), from any directory."""
+    try:
+        return resolve_file(value, kind)
+    except FileNotFoundError as exc:
+        raise UsageError(f"{option}: {exc}") from None
+
+
+def load_robot_arg(value: str, option: str = "--robot") -> Robot:
+    """The robot of a ``--robot`` value (file or bundled name)."""
+    from ..model import Robot
+
+    return Robot.from_file(resolve(value, "robots", option))
+
+
+def load_scene_arg(value: str | None, option: str = "--scene") -> Scene | None:
+    """The scene of a ``--scene`` value (file or bundled name), None without one."""
+    if value is None:
+        return None
+    from ..world import load_scene
+
+    return load_scene(resolve(value, "scenes", option))
+
+
+def parse_numbers(text: str, what: str) -> list[float]:
+    """'0.1,0.2,1' → [0.1, 0.2, 1.0], with an error that names ``what``."""
+    try:
+        return [float(v) for v in text.replace(" ", "").split(",") if v != ""]
+    except ValueError:
+        raise UsageError(f"{what}: expected comma-separated numbers, got {text!r}") from None
+
+
+def read_json(path: str | Path, what: str) -> Any:
+    """The JSON content of ``path``; a missing or invalid file is a usage error."""
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise UsageError(f"{what}: file not found: {path}") from None
+    except json.JSONDecodeError as exc:
+        raise UsageError(f"{what}: {path} is not valid JSON: {exc}") from None
+
+
+def write_json(data: Any, path: str | None) -> None:
+    """Write JSON to ``path``, or to stdout when ``path`` is None or '-'."""
+    text = json.dumps(data, indent=2)
+    if path in (None, "-"):
+        print(text)
+    else:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        Path(path).write_text(text + "\n")
+
+
+def configurations_from_args(robot: Robot, q: str | None, q_file: str | None) -> np.ndarray:
+    """(k, 3n) configurations from ``--q`` or ``--q-file`` ({"q": [[...], ...]})."""
+    import numpy as np
+
+    if (q is None) == (q_file is None):
+        raise UsageError("give exactly one of --q or --q-file")
+    rows = [parse_numbers(q, "--q")] if q is not None else read_json(q_file, "--q-file")
+    if q_file is not None:
+        if not isinstance(rows, dict) or not isinstance(rows.get("q"), list):
+            raise UsageError(f"--q-file: {q_file} must hold {{\"q\": [[...], ...]}}")
+        rows = rows["q"]
+    out = []
+    for i, row in enumerate(rows):
+        try:
+            out.append(robot.full_q(row))
+        except (ValueError, TypeError) as exc:
+            raise UsageError(f"configuration {i}: {exc}") from None
+    return np.array(out)
+
+
+def fmt(x: float | None) -> str:
+    """A summary number: 3 significant digits, "n/a" for None."""
+    return "n/a" if x is None else f"{x:.3g}"

@@ -1,0 +1,187 @@
+"""``cr-nlp bench ik|plan|follow|clearance``: benchmarks that print tables (not tests).
+
+Every benchmark gets the same options from ``add_common_options`` (``--out`` folder,
+``--repeats``, ``--robot``, ``--seed``, ``--devices``, ``--no-progress``) and writes its
+report through ``cr_nlp.bench.common.write_report`` (Markdown printed and saved, CSV per
+table, ``environment.json``). Adding a benchmark: one ``_add_<name>`` function here that
+calls ``add_common_options`` and points ``run`` at the library's ``run_<name>_benchmark``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from ._io import UsageError
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register ``cr-nlp bench`` and its benchmarks on the command's subparsers."""
+    p = sub.add_parser("bench", help="benchmarks that print tables (not tests)")
+    group = p.add_subparsers(dest="benchmark", required=True)
+    for add in BENCHMARKS:
+        add(group)
+
+
+def add_common_options(p: argparse.ArgumentParser, name: str, *,
+                       repeats: int | None | bool = False, repeats_help: str = "",
+                       robot: bool = True, seed: bool = False) -> None:
+    """The options every benchmark shares: ``--out`` (default ``bench_results/<name>``),
+    ``--repeats`` (timed runs after a warm-up; its default, or no option when
+    ``repeats`` is False), ``--robot`` (file or bundled name), ``--seed``, ``--devices``
+    (host devices, default one per core) and ``--no-progress``."""
+    p.add_argument("--out", default=f"bench_results/{name}",
+                   help=f"output folder (default bench_results/{name})")
+    if repeats is not False:
+        p.add_argument("--repeats", type=int, default=repeats,
+                       help=repeats_help or f"timed runs per row after the warm-up "
+                                            f"(default {repeats})")
+    if robot:
+        p.add_argument("--robot", default="tdcr3", help="robot name or file (default tdcr3)")
+    if seed:
+        p.add_argument("--seed", type=int, default=0, help=f"seed of the {name} problems "
+                                                           "(default 0)")
+    p.add_argument("--devices", type=int, default=None,
+                   help="JAX host devices to shard batches over (default: one per core)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def _check_repeats(args: argparse.Namespace) -> None:
+    if getattr(args, "repeats", None) is not None and args.repeats < 1:
+        raise UsageError("--repeats must be at least 1")
+
+
+def _wrote(args: argparse.Namespace, name: str) -> None:
+    print(f"wrote {Path(args.out) / (name + '.md')}, its CSV files and environment.json",
+          file=sys.stderr)
+
+
+# ---------------------------------------------------------------- ik
+
+
+def _add_ik(group: argparse._SubParsersAction) -> None:
+    from ..bench.ik import FULL, QUICK, SUITES
+
+    p = group.add_parser(
+        "ik", help="IK benchmark: cr_nlp vs damped Newton–Raphson and scipy (DESIGN.md §4)",
+        description="Runs the IK suites, prints Markdown tables and writes ik.md, ik.csv and "
+                    "environment.json to --out.")
+    p.add_argument("--suite", choices=("all", *SUITES), default="all",
+                   help="which suite (default all)")
+    p.add_argument("--quick", action="store_true",
+                   help="small sizes for CI and notebooks (50/20/20 targets, 1 repeat)")
+    add_common_options(p, "ik", repeats=None, robot=False, seed=True,
+                       repeats_help=f"timed runs per row after the warm-up (default "
+                                    f"{FULL.repeats}, {QUICK.repeats} with --quick)")
+    p.set_defaults(run=_run_ik)
+
+
+def _run_ik(args: argparse.Namespace) -> int:
+    from ..bench.ik import run_ik_benchmark
+
+    _check_repeats(args)
+    run_ik_benchmark(suite=args.suite, quick=args.quick, repeats=args.repeats, out=args.out,
+                     seed=args.seed, progress=not args.no_progress)
+    _wrote(args, "ik")
+    return 0
+
+
+# ---------------------------------------------------------------- plan
+
+
+def _add_plan(group: argparse._SubParsersAction) -> None:
+    from ..bench.plan import DEFAULT_METHODS, FULL, METHODS, QUICK, SCENES
+
+    p = group.add_parser(
+        "plan", help="trajectory benchmark: roadmap/straight-line + LM, exact, RRT-Connect",
+        description="Runs the trajectory-planning benchmark (DESIGN.md §4), prints Markdown "
+                    "tables and writes plan.md, plan.csv, roadmap_build.csv, iterations.csv "
+                    "and iterations.png to --out.")
+    p.add_argument("--quick", action="store_true",
+                   help=f"small sizes ({QUICK.pairs_per_scene} pairs per scene)")
+    p.add_argument("--pairs", type=int, default=None,
+                   help=f"start/goal pairs per scene (default {FULL.pairs_per_scene})")
+    p.add_argument("--scenes", nargs="+", default=list(SCENES),
+                   help="scene names or files (default: shelf cabinet random_27)")
+    p.add_argument("--methods", nargs="+", choices=METHODS, default=list(DEFAULT_METHODS),
+                   help="rows to run (default all)")
+    p.add_argument("--iterations", type=int, nargs="*", default=None,
+                   help="LM iteration budgets of the sweep figure (none: no sweep)")
+    p.add_argument("--sweep-pairs", type=int, default=None,
+                   help=f"pairs per scene of the sweep (default {FULL.sweep_pairs})")
+    add_common_options(p, "plan", seed=True)
+    p.set_defaults(run=_run_plan)
+
+
+def _run_plan(args: argparse.Namespace) -> int:
+    from ..bench.plan import run_plan_benchmark
+
+    run_plan_benchmark(quick=args.quick, pairs_per_scene=args.pairs, scenes=args.scenes,
+                       robot=args.robot, out=args.out, seed=args.seed, methods=args.methods,
+                       iteration_budgets=args.iterations, sweep_pairs=args.sweep_pairs,
+                       progress=not args.no_progress)
+    _wrote(args, "plan")
+    return 0
+
+
+# ---------------------------------------------------------------- follow
+
+
+def _add_follow(group: argparse._SubParsersAction) -> None:
+    from ..bench.follow import MODES, SHAPES
+
+    p = group.add_parser(
+        "follow", help="path-following benchmark: square, sine, ICRA; penalty and exact",
+        description="Runs the path-following benchmark (DESIGN.md §4), prints a Markdown "
+                    "table and writes follow.md, follow.csv and figures to --out.")
+    p.add_argument("--shapes", nargs="+", default=list(SHAPES),
+                   help="bundled shapes (square sine icra) or path files (no obstacles)")
+    p.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES),
+                   help="rows to run (default penalty and exact)")
+    p.add_argument("--dt", type=float, default=None,
+                   help="seconds between waypoints instead of the path files' (smaller: "
+                        "faster tendons, the speed limit binds and exact mode polishes)")
+    add_common_options(p, "follow", repeats=3)
+    p.set_defaults(run=_run_follow)
+
+
+def _run_follow(args: argparse.Namespace) -> int:
+    from ..bench.follow import run_follow_benchmark
+
+    _check_repeats(args)
+    if args.dt is not None and not args.dt > 0:
+        raise UsageError(f"--dt must be a positive number of seconds, got {args.dt}")
+    run_follow_benchmark(args.shapes, args.modes, args.repeats, args.robot, args.out,
+                         progress=not args.no_progress, dt=args.dt)
+    _wrote(args, "follow")
+    return 0
+
+
+# ---------------------------------------------------------------- clearance
+
+
+def _add_clearance(group: argparse._SubParsersAction) -> None:
+    p = group.add_parser("clearance",
+                         help="benchmark batched clearance (configurations per second)")
+    p.add_argument("--scene", nargs="+", default=["lattice"],
+                   help="scene files or bundled names (default: lattice)")
+    p.add_argument("--configs", type=int, default=100_000, help="batch size")
+    p.add_argument("--dtype", nargs="+", default=["float32"], choices=["float32", "float64"])
+    add_common_options(p, "clearance", repeats=7,
+                       repeats_help="timed runs (median reported; default 7)")
+    p.set_defaults(run=_run_clearance)
+
+
+def _run_clearance(args: argparse.Namespace) -> int:
+    from ..bench.clearance import run_clearance_benchmark
+
+    _check_repeats(args)
+    run_clearance_benchmark(robot=args.robot, scenes=tuple(args.scene), configs=args.configs,
+                            dtypes=tuple(args.dtype), repeats=args.repeats, out=args.out)
+    _wrote(args, "clearance")
+    return 0
+
+
+BENCHMARKS = [_add_ik, _add_plan, _add_follow, _add_clearance]
+"""The ``cr-nlp bench`` benchmarks, in ``--help`` order."""

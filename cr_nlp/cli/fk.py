@@ -1,0 +1,52 @@
+"""``cr-nlp fk``: tip pose, tendon lengths and backbone of one or more configurations."""
+
+from __future__ import annotations
+
+import argparse
+
+from ._io import configurations_from_args, load_robot_arg, write_json
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register ``cr-nlp fk`` on the command's subparsers."""
+    p = sub.add_parser("fk", help="forward kinematics: tip pose, tendon lengths, backbone")
+    p.add_argument("--robot", required=True, help="robot JSON file or bundled name (tdcr3)")
+    p.add_argument("--q", help="θ1,φ1,L1,... (rad, rad, m); fixed lengths may be omitted")
+    p.add_argument("--q-file", help='JSON file {"q": [[...], ...]}')
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Print the forward kinematics as text, or as JSON with ``--json``."""
+    import numpy as np
+
+    from ..model import backbone_points, tendon_lengths, tip_pose
+    from ..model.rotations import wxyz_from_matrix
+
+    robot = load_robot_arg(args.robot)
+    qs = configurations_from_args(robot, args.q, args.q_file)
+    pos, rot = (np.asarray(x) for x in tip_pose(robot, qs))
+    lengths = np.asarray(tendon_lengths(robot, qs))
+    points = np.asarray(backbone_points(robot, qs))
+    records = [
+        {"position": pos[i].tolist(), "wxyz": wxyz_from_matrix(rot[i]).tolist(),
+         "tendon_lengths": lengths[i].tolist(), "backbone": points[i].tolist()}
+        for i in range(len(qs))
+    ]
+    if args.json:
+        write_json(records[0] if args.q is not None else records, None)
+        return 0
+    for i, rec in enumerate(records):
+        if len(records) > 1:
+            print(f"# configuration {i}: q = {np.round(qs[i], 6).tolist()}")
+        print(f"robot          {robot.name} ({robot.n_segments} segments, "
+              f"{robot.tendons.routing} routing)")
+        print("tip position   [{:.6f}, {:.6f}, {:.6f}] m".format(*rec["position"]))
+        print("tip wxyz       [{:.6f}, {:.6f}, {:.6f}, {:.6f}]".format(*rec["wxyz"]))
+        m = robot.tendons.per_segment
+        for k in range(0, len(rec["tendon_lengths"]), m):
+            label = "tendons" if robot.tendons.routing == "shared" else f"tendons seg {k // m + 1}"
+            vals = ", ".join(f"{v:.6f}" for v in rec["tendon_lengths"][k: k + m])
+            print(f"{label:<15}[{vals}] m")
+    return 0

@@ -1,0 +1,49 @@
+"""``cr-nlp ik``: inverse kinematics for a batch of target poses (thin front end)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from ._io import UsageError, fmt, load_robot_arg, load_scene_arg, resolve, write_json
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register ``cr-nlp ik`` on the command's subparsers."""
+    p = sub.add_parser("ik", help="inverse kinematics for a batch of target poses")
+    p.add_argument("--robot", required=True, help="robot JSON file or bundled name (tdcr3)")
+    p.add_argument("--targets", required=True,
+                   help='JSON file {"poses": [{"position": [x,y,z], "wxyz": [w,x,y,z]}, ...]} '
+                        "or bundled name (tdcr3_lattice)")
+    p.add_argument("--scene", help="scene JSON file or bundled name (obstacles)")
+    p.add_argument("--exact", action="store_true",
+                   help="polish every answer with Ipopt, constraints as hard constraints")
+    p.add_argument("--seed", type=int, default=0, help="seed of the search (default 0)")
+    p.add_argument("--out", required=True, help="RESULT.json to write ('-' for stdout)")
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Solve, write RESULT.json and print a one-line summary on stderr."""
+    from ..tasks.ik import IKConfig, IKSolver, read_targets
+
+    robot = load_robot_arg(args.robot)
+    scene = load_scene_arg(args.scene)
+    try:
+        positions, wxyz, problems = read_targets(resolve(args.targets, "targets", "--targets"))
+    except ValueError as exc:
+        raise UsageError(f"--targets: {exc}") from None
+    solver = IKSolver(robot, scene, IKConfig(seed=args.seed))
+    result = solver.solve(positions, wxyz, exact=args.exact, progress=sys.stderr.isatty())
+    for i, problem in enumerate(problems):
+        if problem:
+            result.reason[i] = problem
+    data = result.to_json()
+    write_json(data, args.out)
+    summary, timing = data["summary"], data["timing"]
+    print(f"{robot.name}: {summary['targets']} targets, "
+          f"{100 * summary['success_rate']:.1f} % success, mean pose error "
+          f"{fmt(summary['mean_pose_error_success'])} (successes), max violation "
+          f"{fmt(summary['max_violation'])}; {timing['total']:.2f} s "
+          f"(compile {timing['compile']:.2f} s)", file=sys.stderr)
+    return 0

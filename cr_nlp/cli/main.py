@@ -1,0 +1,55 @@
+"""The ``cr-nlp`` parser, built from the subcommand modules, and the entry point.
+
+Adding a subcommand: a module ``cr_nlp/cli/<name>.py`` with ``add_parser(subparsers)``
+(which sets ``run=<function(args) -> exit status>`` as a default) and one line in
+``SUBCOMMANDS`` below. Shared input/output helpers live in ``_io.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from . import bench, demo, fk, follow, ik, plan, show
+
+SUBCOMMANDS = [
+    fk,
+    ik,
+    plan,
+    follow,
+    show,
+    bench,
+    demo,
+]
+"""The subcommand modules, in ``--help`` order; each has ``add_parser(subparsers)``."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``cr-nlp`` argument parser with every subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="cr-nlp",
+        description="IK, trajectory planning and path following for tendon-driven continuum "
+                    "robots (batched JAX search and refinement, exact CasADi/Ipopt polish).")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for module in SUBCOMMANDS:
+        module.add_parser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``cr-nlp`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status
+    (2 with a one-line message for bad input)."""
+    from .._jax_setup import enable_compilation_cache, use_host_devices
+    from ..model import ModelFileError
+    from ._io import UsageError
+
+    args = build_parser().parse_args(argv)
+    # Every core for the batched stages (before JAX starts); ``--devices`` where given.
+    use_host_devices(getattr(args, "devices", None))
+    enable_compilation_cache()
+    try:
+        return args.run(args)
+    except (UsageError, ModelFileError) as exc:
+        print(f"cr-nlp {args.command}: error: {exc}", file=sys.stderr)
+        return 2

@@ -1,0 +1,201 @@
+"""The package's import structure: no import circle, and no lower layer importing a higher one.
+
+Every module under ``cr_nlp`` is parsed with ``ast`` (nothing is imported), and every import
+statement — at module level, inside functions, under ``TYPE_CHECKING`` — becomes an edge
+of the intra-package import graph (relative imports resolved; ``from pkg import name``
+points at ``pkg.name`` when that is a module, else at ``pkg``). The layers (DESIGN.md,
+STYLE.md) are model → world → stages → tasks → interfaces; ``_resources`` and
+``_jax_setup`` sit below them all, the package's ``__init__`` (the public surface) above.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+import cr_nlp
+
+ROOT = Path(cr_nlp.__file__).resolve().parent
+PACKAGE = "cr_nlp"
+
+# Lowest first. A top-level module or package not named here (cli, bench, demo, viz,
+# batch, view, …) is an interface; the package __init__ re-exports the public API.
+LAYERS = {"_resources": 0, "_jax_setup": 0, "model": 1, "world": 2, "stages": 3, "tasks": 4}
+INTERFACE = 5
+FACADE = 6
+LAYER_NAMES = {0: "base (_resources, _jax_setup)", 1: "model", 2: "world", 3: "stages",
+               4: "tasks", 5: "interfaces (cli, bench, demo, viz, …)", 6: "cr_nlp/__init__"}
+
+
+def module_files(root: Path = ROOT, package: str = PACKAGE) -> dict[str, Path]:
+    """Dotted module name → file, for every .py file under ``root``."""
+    modules = {}
+    for path in sorted(root.rglob("*.py")):
+        parts = list(path.relative_to(root).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        modules[".".join([package, *parts])] = path
+    return modules
+
+
+def _is_package(name: str, modules: dict[str, Path]) -> bool:
+    return modules[name].name == "__init__.py"
+
+
+def imports_of(name: str, modules: dict[str, Path], package: str = PACKAGE) -> set[str]:
+    """The modules of the package that module ``name`` imports (anywhere in its body)."""
+    tree = ast.parse(modules[name].read_text(), filename=str(modules[name]))
+    here = name if _is_package(name, modules) else name.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            targets = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base_parts = here.split(".")
+                base_parts = base_parts[:len(base_parts) - (node.level - 1)]
+                base = ".".join(base_parts + ([node.module] if node.module else []))
+            else:
+                base = node.module or ""
+            targets = []
+            for alias in node.names:
+                sub = f"{base}.{alias.name}"
+                targets.append(sub if sub in modules else base)
+        else:
+            continue
+        for target in targets:
+            # "import cr_nlp.model.kinematics" names that module; keep the longest known prefix.
+            while target and target not in modules:
+                target = target.rpartition(".")[0]
+            if target.split(".")[0] == package and target != name:
+                found.add(target)
+    return found
+
+
+def import_graph(root: Path = ROOT, package: str = PACKAGE) -> dict[str, set[str]]:
+    modules = module_files(root, package)
+    return {name: imports_of(name, modules, package) for name in modules}
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components with more than one module (Tarjan), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    components: list[list[str]] = []
+    counter = 0
+
+    def visit(v: str) -> None:
+        nonlocal counter
+        index[v] = low[v] = counter
+        counter += 1
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                components.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return components
+
+
+def layer(name: str) -> int:
+    parts = name.split(".")
+    if len(parts) == 1:
+        return FACADE
+    return LAYERS.get(parts[1], INTERFACE)
+
+
+def upward_imports(graph: dict[str, set[str]]) -> list[str]:
+    """'a (layer) imports b (higher layer)' for every import against the layering."""
+    return [f"{a} ({LAYER_NAMES[layer(a)]}) imports {b} ({LAYER_NAMES[layer(b)]})"
+            for a in sorted(graph) for b in sorted(graph[a]) if layer(b) > layer(a)]
+
+
+def _write_package(root: Path, files: dict[str, str]) -> Path:
+    for rel, text in files.items():
+        path = root / "pkg" / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    return root / "pkg"
+
+
+# ---------------------------------------------------------------- the checker itself
+
+
+def test_the_checker_finds_a_circle_through_a_function_level_relative_import(
+        tmp_path: Path) -> None:
+    pkg = _write_package(tmp_path, {
+        "__init__.py": "",
+        "a.py": "from .b import f\n",
+        "sub/__init__.py": "",
+        "sub/b.py": "",
+        "b.py": "def f():\n    from . import a\n    from .sub import b\n",
+        "c.py": "import pkg.sub.b\nfrom pkg.sub import b\n",
+    })
+    graph = import_graph(pkg, "pkg")
+    assert graph["pkg.b"] == {"pkg.a", "pkg.sub.b"}
+    assert graph["pkg.c"] == {"pkg.sub.b"}
+    assert cycles(graph) == [["pkg.a", "pkg.b"]]
+
+
+def test_the_checker_finds_an_upward_import(tmp_path: Path) -> None:
+    pkg = _write_package(tmp_path, {
+        "__init__.py": "",
+        "model/__init__.py": "",
+        "model/kin.py": "from ..tasks.ik import solve\n",
+        "tasks/__init__.py": "",
+        "tasks/ik.py": "from ..model import kin\n",
+    })
+    graph = import_graph(pkg, "pkg")
+    found = upward_imports(graph)
+    assert found == ["pkg.model.kin (model) imports pkg.tasks.ik (tasks)"]
+    assert cycles(graph) == [["pkg.model.kin", "pkg.tasks.ik"]]
+
+
+# ---------------------------------------------------------------- cr_nlp
+
+
+@pytest.fixture(scope="module")
+def graph() -> dict[str, set[str]]:
+    return import_graph()
+
+
+def test_cr_nlp_has_no_import_circle(graph: dict[str, set[str]]) -> None:
+    assert "cr_nlp.model.kinematics" in graph and graph["cr_nlp.tasks.ik"]
+    found = cycles(graph)
+    assert not found, "import circles in cr_nlp:\n" + "\n".join(" ↔ ".join(c) for c in found)
+
+
+def test_no_lower_layer_imports_a_higher_one(graph: dict[str, set[str]]) -> None:
+    found = upward_imports(graph)
+    assert not found, "imports against the layers:\n" + "\n".join(found)
+
+
+def test_every_cli_module_is_a_registered_subcommand(graph: dict[str, set[str]]) -> None:
+    from cr_nlp.cli.main import SUBCOMMANDS
+
+    helpers = {"cr_nlp.cli", "cr_nlp.cli._io", "cr_nlp.cli.main", "cr_nlp.cli.__main__"}
+    modules = {name for name in graph if name.startswith("cr_nlp.cli.")} - helpers
+    assert modules == {m.__name__ for m in SUBCOMMANDS}
+    assert all(callable(m.add_parser) for m in SUBCOMMANDS)
+    # The shared helpers import no subcommand.
+    assert not {m for m in graph["cr_nlp.cli._io"] if m.startswith("cr_nlp.cli")}
