@@ -88,12 +88,14 @@ class TrajectoryPolishConfig:
     re-assigned slots: when a pair without a slot (or a sample without a check point)
     came closer than δ, or the answer stopped at the step limit."""
     step_limit: float = 0.5
-    """Per round, every body sphere may move at most about ``step_limit·near_margin``
-    metres: each variable stays within that distance divided by the largest lever
-    Σⱼ‖∂c/∂zⱼ‖ (m per rad or m) at the warm start; a round stopped by the limit goes on in
-    the next. Pairs farther than ``near_margin`` have no rows; without the limit a solve
-    pulled paths straight through such obstacles (measured on random_27: 0.2–0.4 m
-    deep). The last round is free of it when only the limit stopped the one before."""
+    """Per round, every body sphere may move at most about ``step_limit·room`` metres,
+    where a waypoint's room is ``near_margin`` or, if larger, the smallest pair distance at
+    it and in its two intervals (at most twice ``near_margin``): each of its variables
+    stays within that distance divided by its largest lever Σⱼ‖∂c/∂zⱼ‖ (m per rad or m)
+    at the round's start; a round stopped by the limit goes on in the next. Pairs farther
+    than ``near_margin`` have no rows; without the limit a solve pulled paths straight
+    through such obstacles (measured on random_27: 0.2–0.4 m deep). The last round is
+    free of it when only the limit stopped the one before."""
     interpolation_checks: int = 3
     """Clearance check points inside each interval, at the ``verify_samples`` samples
     where the motion comes closest to an obstacle (all of them with the default 3 and 4,
@@ -497,15 +499,36 @@ class TrajectoryPolisher:
         (``PairDistances.near``)."""
         return self._pairs.near(self._grid(z), max(self.config.near_margin, self.safety_margin))
 
-    def _lever(self, z: np.ndarray) -> float:
-        """The largest Σⱼ‖∂c_b/∂zⱼ‖ over the body spheres b at the (W, 3n) waypoints z:
-        metres a sphere moves at most when every variable moves by one (rad or m)."""
+    def _levers(self, z: np.ndarray) -> np.ndarray:
+        """(W,) the largest Σⱼ‖∂c_b/∂zⱼ‖ over the body spheres b at each of the (W, 3n)
+        waypoints z: metres a sphere moves at most when every variable moves by one (rad
+        or m)."""
         levers = []
         for row in z:
             jacobian = np.asarray(self._rows._centres_jacobian(row)[1])        # 3N × 3n
             blocks = jacobian.reshape(3, self._n_bodies, -1)
             levers.append(np.max(np.sum(np.linalg.norm(blocks, axis=0), axis=1)))
-        return max(float(np.max(levers)), 1e-9)
+        return np.maximum(np.array(levers), 1e-9)
+
+    def _step(self, z: np.ndarray, near: np.ndarray) -> np.ndarray:
+        """(W, 1) how far each waypoint's variables may move in one round (rad or m):
+        ``step_limit`` times the room its spheres have, over its lever. The room is
+        ``near_margin``, or more where every pair at the waypoint and in its two intervals
+        is farther (``near`` holds lower bounds there): a waypoint far from everything
+        need not crawl (measured on the 150-waypoint ICRA path at Δt = 0.2 s: 3 rounds and
+        29 iterations instead of 5 and 46, 4.8 s instead of 7.1 s, a valid answer both
+        ways)."""
+        cfg, w, per = self.config, self.waypoints, len(self._samples)
+        closest = (np.min(near, axis=1) if near.shape[1] else np.full(len(near), np.inf))
+        room = closest[:w].copy()
+        if per:
+            interval = np.min(closest[w:].reshape(w - 1, per), axis=1)
+            room[:-1] = np.minimum(room[:-1], interval)
+            room[1:] = np.minimum(room[1:], interval)
+        # At most twice the old room: larger steps led a reachable 8-waypoint tracking
+        # problem into another basin (one pose 2.5 mm off instead of reached).
+        room = np.clip(room, cfg.near_margin, 2.0 * cfg.near_margin)
+        return (cfg.step_limit * room / self._levers(z))[:, None]
 
     def _place(self, near: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Where the check points go: per interval, at the ``interpolation_checks``
@@ -608,7 +631,7 @@ class TrajectoryPolisher:
         if self.objective == "path":
             lbx[0] = ubx[0] = z0[0]
             lbx[-1] = ubx[-1] = z0[-1]
-        step = cfg.step_limit * cfg.near_margin / self._lever(z0) if self._pools else np.inf
+        free = not self._pools
         fixed = [np.array([1.0 / dt])]
         if positions is not None:
             fixed += [positions.T.ravel(order="F"),
@@ -628,6 +651,7 @@ class TrajectoryPolisher:
         violations = warm_violations
         best: tuple[float, np.ndarray, dict[str, float], str, float] | None = None
         for round_ in range(cfg.reselections + 1):
+            step = np.inf if free else self._step(z, near)
             low, high = np.maximum(lbx, z - step), np.minimum(ubx, z + step)
             fractions, rows = self._place(near)
             slots, clearance_lower, chosen = self._select(near[rows])
@@ -680,7 +704,7 @@ class TrajectoryPolisher:
             # if only the limit stopped the one before (the best round is kept anyway).
             near = np.minimum(near, distances)
             if round_ == cfg.reselections - 1 and not unseen:
-                step = np.inf
+                free = True
         if best is not None:
             # The round that came out best: valid (the last valid one) or least violated.
             _, z, violations, status, objective = best
