@@ -4,6 +4,7 @@ Batched JAX search and refinement, an exact CasADi/Ipopt polish, and independent
 verdicts (float64 re-evaluation, python-fcl). Units: metres, radians, seconds.
 """
 
+from ._jax_setup import full_precision_matmuls as _full_precision_matmuls
 from ._jax_setup import use_host_devices as use_host_devices
 from ._resources import bundled_file as bundled_file
 from ._resources import models_root as models_root
@@ -29,3 +30,6 @@ from .world import check_many as check_many
 from .world import load_scene as load_scene
 
 __version__ = "0.1.0"
+
+# Same accuracy on a GPU as on a CPU: no TF32 products (see full_precision_matmuls).
+_full_precision_matmuls()
