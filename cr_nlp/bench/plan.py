@@ -167,7 +167,7 @@ def _judge(planner: TrajectoryPlanner, q: np.ndarray | None, dt: float) -> dict[
 
 
 def measure_planner(planner: TrajectoryPlanner, scene: str, method: str, starts: np.ndarray,
-                    goals: np.ndarray) -> tuple[dict[str, Any], list[Any]]:
+                    goals: np.ndarray, progress: bool = True) -> tuple[dict[str, Any], list[Any]]:
     """One planner row: a warm-up on the first ``WARMUP_PAIRS`` problems (compilation,
     roadmap, the exact row's Ipopt build), then the whole batch timed."""
     exact = method == EXACT
@@ -176,7 +176,7 @@ def measure_planner(planner: TrajectoryPlanner, scene: str, method: str, starts:
     planner.plan(starts[:WARMUP_PAIRS], goals[:WARMUP_PAIRS], exact=exact, init=init)
     first = time.perf_counter() - t0
     t0 = time.perf_counter()
-    results = planner.plan(starts, goals, exact=exact, init=init, progress=exact)
+    results = planner.plan(starts, goals, exact=exact, init=init, progress=exact and progress)
     wall = time.perf_counter() - t0
     # The planner's own success may be stricter than the shared verdict (exact mode
     # also demands the clearance margin): a row counts a success only if both agree.
@@ -310,7 +310,7 @@ def run_plan_benchmark(quick: bool = False, pairs_per_scene: int | None = None,
             if method == RRT:
                 row, found = measure_rrt(planner, name, starts, goals, rrt_config, progress)
             else:
-                row, results = measure_planner(planner, name, method, starts, goals)
+                row, results = measure_planner(planner, name, method, starts, goals, progress)
                 found = [r.path_length for r in results if r.success]
             rows.append(row)
             lengths[method] += found
