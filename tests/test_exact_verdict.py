@@ -3,10 +3,12 @@ checker checks, and parallel polishes equal to serial ones."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-from cr_nlp import IKConfig, IKSolver, load_robot
+from cr_nlp import IKConfig, IKSolver, TrajectoryConfig, TrajectoryPlanner, load_robot
 from cr_nlp.bench.ik import free_case
 from cr_nlp.model import CasadiModel
 from cr_nlp.model.limits import limit_violation_q
@@ -129,3 +131,25 @@ def test_a_motion_cutting_an_obstacle_between_clear_waypoints_is_caught_and_repa
     blind = TrajectoryPolisher(robot, scene, 6, config=TrajectoryPolishConfig(
         interpolation_checks=0, verify_samples=1))
     assert blind.solve(q0, dt).warm_start_violations["clearance"] == 0.0
+
+
+def test_parallel_trajectory_polishes_return_the_serial_answers() -> None:
+    # Two problems whose LM answers break the tendon speed limit (a nearly free tendon
+    # penalty), so both are polished: once in this process, once by a 2-process pool.
+    robot = load_robot(MODELS / "robots" / "tdcr3.json")
+    starts = [[0.5, 0.3, 1.0, 0.6, 1.0, 1.0, 0.4, 2.0, 1.0],
+              [1.2, -0.5, 1.0, 0.9, 2.0, 1.0, 1.0, -1.0, 1.0]]
+    goals = [starts[1], [0.4, 0.8, 1.0, 0.3, -2.0, 1.0, 0.9, 1.0, 1.0]]
+    config = TrajectoryConfig(waypoints=10, dt=0.12, guesses=1, tendon_weight=1e-9,
+                              tendon_limit_fraction=1.0)
+    serial = TrajectoryPlanner(robot, None, config).plan(starts, goals, init="straight",
+                                                          exact=True)
+    pooled_planner = TrajectoryPlanner(robot, None, replace(config, polish_workers=2))
+    try:
+        pooled = pooled_planner.plan(starts, goals, init="straight", exact=True)
+    finally:
+        pooled_planner.close()
+    assert [r.stage for r in serial] == [r.stage for r in pooled] == ["polish", "polish"]
+    for a, b in zip(serial, pooled, strict=True):
+        assert a.success and b.success
+        np.testing.assert_allclose(b.q, a.q, atol=1e-9)
