@@ -304,3 +304,42 @@ def test_cli_batch_ik_writes_the_schema_of_cr_nlp_ik(client, targets, tmp_path):
         )
         == 2
     )
+
+
+def test_batch_plan_results_pass_the_independent_check(robot, client, tmp_path):
+    from cr_nlp.tasks.trajectory import TrajectoryConfig, verify_trajectory
+    from cr_nlp.world import load_scene
+
+    scene = load_scene("shelf")
+    problems = json.loads((ROOT / "models/problems/tdcr3_shelf.json").read_text())["problems"]
+    starts = [problems[0]["start"], [1.0, 2.0], problems[1]["start"]]
+    goals = [problems[0]["goal"], problems[1]["goal"], problems[1]["goal"]]
+    out = tmp_path / "job"
+    results = run_batch(
+        "plan",
+        robot,
+        (starts, goals),
+        scene=scene,
+        out_dir=out,
+        client=client,
+        chunk=2,
+        progress=False,
+    )
+    assert len(results) == 3 and len(_chunk_files(out)) == 2
+    assert results[1].stage == "rejected" and results[1].reason.startswith("bad start")
+    config = TrajectoryConfig()
+    for i in (0, 2):
+        result = results[i]
+        np.testing.assert_allclose(result.q[0], starts[i], atol=1e-9)  # input order kept
+        np.testing.assert_allclose(result.q[-1], goals[i], atol=1e-9)
+        verdict = verify_trajectory(
+            robot, scene, result.q, result.dt, config.safety_margin, config.verify_samples
+        )
+        assert verdict["success"] == result.success
+        assert verdict["max_violation"] == pytest.approx(result.max_violation, abs=1e-12)
+    assert results[0].success and results[2].success
+    data = json.loads((out / RESULTS).read_text())
+    assert data.keys() == {"robot", "results", "summary", "timing"}
+    assert data["summary"]["problems"] == 3
+    assert data["summary"]["success_rate"] == pytest.approx(2 / 3)
+    assert [row["stage"] for row in data["results"]] == [r.stage for r in results]
