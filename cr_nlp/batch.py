@@ -105,6 +105,12 @@ def _digest(value: Any) -> str:
     return hashlib.sha256(value if isinstance(value, bytes) else pickle.dumps(value)).hexdigest()
 
 
+def solver_key(kind: str, robot: Any, scene: Any, config: Any) -> str:
+    """The worker's solver cache key of a job: a digest of its kind, robot, scene and
+    solver settings (the file each was read from left out)."""
+    return _digest((kind, _without_source(robot), _without_source(scene), config))
+
+
 def _without_source(obj: Any) -> Any:
     """The robot or scene without the path it was read from (a bundled name and the same
     file are the same job)."""
@@ -377,7 +383,7 @@ def run_batch(
         config = _default_config(kind)
     if init not in ("roadmap", "straight"):
         raise BatchError(f"init must be 'roadmap' or 'straight', got {init!r}")
-    key = _digest((kind, _without_source(robot), _without_source(scene), config))
+    key = solver_key(kind, robot, scene, config)
     spec = JobSpec(kind, robot, scene, config, bool(exact), init, key)
     job = {
         "version": MANIFEST_VERSION,
