@@ -279,11 +279,23 @@ def solve_chunk(spec: JobSpec, index: int, first: Any, second: Any) -> dict[str,
 # ================================================================ the cluster
 
 
+def _worker_env(devices: int) -> dict[str, str]:
+    """Environment of a local worker: its JAX host-device count, also in ``XLA_FLAGS``
+    (which it would otherwise inherit from this process, set for all the cores)."""
+    flags = [
+        f
+        for f in os.environ.get("XLA_FLAGS", "").split()
+        if not f.startswith("--xla_force_host_platform_device_count")
+    ]
+    flags.append(f"--xla_force_host_platform_device_count={devices}")
+    return {DEVICES_ENV: str(devices), "XLA_FLAGS": " ".join(flags)}
+
+
 def start_local_cluster(workers: int | None = None, quiet: bool = False) -> Any:
     """A ``distributed.Client`` on a new ``LocalCluster`` of ``workers`` worker processes
     (default one per usable core), one thread each; each worker's JAX gets the cores
     divided among the workers as host devices. Prints the dashboard address on stderr
-    unless ``quiet``. Close it with ``client.close(); client.cluster.close()``."""
+    unless ``quiet``. Close both with ``close_cluster(client)``."""
     from distributed import Client, LocalCluster
 
     cores = len(os.sched_getaffinity(0))
@@ -295,7 +307,7 @@ def start_local_cluster(workers: int | None = None, quiet: bool = False) -> Any:
         threads_per_worker=1,
         processes=True,
         dashboard_address=":0",
-        env={DEVICES_ENV: str(max(1, cores // workers))},
+        env=_worker_env(max(1, cores // workers)),
     )
     client = Client(cluster)
     if not quiet:
@@ -307,6 +319,23 @@ def start_local_cluster(workers: int | None = None, quiet: bool = False) -> Any:
             file=sys.stderr,
         )
     return client
+
+
+def close_cluster(client: Any) -> None:
+    """Close ``client`` and the ``LocalCluster`` it was started with
+    (``start_local_cluster``), without the workers' shutdown chatter on stderr."""
+    import logging
+
+    cluster = getattr(client, "cluster", None)
+    logger = logging.getLogger("distributed")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL)  # heartbeats that meet a closed scheduler
+    try:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    finally:
+        logger.setLevel(level)
 
 
 # ================================================================ the job on the client
@@ -418,10 +447,7 @@ def run_batch(
         _run_chunks(client, spec, out, manifest, first, second, progress, retries)
     finally:
         if own_client is not None:
-            cluster = own_client.cluster if scheduler is None else None
-            own_client.close()
-            if cluster is not None:
-                cluster.close()
+            close_cluster(own_client)
     return _assemble(spec, out, manifest, problems)
 
 

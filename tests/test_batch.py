@@ -23,6 +23,7 @@ from cr_nlp.batch import (
     BatchError,
     JobSpec,
     chunk_file,
+    close_cluster,
     run_batch,
     solve_chunk,
     start_local_cluster,
@@ -46,9 +47,7 @@ def robot():
 def client():
     client = start_local_cluster(2, quiet=True)
     yield client
-    cluster = client.cluster
-    client.close()
-    cluster.close()
+    close_cluster(client)
 
 
 @pytest.fixture(scope="module")

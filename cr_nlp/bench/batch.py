@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from .._jax_setup import use_host_devices
-from ..batch import default_chunk, run_batch, solver_key, start_local_cluster
+from ..batch import close_cluster, default_chunk, run_batch, solver_key, start_local_cluster
 from ..model import load_robot
 from ..tasks.ik import IKConfig, IKSolver
 from .common import Column, environment, environment_markdown, markdown_table, write_report
@@ -175,9 +175,7 @@ def run_batch_benchmark(
                     _row(mode, f"batch, {count} workers", count, chunk, first, times, result)
                 )
         finally:
-            cluster = client.cluster
-            client.close()
-            cluster.close()
+            close_cluster(client)
     for row in rows:
         base = next((r for r in rows if r["mode"] == row["mode"] and r["workers"] == 1), None)
         own = next(r for r in rows if r["mode"] == row["mode"] and r["workers"] is None)
