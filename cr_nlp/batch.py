@@ -124,7 +124,9 @@ def _inputs_hash(kind: str, inputs: tuple[Any, Any], problems: Sequence[str] | N
         data = [np.asarray(inputs[0], float).tolist(), np.asarray(inputs[1], float).tolist()]
     else:  # raw rows, possibly ragged or malformed: validated per problem on the worker
         data = [_plain(inputs[0]), _plain(inputs[1])]
-    return _digest(json.dumps([data, list(problems or [])]).encode())
+    # No reasons and all-empty reasons are the same job (the API's None, the CLI's list).
+    marks = [str(p) for p in problems] if problems and any(problems) else []
+    return _digest(json.dumps([data, marks]).encode())
 
 
 def _plain(rows: Any) -> Any:

@@ -243,7 +243,6 @@ def test_resume_after_the_client_is_killed_solves_only_the_missing_chunks(
         out_dir=out,
         client=client,
         resume=True,
-        problems=[""] * TARGETS,
         progress=False,
     )
     after = {
