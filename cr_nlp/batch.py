@@ -11,9 +11,10 @@ its JAX programs come from the persistent compilation cache (``_jax_setup``).
 
 What lands in ``out_dir``:
 
-- ``manifest.json``: what the job is (kind, robot, scene, exact, settings, chunk size,
-  problem count, a hash of the inputs) and a log of the runs: which chunk ids each run
-  solved. ``resume=True`` refuses a directory whose manifest describes another job.
+- ``manifest.json``: what the job is (kind, robot, scene, exact, the solver config, a
+  hash of robot, scene and settings, chunk size, problem count, a hash of the inputs)
+  and a log of the runs: which chunk ids each run solved. ``resume=True`` refuses a
+  directory whose manifest describes another job.
 - ``chunk_<id>.json``: one per finished chunk, written atomically (temporary file +
   ``os.replace``) as soon as it arrives: ``{"chunk", "start", "stop", "run", "worker",
   "seconds", "timing", "results": [...]}`` with the rows of ``cr-nlp ik --out`` /
@@ -422,7 +423,9 @@ def run_batch(
         "robot": robot.name,
         "scene": getattr(scene, "name", None),
         "exact": bool(exact),
-        "settings": _digest((key, init)),
+        "init": init if kind == "plan" else None,
+        "config": json.loads(json.dumps(dataclasses.asdict(config))),
+        "settings": _digest((key, init)),  # robot, scene and config contents
         "count": count,
         "inputs": _inputs_hash(kind, (first, second), problems),
     }

@@ -235,6 +235,17 @@ def test_resume_after_the_client_is_killed_solves_only_the_missing_chunks(
             problems=[""] * TARGETS,
             progress=False,
         )
+    with pytest.raises(BatchError, match="config"):  # another seed: another job
+        run_batch(
+            "ik",
+            robot,
+            targets,
+            out_dir=out,
+            client=client,
+            config=IKConfig(seed=1),
+            resume=True,
+            progress=False,
+        )
 
     result = run_batch(
         "ik",
