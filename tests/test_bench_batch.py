@@ -18,6 +18,7 @@ def test_the_batch_benchmark_writes_its_rows_and_ratios(tmp_path):
     assert local["targets"] == batch["targets"] == 12
     assert local["success_pct"] == batch["success_pct"] == 100.0
     assert batch["chunk"] == 6 and batch["speedup"] == 1.0 and local["speedup"] is None
+    assert batch["same_success"] is True and batch["max_pose_error"] < 1e-2
     assert batch["vs_in_process"] == pytest.approx(batch["total_s"] / local["total_s"])
     assert batch["per_second"] == pytest.approx(12 / batch["total_s"])
     csv_rows = read_csv(tmp_path / "out" / "batch.csv")

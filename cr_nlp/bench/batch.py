@@ -14,8 +14,9 @@ For each mode (penalty: the JAX stages; exact: plus the Ipopt polish) the rows a
 Every row is timed after a warm-up run on the same cluster (the solvers built and their
 programs compiled on every worker; compile excluded), as the median of ``repeats`` runs,
 each into a fresh output folder (the chunk files and ``results.json`` are part of the
-cost). Columns: seconds, targets per second, success, the speedup over one worker and
-the cost relative to the in-process solve.
+cost). Columns: seconds, targets per second, success, the largest pose error of the
+successes, whether a batch row succeeded on exactly the targets the in-process solve did,
+the speedup over one worker and the cost relative to the in-process solve.
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from .._jax_setup import use_host_devices
 from ..batch import close_cluster, default_chunk, run_batch, solver_key, start_local_cluster
@@ -48,6 +51,8 @@ COLUMNS = [
     Column("total_s", "s (median)"),
     Column("per_second", "targets / s"),
     Column("success_pct", "success %"),
+    Column("max_pose_error", "max pose error"),
+    Column("same_success", "same successes as in-process"),
     Column("speedup", "speedup vs 1 worker"),
     Column("vs_in_process", "time / in-process"),
 ]
@@ -87,6 +92,7 @@ def _row(
         "per_second": len(result) / total,
         "runs": len(times),
         "success_pct": 100.0 * float(result.success.mean()),
+        "max_pose_error": float(result.pose_error[result.success].max(initial=0.0)),
         "min_s": min(times),
         "max_s": max(times),
     }
@@ -132,6 +138,7 @@ def run_batch_benchmark(
     runs = iter(range(10**9))
 
     solver = IKSolver(robot_model, None, config)
+    reference: dict[str, np.ndarray] = {}  # in-process success flags per mode
     for mode in modes:
         exact = mode == "exact"
         if progress:
@@ -140,6 +147,7 @@ def run_batch_benchmark(
             lambda exact=exact: solver.solve(*inputs, exact=exact), repeats
         )
         rows.append(_row(mode, "in-process", None, None, first, times, result))
+        reference[mode] = result.success
     solver.close()
 
     key = solver_key("ik", robot_model, None, config)
@@ -171,9 +179,9 @@ def run_batch_benchmark(
                     t0 = time.perf_counter()
                     result = job()
                     times.append(time.perf_counter() - t0)
-                rows.append(
-                    _row(mode, f"batch, {count} workers", count, chunk, first, times, result)
-                )
+                row = _row(mode, f"batch, {count} workers", count, chunk, first, times, result)
+                row["same_success"] = bool(np.array_equal(result.success, reference[mode]))
+                rows.append(row)
         finally:
             close_cluster(client)
     for row in rows:
