@@ -8,7 +8,7 @@ import pytest
 from cr_nlp.bench.common import read_csv, write_report
 from cr_nlp.cli import build_parser, main
 
-BENCHMARKS = ("ik", "plan", "follow", "clearance")
+BENCHMARKS = ("ik", "plan", "follow", "clearance", "batch")
 
 
 @pytest.mark.parametrize("name", BENCHMARKS)

@@ -1,4 +1,4 @@
-"""``cr-nlp bench ik|plan|follow|clearance``: benchmarks that print tables (not tests).
+"""``cr-nlp bench ik|plan|follow|clearance|batch``: benchmarks that print tables (not tests).
 
 Every benchmark gets the same options from ``add_common_options`` (``--out`` folder,
 ``--repeats``, ``--robot``, ``--seed``, ``--devices``, ``--no-progress``) and writes its
@@ -183,5 +183,42 @@ def _run_clearance(args: argparse.Namespace) -> int:
     return 0
 
 
-BENCHMARKS = [_add_ik, _add_plan, _add_follow, _add_clearance]
+# ---------------------------------------------------------------- batch
+
+
+def _add_batch(group: argparse._SubParsersAction) -> None:
+    from ..bench.batch import MODES
+
+    p = group.add_parser(
+        "batch", help="batch jobs on Dask: throughput per worker count vs in-process",
+        description="Times cr_nlp.batch.run_batch on LocalClusters of --workers worker "
+                    "processes and IKSolver in this process on the same free targets "
+                    "(after warm-up, compile excluded); writes batch.md, batch.csv and "
+                    "environment.json to --out.")
+    p.add_argument("--targets", type=int, default=1000, help="free targets (default 1000)")
+    p.add_argument("--workers", type=int, nargs="+", default=[1, 2],
+                   help="worker counts, one LocalCluster each (default 1 2)")
+    p.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES),
+                   help="penalty (JAX stages) and/or exact (with the Ipopt polish)")
+    p.add_argument("--chunk", type=int, default=None,
+                   help="targets per chunk (default: cr_nlp.batch.default_chunk for the "
+                        "largest worker count, the same for every row)")
+    add_common_options(p, "batch", repeats=1, seed=True)
+    p.set_defaults(run=_run_batch)
+
+
+def _run_batch(args: argparse.Namespace) -> int:
+    from ..bench.batch import run_batch_benchmark
+
+    _check_repeats(args)
+    if args.targets < 1 or min(args.workers) < 1 or (args.chunk is not None and args.chunk < 1):
+        raise UsageError("--targets, --workers and --chunk must be at least 1")
+    run_batch_benchmark(robot=args.robot, targets=args.targets, workers=args.workers,
+                        modes=args.modes, chunk=args.chunk, repeats=args.repeats,
+                        seed=args.seed, out=args.out, progress=not args.no_progress)
+    _wrote(args, "batch")
+    return 0
+
+
+BENCHMARKS = [_add_ik, _add_plan, _add_follow, _add_clearance, _add_batch]
 """The ``cr-nlp bench`` benchmarks, in ``--help`` order."""

@@ -11,13 +11,14 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from . import bench, demo, fk, follow, ik, plan, show
+from . import batch, bench, demo, fk, follow, ik, plan, show
 
 SUBCOMMANDS = [
     fk,
     ik,
     plan,
     follow,
+    batch,
     show,
     bench,
     demo,

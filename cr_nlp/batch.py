@@ -1,0 +1,704 @@
+"""Offline batch jobs on Dask distributed: many IK targets or planning problems over a
+cluster, written to disk chunk by chunk, resumable.
+
+``run_batch(kind, robot, inputs, out_dir=...)`` splits the inputs into chunks; each chunk
+is one Dask task that solves its problems with the single-process solver
+(``IKSolver.solve`` or ``TrajectoryPlanner.plan``) on a worker. Scheduling, retries and
+worker management are Dask's: a chunk whose worker dies is re-run by the scheduler, a
+chunk that raises is retried (``retries``). Per worker process the solver is built once
+(``_worker_solver``: a module-level cache keyed by kind, robot, scene and settings) and
+its JAX programs come from the persistent compilation cache (``_jax_setup``).
+
+What lands in ``out_dir``:
+
+- ``manifest.json``: what the job is (kind, robot, scene, exact, the solver config, a
+  hash of robot, scene and settings, chunk size, problem count, a hash of the inputs)
+  and a log of the runs: which chunk ids each run solved. ``resume=True`` refuses a
+  directory whose manifest describes another job.
+- ``chunk_<id>.json``: one per finished chunk, written atomically (temporary file +
+  ``os.replace``) as soon as it arrives: ``{"chunk", "start", "stop", "run", "worker",
+  "seconds", "timing", "results": [...]}`` with the rows of ``cr-nlp ik --out`` /
+  ``cr-nlp plan --out``. A chunk file is complete or absent.
+- ``results.json``: assembled at the end from the chunk files, in input order, with the
+  schema of ``cr-nlp ik --out`` (``IKResult.to_json``) or ``cr-nlp plan --out``
+  (``results_to_json``); its ``timing`` is the worker seconds summed over the chunks.
+
+This module is an interface (beside ``cli/``): it imports ``tasks/``, nothing imports it
+but the CLI and the benchmarks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import pickle
+import sys
+import threading
+import time
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+KINDS = ("ik", "plan")
+"""The job kinds: IK targets, start/goal planning problems."""
+MANIFEST = "manifest.json"
+RESULTS = "results.json"
+MANIFEST_VERSION = 1
+DEVICES_ENV = "CR_NLP_BATCH_DEVICES"
+"""Environment variable of a worker process: JAX host devices for its solver (set by
+``start_local_cluster``: the cores divided among the workers)."""
+
+
+class BatchError(ValueError):
+    """A job that cannot run as asked: a directory holding another job, a resume that
+    does not match, chunks that failed after Dask's retries."""
+
+
+# ================================================================ the job
+
+
+@dataclass(frozen=True)
+class JobSpec:
+    """What every chunk of a job needs on the worker (pickled with each task)."""
+
+    kind: str
+    """"ik" or "plan"."""
+    robot: Any
+    """The ``Robot``."""
+    scene: Any
+    """The ``Scene`` or None."""
+    config: Any
+    """``IKConfig`` (ik) or ``TrajectoryConfig`` (plan)."""
+    exact: bool
+    """Polish with Ipopt (the single-process solvers' ``exact``)."""
+    init: str
+    """Planning only: "roadmap" or "straight" (``TrajectoryPlanner.plan``)."""
+    key: str
+    """Digest of (kind, robot, scene, config): the worker's solver cache key."""
+
+
+def chunk_file(out_dir: str | Path, index: int) -> Path:
+    """The file of chunk ``index`` in ``out_dir``."""
+    return Path(out_dir) / f"chunk_{index:06d}.json"
+
+
+def chunk_ranges(count: int, chunk: int) -> list[tuple[int, int]]:
+    """[start, stop) of each chunk of ``chunk`` problems covering ``count`` problems."""
+    return [(s, min(s + chunk, count)) for s in range(0, count, chunk)]
+
+
+def default_chunk(kind: str, count: int, slots: int) -> int:
+    """About four chunks per worker thread (load balance, and little lost to a dying
+    worker), at most 256 IK targets (two compiled LM shapes suffice, ``chunk_plan``)
+    or 8 planning problems (seconds each) per chunk."""
+    largest = 256 if kind == "ik" else 8
+    return int(min(largest, max(1, math.ceil(count / max(4 * slots, 1)))))
+
+
+def _digest(value: Any) -> str:
+    return hashlib.sha256(value if isinstance(value, bytes) else pickle.dumps(value)).hexdigest()
+
+
+def solver_key(kind: str, robot: Any, scene: Any, config: Any) -> str:
+    """The worker's solver cache key of a job: a digest of its kind, robot, scene and
+    solver settings (the file each was read from left out)."""
+    return _digest((kind, _without_source(robot), _without_source(scene), config))
+
+
+def _without_source(obj: Any) -> Any:
+    """The robot or scene without the path it was read from (a bundled name and the same
+    file are the same job)."""
+    if dataclasses.is_dataclass(obj) and any(f.name == "source" for f in dataclasses.fields(obj)):
+        return dataclasses.replace(obj, source="")
+    return obj
+
+
+def _inputs_hash(kind: str, inputs: tuple[Any, Any], problems: Sequence[str] | None) -> str:
+    if kind == "ik":
+        data = [np.asarray(inputs[0], float).tolist(), np.asarray(inputs[1], float).tolist()]
+    else:  # raw rows, possibly ragged or malformed: validated per problem on the worker
+        data = [_plain(inputs[0]), _plain(inputs[1])]
+    # No reasons and all-empty reasons are the same job (the API's None, the CLI's list).
+    marks = [str(p) for p in problems] if problems and any(problems) else []
+    return _digest(json.dumps([data, marks]).encode())
+
+
+def _plain(rows: Any) -> Any:
+    return [np.asarray(r, float).tolist() if _numeric(r) else repr(r) for r in rows]
+
+
+def _numeric(row: Any) -> bool:
+    try:
+        np.asarray(row, float)
+    except (TypeError, ValueError):
+        return False
+    return True
+
+
+def _write_atomic(path: Path, data: Any) -> None:
+    """Write JSON so that ``path`` is either its old content or the complete new one."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    with open(tmp, "w") as handle:
+        json.dump(data, handle, indent=1)
+        handle.write("\n")
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(tmp, path)
+
+
+def _read_chunk(path: Path) -> dict[str, Any] | None:
+    """A chunk file's content, None if it is absent (or unreadable: solved again)."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    return data if isinstance(data, dict) and isinstance(data.get("results"), list) else None
+
+
+# ================================================================ on the worker
+
+_SOLVERS: dict[str, Any] = {}
+_SOLVERS_LOCK = threading.Lock()
+
+
+def _worker_solver(spec: JobSpec) -> Any:
+    """This process's solver for ``spec`` (built on first use, then reused by every chunk
+    with the same robot, scene and settings)."""
+    with _SOLVERS_LOCK:
+        solver = _SOLVERS.get(spec.key)
+        if solver is None:
+            from ._jax_setup import enable_compilation_cache, use_host_devices
+
+            devices = os.environ.get(DEVICES_ENV)
+            if devices:  # before JAX starts in this process; a no-op afterwards
+                use_host_devices(int(devices))
+            enable_compilation_cache()
+            if spec.kind == "ik":
+                from .tasks.ik import IKSolver
+
+                solver = IKSolver(spec.robot, spec.scene, spec.config)
+            else:
+                from .tasks.trajectory import TrajectoryPlanner
+
+                solver = TrajectoryPlanner(spec.robot, spec.scene, spec.config)
+            _SOLVERS[spec.key] = solver
+    return solver
+
+
+def _failed_rows(spec: JobSpec, count: int, reason: str) -> list[dict[str, Any]]:
+    """Result rows (the RESULT.json schema) of ``count`` problems that raised."""
+    if spec.kind == "ik":
+        from .tasks.ik import IKResult
+
+        dof = spec.robot.dof
+        nan = np.full(count, np.nan)
+        result = IKResult(
+            spec.robot,
+            np.full((count, dof), np.nan),
+            np.full((count, 3), np.nan),
+            np.full((count, 4), np.nan),
+            nan,
+            nan,
+            nan,
+            nan,
+            nan,
+            np.zeros(count, bool),
+            np.zeros(count, bool),
+            ["none"] * count,
+            [reason] * count,
+            has_scene=spec.scene is not None,
+        )
+        with warnings.catch_warnings():  # the summary's nanmax over NaN rows only
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return result.to_json()["results"]
+    from .tasks.trajectory import TrajectoryResult
+
+    return [
+        TrajectoryResult(spec.robot, None, spec.config.dt, False, reason, "error").to_json()
+        for _ in range(count)
+    ]
+
+
+def _solve(spec: JobSpec, solver: Any, first: Any, second: Any) -> tuple[list[dict], dict]:
+    if spec.kind == "ik":
+        result = solver.solve(first, second, exact=spec.exact)
+        data = result.to_json()
+        return data["results"], data["timing"]
+    from .tasks.trajectory import results_to_json
+
+    results = solver.plan(list(first), list(second), exact=spec.exact, init=spec.init)
+    return results_to_json(results)["results"], solver.last_timing.as_dict()
+
+
+def solve_chunk(spec: JobSpec, index: int, first: Any, second: Any) -> dict[str, Any]:
+    """Solve one chunk on this worker: IK targets (``first`` positions (k, 3) m, ``second``
+    wxyz (k, 4)) or planning problems (``first`` starts, ``second`` goals, rad and m).
+
+    Returns the chunk's record: result rows in input order (RESULT.json schema), the
+    solver's stage seconds, the worker's address and pid. The solver's random generator
+    is reseeded from (seed, chunk index), so a chunk re-run after a failure or on resume
+    gives the same answers. A problem that raises becomes a failed row with its reason;
+    the chunk itself raises only where Dask should retry it.
+    """
+    t0 = time.perf_counter()
+    solver = _worker_solver(spec)
+    solver._rng = np.random.default_rng([spec.config.seed, index])
+    try:
+        rows, timing = _solve(spec, solver, first, second)
+    except Exception:  # one problem's error must not sink its neighbours: solve one by one
+        rows, timing = [], {}
+        for k in range(len(first)):
+            try:
+                one, one_timing = _solve(spec, solver, first[k : k + 1], second[k : k + 1])
+            except Exception as exc:
+                one = _failed_rows(spec, 1, f"solver raised {type(exc).__name__}: {exc}")
+                one_timing = {}
+            rows.extend(one)
+            for key, value in one_timing.items():
+                timing[key] = timing.get(key, 0.0) + value
+    try:
+        from distributed import get_worker
+
+        worker = get_worker().address
+    except (ImportError, ValueError):  # called outside a Dask worker
+        worker = ""
+    return {
+        "chunk": index,
+        "results": rows,
+        "timing": timing,
+        "worker": worker,
+        "pid": os.getpid(),
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+# ================================================================ the cluster
+
+
+def _worker_env(devices: int) -> dict[str, str]:
+    """Environment of a local worker: its JAX host-device count, also in ``XLA_FLAGS``
+    (which it would otherwise inherit from this process, set for all the cores)."""
+    flags = [
+        f
+        for f in os.environ.get("XLA_FLAGS", "").split()
+        if not f.startswith("--xla_force_host_platform_device_count")
+    ]
+    flags.append(f"--xla_force_host_platform_device_count={devices}")
+    return {DEVICES_ENV: str(devices), "XLA_FLAGS": " ".join(flags)}
+
+
+def start_local_cluster(workers: int | None = None, quiet: bool = False) -> Any:
+    """A ``distributed.Client`` on a new ``LocalCluster`` of ``workers`` worker processes
+    (default one per usable core), one thread each; each worker's JAX gets the cores
+    divided among the workers as host devices. Prints the dashboard address on stderr
+    unless ``quiet``. Close both with ``close_cluster(client)``."""
+    from distributed import Client, LocalCluster
+
+    cores = len(os.sched_getaffinity(0))
+    workers = int(workers or cores)
+    if workers < 1:
+        raise BatchError(f"workers must be at least 1, got {workers}")
+    cluster = LocalCluster(
+        n_workers=workers,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=":0",
+        env=_worker_env(max(1, cores // workers)),
+    )
+    client = Client(cluster)
+    if not quiet:
+        import importlib.util
+
+        note = "" if importlib.util.find_spec("bokeh") else " (install bokeh to view it)"
+        print(
+            f"Dask LocalCluster: {workers} workers; dashboard {client.dashboard_link}{note}",
+            file=sys.stderr,
+        )
+    return client
+
+
+def close_cluster(client: Any) -> None:
+    """Close ``client`` and the ``LocalCluster`` it was started with
+    (``start_local_cluster``), without the workers' shutdown chatter on stderr."""
+    import logging
+
+    cluster = getattr(client, "cluster", None)
+    logger = logging.getLogger("distributed")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL)  # heartbeats that meet a closed scheduler
+    try:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    finally:
+        logger.setLevel(level)
+
+
+# ================================================================ the job on the client
+
+
+def run_batch(
+    kind: str,
+    robot: Any,
+    inputs: tuple[Any, Any],
+    *,
+    out_dir: str | Path,
+    scene: Any = None,
+    exact: bool = False,
+    config: Any = None,
+    init: str = "roadmap",
+    problems: Sequence[str] | None = None,
+    client: Any = None,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    chunk: int | None = None,
+    resume: bool = False,
+    progress: bool = True,
+    retries: int = 2,
+) -> Any:
+    """Solve many IK targets or planning problems on Dask, chunk by chunk, into ``out_dir``.
+
+    Args:
+        kind: "ik" or "plan".
+        robot: a ``Robot``, robot file or bundled name.
+        inputs: ik: (positions (T, 3) m, wxyz (T, 4) unit quaternions); plan: (starts,
+            goals), rows θ, φ, L (rad, rad, m; fixed lengths may be omitted; a bad row
+            is a failed result).
+        out_dir: folder of the manifest, the chunk files and ``results.json``.
+        scene: a ``Scene``, scene file or bundled name, or None.
+        exact: polish every answer with Ipopt (as ``cr-nlp ik/plan --exact``).
+        config: ``IKConfig`` / ``TrajectoryConfig`` (default: the solver's defaults).
+        init: planning: "roadmap" or "straight".
+        problems: ik: a reason per target read badly from its file ("" where fine), as
+            ``read_targets`` returns; it replaces the solver's reason in the results.
+        client: a ``distributed.Client`` to run on. Else ``scheduler`` (the address of a
+            running Dask scheduler), else a new ``LocalCluster`` of ``workers`` processes
+            (default one per core), closed at the end.
+        chunk: problems per chunk (one Dask task); default ``default_chunk``, or the
+            manifest's on resume.
+        resume: solve only the chunks missing from ``out_dir`` (the same job: refused
+            with ``BatchError`` if the manifest differs). Without it, ``out_dir`` must not
+            hold a job yet.
+        progress: a progress bar (chunks, problems per second, time left) on stderr.
+        retries: Dask retries of a chunk that raises (a dead worker's chunk is re-run by
+            the scheduler regardless).
+
+    Returns:
+        ik: an ``IKResult`` over all targets; plan: a list of ``TrajectoryResult``; in
+        input order, the same objects as the single-process solvers return.
+
+    Raises:
+        BatchError: ``out_dir`` holds another job, or chunks failed after their retries
+            (those written are kept: rerun with ``resume=True``).
+    """
+    from .model import load_robot
+    from .world import load_scene
+
+    if kind not in KINDS:
+        raise BatchError(f"kind must be one of {KINDS}, got {kind!r}")
+    if sum(x is not None for x in (client, workers, scheduler)) > 1:
+        raise BatchError("give at most one of client, workers and scheduler")
+    robot = load_robot(robot)
+    scene = load_scene(scene) if isinstance(scene, (str, Path, dict)) else scene
+    first, second = _normalise_inputs(kind, inputs)
+    count = len(first)
+    if problems is not None and len(problems) != count:
+        raise BatchError(f"{len(problems)} problems for {count} inputs")
+    if config is None:
+        config = _default_config(kind)
+    if init not in ("roadmap", "straight"):
+        raise BatchError(f"init must be 'roadmap' or 'straight', got {init!r}")
+    key = solver_key(kind, robot, scene, config)
+    spec = JobSpec(kind, robot, scene, config, bool(exact), init, key)
+    job = {
+        "version": MANIFEST_VERSION,
+        "kind": kind,
+        "robot": robot.name,
+        "scene": getattr(scene, "name", None),
+        "exact": bool(exact),
+        "init": init if kind == "plan" else None,
+        "config": json.loads(json.dumps(dataclasses.asdict(config))),
+        "settings": _digest((key, init)),  # robot, scene and config contents
+        "count": count,
+        "inputs": _inputs_hash(kind, (first, second), problems),
+    }
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if chunk is not None and chunk < 1:
+        raise BatchError(f"chunk must be at least 1, got {chunk}")
+    manifest = _open_manifest(out, job, chunk, resume)
+
+    own_client = None
+    try:
+        if client is None:
+            if scheduler is not None:
+                from distributed import Client
+
+                client = own_client = Client(scheduler)
+            else:
+                client = own_client = start_local_cluster(workers, quiet=not progress)
+        if not manifest:
+            slots = max(sum(client.nthreads().values()), 1)
+            size = int(chunk or default_chunk(kind, count, slots))
+            manifest = {**job, "chunk": size, "chunks": len(chunk_ranges(count, size)), "runs": []}
+        _run_chunks(client, spec, out, manifest, first, second, progress, retries)
+    finally:
+        if own_client is not None:
+            close_cluster(own_client)
+    return _assemble(spec, out, manifest, problems)
+
+
+def _default_config(kind: str) -> Any:
+    if kind == "ik":
+        from .tasks.ik import IKConfig
+
+        return IKConfig()
+    from .tasks.trajectory import TrajectoryConfig
+
+    return TrajectoryConfig()
+
+
+def _normalise_inputs(kind: str, inputs: tuple[Any, Any]) -> tuple[Any, Any]:
+    try:
+        first, second = inputs
+    except (TypeError, ValueError):
+        raise BatchError(
+            "inputs must be a pair: (positions, wxyz) for ik, (starts, goals) for plan"
+        ) from None
+    if kind == "ik":
+        first = np.asarray(first, dtype=float).reshape(-1, 3)
+        second = np.asarray(second, dtype=float).reshape(-1, 4)
+        if len(first) != len(second):
+            raise BatchError(f"{len(first)} positions but {len(second)} orientations")
+        return first, second
+    first, second = list(first), list(second)
+    if len(first) != len(second):
+        raise BatchError(f"{len(first)} starts but {len(second)} goals")
+    return first, second
+
+
+def _open_manifest(
+    out: Path, job: dict[str, Any], chunk: int | None, resume: bool
+) -> dict[str, Any] | None:
+    """The manifest of a job to resume (checked against ``job``), or None for a new job
+    (after checking that ``out`` holds no other job)."""
+    path = out / MANIFEST
+    if not path.exists():
+        if any(out.glob("chunk_*.json")):
+            raise BatchError(
+                f"{out} holds chunk files but no {MANIFEST}: not a batch job "
+                f"this version can resume; use an empty directory"
+            )
+        return None
+    if not resume:
+        raise BatchError(
+            f"{out} already holds a batch job ({MANIFEST}); rerun with "
+            f"--resume (resume=True) to finish it, or use another directory"
+        )
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise BatchError(f"{path} is unreadable ({exc}); use another directory") from None
+    differ = [
+        f"{k}: {manifest.get(k)!r} in the manifest, {v!r} now"
+        for k, v in job.items()
+        if manifest.get(k) != v
+    ]
+    if chunk is not None and manifest.get("chunk") != chunk:
+        differ.append(f"chunk: {manifest.get('chunk')!r} in the manifest, {chunk!r} now")
+    if differ:
+        raise BatchError(f"cannot resume {out}: it holds another job (" + "; ".join(differ) + ")")
+    return manifest
+
+
+def _run_chunks(
+    client: Any,
+    spec: JobSpec,
+    out: Path,
+    manifest: dict[str, Any],
+    first: Any,
+    second: Any,
+    progress: bool,
+    retries: int,
+) -> None:
+    """Submit the missing chunks, write each one as it finishes, log the run."""
+    from distributed import as_completed
+    from tqdm.auto import tqdm
+
+    ranges = chunk_ranges(manifest["count"], manifest["chunk"])
+    missing = [i for i in range(len(ranges)) if _read_chunk(chunk_file(out, i)) is None]
+    run_id = len(manifest["runs"]) + 1
+    run = {
+        "run": run_id,
+        "started": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+        "missing": len(missing),
+        "solved": [],
+        "failed": [],
+    }
+    manifest["runs"].append(run)
+    _write_atomic(out / MANIFEST, manifest)
+    if not missing:
+        return
+    futures = {}
+    for i in missing:
+        start, stop = ranges[i]
+        future = client.submit(
+            solve_chunk,
+            spec,
+            i,
+            first[start:stop],
+            second[start:stop],
+            retries=retries,
+            pure=False,
+            key=f"cr_nlp-chunk-{i}-{run_id}-"
+            f"{manifest['inputs'][:8]}-{os.getpid()}-{time.time_ns()}",
+        )
+        futures[future] = i
+    total = sum(ranges[i][1] - ranges[i][0] for i in missing)
+    bar = tqdm(
+        total=total,
+        unit="problem",
+        desc=f"batch {spec.kind}",
+        disable=not progress,
+        file=sys.stderr,
+        smoothing=0.1,
+    )
+    done = 0
+    bar.set_postfix_str(f"chunks 0/{len(missing)}")
+    failed: list[str] = []
+    t0 = time.perf_counter()
+    for future in as_completed(list(futures)):
+        i = futures[future]
+        start, stop = ranges[i]
+        try:
+            record = future.result()
+        except Exception as exc:  # after Dask's retries (or a worker killed repeatedly)
+            failed.append(f"chunk {i}: {type(exc).__name__}: {exc}")
+            run["failed"].append(i)
+        else:
+            record.update(start=start, stop=stop, run=run_id)
+            _write_atomic(chunk_file(out, i), record)
+            run["solved"].append(i)
+            done += 1
+        future.release()
+        run["seconds"] = time.perf_counter() - t0
+        _write_atomic(out / MANIFEST, manifest)
+        bar.update(stop - start)
+        bar.set_postfix_str(f"chunks {done}/{len(missing)}")
+    bar.close()
+    if failed:
+        raise BatchError(
+            f"{len(failed)} of {len(missing)} chunks failed (the others are "
+            f"written in {out}; rerun with --resume): " + "; ".join(failed[:5])
+        )
+
+
+# ================================================================ assembling the results
+
+
+def _assemble(
+    spec: JobSpec, out: Path, manifest: dict[str, Any], problems: Sequence[str] | None
+) -> Any:
+    """Read every chunk file, in input order, into the single-process result objects and
+    write ``results.json``."""
+    rows: list[dict[str, Any]] = []
+    timing: dict[str, float] = {}
+    for i, (start, stop) in enumerate(chunk_ranges(manifest["count"], manifest["chunk"])):
+        record = _read_chunk(chunk_file(out, i))
+        if record is None or len(record["results"]) != stop - start:
+            raise BatchError(f"chunk {i} is missing or damaged in {out}; rerun with --resume")
+        rows.extend(record["results"])
+        for key, value in record.get("timing", {}).items():
+            if key != "total":
+                timing[key] = timing.get(key, 0.0) + float(value)
+    if spec.kind == "ik":
+        result = ik_result_from_rows(spec.robot, rows, timing, spec.scene is not None)
+        for i, problem in enumerate(problems or []):
+            if problem:
+                result.reason[i] = problem
+        _write_atomic(out / RESULTS, result.to_json())
+        return result
+    from .tasks.trajectory import results_to_json
+
+    results = [trajectory_result_from_row(spec.robot, row) for row in rows]
+    _write_atomic(
+        out / RESULTS, results_to_json(results, {**timing, "total": sum(timing.values())})
+    )
+    return results
+
+
+def _array(value: Any, shape: tuple[int, ...]) -> np.ndarray:
+    return np.full(shape, np.nan) if value is None else np.asarray(value, dtype=float)
+
+
+def _float(value: Any) -> float:
+    return math.nan if value is None else float(value)
+
+
+def ik_result_from_rows(
+    robot: Any, rows: Sequence[dict[str, Any]], timing: dict[str, float], has_scene: bool
+) -> Any:
+    """The ``IKResult`` of RESULT.json rows (``IKResult.to_json``; None numbers are NaN)."""
+    from .tasks.ik import IKResult, IKTiming
+
+    n, dof = len(rows), robot.dof
+    q = np.array([_array(r["q"], (dof,)) for r in rows]).reshape(n, dof)
+    finite = np.all(np.isfinite(q), axis=1)
+    fields = {
+        k: np.array([_float(r[k]) for r in rows])
+        for k in ("pose_error", "position_error", "rotation_error", "max_violation", "clearance")
+    }
+    collision_free = np.array(
+        [
+            bool(r["collision_free"]) if r["collision_free"] is not None else bool(finite[i])
+            for i, r in enumerate(rows)
+        ],
+        bool,
+    )
+    names = {f.name for f in dataclasses.fields(IKTiming)}
+    return IKResult(
+        robot,
+        q,
+        np.array([_array(r["position"], (3,)) for r in rows]).reshape(n, 3),
+        np.array([_array(r["wxyz"], (4,)) for r in rows]).reshape(n, 4),
+        collision_free=collision_free,
+        success=np.array([bool(r["success"]) for r in rows]),
+        stage=[r["stage"] for r in rows],
+        reason=[r["reason"] or "" for r in rows],
+        timing=IKTiming(**{k: v for k, v in timing.items() if k in names}),
+        has_scene=has_scene,
+        **fields,
+    )
+
+
+def trajectory_result_from_row(robot: Any, row: dict[str, Any]) -> Any:
+    """The ``TrajectoryResult`` of one RESULT.json row (``TrajectoryResult.to_json``;
+    the LM cost is not in the file: NaN)."""
+    from .tasks.trajectory import TrajectoryResult
+
+    q = None if row["q"] is None else np.asarray(row["q"], dtype=float)
+    tendons = row["tendon_lengths"]
+    return TrajectoryResult(
+        robot,
+        q,
+        float(row["dt"]),
+        bool(row["success"]),
+        row["reason"] or "",
+        row["stage"],
+        path_length=_float(row["path_length"]),
+        min_clearance=_float(row["min_clearance"]),
+        max_violation=_float(row["max_violation"]),
+        violations={k: _float(v) for k, v in row["violations"].items()},
+        tendon_lengths=None if tendons is None else np.asarray(tendons, dtype=float),
+        tendon_speed=_float(row["tendon_speed"]),
+        tendon_accel=_float(row["tendon_accel"]),
+        timing=dict(row["timing"]),
+    )
