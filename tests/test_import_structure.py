@@ -197,5 +197,9 @@ def test_every_cli_module_is_a_registered_subcommand(graph: dict[str, set[str]])
     modules = {name for name in graph if name.startswith("cr_nlp.cli.")} - helpers
     assert modules == {m.__name__ for m in SUBCOMMANDS}
     assert all(callable(m.add_parser) for m in SUBCOMMANDS)
-    # The shared helpers import no subcommand.
+    # The shared helpers import no subcommand, and no subcommand imports another one
+    # (what two subcommands share lives in _io).
     assert not {m for m in graph["cr_nlp.cli._io"] if m.startswith("cr_nlp.cli")}
+    crossing = [f"{a} imports {b}" for a in sorted(modules) for b in sorted(graph[a])
+                if b in modules]
+    assert not crossing, "subcommands importing each other:\n" + "\n".join(crossing)

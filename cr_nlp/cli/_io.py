@@ -65,6 +65,25 @@ def read_json(path: str | Path, what: str) -> Any:
         raise UsageError(f"{what}: {path} is not valid JSON: {exc}") from None
 
 
+def read_problems(path: str | Path) -> tuple[list[Any], list[Any], int | None, float | None]:
+    """Starts, goals (raw rows, validated later per problem), horizon and dt."""
+    data = read_json(path, "--problems")
+    if not isinstance(data, dict) or not isinstance(data.get("problems"), list):
+        raise UsageError(f'--problems: {path} must hold {{"problems": [{{"start": [...], '
+                         f'"goal": [...]}}, ...]}}')
+    horizon, dt = data.get("horizon"), data.get("dt")
+    if horizon is not None and (not isinstance(horizon, int) or horizon < 2):
+        raise UsageError(f"--problems: horizon must be an integer ≥ 2, got {horizon!r}")
+    if dt is not None and (not isinstance(dt, (int, float)) or not dt > 0):
+        raise UsageError(f"--problems: dt must be a positive number of seconds, got {dt!r}")
+    starts, goals = [], []
+    for entry in data["problems"]:
+        ok = isinstance(entry, dict)
+        starts.append(entry.get("start") if ok else None)
+        goals.append(entry.get("goal") if ok else None)
+    return starts, goals, horizon, (float(dt) if dt is not None else None)
+
+
 def write_json(data: Any, path: str | None) -> None:
     """Write JSON to ``path``, or to stdout when ``path`` is None or '-'."""
     text = json.dumps(data, indent=2)

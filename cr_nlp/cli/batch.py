@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ._io import UsageError, fmt, load_robot_arg, load_scene_arg, resolve
+from ._io import UsageError, fmt, load_robot_arg, load_scene_arg, read_problems, resolve
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -135,7 +135,6 @@ def run(args: argparse.Namespace) -> int:
             )
             return 0
         from ..tasks.trajectory import TrajectoryConfig, with_horizon
-        from .plan import read_problems
 
         starts, goals, horizon, dt = read_problems(resolve(args.problems, "problems", "--problems"))
         config = with_horizon(

@@ -16,9 +16,8 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Any
 
-from ._io import UsageError, load_robot_arg, load_scene_arg, read_json, resolve, write_json
+from ._io import load_robot_arg, load_scene_arg, read_problems, resolve, write_json
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -42,25 +41,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--csv", help="directory for one tendon-length CSV per result "
                                  "(problem_<i>.csv: time_s, then one column per tendon, m)")
     p.set_defaults(run=run)
-
-
-def read_problems(path: str | Path) -> tuple[list[Any], list[Any], int | None, float | None]:
-    """Starts, goals (raw rows, validated later per problem), horizon and dt."""
-    data = read_json(path, "--problems")
-    if not isinstance(data, dict) or not isinstance(data.get("problems"), list):
-        raise UsageError(f'--problems: {path} must hold {{"problems": [{{"start": [...], '
-                         f'"goal": [...]}}, ...]}}')
-    horizon, dt = data.get("horizon"), data.get("dt")
-    if horizon is not None and (not isinstance(horizon, int) or horizon < 2):
-        raise UsageError(f"--problems: horizon must be an integer ≥ 2, got {horizon!r}")
-    if dt is not None and (not isinstance(dt, (int, float)) or not dt > 0):
-        raise UsageError(f"--problems: dt must be a positive number of seconds, got {dt!r}")
-    starts, goals = [], []
-    for entry in data["problems"]:
-        ok = isinstance(entry, dict)
-        starts.append(entry.get("start") if ok else None)
-        goals.append(entry.get("goal") if ok else None)
-    return starts, goals, horizon, (float(dt) if dt is not None else None)
 
 
 def run(args: argparse.Namespace) -> int:
