@@ -11,7 +11,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from . import bench, demo, fk, follow, ik, plan, show
+from . import bench, demo, fk, follow, ik, plan, show, view
 
 SUBCOMMANDS = [
     fk,
@@ -19,6 +19,7 @@ SUBCOMMANDS = [
     plan,
     follow,
     show,
+    view,
     bench,
     demo,
 ]
