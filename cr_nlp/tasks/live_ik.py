@@ -167,7 +167,14 @@ class LiveIKSolver:
         )
         return row
 
-    def solve(self, q_current: Any, position: Any, wxyz: Any, exact: bool = False) -> LiveIKResult:
+    def solve(
+        self,
+        q_current: Any,
+        position: Any,
+        wxyz: Any,
+        exact: bool = False,
+        search: bool | None = None,
+    ) -> LiveIKResult:
         """Move the answer ``q_current`` (3n; rad, rad, m) to the target pose.
 
         Args:
@@ -176,6 +183,9 @@ class LiveIKSolver:
             wxyz: (4,) target tip orientation, unit quaternion (w, x, y, z).
             exact: polish the LM answer with Ipopt (constraints as constraints); the LM
                 answer is kept where the polish fails or does worse.
+            search: run the batched search when the warm start misses (seconds on a CPU);
+                None: ``config.fallback_search``. The viewer searches only when a drag
+                ends, so that dragging stays fast.
 
         Raises:
             ValueError: q_current of the wrong size, or an invalid target (not finite,
@@ -196,7 +206,8 @@ class LiveIKSolver:
         timing["verify"] = time.perf_counter() - t0
         stage = "refine"
 
-        if row["reason"] and self.config.fallback_search:
+        search = self.config.fallback_search if search is None else search
+        if row["reason"] and search:
             t0 = time.perf_counter()
             found = self.ik.solve(position[None], wxyz[None])
             timing["search"] = time.perf_counter() - t0

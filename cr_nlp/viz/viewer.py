@@ -447,7 +447,7 @@ class Viewer:
         self._stop = threading.Event()
         self._solve_lock = threading.Lock()
         self._solver_lock = threading.Lock()
-        self._pending: tuple[np.ndarray, np.ndarray] | None = None
+        self._pending: tuple[np.ndarray, np.ndarray, bool] | None = None
         self._live_solver: Any = None
         self._live_on = live_ik and not self.motions and self.answers is None
 
@@ -807,7 +807,12 @@ class Viewer:
                 gizmo = self._live_gizmo
                 if gizmo is None:
                     return
-                self._pending = (np.array(gizmo.position, float), np.array(gizmo.wxyz, float))
+                # The slow fallback search only where the drag ends (phase "end").
+                self._pending = (
+                    np.array(gizmo.position, float),
+                    np.array(gizmo.wxyz, float),
+                    getattr(event, "phase", "end") == "end",
+                )
                 self._drain()
         elif not on and self._live_gizmo is not None:
             self._live_gizmo.remove()
@@ -853,21 +858,32 @@ class Viewer:
                 if not self._stop.is_set():
                     self._live_text.content = f"live IK unavailable: {exc}"
 
-    def move_target(self, position: Any, wxyz: Any, exact: bool | None = None) -> Any:
-        """What dragging the gizmo does: re-solve IK for the target pose from the answer
-        on screen, show the new answer and its verdict; returns the
-        ``LiveIKResult``. ``position`` (3,) m, ``wxyz`` (4,) unit quaternion; ``exact``
-        polishes with Ipopt (default: the page's checkbox)."""
+    def move_target(
+        self, position: Any, wxyz: Any, exact: bool | None = None, search: bool = True
+    ) -> Any:
+        """What moving the gizmo does: re-solve IK for the target pose from the answer
+        on screen, show the new answer and its verdict; returns the ``LiveIKResult``
+        (None for an invalid target, reported on the page).
+
+        Args:
+            position: (3,) target tip position, m.
+            wxyz: (4,) target orientation, unit quaternion.
+            exact: polish with Ipopt; None: the page's checkbox.
+            search: fall back to the batched search when the warm start misses (the
+                gizmo does so where a drag ends, not during it).
+        """
         with self._solve_lock:
-            return self._live_update(np.asarray(position, float), np.asarray(wxyz, float), exact)
+            return self._live_update(
+                np.asarray(position, float), np.asarray(wxyz, float), search, exact
+            )
 
     def _live_update(
-        self, position: np.ndarray, wxyz: np.ndarray, exact: bool | None = None
+        self, position: np.ndarray, wxyz: np.ndarray, search: bool, exact: bool | None = None
     ) -> Any:
         if exact is None:
             exact = bool(getattr(self, "_exact_box", None) and self._exact_box.value)
         try:
-            answer = self.solver().solve(self.q, position, wxyz, exact=exact)
+            answer = self.solver().solve(self.q, position, wxyz, exact=exact, search=search)
         except ValueError as exc:  # an unreachable or invalid target: say so, keep the robot
             if hasattr(self, "_live_text"):
                 self._live_text.content = f"target rejected: {exc}"
