@@ -782,6 +782,8 @@ class Viewer:
                 handle.position, handle.wxyz = tuple(pose[0]), tuple(pose[1])
         self._summary.content = answers.summary
         self._status.content = answers.text[i]
+        if int(self._answer.value) != i:
+            self._answer.value = i
         if self._live_gizmo is not None:
             self._place_gizmo()
 
@@ -794,8 +796,16 @@ class Viewer:
 
     # ------------------------------------------------------------ live IK
     def set_live(self, on: bool) -> None:
-        """Turn live IK on (a target gizmo at the tip of the robot shown) or off."""
+        """Turn live IK on (a target gizmo at the tip of the robot shown) or off.
+
+        Raises:
+            ValueError: the viewer was made with ``live_ik=False``.
+        """
+        if not hasattr(self, "_live_box"):
+            raise ValueError("this viewer has no live IK (made with live_ik=False)")
         self._live_on = bool(on)
+        if bool(self._live_box.value) != self._live_on:
+            self._live_box.value = self._live_on
         if on and self._live_gizmo is None:
             self._live_gizmo = self.server.scene.add_transform_controls(
                 "/live/target", scale=0.35, depth_test=False
@@ -851,12 +861,16 @@ class Viewer:
     def _warm_up(self) -> None:
         """Compile the live-IK program in the background, so the first drag is fast."""
         with self._solve_lock:
+            self._live_text.content = "compiling the live-IK solver (once, cached on disk)…"
             try:
                 position, wxyz = tip_pose(self.robot, self.q)
-                self.solver().solve(self.q, position, wxyz)
+                seconds = self.solver().solve(self.q, position, wxyz, search=False).seconds
             except Exception as exc:  # shown, never fatal: the replay works without it
                 if not self._stop.is_set():
                     self._live_text.content = f"live IK unavailable: {exc}"
+                return
+            if self.last_live is None:
+                self._live_text.content = f"ready (first solve {seconds:.1f} s)"
 
     def move_target(
         self, position: Any, wxyz: Any, exact: bool | None = None, search: bool = True
