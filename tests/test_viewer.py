@@ -421,3 +421,23 @@ def test_tip_pose_is_the_model_tip() -> None:
     )
     np.testing.assert_allclose(position, expected_position, atol=1e-12)
     np.testing.assert_allclose(matrix_from_wxyz(wxyz[None])[0], expected_rotation, atol=1e-9)
+
+
+def test_a_follow_result_finds_its_reference_path_by_name_or_argument() -> None:
+    viewer = _viewer_module()
+    from cr_nlp.tasks.paths import ReferencePath, load_path
+
+    robot = load_robot("tdcr3")
+    data = json.loads(FOLLOW.read_text())
+    icra = load_path("icra").positions
+    (motion,) = viewer.read_result(robot, data)
+    np.testing.assert_array_equal(motion.reference, icra)
+    renamed = dict(data, path="my_letters")  # a path file not at hand: no reference
+    (motion,) = viewer.read_result(robot, renamed)
+    assert motion.reference is None
+    (motion,) = viewer.read_result(robot, renamed, path="icra")
+    np.testing.assert_array_equal(motion.reference, icra)
+    full = load_path("icra")
+    short = ReferencePath("short", full.positions[:10], full.wxyz[:10], full.dt, full.pen_down[:10])
+    with pytest.raises(ValueError, match="has 10 waypoints, the follow result 150"):
+        viewer.read_result(robot, renamed, path=short)

@@ -22,6 +22,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="the ik result's targets file or bundled name, to draw "
         "the target frames beside the reached ones",
     )
+    p.add_argument(
+        "--path",
+        help="a follow result's reference path (file or bundled name), "
+        "when the result's path name is not a bundled one",
+    )
     p.add_argument("--port", type=int, help="TCP port (default: a free one)")
     p.add_argument(
         "--host",
@@ -60,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
             port=args.port,
             host=args.host,
             targets=targets,
+            path=resolve(args.path, "paths", "--path") if args.path else None,
             live_ik=not args.no_live_ik,
         )
     except ValueError as exc:

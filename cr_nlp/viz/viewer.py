@@ -207,7 +207,9 @@ def _tendon_names(robot: Robot) -> list[str]:
     return list(tendon_names(robot))
 
 
-def read_result(robot: Robot, data: Any, targets: Any = None) -> list[Motion] | Answers:
+def read_result(
+    robot: Robot, data: Any, targets: Any = None, path: Any = None
+) -> list[Motion] | Answers:
     """The motions (plan, follow) or answers (ik) of a RESULT.json's content.
 
     Args:
@@ -215,6 +217,8 @@ def read_result(robot: Robot, data: Any, targets: Any = None) -> list[Motion] | 
         data: the loaded JSON of ``cr-nlp ik``, ``plan`` or ``follow`` ``--out``.
         targets: for an ik result, the target poses ((positions (T, 3) m, wxyz (T, 4)));
             the ik result file holds the reached poses only.
+        path: for a follow result, the reference path (a file, a bundled name or a
+            ``ReferencePath``); default the result's ``path`` name where it resolves.
 
     Raises:
         ValueError: not such a result, or for another robot.
@@ -230,7 +234,7 @@ def read_result(robot: Robot, data: Any, targets: Any = None) -> list[Motion] | 
     if isinstance(rows, list) and (not rows or "times" in rows[0]):
         return _plan_motions(robot, rows)
     if "tip_positions" in data and "q" in data:
-        return [_follow_motion(robot, data)]
+        return [_follow_motion(robot, data, path)]
     raise ValueError(
         "not a result of cr-nlp ik, plan or follow: expected 'results' rows "
         "with 'pose_error' (ik) or 'times' (plan), or 'q' and 'tip_positions' "
@@ -323,17 +327,25 @@ def _plan_motions(robot: Robot, rows: list[dict]) -> list[Motion]:
     return motions
 
 
-def _follow_motion(robot: Robot, data: dict) -> Motion:
+def _follow_motion(robot: Robot, data: dict, path: Any = None) -> Motion:
+    from ..model import ModelFileError
+    from ..tasks.paths import load_path
+
     q = np.asarray(data["q"], dtype=float)
     reference = None
-    try:
-        from ..tasks.paths import load_path
-
-        path = load_path(str(data.get("path")))
-        if len(path.positions) == len(q):
-            reference = np.asarray(path.positions, dtype=float)
-    except Exception:  # a path file that is not at hand: the tip trace is still shown
-        reference = None
+    if path is not None:
+        reference = np.asarray(load_path(path).positions, dtype=float)
+        if len(reference) != len(q):
+            raise ValueError(
+                f"the reference path has {len(reference)} waypoints, the follow result {len(q)}"
+            )
+    else:
+        try:  # the result's path by name; a file not at hand: the tip trace still shows
+            found = load_path(str(data.get("path")))
+            if len(found.positions) == len(q):
+                reference = np.asarray(found.positions, dtype=float)
+        except (ModelFileError, OSError, ValueError):
+            reference = None
     err = np.asarray(data.get("position_error_mm") or [np.nan], dtype=float)
     return Motion(
         label=f"follow '{data.get('path')}'",
@@ -391,6 +403,8 @@ class Viewer:
         host: the address to listen on (default localhost only).
         targets: for an ik result, the target poses (positions (T, 3) m, wxyz (T, 4)),
             drawn beside the reached ones.
+        path: for a follow result, its reference path (file, bundled name or
+            ``ReferencePath``) when the result's path name does not resolve.
         live_ik: offer live IK (a target gizmo; re-solves on every move).
         q: the configuration to show without a result (default straight).
     """
@@ -404,6 +418,7 @@ class Viewer:
         *,
         host: str = "127.0.0.1",
         targets: Any = None,
+        path: Any = None,
         live_ik: bool = True,
         q: Any = None,
     ) -> None:
@@ -415,7 +430,7 @@ class Viewer:
         )
         if isinstance(result, str | Path):
             result = json.loads(Path(result).read_text())
-        content = read_result(self.robot, result, targets) if result is not None else None
+        content = read_result(self.robot, result, targets, path) if result is not None else None
         self.motions: list[Motion] = content if isinstance(content, list) else []
         self.answers: Answers | None = content if isinstance(content, Answers) else None
         self._mesh = RobotMesh(self.robot)
