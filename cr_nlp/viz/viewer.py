@@ -10,8 +10,11 @@ seconds.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import socket
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -450,9 +453,10 @@ class Viewer:
         self.last_live: Any = None
         """The last live-IK answer (``tasks.live_ik.LiveIKResult``), None before."""
 
-        self.server = viser.ViserServer(
-            host=host, port=free_port(host) if port is None else int(port), verbose=False
-        )
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: we print the url
+            self.server = viser.ViserServer(
+                host=host, port=free_port(host) if port is None else int(port), verbose=False
+            )
         self.port = self.server.get_port()
         """The TCP port served (viser takes the next free one if ``port`` is taken)."""
         self.url = f"http://{host}:{self.port}"
@@ -473,8 +477,10 @@ class Viewer:
             raise
         self._player = threading.Thread(target=self._play_loop, daemon=True)
         self._player.start()
-        if live_ik:
-            threading.Thread(target=self._warm_up, daemon=True).start()
+        # Not a daemon: a compile cut off at interpreter exit aborts the process.
+        self._warming = threading.Thread(target=self._warm_up) if live_ik else None
+        if self._warming is not None:
+            self._warming.start()
 
     def _build_page(self, live_ik: bool) -> None:
         """The scene, the robot, the controls and the camera."""
@@ -884,7 +890,7 @@ class Viewer:
                 if not self._stop.is_set():
                     self._live_text.content = f"live IK unavailable: {exc}"
                 return
-            if self.last_live is None:
+            if self.last_live is None and not self._stop.is_set():
                 self._live_text.content = f"ready (first solve {seconds:.1f} s)"
 
     def move_target(
@@ -942,6 +948,9 @@ class Viewer:
             pass
         finally:
             self.stop()
+            if self._warming is not None and self._warming.is_alive():
+                print("waiting for the live-IK compile to finish…", file=sys.stderr)
+                self._warming.join()
 
     def stop(self) -> None:
         """Stop the replay thread and the server (the port is free afterwards)."""
