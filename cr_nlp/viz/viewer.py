@@ -477,6 +477,10 @@ class Viewer:
             raise
         self._player = threading.Thread(target=self._play_loop, daemon=True)
         self._player.start()
+        self._wake = threading.Event()
+        self._solving = threading.Thread(target=self._live_loop, daemon=True)
+        if live_ik:
+            self._solving.start()
         # Not a daemon: a compile cut off at interpreter exit aborts the process.
         self._warming = threading.Thread(target=self._warm_up) if live_ik else None
         if self._warming is not None:
@@ -834,17 +838,14 @@ class Viewer:
             self._place_gizmo()
 
             @self._live_gizmo.on_update
-            def _(event: Any) -> None:
-                gizmo = self._live_gizmo
-                if gizmo is None:
-                    return
-                # The slow fallback search only where the drag ends (phase "end").
-                self._pending = (
-                    np.array(gizmo.position, float),
-                    np.array(gizmo.wxyz, float),
+            async def _(event: Any) -> None:
+                # On viser's event loop, so poses arrive in the drag's order; the solving
+                # thread takes the newest. The slow fallback search only where a drag ends.
+                self.target_moved(
+                    event.target.position,
+                    event.target.wxyz,
                     getattr(event, "phase", "end") == "end",
                 )
-                self._drain()
         elif not on and self._live_gizmo is not None:
             self._live_gizmo.remove()
             self._live_gizmo = None
@@ -857,18 +858,23 @@ class Viewer:
         position, wxyz = tip_pose(self.robot, self.q)
         self._live_gizmo.position, self._live_gizmo.wxyz = tuple(position), tuple(wxyz)
 
-    def _drain(self) -> None:
-        """Solve for the newest pending gizmo pose, then again while newer ones came in
-        during the solve (a drag sends poses faster than they can be solved)."""
-        while self._pending is not None:
-            if not self._solve_lock.acquire(blocking=False):
-                return
-            try:
-                pose, self._pending = self._pending, None
-                if pose is not None:
+    def target_moved(self, position: Any, wxyz: Any, final: bool) -> None:
+        """The gizmo's callback: queue the target pose (position (3,) m, wxyz (4,)) for
+        the solving thread and return at once. A drag sends poses faster than they can
+        be solved: only the newest waiting one is solved. ``final``: the drag ended, so
+        a miss may run the slow fallback search."""
+        self._pending = (np.array(position, float), np.array(wxyz, float), bool(final))
+        self._wake.set()
+
+    def _live_loop(self) -> None:
+        """The solving thread: the newest queued target, one at a time."""
+        while not self._stop.is_set():
+            self._wake.wait(0.5)
+            self._wake.clear()
+            pose, self._pending = self._pending, None
+            if pose is not None:
+                with self._solve_lock:
                     self._live_update(*pose)
-            finally:
-                self._solve_lock.release()
 
     def solver(self) -> Any:
         """The live-IK solver (``tasks.live_ik.LiveIKSolver``), built on first use."""
@@ -953,10 +959,14 @@ class Viewer:
                 self._warming.join()
 
     def stop(self) -> None:
-        """Stop the replay thread and the server (the port is free afterwards)."""
+        """Stop the replay and solving threads and the server (the port is free
+        afterwards)."""
         if self._stop.is_set():
             return
         self._stop.set()
+        self._wake.set()
+        if self._solving.is_alive() and self._solving is not threading.current_thread():
+            self._solving.join(timeout=60)  # a solve in progress ends in milliseconds
         self.server.stop()
 
     def __enter__(self) -> Viewer:
