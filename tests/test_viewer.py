@@ -5,10 +5,12 @@ W3C HTTP API with urllib, and checks the screenshot shows the 3-D scene. Without
 it skips, except under CI (``CI`` set), where it fails: ``.ci/run`` installs it. With
 ``CR_NLP_SAVE_SCREENSHOT=docs/viewer.png`` the screenshot is saved there (the README's).
 
-The fixtures under tests/data are real results: ``plan_shelf_result.json`` is
-``cr-nlp plan --robot tdcr3 --scene shelf --problems tdcr3_shelf_demo --out …`` and
-``follow_icra_result.json`` is ``cr-nlp follow --robot tdcr3 --scene follow_icra --path
-icra --out …`` (150 waypoints), both from the penalty stages.
+The fixtures under tests/data are real results of the penalty stages:
+``plan_shelf_result.json`` is ``cr-nlp plan --robot tdcr3 --scene shelf --problems
+tdcr3_shelf_demo --out …``, ``ik_lattice_result.json`` is ``cr-nlp ik --robot tdcr3
+--scene lattice --targets tdcr3_lattice --out …`` and ``follow_icra_result.json`` is
+``cr-nlp follow --robot tdcr3 --scene follow_icra --path icra --out …`` (150 waypoints,
+written compactly with numbers to 10 significant digits).
 """
 
 from __future__ import annotations
@@ -127,6 +129,13 @@ def test_a_150_waypoint_follow_result_scrubs_without_solving() -> None:
             view.show_frame(k)
             assert view.q is motion.q[k] or np.array_equal(view.q, motion.q[k])
         scrub = (time.perf_counter() - start) / (150 + len(range(149, -1, -7)))
+        # Play: the replay advances by itself at dt / speed (0.3 s / 4 here).
+        view.show_frame(0)
+        view._speed.value = 4.0
+        view.playing = True
+        time.sleep(1.5)
+        view.playing = False
+        assert view._frame > 0
         assert view._live_solver is None  # nothing was solved
         speeds = motion.tendon_speeds
         dt = data["dt"]
