@@ -37,6 +37,7 @@ from ..world.scene import (
     CylinderPart,
     SpherePart,
     bounding_sphere,
+    rotation_z_to,
 )
 from ._replay import (
     Answers,
@@ -81,6 +82,9 @@ PALETTE = [
     "#fb9a99",
     "#cab2d6",
 ]
+"""Tendon colours in the plots."""
+
+
 # ================================================================ the viewer
 
 
@@ -248,8 +252,6 @@ class Viewer:
             return float(part.center[2] - corners[2])
         if isinstance(part, CapsulePart | CylinderPart):
             a, b = np.asarray(part.a, float), np.asarray(part.b, float)
-            from ..world.scene import rotation_z_to
-
             wxyz = wxyz_from_matrix(rotation_z_to(b - a)[None])[0]
             scene_api.add_cylinder(
                 name,
@@ -484,8 +486,10 @@ class Viewer:
                 self._stop.wait(0.1)
                 continue
             dt = float(np.median(np.diff(motion.times))) if len(motion.times) > 1 else 0.1
-            self._stop.wait(max(dt / float(self._speed.value), 0.02))
-            self.show_frame((self._frame + 1) % len(motion.q))
+            if self._stop.wait(max(dt / float(self._speed.value), 0.02)):
+                break
+            if self._playing and not self._live_on:
+                self.show_frame((self._frame + 1) % len(motion.q))
 
     # ------------------------------------------------------------ ik answers
     def show_answer(self, i: int) -> None:
