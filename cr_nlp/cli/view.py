@@ -72,6 +72,9 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--result: {exc}") from None
     except OSError as exc:
         raise UsageError(f"--port: cannot listen on {args.host}:{args.port}: {exc}") from None
-    print(f"cr-nlp view: {viewer.url}  (Ctrl-C stops)", flush=True)
-    viewer.wait()
+    try:
+        print(f"cr-nlp view: {viewer.url}  (Ctrl-C stops)", flush=True)
+        viewer.wait()
+    except KeyboardInterrupt:  # Ctrl-C before wait() took over
+        viewer.stop()
     return 0
