@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import fcl
 import numpy as np
 
 from ..model import Robot
@@ -17,7 +18,13 @@ from ..model._ops import NUMPY
 from ..model.kinematics import model_q_to_z, model_segment_frames
 from ..model.rotations import wxyz_from_matrix
 from ..world import Scene
-from ..world.check import capsule_object, check_many, fcl_object, point_segment_distance
+from ..world.check import (
+    body_chain,
+    capsule_object,
+    check_many,
+    fcl_object,
+    point_segment_distance,
+)
 from ..world.scene import bounding_sphere
 from ._geometry import backbone_frames, tendon_paths, tube_grid
 
@@ -58,9 +65,8 @@ class RobotMesh:
 
 def tip_pose(robot: Robot, q: Any) -> tuple[np.ndarray, np.ndarray]:
     """Tip position (3,) m and orientation (4,) wxyz of q (3n), float64."""
-    rot, pos = model_segment_frames(NUMPY, robot, model_q_to_z(NUMPY, robot, np.asarray(q, float)))[
-        -1
-    ]
+    z = model_q_to_z(NUMPY, robot, np.asarray(q, dtype=float))
+    rot, pos = model_segment_frames(NUMPY, robot, z)[-1]
     matrix = np.array([float(v) for v in rot]).reshape(3, 3)
     return np.array([float(v) for v in pos]), wxyz_from_matrix(matrix[None])[0]
 
@@ -72,10 +78,6 @@ def closest_obstacle_points(
     body to the nearest obstacle part and the witness points on the robot and on the
     obstacle ((T, 3) each, m). Pairs are pruned by bounding-sphere lower bounds, so only
     the few pairs that can be nearest go to fcl."""
-    import fcl
-
-    from ..world.check import body_chain
-
     qs = np.asarray(qs, dtype=float).reshape(-1, robot.dof)
     parts = scene.parts
     distance = np.full(len(qs), np.inf)
