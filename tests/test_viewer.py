@@ -70,6 +70,21 @@ def _tip(robot, q) -> tuple[np.ndarray, np.ndarray]:
 # ---------------------------------------------------------------- without a browser
 
 
+def test_the_figures_do_not_import_viser() -> None:
+    code = (
+        "import sys, cr_nlp.viz, cr_nlp.cli.main; "
+        "assert 'viser' not in sys.modules, 'viser imported'"
+    )
+    env = dict(
+        os.environ,
+        PYTHONPATH=os.pathsep.join(
+            [str(Path(__file__).resolve().parent.parent), os.environ.get("PYTHONPATH", "")]
+        ),
+    )
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+
+
 def test_missing_viser_gives_the_install_hint(monkeypatch) -> None:
     monkeypatch.setitem(sys.modules, "viser", None)  # "import viser" raises ImportError
     monkeypatch.delitem(sys.modules, "cr_nlp.viz.viewer", raising=False)
