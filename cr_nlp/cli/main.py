@@ -11,7 +11,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from . import batch, bench, demo, fk, follow, ik, plan, show
+from . import batch, bench, demo, fk, follow, ik, plan, show, view
 
 SUBCOMMANDS = [
     fk,
@@ -20,6 +20,7 @@ SUBCOMMANDS = [
     follow,
     batch,
     show,
+    view,
     bench,
     demo,
 ]

@@ -15,16 +15,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-from .model._ops import NUMPY
-from .model.kinematics import (
-    model_q_to_z,
-    model_segment_frames,
-    model_segment_transform,
-    tendon_angles,
-)
-from .model.lie import transform_compose
-from .model.robot import Robot
-from .world.scene import (
+from ..model.robot import Robot
+from ..world.scene import (
     BoxPart,
     CapsulePart,
     ConvexPart,
@@ -33,69 +25,21 @@ from .world.scene import (
     SpherePart,
     rotation_z_to,
 )
+from ._geometry import backbone_frames, box_faces, tendon_paths, tube_grid
+
+__all__ = [
+    "backbone_frames",
+    "draw",
+    "follow_figure",
+    "plot_error_boxes",
+    "plot_tendon_lengths",
+    "save_figure",
+    "trajectory_figure",
+]
 
 ROBOT_COLOR = "#d95f02"
 OBSTACLE_COLOR = "#7f8fa6"
 MESH_COLOR = "#c8a77e"
-
-
-# ================================================================ robot geometry
-
-
-def backbone_frames(robot: Robot, q: Any, samples: int = 24) -> tuple[np.ndarray, np.ndarray]:
-    """Frames along the backbone for drawing: positions (M, 3) m and rotations (M, 3, 3),
-    the base followed by ``samples`` frames per segment (M = 1 + n·samples)."""
-    q = np.asarray(q, dtype=float).reshape(robot.dof)
-    z = model_q_to_z(NUMPY, robot, q)
-    frames = model_segment_frames(NUMPY, robot, z)
-    s = np.arange(1, samples + 1) / samples
-    positions = [np.asarray(frames[0][1], dtype=float)[None]]
-    rotations = [np.asarray(frames[0][0], dtype=float).reshape(1, 3, 3)]
-    for i in range(robot.n_segments):
-        ux, uy, length = z[3 * i: 3 * i + 3]
-        with np.errstate(invalid="ignore", divide="ignore"):  # unused safe_where branch
-            local = model_segment_transform(NUMPY, ux * s, uy * s, length * s)
-        rot, pos = transform_compose(frames[i], local)
-        positions.append(np.stack(np.broadcast_arrays(*pos), axis=-1))
-        rotations.append(np.stack(np.broadcast_arrays(*rot), axis=-1).reshape(-1, 3, 3))
-    return np.concatenate(positions), np.concatenate(rotations)
-
-
-def _tube(positions: np.ndarray, rotations: np.ndarray, radius: float,
-          around: int = 16) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    angle = np.linspace(0.0, 2.0 * np.pi, around)
-    ring = np.cos(angle)[None, :, None] * rotations[:, None, :, 0] \
-        + np.sin(angle)[None, :, None] * rotations[:, None, :, 1]
-    surface = positions[:, None, :] + radius * ring
-    return surface[..., 0], surface[..., 1], surface[..., 2]
-
-
-def _tendon_paths(robot: Robot, positions: np.ndarray, rotations: np.ndarray,
-                  samples: int) -> list[np.ndarray]:
-    """Polylines of every tendon (m), at the routing radius in each cross-section."""
-    alpha = tendon_angles(robot)
-    r = robot.tendons.radius
-    n, m = robot.n_segments, robot.tendons.per_segment
-
-    def offset(index: np.ndarray, angles: np.ndarray) -> np.ndarray:
-        local = np.stack([np.cos(angles), np.sin(angles)], axis=-1) * r
-        rot = rotations[index]
-        return positions[index] + local[:, :1] * rot[:, :, 0] + local[:, 1:] * rot[:, :, 1]
-
-    def segment_of(index: np.ndarray) -> np.ndarray:
-        return np.maximum(index - 1, 0) // samples
-
-    paths = []
-    if robot.tendons.routing == "shared":
-        index = np.arange(len(positions))
-        for j in range(m):
-            paths.append(offset(index, alpha[segment_of(index), j]))
-    else:
-        for k in range(n):
-            index = np.arange(1 + (k + 1) * samples)
-            for j in range(m):
-                paths.append(offset(index, np.full(len(index), alpha[k, j])))
-    return paths
 
 
 # ================================================================ obstacle geometry
@@ -103,24 +47,21 @@ def _tendon_paths(robot: Robot, positions: np.ndarray, rotations: np.ndarray,
 
 def _sphere_surface(center: np.ndarray, radius: float, n: int = 18) -> tuple[np.ndarray, ...]:
     u, v = np.meshgrid(np.linspace(0, 2 * np.pi, n), np.linspace(0, np.pi, n // 2 + 1))
-    return (center[0] + radius * np.cos(u) * np.sin(v), center[1] + radius * np.sin(u) * np.sin(v),
-            center[2] + radius * np.cos(v))
+    return (
+        center[0] + radius * np.cos(u) * np.sin(v),
+        center[1] + radius * np.sin(u) * np.sin(v),
+        center[2] + radius * np.cos(v),
+    )
 
 
-def _cylinder_surface(a: np.ndarray, b: np.ndarray, radius: float,
-                      n: int = 18) -> tuple[np.ndarray, ...]:
+def _cylinder_surface(
+    a: np.ndarray, b: np.ndarray, radius: float, n: int = 18
+) -> tuple[np.ndarray, ...]:
     rot = rotation_z_to(b - a)
     angle = np.linspace(0, 2 * np.pi, n)
     ring = radius * (np.cos(angle)[:, None] * rot[:, 0] + np.sin(angle)[:, None] * rot[:, 1])
     pts = np.stack([a + ring, b + ring], axis=1)  # (n, 2, 3)
     return pts[..., 0], pts[..., 1], pts[..., 2]
-
-
-def _box_faces(part: BoxPart) -> np.ndarray:
-    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float)
-    corners = part.center + (signs * part.half_size) @ part.rotation.T
-    quads = [[0, 1, 3, 2], [4, 5, 7, 6], [0, 1, 5, 4], [2, 3, 7, 6], [0, 2, 6, 4], [1, 3, 7, 5]]
-    return corners[np.array(quads)]
 
 
 def _draw_part(ax: Axes, part: Any, color: str, alpha: float, points: list[np.ndarray]) -> None:
@@ -129,9 +70,17 @@ def _draw_part(ax: Axes, part: Any, color: str, alpha: float, points: list[np.nd
         ax.plot_surface(x, y, z, color=color, alpha=alpha, linewidth=0, shade=True)
         points.append(np.c_[x.ravel(), y.ravel(), z.ravel()])
     elif isinstance(part, BoxPart):
-        faces = _box_faces(part)
-        ax.add_collection3d(Poly3DCollection(list(faces), facecolors=color, alpha=alpha,
-                                             edgecolors="k", linewidths=0.3, shade=True))
+        faces = box_faces(part)
+        ax.add_collection3d(
+            Poly3DCollection(
+                list(faces),
+                facecolors=color,
+                alpha=alpha,
+                edgecolors="k",
+                linewidths=0.3,
+                shade=True,
+            )
+        )
         points.append(faces.reshape(-1, 3))
     elif isinstance(part, CapsulePart | CylinderPart):
         x, y, z = _cylinder_surface(part.a, part.b, part.radius)
@@ -143,8 +92,16 @@ def _draw_part(ax: Axes, part: Any, color: str, alpha: float, points: list[np.nd
                 ax.plot_surface(xs, ys, zs, color=color, alpha=alpha, linewidth=0, shade=True)
     elif isinstance(part, ConvexPart):
         tris = part.vertices[part.triangles]
-        ax.add_collection3d(Poly3DCollection(list(tris), facecolors=color, alpha=alpha,
-                                             edgecolors=(0, 0, 0, 0.1), linewidths=0.1, shade=True))
+        ax.add_collection3d(
+            Poly3DCollection(
+                list(tris),
+                facecolors=color,
+                alpha=alpha,
+                edgecolors=(0, 0, 0, 0.1),
+                linewidths=0.1,
+                shade=True,
+            )
+        )
         points.append(part.vertices)
 
 
@@ -153,9 +110,16 @@ def _draw_scene(ax: Axes, scene: Scene, show_parts: bool, points: list[np.ndarra
     for obstacle in scene.obstacles:
         if obstacle.mesh is not None and not show_parts:
             tris = np.asarray(obstacle.mesh.triangles)
-            ax.add_collection3d(Poly3DCollection(list(tris), facecolors=MESH_COLOR, alpha=0.3,
-                                                 edgecolors=(0, 0, 0, 0.0), linewidths=0.0,
-                                                 shade=True))
+            ax.add_collection3d(
+                Poly3DCollection(
+                    list(tris),
+                    facecolors=MESH_COLOR,
+                    alpha=0.3,
+                    edgecolors=(0, 0, 0, 0.0),
+                    linewidths=0.0,
+                    shade=True,
+                )
+            )
             points.append(tris.reshape(-1, 3))
             continue
         for i, part in enumerate(obstacle.parts):
@@ -166,10 +130,20 @@ def _draw_scene(ax: Axes, scene: Scene, show_parts: bool, points: list[np.ndarra
 # ================================================================ public API
 
 
-def draw(robot: Robot, q: Any = None, scene: Scene | None = None,
-         trajectory: Sequence[Any] | None = None, targets: Sequence[Any] | None = None,
-         ax: Axes | None = None, *, tendons: bool = False, show_parts: bool = False,
-         title: str | None = None, elev: float = 20.0, azim: float = -135.0) -> Axes:
+def draw(
+    robot: Robot,
+    q: Any = None,
+    scene: Scene | None = None,
+    trajectory: Sequence[Any] | None = None,
+    targets: Sequence[Any] | None = None,
+    ax: Axes | None = None,
+    *,
+    tendons: bool = False,
+    show_parts: bool = False,
+    title: str | None = None,
+    elev: float = 20.0,
+    azim: float = -135.0,
+) -> Axes:
     """Draw the robot at q (3n; rad, rad, m) as a tube of radius ``backbone_radius``, with
     its tendons (``tendons``), the scene's obstacles (meshes as loaded, or their convex
     parts with ``show_parts``), a trajectory (a sequence of q: faded backbones and the tip
@@ -194,24 +168,31 @@ def draw(robot: Robot, q: Any = None, scene: Scene | None = None,
             tips.append(pos[-1])
             points.append(pos)
         tips_arr = np.array(tips)
-        ax.plot(tips_arr[:, 0], tips_arr[:, 1], tips_arr[:, 2], color="#ff7f00", linewidth=2.0,
-                label="tip path")
+        ax.plot(
+            tips_arr[:, 0],
+            tips_arr[:, 1],
+            tips_arr[:, 2],
+            color="#ff7f00",
+            linewidth=2.0,
+            label="tip path",
+        )
         if q is None:
             q = trajectory[-1]
 
     if q is not None:
         pos, rot = backbone_frames(robot, q, samples=samples)
-        x, y, z = _tube(pos, rot, robot.backbone_radius)
-        ax.plot_surface(x, y, z, color=ROBOT_COLOR, alpha=0.35 if tendons else 0.95,
-                        linewidth=0, shade=True)
+        x, y, z = tube_grid(pos, rot, robot.backbone_radius)
+        ax.plot_surface(
+            x, y, z, color=ROBOT_COLOR, alpha=0.35 if tendons else 0.95, linewidth=0, shade=True
+        )
         points.append(pos)
-        ends = pos[:: samples]
+        ends = pos[::samples]
         ax.scatter(ends[:, 0], ends[:, 1], ends[:, 2], color="k", s=8, depthshade=False)
         if tendons:
-            for path in _tendon_paths(robot, pos, rot, samples):
+            for path in tendon_paths(robot, pos, rot, samples):
                 ax.plot(path[:, 0], path[:, 1], path[:, 2], color="#1f78b4", linewidth=0.8)
 
-    for target in ([] if targets is None else targets):  # a list, or an (N, 3) array
+    for target in [] if targets is None else targets:  # a list, or an (N, 3) array
         position, rotation = _pose(target)
         points.append(position[None])
         if rotation is None:
@@ -230,9 +211,17 @@ def draw(robot: Robot, q: Any = None, scene: Scene | None = None,
     return ax
 
 
-def save_figure(robot: Robot, q: Any = None, scene: Scene | None = None,
-                trajectory: Sequence[Any] | None = None, targets: Sequence[Any] | None = None,
-                *, path: str | Path, dpi: int = 150, **options: Any) -> Path:
+def save_figure(
+    robot: Robot,
+    q: Any = None,
+    scene: Scene | None = None,
+    trajectory: Sequence[Any] | None = None,
+    targets: Sequence[Any] | None = None,
+    *,
+    path: str | Path,
+    dpi: int = 150,
+    **options: Any,
+) -> Path:
     """Draw as ``draw`` does and save a PNG (or any format matplotlib knows by the
     suffix) to ``path``; returns the path. ``options`` go to ``draw``."""
     ax = draw(robot, q, scene, trajectory, targets, **options)
@@ -279,9 +268,14 @@ def _axes_2d(ax: Axes | None, figsize: tuple[float, float] = (7.0, 3.2)) -> Axes
     return fig.add_subplot()
 
 
-def plot_tendon_lengths(times: Any, lengths: Any, names: Sequence[str] | None = None,
-                        ax: Axes | None = None, columns: Sequence[int] | None = None,
-                        title: str | None = None) -> Axes:
+def plot_tendon_lengths(
+    times: Any,
+    lengths: Any,
+    names: Sequence[str] | None = None,
+    ax: Axes | None = None,
+    columns: Sequence[int] | None = None,
+    title: str | None = None,
+) -> Axes:
     """Tendon lengths over time: ``times`` (T,) seconds, ``lengths`` (T, n_tendons) metres,
     one line per tendon in ``columns`` (default all), labelled by ``names``. A trajectory
     result's series is what a controller consumes (``TrajectoryResult.save_csv``)."""
@@ -301,8 +295,13 @@ def plot_tendon_lengths(times: Any, lengths: Any, names: Sequence[str] | None = 
     return ax
 
 
-def plot_error_boxes(errors: dict[str, Any], ax: Axes | None = None, ylabel: str = "",
-                     title: str | None = None, log: bool = False) -> Axes:
+def plot_error_boxes(
+    errors: dict[str, Any],
+    ax: Axes | None = None,
+    ylabel: str = "",
+    title: str | None = None,
+    log: bool = False,
+) -> Axes:
     """One box plot per entry of ``errors`` (label → values), e.g. per-waypoint position
     errors in mm for the penalty and the exact answer; whiskers at the 5th and 95th
     percentiles, every value beyond them drawn."""
@@ -323,25 +322,44 @@ def plot_error_boxes(errors: dict[str, Any], ax: Axes | None = None, ylabel: str
 # ================================================================ task figures
 
 
-def trajectory_figure(result: Any, scene: Scene | None = None, names: Sequence[str] | None = None,
-                      title: str | None = None) -> Figure:
+def trajectory_figure(
+    result: Any,
+    scene: Scene | None = None,
+    names: Sequence[str] | None = None,
+    title: str | None = None,
+) -> Figure:
     """A planned trajectory (a ``TrajectoryResult``: ``robot``, ``q`` (H+1, 3n), ``times``
     s, ``tendon_lengths`` m): left the robot's motion and tip path in the scene, right the
     first segment's tendon lengths over time."""
     fig = Figure(figsize=(13, 5.5))
     FigureCanvasAgg(fig)
-    draw(result.robot, None, scene, trajectory=list(result.q),
-         ax=fig.add_subplot(1, 2, 1, projection="3d"), title=title)
-    plot_tendon_lengths(result.times, result.tendon_lengths, names,
-                        ax=fig.add_subplot(1, 2, 2),
-                        columns=range(result.robot.tendons.per_segment),
-                        title="tendon lengths, segment 1")
+    draw(
+        result.robot,
+        None,
+        scene,
+        trajectory=list(result.q),
+        ax=fig.add_subplot(1, 2, 1, projection="3d"),
+        title=title,
+    )
+    plot_tendon_lengths(
+        result.times,
+        result.tendon_lengths,
+        names,
+        ax=fig.add_subplot(1, 2, 2),
+        columns=range(result.robot.tendons.per_segment),
+        title="tendon lengths, segment 1",
+    )
     fig.tight_layout()
     return fig
 
 
-def follow_figure(result: Any, scene: Scene | None = None, names: Sequence[str] | None = None,
-                  snapshots: int = 8, title: str | None = None) -> Figure:
+def follow_figure(
+    result: Any,
+    scene: Scene | None = None,
+    names: Sequence[str] | None = None,
+    snapshots: int = 8,
+    title: str | None = None,
+) -> Figure:
     """A followed path (a ``FollowResult``: ``robot``, ``path`` with ``positions`` m and
     ``dt`` s, ``q`` (T, 3n), ``position_error_mm``, ``rotation_error_deg``,
     ``tendon_lengths`` m): the reference waypoints with the robot at ``snapshots`` evenly
@@ -352,16 +370,34 @@ def follow_figure(result: Any, scene: Scene | None = None, names: Sequence[str] 
     FigureCanvasAgg(fig)
     spec = fig.add_gridspec(2, 3, width_ratios=(1.4, 0.6, 1.0))
     every = max(1, len(result.q) // snapshots)
-    draw(result.robot, result.q[-1], scene, trajectory=list(result.q[::every]),
-         targets=list(result.path.positions), ax=fig.add_subplot(spec[:, 0], projection="3d"),
-         azim=20.0, elev=15.0, title=title)
-    plot_error_boxes({"position": result.position_error_mm}, ax=fig.add_subplot(spec[0, 1]),
-                     ylabel="mm", title="tracking error per waypoint")
-    plot_error_boxes({"rotation": result.rotation_error_deg}, ax=fig.add_subplot(spec[1, 1]),
-                     ylabel="degrees")
+    draw(
+        result.robot,
+        result.q[-1],
+        scene,
+        trajectory=list(result.q[::every]),
+        targets=list(result.path.positions),
+        ax=fig.add_subplot(spec[:, 0], projection="3d"),
+        azim=20.0,
+        elev=15.0,
+        title=title,
+    )
+    plot_error_boxes(
+        {"position": result.position_error_mm},
+        ax=fig.add_subplot(spec[0, 1]),
+        ylabel="mm",
+        title="tracking error per waypoint",
+    )
+    plot_error_boxes(
+        {"rotation": result.rotation_error_deg}, ax=fig.add_subplot(spec[1, 1]), ylabel="degrees"
+    )
     times = np.arange(len(result.q)) * result.path.dt
-    plot_tendon_lengths(times, result.tendon_lengths, names, ax=fig.add_subplot(spec[:, 2]),
-                        columns=range(result.robot.tendons.per_segment),
-                        title="tendon lengths, segment 1")
+    plot_tendon_lengths(
+        times,
+        result.tendon_lengths,
+        names,
+        ax=fig.add_subplot(spec[:, 2]),
+        columns=range(result.robot.tendons.per_segment),
+        title="tendon lengths, segment 1",
+    )
     fig.tight_layout()
     return fig

@@ -1,0 +1,80 @@
+"""``cr-nlp view``: the interactive 3-D viewer in the browser (viser) for a robot, a scene
+and a result of ``cr-nlp ik``, ``plan`` or ``follow``; live IK by dragging a target."""
+
+from __future__ import annotations
+
+import argparse
+
+from ._io import UsageError, load_robot_arg, load_scene_arg, read_json, resolve
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register ``cr-nlp view`` on the command's subparsers."""
+    p = sub.add_parser(
+        "view",
+        help="interactive 3-D viewer in the browser (needs viser: pip install 'cr_nlp[viewer]')",
+    )
+    p.add_argument("--robot", required=True, help="robot JSON file or bundled name (tdcr3)")
+    p.add_argument("--scene", help="scene JSON file or bundled name (shelf, lattice, …)")
+    p.add_argument("--result", help="RESULT.json of cr-nlp ik, plan or follow to replay")
+    p.add_argument(
+        "--targets",
+        help="the ik result's targets file or bundled name, to draw "
+        "the target frames beside the reached ones",
+    )
+    p.add_argument(
+        "--path",
+        help="a follow result's reference path (file or bundled name), "
+        "when the result's path name is not a bundled one",
+    )
+    p.add_argument("--port", type=int, help="TCP port (default: a free one)")
+    p.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to listen on (default 127.0.0.1, this machine only)",
+    )
+    p.add_argument(
+        "--no-live-ik",
+        action="store_true",
+        help="no target gizmo (live IK compiles a solver in the background)",
+    )
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Serve the viewer, print its address and wait for Ctrl-C."""
+    try:
+        from ..viz.viewer import Viewer, targets_of
+    except ImportError as exc:
+        raise UsageError(str(exc)) from None
+
+    robot = load_robot_arg(args.robot)
+    scene = load_scene_arg(args.scene)
+    result = read_json(args.result, "--result") if args.result else None
+    targets = None
+    if args.targets:
+        try:
+            targets = targets_of(resolve(args.targets, "targets", "--targets"))
+        except ValueError as exc:
+            raise UsageError(f"--targets: {exc}") from None
+    try:
+        viewer = Viewer(
+            robot,
+            scene,
+            result,
+            port=args.port,
+            host=args.host,
+            targets=targets,
+            path=resolve(args.path, "paths", "--path") if args.path else None,
+            live_ik=not args.no_live_ik,
+        )
+    except ValueError as exc:
+        raise UsageError(f"--result: {exc}") from None
+    except OSError as exc:
+        raise UsageError(f"--port: cannot listen on {args.host}:{args.port}: {exc}") from None
+    try:
+        print(f"cr-nlp view: {viewer.url}  (Ctrl-C stops)", flush=True)
+        viewer.wait()
+    except KeyboardInterrupt:  # Ctrl-C before wait() took over
+        viewer.stop()
+    return 0
