@@ -58,10 +58,11 @@ COLUMNS = [
 ]
 
 
-def _timed(call: Any, repeats: int) -> tuple[float, list[float], Any]:
-    """Run ``call`` once to warm up, then ``repeats`` times; (first s, times, last out)."""
+def _timed(call: Any, repeats: int, warm_up: Any = None) -> tuple[float, list[float], Any]:
+    """Run ``warm_up`` (default: ``call``) once, then ``call`` ``repeats`` times;
+    (first s, times, last out)."""
     t0 = time.perf_counter()
-    out = call()
+    out = (warm_up or call)()
     first = time.perf_counter() - t0
     times = []
     for _ in range(repeats):
@@ -171,14 +172,9 @@ def run_batch_benchmark(
                         progress=progress,
                     )
 
-                t0 = time.perf_counter()
-                _warm_workers(client, key, job)
-                first = time.perf_counter() - t0
-                times = []
-                for _ in range(repeats):
-                    t0 = time.perf_counter()
-                    result = job()
-                    times.append(time.perf_counter() - t0)
+                first, times, result = _timed(
+                    job, repeats, lambda job=job, client=client: _warm_workers(client, key, job)
+                )
                 row = _row(mode, f"batch, {count} workers", count, chunk, first, times, result)
                 row["same_success"] = bool(np.array_equal(result.success, reference[mode]))
                 rows.append(row)
