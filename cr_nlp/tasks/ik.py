@@ -30,12 +30,14 @@ from ..model._ops import JAX, NUMPY
 from ..model.kinematics import model_pose_error, model_q_to_z, model_segment_frames
 from ..model.limits import clip_to_limits, limit_violation_q, project_z
 from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
-from ..stages.explore import SeedPool, select_beam, sobol_configurations
+from ..stages.chunks import SMALLEST_CHUNK as SMALLEST_CHUNK
+from ..stages.chunks import chunk_plan as chunk_plan
+from ..stages.explore import SeedPool, select_beam_device, sobol_configurations
 from ..stages.lm import LMConfig, lm_solve
 from ..world import Scene, check_many, load_scene, scene_arrays
 from ..world.clearance import body_gap_tolerance
 from ..world.penalty import sphere_clearances_z
-from ..world.verdict import failure_reason
+from ..world.verdict import VIOLATION_TOLERANCE, failure_reason
 from ._timing import StageTiming
 
 
@@ -81,6 +83,10 @@ class IKConfig:
     """Penalty weight of a clearance shortfall (per metre) in the JAX stages."""
     chunk_size: int = 1024
     """Most problems per compiled LM call; larger batches are split into chunks."""
+    stream_size: int = 8192
+    """Most targets solved at once: a larger batch is streamed through the stages in
+    parts of this many targets, so the memory a solve holds stays bounded whatever the
+    batch (about 12 KB per target in flight with the defaults)."""
     dtype: str = "float32"
     """JAX dtype of the batched stages ("float64" needs jax_enable_x64)."""
     seed: int = 0
@@ -205,21 +211,25 @@ def validate_targets(robot: Robot, positions: Any, wxyz: Any) -> tuple[np.ndarra
     wxyz = np.asarray(wxyz, dtype=float).reshape(-1, 4)
     if len(positions) != len(wxyz):
         raise ValueError(f"{len(positions)} positions but {len(wxyz)} orientations")
-    reasons = [""] * len(positions)
     base = np.asarray(robot.base_position)
     reach = robot.total_length_max
     norms = np.linalg.norm(wxyz, axis=1)
-    for i in range(len(positions)):
+    with np.errstate(invalid="ignore"):
+        distance = np.linalg.norm(positions - base, axis=1)
+        suspect = ~(np.all(np.isfinite(positions), axis=1) & np.all(np.isfinite(wxyz), axis=1)
+                    & (np.abs(norms - 1.0) <= 1e-3) & (distance <= reach * (1 + 1e-9)))
+    reasons = [""] * len(positions)
+    for i in np.flatnonzero(suspect):  # only the bad targets get words
         if not np.all(np.isfinite(positions[i])):
             reasons[i] = "target position is not finite"
         elif not np.all(np.isfinite(wxyz[i])):
             reasons[i] = "target orientation is not finite"
         elif abs(norms[i] - 1.0) > 1e-3:
             reasons[i] = f"target wxyz is not a unit quaternion (norm {norms[i]:.6g})"
-        elif np.linalg.norm(positions[i] - base) > reach * (1 + 1e-9):
-            reasons[i] = (f"target is out of reach: {np.linalg.norm(positions[i] - base):.4g} m "
+        elif distance[i] > reach * (1 + 1e-9):
+            reasons[i] = (f"target is out of reach: {distance[i]:.4g} m "
                           f"from the base, the robot is at most {reach:.4g} m long")
-    bad = np.array([bool(r) for r in reasons], dtype=bool)
+    bad = suspect
     wxyz = np.where(bad[:, None], np.nan, wxyz / np.where(norms > 0, norms, 1.0)[:, None])
     positions = np.where(bad[:, None], np.nan, positions)
     return positions, wxyz, reasons
@@ -232,30 +242,6 @@ def _with_count(out: tuple) -> tuple:
     that each shard of a sharded call returns its own."""
     z, cost, used = out
     return z, cost, used[None]
-
-
-SMALLEST_CHUNK = 128
-"""Fewest problems per compiled LM call (64 per core on 2 cores)."""
-
-
-def chunk_plan(count: int, largest: int, smallest: int = SMALLEST_CHUNK) -> list[int]:
-    """Chunk sizes that cover ``count`` problems with fewer than ``smallest`` padded rows,
-    using only two compiled shapes: the largest power of two ≤ ``largest`` ("big") for
-    whole big chunks, and ``smallest`` chunks for the rest (one more big chunk instead
-    when the rest is within ``smallest`` of it). Measured (tdcr4_ext, lattice, 100
-    targets): one chunk size per batch ran the 1200 coarse problems as 2 × 1024 and the
-    300 refined ones as 512 (41 % padding); a plan over every power of two between the
-    two sizes padded little but compiled up to four shapes per solver, about 26 s each
-    from a cold cache; this one pads as little with two."""
-    if count <= 0:
-        return []
-    big = smallest
-    while big * 2 <= max(largest, smallest):
-        big *= 2
-    n_big, rest = divmod(count, big)
-    if rest > big - smallest:
-        n_big, rest = n_big + 1, 0
-    return [big] * n_big + [smallest] * -(-rest // smallest)
 
 
 class IKSolver:
@@ -289,6 +275,8 @@ class IKSolver:
         self._polish_pool: Any = None
         self._rng = np.random.default_rng(config.seed)
         self.lm_calls: list[tuple[int, int, int, int]] = []
+        self.stream_parts: list[int] = []
+        """Targets per part of the last ``solve``'s stream (``IKConfig.stream_size``)."""
         """Per compiled LM call of the last ``solve``/``candidates``: (problems, chunk
         size, iteration budget, iterations run), for profiling."""
 
@@ -299,7 +287,8 @@ class IKSolver:
             q = sobol_configurations(self.robot, self.config.pool_size, self.config.seed)
             if self.scene is not None:
                 q = q[self._collision_free(q)]
-            self._pool = SeedPool(self.robot, q)
+            self._pool = SeedPool(self.robot, q, dtype=self.config.dtype,
+                                  chunk_size=self.config.chunk_size)
             timing.explore += time.perf_counter() - t0
         return self._pool
 
@@ -405,7 +394,7 @@ class IKSolver:
                            np.repeat(rotations, k, 0), cfg.coarse_iterations, timing)
         z, cost = z.reshape(t, k, n), cost.reshape(t, k)
         width = min(cfg.beam_width, k)
-        beam = select_beam(z, cost, width, cfg.beam_min_distance)
+        beam = self._select_beam(z, cost, width, timing)
         z_beam = z[np.arange(t)[:, None], beam]
         timing.explore += time.perf_counter() - t0 - (timing.compile - c0)
         t1 = time.perf_counter()
@@ -414,6 +403,30 @@ class IKSolver:
                                np.repeat(rotations, width, 0), width, per_target, timing)
         timing.refine += time.perf_counter() - t1 - (timing.compile - c1)
         return z.reshape(t, width, n), cost.reshape(t, width)
+
+    def _select_beam(self, z: np.ndarray, cost: np.ndarray, width: int,
+                     timing: IKTiming) -> np.ndarray:
+        """``stages.explore.select_beam_device`` over target chunks padded to
+        ``chunk_plan`` sizes (one compiled program per chunk shape): (T, width) indices."""
+        out = []
+        start = 0
+        for chunk in chunk_plan(len(z), self.config.chunk_size):
+            stop = min(start + chunk, len(z))
+            pad = chunk - (stop - start)
+            z_c = np.concatenate([z[start:stop], np.repeat(z[start:start + 1], pad, 0)])
+            c_c = np.concatenate([cost[start:stop], np.repeat(cost[start:start + 1], pad, 0)])
+            key = ("beam", chunk, z.shape[1], width)
+            if key not in self._compiled:
+                t0 = time.perf_counter()
+                self._compiled[key] = select_beam_device.lower(
+                    jnp.asarray(z_c, self.dtype), jnp.asarray(c_c, self.dtype), width,
+                    self.config.beam_min_distance).compile()
+                timing.compile += time.perf_counter() - t0
+            out.append((stop - start, self._compiled[key](
+                jnp.asarray(z_c, self.dtype), jnp.asarray(c_c, self.dtype),
+                self.config.beam_min_distance)))
+            start = stop
+        return np.concatenate([np.asarray(b)[:used] for used, b in out]).astype(np.int64)
 
     def candidates(self, positions: Any, wxyz: Any) -> tuple[np.ndarray, np.ndarray]:
         """Several distinct IK answers per target (the refined beam), for callers that
@@ -498,49 +511,57 @@ class IKSolver:
         """
         timing = IKTiming()
         self.lm_calls = []
-        cfg = self.config
-        robot = self.robot
-        positions, wxyz, reasons = validate_targets(robot, positions, wxyz)
-        t_all = len(positions)
+        self.stream_parts = []
+        positions, wxyz, reasons = validate_targets(self.robot, positions, wxyz)
         valid = np.array([not r for r in reasons], dtype=bool)
-        q_out = np.full((t_all, robot.dof), np.nan)
-        stage = ["none"] * t_all
+        q_out = np.full((len(positions), self.robot.dof), np.nan)
         idx = np.flatnonzero(valid)
-        if len(idx):
-            pos_v, rot_v = positions[idx], matrix_from_wxyz(wxyz[idx])
-            pool = self._seed_pool(timing)
-            t0 = time.perf_counter()
-            nearest = pool.nearest(pos_v, rot_v, cfg.seeds_per_target)
-            timing.explore += time.perf_counter() - t0
-            z_best, cost = self._search(pool.z[nearest], pos_v, rot_v, timing)
-            ok = np.sqrt(2 * cost) < cfg.success_tolerance
-            used = cfg.seeds_per_target
-            for _ in range(cfg.retry_rounds):
-                todo = np.flatnonzero(~ok)
-                if not len(todo):
-                    break
-                t0 = time.perf_counter()
-                # Half the retry seeds are the next-nearest pool entries (collision-free,
-                # close in pose), half are fresh random configurations (other branches).
-                near = cfg.retry_seeds // 2
-                nearest = pool.nearest(pos_v[todo], rot_v[todo], used + near)[:, used:]
-                used += near
-                seeds = self._random_seeds(len(todo), cfg.retry_seeds)
-                seeds[:, 1: 1 + nearest.shape[1]] = pool.z[nearest]
-                seeds[:, 0] = z_best[todo]  # keep the best so far in the race
-                timing.explore += time.perf_counter() - t0
-                z_new, c_new = self._search(seeds, pos_v[todo], rot_v[todo], timing)
-                better = c_new < cost[todo]
-                z_best[todo[better]] = z_new[better]
-                cost[todo[better]] = c_new[better]
-                ok = np.sqrt(2 * cost) < cfg.success_tolerance
-            q_out[idx] = clip_to_limits(robot, np.asarray(z_to_q(robot, z_best), dtype=float))
-            for i in idx:
-                stage[i] = "refine"
+        step = max(int(self.config.stream_size), 1)
+        for start in range(0, len(idx), step):
+            part = idx[start:start + step]
+            self.stream_parts.append(len(part))
+            q_out[part] = self._solve_part(positions[part], matrix_from_wxyz(wxyz[part]),
+                                           timing)
+        stage = np.where(valid, "refine", "none").tolist()
         result = self._finish(q_out, positions, wxyz, reasons, stage, timing)
         if exact and len(idx):
             self._polish(result, positions, wxyz, idx, timing, progress)
         return result
+
+    def _solve_part(self, pos_v: np.ndarray, rot_v: np.ndarray,
+                    timing: IKTiming) -> np.ndarray:
+        """Explore, refine and retry one part of a stream (valid targets): q (T, 3n)."""
+        cfg = self.config
+        pool = self._seed_pool(timing)
+        t0 = time.perf_counter()
+        c0 = pool.compile_seconds
+        # One lookup for the first seeds and every retry round's next-nearest ones.
+        near = cfg.retry_seeds // 2
+        nearest = pool.nearest(pos_v, rot_v, cfg.seeds_per_target + cfg.retry_rounds * near)
+        timing.compile += pool.compile_seconds - c0
+        timing.explore += time.perf_counter() - t0 - (pool.compile_seconds - c0)
+        used = min(cfg.seeds_per_target, nearest.shape[1])
+        z_best, cost = self._search(pool.z[nearest[:, :used]], pos_v, rot_v, timing)
+        ok = np.sqrt(2 * cost) < cfg.success_tolerance
+        for _ in range(cfg.retry_rounds):
+            todo = np.flatnonzero(~ok)
+            if not len(todo):
+                break
+            t0 = time.perf_counter()
+            # Half the retry seeds are the next-nearest pool entries (collision-free,
+            # close in pose), half are fresh random configurations (other branches).
+            next_nearest = nearest[todo, used:used + near]
+            used += near
+            seeds = self._random_seeds(len(todo), cfg.retry_seeds)
+            seeds[:, 1: 1 + next_nearest.shape[1]] = pool.z[next_nearest]
+            seeds[:, 0] = z_best[todo]  # keep the best so far in the race
+            timing.explore += time.perf_counter() - t0
+            z_new, c_new = self._search(seeds, pos_v[todo], rot_v[todo], timing)
+            better = c_new < cost[todo]
+            z_best[todo[better]] = z_new[better]
+            cost[todo[better]] = c_new[better]
+            ok = np.sqrt(2 * cost) < cfg.success_tolerance
+        return clip_to_limits(self.robot, np.asarray(z_to_q(self.robot, z_best), dtype=float))
 
     def _finish(self, q: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
                 reasons: list[str], stage: list[str], timing: IKTiming) -> IKResult:
@@ -571,14 +592,29 @@ class IKSolver:
         of ``world.verdict`` (pose error below ``success_tolerance``, every violation ≤
         1e-6: limits, clearance shortfall below δ)."""
         tol = self.config.success_tolerance
-        for i in np.flatnonzero(rows):
-            violations = {"limits": float(limit_violation_q(self.robot, result.q[i]))}
+        rows = np.flatnonzero(rows)
+        limits = limit_violation_q(self.robot, result.q[rows])
+        clearance = result.clearance[rows]
+        collision_free = result.collision_free[rows]
+        shortfall = np.maximum(self.config.safety_margin - clearance, 0.0)
+        # The rule's passing case, vectorised; every other row gets failure_reason's words
+        # (and its verdict, so both always agree).
+        with np.errstate(invalid="ignore"):
+            passing = ((result.pose_error[rows] < tol) & (limits <= VIOLATION_TOLERANCE)
+                       & (collision_free | (clearance > 0.0)))
             if result.has_scene:
-                violations["clearance"] = max(0.0, self.config.safety_margin
-                                              - float(result.clearance[i]))
+                passing &= shortfall <= VIOLATION_TOLERANCE
+        result.success[rows[passing]] = True
+        for j in np.flatnonzero(passing):
+            result.reason[rows[j]] = ""
+        for j in np.flatnonzero(~passing):
+            i = rows[j]
+            violations = {"limits": float(limits[j])}
+            if result.has_scene:
+                violations["clearance"] = float(shortfall[j])
             result.reason[i] = failure_reason(
                 violations, pose_error=float(result.pose_error[i]), pose_tolerance=tol,
-                min_clearance=None if result.collision_free[i] else float(result.clearance[i]))
+                min_clearance=None if collision_free[j] else float(clearance[j]))
             result.success[i] = not result.reason[i]
 
     def _polish(self, result: IKResult, positions: np.ndarray, wxyz: np.ndarray,
