@@ -123,6 +123,9 @@ class SeedPool:
         self._programs: dict[tuple[int, int], object] = {}
         self.compile_seconds = 0.0
         """Seconds spent compiling lookup programs so far (one per chunk shape and k)."""
+        self.wait_seconds = 0.0
+        """Seconds the host has waited for lookup results so far (device busy time that
+        no host work overlapped)."""
 
     def __len__(self) -> int:
         return len(self.q)
@@ -152,6 +155,9 @@ class SeedPool:
             parts.append((stop - start, self._programs[chunk, k](*args)))
             start = stop
         # Every chunk is dispatched before the first result is waited for.
+        t0 = time.perf_counter()
+        jax.block_until_ready([idx for _, idx in parts])
+        self.wait_seconds += time.perf_counter() - t0
         return np.concatenate([np.asarray(idx)[:used] for used, idx in parts]).astype(np.int64)
 
 

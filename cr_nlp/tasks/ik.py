@@ -277,6 +277,10 @@ class IKSolver:
         self.lm_calls: list[tuple[int, int, int, int]] = []
         self.stream_parts: list[int] = []
         """Targets per part of the last ``solve``'s stream (``IKConfig.stream_size``)."""
+        self.device_wait = 0.0
+        """Seconds the last ``solve``/``candidates`` waited for device results (lookup,
+        LM, beam selection) with no host work to overlap: the device's share of the wall
+        time; the rest is host work (``bench ik --suite throughput`` reports both)."""
         """Per compiled LM call of the last ``solve``/``candidates``: (problems, chunk
         size, iteration budget, iterations run), for profiling."""
 
@@ -305,7 +309,7 @@ class IKSolver:
         programs serve every batch size and budget; returns z (B, n) and cost ½‖r‖² (B,).
         Appends one entry per chunk to ``lm_calls``."""
         config = LMConfig(cost_tolerance=0.5 * self.config.converged_error ** 2)
-        z_out, cost_out = [], []
+        z_out: list[tuple[int, int, Any]] = []
         start = 0
         for chunk in chunk_plan(len(z0), self.config.chunk_size):
             stop = min(start + chunk, len(z0))
@@ -324,12 +328,15 @@ class IKSolver:
                 t0 = time.perf_counter()
                 self._compiled[chunk] = self._lower(args, config).compile()
                 timing.compile += time.perf_counter() - t0
-            z, cost, used = self._compiled[chunk](*args)
-            self.lm_calls.append((stop - start, chunk, iterations, int(np.max(used))))
-            z_out.append(np.array(z[: stop - start]))
-            cost_out.append(np.array(cost[: stop - start]))
+            z_out.append((stop - start, chunk, self._compiled[chunk](*args)))
             start = stop
-        return np.concatenate(z_out), np.concatenate(cost_out)
+        # Every chunk is dispatched before the first result is waited for: the device
+        # queue stays full while the host pads the next chunk.
+        self._wait(out for _, _, out in z_out)
+        for rows, chunk, (_, _, used) in z_out:
+            self.lm_calls.append((rows, chunk, iterations, int(np.max(used))))
+        return (np.concatenate([np.asarray(z)[:rows] for rows, _, (z, _, _) in z_out]),
+                np.concatenate([np.asarray(c)[:rows] for rows, _, (_, c, _) in z_out]))
 
     def _lower(self, args: tuple, config: LMConfig) -> Any:
         """The LM program for one chunk, split over every JAX device (one shard per CPU
@@ -426,7 +433,14 @@ class IKSolver:
                 jnp.asarray(z_c, self.dtype), jnp.asarray(c_c, self.dtype),
                 self.config.beam_min_distance)))
             start = stop
+        self._wait(b for _, b in out)
         return np.concatenate([np.asarray(b)[:used] for used, b in out]).astype(np.int64)
+
+    def _wait(self, arrays: Any) -> None:
+        """Block until device results are ready, adding the wait to ``device_wait``."""
+        t0 = time.perf_counter()
+        jax.block_until_ready(list(arrays))
+        self.device_wait += time.perf_counter() - t0
 
     def candidates(self, positions: Any, wxyz: Any) -> tuple[np.ndarray, np.ndarray]:
         """Several distinct IK answers per target (the refined beam), for callers that
@@ -444,6 +458,7 @@ class IKSolver:
             raise ValueError(f"target {bad}: {reasons[bad]}")
         timing = IKTiming()
         self.lm_calls = []
+        self.device_wait = 0.0
         rotations = matrix_from_wxyz(wxyz)
         pool = self._seed_pool(timing)
         nearest = pool.nearest(positions, rotations, self.config.seeds_per_target)
@@ -512,6 +527,8 @@ class IKSolver:
         timing = IKTiming()
         self.lm_calls = []
         self.stream_parts = []
+        self.device_wait = 0.0
+        pool_wait = self._pool.wait_seconds if self._pool is not None else 0.0
         positions, wxyz, reasons = validate_targets(self.robot, positions, wxyz)
         valid = np.array([not r for r in reasons], dtype=bool)
         q_out = np.full((len(positions), self.robot.dof), np.nan)
@@ -522,6 +539,8 @@ class IKSolver:
             self.stream_parts.append(len(part))
             q_out[part] = self._solve_part(positions[part], matrix_from_wxyz(wxyz[part]),
                                            timing)
+        if self._pool is not None:
+            self.device_wait += self._pool.wait_seconds - pool_wait
         stage = np.where(valid, "refine", "none").tolist()
         result = self._finish(q_out, positions, wxyz, reasons, stage, timing)
         if exact and len(idx):
