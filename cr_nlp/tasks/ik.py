@@ -554,22 +554,31 @@ class IKSolver:
         pool = self._seed_pool(timing)
         t0 = time.perf_counter()
         c0 = pool.compile_seconds
-        # One lookup for the first seeds and every retry round's next-nearest ones.
-        near = cfg.retry_seeds // 2
-        nearest = pool.nearest(pos_v, rot_v, cfg.seeds_per_target + cfg.retry_rounds * near)
-        timing.compile += pool.compile_seconds - c0
-        timing.explore += time.perf_counter() - t0 - (pool.compile_seconds - c0)
-        used = min(cfg.seeds_per_target, nearest.shape[1])
-        z_best, cost = self._search(pool.z[nearest[:, :used]], pos_v, rot_v, timing)
+        nearest = pool.nearest(pos_v, rot_v, cfg.seeds_per_target)
+        self._account_pool(pool, c0, t0, timing)
+        used = nearest.shape[1]
+        z_best, cost = self._search(pool.z[nearest], pos_v, rot_v, timing)
         ok = np.sqrt(2 * cost) < cfg.success_tolerance
+        near = cfg.retry_seeds // 2
+        retry_nearest = None
         for _ in range(cfg.retry_rounds):
             todo = np.flatnonzero(~ok)
             if not len(todo):
                 break
             t0 = time.perf_counter()
+            c0 = pool.compile_seconds
+            if retry_nearest is None:
+                # One lookup (k grows the lookup's cost) serves every retry round: a
+                # later round's failing targets are among the first round's.
+                found = pool.nearest(pos_v[todo], rot_v[todo],
+                                     cfg.seeds_per_target + cfg.retry_rounds * near)
+                retry_nearest = np.zeros((len(pos_v), found.shape[1]), dtype=np.int64)
+                retry_nearest[todo] = found
+                self._account_pool(pool, c0, t0, timing)
+                t0 = time.perf_counter()
             # Half the retry seeds are the next-nearest pool entries (collision-free,
             # close in pose), half are fresh random configurations (other branches).
-            next_nearest = nearest[todo, used:used + near]
+            next_nearest = retry_nearest[todo, used:used + near]
             used += near
             seeds = self._random_seeds(len(todo), cfg.retry_seeds)
             seeds[:, 1: 1 + next_nearest.shape[1]] = pool.z[next_nearest]
@@ -581,6 +590,14 @@ class IKSolver:
             cost[todo[better]] = c_new[better]
             ok = np.sqrt(2 * cost) < cfg.success_tolerance
         return clip_to_limits(self.robot, np.asarray(z_to_q(self.robot, z_best), dtype=float))
+
+    @staticmethod
+    def _account_pool(pool: SeedPool, compile_before: float, started: float,
+                      timing: IKTiming) -> None:
+        """Book a pool lookup begun at ``started``: its compiling apart from its work."""
+        compiled = pool.compile_seconds - compile_before
+        timing.compile += compiled
+        timing.explore += time.perf_counter() - started - compiled
 
     def _finish(self, q: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
                 reasons: list[str], stage: list[str], timing: IKTiming) -> IKResult:
