@@ -6,10 +6,11 @@ constraint in the exact stage); success is judged independently of the optimiser
 pose error < ``IKConfig.success_tolerance`` re-evaluated in float64, every limit held,
 and, with a scene, collision-free by python-fcl.
 
-Stages: explore (a Sobol seed pool, the K pool entries nearest each target in pose,
-a few coarse LM steps on all of them, a diverse beam of the best), refine (LM on the
-beam, best per target, retries with fresh seeds for the targets still failing),
-polish (optional: Ipopt with the constraints as constraints).
+Stages: explore (a Sobol seed pool held on the device, the K pool entries nearest each
+target in pose by a jitted lookup, a few coarse LM steps on all of them, a diverse beam
+of the best chosen on the device), refine (LM on the beam, best per target, retries with
+fresh seeds for the targets still failing), polish (optional: Ipopt with the constraints
+as constraints). Large batches stream through in parts of ``IKConfig.stream_size``.
 """
 
 from __future__ import annotations
@@ -86,7 +87,8 @@ class IKConfig:
     stream_size: int = 8192
     """Most targets solved at once: a larger batch is streamed through the stages in
     parts of this many targets, so the memory a solve holds stays bounded whatever the
-    batch (about 12 KB per target in flight with the defaults)."""
+    batch (measured with tracemalloc, tdcr3: 2000 targets in one part peaked at 7.8 MB
+    of host arrays, in parts of 500 at 2.3 MB)."""
     dtype: str = "float32"
     """JAX dtype of the batched stages ("float64" needs jax_enable_x64)."""
     seed: int = 0
@@ -275,14 +277,14 @@ class IKSolver:
         self._polish_pool: Any = None
         self._rng = np.random.default_rng(config.seed)
         self.lm_calls: list[tuple[int, int, int, int]] = []
+        """Per compiled LM call of the last ``solve``/``candidates``: (problems, chunk
+        size, iteration budget, iterations run), for profiling."""
         self.stream_parts: list[int] = []
         """Targets per part of the last ``solve``'s stream (``IKConfig.stream_size``)."""
         self.device_wait = 0.0
         """Seconds the last ``solve``/``candidates`` waited for device results (lookup,
         LM, beam selection) with no host work to overlap: the device's share of the wall
         time; the rest is host work (``bench ik --suite throughput`` reports both)."""
-        """Per compiled LM call of the last ``solve``/``candidates``: (problems, chunk
-        size, iteration budget, iterations run), for profiling."""
 
     # ------------------------------------------------------------ pieces
     def _seed_pool(self, timing: IKTiming) -> SeedPool:
