@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jax_setup import enable_compilation_cache, split_over_devices
-from ..model import Robot, load_robot, q_to_z, z_to_q
+from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import JAX, NUMPY
 from ..model.kinematics import model_pose_error, model_q_to_z, model_segment_frames
 from ..model.limits import clip_to_limits, limit_violation_q, project_z
@@ -465,14 +465,15 @@ class IKSolver:
         pool = self._seed_pool(timing)
         nearest = pool.nearest(positions, rotations, self.config.seeds_per_target)
         z, cost = self._search_beam(pool.z[nearest], positions, rotations, timing)
-        q = clip_to_limits(self.robot, np.asarray(z_to_q(self.robot, z), dtype=float))
+        q = clip_to_limits(self.robot, z_to_q_numpy(z))
         return q, np.sqrt(2.0 * cost)
 
     def _random_seeds(self, count: int, per_target: int) -> np.ndarray:
         q = sobol_configurations(self.robot, count * per_target,
                                  int(self._rng.integers(1 << 30)))
         self._rng.shuffle(q)
-        return np.array(q_to_z(self.robot, q)).reshape(count, per_target, -1)
+        # numpy, not JAX op by op: a new batch shape would compile every operation anew.
+        return q_to_z_numpy(q).reshape(count, per_target, -1)
 
     # ------------------------------------------------------------ verification
     def verify(self, q: np.ndarray, positions: np.ndarray,
@@ -591,7 +592,7 @@ class IKSolver:
             z_best[todo[better]] = z_new[better]
             cost[todo[better]] = c_new[better]
             ok = np.sqrt(2 * cost) < cfg.success_tolerance
-        return clip_to_limits(self.robot, np.asarray(z_to_q(self.robot, z_best), dtype=float))
+        return clip_to_limits(self.robot, z_to_q_numpy(z_best))
 
     @staticmethod
     def _account_pool(pool: SeedPool, compile_before: float, started: float,
