@@ -143,3 +143,9 @@ def test_a_batch_is_streamed_in_parts_without_growing_memory() -> None:
 @pytest.mark.slow  # a benchmark-sized run: `pytest -m slow`
 def test_twenty_thousand_targets_stream_without_growing_memory() -> None:
     _stream_check(count=20_000, part=2048)
+
+
+@pytest.mark.parametrize("field", ["chunk_size", "stream_size"])
+def test_part_sizes_below_one_are_refused(field: str) -> None:
+    with pytest.raises(ValueError, match=field):
+        IKConfig(**{field: 0})

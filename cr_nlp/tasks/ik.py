@@ -94,6 +94,11 @@ class IKConfig:
     seed: int = 0
     """Seed of the pool and of the retry samples."""
 
+    def __post_init__(self) -> None:
+        for name in ("chunk_size", "stream_size"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"IKConfig.{name} must be at least 1, got {getattr(self, name)}")
+
 
 @dataclass
 class IKTiming(StageTiming):
@@ -463,7 +468,9 @@ class IKSolver:
         self.device_wait = 0.0
         rotations = matrix_from_wxyz(wxyz)
         pool = self._seed_pool(timing)
+        waited = pool.wait_seconds
         nearest = pool.nearest(positions, rotations, self.config.seeds_per_target)
+        self.device_wait += pool.wait_seconds - waited
         z, cost = self._search_beam(pool.z[nearest], positions, rotations, timing)
         q = clip_to_limits(self.robot, z_to_q_numpy(z))
         return q, np.sqrt(2.0 * cost)
