@@ -188,6 +188,6 @@ def test_ik_config_overrides_from_the_command_line() -> None:
     assert args.max_targets == 5000
     assert ik_config_overrides(args.ik_config) == {"chunk_size": 4096,
                                                    "beam_min_distance": 0.2}
-    for bad in (["chunk_size"], ["no_such_field=1"], ["chunk_size=big"]):
+    for bad in (["chunk_size"], ["no_such_field=1"], ["chunk_size=big"], ["stream_size=0"]):
         with pytest.raises(ValueError):
             ik_config_overrides(bad)

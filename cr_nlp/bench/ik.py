@@ -266,6 +266,7 @@ def ik_config_overrides(items: Sequence[str]) -> dict[str, Any]:
             out[key] = kind(value)
         except ValueError:
             raise ValueError(f"{key} needs a {types[key]}, got {value!r}") from None
+    IKConfig(**out)  # its own checks (e.g. sizes of at least 1) now, not mid-benchmark
     return out
 
 
