@@ -1,6 +1,8 @@
 """The IK benchmark and its baselines on tiny sizes: the baselines solve easy targets, the
 benchmark writes its documented files, and its numbers come from the shared judge."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -17,6 +19,7 @@ from cr_nlp.bench.ik import (
     IKBenchSizes,
     forward_kinematics,
     free_case,
+    ik_config_overrides,
     judge,
     lattice_case,
     run_ik_benchmark,
@@ -155,3 +158,36 @@ def test_cli_parser_defaults() -> None:
     assert callable(args.run)
     with pytest.raises(SystemExit):
         parser.parse_args(["bench", "ik", "--suite", "nowhere"])
+
+
+def test_throughput_suite_reports_where_the_time_goes(tmp_path: Path) -> None:
+    sizes = IKBenchSizes(throughput_targets=(5, 20, 40), repeats=2)
+    rows = run_ik_benchmark(suite="throughput", sizes=sizes, out=tmp_path, seed=2,
+                            progress=False, echo=False, max_targets=30,
+                            ik_config={"stream_size": 16})
+    assert [r["targets"] for r in rows] == [5, 20]  # 40 is above max_targets
+    for row in rows:
+        assert row["suite"] == "throughput" and row["runs"] == 2
+        assert row["success_pct"] == 100.0
+        assert row["targets_per_s"] == pytest.approx(row["targets"] / row["total_s"])
+        assert 0.0 < row["device_wait_s"] < row["total_s"]
+        assert row["host_s"] > 0.0 and 0.0 < row["host_pct"] < 100.0
+        stages = row["explore_s"] + row["refine_s"] + row["verify_s"]
+        assert 0.0 < stages <= row["max_s"] * 1.01
+    assert [r["stream_parts"] for r in rows] == [1, 2]  # 20 targets in parts of 16
+    text = (tmp_path / "ik.md").read_text()
+    for header in ("targets / s", "device wait s", "host %", "explore s", "verify s"):
+        assert header in text
+    assert [r["targets"] for r in read_csv(tmp_path / "ik.csv")] == ["5", "20"]
+
+
+def test_ik_config_overrides_from_the_command_line() -> None:
+    parser = build_parser()
+    args = parser.parse_args(["bench", "ik", "--suite", "throughput", "--max-targets", "5000",
+                              "--ik-config", "chunk_size=4096", "beam_min_distance=0.2"])
+    assert args.max_targets == 5000
+    assert ik_config_overrides(args.ik_config) == {"chunk_size": 4096,
+                                                   "beam_min_distance": 0.2}
+    for bad in (["chunk_size"], ["no_such_field=1"], ["chunk_size=big"], ["stream_size=0"]):
+        with pytest.raises(ValueError):
+            ik_config_overrides(bad)

@@ -9,6 +9,10 @@ Suites:
   δ (``IKSolver.margin``), for tdcr3 and tdcr4_ext.
 - ``scaling``: no obstacles, 200 targets for each of tdcr3, tdcr4_ext, tdcr5_ext and
   tdcr6_ext (3 to 6 segments).
+- ``throughput``: tdcr3 without obstacles at growing batch sizes (10³, 10⁴, 10⁵ targets;
+  ``max_targets`` caps them): targets per second and where the time goes, the stages of
+  ``IKTiming`` and the device's share (``IKSolver.device_wait``: the time the host waited
+  for device results). Not part of ``all`` (10⁵ targets take minutes on a CPU).
 - ``polish``: the exact stage on its own terms: the lattice targets for tdcr3 and
   tdcr6_ext, exact mode with the polishes in one process and in a pool of 2 worker
   processes (``IKConfig.polish_workers``); its column "polish ms / target" is the
@@ -76,7 +80,9 @@ SCIPY = f"scipy {SCIPY_CONFIG.method}"
 METHODS = (CR_BEAM, CR_SINGLE, CR_EXACT, NEWTON, SCIPY)
 """The rows of every table, in order."""
 
-SUITES = ("free", "lattice", "scaling", "polish")
+SUITES = ("free", "lattice", "scaling", "polish", "throughput")
+ALL_SUITES = ("free", "lattice", "scaling", "polish")
+"""The suites that ``suite="all"`` runs (the paper's tables)."""
 LATTICE_ROBOTS = ("tdcr3", "tdcr4_ext")
 SCALING_ROBOTS = ("tdcr3", "tdcr4_ext", "tdcr5_ext", "tdcr6_ext")
 POLISH_ROBOTS = ("tdcr3", "tdcr6_ext")
@@ -105,11 +111,13 @@ class IKBenchSizes:
     0.1–0.6 s per target; with 100 the full run took 18 minutes on 2 busy cores)."""
     repeats: int = 3
     """Timed calls after the warm-up; the table reports their median."""
+    throughput_targets: tuple[int, ...] = (1000, 10_000, 100_000)
+    """Batch sizes of the throughput suite (tdcr3, no obstacles)."""
 
 
 FULL = IKBenchSizes()
 QUICK = IKBenchSizes(free_targets=50, lattice_targets=20, scaling_targets=20,
-                     scipy_targets=10, repeats=1)
+                     scipy_targets=10, repeats=1, throughput_targets=(100, 1000))
 
 
 # ================================================================ targets
@@ -236,6 +244,73 @@ def measure_cr_nlp(case: Case, method: str, repeats: int, seed: int = 0) -> dict
     return row
 
 
+def ik_config_overrides(items: Sequence[str]) -> dict[str, Any]:
+    """``IKConfig`` field values from ``KEY=VALUE`` strings (e.g. ``chunk_size=8192``),
+    each converted to the field's type.
+
+    Raises:
+        ValueError: an item without "=", an unknown field or a value of the wrong type.
+    """
+    from dataclasses import fields
+
+    types = {f.name: f.type for f in fields(IKConfig)}
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"expected KEY=VALUE, got {item!r}")
+        if key not in types:
+            raise ValueError(f"IKConfig has no field {key!r}; fields: {', '.join(types)}")
+        kind = {"int": int, "float": float, "str": str}.get(str(types[key]), str)
+        try:
+            out[key] = kind(value)
+        except ValueError:
+            raise ValueError(f"{key} needs a {types[key]}, got {value!r}") from None
+    IKConfig(**out)  # its own checks (e.g. sizes of at least 1) now, not mid-benchmark
+    return out
+
+
+def measure_throughput(robot: Robot, sizes: Sequence[int], repeats: int, seed: int = 0,
+                       progress: Any = None,
+                       overrides: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+    """The throughput rows: one ``IKSolver`` (default ``IKConfig`` with ``overrides``)
+    over batches of growing size; per size a warm-up call and ``repeats`` timed calls.
+    Columns: targets per second and the median seconds of each ``IKTiming`` stage, of the
+    device wait (``IKSolver.device_wait``) and of the host's work (wall time minus device
+    wait)."""
+    solver = IKSolver(robot, None, IKConfig(**{"seed": seed, **(overrides or {})}))
+    rows = []
+    for size in sizes:
+        case = free_case(robot, size, seed, "throughput")
+        start = time.perf_counter()
+        result = solver.solve(case.positions, case.wxyz)
+        first = time.perf_counter() - start
+        compile_s = result.timing.compile
+        walls, stages, waits = [], [], []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            result = solver.solve(case.positions, case.wxyz)
+            walls.append(time.perf_counter() - start)
+            stages.append(result.timing.as_dict())
+            waits.append(solver.device_wait)
+        row = _quality(result.pose_error, result.success, result.max_violation,
+                       result.collision_free, False)
+        row.update(_times(first, walls, compile_s))
+        for stage in ("explore", "refine", "verify"):
+            row[f"{stage}_s"] = statistics.median(s[stage] for s in stages)
+        row["device_wait_s"] = statistics.median(waits)
+        row["host_s"] = statistics.median(w - d for w, d in zip(walls, waits, strict=True))
+        row["host_pct"] = 100.0 * row["host_s"] / max(row["total_s"], 1e-12)
+        row["targets_per_s"] = size / max(row["total_s"], 1e-12)
+        row["stream_parts"] = len(solver.stream_parts)
+        rows.append({"suite": "throughput", "robot": robot.name, "scene": "none",
+                     "method": CR_BEAM, **row})
+        if progress is not None:
+            progress.update()
+    solver.close()
+    return rows
+
+
 def measure_newton(case: Case, judge_solver: IKSolver, repeats: int, seed: int,
                    config: DampedNewtonConfig = NEWTON_CONFIG) -> dict[str, Any]:
     """The damped Newton–Raphson row: a first call (compiles), ``repeats`` timed calls with
@@ -306,11 +381,13 @@ def run_ik_benchmark(suite: str = "all", quick: bool = False, repeats: int | Non
                      sizes: IKBenchSizes | None = None, methods: Sequence[str] = METHODS,
                      lattice_robots: Sequence[str] = LATTICE_ROBOTS,
                      scaling_robots: Sequence[str] = SCALING_ROBOTS,
-                     progress: bool = True, echo: bool = True) -> list[dict[str, Any]]:
+                     progress: bool = True, echo: bool = True,
+                     max_targets: int | None = None,
+                     ik_config: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """Run the IK benchmark and return one dict per (suite, robot, method) row.
 
     Args:
-        suite: "all", "free", "lattice", "scaling" or "polish".
+        suite: "all" (free, lattice, scaling, polish), one of those, or "throughput".
         quick: small sizes (``QUICK``: 50/20/20 targets, 10 for scipy, 1 repeat).
         repeats: timed calls per row after the warm-up (default from the sizes).
         out: folder for ``ik.md``, ``ik.csv`` and ``environment.json``; None writes nothing.
@@ -321,6 +398,10 @@ def run_ik_benchmark(suite: str = "all", quick: bool = False, repeats: int | Non
         lattice_robots, scaling_robots: bundled robot names (or files) per suite.
         progress: tqdm progress bar on stderr.
         echo: print the Markdown tables to stdout.
+        max_targets: the throughput suite's largest batch (sizes above it are dropped;
+            with none left, this one size is run).
+        ik_config: ``IKConfig`` fields that the throughput suite's solver overrides (e.g.
+            ``{"chunk_size": 8192}``; see ``ik_config_overrides``).
 
     Asks for one JAX CPU device per core (``use_host_devices``) when JAX has not started
     yet; the devices used are recorded in the environment.
@@ -344,10 +425,17 @@ def run_ik_benchmark(suite: str = "all", quick: bool = False, repeats: int | Non
         sizes = replace(sizes, repeats=repeats)
     if sizes.repeats < 1:
         raise ValueError(f"repeats must be at least 1, got {sizes.repeats}")
+    throughput_sizes = list(sizes.throughput_targets)
+    if max_targets is not None:
+        if max_targets < 1:
+            raise ValueError(f"max_targets must be at least 1, got {max_targets}")
+        throughput_sizes = [n for n in throughput_sizes if n <= max_targets] or [max_targets]
     robots = {"free": 1, "lattice": len(lattice_robots), "scaling": len(scaling_robots)}
     jobs = sum(n for s, n in robots.items() if suite in ("all", s)) * len(methods)
     if suite in ("all", "polish"):
         jobs += len(POLISH_ROBOTS) * len(POLISH_METHODS)
+    if suite == "throughput":
+        jobs = len(throughput_sizes)
 
     from tqdm import tqdm
 
@@ -369,13 +457,19 @@ def run_ik_benchmark(suite: str = "all", quick: bool = False, repeats: int | Non
             row["notes"] = _row_note(method, case)
             rows.append(row)
             bar.update()
+    if suite == "throughput":
+        bar.set_postfix_str("throughput tdcr3")
+        rows += measure_throughput(load_robot("tdcr3"), throughput_sizes, sizes.repeats, seed,
+                                   bar, ik_config)
     bar.close()
     wall = time.perf_counter() - started
     env = environment()
     env["benchmark wall time"] = f"{wall:.0f} s"
     env["settings"] = (f"suite={suite}, seed={seed}, repeats={sizes.repeats}, sizes: "
                        f"free {sizes.free_targets}, lattice {sizes.lattice_targets}, "
-                       f"scaling {sizes.scaling_targets}, scipy subset {sizes.scipy_targets}")
+                       f"scaling {sizes.scaling_targets}, scipy subset {sizes.scipy_targets}"
+                       + (f", throughput {throughput_sizes}, IKConfig overrides "
+                          f"{ik_config or {}}" if suite == "throughput" else ""))
     write_report("ik", format_report(rows, env, sizes), out, {"ik": rows}, env,
                  {"sizes": asdict(sizes)}, {"ik": CSV_KEYS}, echo=echo)
     return rows
@@ -385,7 +479,7 @@ CSV_KEYS = ("suite", "robot", "scene", "method", "targets", "success_pct",
             "collision_free_pct", "mean_pose_error", "median_pose_error", "max_violation",
             "total_s", "per_target_ms", "min_s", "max_s", "runs", "first_call_s", "compile_s",
             "explore_s", "refine_s", "polish_s", "verify_s", "polished_pct", "polish_ms",
-            "notes")
+            "targets_per_s", "device_wait_s", "host_s", "host_pct", "stream_parts", "notes")
 """The columns of ``ik.csv``, in order."""
 
 TABLE_COLUMNS = (
@@ -405,6 +499,23 @@ TABLE_COLUMNS = (
 )
 """The columns of the Markdown tables."""
 
+THROUGHPUT_COLUMNS = (
+    Column("targets", "targets"),
+    Column("success_pct", "success %", fixed(1)),
+    Column("total_s", "time s (median)"),
+    Column("targets_per_s", "targets / s", fixed(0)),
+    Column("explore_s", "explore s"),
+    Column("refine_s", "refine s"),
+    Column("verify_s", "verify s"),
+    Column("device_wait_s", "device wait s"),
+    Column("host_s", "host s"),
+    Column("host_pct", "host %", fixed(1)),
+    Column("first_call_s", "first call s"),
+    Column("compile_s", "compile s"),
+    Column("stream_parts", "parts"),
+)
+"""The columns of the throughput table."""
+
 _TITLES = {
     "free": "IK without obstacles (tdcr3, targets from uniform configurations)",
     "lattice": "IK among obstacles (3×3×3 sphere lattice, targets from configurations whose "
@@ -412,6 +523,8 @@ _TITLES = {
     "scaling": "IK scaling with the number of segments (no obstacles)",
     "polish": "The exact stage: IK polish among the lattice's spheres, one process and a "
               "pool of 2",
+    "throughput": "IK throughput and where the time goes (tdcr3, no obstacles, default "
+                  "`IKConfig`)",
 }
 
 
@@ -432,7 +545,8 @@ def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str],
         chosen = [r for r in rows if r["suite"] == suite]
         if not chosen:
             continue
-        parts += [f"## {_TITLES[suite]}", markdown_table(chosen, TABLE_COLUMNS)]
+        columns = THROUGHPUT_COLUMNS if suite == "throughput" else TABLE_COLUMNS
+        parts += [f"## {_TITLES[suite]}", markdown_table(chosen, columns)]
     d, s = NEWTON_CONFIG, SCIPY_CONFIG
     parts += ["## Notes", "\n".join([
         "- success %: pose error ‖log(T⁻¹·T_target)‖ < 0.01 re-evaluated in float64, every "
@@ -460,6 +574,13 @@ def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str],
         f"{sizes.scipy_targets} targets of each case (it is slow).",
         "- The baselines ignore obstacles; in the lattice their answers are judged by "
         "python-fcl like every other row.",
+        "- throughput: explore (nearest-pose lookup, coarse LM, beam), refine (LM) and "
+        "verify (float64 numpy + python-fcl, host only) are `IKResult.timing`; device wait "
+        "is the time the host blocked on device results (`IKSolver.device_wait`: device "
+        "work nothing on the host overlapped); host s = wall − device wait, the time the "
+        "device may have idled (on a CPU the device is the host: XLA may run a program "
+        "inside the call that launches it, so there host s includes computing); parts: the "
+        "stream's parts (`IKConfig.stream_size`).",
     ])]
     parts += ["## Environment", environment_markdown(env)]
     return "\n\n".join(parts)

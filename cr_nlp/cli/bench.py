@@ -71,6 +71,13 @@ def _add_ik(group: argparse._SubParsersAction) -> None:
                    help="which suite (default all)")
     p.add_argument("--quick", action="store_true",
                    help="small sizes for CI and notebooks (50/20/20 targets, 1 repeat)")
+    p.add_argument("--max-targets", type=int, default=None,
+                   help=f"--suite throughput: largest batch (default "
+                        f"{max(FULL.throughput_targets)}; sizes "
+                        f"{', '.join(map(str, FULL.throughput_targets))} up to it)")
+    p.add_argument("--ik-config", nargs="+", default=[], metavar="KEY=VALUE",
+                   help="--suite throughput: IKConfig fields to override, e.g. "
+                        "chunk_size=8192 refine_round=40")
     add_common_options(p, "ik", repeats=None, robot=False, seed=True,
                        repeats_help=f"timed runs per row after the warm-up (default "
                                     f"{FULL.repeats}, {QUICK.repeats} with --quick)")
@@ -81,8 +88,17 @@ def _run_ik(args: argparse.Namespace) -> int:
     from ..bench.ik import run_ik_benchmark
 
     _check_repeats(args)
+    if args.max_targets is not None and args.max_targets < 1:
+        raise UsageError("--max-targets must be at least 1")
+    from ..bench.ik import ik_config_overrides
+
+    try:
+        overrides = ik_config_overrides(args.ik_config)
+    except ValueError as exc:
+        raise UsageError(f"--ik-config: {exc}") from None
     run_ik_benchmark(suite=args.suite, quick=args.quick, repeats=args.repeats, out=args.out,
-                     seed=args.seed, progress=not args.no_progress)
+                     seed=args.seed, progress=not args.no_progress,
+                     max_targets=args.max_targets, ik_config=overrides)
     _wrote(args, "ik")
     return 0
 

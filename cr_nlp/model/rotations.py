@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._ops import JAX
+from ._ops import NUMPY
 from .lie import quat_from_rot, rot_from_quat
 
 
@@ -12,7 +12,11 @@ def wxyz_from_matrix(rotation: np.ndarray) -> np.ndarray:
     """(…, 3, 3) rotation matrices → (…, 4) unit quaternions (w, x, y, z) with w ≥ 0."""
     r = np.asarray(rotation, dtype=float)
     entries = tuple(r[..., i, j] for i in range(3) for j in range(3))
-    return np.stack([np.asarray(v) for v in quat_from_rot(JAX, entries)], axis=-1)
+    # Float64 numpy: JAX op by op was float32 and compiled every operation anew for each
+    # new batch shape (about 1 s of a one-shot ``cr-nlp ik`` call's verification).
+    with np.errstate(invalid="ignore", divide="ignore"):  # the branches not selected
+        quat = quat_from_rot(NUMPY, entries)
+    return np.stack(np.broadcast_arrays(*quat), axis=-1)
 
 
 def matrix_from_wxyz(wxyz: np.ndarray) -> np.ndarray:

@@ -6,10 +6,11 @@ constraint in the exact stage); success is judged independently of the optimiser
 pose error < ``IKConfig.success_tolerance`` re-evaluated in float64, every limit held,
 and, with a scene, collision-free by python-fcl.
 
-Stages: explore (a Sobol seed pool, the K pool entries nearest each target in pose,
-a few coarse LM steps on all of them, a diverse beam of the best), refine (LM on the
-beam, best per target, retries with fresh seeds for the targets still failing),
-polish (optional: Ipopt with the constraints as constraints).
+Stages: explore (a Sobol seed pool held on the device, the K pool entries nearest each
+target in pose by a jitted lookup, a few coarse LM steps on all of them, a diverse beam
+of the best chosen on the device), refine (LM on the beam, best per target, retries with
+fresh seeds for the targets still failing), polish (optional: Ipopt with the constraints
+as constraints). Large batches stream through in parts of ``IKConfig.stream_size``.
 """
 
 from __future__ import annotations
@@ -25,17 +26,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jax_setup import enable_compilation_cache, split_over_devices
-from ..model import Robot, load_robot, q_to_z, z_to_q
+from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import JAX, NUMPY
 from ..model.kinematics import model_pose_error, model_q_to_z, model_segment_frames
 from ..model.limits import clip_to_limits, limit_violation_q, project_z
 from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
-from ..stages.explore import SeedPool, select_beam, sobol_configurations
+from ..stages.chunks import SMALLEST_CHUNK as SMALLEST_CHUNK
+from ..stages.chunks import chunk_plan as chunk_plan
+from ..stages.explore import SeedPool, select_beam_device, sobol_configurations
 from ..stages.lm import LMConfig, lm_solve
 from ..world import Scene, check_many, load_scene, scene_arrays
 from ..world.clearance import body_gap_tolerance
 from ..world.penalty import sphere_clearances_z
-from ..world.verdict import failure_reason
+from ..world.verdict import VIOLATION_TOLERANCE, failure_reason
 from ._timing import StageTiming
 
 
@@ -81,10 +84,20 @@ class IKConfig:
     """Penalty weight of a clearance shortfall (per metre) in the JAX stages."""
     chunk_size: int = 1024
     """Most problems per compiled LM call; larger batches are split into chunks."""
+    stream_size: int = 8192
+    """Most targets solved at once: a larger batch is streamed through the stages in
+    parts of this many targets, so the memory a solve holds stays bounded whatever the
+    batch (measured with tracemalloc, tdcr3: 2000 targets in one part peaked at 7.8 MB
+    of host arrays, in parts of 500 at 2.3 MB)."""
     dtype: str = "float32"
     """JAX dtype of the batched stages ("float64" needs jax_enable_x64)."""
     seed: int = 0
     """Seed of the pool and of the retry samples."""
+
+    def __post_init__(self) -> None:
+        for name in ("chunk_size", "stream_size"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"IKConfig.{name} must be at least 1, got {getattr(self, name)}")
 
 
 @dataclass
@@ -205,21 +218,25 @@ def validate_targets(robot: Robot, positions: Any, wxyz: Any) -> tuple[np.ndarra
     wxyz = np.asarray(wxyz, dtype=float).reshape(-1, 4)
     if len(positions) != len(wxyz):
         raise ValueError(f"{len(positions)} positions but {len(wxyz)} orientations")
-    reasons = [""] * len(positions)
     base = np.asarray(robot.base_position)
     reach = robot.total_length_max
     norms = np.linalg.norm(wxyz, axis=1)
-    for i in range(len(positions)):
+    with np.errstate(invalid="ignore"):
+        distance = np.linalg.norm(positions - base, axis=1)
+        suspect = ~(np.all(np.isfinite(positions), axis=1) & np.all(np.isfinite(wxyz), axis=1)
+                    & (np.abs(norms - 1.0) <= 1e-3) & (distance <= reach * (1 + 1e-9)))
+    reasons = [""] * len(positions)
+    for i in np.flatnonzero(suspect):  # only the bad targets get words
         if not np.all(np.isfinite(positions[i])):
             reasons[i] = "target position is not finite"
         elif not np.all(np.isfinite(wxyz[i])):
             reasons[i] = "target orientation is not finite"
         elif abs(norms[i] - 1.0) > 1e-3:
             reasons[i] = f"target wxyz is not a unit quaternion (norm {norms[i]:.6g})"
-        elif np.linalg.norm(positions[i] - base) > reach * (1 + 1e-9):
-            reasons[i] = (f"target is out of reach: {np.linalg.norm(positions[i] - base):.4g} m "
+        elif distance[i] > reach * (1 + 1e-9):
+            reasons[i] = (f"target is out of reach: {distance[i]:.4g} m "
                           f"from the base, the robot is at most {reach:.4g} m long")
-    bad = np.array([bool(r) for r in reasons], dtype=bool)
+    bad = suspect
     wxyz = np.where(bad[:, None], np.nan, wxyz / np.where(norms > 0, norms, 1.0)[:, None])
     positions = np.where(bad[:, None], np.nan, positions)
     return positions, wxyz, reasons
@@ -232,30 +249,6 @@ def _with_count(out: tuple) -> tuple:
     that each shard of a sharded call returns its own."""
     z, cost, used = out
     return z, cost, used[None]
-
-
-SMALLEST_CHUNK = 128
-"""Fewest problems per compiled LM call (64 per core on 2 cores)."""
-
-
-def chunk_plan(count: int, largest: int, smallest: int = SMALLEST_CHUNK) -> list[int]:
-    """Chunk sizes that cover ``count`` problems with fewer than ``smallest`` padded rows,
-    using only two compiled shapes: the largest power of two ≤ ``largest`` ("big") for
-    whole big chunks, and ``smallest`` chunks for the rest (one more big chunk instead
-    when the rest is within ``smallest`` of it). Measured (tdcr4_ext, lattice, 100
-    targets): one chunk size per batch ran the 1200 coarse problems as 2 × 1024 and the
-    300 refined ones as 512 (41 % padding); a plan over every power of two between the
-    two sizes padded little but compiled up to four shapes per solver, about 26 s each
-    from a cold cache; this one pads as little with two."""
-    if count <= 0:
-        return []
-    big = smallest
-    while big * 2 <= max(largest, smallest):
-        big *= 2
-    n_big, rest = divmod(count, big)
-    if rest > big - smallest:
-        n_big, rest = n_big + 1, 0
-    return [big] * n_big + [smallest] * -(-rest // smallest)
 
 
 class IKSolver:
@@ -291,6 +284,12 @@ class IKSolver:
         self.lm_calls: list[tuple[int, int, int, int]] = []
         """Per compiled LM call of the last ``solve``/``candidates``: (problems, chunk
         size, iteration budget, iterations run), for profiling."""
+        self.stream_parts: list[int] = []
+        """Targets per part of the last ``solve``'s stream (``IKConfig.stream_size``)."""
+        self.device_wait = 0.0
+        """Seconds the last ``solve``/``candidates`` waited for device results (lookup,
+        LM, beam selection) with no host work to overlap: the device's share of the wall
+        time; the rest is host work (``bench ik --suite throughput`` reports both)."""
 
     # ------------------------------------------------------------ pieces
     def _seed_pool(self, timing: IKTiming) -> SeedPool:
@@ -299,7 +298,8 @@ class IKSolver:
             q = sobol_configurations(self.robot, self.config.pool_size, self.config.seed)
             if self.scene is not None:
                 q = q[self._collision_free(q)]
-            self._pool = SeedPool(self.robot, q)
+            self._pool = SeedPool(self.robot, q, dtype=self.config.dtype,
+                                  chunk_size=self.config.chunk_size)
             timing.explore += time.perf_counter() - t0
         return self._pool
 
@@ -316,7 +316,7 @@ class IKSolver:
         programs serve every batch size and budget; returns z (B, n) and cost ½‖r‖² (B,).
         Appends one entry per chunk to ``lm_calls``."""
         config = LMConfig(cost_tolerance=0.5 * self.config.converged_error ** 2)
-        z_out, cost_out = [], []
+        z_out: list[tuple[int, int, Any]] = []
         start = 0
         for chunk in chunk_plan(len(z0), self.config.chunk_size):
             stop = min(start + chunk, len(z0))
@@ -335,12 +335,15 @@ class IKSolver:
                 t0 = time.perf_counter()
                 self._compiled[chunk] = self._lower(args, config).compile()
                 timing.compile += time.perf_counter() - t0
-            z, cost, used = self._compiled[chunk](*args)
-            self.lm_calls.append((stop - start, chunk, iterations, int(np.max(used))))
-            z_out.append(np.array(z[: stop - start]))
-            cost_out.append(np.array(cost[: stop - start]))
+            z_out.append((stop - start, chunk, self._compiled[chunk](*args)))
             start = stop
-        return np.concatenate(z_out), np.concatenate(cost_out)
+        # Every chunk is dispatched before the first result is waited for: the device
+        # queue stays full while the host pads the next chunk.
+        self._wait(out for _, _, out in z_out)
+        for rows, chunk, (_, _, used) in z_out:
+            self.lm_calls.append((rows, chunk, iterations, int(np.max(used))))
+        return (np.concatenate([np.asarray(z)[:rows] for rows, _, (z, _, _) in z_out]),
+                np.concatenate([np.asarray(c)[:rows] for rows, _, (_, c, _) in z_out]))
 
     def _lower(self, args: tuple, config: LMConfig) -> Any:
         """The LM program for one chunk, split over every JAX device (one shard per CPU
@@ -405,7 +408,7 @@ class IKSolver:
                            np.repeat(rotations, k, 0), cfg.coarse_iterations, timing)
         z, cost = z.reshape(t, k, n), cost.reshape(t, k)
         width = min(cfg.beam_width, k)
-        beam = select_beam(z, cost, width, cfg.beam_min_distance)
+        beam = self._select_beam(z, cost, width, timing)
         z_beam = z[np.arange(t)[:, None], beam]
         timing.explore += time.perf_counter() - t0 - (timing.compile - c0)
         t1 = time.perf_counter()
@@ -414,6 +417,37 @@ class IKSolver:
                                np.repeat(rotations, width, 0), width, per_target, timing)
         timing.refine += time.perf_counter() - t1 - (timing.compile - c1)
         return z.reshape(t, width, n), cost.reshape(t, width)
+
+    def _select_beam(self, z: np.ndarray, cost: np.ndarray, width: int,
+                     timing: IKTiming) -> np.ndarray:
+        """``stages.explore.select_beam_device`` over target chunks padded to
+        ``chunk_plan`` sizes (one compiled program per chunk shape): (T, width) indices."""
+        out = []
+        start = 0
+        for chunk in chunk_plan(len(z), self.config.chunk_size):
+            stop = min(start + chunk, len(z))
+            pad = chunk - (stop - start)
+            z_c = np.concatenate([z[start:stop], np.repeat(z[start:start + 1], pad, 0)])
+            c_c = np.concatenate([cost[start:stop], np.repeat(cost[start:start + 1], pad, 0)])
+            key = ("beam", chunk, z.shape[1], width)
+            if key not in self._compiled:
+                t0 = time.perf_counter()
+                self._compiled[key] = select_beam_device.lower(
+                    jnp.asarray(z_c, self.dtype), jnp.asarray(c_c, self.dtype), width,
+                    self.config.beam_min_distance).compile()
+                timing.compile += time.perf_counter() - t0
+            out.append((stop - start, self._compiled[key](
+                jnp.asarray(z_c, self.dtype), jnp.asarray(c_c, self.dtype),
+                self.config.beam_min_distance)))
+            start = stop
+        self._wait(b for _, b in out)
+        return np.concatenate([np.asarray(b)[:used] for used, b in out]).astype(np.int64)
+
+    def _wait(self, arrays: Any) -> None:
+        """Block until device results are ready, adding the wait to ``device_wait``."""
+        t0 = time.perf_counter()
+        jax.block_until_ready(list(arrays))
+        self.device_wait += time.perf_counter() - t0
 
     def candidates(self, positions: Any, wxyz: Any) -> tuple[np.ndarray, np.ndarray]:
         """Several distinct IK answers per target (the refined beam), for callers that
@@ -431,18 +465,22 @@ class IKSolver:
             raise ValueError(f"target {bad}: {reasons[bad]}")
         timing = IKTiming()
         self.lm_calls = []
+        self.device_wait = 0.0
         rotations = matrix_from_wxyz(wxyz)
         pool = self._seed_pool(timing)
+        waited = pool.wait_seconds
         nearest = pool.nearest(positions, rotations, self.config.seeds_per_target)
+        self.device_wait += pool.wait_seconds - waited
         z, cost = self._search_beam(pool.z[nearest], positions, rotations, timing)
-        q = clip_to_limits(self.robot, np.asarray(z_to_q(self.robot, z), dtype=float))
+        q = clip_to_limits(self.robot, z_to_q_numpy(z))
         return q, np.sqrt(2.0 * cost)
 
     def _random_seeds(self, count: int, per_target: int) -> np.ndarray:
         q = sobol_configurations(self.robot, count * per_target,
                                  int(self._rng.integers(1 << 30)))
         self._rng.shuffle(q)
-        return np.array(q_to_z(self.robot, q)).reshape(count, per_target, -1)
+        # numpy, not JAX op by op: a new batch shape would compile every operation anew.
+        return q_to_z_numpy(q).reshape(count, per_target, -1)
 
     # ------------------------------------------------------------ verification
     def verify(self, q: np.ndarray, positions: np.ndarray,
@@ -498,49 +536,78 @@ class IKSolver:
         """
         timing = IKTiming()
         self.lm_calls = []
-        cfg = self.config
-        robot = self.robot
-        positions, wxyz, reasons = validate_targets(robot, positions, wxyz)
-        t_all = len(positions)
+        self.stream_parts = []
+        self.device_wait = 0.0
+        pool_wait = self._pool.wait_seconds if self._pool is not None else 0.0
+        positions, wxyz, reasons = validate_targets(self.robot, positions, wxyz)
         valid = np.array([not r for r in reasons], dtype=bool)
-        q_out = np.full((t_all, robot.dof), np.nan)
-        stage = ["none"] * t_all
+        q_out = np.full((len(positions), self.robot.dof), np.nan)
         idx = np.flatnonzero(valid)
-        if len(idx):
-            pos_v, rot_v = positions[idx], matrix_from_wxyz(wxyz[idx])
-            pool = self._seed_pool(timing)
-            t0 = time.perf_counter()
-            nearest = pool.nearest(pos_v, rot_v, cfg.seeds_per_target)
-            timing.explore += time.perf_counter() - t0
-            z_best, cost = self._search(pool.z[nearest], pos_v, rot_v, timing)
-            ok = np.sqrt(2 * cost) < cfg.success_tolerance
-            used = cfg.seeds_per_target
-            for _ in range(cfg.retry_rounds):
-                todo = np.flatnonzero(~ok)
-                if not len(todo):
-                    break
-                t0 = time.perf_counter()
-                # Half the retry seeds are the next-nearest pool entries (collision-free,
-                # close in pose), half are fresh random configurations (other branches).
-                near = cfg.retry_seeds // 2
-                nearest = pool.nearest(pos_v[todo], rot_v[todo], used + near)[:, used:]
-                used += near
-                seeds = self._random_seeds(len(todo), cfg.retry_seeds)
-                seeds[:, 1: 1 + nearest.shape[1]] = pool.z[nearest]
-                seeds[:, 0] = z_best[todo]  # keep the best so far in the race
-                timing.explore += time.perf_counter() - t0
-                z_new, c_new = self._search(seeds, pos_v[todo], rot_v[todo], timing)
-                better = c_new < cost[todo]
-                z_best[todo[better]] = z_new[better]
-                cost[todo[better]] = c_new[better]
-                ok = np.sqrt(2 * cost) < cfg.success_tolerance
-            q_out[idx] = clip_to_limits(robot, np.asarray(z_to_q(robot, z_best), dtype=float))
-            for i in idx:
-                stage[i] = "refine"
+        step = max(int(self.config.stream_size), 1)
+        for start in range(0, len(idx), step):
+            part = idx[start:start + step]
+            self.stream_parts.append(len(part))
+            q_out[part] = self._solve_part(positions[part], matrix_from_wxyz(wxyz[part]),
+                                           timing)
+        if self._pool is not None:
+            self.device_wait += self._pool.wait_seconds - pool_wait
+        stage = np.where(valid, "refine", "none").tolist()
         result = self._finish(q_out, positions, wxyz, reasons, stage, timing)
         if exact and len(idx):
             self._polish(result, positions, wxyz, idx, timing, progress)
         return result
+
+    def _solve_part(self, pos_v: np.ndarray, rot_v: np.ndarray,
+                    timing: IKTiming) -> np.ndarray:
+        """Explore, refine and retry one part of a stream (valid targets): q (T, 3n)."""
+        cfg = self.config
+        pool = self._seed_pool(timing)
+        t0 = time.perf_counter()
+        c0 = pool.compile_seconds
+        nearest = pool.nearest(pos_v, rot_v, cfg.seeds_per_target)
+        self._account_pool(pool, c0, t0, timing)
+        used = nearest.shape[1]
+        z_best, cost = self._search(pool.z[nearest], pos_v, rot_v, timing)
+        ok = np.sqrt(2 * cost) < cfg.success_tolerance
+        near = cfg.retry_seeds // 2
+        retry_nearest = None
+        for _ in range(cfg.retry_rounds):
+            todo = np.flatnonzero(~ok)
+            if not len(todo):
+                break
+            t0 = time.perf_counter()
+            c0 = pool.compile_seconds
+            if retry_nearest is None:
+                # One lookup (k grows the lookup's cost) serves every retry round: a
+                # later round's failing targets are among the first round's.
+                found = pool.nearest(pos_v[todo], rot_v[todo],
+                                     cfg.seeds_per_target + cfg.retry_rounds * near)
+                retry_nearest = np.zeros((len(pos_v), found.shape[1]), dtype=np.int64)
+                retry_nearest[todo] = found
+                self._account_pool(pool, c0, t0, timing)
+                t0 = time.perf_counter()
+            # Half the retry seeds are the next-nearest pool entries (collision-free,
+            # close in pose), half are fresh random configurations (other branches).
+            next_nearest = retry_nearest[todo, used:used + near]
+            used += near
+            seeds = self._random_seeds(len(todo), cfg.retry_seeds)
+            seeds[:, 1: 1 + next_nearest.shape[1]] = pool.z[next_nearest]
+            seeds[:, 0] = z_best[todo]  # keep the best so far in the race
+            timing.explore += time.perf_counter() - t0
+            z_new, c_new = self._search(seeds, pos_v[todo], rot_v[todo], timing)
+            better = c_new < cost[todo]
+            z_best[todo[better]] = z_new[better]
+            cost[todo[better]] = c_new[better]
+            ok = np.sqrt(2 * cost) < cfg.success_tolerance
+        return clip_to_limits(self.robot, z_to_q_numpy(z_best))
+
+    @staticmethod
+    def _account_pool(pool: SeedPool, compile_before: float, started: float,
+                      timing: IKTiming) -> None:
+        """Book a pool lookup begun at ``started``: its compiling apart from its work."""
+        compiled = pool.compile_seconds - compile_before
+        timing.compile += compiled
+        timing.explore += time.perf_counter() - started - compiled
 
     def _finish(self, q: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
                 reasons: list[str], stage: list[str], timing: IKTiming) -> IKResult:
@@ -571,14 +638,29 @@ class IKSolver:
         of ``world.verdict`` (pose error below ``success_tolerance``, every violation ≤
         1e-6: limits, clearance shortfall below δ)."""
         tol = self.config.success_tolerance
-        for i in np.flatnonzero(rows):
-            violations = {"limits": float(limit_violation_q(self.robot, result.q[i]))}
+        rows = np.flatnonzero(rows)
+        limits = limit_violation_q(self.robot, result.q[rows])
+        clearance = result.clearance[rows]
+        collision_free = result.collision_free[rows]
+        shortfall = np.maximum(self.config.safety_margin - clearance, 0.0)
+        # The rule's passing case, vectorised; every other row gets failure_reason's words
+        # (and its verdict, so both always agree).
+        with np.errstate(invalid="ignore"):
+            passing = ((result.pose_error[rows] < tol) & (limits <= VIOLATION_TOLERANCE)
+                       & (collision_free | (clearance > 0.0)))
             if result.has_scene:
-                violations["clearance"] = max(0.0, self.config.safety_margin
-                                              - float(result.clearance[i]))
+                passing &= shortfall <= VIOLATION_TOLERANCE
+        result.success[rows[passing]] = True
+        for j in np.flatnonzero(passing):
+            result.reason[rows[j]] = ""
+        for j in np.flatnonzero(~passing):
+            i = rows[j]
+            violations = {"limits": float(limits[j])}
+            if result.has_scene:
+                violations["clearance"] = float(shortfall[j])
             result.reason[i] = failure_reason(
                 violations, pose_error=float(result.pose_error[i]), pose_tolerance=tol,
-                min_clearance=None if result.collision_free[i] else float(result.clearance[i]))
+                min_clearance=None if collision_free[j] else float(clearance[j]))
             result.success[i] = not result.reason[i]
 
     def _polish(self, result: IKResult, positions: np.ndarray, wxyz: np.ndarray,
