@@ -1,18 +1,19 @@
-"""Numpy conversions between unit quaternions (w, x, y, z) and rotation matrices."""
+"""Float64 numpy conversions between unit quaternions (w, x, y, z) and rotation matrices."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from ._ops import JAX
+from ._ops import NUMPY
 from .lie import quat_from_rot, rot_from_quat
 
 
 def wxyz_from_matrix(rotation: np.ndarray) -> np.ndarray:
-    """(…, 3, 3) rotation matrices → (…, 4) unit quaternions (w, x, y, z) with w ≥ 0."""
-    r = np.asarray(rotation, dtype=float)
+    """(…, 3, 3) rotation matrices → (…, 4) unit quaternions (w, x, y, z) with w ≥ 0,
+    float64 numpy (evaluated in numpy, whatever JAX's precision setting)."""
+    r = np.asarray(rotation, dtype=np.float64)
     entries = tuple(r[..., i, j] for i in range(3) for j in range(3))
-    return np.stack([np.asarray(v) for v in quat_from_rot(JAX, entries)], axis=-1)
+    return np.stack(np.broadcast_arrays(*quat_from_rot(NUMPY, entries)), axis=-1)
 
 
 def matrix_from_wxyz(wxyz: np.ndarray) -> np.ndarray:
