@@ -1,15 +1,19 @@
-"""Rotations and rigid transforms on entries (see ``_ops``), for both backends.
+"""Rotations and rigid transforms (SO(3), SE(3)): the one home of these helpers.
 
-A rotation is a row-major tuple of nine entries, a vector a tuple of three, a
-transform a ``(rotation, translation)`` pair. Quaternions are ``(w, x, y, z)``.
-Angles are in radians, translations in metres.
+On entries (see ``_ops``), for every backend: a rotation is a row-major tuple of nine
+entries, a vector a tuple of three, a transform a ``(rotation, translation)`` pair.
+Quaternions are ``(w, x, y, z)``. At the bottom, the few JAX array forms the solvers
+use. Angles are in radians, translations in metres.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from ._ops import Ops, safe_where
+import jax
+import jax.numpy as jnp
+
+from ._ops import JAX, Ops, safe_where
 
 Vec = tuple[Any, Any, Any]
 Rot = tuple[Any, Any, Any, Any, Any, Any, Any, Any, Any]
@@ -58,6 +62,23 @@ def rot_mul(a: Rot, b: Rot) -> Rot:
 
 def rot_transpose(a: Rot) -> Rot:
     return (a[0], a[3], a[6], a[1], a[4], a[7], a[2], a[5], a[8])
+
+
+def rot_hat(w: Vec) -> Rot:
+    """[w]×, the cross-product matrix of w: [w]×·v = w × v."""
+    return (0.0, -w[2], w[1], w[2], 0.0, -w[0], -w[1], w[0], 0.0)
+
+
+def vec_cross(a: Vec, b: Vec) -> Vec:
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def vec_add(a: Vec, b: Vec) -> Vec:
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
+
+
+def vec_sub(a: Vec, b: Vec) -> Vec:
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
 
 
 def rot_apply(r: Rot, v: Vec) -> Vec:
@@ -191,7 +212,7 @@ def so3_exp(ops: Ops, w: Vec) -> Rot:
     t = wx * wx + wy * wy + wz * wz
     a = sinc_of_square(ops, t)
     b = versine_of_square(ops, t)
-    k = (0.0, -wz, wy, wz, 0.0, -wx, -wy, wx, 0.0)
+    k = rot_hat(w)
     k2 = rot_mul(k, k)
     eye = rot_identity()
     return tuple(eye[i] + a * k[i] + b * k2[i] for i in range(9))  # type: ignore[return-value]
@@ -211,8 +232,41 @@ def se3_exp(ops: Ops, xi: tuple[Any, Any, Any, Any, Any, Any]) -> Transform:
         return (1.0 - sinc_of_square(ops, t)) / t
 
     c = safe_where(ops, t < SERIES_BELOW, series, exact, t, 1.0)
-    k = (0.0, -w[2], w[1], w[2], 0.0, -w[0], -w[1], w[0], 0.0)
+    k = rot_hat(w)
     k2 = rot_mul(k, k)
     eye = rot_identity()
     v_mat = tuple(eye[i] + b * k[i] + c * k2[i] for i in range(9))
     return so3_exp(ops, w), rot_apply(v_mat, v)  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------- JAX array forms
+
+
+def hat(w: jax.Array) -> jax.Array:
+    """(…, 3) vectors → (…, 3, 3) cross-product matrices [w]×."""
+    zero = jnp.zeros_like(w[..., 0])
+    return jnp.stack([jnp.stack([zero, -w[..., 2], w[..., 1]], -1),
+                      jnp.stack([w[..., 2], zero, -w[..., 0]], -1),
+                      jnp.stack([-w[..., 1], w[..., 0], zero], -1)], -2)
+
+
+def rotation_log(rotation: jax.Array) -> jax.Array:
+    """Rotation vector (3,) rad of one rotation matrix (3, 3) (``so3_log``), its dtype."""
+    entries = tuple(rotation[i, j] for i in range(3) for j in range(3))
+    return jnp.stack(so3_log(JAX, entries)).astype(rotation.dtype)
+
+
+def so3_right_jacobian_inverse(e: jax.Array) -> jax.Array:
+    """J_r⁻¹(e) = I + ½[e]× + c(θ)[e]×², c = 1/θ² − (1 + cos θ)/(2θ sin θ): the
+    derivative of log(R·exp([ω]×)) with respect to ω at ω = 0, R = exp([e]×), e (3,) rad.
+
+    Close to θ = π the exact coefficient diverges; θ is capped at 3 rad there, which
+    keeps a descent direction for a least-squares solver (not the exact derivative)."""
+    th2 = jnp.sum(e * e)
+    theta = jnp.sqrt(jnp.maximum(th2, 1e-12))
+    theta_c = jnp.minimum(theta, 3.0)
+    exact = 1.0 / (theta_c * theta_c) - (1.0 + jnp.cos(theta_c)) / (
+        2.0 * theta_c * jnp.sin(theta_c))
+    c = jnp.where(th2 < 1e-4, 1.0 / 12.0 + th2 / 720.0, exact)
+    k = hat(e)
+    return jnp.eye(3, dtype=e.dtype) + 0.5 * k + c * k @ k
