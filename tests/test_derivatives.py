@@ -218,3 +218,60 @@ def test_the_same_formulas_run_on_numpy_and_casadi() -> None:
         rtol=0,
         atol=1e-15,
     )
+
+
+def test_penalty_clearances_differentiate_through_the_closed_form_centres() -> None:
+    """world.penalty's custom JVPs (centre rates from ``backbone_jacobian_z``) against
+    plain autodiff of the same values through the model's centres."""
+    from cr_nlp.world import load_scene, scene_arrays
+    from cr_nlp.world.clearance import _centres
+    from cr_nlp.world.penalty import (
+        _sphere_values,
+        _values,
+        body_clearances_z,
+        sphere_clearances_z,
+    )
+
+    arrays = scene_arrays(load_scene(MODELS / "scenes" / "lattice.json"))
+    z = jnp.asarray(configurations(TDCR3, 6, 7))
+
+    def plain_body(x: jax.Array) -> jax.Array:
+        return _values(TDCR3, arrays, _centres(TDCR3, x, False))
+
+    def plain_sphere(x: jax.Array) -> jax.Array:
+        return _sphere_values(TDCR3, arrays, _centres(TDCR3, x, False))[0]
+
+    for ours, plain in ((body_clearances_z, plain_body), (sphere_clearances_z, plain_sphere)):
+        got = jax.jit(jax.vmap(jax.jacfwd(lambda x, f=ours: f(TDCR3, arrays, x))))(z)
+        expected = jax.jit(jax.vmap(jax.jacfwd(plain)))(z)
+        assert np.all(np.isfinite(got))
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9)
+
+
+def test_trajectory_residual_jacobians_use_the_closed_forms_correctly() -> None:
+    """tasks.trajectory's custom JVPs (tip position, grouped clearances) against plain
+    autodiff of the same values."""
+    from cr_nlp.tasks.trajectory import (
+        _clearance_groups,
+        _group_values,
+        _tip_position,
+        _tip_value,
+    )
+    from cr_nlp.world import load_scene, scene_arrays
+
+    arrays = scene_arrays(load_scene(MODELS / "scenes" / "lattice.json"))
+    z = jnp.asarray(configurations(TDCR3, 10, 8))
+    margin = 1.5  # every group feels it: no zero rows
+    pairs = (
+        (lambda x: _tip_position(TDCR3, x), lambda x: _tip_value(TDCR3, x)),
+        (
+            lambda x: _clearance_groups(TDCR3, margin, arrays, x),
+            lambda x: _group_values(TDCR3, margin, arrays, x),
+        ),
+    )
+    # Clearances: random rows only. A straight robot sits on the lattice's symmetry plane,
+    # where two obstacle spheres tie for nearest and the two ways pick different ones.
+    for (ours, plain), rows in zip(pairs, (z, z[4:]), strict=True):
+        got = jax.jit(jax.vmap(jax.jacfwd(ours)))(rows)
+        expected = jax.jit(jax.vmap(jax.jacfwd(plain)))(rows)
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9)
