@@ -275,3 +275,27 @@ def test_trajectory_residual_jacobians_use_the_closed_forms_correctly() -> None:
         got = jax.jit(jax.vmap(jax.jacfwd(ours)))(rows)
         expected = jax.jit(jax.vmap(jax.jacfwd(plain)))(rows)
         np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9)
+
+
+def test_se3_left_jacobian_inverse_matches_autodiff_of_the_log() -> None:
+    """∂/∂δ log(exp(δ)·exp(ξ)) at δ = 0, by jacfwd through the model's exp and log, for
+    rotation angles across the series switches (θ² = 0.1, 1) up to near π."""
+    from cr_nlp.model.lie import se3_exp, se3_left_jacobian_inverse, se3_log, transform_compose
+
+    def moved_log(delta: jax.Array, xi: jax.Array) -> jax.Array:
+        twist = se3_exp(JAX, tuple(xi[i] for i in range(6)))
+        nudge = se3_exp(JAX, tuple(delta[i] for i in range(6)))
+        return jnp.stack(se3_log(JAX, transform_compose(nudge, twist)))
+
+    rng = np.random.default_rng(9)
+    angles = [0.0, 1e-7, 0.2, 0.316, 0.317, 0.9, 0.999, 1.001, 2.0, 3.0, 3.13]
+    axes = rng.normal(size=(len(angles), 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    xi = jnp.asarray(
+        np.concatenate(
+            [rng.normal(size=(len(angles), 3)), axes * np.array(angles)[:, None]], axis=1
+        )
+    )
+    expected = jax.vmap(jax.jacfwd(moved_log), in_axes=(None, 0))(jnp.zeros(6), xi)
+    got = jax.vmap(se3_left_jacobian_inverse)(xi)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-10)

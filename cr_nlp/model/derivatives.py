@@ -33,12 +33,9 @@ from .lie import (
     Transform,
     Vec,
     rot_apply,
-    rot_hat,
-    rot_mul,
     rot_transpose,
-    se3_log,
+    se3_left_jacobian_inverse,
     sinc_of_square,
-    transform_between,
     transform_compose,
     vec_add,
     vec_cross,
@@ -337,25 +334,14 @@ def backbone_jacobian_z(robot: Robot, z: jax.Array) -> tuple[jax.Array, jax.Arra
     return out.points, out.d_points
 
 
-def _perturbed_log(ops: Ops, error: Transform, twist: Any) -> Any:
-    """log((I − δ^)·E) for the 6-vector δ = (ρ, ω) (linear in δ: enough for ∂/∂δ at 0)."""
-    rot, pos = error
-    rho, omega = tuple(twist[i] for i in range(3)), tuple(twist[3 + i] for i in range(3))
-    spin = rot_mul(rot_hat(omega), rot)
-    turned_rot = tuple(rot[i] - spin[i] for i in range(9))
-    turned_pos = vec_sub(vec_sub(pos, vec_cross(omega, pos)), rho)
-    return ops.stack(list(se3_log(ops, (turned_rot, turned_pos))))
-
-
 def pose_error_jacobian(
     robot: Robot, z: jax.Array, target_position: jax.Array, target_rotation: jax.Array
 ) -> tuple[jax.Array, jax.Array]:
-    """The pose error 6-vector log(T_tip⁻¹·T_target) (m, rad) of ONE configuration z (3n,)
-    and its Jacobian (6, 3n) by z; the target (position (3,) m, rotation (9,) row major)
-    is a constant. The kinematics part is closed form: with the tip's body twist δ_k =
-    (R_tipᵀ ∂p_tip/∂z_k, R_tipᵀ ω_k), T_tip⁻¹·T_target moves by −δ_k^ on the left; the
-    6 × 6 derivative of the SE(3) log there is taken by forward mode over those six
-    directions (fewer than the 3n of differentiating the whole chain)."""
+    """The pose error 6-vector e = log(T_tip⁻¹·T_target) (m, rad) of ONE configuration z
+    (3n,) and its Jacobian (6, 3n) by z, in closed form; the target (position (3,) m,
+    rotation (9,) row major) is a constant. With the tip's body twist δ_k =
+    (R_tipᵀ ∂p_tip/∂z_k, R_tipᵀ ω_k), T_tip⁻¹·T_target moves by exp(−δ_k^) on the left,
+    so ∂e/∂z_k = −J_l⁻¹(e)·δ_k (``lie.se3_left_jacobian_inverse``)."""
     dtype = z.dtype
     d = model_kinematics_derivatives(JAX, robot, [z[i] for i in range(robot.dof)], points=False)
     rot, pos = d.frames[-1]
@@ -363,23 +349,16 @@ def pose_error_jacobian(
         tuple(target_rotation[i] for i in range(9)),
         tuple(target_position[i] for i in range(3)),
     )
-    error = JAX.materialize(transform_between((rot, pos), goal))
+    value = jnp.stack(jnp.broadcast_arrays(*model_pose_error(JAX, (rot, pos), goal)))
+    value = value.astype(dtype)
     rot_t = rot_transpose(rot)
     zero = (0.0, 0.0, 0.0)
     body = [
         tuple(rot_apply(rot_t, dp)) + tuple(rot_apply(rot_t, zero if w is None else w))
         for dp, w in zip(d.d_position, d.rates, strict=True)
     ]
-    twists = jnp.stack([jnp.stack(jnp.broadcast_arrays(*col)) for col in body], axis=-1).astype(
-        dtype
-    )  # (6, 3n)
-
-    def log_and_value(twist: jax.Array) -> tuple[jax.Array, jax.Array]:
-        out = _perturbed_log(JAX, error, twist)
-        return out, out  # at δ = 0 the value is the pose error itself
-
-    log_slope, value = jax.jacfwd(log_and_value, has_aux=True)(jnp.zeros(6, dtype))
-    return value.astype(dtype), log_slope.astype(dtype) @ twists
+    twists = jnp.stack([jnp.stack(jnp.broadcast_arrays(*col)) for col in body], axis=-1)
+    return value, -se3_left_jacobian_inverse(value) @ twists.astype(dtype)
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(0,))

@@ -8,6 +8,7 @@ use. Angles are in radians, translations in metres.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import jax
@@ -270,3 +271,52 @@ def so3_right_jacobian_inverse(e: jax.Array) -> jax.Array:
     c = jnp.where(th2 < 1e-4, 1.0 / 12.0 + th2 / 720.0, exact)
     k = hat(e)
     return jnp.eye(3, dtype=e.dtype) + 0.5 * k + c * k @ k
+
+
+def _series(t: jax.Array, coefficients: tuple[float, ...]) -> jax.Array:
+    out = jnp.zeros_like(t) + coefficients[-1]
+    for c in coefficients[-2::-1]:
+        out = c + t * out
+    return out
+
+
+def se3_left_jacobian_inverse(xi: jax.Array) -> jax.Array:
+    """J_l⁻¹(ξ) (6, 6) of a twist ξ = (v, ω) (3,) m and (3,) rad (``se3_log``'s order):
+    log(exp(δ)·exp(ξ)) = ξ + J_l⁻¹(ξ)·δ + O(δ²). Closed form (Barfoot's Q(v, ω)), with
+    Taylor branches near θ = ‖ω‖ = 0; finite up to θ = π.
+
+    J_l = [[J, Q], [0, J]] with J the SO(3) left Jacobian, so
+    J_l⁻¹ = [[J⁻¹, −J⁻¹·Q·J⁻¹], [0, J⁻¹]], J⁻¹ = I − ½[ω]× + c₀[ω]×²."""
+    v, w = xi[:3], xi[3:]
+    t = jnp.sum(w * w)
+    small = t < 1.0
+    safe = jnp.where(small, 1.0, t)
+    theta = jnp.sqrt(safe)
+    a = jnp.sin(theta) / theta                                  # sin θ/θ
+    b = (1.0 - jnp.cos(theta)) / safe                           # (1 − cos θ)/θ²
+    # (−t)ᵏ/(2k+3)!, (−t)ᵏ/(2k+4)!, (−1)ᵏ⁺¹ k tᵏ⁻¹/(2k+3)!, k from 0 (from 1 for the last)
+    c1 = jnp.where(small, _series(t, tuple((-1.0) ** k / math.factorial(2 * k + 3)
+                                          for k in range(9))), (1.0 - a) / safe)
+    c2 = jnp.where(small, _series(t, tuple((-1.0) ** k / math.factorial(2 * k + 4)
+                                          for k in range(9))), (1.0 - 2.0 * b) / (2.0 * safe))
+    c3 = jnp.where(small, _series(t, tuple((-1.0) ** (k + 1) * k / math.factorial(2 * k + 3)
+                                          for k in range(1, 10))),
+                   (3.0 * c1 - b) / (2.0 * safe))
+    # c₀ = 1/θ² − (1 + cos θ)/(2θ sin θ) = (1 − A/(2B))/θ², 1/12 at θ = 0.
+    # Its series converges slowly (ratio ≈ t/π²): used only below t = 0.1 (error < 1e-14).
+    tiny = t < 0.1
+    safe_tiny = jnp.where(tiny, 1.0, t)
+    theta_tiny = jnp.sqrt(safe_tiny)
+    ratio = jnp.sin(theta_tiny) * theta_tiny / (2.0 * (1.0 - jnp.cos(theta_tiny)))  # A/(2B)
+    c0 = jnp.where(tiny, _series(t, (1.0 / 12.0, 1.0 / 720.0, 1.0 / 30240.0,
+                                     1.0 / 1209600.0, 1.0 / 47900160.0)),
+                   (1.0 - ratio) / safe_tiny)
+    wh, vh = hat(w), hat(v)
+    wv, vw, wvw = wh @ vh, vh @ wh, wh @ vh @ wh
+    q = (0.5 * vh + c1 * (wv + vw + wvw) + c2 * (wh @ wv + vw @ wh - 3.0 * wvw)
+         + c3 * (wvw @ wh + wh @ wvw))
+    eye = jnp.eye(3, dtype=xi.dtype)
+    j_inv = eye - 0.5 * wh + c0 * wh @ wh
+    top = jnp.concatenate([j_inv, -j_inv @ q @ j_inv], axis=1)
+    bottom = jnp.concatenate([jnp.zeros((3, 3), xi.dtype), j_inv], axis=1)
+    return jnp.concatenate([top, bottom], axis=0)
