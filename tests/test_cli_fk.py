@@ -113,8 +113,7 @@ def test_the_resolver_finds_every_kind_of_bundled_file(
 
 def test_plan_and_ik_inputs_take_bundled_names(tmp_path: Path,
                                                monkeypatch: pytest.MonkeyPatch) -> None:
-    from cr_nlp.cli._io import resolve
-    from cr_nlp.cli._io import read_problems
+    from cr_nlp.cli._io import read_problems, resolve
     from cr_nlp.tasks.ik import read_targets
 
     monkeypatch.chdir(tmp_path)
@@ -122,3 +121,32 @@ def test_plan_and_ik_inputs_take_bundled_names(tmp_path: Path,
     assert len(starts) == len(goals) > 0
     positions, wxyz, problems = read_targets(resolve("tdcr3_lattice", "targets", "--targets"))
     assert positions.shape == (20, 3) and wxyz.shape == (20, 4) and not any(problems)
+
+
+def test_fk_prints_float64_numbers_that_match_an_independent_evaluation(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture) -> None:
+    from cr_nlp.model import load_robot
+
+    from .test_public_float64 import reference_backbone, reference_tendons, reference_tip
+
+    robot = load_robot("tdcr3")
+    q = np.array([0.3, 0.1, 1.0, 2.9, -2.5, 1.0, 1e-7, 0.6, 1.0])
+    monkeypatch.chdir(tmp_path)
+    text = ",".join(repr(float(v)) for v in q)
+    assert main(["fk", "--robot", "tdcr3", "--q", text, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    tip = reference_tip(robot, q)
+    np.testing.assert_allclose(out["position"], tip[:3, 3], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(out["backbone"], reference_backbone(robot, q), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(out["tendon_lengths"], reference_tendons(robot, q), rtol=0,
+                               atol=1e-12)
+    from scipy.spatial.transform import Rotation
+
+    wxyz = np.roll(Rotation.from_matrix(tip[:3, :3]).as_quat(), 1)
+    np.testing.assert_allclose(out["wxyz"], wxyz * np.sign(wxyz[0]), rtol=0, atol=1e-12)
+    # The text output carries the same numbers to 12 decimals.
+    assert main(["fk", "--robot", "tdcr3", "--q", text]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("tip position"))
+    printed = [float(v) for v in line.split("[")[1].split("]")[0].split(",")]
+    np.testing.assert_allclose(printed, tip[:3, 3], rtol=0, atol=1e-12)

@@ -78,6 +78,9 @@ def test_reachable_path_is_tracked_sub_millimetre_clear_of_the_obstacle(followed
     assert r.tendon_speed <= ROBOT.tendon_speed_max
     assert r.tendon_lengths.shape == (WAYPOINTS, ROBOT.n_tendons)
     assert set(r.timing) >= {"compile", "explore", "refine", "polish", "verify", "total"}
+    for name in ("q", "tip_positions", "tip_wxyz", "position_error_mm", "rotation_error_deg",
+                 "tendon_lengths"):
+        assert getattr(r, name).dtype == np.float64, name
 
 
 def test_redundant_robot_steers_its_body_around_a_ball_on_the_reference_motion() -> None:

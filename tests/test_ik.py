@@ -68,6 +68,9 @@ def test_round_trip_without_obstacles(which: str, request: pytest.FixtureRequest
     assert np.all(limit_violation_q(robot, result.q[ok]) == 0.0)
     assert np.all(result.pose_error[ok] < 0.01)
     assert np.mean(result.pose_error[ok]) < 5e-4
+    for name in ("q", "position", "wxyz", "pose_error", "position_error", "rotation_error",
+                 "max_violation", "clearance"):
+        assert getattr(result, name).dtype == np.float64, name
 
 
 def test_round_trip_in_the_lattice_is_collision_free(solver3_lattice: IKSolver) -> None:

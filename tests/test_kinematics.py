@@ -193,12 +193,15 @@ def test_derivatives_finite_and_correct_at_zero_bend() -> None:
     np.testing.assert_allclose(jac0[:, 0], [0.5 * np.cos(0.3), 0.5 * np.sin(0.3), 0.0], atol=1e-12)
 
 
-def test_float32_batches_keep_their_dtype_and_shape() -> None:
-    q = random_q(TDCR3, np.random.default_rng(0), 24).reshape(2, 3, 4, 9).astype(np.float32)
+def test_float32_jax_batches_keep_their_dtype_and_shape() -> None:
+    q = jnp.asarray(random_q(TDCR3, np.random.default_rng(0), 24).reshape(2, 3, 4, 9),
+                    jnp.float32)
     p, r = tip_pose(TDCR3, q)
     assert p.dtype == jnp.float32 and p.shape == (2, 3, 4, 3) and r.shape == (2, 3, 4, 3, 3)
-    assert backbone_points(TDCR3, q).shape == (2, 3, 4, 30, 3)
-    p64, _ = tip_pose(TDCR3, q.astype(np.float64))
+    points = backbone_points(TDCR3, q)
+    assert points.dtype == jnp.float32 and points.shape == (2, 3, 4, 30, 3)
+    p64, _ = tip_pose(TDCR3, np.asarray(q, dtype=np.float64))  # numpy: float64 numpy
+    assert type(p64) is np.ndarray and p64.dtype == np.float64
     np.testing.assert_allclose(p, p64, atol=1e-5)
 
 

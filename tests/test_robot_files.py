@@ -98,3 +98,22 @@ def test_load_robot_takes_a_bundled_name_or_a_path() -> None:
     assert load_robot("tdcr4_ext") == Robot.from_file(MODELS / "robots" / "tdcr4_ext.json")
     with pytest.raises(ModelFileError, match="file not found"):
         load_robot("no_such_robot")
+
+
+def test_bundled_names_resolve_through_the_one_resolver_from_any_directory(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from cr_nlp._resources import resolve_file
+    from cr_nlp.model import load_robot
+
+    monkeypatch.chdir(tmp_path)  # no models/ folder here
+    bundled = Robot.from_file(resolve_file("tdcr3", "robots"))
+    assert load_robot("tdcr3") == bundled and Robot.from_file("tdcr3") == bundled
+    assert load_robot("tdcr3").source == str(resolve_file("tdcr3", "robots"))
+    with pytest.raises(ModelFileError, match="not a bundled robot name") as err:
+        load_robot("tdcr9")
+    assert "tdcr3, tdcr4_ext" in str(err.value)
+    # A local file of that name wins over the bundled robot, as in the resolver.
+    data = json.loads((MODELS / "robots" / "tdcr3.json").read_text())
+    data["name"] = "local"
+    (tmp_path / "tdcr3").write_text(json.dumps(data))
+    assert load_robot("tdcr3").name == "local"

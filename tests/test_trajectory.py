@@ -56,6 +56,7 @@ def test_roadmap_init_finds_the_passage_the_straight_line_misses(shelf_planner):
     assert found.max_violation <= 1e-6
     assert found.min_clearance >= 0.0
     np.testing.assert_allclose(found.q[0], SHELF_START)
+    assert found.q.dtype == np.float64 and found.tendon_lengths.dtype == np.float64
     np.testing.assert_allclose(found.q[-1], SHELF_GOAL)
 
 

@@ -26,9 +26,10 @@ def run(args: argparse.Namespace) -> int:
 
     robot = load_robot_arg(args.robot)
     qs = configurations_from_args(robot, args.q, args.q_file)
-    pos, rot = (np.asarray(x) for x in tip_pose(robot, qs))
-    lengths = np.asarray(tendon_lengths(robot, qs))
-    points = np.asarray(backbone_points(robot, qs))
+    # numpy in: the model evaluates in float64 numpy (no float32 JAX noise in the output).
+    pos, rot = tip_pose(robot, qs)
+    lengths = tendon_lengths(robot, qs)
+    points = backbone_points(robot, qs)
     records = [
         {"position": pos[i].tolist(), "wxyz": wxyz_from_matrix(rot[i]).tolist(),
          "tendon_lengths": lengths[i].tolist(), "backbone": points[i].tolist()}
@@ -42,11 +43,12 @@ def run(args: argparse.Namespace) -> int:
             print(f"# configuration {i}: q = {np.round(qs[i], 6).tolist()}")
         print(f"robot          {robot.name} ({robot.n_segments} segments, "
               f"{robot.tendons.routing} routing)")
-        print("tip position   [{:.6f}, {:.6f}, {:.6f}] m".format(*rec["position"]))
-        print("tip wxyz       [{:.6f}, {:.6f}, {:.6f}, {:.6f}]".format(*rec["wxyz"]))
+        # 12 decimals: the float64 evaluation is good to ~1e-15 m (JSON has every digit).
+        print("tip position   [{:.12f}, {:.12f}, {:.12f}] m".format(*rec["position"]))
+        print("tip wxyz       [{:.12f}, {:.12f}, {:.12f}, {:.12f}]".format(*rec["wxyz"]))
         m = robot.tendons.per_segment
         for k in range(0, len(rec["tendon_lengths"]), m):
             label = "tendons" if robot.tendons.routing == "shared" else f"tendons seg {k // m + 1}"
-            vals = ", ".join(f"{v:.6f}" for v in rec["tendon_lengths"][k: k + m])
+            vals = ", ".join(f"{v:.12f}" for v in rec["tendon_lengths"][k: k + m])
             print(f"{label:<15}[{vals}] m")
     return 0

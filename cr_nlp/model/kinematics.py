@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._ops import CASADI, JAX, Ops
+from ._ops import CASADI, JAX, NUMPY, Ops
 from .lie import (
     Transform,
     rot_from_quat,
@@ -148,7 +148,7 @@ def _vec_array(v: Any) -> jax.Array:
     return jnp.stack(jnp.broadcast_arrays(*v), axis=-1)
 
 
-def _entries_of_rot(r: jax.Array) -> tuple:
+def _entries_of_rot(r: Any) -> tuple:
     return tuple(r[..., i, j] for i in range(3) for j in range(3))
 
 
@@ -198,6 +198,36 @@ def z_to_q_numpy(z: Any) -> np.ndarray:
     return q
 
 
+def _is_jax(*values: Any) -> bool:
+    """Whether any argument is a JAX array or tracer (then the JAX path runs)."""
+    return any(isinstance(v, jax.Array) for v in values)
+
+
+def _numpy_q(robot: Robot, q: Any) -> np.ndarray:
+    q = np.asarray(q, dtype=np.float64)
+    if q.shape[-1:] != (robot.dof,):
+        raise ValueError(
+            f"q must have {robot.dof} entries on its last axis ([θ, φ, L] × {robot.n_segments} "
+            f"segments of {robot.name!r}), got shape {q.shape}"
+        )
+    return q
+
+
+def _numpy_entries(robot: Robot, q: Any) -> list[np.ndarray]:
+    """The float64 bending-vector entries of numpy configurations q (…, 3n)."""
+    z = q_to_z_numpy(_numpy_q(robot, q))
+    return [z[..., i] for i in range(robot.dof)]
+
+
+def _numpy_vec(entries: Any) -> np.ndarray:
+    return np.stack(np.broadcast_arrays(*entries), axis=-1).astype(np.float64)
+
+
+def _numpy_rot(entries: Any) -> np.ndarray:
+    flat = _numpy_vec(entries)
+    return flat.reshape(flat.shape[:-1] + (3, 3))
+
+
 @partial(jax.jit, static_argnums=0)
 def tip_pose_z(robot: Robot, z: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Tip position (…, 3) metres and rotation matrix (…, 3, 3) from bending-vector z."""
@@ -206,25 +236,34 @@ def tip_pose_z(robot: Robot, z: jax.Array) -> tuple[jax.Array, jax.Array]:
     return _vec_array(pos), _rot_array(rot)
 
 
-def tip_pose(robot: Robot, q: jax.Array) -> tuple[jax.Array, jax.Array]:
+def tip_pose(robot: Robot, q: Any) -> tuple[Any, Any]:
     """Tip position (…, 3) in metres and rotation (…, 3, 3) in the world frame.
 
-    ``q`` is (…, 3n) as ``[θ1, φ1, L1, …]`` (radians, radians, metres); any
-    leading batch shape; float32 or float64 (the result has q's dtype).
+    ``q`` is (…, 3n) as ``[θ1, φ1, L1, …]`` (radians, radians, metres), any leading
+    batch shape. Numpy (or list) in: evaluated in float64 numpy, float64 numpy out.
+    JAX array in: JAX out with q's dtype, traceable (jit, vmap, jacfwd).
     """
-    return tip_pose_z(robot, q_to_z(robot, q))
+    if _is_jax(q):
+        return tip_pose_z(robot, q_to_z(robot, q))
+    rot, pos = model_segment_frames(NUMPY, robot, _numpy_entries(robot, q))[-1]
+    return _numpy_vec(pos), _numpy_rot(rot)
 
 
 @partial(jax.jit, static_argnums=0)
 def backbone_points_z(robot: Robot, z: jax.Array) -> jax.Array:
-    """Backbone points (…, n·k, 3) in metres from bending-vector z."""
-    return model_backbone(JAX, robot, [z[..., i] for i in range(robot.dof)])
+    """Backbone points (…, n·k, 3) in metres from bending-vector z (z's dtype)."""
+    return model_backbone(JAX, robot, [z[..., i] for i in range(robot.dof)]).astype(z.dtype)
 
 
-def backbone_points(robot: Robot, q: jax.Array) -> jax.Array:
+def backbone_points(robot: Robot, q: Any) -> Any:
     """Backbone points (…, n·k, 3), metres: k = ``points_per_segment`` per segment at arc
-    fractions j/k (j = 1…k), segment by segment; the base point is not included."""
-    return backbone_points_z(robot, q_to_z(robot, q))
+    fractions j/k (j = 1…k), segment by segment; the base point is not included.
+
+    ``q`` (…, 3n) in radians and metres; numpy in → float64 numpy out, JAX in → JAX out.
+    """
+    if _is_jax(q):
+        return backbone_points_z(robot, q_to_z(robot, q))
+    return np.asarray(model_backbone(NUMPY, robot, _numpy_entries(robot, q)), dtype=np.float64)
 
 
 @partial(jax.jit, static_argnums=0)
@@ -233,26 +272,54 @@ def tendon_lengths_z(robot: Robot, z: jax.Array) -> jax.Array:
     return JAX.stack(model_tendon_lengths(JAX, robot, [z[..., i] for i in range(robot.dof)]))
 
 
-def tendon_lengths(robot: Robot, q: jax.Array) -> jax.Array:
-    """Tendon lengths (…, n_tendons) in metres for the robot's routing (see DESIGN.md §1)."""
-    return tendon_lengths_z(robot, q_to_z(robot, q))
+def tendon_lengths(robot: Robot, q: Any) -> Any:
+    """Tendon lengths (…, n_tendons) in metres for the robot's routing (see DESIGN.md §1).
+
+    ``q`` (…, 3n) in radians and metres; numpy in → float64 numpy out, JAX in → JAX out.
+    """
+    if _is_jax(q):
+        return tendon_lengths_z(robot, q_to_z(robot, q))
+    entries = _numpy_entries(robot, q)
+    shape = entries[0].shape
+    return np.stack([np.broadcast_to(v, shape) for v in model_tendon_lengths(NUMPY, robot,
+                                                                           entries)],
+                    axis=-1).astype(np.float64)
 
 
 @jax.jit
-def pose_error_vector(position: jax.Array, rotation: jax.Array, target_position: jax.Array,
-                      target_rotation: jax.Array) -> jax.Array:
-    """log(T⁻¹·T_target) as (…, 6): translation part (m) then rotation part (rad)."""
+def _pose_error_vector_jax(position: jax.Array, rotation: jax.Array,
+                           target_position: jax.Array, target_rotation: jax.Array) -> jax.Array:
     tip = (_entries_of_rot(rotation), tuple(position[..., i] for i in range(3)))
     target = (_entries_of_rot(target_rotation), tuple(target_position[..., i] for i in range(3)))
     return _vec_array(model_pose_error(JAX, tip, target))
 
 
-def pose_error(position: jax.Array, rotation: jax.Array, target_position: jax.Array,
-               target_rotation: jax.Array) -> jax.Array:
-    """The success metric ‖log(T⁻¹·T_target)‖₂ (…,) (mixed metres/radians, DESIGN.md §1)."""
-    return jnp.linalg.norm(
-        pose_error_vector(position, rotation, target_position, target_rotation), axis=-1
-    )
+def pose_error_vector(position: Any, rotation: Any, target_position: Any,
+                      target_rotation: Any) -> Any:
+    """log(T⁻¹·T_target) as (…, 6): translation part (m) then rotation part (rad).
+
+    Positions (…, 3) m, rotations (…, 3, 3). All numpy in → float64 numpy out; any JAX
+    array in → JAX out (traceable).
+    """
+    if _is_jax(position, rotation, target_position, target_rotation):
+        return _pose_error_vector_jax(position, rotation, target_position, target_rotation)
+    p, r, tp, tr = (np.asarray(x, dtype=np.float64)
+                    for x in (position, rotation, target_position, target_rotation))
+    tip = (_entries_of_rot(r), tuple(p[..., i] for i in range(3)))
+    target = (_entries_of_rot(tr), tuple(tp[..., i] for i in range(3)))
+    return _numpy_vec(model_pose_error(NUMPY, tip, target))
+
+
+def pose_error(position: Any, rotation: Any, target_position: Any, target_rotation: Any) -> Any:
+    """The success metric ‖log(T⁻¹·T_target)‖₂ (…,) (mixed metres/radians, DESIGN.md §1).
+
+    Positions (…, 3) m, rotations (…, 3, 3). All numpy in → float64 numpy out; any JAX
+    array in → JAX out (traceable).
+    """
+    vector = pose_error_vector(position, rotation, target_position, target_rotation)
+    if isinstance(vector, jax.Array):
+        return jnp.linalg.norm(vector, axis=-1)
+    return np.linalg.norm(vector, axis=-1)
 
 
 # ================================================================ CasADi front end

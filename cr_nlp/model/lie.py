@@ -1,15 +1,20 @@
-"""Rotations and rigid transforms on entries (see ``_ops``), for both backends.
+"""Rotations and rigid transforms (SO(3), SE(3)): the one home of these helpers.
 
-A rotation is a row-major tuple of nine entries, a vector a tuple of three, a
-transform a ``(rotation, translation)`` pair. Quaternions are ``(w, x, y, z)``.
-Angles are in radians, translations in metres.
+On entries (see ``_ops``), for every backend: a rotation is a row-major tuple of nine
+entries, a vector a tuple of three, a transform a ``(rotation, translation)`` pair.
+Quaternions are ``(w, x, y, z)``. At the bottom, the few JAX array forms the solvers
+use. Angles are in radians, translations in metres.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
-from ._ops import Ops, safe_where
+import jax
+import jax.numpy as jnp
+
+from ._ops import JAX, Ops, safe_where
 
 Vec = tuple[Any, Any, Any]
 Rot = tuple[Any, Any, Any, Any, Any, Any, Any, Any, Any]
@@ -58,6 +63,23 @@ def rot_mul(a: Rot, b: Rot) -> Rot:
 
 def rot_transpose(a: Rot) -> Rot:
     return (a[0], a[3], a[6], a[1], a[4], a[7], a[2], a[5], a[8])
+
+
+def rot_hat(w: Vec) -> Rot:
+    """[w]×, the cross-product matrix of w: [w]×·v = w × v."""
+    return (0.0, -w[2], w[1], w[2], 0.0, -w[0], -w[1], w[0], 0.0)
+
+
+def vec_cross(a: Vec, b: Vec) -> Vec:
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def vec_add(a: Vec, b: Vec) -> Vec:
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
+
+
+def vec_sub(a: Vec, b: Vec) -> Vec:
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
 
 
 def rot_apply(r: Rot, v: Vec) -> Vec:
@@ -191,7 +213,7 @@ def so3_exp(ops: Ops, w: Vec) -> Rot:
     t = wx * wx + wy * wy + wz * wz
     a = sinc_of_square(ops, t)
     b = versine_of_square(ops, t)
-    k = (0.0, -wz, wy, wz, 0.0, -wx, -wy, wx, 0.0)
+    k = rot_hat(w)
     k2 = rot_mul(k, k)
     eye = rot_identity()
     return tuple(eye[i] + a * k[i] + b * k2[i] for i in range(9))  # type: ignore[return-value]
@@ -211,8 +233,90 @@ def se3_exp(ops: Ops, xi: tuple[Any, Any, Any, Any, Any, Any]) -> Transform:
         return (1.0 - sinc_of_square(ops, t)) / t
 
     c = safe_where(ops, t < SERIES_BELOW, series, exact, t, 1.0)
-    k = (0.0, -w[2], w[1], w[2], 0.0, -w[0], -w[1], w[0], 0.0)
+    k = rot_hat(w)
     k2 = rot_mul(k, k)
     eye = rot_identity()
     v_mat = tuple(eye[i] + b * k[i] + c * k2[i] for i in range(9))
     return so3_exp(ops, w), rot_apply(v_mat, v)  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------- JAX array forms
+
+
+def hat(w: jax.Array) -> jax.Array:
+    """(…, 3) vectors → (…, 3, 3) cross-product matrices [w]×."""
+    zero = jnp.zeros_like(w[..., 0])
+    return jnp.stack([jnp.stack([zero, -w[..., 2], w[..., 1]], -1),
+                      jnp.stack([w[..., 2], zero, -w[..., 0]], -1),
+                      jnp.stack([-w[..., 1], w[..., 0], zero], -1)], -2)
+
+
+def rotation_log(rotation: jax.Array) -> jax.Array:
+    """Rotation vector (3,) rad of one rotation matrix (3, 3) (``so3_log``), its dtype."""
+    entries = tuple(rotation[i, j] for i in range(3) for j in range(3))
+    return jnp.stack(so3_log(JAX, entries)).astype(rotation.dtype)
+
+
+def so3_right_jacobian_inverse(e: jax.Array) -> jax.Array:
+    """J_r⁻¹(e) = I + ½[e]× + c(θ)[e]×², c = 1/θ² − (1 + cos θ)/(2θ sin θ): the
+    derivative of log(R·exp([ω]×)) with respect to ω at ω = 0, R = exp([e]×), e (3,) rad.
+
+    Close to θ = π the exact coefficient diverges; θ is capped at 3 rad there, which
+    keeps a descent direction for a least-squares solver (not the exact derivative)."""
+    th2 = jnp.sum(e * e)
+    theta = jnp.sqrt(jnp.maximum(th2, 1e-12))
+    theta_c = jnp.minimum(theta, 3.0)
+    exact = 1.0 / (theta_c * theta_c) - (1.0 + jnp.cos(theta_c)) / (
+        2.0 * theta_c * jnp.sin(theta_c))
+    c = jnp.where(th2 < 1e-4, 1.0 / 12.0 + th2 / 720.0, exact)
+    k = hat(e)
+    return jnp.eye(3, dtype=e.dtype) + 0.5 * k + c * k @ k
+
+
+def _series(t: jax.Array, coefficients: tuple[float, ...]) -> jax.Array:
+    out = jnp.zeros_like(t) + coefficients[-1]
+    for c in coefficients[-2::-1]:
+        out = c + t * out
+    return out
+
+
+def se3_left_jacobian_inverse(xi: jax.Array) -> jax.Array:
+    """J_l⁻¹(ξ) (6, 6) of a twist ξ = (v, ω) (3,) m and (3,) rad (``se3_log``'s order):
+    log(exp(δ)·exp(ξ)) = ξ + J_l⁻¹(ξ)·δ + O(δ²). Closed form (Barfoot's Q(v, ω)), with
+    Taylor branches near θ = ‖ω‖ = 0; finite up to θ = π.
+
+    J_l = [[J, Q], [0, J]] with J the SO(3) left Jacobian, so
+    J_l⁻¹ = [[J⁻¹, −J⁻¹·Q·J⁻¹], [0, J⁻¹]], J⁻¹ = I − ½[ω]× + c₀[ω]×²."""
+    v, w = xi[:3], xi[3:]
+    t = jnp.sum(w * w)
+    small = t < 1.0
+    safe = jnp.where(small, 1.0, t)
+    theta = jnp.sqrt(safe)
+    a = jnp.sin(theta) / theta                                  # sin θ/θ
+    b = (1.0 - jnp.cos(theta)) / safe                           # (1 − cos θ)/θ²
+    # (−t)ᵏ/(2k+3)!, (−t)ᵏ/(2k+4)!, (−1)ᵏ⁺¹ k tᵏ⁻¹/(2k+3)!, k from 0 (from 1 for the last)
+    c1 = jnp.where(small, _series(t, tuple((-1.0) ** k / math.factorial(2 * k + 3)
+                                          for k in range(9))), (1.0 - a) / safe)
+    c2 = jnp.where(small, _series(t, tuple((-1.0) ** k / math.factorial(2 * k + 4)
+                                          for k in range(9))), (1.0 - 2.0 * b) / (2.0 * safe))
+    c3 = jnp.where(small, _series(t, tuple((-1.0) ** (k + 1) * k / math.factorial(2 * k + 3)
+                                          for k in range(1, 10))),
+                   (3.0 * c1 - b) / (2.0 * safe))
+    # c₀ = 1/θ² − (1 + cos θ)/(2θ sin θ) = (1 − A/(2B))/θ², 1/12 at θ = 0.
+    # Its series converges slowly (ratio ≈ t/π²): used only below t = 0.1 (error < 1e-14).
+    tiny = t < 0.1
+    safe_tiny = jnp.where(tiny, 1.0, t)
+    theta_tiny = jnp.sqrt(safe_tiny)
+    ratio = jnp.sin(theta_tiny) * theta_tiny / (2.0 * (1.0 - jnp.cos(theta_tiny)))  # A/(2B)
+    c0 = jnp.where(tiny, _series(t, (1.0 / 12.0, 1.0 / 720.0, 1.0 / 30240.0,
+                                     1.0 / 1209600.0, 1.0 / 47900160.0)),
+                   (1.0 - ratio) / safe_tiny)
+    wh, vh = hat(w), hat(v)
+    wv, vw, wvw = wh @ vh, vh @ wh, wh @ vh @ wh
+    q = (0.5 * vh + c1 * (wv + vw + wvw) + c2 * (wh @ wv + vw @ wh - 3.0 * wvw)
+         + c3 * (wvw @ wh + wh @ wvw))
+    eye = jnp.eye(3, dtype=xi.dtype)
+    j_inv = eye - 0.5 * wh + c0 * wh @ wh
+    top = jnp.concatenate([j_inv, -j_inv @ q @ j_inv], axis=1)
+    bottom = jnp.concatenate([jnp.zeros((3, 3), xi.dtype), j_inv], axis=1)
+    return jnp.concatenate([top, bottom], axis=0)

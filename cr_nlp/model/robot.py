@@ -15,7 +15,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from .._resources import bundled_file
+from .._resources import resolve_file
 
 Routing = Literal["shared", "per_segment"]
 
@@ -164,7 +164,11 @@ class Robot:
     # ------------------------------------------------------------ construction
     @classmethod
     def from_file(cls, path: str | Path) -> Robot:
-        """Load and validate a robot JSON file."""
+        """Load and validate a robot JSON file, or a bundled robot by name ("tdcr3")."""
+        try:
+            path = resolve_file(path, "robots")
+        except FileNotFoundError as exc:
+            raise ModelFileError(str(path), "<file>", str(exc).removeprefix(f"{path}: ")) from None
         return cls.from_dict(read_model_file(path), source=str(path))
 
     @classmethod
@@ -219,22 +223,20 @@ def read_model_file(path: str | Path) -> Any:
         raise ModelFileError(source, "<file>", f"not valid JSON: {exc}") from None
 
 
-def bundled_robot_path(name: str) -> Path:
-    """Path of a robot bundled in ``models/robots`` (``name`` without ``.json``)."""
-    return bundled_file("robots", name)
-
-
 def load_robot(robot: str | Path | Robot | dict) -> Robot:
     """A ``Robot`` from a file path, a bundled robot name ("tdcr3", "tdcr4_ext", …), a
-    dict, or a ``Robot`` (returned as is)."""
+    dict, or a ``Robot`` (returned as is). Names resolve through the one resolver,
+    ``_resources.resolve_file``, from any directory.
+
+    Raises:
+        ModelFileError: neither a file nor a bundled name (the message lists the bundled
+            robots), or a file that does not follow the schema.
+    """
     if isinstance(robot, Robot):
         return robot
     if isinstance(robot, dict):
         return Robot.from_dict(robot)
-    path = Path(robot)
-    if not path.exists() and path.suffix == "" and bundled_robot_path(str(robot)).exists():
-        path = bundled_robot_path(str(robot))
-    return Robot.from_file(path)
+    return Robot.from_file(robot)
 
 
 # ---------------------------------------------------------------- validation helpers

@@ -1,4 +1,4 @@
-"""Numpy conversions between unit quaternions (w, x, y, z) and rotation matrices."""
+"""Float64 numpy conversions between unit quaternions (w, x, y, z) and rotation matrices."""
 
 from __future__ import annotations
 
@@ -9,8 +9,9 @@ from .lie import quat_from_rot, rot_from_quat
 
 
 def wxyz_from_matrix(rotation: np.ndarray) -> np.ndarray:
-    """(…, 3, 3) rotation matrices → (…, 4) unit quaternions (w, x, y, z) with w ≥ 0."""
-    r = np.asarray(rotation, dtype=float)
+    """(…, 3, 3) rotation matrices → (…, 4) unit quaternions (w, x, y, z) with w ≥ 0,
+    float64 numpy (evaluated in numpy, whatever JAX's precision setting)."""
+    r = np.asarray(rotation, dtype=np.float64)
     entries = tuple(r[..., i, j] for i in range(3) for j in range(3))
     # Float64 numpy: JAX op by op was float32 and compiled every operation anew for each
     # new batch shape (about 1 s of a one-shot ``cr-nlp ik`` call's verification).

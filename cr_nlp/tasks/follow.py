@@ -55,13 +55,14 @@ import numpy as np
 from .._jax_setup import enable_compilation_cache, split_over_devices
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import JAX, NUMPY
+from ..model.derivatives import kinematics_jacobians_z
 from ..model.kinematics import (
     model_base,
     model_segment_frames,
     model_segment_transform,
     model_tendon_lengths,
 )
-from ..model.lie import so3_log
+from ..model.lie import rotation_log, so3_right_jacobian_inverse
 from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
 from ..stages.banded_lm import ChainResidual, banded_lm_solve
@@ -178,10 +179,12 @@ class FollowConfig:
 #
 # The LM needs, per waypoint, a 6 × 3n tracking Jacobian and a G × 3n clearance Jacobian.
 # Pushing 3n tangents through the model's entry-by-entry code costs thousands of small
-# XLA operations per call; here the same model functions (``model_segment_transform``,
-# ``model_base``) are evaluated on whole arrays (one 3 × 3 matrix product per segment),
-# and the residuals get their Jacobians from the primal alone (``jax.custom_jvp``), so
-# the banded LM's forward-mode pass over a window costs one matrix product.
+# XLA operations per call; here the values come from the same model functions
+# (``model_segment_transform``, ``model_base``) evaluated on whole arrays (one 3 × 3
+# matrix product per segment), the derivatives from the model's closed forms
+# (``model.derivatives``), and the residuals get their Jacobians from the primal alone
+# (``jax.custom_jvp``), so the banded LM's forward-mode pass over a window costs one
+# matrix product.
 
 
 def _stack_transform(transform: Any, dtype: Any) -> tuple[jax.Array, jax.Array]:
@@ -214,104 +217,30 @@ def waypoint_kinematics(robot: Robot, z: jax.Array) -> tuple[jax.Array, jax.Arra
     return rot, pos, jnp.concatenate(centres)
 
 
-def _segment_local(robot: Robot, u: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """One segment's local transform (rotation (3, 3), translation (3,)) and its body
-    points (k, 3) at arc fractions j/k, from u = (ux, uy, L)."""
-    k = robot.points_per_segment
-    fractions = jnp.arange(1, k + 1, dtype=u.dtype) / k
-    rot, pos = _stack_transform(model_segment_transform(JAX, u[0], u[1], u[2]), u.dtype)
-    _, points = _stack_transform(model_segment_transform(
-        JAX, u[0] * fractions, u[1] * fractions, u[2] * fractions), u.dtype)
-    return rot, pos, points
-
-
 def waypoint_jacobians(robot: Robot, z: jax.Array) -> dict[str, jax.Array]:
-    """``waypoint_kinematics`` and its derivatives for one z (3n,), by the geometric
-    (twist) Jacobian: each variable of segment m moves everything beyond segment m
-    rigidly, dx = ω × (x − p_m) + v, and the points of segment m by its own local
-    derivative. Returns ``rotation`` (3, 3), ``position`` (3,), ``centres`` (N, 3),
+    """``waypoint_kinematics`` and its closed-form derivatives (``model.derivatives``) for
+    one z (3n,). Returns ``rotation`` (3, 3), ``position`` (3,), ``centres`` (N, 3),
     ``d_position`` (3, 3n), ``body_rates`` (3, 3n) (Rᵀ∂R/∂z_k as vectors) and
     ``d_centres`` (N, 3, 3n)."""
-    n, k = robot.n_segments, robot.points_per_segment
-    dtype = z.dtype
-    seg = z.reshape(n, 3)
-    local = jax.vmap(partial(_segment_local, robot))
-    rot_l, pos_l, pts_l = local(seg)                                   # (n,3,3) (n,3) (n,k,3)
-    d_rot_l, d_pos_l, d_pts_l = jax.lax.optimization_barrier(
-        jax.vmap(jax.jacfwd(partial(_segment_local, robot)))(seg))
-    base_rot, base_pos = _stack_transform(model_base(robot), dtype)
-    frame_rot, frame_pos = [base_rot], [base_pos]
-    for m in range(n):
-        frame_pos.append(frame_pos[-1] + frame_rot[-1] @ pos_l[m])
-        frame_rot.append(frame_rot[-1] @ rot_l[m])
-    rot_m, pos_m = jnp.stack(frame_rot[:n]), jnp.stack(frame_pos[:n])   # segment bases
-    tip_rot, tip_pos = frame_rot[n], frame_pos[n]
-    points = pos_m[:, None, :] + jnp.einsum("mij,mkj->mki", rot_m, pts_l)  # (n, k, 3)
-    centres = jnp.concatenate([base_pos[None], points.reshape(n * k, 3)])
-    # Local twist of variable a of segment m: Ω = ∂R·Rᵀ, v = ∂p − ω × p; then to world.
-    spin = jnp.einsum("mija,mlj->mila", d_rot_l, rot_l)                  # (n, 3, 3, 3)
-    omega_l = jnp.stack([spin[:, 2, 1], spin[:, 0, 2], spin[:, 1, 0]], axis=1)  # (n, 3, a)
-    v_l = d_pos_l - jnp.cross(omega_l, pos_l[:, :, None], axis=1)
-    omega_w = jnp.einsum("mij,mja->mia", rot_m, omega_l)                 # (n, 3, a)
-    v_w = jnp.einsum("mij,mja->mia", rot_m, v_l)
-
-    def moved(x: jax.Array) -> jax.Array:
-        """d x / d z for points x (P, 3) beyond every segment: (P, 3, n, 3)."""
-        arm = x[:, None, :, None] - pos_m[None, :, :, None]              # (P, n, 3, 1)
-        rate = jnp.cross(omega_w[None], arm, axis=2) + v_w[None]          # (P, n, 3, a)
-        return jnp.moveaxis(rate, 1, 2)
-
-    d_tip = moved(tip_pos[None])[0].reshape(3, 3 * n)
-    body_rates = (tip_rot.T @ omega_w.transpose(1, 0, 2).reshape(3, 3 * n))
-    beyond = moved(points.reshape(n * k, 3)).reshape(n, k, 3, n, 3)
-    own = jnp.einsum("mij,mkja->mkia", rot_m, d_pts_l)                   # (n, k, 3, a)
-    seg_of_point, seg_of_var = jnp.arange(n)[:, None], jnp.arange(n)[None, :]
-    later = (seg_of_var < seg_of_point).astype(dtype)[:, None, None, :, None]
-    same = (seg_of_var == seg_of_point).astype(dtype)[:, None, None, :, None]
-    d_points = beyond * later + own[:, :, :, None, :] * same
-    d_centres = jnp.concatenate([jnp.zeros((1, 3, 3 * n), dtype),
-                                 d_points.reshape(n * k, 3, 3 * n)])
-    return {"rotation": tip_rot, "position": tip_pos, "centres": centres,
-            "d_position": d_tip, "body_rates": body_rates, "d_centres": d_centres}
-
-
-def _hat(w: jax.Array) -> jax.Array:
-    zero = jnp.zeros_like(w[..., 0])
-    return jnp.stack([jnp.stack([zero, -w[..., 2], w[..., 1]], -1),
-                      jnp.stack([w[..., 2], zero, -w[..., 0]], -1),
-                      jnp.stack([-w[..., 1], w[..., 0], zero], -1)], -2)
-
-
-def _rotation_log(rotation: jax.Array) -> jax.Array:
-    """Rotation vector (3,) rad of a rotation matrix (``model.lie.so3_log``)."""
-    entries = tuple(rotation[i, j] for i in range(3) for j in range(3))
-    return jnp.stack(so3_log(JAX, entries)).astype(rotation.dtype)
-
-
-def _right_jacobian_inverse(e: jax.Array) -> jax.Array:
-    """J_r⁻¹(e) = I + ½[e]× + c(θ)[e]×², c = 1/θ² − (1 + cos θ)/(2θ sin θ): the
-    derivative of log(R·exp([ω]×)) with respect to ω at ω = 0, R = exp([e]×)."""
-    th2 = jnp.sum(e * e)
-    theta = jnp.sqrt(jnp.maximum(th2, 1e-12))
-    # Close to π the exact coefficient diverges; the LM only needs a descent direction there.
-    theta_c = jnp.minimum(theta, 3.0)
-    exact = 1.0 / (theta_c * theta_c) - (1.0 + jnp.cos(theta_c)) / (
-        2.0 * theta_c * jnp.sin(theta_c))
-    c = jnp.where(th2 < 1e-4, 1.0 / 12.0 + th2 / 720.0, exact)
-    hat = _hat(e)
-    return jnp.eye(3, dtype=e.dtype) + 0.5 * hat + c * hat @ hat
+    kin = kinematics_jacobians_z(robot, z)
+    base = jnp.asarray(robot.base_position, z.dtype)[None]
+    return {"rotation": kin.rotation, "position": kin.position,
+            "centres": jnp.concatenate([base, kin.points]),
+            "d_position": kin.jacobian[:3], "body_rates": kin.rotation.T @ kin.jacobian[3:],
+            "d_centres": jnp.concatenate([jnp.zeros((1, 3, robot.dof), z.dtype),
+                                          kin.d_points])}
 
 
 def _tracking_from(rot: jax.Array, pos: jax.Array, target: Any) -> jax.Array:
     target_position, target_rotation, _ = target
     error = target_rotation.reshape(3, 3).T @ rot
-    return jnp.concatenate([pos - target_position, _rotation_log(error)])
+    return jnp.concatenate([pos - target_position, rotation_log(error)])
 
 
 def _tracking_jacobian(kin: dict[str, jax.Array], error: jax.Array) -> jax.Array:
     """(6, d) Jacobian of ``tracking_error`` from ``waypoint_jacobians`` and the error."""
     return jnp.concatenate([kin["d_position"],
-                            _right_jacobian_inverse(error[3:]) @ kin["body_rates"]])
+                            so3_right_jacobian_inverse(error[3:]) @ kin["body_rates"]])
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(0,))

@@ -27,7 +27,8 @@ import numpy as np
 
 from .._jax_setup import enable_compilation_cache, split_over_devices
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
-from ..model._ops import JAX, NUMPY
+from ..model._ops import NUMPY
+from ..model.derivatives import pose_residual
 from ..model.kinematics import model_pose_error, model_q_to_z, model_segment_frames
 from ..model.limits import clip_to_limits, limit_violation_q, project_z
 from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
@@ -196,12 +197,10 @@ def ik_residual(robot: Robot, margin: float, weight: float, z: jax.Array, target
                 scene: Any) -> jax.Array:
     """Residuals of one IK problem: the 6-vector pose error (m, rad) and, with a scene,
     √weight·max(0, δ − d) for each body sphere's nearest obstacle part and each body
-    sphere's nearest self-clearance partner (``world.penalty.sphere_clearances_z``)."""
-    target_position, target_rotation = target
-    tip = model_segment_frames(JAX, robot, [z[i] for i in range(robot.dof)])[-1]
-    goal = (tuple(target_rotation[i] for i in range(9)),
-            tuple(target_position[i] for i in range(3)))
-    pose = jnp.stack(model_pose_error(JAX, tip, goal))
+    sphere's nearest self-clearance partner (``world.penalty.sphere_clearances_z``).
+    The pose part differentiates by the model's closed-form Jacobian
+    (``model.derivatives.pose_residual``)."""
+    pose = pose_residual(robot, z, target)
     if scene is None:
         return pose
     shortfall = jnp.maximum(margin - sphere_clearances_z(robot, scene, z), 0.0)

@@ -42,13 +42,13 @@ import numpy as np
 from .._jax_setup import enable_compilation_cache
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import JAX, NUMPY
+from ..model.derivatives import backbone_jacobian_z, tip_jacobian_z
 from ..model.kinematics import model_segment_frames, model_tendon_lengths
 from ..model.limits import limit_violation_q, project_z
 from ..stages.lm import LMConfig, lm_solve
 from ..world import Scene, check_many, load_scene, scene_arrays
 from ..world.clearance import (
     SceneArrays,
-    _centres,
     _kind_blocks,
     body_gap_tolerance,
     body_segments,
@@ -145,11 +145,12 @@ def _tip_position(robot: Robot, z: jax.Array) -> jax.Array:
 
 @_tip_position.defjvp
 def _tip_position_jvp(robot: Robot, primals: tuple, tangents: tuple) -> tuple:
-    # The waypoint's own 3 × 3n Jacobian, computed from the primal only: under the LM's
-    # jacfwd over all H·3n directions it is evaluated once, not once per direction.
+    # The waypoint's own 3 × 3n Jacobian (closed form, ``model.derivatives``), computed
+    # from the primal only: under the LM's jacfwd over all H·3n directions it is
+    # evaluated once, not once per direction.
     (z,), (z_dot,) = primals, tangents
-    jac = jax.jacfwd(partial(_tip_value, robot))(z)
-    return _tip_value(robot, z), jac @ z_dot
+    position, _, jac = tip_jacobian_z(robot, z)
+    return position, jac[:3] @ z_dot
 
 
 def _safe_norm(x: jax.Array) -> jax.Array:
@@ -252,10 +253,14 @@ def _groups_from(robot: Robot, margin: float, arrays: SceneArrays | None, centre
 
 def _group_jacobian(robot: Robot, margin: float, arrays: SceneArrays | None,
                     z: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """``_group_values`` (G,) and its Jacobian (G, 3n), from the body spheres' centre
-    Jacobian and per-sphere distance gradients (no pass over every tangent direction)."""
-    centres = _centres(robot, z, False)
-    jac_centres = jax.jacfwd(lambda x: _centres(robot, x, False))(z)      # (N, 3, 3n)
+    """``_group_values`` (G,) and its Jacobian (G, 3n), from the body spheres' closed-form
+    centre Jacobian (``model.derivatives``) and per-sphere distance gradients (no pass over
+    every tangent direction)."""
+    points, d_points = backbone_jacobian_z(robot, z)
+    # The centres of ``world.clearance._centres``: the base, then the backbone points.
+    base = jnp.asarray(robot.base_position, z.dtype)[None]
+    centres = jnp.concatenate([base, points])
+    jac_centres = jnp.concatenate([jnp.zeros((1, 3, robot.dof), z.dtype), d_points])
     return _groups_from(robot, margin, arrays, centres, jac_centres)
 
 

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model._ops import JAX
+from ..model.derivatives import backbone_jacobian_z
 from ..model.robot import Robot
 from . import distances as dist
 from .clearance import SceneArrays, _centres, _kind_blocks, body_segments
@@ -115,6 +116,18 @@ def _values(robot: Robot, arrays: SceneArrays | None, centres: jax.Array) -> jax
     return jnp.concatenate(parts)
 
 
+def _centres_and_rates(robot: Robot, z: jax.Array,
+                       z_dot: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Body-sphere centres (N, 3) m of one z (3n,) (``clearance._centres``: the base, then
+    the backbone points) and their rates (N, 3) along z_dot, by the model's closed-form
+    centre Jacobian: under the LM's jacfwd it is built once per configuration and only
+    the contraction is batched over the tangents."""
+    points, d_points = backbone_jacobian_z(robot, z)
+    centres = jnp.concatenate([jnp.asarray(robot.base_position, z.dtype)[None], points])
+    rates = jnp.concatenate([jnp.zeros((1, 3), z.dtype), d_points @ z_dot])
+    return centres, rates
+
+
 @partial(jax.custom_jvp, nondiff_argnums=(0,))
 def _clearance_core(robot: Robot, arrays: SceneArrays | None, z: jax.Array) -> jax.Array:
     return _values(robot, arrays, _centres(robot, z, False))
@@ -129,7 +142,7 @@ def _clearance_jvp(robot: Robot, primals: tuple,
                    tangents: tuple) -> tuple[jax.Array, jax.Array]:
     arrays, z = primals
     z_dot = tangents[1]
-    centres, centres_dot = jax.jvp(lambda x: _centres(robot, x, False), (z,), (z_dot,))
+    centres, centres_dot = _centres_and_rates(robot, z, z_dot)
     value = _values(robot, arrays, centres)
     out = []
     if _has_obstacles(arrays):
@@ -219,7 +232,7 @@ def _sphere_core(robot: Robot, arrays: SceneArrays | None, z: jax.Array) -> jax.
 @_sphere_core.defjvp
 def _sphere_jvp(robot: Robot, primals: tuple, tangents: tuple) -> tuple[jax.Array, jax.Array]:
     arrays, z = primals
-    centres, centres_dot = jax.jvp(lambda x: _centres(robot, x, False), (z,), (tangents[1],))
+    centres, centres_dot = _centres_and_rates(robot, z, tangents[1])
     value, self_grad = _sphere_values(robot, arrays, centres)
     out = []
     if _has_obstacles(arrays):
