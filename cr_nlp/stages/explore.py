@@ -39,7 +39,10 @@ def sobol_configurations(robot: Robot, count: int, seed: int = 0) -> np.ndarray:
     are not oversampled), φ uniform over its range, L uniform over its range.
     """
     lo, hi = robot.q_bounds()
-    sample = qmc.Sobol(d=robot.dof, scramble=True, seed=seed).random(count)
+    # The first ``count`` points of a power-of-two draw: the same points as
+    # ``random(count)``, without scipy's warning about unbalanced sample sizes.
+    power = max(int(np.ceil(np.log2(max(count, 1)))), 0)
+    sample = qmc.Sobol(d=robot.dof, scramble=True, seed=seed).random_base2(power)[:count]
     q = lo + (hi - lo) * sample
     q[:, 0::3] = hi[0::3] * np.sqrt(sample[:, 0::3])
     return q
