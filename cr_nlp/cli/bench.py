@@ -218,7 +218,7 @@ def _add_batch(group: argparse._SubParsersAction) -> None:
                    help="penalty (JAX stages) and/or exact (with the Ipopt polish)")
     p.add_argument("--chunk", type=int, default=None,
                    help="targets per chunk (default: cr_nlp.batch.default_chunk for the "
-                        "largest worker count, the same for every row)")
+                        "largest worker count and the mode, the same for every row of a mode)")
     add_common_options(p, "batch", repeats=1, seed=True)
     p.set_defaults(run=_run_batch)
 
