@@ -78,7 +78,8 @@ def _common(p: argparse.ArgumentParser) -> None:
         "--chunk",
         type=int,
         help="problems per chunk, one Dask task each (default: about four "
-        "chunks per worker, at most 256 targets or 8 problems)",
+        "chunks per worker, at most 256 targets or 8 problems; penalty-mode IK: about "
+        "two per worker, at most 4096 targets)",
     )
     p.add_argument(
         "--resume", action="store_true", help="finish the job in DIR: solve only its missing chunks"
