@@ -8,8 +8,8 @@ For each mode (penalty: the JAX stages; exact: plus the Ipopt polish) the rows a
 - "in-process": ``IKSolver.solve`` on all targets in this process (its JAX shards the
   batch over one host device per core, as ``cr-nlp ik`` does);
 - "batch, N workers": ``run_batch`` on a ``LocalCluster`` of N worker processes (one
-  thread each; each worker's JAX gets the cores divided among the workers), the rows of
-  a mode sharing one chunk size.
+  thread each; each worker's JAX gets the cores divided among the workers), with
+  ``--chunk`` or else the chunk size ``cr-nlp batch ik`` picks for that mode and count.
 
 Every row is timed after a warm-up run on the same cluster (the solvers built and their
 programs compiled on every worker; compile excluded), as the median of ``repeats`` runs,
@@ -132,10 +132,9 @@ def run_batch_benchmark(
     case = free_case(robot_model, targets, seed)
     inputs = (case.positions, case.wxyz)
     config = IKConfig()
-    # One chunk size per mode (the default for the largest worker count), the same in
-    # every row of that mode.
-    chunks = {m: int(chunk or default_chunk("ik", targets, max(workers), m == "exact"))
-              for m in modes}
+    # --chunk for every row, else what `cr-nlp batch ik` picks for that mode and worker count.
+    chunks = {(m, n): int(chunk or default_chunk("ik", targets, n, m == "exact"))
+              for m in modes for n in workers}
     rows: list[dict[str, Any]] = []
     started = time.perf_counter()
     scratch = Path(tempfile.mkdtemp(prefix="cr_nlp_bench_batch_"))
@@ -162,7 +161,9 @@ def run_batch_benchmark(
                 if progress:
                     print(f"bench batch: {mode}, {count} workers", file=sys.stderr)
 
-                def job(mode: str = mode, client: Any = client) -> Any:
+                size = chunks[mode, count]
+
+                def job(mode: str = mode, client: Any = client, size: int = size) -> Any:
                     return run_batch(
                         "ik",
                         robot_model,
@@ -171,15 +172,14 @@ def run_batch_benchmark(
                         exact=mode == "exact",
                         config=config,
                         client=client,
-                        chunk=chunks[mode],
+                        chunk=size,
                         progress=progress,
                     )
 
                 first, times, result = _timed(
                     job, repeats, lambda job=job, client=client: _warm_workers(client, key, job)
                 )
-                row = _row(mode, f"batch, {count} workers", count, chunks[mode], first, times,
-                           result)
+                row = _row(mode, f"batch, {count} workers", count, size, first, times, result)
                 row["same_success"] = bool(np.array_equal(result.success, reference[mode]))
                 rows.append(row)
         finally:
@@ -195,7 +195,7 @@ def run_batch_benchmark(
     env["benchmark wall time"] = f"{time.perf_counter() - started:.0f} s"
     env["settings"] = (
         f"robot={robot}, targets={targets}, workers={list(workers)}, "
-        f"chunk={', '.join(f'{c} ({m})' for m, c in chunks.items())}, "
+        f"chunk={', '.join(f'{c} ({m}, {n} workers)' for (m, n), c in chunks.items())}, "
         f"repeats={repeats}, seed={seed}, modes={list(modes)}"
     )
     write_report("batch", format_report(rows, env), out, {"batch": rows}, env)
