@@ -14,8 +14,7 @@ import fcl
 import numpy as np
 
 from ..model import Robot
-from ..model._ops import NUMPY
-from ..model.kinematics import model_q_to_z, model_segment_frames
+from ..model.kinematics import tip_pose as model_tip_pose
 from ..model.rotations import wxyz_from_matrix
 from ..world import Scene
 from ..world.check import (
@@ -64,11 +63,10 @@ class RobotMesh:
 
 
 def tip_pose(robot: Robot, q: Any) -> tuple[np.ndarray, np.ndarray]:
-    """Tip position (3,) m and orientation (4,) wxyz of q (3n), float64."""
-    z = model_q_to_z(NUMPY, robot, np.asarray(q, dtype=float))
-    rot, pos = model_segment_frames(NUMPY, robot, z)[-1]
-    matrix = np.array([float(v) for v in rot]).reshape(3, 3)
-    return np.array([float(v) for v in pos]), wxyz_from_matrix(matrix[None])[0]
+    """Tip position (3,) m and orientation (4,) wxyz of q (3n), float64 (the model's
+    public ``tip_pose``, with the rotation as a quaternion)."""
+    position, rotation = model_tip_pose(robot, np.asarray(q, dtype=float))
+    return position, wxyz_from_matrix(rotation[None])[0]
 
 
 def closest_obstacle_points(
@@ -333,7 +331,7 @@ def precompute(motion: Motion, mesh: RobotMesh, scene: Scene | None) -> None:
         vertices, lines, points = mesh.geometry(q)
         motion.vertices.append(vertices.astype(np.float32))
         motion.tendon_lines.append(lines.astype(np.float32))
-    motion.tips = np.array([tip_pose(mesh.robot, q)[0] for q in motion.q])
+    motion.tips = model_tip_pose(mesh.robot, np.asarray(motion.q, dtype=float))[0]
     if scene is not None and scene.parts:
         verdict = check_many(mesh.robot, scene, motion.q)
         motion.clearance = np.asarray(verdict.obstacle_distance, dtype=float)
