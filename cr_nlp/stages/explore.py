@@ -41,7 +41,7 @@ def sobol_configurations(robot: Robot, count: int, seed: int = 0) -> np.ndarray:
     lo, hi = robot.q_bounds()
     # The first ``count`` points of a power-of-two draw: the same points as
     # ``random(count)``, without scipy's warning about unbalanced sample sizes.
-    power = max(int(np.ceil(np.log2(max(count, 1)))), 0)
+    power = int(np.ceil(np.log2(max(count, 1))))
     sample = qmc.Sobol(d=robot.dof, scramble=True, seed=seed).random_base2(power)[:count]
     q = lo + (hi - lo) * sample
     q[:, 0::3] = hi[0::3] * np.sqrt(sample[:, 0::3])
