@@ -916,7 +916,7 @@ class PathFollower:
                               stall_tolerance=self.config.refine_stall_tolerance)
             solve = partial(banded_lm_solve, self._terms, self._project, config=config)
             self._compiled[t] = jax.jit(solve).lower(*args).compile()
-        z, cost, iterations = self._compiled[t](*args)
+        z, cost, iterations = jax.device_get(self._compiled[t](*args))
         q = z_to_q_numpy(z)
         return clip_to_limits(self.robot, q), float(cost), int(iterations)
 
