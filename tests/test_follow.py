@@ -13,14 +13,16 @@ import numpy as np
 import pytest
 
 from cr_nlp.cli import main
-from cr_nlp.model import load_robot, tip_pose_z
+from cr_nlp.model import load_robot, tip_pose_z, z_to_q_numpy
 from cr_nlp.model.rotations import wxyz_from_matrix
 from cr_nlp.tasks import follow as F
 from cr_nlp.tasks.follow import FollowConfig, PathFollower, unreached_stretches
 from cr_nlp.tasks.ik import IKConfig
 from cr_nlp.tasks.paths import ReferencePath
-from cr_nlp.tasks.trajectory import _group_jacobian
+from cr_nlp.tasks.trajectory import _group_jacobian, tendon_series
 from cr_nlp.world import load_scene, scene_arrays
+
+from .test_sequence import numpy_viterbi
 
 ROBOT = load_robot("tdcr3")
 WAYPOINTS = 24
@@ -122,6 +124,30 @@ def test_unreachable_waypoints_are_reported_per_waypoint(follower) -> None:
     assert r.summary()["unreached_stretches"] == [[10, 12]]
     assert np.all(r.position_error_mm[10:13] > 9000.0)
     assert np.max(r.position_error_mm[:8]) < 1.0 and np.max(r.position_error_mm[15:]) < 1.0
+
+
+def test_stage_one_table_and_sequence_agree_with_numpy(follower) -> None:
+    # The device program's pick, chosen sequence and tendon speeds against the numpy
+    # Viterbi and float64 tendon lengths on the same candidate table.
+    path = line_path()
+    z, errors = follower.waypoint_candidates(path.positions, path.wxyz, DT)
+    width = follower.config.ik.beam_width
+    anchors = np.r_[np.arange(0, WAYPOINTS, follower.config.ik_stride), WAYPOINTS - 1]
+    assert np.isfinite(errors[anchors, :width]).all()
+    between = np.setdiff1d(np.arange(WAYPOINTS), anchors)
+    assert np.isinf(errors[between, :width]).all()
+    assert np.isfinite(errors[between, width:]).all()   # reached by both chains
+    seconds = np.full(WAYPOINTS - 1, DT)
+    no_chains = follower._chains(z[:0, 0], np.zeros((0, 1), int), np.zeros((0, 1), bool),
+                                 np.zeros(0, int), path.positions, path.wxyz, DT)
+    _, _, chosen, speed = follower._choose((z, errors), no_chains, 0, seconds)
+    pick = numpy_viterbi(z, errors, follower.config.ik.success_tolerance)
+    # Where the forward and backward chains meet on one answer (µm apart) the float32 sums
+    # may pick either of the two: same sequence up to such near-ties.
+    np.testing.assert_allclose(np.asarray(chosen), z[np.arange(WAYPOINTS), pick], atol=1e-5)
+    lengths = tendon_series(ROBOT, z_to_q_numpy(z[np.arange(WAYPOINTS), pick]))
+    expected = np.max(np.abs(np.diff(lengths, axis=0)), axis=1) / DT
+    np.testing.assert_allclose(np.asarray(speed), expected, rtol=1e-4, atol=1e-6)
 
 
 def test_result_files(followed, tmp_path: Path) -> None:

@@ -5,41 +5,82 @@ of squared configuration jumps between consecutive waypoints, measured in the
 bending-vector form (no azimuth wrap-around, no singularity at θ = 0); candidates that do
 not reach their waypoint are excluded unless a waypoint has none, in which case its best
 candidate is kept (and the caller reports that waypoint as unreached).
+
+``smoothest_choice`` is the traceable JAX form (a forward min-plus ``lax.scan`` with
+argmin back-pointers, then a reverse scan that reads the choice back), so a caller can
+run it inside its own device program; ``smoothest_sequence`` is the numpy-in,
+numpy-out front end.
 """
 
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
-from ..model import Robot, q_to_z
+from ..model import Robot, q_to_z_numpy
+
+
+def smoothest_choice(z: jax.Array, errors: jax.Array, tolerance: jax.Array | float) -> jax.Array:
+    """Indices (T,) int32 of the candidate to use at each waypoint (traceable JAX).
+
+    Args:
+        z: (T, K, 3n) candidates in bending-vector form (rad, rad, m).
+        errors: (T, K) residual norms of the candidates (pose error, m/rad); inf or NaN
+            marks an empty slot.
+        tolerance: candidates with an error at or above this are not used where a
+            waypoint has a better one.
+
+    Ties go to the lowest index, as ``numpy.argmin``.
+    """
+    _, k, _ = z.shape
+    usable = errors < tolerance
+    # A waypoint with no usable candidate keeps its best one rather than breaking the chain.
+    best = jnp.argmin(jnp.where(jnp.isnan(errors), jnp.inf, errors), axis=1)
+    usable = usable | (~usable.any(axis=1, keepdims=True)
+                       & (jnp.arange(k) == best[:, None]))
+    # Unused slots may hold anything (NaN from a diverged chain): keep them out of the sums.
+    z = jnp.where(usable[..., None], z, 0.0)
+    inf = jnp.asarray(jnp.inf, z.dtype)
+    node = jnp.where(usable, jnp.zeros((), z.dtype), inf)
+
+    def forward(total: jax.Array, step: tuple) -> tuple[jax.Array, jax.Array]:
+        z_prev, z_here, node_here = step
+        jump = jnp.sum((z_here[None, :, :] - z_prev[:, None, :]) ** 2, axis=-1)  # (K_prev, K)
+        options = total[:, None] + jump
+        back = jnp.argmin(options, axis=0)
+        return jnp.min(options, axis=0) + node_here, back
+
+    total, back = jax.lax.scan(forward, node[0], (z[:-1], z[1:], node[1:]))
+
+    def backward(later: jax.Array, back_here: jax.Array) -> tuple[jax.Array, jax.Array]:
+        earlier = back_here[later]
+        return earlier, earlier
+
+    last = jnp.argmin(total).astype(jnp.int32)
+    _, earlier = jax.lax.scan(backward, last, back.astype(jnp.int32), reverse=True)
+    return jnp.concatenate([earlier, last[None]])
+
+
+_smoothest_choice = jax.jit(smoothest_choice)
 
 
 def smoothest_sequence(robot: Robot, candidates: np.ndarray, errors: np.ndarray,
                        tolerance: float) -> np.ndarray:
-    """Indices (T,) of the candidate to use at each waypoint.
+    """Indices (T,) of the candidate to use at each waypoint (``smoothest_choice`` on
+    the device, in float64 where JAX has x64 enabled, else float32).
 
     Args:
-        candidates: (T, K, 3n) configurations (θ, φ, L) per waypoint.
+        candidates: (T, K, 3n) configurations (θ, φ, L) per waypoint (rad, rad, m).
         errors: (T, K) residual norms of the candidates (pose error, m/rad).
         tolerance: candidates with an error at or above this are not used where a
             waypoint has a better one.
     """
-    t, k, _ = candidates.shape
-    z = np.asarray(q_to_z(robot, candidates), dtype=float)
-    usable = errors < tolerance
-    # A waypoint with no usable candidate keeps its best one rather than breaking the chain.
-    none = ~usable.any(axis=1)
-    usable[none, np.argmin(errors[none], axis=1)] = True
-    node = np.where(usable, 0.0, np.inf)
-    total = node[0].copy()
-    back = np.zeros((t, k), dtype=int)
-    for i in range(1, t):
-        jump = np.sum((z[i][None, :, :] - z[i - 1][:, None, :]) ** 2, axis=-1)  # (K_prev, K)
-        options = total[:, None] + jump
-        back[i] = np.argmin(options, axis=0)
-        total = options[back[i], np.arange(k)] + node[i]
-    choice = np.empty(t, dtype=int)
-    choice[-1] = int(np.argmin(total))
-    for i in range(t - 1, 0, -1):
-        choice[i - 1] = back[i, choice[i]]
-    return choice
+    candidates = np.asarray(candidates, dtype=np.float64)
+    if candidates.ndim != 3 or candidates.shape[2] != robot.dof:
+        raise ValueError(f"candidates must be (T, K, {robot.dof}), got {candidates.shape}")
+    errors = np.asarray(errors, dtype=np.float64)
+    if errors.shape != candidates.shape[:2]:
+        raise ValueError(f"errors must be {candidates.shape[:2]}, got {errors.shape}")
+    choice = _smoothest_choice(q_to_z_numpy(candidates), errors, tolerance)
+    return np.asarray(choice, dtype=int)

@@ -14,8 +14,8 @@ Stages:
 1. explore: IK on every ``ik_stride``-th waypoint in one batch (``IKSolver.candidates``:
    a refined beam of distinct answers per waypoint), each answer carried to the
    neighbouring IK waypoints by continuation (a few LM steps per waypoint), then the
-   sequence with the smallest configuration jumps (``stages.sequence.smoothest_sequence``,
-   dynamic programming).
+   sequence with the smallest configuration jumps (``stages.sequence.smoothest_choice``,
+   dynamic programming on the device, in the same program as the candidate table).
 2. refine: all waypoints jointly by the block-banded LM (``stages.banded_lm``): every
    residual depends on at most three consecutive waypoints (tracking and clearance: one;
    smoothness, tendon speed, clearance between waypoints: two; tendon acceleration:
@@ -67,7 +67,7 @@ from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
 from ..stages.banded_lm import ChainResidual, banded_lm_solve
 from ..stages.lm import LMConfig, lm_solve
-from ..stages.sequence import smoothest_sequence
+from ..stages.sequence import smoothest_choice
 from ..world import Scene, load_scene, scene_arrays
 from ..world.clearance import SceneArrays, body_gap_tolerance
 from ..world.verdict import VIOLATION_TOLERANCE
@@ -79,7 +79,6 @@ from .trajectory import (
     _has_clearance,
     describe_polish,
     tendon_names,
-    tendon_series,
     verify_trajectory,
 )
 
@@ -414,6 +413,56 @@ def _continue_chains(robot: Robot, margin: float, weights: tuple[float, float, f
     return jnp.swapaxes(z, 0, 1), jnp.swapaxes(err, 0, 1)
 
 
+def _pad_chains(starts: np.ndarray, index: np.ndarray, active: np.ndarray,
+                column: np.ndarray) -> tuple[np.ndarray, ...]:
+    """C chains (starts (C, 3n); index, active (C, L); table column (C,)) padded with
+    inactive ones to a multiple of 16, so that few chain programs are compiled (the
+    anchors' 90 chains of a 150-waypoint path run as 96, not 128)."""
+    extra = 16 * -(-len(starts) // 16) - len(starts)
+    return (np.concatenate([starts, np.repeat(starts[:1], extra, 0)]),
+            np.concatenate([index, np.zeros((extra, index.shape[1]), int)]),
+            np.concatenate([active, np.zeros((extra, index.shape[1]), bool)]),
+            np.concatenate([column, np.full(extra, column[-1] if len(column) else 0)]))
+
+
+def _extend_table(extra: int, table_z: jax.Array, table_err: jax.Array, chain_z: jax.Array,
+                  chain_err: jax.Array, index: jax.Array, active: jax.Array,
+                  column: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Stage 1's candidate table (R, K, 3n) z and (R, K) residual norms with ``extra``
+    empty columns appended and the chains' answers written in: chain c's answer at its
+    τ-th waypoint goes to row ``index[c, τ]``, column ``column[c]``, where
+    ``active[c, τ]``; a residual that is not finite counts as no answer (inf)."""
+    r = table_z.shape[0]
+    dtype = chain_z.dtype
+    table_z = jnp.concatenate([table_z.astype(dtype),
+                               jnp.zeros((r, extra, table_z.shape[2]), dtype)], axis=1)
+    table_err = jnp.concatenate([table_err.astype(dtype),
+                                 jnp.full((r, extra), jnp.inf, dtype)], axis=1)
+    rows = jnp.where(active, index, r)                      # row r: dropped
+    columns = jnp.broadcast_to(column[:, None], index.shape)
+    chain_err = jnp.where(active & jnp.isfinite(chain_err), chain_err, jnp.inf)
+    return (table_z.at[rows, columns].set(chain_z, mode="drop"),
+            table_err.at[rows, columns].set(chain_err, mode="drop"))
+
+
+def _extend_and_choose(robot: Robot, extra: int, table_z: jax.Array, table_err: jax.Array,
+                       chain_z: jax.Array, chain_err: jax.Array, index: jax.Array,
+                       active: jax.Array, column: jax.Array, tolerance: jax.Array,
+                       seconds: jax.Array) -> tuple[jax.Array, ...]:
+    """``_extend_table``, then the smoothest sequence through it
+    (``stages.sequence.smoothest_choice``) and its tendon speeds, in one device program.
+
+    Returns the table (z, residual norms), the chosen (R, 3n) z and the largest tendon
+    speed (R − 1,) m/s of every interval (Δℓ over ``seconds`` (R − 1,) s)."""
+    table_z, table_err = _extend_table(extra, table_z, table_err, chain_z, chain_err, index,
+                                       active, column)
+    choice = smoothest_choice(table_z, table_err, tolerance)
+    chosen = table_z[jnp.arange(table_z.shape[0]), choice]
+    lengths = jax.vmap(partial(_lengths, robot))(chosen)
+    speed = jnp.max(jnp.abs(jnp.diff(lengths, axis=0)), axis=1) / seconds
+    return table_z, table_err, chosen, speed
+
+
 # ================================================================ measures (float64)
 
 
@@ -667,6 +716,9 @@ class PathFollower:
         free[2::3] = ~self.robot.lengths_fixed()   # a fixed length is not a variable
         self._free = jnp.asarray(free, self.dtype)
         self._compiled: dict[Any, Any] = {}
+        self._choose_program = jax.jit(partial(_extend_and_choose, self.robot),
+                                       static_argnums=0)
+        self._extend = jax.jit(_extend_table, static_argnums=0)
         self._ik: IKSolver | None = None
         self._polishers: dict[int, Any] = {}
         self.last_timing = FollowTiming()
@@ -690,38 +742,39 @@ class PathFollower:
         branch the neighbours use; then the chosen sequence jumps (a tendon would have to
         move faster than ``tendon_speed_max``). Each such jump is bridged by continuation:
         the answers on both sides are carried across, waypoint by waypoint, and added to
-        the candidates before choosing again (``continuation_rounds`` times)."""
+        the candidates before choosing again (``continuation_rounds`` times).
+
+        On the device each round is two programs (the continuation chains; the candidate
+        table, the sequence and its tendon speeds) and one read back (the chosen
+        sequence and its speeds, to find the jumps)."""
         t = len(positions)
         z = np.zeros((t, self.robot.dof))
         z[:, 2::3] = [0.5 * (s.length_min + s.length_max) for s in self.robot.segments]
         rows = np.flatnonzero(trackable)
         if len(rows):
-            z_cand, errors = self.waypoint_candidates(positions[rows], wxyz[rows], dt)
-            width = self.config.ik.beam_width
-            tol = self.config.ik.success_tolerance
-            choice = smoothest_sequence(self.robot, z_to_q_numpy(z_cand), errors, tol)
-            first, bridged = True, set()
+            positions, wxyz = positions[rows], wxyz[rows]
+            seconds = dt * np.diff(rows)
+            base, ends, chains = self._anchor_chains(positions, wxyz, dt)
+            table = self._choose(base, chains, 0, seconds)
+            chosen, speed = jax.device_get(table[2:])
+            bridged: set[int] = set()
             for _ in range(self.config.continuation_rounds):
-                chosen = z_cand[np.arange(len(rows)), choice]
                 # An interval bridged once is not bridged again: measured on icra, the
                 # one jump that no branch crosses (waypoint 70) was bridged a second time
                 # from the answers the first round's chains brought, with the same final
                 # answer (0.1 s; 1.3 s per round with whole-path chains).
-                jumps = [i for i in self._jumps(chosen, dt * np.diff(rows)) if i not in bridged]
+                jumps = [i for i in self._jumps(speed) if i not in bridged]
                 if not jumps:
                     break
                 bridged |= set(jumps)
-                # Slots [0, width) of the first and last rows hold their own IK answers.
-                ends = (z_cand[0, :width], z_cand[-1, :width]) if first else None
-                first = False
-                extra_z, extra_err = self._bridge(chosen, jumps, positions[rows], wxyz[rows],
-                                                  dt, ends)
-                z_cand = np.concatenate([z_cand, extra_z], axis=1)
-                errors = np.concatenate([errors, extra_err], axis=1)
-                choice = smoothest_sequence(self.robot, z_to_q_numpy(z_cand), errors, tol)
-            z_rows = z_cand[np.arange(len(rows)), choice]
+                width = table[0].shape[1]
+                chains = self._bridge(chosen, np.array(jumps), positions, wxyz, dt, ends,
+                                      width)
+                ends = None   # the ends' own answers are carried once
+                table = self._choose(table[:2], chains, len(chains[2]), seconds)
+                chosen, speed = jax.device_get(table[2:])
             for k in range(self.robot.dof):
-                z[:, k] = np.interp(np.arange(t), rows, z_rows[:, k])
+                z[:, k] = np.interp(np.arange(t), rows, np.asarray(chosen[:, k], np.float64))
         return z_to_q_numpy(z)
 
     def waypoint_candidates(self, positions: np.ndarray, wxyz: np.ndarray,
@@ -734,60 +787,69 @@ class PathFollower:
         carried to the next anchor (forward) and the previous one (backward) by
         continuation. Slots: [0, B) the anchors' own IK answers, [B, 2B) the forward
         chains, [2B, 3B) the backward chains (K = 3B; B = K with ``ik_stride`` 1)."""
+        base, _, chains = self._anchor_chains(positions, wxyz, dt)
+        z, errors = self._extend(0, *base, *chains)
+        return np.asarray(z, np.float64), np.asarray(errors, np.float64)
+
+    def _anchor_chains(self, positions: np.ndarray, wxyz: np.ndarray,
+                       dt: float) -> tuple[tuple, tuple, tuple]:
+        """``waypoint_candidates`` before its table is filled in: the anchors' table
+        (z (R, K, 3n), residual norms (R, K), numpy, K = 3B), the first and last
+        waypoints' own IK answers ((B, 3n) each, numpy) and the continuation chains on
+        the device (z (C, L, 3n), residual norms (C, L), then index, active (C, L) and
+        the table column (C,) of every chain, numpy)."""
         r = len(positions)
         stride = max(int(self.config.ik_stride), 1)
         anchors = np.unique(np.r_[np.arange(0, r, stride), r - 1])
         q, err = self.ik_solver.candidates(positions[anchors], wxyz[anchors])
         z_anchor = q_to_z_numpy(q)                                   # (A, B, 3n)
-        if len(anchors) == r:
-            return z_anchor, err
+        ends = (z_anchor[0], z_anchor[-1])
         width = z_anchor.shape[1]
-        starts, index, active, slot_of = [], [], [], []
-        for j in range(len(anchors) - 1):
-            lo, hi = anchors[j], anchors[j + 1]
-            forward = np.arange(lo + 1, hi + 1)
-            for beam in range(width):
-                for start, visit, slot in ((z_anchor[j, beam], forward, width + beam),
-                                           (z_anchor[j + 1, beam], forward[::-1] - 1,
-                                            2 * width + beam)):
-                    starts.append(start)
-                    index.append(np.pad(visit, (0, stride - len(visit))))
-                    active.append(np.arange(stride) < len(visit))
-                    slot_of.append(slot)
-        z_chain, e_chain = self._chains(np.array(starts), np.array(index), np.array(active),
-                                        positions, wxyz, dt)
-        z = np.zeros((r, 3 * width, self.robot.dof))
-        errors = np.full((r, 3 * width), np.inf)
+        slots = width if len(anchors) == r else 3 * width
+        z = np.zeros((r, slots, self.robot.dof))
+        errors = np.full((r, slots), np.inf)
         z[anchors, :width], errors[anchors, :width] = z_anchor, err
-        index, active, slot_of = np.array(index), np.array(active), np.array(slot_of)
-        chain, tau = np.nonzero(active)
-        z[index[chain, tau], slot_of[chain]] = z_chain[chain, tau]
-        errors[index[chain, tau], slot_of[chain]] = e_chain[chain, tau]
-        return z, errors
+        # Chain order: (interval between anchors, beam, forward/backward).
+        lo, hi = anchors[:-1], anchors[1:]
+        tau = np.arange(stride)
+        visits = tau < (hi - lo)[:, None]                              # (A − 1, S)
+        index = np.where(visits[:, None], np.stack([lo[:, None] + 1 + tau,
+                                                    hi[:, None] - 1 - tau], axis=1), 0)
+        shape = (len(lo), width, 2)
+        index = np.broadcast_to(index[:, None], shape + (stride,)).reshape(-1, stride)
+        active = np.broadcast_to(visits[:, None, None], shape + (stride,)).reshape(-1, stride)
+        starts = np.stack([z_anchor[:-1], z_anchor[1:]], axis=2).reshape(-1, self.robot.dof)
+        column = np.broadcast_to(width * np.arange(1, 3) + np.arange(width)[:, None],
+                                 shape).reshape(-1)
+        if len(anchors) == r:   # every waypoint has its own IK: nothing to continue
+            starts, index, active, column = (x[:0] for x in (starts, index, active, column))
+        return (z, errors), ends, self._chains(starts, index, active, column, positions,
+                                               wxyz, dt)
 
     def _chains(self, starts: np.ndarray, index: np.ndarray, active: np.ndarray,
-                positions: np.ndarray, wxyz: np.ndarray,
-                dt: float) -> tuple[np.ndarray, np.ndarray]:
-        """``_continue_chains`` for C chains (starts (C, 3n); index, active (C, L)) over
-        the R waypoints (positions (R, 3) m, wxyz (R, 4)): z (C, L, 3n) and residual
-        norms (C, L), inf where a chain is not active or not finite. C is padded to a
-        multiple of 16 (the anchors' 90 chains of a 150-waypoint path run as 96, not 128)
-        and R to a power of two (at least 32), so few programs are compiled."""
-        count, length = index.shape
-        padded = 16 * -(-count // 16)
-        extra = padded - count
-        starts = np.concatenate([starts, np.repeat(starts[:1], extra, 0)])
-        index = np.concatenate([index, np.zeros((extra, length), int)])
-        held = np.concatenate([active, np.zeros((extra, length), bool)])
+                column: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
+                dt: float) -> tuple[Any, ...]:
+        """``_continue_chains`` for C chains (starts (C, 3n); index, active (C, L); table
+        column (C,)) over the R waypoints (positions (R, 3) m, wxyz (R, 4)), padded by
+        ``_pad_chains``: z (C', L, 3n) and residual norms (C', L) on the device (not
+        waited for), then index, active and column padded alike. R is padded to a power
+        of two (at least 32), so few programs are compiled."""
+        starts, index, active, column = _pad_chains(starts, index, active, column)
+        padded, length = index.shape
+        if padded == 0:
+            dtype = self.dtype
+            return (np.zeros((0, length, self.robot.dof), dtype), np.zeros((0, length), dtype),
+                    index, active, column)
         # The waypoint tables are padded too (never visited: ``index`` < R).
         rows = max(32, 1 << (len(positions) - 1).bit_length())
         positions = np.concatenate([positions, np.repeat(positions[:1], rows - len(positions), 0)])
         rotations = matrix_from_wxyz(wxyz).reshape(-1, 9)
         rotations = np.concatenate([rotations, np.repeat(rotations[:1], rows - len(rotations), 0)])
-        args = (jnp.asarray(starts, self.dtype), jnp.asarray(index, jnp.int32),
-                jnp.asarray(held), jnp.asarray(positions, self.dtype),
-                jnp.asarray(rotations, self.dtype), jnp.ones(rows, self.dtype),
-                (self._arrays, jnp.asarray(dt, self.dtype)), self._free)
+        # numpy in the program's dtypes: jnp.asarray would launch one conversion each.
+        dtype = self.dtype
+        args = (starts.astype(dtype), index.astype(np.int32), active,
+                positions.astype(dtype), rotations.astype(dtype), np.ones(rows, dtype),
+                (self._arrays, np.asarray(dt, dtype)), self._free)
         key = ("chains", padded, length, rows)
         if key not in self._compiled:
             weights = (1.0, 1.0, math.sqrt(self.config.ik.clearance_weight))
@@ -797,53 +859,50 @@ class PathFollower:
             # unsplit, the anchors' 96 chains ran on one core).
             program = split_over_devices(fn, (True,) * 3 + (False,) * 5, padded, outputs=2)
             self._compiled[key] = program.lower(*args).compile()
-        z, err = (np.asarray(x, dtype=np.float64)[:count] for x in self._compiled[key](*args))
-        err = np.where(active & np.isfinite(err), err, np.inf)
-        return z, err
+        z, err = self._compiled[key](*args)
+        return z, err, index, active, column
 
-    def _jumps(self, z: np.ndarray, seconds: np.ndarray) -> np.ndarray:
-        """Intervals (indices i: between rows i and i+1) of a (R, 3n) sequence whose tendon
-        speed exceeds the limit, the largest first (at most ``max_jumps``)."""
-        lengths = tendon_series(self.robot, z_to_q_numpy(z))
-        speed = np.max(np.abs(np.diff(lengths, axis=0)), axis=1) / seconds
+    def _choose(self, table: tuple, chains: tuple, extra: int,
+                seconds: np.ndarray) -> tuple[Any, ...]:
+        """``_extend_and_choose`` on the device (not waited for): the table (z, residual
+        norms) with ``extra`` columns for the chains, the chosen (R, 3n) z and the
+        tendon speed (R − 1,) m/s of every interval."""
+        tolerance = np.asarray(self.config.ik.success_tolerance, self.dtype)
+        return self._choose_program(extra, *table, *chains, tolerance,
+                                    np.asarray(seconds, self.dtype))
+
+    def _jumps(self, speed: np.ndarray) -> np.ndarray:
+        """Intervals (indices i: between rows i and i+1) of a sequence whose tendon speed
+        (R − 1,) m/s exceeds the limit, the largest first (at most ``max_jumps``)."""
         limit = self.robot.tendon_speed_max if math.isfinite(self.robot.tendon_speed_max) \
             else np.inf
+        speed = np.asarray(speed, np.float64)
         bad = np.flatnonzero(speed > limit)
-        return bad[np.argsort(-speed[bad])][: self.config.max_jumps]
+        return bad[np.argsort(-speed[bad], kind="stable")][: self.config.max_jumps]
 
     def _bridge(self, z: np.ndarray, jumps: np.ndarray, positions: np.ndarray,
-                wxyz: np.ndarray, dt: float,
-                ends: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
-        """Continuation candidates (R, C, 3n) and their residual norms (R, C) (inf where a
-        chain has not started): from each jump's left answer forward and its right
-        answer backward, and (``ends``: the (B, 3n) candidates of the first and last
-        waypoints) from every first candidate forward and every last one backward; each
-        chain walks at most ``bridge_window`` waypoints (one compiled shape whatever the
-        jump's place)."""
+                wxyz: np.ndarray, dt: float, ends: tuple[np.ndarray, np.ndarray] | None,
+                width: int) -> tuple[Any, ...]:
+        """Continuation chains (``_chains``' output) into new table columns from
+        ``width`` on: from each jump's left answer (of the (R, 3n) sequence z) forward
+        and its right answer backward, and (``ends``: the (B, 3n) candidates of the first
+        and last waypoints) from every first candidate forward and every last one
+        backward; each chain walks at most ``bridge_window`` waypoints (one compiled
+        shape whatever the jump's place)."""
         r = len(z)
         window = max(int(self.config.bridge_window), 1)
-        starts, first_row, forward = [], [], []
+        first_row = np.stack([jumps, jumps + 1], axis=1).reshape(-1)
+        starts = z[first_row]
         if ends is not None:
-            for first, last in zip(ends[0], ends[1], strict=True):
-                starts += [first, last]
-                first_row += [0, r - 1]
-                forward += [True, False]
-        for i in jumps:
-            starts += [z[i], z[i + 1]]
-            first_row += [i, i + 1]
-            forward += [True, False]
+            pairs = np.stack([ends[0], ends[1]], axis=1)               # (B, 2, 3n)
+            starts = np.concatenate([pairs.reshape(-1, z.shape[1]), starts])
+            first_row = np.concatenate([np.tile([0, r - 1], len(ends[0])), first_row])
+        forward = np.arange(len(first_row)) % 2 == 0
         tau = np.arange(window)
-        index = np.array([f0 + tau if f else f0 - tau
-                          for f0, f in zip(first_row, forward, strict=True)])
+        index = np.where(forward[:, None], first_row[:, None] + tau, first_row[:, None] - tau)
         active = (index >= 0) & (index < r)
-        index = np.clip(index, 0, r - 1)
-        z_out, err = self._chains(np.array(starts), index, active, positions, wxyz, dt)
-        rows = np.zeros((r, len(starts), self.robot.dof))
-        errors = np.full((r, len(starts)), np.inf)
-        visited = active.nonzero()
-        rows[index[visited], visited[0]] = z_out[visited]
-        errors[index[visited], visited[0]] = err[visited]
-        return rows, errors
+        return self._chains(starts, np.clip(index, 0, r - 1), active,
+                            width + np.arange(len(starts)), positions, wxyz, dt)
 
     # ------------------------------------------------------------ stage 2
     def refine(self, q0: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
@@ -857,7 +916,7 @@ class PathFollower:
                               stall_tolerance=self.config.refine_stall_tolerance)
             solve = partial(banded_lm_solve, self._terms, self._project, config=config)
             self._compiled[t] = jax.jit(solve).lower(*args).compile()
-        z, cost, iterations = self._compiled[t](*args)
+        z, cost, iterations = jax.device_get(self._compiled[t](*args))
         q = z_to_q_numpy(z)
         return clip_to_limits(self.robot, q), float(cost), int(iterations)
 
@@ -867,12 +926,12 @@ class PathFollower:
         safe_positions = np.where(trackable[:, None], positions, 0.0)
         safe_rotations = np.where(trackable[:, None, None], matrix_from_wxyz(
             np.where(trackable[:, None], wxyz, [1.0, 0.0, 0.0, 0.0])), np.eye(3))
-        params = (jnp.asarray(safe_positions, dtype),
-                  jnp.asarray(safe_rotations.reshape(-1, 9), dtype),
-                  jnp.asarray(trackable, dtype))
-        z0 = jnp.asarray(q_to_z_numpy(q0), dtype)
-        shared = (self._arrays, jnp.asarray(dt, dtype))
-        return z0, params, shared, self._free, jnp.int32(self.config.iterations)
+        # numpy in the program's dtypes: jnp.asarray would launch one conversion each.
+        params = (safe_positions.astype(dtype), safe_rotations.reshape(-1, 9).astype(dtype),
+                  trackable.astype(dtype))
+        z0 = q_to_z_numpy(q0).astype(dtype)
+        shared = (self._arrays, np.asarray(dt, dtype))
+        return z0, params, shared, self._free, np.int32(self.config.iterations)
 
     # ------------------------------------------------------------ verification
     def verify(self, q: np.ndarray, path: ReferencePath, dt: float) -> dict[str, Any]:
