@@ -1,5 +1,5 @@
 """Stage 1 for trajectories: a probabilistic roadmap (PRM) per (robot, scene), searched
-with Dijkstra.
+for shortest paths.
 
 Build (once per robot, scene and ``RoadmapConfig``; cached on disk):
 
@@ -10,11 +10,14 @@ Build (once per robot, scene and ``RoadmapConfig``; cached on disk):
 3. An edge is kept when ``edge_checks`` interpolated configurations along it keep the
    margin (checked in fixed-size batches, split over every JAX device).
 
-Query: start and goal are attached to their nearest nodes by collision-free edges
-(``neighbours`` nearest, widened 4× at a time while none connects), Dijkstra (scipy)
-finds the shortest path, and the edges of that path are checked
-again densely (every ``query_step`` in the metric); an edge that fails is dropped
-and the search repeats (lazy PRM). The path is resampled uniformly by arc length.
+Query (any number of start/goal pairs at once, ``query_many_z``): starts and goals are
+attached to their nearest nodes by collision-free edges (``neighbours`` nearest, widened
+4× at a time while none connects), the shortest paths of all pairs are found in one
+batched search (``roadmap_search``: scipy's Dijkstra, or a min-plus relaxation in JAX on
+the device), and the edges of those paths are checked again densely (every
+``query_step`` in the metric); an edge that fails is dropped and the pairs that used it
+search again (lazy PRM). Every check is one batched clearance call for all pairs. The
+path is resampled uniformly by arc length.
 
 Metric: the Euclidean distance in the bending-vector form z = [ux, uy, L]·n
 (radians for u = θ(cos φ, sin φ), metres for L). It has no azimuth wrap-around and no
@@ -91,8 +94,8 @@ class RoadmapConfig:
     query_step: float = 0.02
     """Spacing (rad or m in z) of the dense re-check of a path's edges at query time."""
     max_query_rounds: int = 2000
-    """Most Dijkstra searches per query (each drops the path's edges that fail the dense
-    check); queries that run out return None."""
+    """Most searches per query (each drops the path's edges that fail the dense check);
+    queries that run out return None."""
     max_draws_factor: int = 16
     """Give up drawing nodes after this many × ``nodes`` draws (very cluttered scenes)."""
 

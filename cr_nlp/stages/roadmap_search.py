@@ -157,38 +157,48 @@ def _relax(neighbours: jax.Array, weights: jax.Array, start_nodes: jax.Array,
            start_lengths: jax.Array, goal_nodes: jax.Array,
            goal_lengths: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Min-plus relaxation of P pairs on one graph: (P,) goal distances, (P,) last roadmap
-    node of each path (−1: none) and (P, N) predecessors (−1: attached to the start)."""
+    node of each path (−1: none) and (P, N) predecessors (−1: attached to the start).
+    Distances are held node-major, (N, P), so that the gather over neighbours reads whole
+    rows (contiguous on a CPU, coalesced on a GPU)."""
     pairs, n = start_nodes.shape[0], neighbours.shape[0]
     inf = jnp.asarray(jnp.inf, weights.dtype)
-    rows = jnp.arange(pairs)[:, None]
-    dist = jnp.full((pairs, n), inf).at[rows, start_nodes].min(start_lengths)
-    pred = jnp.full((pairs, n), -1, jnp.int32)
+    columns = jnp.broadcast_to(jnp.arange(pairs)[:, None], start_nodes.shape)
+    dist = jnp.full((n, pairs), inf).at[start_nodes, columns].min(start_lengths)
+    goal_columns = jnp.broadcast_to(jnp.arange(pairs)[:, None], goal_nodes.shape)
 
-    def goal_best(dist: jax.Array) -> tuple[jax.Array, jax.Array]:
-        through = dist[rows, goal_nodes] + goal_lengths          # (P, B)
-        best = jnp.argmin(through, axis=1)
-        return jnp.min(through, axis=1), goal_nodes[jnp.arange(pairs), best]
+    def relaxed(dist: jax.Array) -> jax.Array:
+        return dist[neighbours] + weights[:, :, None]             # (N, D, P)
+
+    def goal_best(dist: jax.Array) -> jax.Array:
+        return jnp.min(dist[goal_nodes, goal_columns] + goal_lengths, axis=1)
 
     def active(changed: jax.Array, dist: jax.Array) -> jax.Array:
         # A pair goes on while a node that just changed is closer than its goal.
-        frontier = jnp.min(jnp.where(changed, dist, inf), axis=1)
-        return frontier < goal_best(dist)[0]
+        frontier = jnp.min(jnp.where(changed, dist, inf), axis=0)
+        return frontier < goal_best(dist)
 
     def step(state: tuple) -> tuple:
-        dist, pred, changed, _ = state
+        dist, changed, _ = state
         go = active(changed, dist)
-        through = dist[:, neighbours] + weights[None]             # (P, N, D)
-        pick = jnp.argmin(through, axis=2)
-        best = jnp.take_along_axis(through, pick[..., None], axis=2)[..., 0]
-        better = (best < dist) & go[:, None]
-        pred = jnp.where(better, neighbours[jnp.arange(n)[None], pick], pred)
-        return jnp.where(better, best, dist), pred, better, go.any()
+        best = jnp.min(relaxed(dist), axis=1)
+        better = (best < dist) & go[None, :]
+        return jnp.where(better, best, dist), better, go.any()
 
     changed = jnp.isfinite(dist)
-    state = (dist, pred, changed, jnp.any(active(changed, dist)))
-    dist, pred, _, _ = jax.lax.while_loop(lambda s: s[3], step, state)
-    length, last = goal_best(dist)
-    return length, jnp.where(jnp.isfinite(length), last, -1), pred
+    dist, _, _ = jax.lax.while_loop(lambda s: s[2], step,
+                                    (dist, changed, jnp.any(active(changed, dist))))
+    # Predecessors from the final distances: the neighbour that gives a node its
+    # distance (a strictly shorter one, as weights are positive, so no cycles); −1 where
+    # the start's own edge is shorter. Nodes on a goal's path are settled (the loop ends
+    # only when no change can reach them), so their rows are exact.
+    through = relaxed(dist)
+    pick = jnp.argmin(through, axis=1)                            # (N, P)
+    via = jnp.take_along_axis(through, pick[:, None], axis=1)[:, 0]
+    pred = jnp.where(via <= dist, jnp.take_along_axis(neighbours, pick, axis=1), -1)
+    through_goal = dist[goal_nodes, goal_columns] + goal_lengths  # (P, B)
+    length = jnp.min(through_goal, axis=1)
+    last = goal_nodes[jnp.arange(pairs), jnp.argmin(through_goal, axis=1)]
+    return length, jnp.where(jnp.isfinite(length), last, -1), pred.T
 
 
 # ================================================================ scipy
