@@ -38,9 +38,11 @@ SEARCH_CHOICE = "scipy on a CPU backend, device otherwise"
 2-core CPU, ``cr-nlp``'s README, Roadmap search table): scipy was faster than the JAX
 relaxation at every pair count on the CPU."""
 SEARCH_CHUNK = 256
-"""Most pairs per compiled search (the relaxation holds (pairs, N, D) sums)."""
-SEARCH_SMALLEST = 8
-"""Fewest pairs per compiled search (a single query pads to this)."""
+"""Most pairs per compiled search (the relaxation holds (N, D, pairs) sums: 50 MB in
+float32 for a 2048-node roadmap of degree 24)."""
+SEARCH_SMALLEST = 32
+"""Fewest pairs per compiled search (a single query pads to this; with ``SEARCH_CHUNK``
+the two compiled shapes of ``chunk_plan``)."""
 
 
 def neighbour_table(edges: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
