@@ -164,8 +164,9 @@ def test_many_pairs_at_once_answer_as_one_by_one(robot, coarse_roadmap_problems,
 
 def plan_many_problems(robot, count, seed):
     scene = load_scene("shelf")
-    planner = TrajectoryPlanner(robot, scene, TrajectoryConfig(guesses=1, iterations=5,
-                                                               problem_chunk=3))
+    # The device search here (the other planner tests run "auto", scipy on a CPU).
+    planner = TrajectoryPlanner(robot, scene, TrajectoryConfig(
+        guesses=1, iterations=5, problem_chunk=3, roadmap_search="device"))
     starts, goals = plan_problems(robot, scene, count, planner.margin, seed=seed)
     return planner, starts, goals
 
@@ -193,8 +194,8 @@ def test_planning_many_problems_in_one_call_matches_one_by_one_and_streams(robot
 @pytest.mark.slow  # 1000 planning problems: minutes on 2 cores
 def test_a_thousand_problems_stream_through_one_call(robot):
     planner, starts, goals = plan_many_problems(robot, 1000, seed=5)
-    planner = TrajectoryPlanner(robot, planner.scene,
-                                TrajectoryConfig(guesses=1, iterations=5, problem_chunk=256))
+    planner = TrajectoryPlanner(robot, planner.scene, TrajectoryConfig(
+        guesses=1, iterations=5, problem_chunk=256, roadmap_search="device"))
     results = planner.plan(starts, goals)
     assert len(results) == 1000 and all(r.q is not None for r in results)
     sample = np.arange(0, 1000, 97)

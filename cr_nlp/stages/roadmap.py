@@ -57,6 +57,8 @@ CHECK_CHUNK = 4096
 CHUNKS = (64, 512, CHECK_CHUNK)
 """Compiled batch sizes: a request uses the smallest that holds it (RRT steps and
 query-time checks are small), else chunks of ``CHECK_CHUNK``."""
+SAMPLE_BLOCK = 16 * CHECK_CHUNK
+"""Most interpolated configurations an edge check holds at once."""
 FORMAT_VERSION = 2
 """Bumped when the cached file's content or the build procedure changes."""
 
@@ -175,16 +177,25 @@ class ClearanceChecker:
 def _edge_free(checker: ClearanceChecker, za: np.ndarray, zb: np.ndarray, counts: np.ndarray,
                margin: float) -> np.ndarray:
     """(E,) True where every interior sample of the edge za→zb (E, 3n) keeps the margin;
-    edge e has ``counts[e]`` interior samples, evenly spaced."""
+    edge e has ``counts[e]`` interior samples, evenly spaced. The samples are made for
+    groups of edges of about ``SAMPLE_BLOCK`` samples at a time (bounded memory for the
+    dense checks of many queries)."""
     counts = np.asarray(counts, dtype=np.int64)
-    edge = np.repeat(np.arange(len(za)), counts)
-    offsets = np.arange(len(edge)) - np.repeat(np.cumsum(counts) - counts, counts)
-    t = (offsets + 1.0) / (counts[edge] + 1.0)
-    samples = za[edge] + t[:, None] * (zb[edge] - za[edge])
-    ok = checker(samples) >= margin
-    bad = np.zeros(len(za), dtype=bool)
-    np.logical_or.at(bad, edge[~ok], True)
-    return ~bad
+    free = np.ones(len(za), dtype=bool)
+    ends = np.cumsum(counts)
+    first = 0
+    while first < len(za):
+        before = ends[first - 1] if first else 0
+        last = max(first + 1, int(np.searchsorted(ends, before + SAMPLE_BLOCK, side="right")))
+        part = counts[first:last]
+        edge = np.repeat(np.arange(len(part)), part)
+        offsets = np.arange(len(edge)) - np.repeat(np.cumsum(part) - part, part)
+        t = (offsets + 1.0) / (part[edge] + 1.0)
+        a, b = za[first:last][edge], zb[first:last][edge]
+        ok = checker(a + t[:, None] * (b - a)) >= margin
+        np.logical_and.at(free[first:last], edge[~ok], False)
+        first = last
+    return free
 
 
 def _scene_key(robot: Robot, scene: Scene, config: RoadmapConfig) -> str:
