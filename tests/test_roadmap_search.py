@@ -140,7 +140,7 @@ def coarse_roadmap_problems(robot):
     """A small roadmap with one interior check per edge (so the dense query-time checks
     drop edges) in the random scene, and start/goal pairs."""
     scene = load_scene(MODELS / "scenes" / "random_27.json")
-    config = RoadmapConfig(nodes=384, neighbours=6, edge_checks=1, seed=5)
+    config = RoadmapConfig(nodes=384, neighbours=6, edge_checks=1, seed=5, max_query_rounds=100)
     starts, goals = plan_problems(robot, scene, 16, resolved_margin(robot, config), seed=4)
     return scene, config, q_to_z_numpy(starts), q_to_z_numpy(goals)
 
@@ -155,11 +155,42 @@ def test_many_pairs_at_once_answer_as_one_by_one(robot, coarse_roadmap_problems,
     assert fresh.last_query_rounds > 1                   # the lazy re-search ran
     assert sum(path is not None for path in together) >= len(z_starts) // 2
     assert any(path is not None and len(path) > 2 for path in together)
-    for one, many in zip(alone, together, strict=True):
-        assert (one is None) == (many is None)
+    expected = shortest_dense_free_paths(Roadmap.build(robot, scene, config), z_starts, z_goals)
+    for one, many, length in zip(alone, together, expected, strict=True):
+        assert (one is None) == (many is None) == (length == np.inf)
         if many is not None:
             assert polyline_length(many) == pytest.approx(polyline_length(one), rel=1e-5)
+            assert polyline_length(many) == pytest.approx(length, rel=1e-5)
             assert fresh.dense_free(many[:-1], many[1:]).all()
+
+
+def shortest_dense_free_paths(roadmap, z_starts, z_goals):
+    """The reference of the lazy search: every roadmap edge and every attach edge checked
+    densely up front, the failing ones removed, then scipy Dijkstra pair by pair."""
+    graph = roadmap.edges.tocoo()
+    upper = graph.row < graph.col
+    a, b = graph.row[upper], graph.col[upper]
+    ok = roadmap.dense_free(roadmap.nodes_z[a], roadmap.nodes_z[b])
+    length = graph.data[upper][ok]
+    n = len(roadmap.nodes_z)
+    free = sp.coo_matrix((np.r_[length, length], (np.r_[a[ok], b[ok]], np.r_[b[ok], a[ok]])),
+                         shape=(n, n)).tocsr()
+    out = []
+    for z_start, z_goal in zip(z_starts, z_goals, strict=True):
+        if roadmap.dense_free(z_start, z_goal)[0]:
+            out.append(float(np.linalg.norm(z_goal - z_start)))
+            continue
+        ends = []
+        for z in (z_start, z_goal):
+            nodes, lengths = roadmap._attach(z[None])
+            nodes, lengths = nodes[0], lengths[0].copy()
+            used = nodes >= 0
+            lengths[used] = np.where(roadmap.dense_free(np.repeat(z[None], used.sum(), 0),
+                                                        roadmap.nodes_z[nodes[used]]),
+                                     lengths[used], np.inf)
+            ends += [nodes, lengths]
+        out.append(one_pair_dijkstra(free, *ends)[0])
+    return out
 
 
 def plan_many_problems(robot, count, seed):
