@@ -65,3 +65,15 @@ def test_plan_benchmark_runs_on_a_tiny_size(tmp_path, monkeypatch):
                  "iterations.png"):
         assert (tmp_path / "out" / name).stat().st_size > 0
     assert "RRT-Connect" in (tmp_path / "out" / "plan.md").read_text()
+
+
+def test_search_scaling_times_both_backends_on_the_same_paths(tmp_path, monkeypatch):
+    from cr_nlp.bench.plan import search_scaling
+
+    monkeypatch.setenv("CR_NLP_CACHE_DIR", str(tmp_path / "cache"))
+    rows = search_scaling(("random_27",), (1, 6), out=tmp_path / "out", repeats=1)
+    assert [r["pairs"] for r in rows] == [1, 6]
+    for row in rows:
+        assert row["same_lengths"] is True
+        assert row["scipy_ms"] > 0.0 and row["device_ms"] > 0.0
+    assert "device (ms)" in (tmp_path / "out" / "search.md").read_text()

@@ -331,6 +331,59 @@ def run_plan_benchmark(quick: bool = False, pairs_per_scene: int | None = None,
     return all_rows
 
 
+def search_scaling(scenes: Sequence[str] = ("shelf", "cabinet"),
+                   counts: Sequence[int] = (1, 20, 1000), robot: str = "tdcr3",
+                   out: str | Path | None = "bench_results/plan", seed: int = 0,
+                   repeats: int = 5) -> list[dict[str, Any]]:
+    """Time the batched roadmap search alone (``stages.roadmap_search.shortest_paths``),
+    scipy against the device's min-plus relaxation, for ``counts`` start/goal pairs on
+    each scene's roadmap. The ends are the benchmark's problems attached to their
+    ``neighbours`` nearest nodes without edge checks (the checks are the same for both
+    backends). Medians of ``repeats`` calls, the two backends alternating, after a
+    warm-up call each (compilation). Prints and writes search.md / search.csv."""
+    from ..stages.roadmap_search import neighbour_table, shortest_paths
+
+    robot_model = load_robot(robot)
+    rows: list[dict[str, Any]] = []
+    for name in scenes:
+        scene = load_scene(name)
+        planner = TrajectoryPlanner(robot_model, scene)
+        roadmap = planner.roadmap()
+        neighbours, weights = neighbour_table(roadmap.edges)
+        starts, goals = plan_problems(robot_model, scene, max(counts), planner.margin, seed)
+        k = roadmap.config.neighbours
+        ends = [roadmap.tree.query(np.asarray(q_to_z(robot_model, q)), k=k)
+                for q in (starts, goals)]
+        for count in counts:
+            args = (neighbours, weights, ends[0][1][:count], ends[0][0][:count],
+                    ends[1][1][:count], ends[1][0][:count])
+            times: dict[str, list[float]] = {"scipy": [], "device": []}
+            found = {}
+            for backend in times:
+                found[backend] = shortest_paths(*args, search=backend)[0]     # warm-up
+            for _ in range(repeats):
+                for backend, spent in times.items():
+                    t0 = time.perf_counter()
+                    shortest_paths(*args, search=backend)
+                    spent.append(time.perf_counter() - t0)
+            agree = np.allclose(found["scipy"], found["device"], rtol=1e-5)
+            rows.append({"scene": name, "pairs": count,
+                         "scipy_ms": 1e3 * statistics.median(times["scipy"]),
+                         "device_ms": 1e3 * statistics.median(times["device"]),
+                         "same_lengths": bool(agree)})
+    env = environment()
+    report = "\n\n".join([
+        f"# Roadmap search: scipy Dijkstra vs device min-plus ({robot}, nodes "
+        f"{len(roadmap.nodes_z)}, median of {repeats})",
+        markdown_table(rows, (Column("scene", "scene"), Column("pairs", "pairs"),
+                              Column("scipy_ms", "scipy (ms)", fixed(2)),
+                              Column("device_ms", "device (ms)", fixed(2)),
+                              Column("same_lengths", "same lengths"))),
+        "## Environment", environment_markdown(env)])
+    write_report("search", report, out, {"search": rows}, env)
+    return rows
+
+
 # ================================================================ output
 
 

@@ -126,13 +126,21 @@ def _add_plan(group: argparse._SubParsersAction) -> None:
                    help="LM iteration budgets of the sweep figure (none: no sweep)")
     p.add_argument("--sweep-pairs", type=int, default=None,
                    help=f"pairs per scene of the sweep (default {FULL.sweep_pairs})")
+    p.add_argument("--search-pairs", type=int, nargs="+", default=None,
+                   help="instead of the benchmark: time the roadmap search alone, scipy vs "
+                        "device, for these pair counts (e.g. 1 20 1000)")
     add_common_options(p, "plan", seed=True)
     p.set_defaults(run=_run_plan)
 
 
 def _run_plan(args: argparse.Namespace) -> int:
-    from ..bench.plan import run_plan_benchmark
+    from ..bench.plan import run_plan_benchmark, search_scaling
 
+    if args.search_pairs:
+        search_scaling(args.scenes, args.search_pairs, robot=args.robot, out=args.out,
+                       seed=args.seed)
+        _wrote(args, "search")
+        return 0
     run_plan_benchmark(quick=args.quick, pairs_per_scene=args.pairs, scenes=args.scenes,
                        robot=args.robot, out=args.out, seed=args.seed, methods=args.methods,
                        iteration_budgets=args.iterations, sweep_pairs=args.sweep_pairs,

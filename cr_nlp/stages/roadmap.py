@@ -1,5 +1,5 @@
 """Stage 1 for trajectories: a probabilistic roadmap (PRM) per (robot, scene), searched
-with Dijkstra.
+for shortest paths.
 
 Build (once per robot, scene and ``RoadmapConfig``; cached on disk):
 
@@ -10,11 +10,14 @@ Build (once per robot, scene and ``RoadmapConfig``; cached on disk):
 3. An edge is kept when ``edge_checks`` interpolated configurations along it keep the
    margin (checked in fixed-size batches, split over every JAX device).
 
-Query: start and goal are attached to their nearest nodes by collision-free edges
-(``neighbours`` nearest, widened 4× at a time while none connects), Dijkstra (scipy)
-finds the shortest path, and the edges of that path are checked
-again densely (every ``query_step`` in the metric); an edge that fails is dropped
-and the search repeats (lazy PRM). The path is resampled uniformly by arc length.
+Query (any number of start/goal pairs at once, ``query_many_z``): starts and goals are
+attached to their nearest nodes by collision-free edges (``neighbours`` nearest, widened
+4× at a time while none connects), the shortest paths of all pairs are found in one
+batched search (``roadmap_search``: scipy's Dijkstra, or a min-plus relaxation in JAX on
+the device), and the edges of those paths are checked again densely (every
+``query_step`` in the metric); an edge that fails is dropped and the pairs that used it
+search again (lazy PRM). Every check is one batched clearance call for all pairs. The
+path is resampled uniformly by arc length.
 
 Metric: the Euclidean distance in the bending-vector form z = [ux, uy, L]·n
 (radians for u = θ(cos φ, sin φ), metres for L). It has no azimuth wrap-around and no
@@ -40,7 +43,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
 from .._jax_setup import cache_dir, split_over_devices
@@ -48,12 +50,15 @@ from ..model import Robot, q_to_z, z_to_q
 from ..world import Scene, body_gap_tolerance, clearance_z, scene_arrays
 from ..world.clearance import SceneArrays
 from .explore import sobol_configurations
+from .roadmap_search import neighbour_table, shortest_paths
 
 CHECK_CHUNK = 4096
 """Configurations per clearance call (fixed, so the check compiles once per scene)."""
 CHUNKS = (64, 512, CHECK_CHUNK)
 """Compiled batch sizes: a request uses the smallest that holds it (RRT steps and
 query-time checks are small), else chunks of ``CHECK_CHUNK``."""
+SAMPLE_BLOCK = 16 * CHECK_CHUNK
+"""Most interpolated configurations an edge check holds at once."""
 FORMAT_VERSION = 2
 """Bumped when the cached file's content or the build procedure changes."""
 
@@ -91,8 +96,8 @@ class RoadmapConfig:
     query_step: float = 0.02
     """Spacing (rad or m in z) of the dense re-check of a path's edges at query time."""
     max_query_rounds: int = 2000
-    """Most Dijkstra searches per query (each drops the path's edges that fail the dense
-    check); queries that run out return None."""
+    """Most searches per query (each drops the path's edges that fail the dense check);
+    queries that run out return None."""
     max_draws_factor: int = 16
     """Give up drawing nodes after this many × ``nodes`` draws (very cluttered scenes)."""
 
@@ -172,16 +177,25 @@ class ClearanceChecker:
 def _edge_free(checker: ClearanceChecker, za: np.ndarray, zb: np.ndarray, counts: np.ndarray,
                margin: float) -> np.ndarray:
     """(E,) True where every interior sample of the edge za→zb (E, 3n) keeps the margin;
-    edge e has ``counts[e]`` interior samples, evenly spaced."""
+    edge e has ``counts[e]`` interior samples, evenly spaced. The samples are made for
+    groups of edges of about ``SAMPLE_BLOCK`` samples at a time (bounded memory for the
+    dense checks of many queries)."""
     counts = np.asarray(counts, dtype=np.int64)
-    edge = np.repeat(np.arange(len(za)), counts)
-    offsets = np.arange(len(edge)) - np.repeat(np.cumsum(counts) - counts, counts)
-    t = (offsets + 1.0) / (counts[edge] + 1.0)
-    samples = za[edge] + t[:, None] * (zb[edge] - za[edge])
-    ok = checker(samples) >= margin
-    bad = np.zeros(len(za), dtype=bool)
-    np.logical_or.at(bad, edge[~ok], True)
-    return ~bad
+    free = np.ones(len(za), dtype=bool)
+    ends = np.cumsum(counts)
+    first = 0
+    while first < len(za):
+        before = ends[first - 1] if first else 0
+        last = max(first + 1, int(np.searchsorted(ends, before + SAMPLE_BLOCK, side="right")))
+        part = counts[first:last]
+        edge = np.repeat(np.arange(len(part)), part)
+        offsets = np.arange(len(edge)) - np.repeat(np.cumsum(part) - part, part)
+        t = (offsets + 1.0) / (part[edge] + 1.0)
+        a, b = za[first:last][edge], zb[first:last][edge]
+        ok = checker(a + t[:, None] * (b - a)) >= margin
+        np.logical_and.at(free[first:last], edge[~ok], False)
+        first = last
+    return free
 
 
 def _scene_key(robot: Robot, scene: Scene, config: RoadmapConfig) -> str:
@@ -219,8 +233,10 @@ class Roadmap:
         self.tree = cKDTree(self.nodes_z)
         self._checker: ClearanceChecker | None = None
         self._dense_ok: dict[tuple[int, int], bool] = {}
+        self._neighbours: np.ndarray | None = None
+        self._weights: np.ndarray | None = None
         self.last_query_rounds = 0
-        """Dijkstra searches the last query needed (lazy edge checks)."""
+        """Batched searches the last query needed (lazy edge checks)."""
 
     @property
     def checker(self) -> ClearanceChecker:
@@ -322,98 +338,156 @@ class Roadmap:
         return _edge_free(self.checker, za, zb, counts, self.margin)
 
     def _attach(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Indices and lengths of nearby nodes that z connects to without collision: the
-        ``neighbours`` nearest first, then 4×, 16×, … as many until one connects
-        (configurations deep in a narrow space have few free straight lines)."""
-        count, done = self.config.neighbours, 0
-        while done < len(self.nodes_z):
+        """Nearby nodes that each configuration z (M, 3n) connects to without collision:
+        (M, ``neighbours``) indices (−1 pads) and lengths (+inf pads). The ``neighbours``
+        nearest are tried first, then 4×, 16×, … as many for the rows where none connects
+        (configurations deep in a narrow space have few free straight lines); every row's
+        candidates are checked in one batched clearance call per round."""
+        width = self.config.neighbours
+        nodes, out = np.full((len(z), width), -1, dtype=np.int64), np.full((len(z), width),
+                                                                            np.inf)
+        pending, count, done = np.arange(len(z)), width, 0
+        while len(pending) and done < len(self.nodes_z):
             k = min(count, len(self.nodes_z))
-            dist, idx = self.tree.query(z, k=k)
-            dist, idx = np.atleast_1d(dist)[done:], np.atleast_1d(idx)[done:]
+            dist, idx = self.tree.query(z[pending], k=k)
+            dist = dist.reshape(len(pending), k)[:, done:]
+            idx = idx.reshape(len(pending), k)[:, done:]
             # Coarse check of every candidate, then the dense one on the nearest survivors.
-            coarse = _edge_free(self.checker, np.repeat(z[None], len(idx), axis=0),
-                                self.nodes_z[idx], np.full(len(idx), self.config.edge_checks),
-                                self.margin)
-            dist, idx = dist[coarse][:self.config.neighbours], idx[coarse][:self.config.neighbours]
-            steps = np.ceil(dist / self.config.query_step).astype(np.int64)
-            ok = _edge_free(self.checker, np.repeat(z[None], len(idx), axis=0),
-                            self.nodes_z[idx], np.maximum(self.config.edge_checks, steps),
-                            self.margin)
-            if ok.any():
-                return idx[ok], np.maximum(dist[ok], 1e-12)
+            coarse = _edge_free(self.checker, np.repeat(z[pending], idx.shape[1], axis=0),
+                                self.nodes_z[idx.ravel()],
+                                np.full(idx.size, self.config.edge_checks),
+                                self.margin).reshape(idx.shape)
+            rank = np.cumsum(coarse, axis=1)
+            row, column = np.nonzero(coarse & (rank <= width))
+            steps = np.ceil(dist[row, column] / self.config.query_step).astype(np.int64)
+            ok = _edge_free(self.checker, z[pending[row]], self.nodes_z[idx[row, column]],
+                            np.maximum(self.config.edge_checks, steps), self.margin)
+            row, column = row[ok], column[ok]
+            slot = rank[row, column] - 1
+            nodes[pending[row], slot] = idx[row, column]
+            out[pending[row], slot] = np.maximum(dist[row, column], 1e-12)
+            pending = pending[~np.isin(np.arange(len(pending)), row)]
             done, count = k, 4 * count
-        return np.zeros(0, dtype=np.int64), np.zeros(0)
+        return nodes, out
 
-    def query_z(self, z_start: np.ndarray, z_goal: np.ndarray) -> np.ndarray | None:
+    def _table(self) -> tuple[np.ndarray, np.ndarray]:
+        """The roadmap as a neighbour table (``roadmap_search.neighbour_table``) with the
+        edges that failed a dense check dropped (+inf)."""
+        if self._neighbours is None:
+            self._neighbours, self._weights = neighbour_table(self.edges)
+            self._drop([h for h, ok in self._dense_ok.items() if not ok])
+        assert self._weights is not None
+        return self._neighbours, self._weights
+
+    def _drop(self, hops: list[tuple[int, int]]) -> None:
+        """Remove roadmap edges (a, b) from the neighbour table (both directions)."""
+        if self._neighbours is None or not hops:
+            return
+        assert self._weights is not None
+        for a, b in hops:
+            for u, v in ((a, b), (b, a)):
+                self._weights[u, self._neighbours[u] == v] = np.inf
+
+    def query_z(self, z_start: np.ndarray, z_goal: np.ndarray,
+                search: str = "auto") -> np.ndarray | None:
         """The shortest roadmap path from ``z_start`` to ``z_goal`` (3n, bending-vector
         form) as its corner points (K, 3n), start and goal included, every edge
-        re-checked densely; None if either end cannot be attached or no path exists."""
-        z_start = np.asarray(z_start, dtype=float).reshape(self.robot.dof)
-        z_goal = np.asarray(z_goal, dtype=float).reshape(self.robot.dof)
-        if self.dense_free(z_start, z_goal)[0]:
-            return np.stack([z_start, z_goal])
-        if len(self.nodes_z) == 0:
-            return None
-        start_idx, start_len = self._attach(z_start)
-        goal_idx, goal_len = self._attach(z_goal)
-        if len(start_idx) == 0 or len(goal_idx) == 0:
-            return None
-        n = len(self.nodes_z)
-        s, g = n, n + 1
-        extra = sp.coo_matrix(
-            (np.r_[start_len, start_len, goal_len, goal_len],
-             (np.r_[np.full(len(start_idx), s), start_idx, np.full(len(goal_idx), g), goal_idx],
-              np.r_[start_idx, np.full(len(start_idx), s), goal_idx, np.full(len(goal_idx), g)])),
-            shape=(n + 2, n + 2))
-        graph = (sp.block_diag([self.edges, sp.csr_matrix((2, 2))]) + extra).tolil()
-        for (a, b), ok in self._dense_ok.items():
-            if not ok:
-                graph[a, b] = 0.0
-                graph[b, a] = 0.0
-        points = np.vstack([self.nodes_z, z_start, z_goal])
-        # Lazy PRM: a path edge that fails the dense check is removed, then search again.
-        self.last_query_rounds = 0
-        for _ in range(self.config.max_query_rounds):
-            self.last_query_rounds += 1
-            _, pred = dijkstra(graph.tocsr(), directed=False, indices=s,
-                               return_predecessors=True)
-            if pred[g] < 0:
-                return None
-            path = [g]
-            while path[-1] != s:
-                path.append(int(pred[path[-1]]))
-            path.reverse()
-            hops = [(min(a, b), max(a, b)) for a, b in zip(path[:-1], path[1:], strict=True)]
-            # Edges between roadmap nodes keep their verdict for later queries.
-            unknown = [h for h in hops if h[1] >= n or h not in self._dense_ok]
-            if unknown:
-                pairs = np.array(unknown)
-                verdicts = self.dense_free(points[pairs[:, 0]], points[pairs[:, 1]])
-                known = {h: bool(v) for h, v in zip(unknown, verdicts, strict=True)}
-                self._dense_ok.update({h: v for h, v in known.items() if h[1] < n})
-            else:
-                known = {}
-            failed = [h for h in hops if not known.get(h, self._dense_ok.get(h, False))]
-            for a, b in failed:
-                graph[a, b] = 0.0
-                graph[b, a] = 0.0
-            if not failed:
-                return points[path]
-        return None
+        re-checked densely; None if either end cannot be attached or no path exists.
+        ``query_many_z`` for one pair."""
+        z_start = np.asarray(z_start, dtype=float).reshape(1, self.robot.dof)
+        z_goal = np.asarray(z_goal, dtype=float).reshape(1, self.robot.dof)
+        return self.query_many_z(z_start, z_goal, search)[0]
 
-    def query(self, q_start: np.ndarray, q_goal: np.ndarray, waypoints: int) -> np.ndarray | None:
+    def query_many_z(self, z_starts: np.ndarray, z_goals: np.ndarray,
+                     search: str = "auto") -> list[np.ndarray | None]:
+        """``query_z`` for P pairs at once: (P, 3n) starts and goals in the bending-vector
+        form; per pair the corner points (K, 3n) or None. The checks of every pair run
+        as batched clearance calls and the searches as one batched shortest-path call per
+        lazy round (``roadmap_search.shortest_paths``, backend ``search``: "auto",
+        "device" or "scipy"); each pair's answer is the one ``query_z`` gives alone."""
+        z_starts = np.asarray(z_starts, dtype=float).reshape(-1, self.robot.dof)
+        z_goals = np.asarray(z_goals, dtype=float).reshape(-1, self.robot.dof)
+        count, n = len(z_starts), len(self.nodes_z)
+        out: list[np.ndarray | None] = [None] * count
+        direct = self.dense_free(z_starts, z_goals) if count else np.zeros(0, dtype=bool)
+        for p in np.flatnonzero(direct):
+            out[p] = np.stack([z_starts[p], z_goals[p]])
+        self.last_query_rounds = 0
+        active = np.flatnonzero(~direct)
+        if n == 0 or len(active) == 0:
+            return out
+        ends_nodes, ends_len = self._attach(np.vstack([z_starts[active], z_goals[active]]))
+        start_nodes, goal_nodes = np.split(ends_nodes, 2)
+        start_len, goal_len = np.split(ends_len, 2)
+        attached = np.isfinite(start_len).any(axis=1) & np.isfinite(goal_len).any(axis=1)
+        rows = np.flatnonzero(attached)               # rows into the attach arrays
+        neighbours, weights = self._table()
+        # Lazy PRM: path edges that fail the dense check are removed, then search again.
+        for _ in range(self.config.max_query_rounds):
+            if len(rows) == 0:
+                break
+            self.last_query_rounds += 1
+            _, paths = shortest_paths(neighbours, weights, start_nodes[rows], start_len[rows],
+                                      goal_nodes[rows], goal_len[rows], search)
+            found = [k for k, path in enumerate(paths) if path is not None]
+            # Roadmap edges keep their verdict for later queries; the attach edges of a
+            # path are checked again with the path (their lengths are per pair).
+            hops = {(min(a, b), max(a, b)) for k in found
+                    for a, b in zip(paths[k][:-1], paths[k][1:], strict=True)}
+            unknown = sorted(h for h in hops if h not in self._dense_ok)
+            za = [self.nodes_z[[h[0] for h in unknown]]]
+            zb = [self.nodes_z[[h[1] for h in unknown]]]
+            for k in found:
+                p = active[rows[k]]
+                za += [z_starts[p][None], self.nodes_z[paths[k][-1]][None]]
+                zb += [self.nodes_z[paths[k][0]][None], z_goals[p][None]]
+            verdicts = self.dense_free(np.vstack(za), np.vstack(zb))
+            failed = [h for h, ok in zip(unknown, verdicts, strict=False) if not ok]
+            self._dense_ok.update(zip(unknown, map(bool, verdicts), strict=False))
+            self._drop(failed)
+            ends_ok = verdicts[len(unknown):].reshape(-1, 2)
+            again = []
+            for k, (start_ok, goal_ok) in zip(found, ends_ok, strict=True):
+                row, path = rows[k], paths[k]
+                if not start_ok:
+                    start_len[row, start_nodes[row] == path[0]] = np.inf
+                if not goal_ok:
+                    goal_len[row, goal_nodes[row] == path[-1]] = np.inf
+                inner = all(self._dense_ok[(min(a, b), max(a, b))]
+                            for a, b in zip(path[:-1], path[1:], strict=True))
+                if start_ok and goal_ok and inner:
+                    p = active[row]
+                    out[p] = np.vstack([z_starts[p], self.nodes_z[path], z_goals[p]])
+                else:
+                    again.append(row)
+            rows = np.array(again, dtype=np.int64)
+        return out
+
+    def query_many(self, q_starts: np.ndarray, q_goals: np.ndarray, waypoints: int,
+                   search: str = "auto") -> list[np.ndarray | None]:
+        """``query`` for P pairs at once ((P, 3n) each; rad, rad, m), through
+        ``query_many_z``: per pair (waypoints, 3n) configurations or None."""
+        q_starts = np.asarray(q_starts, dtype=float).reshape(-1, self.robot.dof)
+        q_goals = np.asarray(q_goals, dtype=float).reshape(-1, self.robot.dof)
+        corners = self.query_many_z(np.asarray(q_to_z(self.robot, q_starts)),
+                                    np.asarray(q_to_z(self.robot, q_goals)), search)
+        out: list[np.ndarray | None] = []
+        for q_start, q_goal, points in zip(q_starts, q_goals, corners, strict=True):
+            if points is None:
+                out.append(None)
+                continue
+            q = np.array(z_to_q(self.robot, resample_polyline(points, waypoints)), dtype=float)
+            # Keep the given end points bit for bit (the z round trip moves φ at θ = 0).
+            q[0], q[-1] = q_start, q_goal
+            out.append(q)
+        return out
+
+    def query(self, q_start: np.ndarray, q_goal: np.ndarray, waypoints: int,
+              search: str = "auto") -> np.ndarray | None:
         """A collision-free path from ``q_start`` to ``q_goal`` (3n each; rad, rad, m) as
         (waypoints, 3n) configurations (θ, φ, L): the roadmap path (``query_z``) resampled
         uniformly by arc length in z. None if start or goal cannot be attached or no
         path exists. The resampled polyline cuts the path's corners slightly: check the
         result where that matters."""
-        z_start = np.asarray(q_to_z(self.robot, np.asarray(q_start, dtype=float)))
-        z_goal = np.asarray(q_to_z(self.robot, np.asarray(q_goal, dtype=float)))
-        corners = self.query_z(z_start, z_goal)
-        if corners is None:
-            return None
-        z = resample_polyline(corners, waypoints)
-        q = np.array(z_to_q(self.robot, z), dtype=float)
-        # Keep the given end points bit for bit (the z round trip moves φ at θ = 0).
-        q[0], q[-1] = np.asarray(q_start, dtype=float), np.asarray(q_goal, dtype=float)
-        return q
+        return self.query_many(np.reshape(q_start, (1, -1)), np.reshape(q_goal, (1, -1)),
+                               waypoints, search)[0]

@@ -119,6 +119,13 @@ class TrajectoryConfig:
     """Seed of the perturbed guesses."""
     roadmap_cache: bool = True
     """Let ``Roadmap.build`` reuse a roadmap cached on disk."""
+    roadmap_search: str = "auto"
+    """Shortest-path backend of the roadmap queries (``stages.roadmap_search``): "device"
+    (batched min-plus relaxation in JAX), "scipy" (Dijkstra), or "auto" (scipy on a CPU
+    backend, where it was measured faster at 1 to 1000 pairs, the device otherwise)."""
+    problem_chunk: int = 256
+    """Most problems planned together (roadmap queries, guesses, LM, verification); a
+    larger batch is streamed in blocks of this many, so memory stays bounded."""
 
     def __post_init__(self) -> None:
         if self.waypoints < 3:
@@ -127,6 +134,11 @@ class TrajectoryConfig:
             raise ValueError(f"dt must be positive, got {self.dt}")
         if self.guesses < 1 or self.verify_samples < 1 or self.interpolation_checks < 0:
             raise ValueError("guesses and verify_samples must be ≥ 1, interpolation_checks ≥ 0")
+        if self.roadmap_search not in ("auto", "device", "scipy"):
+            raise ValueError(f"roadmap_search must be 'auto', 'device' or 'scipy', "
+                             f"got {self.roadmap_search!r}")
+        if self.problem_chunk < 1:
+            raise ValueError(f"problem_chunk must be ≥ 1, got {self.problem_chunk}")
 
 
 # ================================================================ residuals
@@ -626,22 +638,31 @@ class TrajectoryPlanner:
                                           cache=self.config.roadmap_cache)
         return self._roadmap
 
-    def _guesses(self, z_start: np.ndarray, z_goal: np.ndarray, init: str,
-                 q_start: np.ndarray, q_goal: np.ndarray) -> tuple[np.ndarray, list[str]]:
-        """(G, waypoints, 3n) initial trajectories in z and what each one is."""
+    def _roadmap_paths(self, valid: list[tuple[int, np.ndarray, np.ndarray]],
+                       init: str) -> list[np.ndarray | None]:
+        """The roadmap path (waypoints, 3n) of every problem, None where there is none
+        (or ``init`` is not "roadmap"): one batched query for all of them."""
+        roadmap = self.roadmap() if init == "roadmap" else None
+        if roadmap is None:
+            return [None] * len(valid)
+        return roadmap.query_many(np.stack([q for _, q, _ in valid]),
+                                  np.stack([q for _, _, q in valid]), self.config.waypoints,
+                                  self.config.roadmap_search)
+
+    def _guesses(self, z_start: np.ndarray, z_goal: np.ndarray,
+                 path: np.ndarray | None) -> tuple[np.ndarray, list[str]]:
+        """(G, waypoints, 3n) initial trajectories in z and what each one is; ``path`` is
+        the roadmap's (waypoints, 3n) configurations, or None."""
         cfg = self.config
         n = cfg.waypoints
         s = np.linspace(0.0, 1.0, n)[:, None]
         straight = z_start[None] + s * (z_goal - z_start)[None]
         guesses, kinds = [], []
-        if init == "roadmap":
-            roadmap = self.roadmap()
-            path = None if roadmap is None else roadmap.query(q_start, q_goal, n)
-            if path is not None:
-                z = q_to_z_numpy(np.reshape(path, (n, -1)))
-                z[0], z[-1] = z_start, z_goal
-                guesses.append(z)
-                kinds.append("roadmap")
+        if path is not None:
+            z = q_to_z_numpy(np.reshape(path, (n, -1)))
+            z[0], z[-1] = z_start, z_goal
+            guesses.append(z)
+            kinds.append("roadmap")
         guesses.append(straight)
         kinds.append("straight")
         bump = np.sin(np.pi * s)
@@ -701,23 +722,36 @@ class TrajectoryPlanner:
 
     def validate(self, start: Any, goal: Any) -> tuple[np.ndarray | None, np.ndarray | None, str]:
         """Full (3n,) start and goal, or a reason why the problem cannot be planned."""
-        try:
-            q_start = self.robot.full_q(start)
-        except (ValueError, TypeError) as exc:
-            return None, None, f"bad start: {exc}"
-        try:
-            q_goal = self.robot.full_q(goal)
-        except (ValueError, TypeError) as exc:
-            return None, None, f"bad goal: {exc}"
-        if self.scene is not None or self.robot.n_segments >= 3:
+        return self.validate_many([start], [goal])[0]
+
+    def validate_many(self, starts: Any, goals: Any) -> list[tuple[np.ndarray | None,
+                                                                   np.ndarray | None, str]]:
+        """``validate`` for every (start, goal) pair, python-fcl run once on all ends."""
+        out: list[tuple[np.ndarray | None, np.ndarray | None, str]] = []
+        for start, goal in zip(starts, goals, strict=True):
+            try:
+                q_start = self.robot.full_q(start)
+            except (ValueError, TypeError) as exc:
+                out.append((None, None, f"bad start: {exc}"))
+                continue
+            try:
+                out.append((q_start, self.robot.full_q(goal), ""))
+            except (ValueError, TypeError) as exc:
+                out.append((None, None, f"bad goal: {exc}"))
+        rows = [i for i, (_, _, reason) in enumerate(out) if not reason]
+        if rows and (self.scene is not None or self.robot.n_segments >= 3):
             scene = self.scene if self.scene is not None else _NO_OBSTACLES
-            verdict = check_many(self.robot, scene, np.stack([q_start, q_goal]))
-            for name, hit, d in zip(("start", "goal"), verdict.collision,
-                                    verdict.min_distance, strict=True):
-                if hit:
-                    return None, None, (f"{name} is in collision by python-fcl (distance "
-                                        f"{d:.4g} m)")
-        return q_start, q_goal, ""
+            ends = np.stack([q for i in rows for q in out[i][:2]])
+            verdict = check_many(self.robot, scene, ends)
+            hits = verdict.collision.reshape(-1, 2)
+            distances = verdict.min_distance.reshape(-1, 2)
+            for i, hit, d in zip(rows, hits, distances, strict=True):
+                for name, h, di in zip(("start", "goal"), hit, d, strict=True):
+                    if h:
+                        out[i] = (None, None, f"{name} is in collision by python-fcl "
+                                              f"(distance {di:.4g} m)")
+                        break
+        return out
 
     def verify(self, q: np.ndarray, dt: float) -> dict[str, Any]:
         """``verify_trajectory`` with this planner's scene, δ and sampling."""
@@ -758,18 +792,19 @@ class TrajectoryPlanner:
         results: list[TrajectoryResult | None] = [None] * len(starts)
         valid: list[tuple[int, np.ndarray, np.ndarray]] = []
         t0 = time.perf_counter()
-        for i, (start, goal) in enumerate(zip(starts, goals, strict=True)):
-            q_start, q_goal, reason = self.validate(start, goal)
+        for i, (q_start, q_goal, reason) in enumerate(self.validate_many(starts, goals)):
             if reason:
                 results[i] = TrajectoryResult(self.robot, None, dt, False, reason, "rejected")
             else:
                 valid.append((i, q_start, q_goal))
         timing.verify += time.perf_counter() - t0
-        candidates: list[list[tuple[np.ndarray, str]]] = []
-        if valid:
-            candidates = self._plan_valid(valid, results, dt, init, timing)
-        if exact and valid:
-            self._polish(valid, candidates, results, dt, timing, progress)
+        # Streamed in blocks: a block's guesses, LM answers and candidates are all that
+        # is held at once besides the results.
+        for block in range(0, len(valid), cfg.problem_chunk):
+            part = valid[block:block + cfg.problem_chunk]
+            candidates = self._plan_valid(part, results, dt, init, timing)
+            if exact:
+                self._polish(part, candidates, results, dt, timing, progress)
         return [r for r in results if r is not None]
 
     def _plan_valid(self, valid: list[tuple[int, np.ndarray, np.ndarray]],
@@ -782,8 +817,9 @@ class TrajectoryPlanner:
         n, dof = cfg.waypoints, self.robot.dof
         t0 = time.perf_counter()
         guesses, kinds = [], []
-        for _, q_start, q_goal in valid:
-            g, k = self._guesses(q_to_z_numpy(q_start), q_to_z_numpy(q_goal), init, q_start, q_goal)
+        paths = self._roadmap_paths(valid, init)
+        for (_, q_start, q_goal), path in zip(valid, paths, strict=True):
+            g, k = self._guesses(q_to_z_numpy(q_start), q_to_z_numpy(q_goal), path)
             guesses.append(g)
             kinds.append(k)
         timing.init += time.perf_counter() - t0
