@@ -799,12 +799,20 @@ class TrajectoryPlanner:
                 valid.append((i, q_start, q_goal))
         timing.verify += time.perf_counter() - t0
         # Streamed in blocks: a block's guesses, LM answers and candidates are all that
-        # is held at once besides the results.
-        for block in range(0, len(valid), cfg.problem_chunk):
-            part = valid[block:block + cfg.problem_chunk]
-            candidates = self._plan_valid(part, results, dt, init, timing)
-            if exact:
-                self._polish(part, candidates, results, dt, timing, progress)
+        # is held at once besides the results. One progress bar spans every block.
+        bar = None
+        if progress and exact and valid:
+            from tqdm.auto import tqdm
+            bar = tqdm(total=len(valid), desc="polish (Ipopt)", unit="trajectory")
+        try:
+            for block in range(0, len(valid), cfg.problem_chunk):
+                part = valid[block:block + cfg.problem_chunk]
+                candidates = self._plan_valid(part, results, dt, init, timing)
+                if exact:
+                    self._polish(part, candidates, results, dt, timing, bar)
+        finally:
+            if bar is not None:
+                bar.close()
         return [r for r in results if r is not None]
 
     def _plan_valid(self, valid: list[tuple[int, np.ndarray, np.ndarray]],
@@ -907,20 +915,16 @@ class TrajectoryPlanner:
     def _polish(self, valid: list[tuple[int, np.ndarray, np.ndarray]],
                 candidates: list[list[tuple[np.ndarray, str]]],
                 results: list[TrajectoryResult | None], dt: float, timing: PlanTiming,
-                progress: bool) -> None:
+                bar: Any) -> None:
         """Exact stage: polish each problem's best LM candidate; when the polish fails or
         the verification rejects it, the next candidate (up to
         ``config.polish_attempts``). The first verified polish is the answer; if none
         is, the LM answer stays (it keeps its own verdict: exact mode never succeeds
-        less often than the LM stage)."""
+        less often than the LM stage). ``bar``: a tqdm bar advanced per problem, or None."""
         t0 = time.perf_counter()
         cfg = self.config
         items = [(candidates[row][: cfg.polish_attempts], dt, cfg.safety_margin,
                   cfg.verify_samples) for row in range(len(valid))]
-        bar = None
-        if progress:
-            from tqdm.auto import tqdm
-            bar = tqdm(total=len(items), desc="polish (Ipopt)", unit="trajectory")
         if cfg.polish_workers > 1 and len(items) > 1:
             if self._polish_pool is None:
                 from ..stages.pool import PolishPool
@@ -935,8 +939,6 @@ class TrajectoryPlanner:
                 outcomes.append(polish_candidates(polisher, *item))
                 if bar is not None:
                     bar.update(1)
-        if bar is not None:
-            bar.close()
         for (i, _, _), (q, verdict, failures, seconds) in zip(valid, outcomes, strict=True):
             previous = results[i]
             assert previous is not None
