@@ -62,7 +62,7 @@ def _lm_on_active(residual: Residual, project: Projection, plan: SearchPlan, z: 
     blocks = -(-rows // block)
     order = jnp.argsort(~active, stable=True).astype(jnp.int32)  # active rows first
     order = jnp.concatenate([order, jnp.zeros(blocks * block - rows, jnp.int32)])
-    count = jnp.sum(active.astype(jnp.int32))
+    count = jnp.sum(active, dtype=jnp.int32)
     slots = jnp.arange(block, dtype=jnp.int32)
 
     def body(state: tuple) -> tuple:
@@ -131,7 +131,7 @@ def search_targets(residual: Residual, project: Projection, plan: SearchPlan,
         before = cost
         z, cost, used = _lm_on_active(residual, project, plan, z, cost, active, target_of,
                                       params, shared, free, budget(r))
-        counted = counted.at[r].set(jnp.sum(active.astype(jnp.int32)))
+        counted = counted.at[r].set(jnp.sum(active, dtype=jnp.int32))
         iterated = iterated.at[r].set(used)
 
         def choose_beam(_: None) -> tuple:
