@@ -98,7 +98,7 @@ class IKConfig:
     the host in between. None: fused on every backend (see ``search_block``)."""
     search_block: int | None = None
     """Fused search: LM rows per block and device; a round runs its active rows in as
-    many blocks as they fill, so finished rows cost nothing. None: 128 on a CPU, the
+    many blocks as they fill, so finished rows cost nothing. None: 64 on a CPU, the
     whole chunk on an accelerator (where a masked row runs in parallel anyway)."""
     dtype: str = "float32"
     """JAX dtype of the batched stages ("float64" needs jax_enable_x64)."""
@@ -489,7 +489,7 @@ class IKSolver:
         cfg = self.config
         block = cfg.search_block
         if block is None:
-            block = 128 if jax.default_backend() == "cpu" else 1 << 30
+            block = 64 if jax.default_backend() == "cpu" else 1 << 30
         return SearchPlan(
             width=min(cfg.beam_width, seeds), coarse_iterations=cfg.coarse_iterations,
             refine_iterations=cfg.refine_iterations, refine_round=cfg.refine_round,
