@@ -138,10 +138,13 @@ def _stream_check(count: int, part: int) -> None:
     assert max(call[1] for call in solver.lm_calls) <= cfg.chunk_size * seeds
     assert large.success.mean() >= 0.99
     np.testing.assert_array_equal(large.success[:part], small.success)
-    # The large batch holds its answers (a few hundred bytes per target) plus one part in
-    # flight: not ``count / part`` times the memory of one part.
+    # The large batch holds its answers (a few hundred bytes per target) and the float64
+    # verification's temporaries over all of them, plus one part in flight: not
+    # ``count / part`` times the memory of one part. Measured (20 000 targets, parts of
+    # 2048, tracemalloc): whole batch 22.7 MB host-driven, 22.6 MB fused; one part 7.1
+    # and 3.0 MB; answers 3.4 MB.
     answers = sum(v.nbytes for v in vars(large).values() if isinstance(v, np.ndarray))
-    assert large_peak < 2.0 * small_peak + 3 * answers, (large_peak, small_peak, answers)
+    assert large_peak < 2.0 * small_peak + 6 * answers, (large_peak, small_peak, answers)
 
 
 def test_a_batch_is_streamed_in_parts_without_growing_memory() -> None:
