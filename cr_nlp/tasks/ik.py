@@ -101,13 +101,15 @@ class IKConfig:
     instead of one program per stage and round with the unfinished problems repacked on
     the host in between. None: fused on every backend (see ``search_block``). Measured
     on 2 CPU cores under load 5–8 (interleaved, median CPU seconds per solve, host-driven
-    → fused): 1000 free tdcr3 targets 0.32 → 0.30, lattice 100 targets tdcr3 0.99 →
+    → fused): 1000 free tdcr3 targets 0.29 → 0.26, lattice 100 targets tdcr3 0.99 →
     0.89 and tdcr4_ext 1.74 → 1.64; device calls per solve 25 → 2 and 11 → 2.
     Chunks hold up to ``chunk_size`` targets (each with its seeds)."""
     search_block: int | None = None
     """Fused search: LM rows per block and device; a round runs its active rows in as
-    many blocks as they fill, so finished rows cost nothing. None: 64 on a CPU, the
-    whole chunk on an accelerator (where a masked row runs in parallel anyway)."""
+    many blocks as they fill, so finished rows cost nothing. None: on a CPU 128 without
+    a scene and 64 with one, on an accelerator the whole chunk (a masked row runs in
+    parallel there). Measured (CPU s per solve, blocks 64 / 128): 1000 free tdcr3 targets
+    0.33 / 0.26, lattice tdcr3 0.89 / 0.97, tdcr4_ext 1.64 / 2.07."""
     dtype: str = "float32"
     """JAX dtype of the batched stages ("float64" needs jax_enable_x64)."""
     seed: int = 0
@@ -497,7 +499,9 @@ class IKSolver:
         cfg = self.config
         block = cfg.search_block
         if block is None:
-            block = 64 if jax.default_backend() == "cpu" else 1 << 30
+            # A scene's clearance rows make each LM row several times heavier.
+            block = ((128 if self.scene is None else 64) if jax.default_backend() == "cpu"
+                     else 1 << 30)
         return SearchPlan(
             width=min(cfg.beam_width, seeds), coarse_iterations=cfg.coarse_iterations,
             refine_iterations=cfg.refine_iterations, refine_round=cfg.refine_round,
