@@ -270,6 +270,14 @@ def _with_count(out: tuple) -> tuple:
     return z, cost, used[None]
 
 
+def _chunk_rows(x: np.ndarray, start: int, stop: int, size: int) -> np.ndarray:
+    """Rows ``start:stop`` of x padded to ``size`` rows with copies of the first (a
+    chunk of a compiled program's fixed batch shape)."""
+    part = x[start:stop]
+    pad = size - (stop - start)
+    return np.concatenate([part, np.repeat(part[:1], pad, 0)]) if pad else part
+
+
 class IKSolver:
     """Batched IK for one robot (and optionally one scene); reuse it across calls.
 
@@ -342,13 +350,7 @@ class IKSolver:
         start = 0
         for chunk in chunk_plan(len(z0), self.config.chunk_size):
             stop = min(start + chunk, len(z0))
-            pad = chunk - (stop - start)
-
-            def padded(x: np.ndarray, start: int = start, stop: int = stop,
-                       pad: int = pad) -> np.ndarray:
-                part = x[start:stop]
-                return np.concatenate([part, np.repeat(part[:1], pad, 0)]) if pad else part
-
+            padded = partial(_chunk_rows, start=start, stop=stop, size=chunk)
             args = (jnp.asarray(padded(z0), self.dtype),
                     (jnp.asarray(padded(positions), self.dtype),
                      jnp.asarray(padded(rotations).reshape(-1, 9), self.dtype)),
@@ -460,13 +462,7 @@ class IKSolver:
         start = 0
         for chunk in chunk_plan(t, cfg.chunk_size):
             stop = min(start + chunk, t)
-            pad = chunk - (stop - start)
-
-            def padded(x: np.ndarray, start: int = start, stop: int = stop,
-                       pad: int = pad) -> np.ndarray:
-                part = x[start:stop]
-                return np.concatenate([part, np.repeat(part[:1], pad, 0)]) if pad else part
-
+            padded = partial(_chunk_rows, start=start, stop=stop, size=chunk)
             args = (jnp.asarray(padded(z_seeds), self.dtype),
                     (jnp.asarray(padded(positions), self.dtype),
                      jnp.asarray(padded(rotations).reshape(-1, 9), self.dtype)),
