@@ -121,19 +121,30 @@ def _streamed_peak(solver: IKSolver, positions: np.ndarray, wxyz: np.ndarray) ->
 def _stream_check(count: int, part: int) -> None:
     solver = IKSolver(TDCR3, config=IKConfig(stream_size=part))
     positions, wxyz = targets(TDCR3, count, seed=1)
-    solver.solve(positions[:part], wxyz[:part])  # compiles; the pool is built
+    # Compiles every program the batch needs (the retries' fused search has its own shape,
+    # which a part without failures never compiles) and builds the pool: compiling inside
+    # a measured call would count the compiler's allocations as the stream's.
+    solver.solve(positions, wxyz)
+    programs = set(solver._compiled)
     small, small_peak = _streamed_peak(solver, positions[:part], wxyz[:part])
     large, large_peak = _streamed_peak(solver, positions, wxyz)
+    assert set(solver._compiled) == programs
     assert solver.stream_parts == [part] * (count // part) + (
         [count % part] if count % part else []
     )
-    assert max(call[1] for call in solver.lm_calls) <= solver.config.chunk_size
+    # Fused search: a program holds at most ``chunk_size`` targets, each with its seeds.
+    cfg = solver.config
+    seeds = max(cfg.seeds_per_target, cfg.retry_seeds)
+    assert max(call[1] for call in solver.lm_calls) <= cfg.chunk_size * seeds
     assert large.success.mean() >= 0.99
     np.testing.assert_array_equal(large.success[:part], small.success)
-    # The large batch holds its answers (a few hundred bytes per target) plus one part in
-    # flight: not ``count / part`` times the memory of one part.
+    # The large batch holds its answers (a few hundred bytes per target) and the float64
+    # verification's temporaries over all of them, plus one part in flight: not
+    # ``count / part`` times the memory of one part. Measured (20 000 targets, parts of
+    # 2048, tracemalloc): whole batch 22.7 MB host-driven, 22.6 MB fused; one part 7.1
+    # and 3.0 MB; answers 3.4 MB.
     answers = sum(v.nbytes for v in vars(large).values() if isinstance(v, np.ndarray))
-    assert large_peak < 2.0 * small_peak + 3 * answers, (large_peak, small_peak, answers)
+    assert large_peak < 2.0 * small_peak + 6 * answers, (large_peak, small_peak, answers)
 
 
 def test_a_batch_is_streamed_in_parts_without_growing_memory() -> None:

@@ -245,8 +245,8 @@ def measure_cr_nlp(case: Case, method: str, repeats: int, seed: int = 0) -> dict
 
 
 def ik_config_overrides(items: Sequence[str]) -> dict[str, Any]:
-    """``IKConfig`` field values from ``KEY=VALUE`` strings (e.g. ``chunk_size=8192``),
-    each converted to the field's type.
+    """``IKConfig`` field values from ``KEY=VALUE`` strings (e.g. ``chunk_size=8192``,
+    ``fused=false``, ``search_block=none``), each converted to the field's type.
 
     Raises:
         ValueError: an item without "=", an unknown field or a value of the wrong type.
@@ -261,10 +261,17 @@ def ik_config_overrides(items: Sequence[str]) -> dict[str, Any]:
             raise ValueError(f"expected KEY=VALUE, got {item!r}")
         if key not in types:
             raise ValueError(f"IKConfig has no field {key!r}; fields: {', '.join(types)}")
-        kind = {"int": int, "float": float, "str": str}.get(str(types[key]), str)
+        kind = str(types[key])
+        optional = kind.endswith(" | None")
+        kind = kind.removesuffix(" | None")
         try:
-            out[key] = kind(value)
-        except ValueError:
+            if optional and value.lower() == "none":
+                out[key] = None
+            elif kind == "bool":
+                out[key] = {"true": True, "false": False}[value.lower()]
+            else:
+                out[key] = {"int": int, "float": float}.get(kind, str)(value)
+        except (KeyError, ValueError):
             raise ValueError(f"{key} needs a {types[key]}, got {value!r}") from None
     IKConfig(**out)  # its own checks (e.g. sizes of at least 1) now, not mid-benchmark
     return out

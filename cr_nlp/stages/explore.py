@@ -134,6 +134,8 @@ class SeedPool:
         self._programs: dict[tuple[int, int], object] = {}
         self.compile_seconds = 0.0
         """Seconds spent compiling lookup programs so far (one per chunk shape and k)."""
+        self.calls = 0
+        """Lookup programs launched so far (one per chunk of a batch)."""
         self.wait_seconds = 0.0
         """Seconds the host has waited for lookup results so far (device busy time that
         no host work overlapped)."""
@@ -164,6 +166,7 @@ class SeedPool:
                 ).lower(*args).compile()
                 self.compile_seconds += time.perf_counter() - t0
             parts.append((stop - start, self._programs[chunk, k](*args)))
+            self.calls += 1
             start = stop
         # Every chunk is dispatched before the first result is waited for.
         t0 = time.perf_counter()
@@ -224,8 +227,10 @@ def select_beam_device(z: jax.Array, cost: jax.Array, width: int,
     ranked = jnp.take_along_axis(z, order[:, :, None], axis=1)
     slots = jnp.arange(width)
     chosen = jnp.repeat(ranked[:, :1], width, axis=1)
-    picked = jnp.zeros((z.shape[0], width), jnp.int32)
-    count = jnp.ones(z.shape[0], jnp.int32)
+    # Derived from the input, so that split over devices the carry varies per shard.
+    origin = (0 * cost[:, :1]).astype(jnp.int32)
+    picked = jnp.zeros((z.shape[0], width), jnp.int32) + origin
+    count = jnp.ones(z.shape[0], jnp.int32) + origin[:, 0]
 
     def step(rank: jax.Array, state: tuple) -> tuple:
         chosen, picked, count = state

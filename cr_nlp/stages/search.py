@@ -1,0 +1,167 @@
+"""Stages 1–2 as one device program: coarse LM on every seed, beam selection, and the
+refinement rounds, for one chunk of targets.
+
+The host-driven form of this search (``tasks.ik.IKSolver`` with ``IKConfig.fused``
+False) launches the coarse LM, the beam selection and each refinement round as separate
+programs and repacks the unfinished problems between rounds. Here the whole search is
+one jitted program: every row (target × seed) stays in one array, a boolean mask says
+which rows iterate, and ``lax.while_loop`` runs the rounds. So that finished rows cost
+nothing on a CPU either, each round gathers its active rows to the front (a stable
+sort of the mask) and runs LM on them in blocks of ``SearchPlan.block`` rows, as many
+blocks as there are active rows; on a GPU one block holds the whole chunk.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from .explore import select_beam_device
+from .lm import LMConfig, Projection, Residual, lm_solve
+
+
+@dataclass(frozen=True)
+class SearchPlan:
+    """Static settings of ``search_targets`` (one compiled program per plan and shape)."""
+
+    width: int
+    """Beam candidates kept per target for refinement."""
+    coarse_iterations: int
+    """LM iterations on every seed before the beam is chosen."""
+    refine_iterations: int
+    """LM iterations on the beam in all."""
+    refine_round: int
+    """Iterations per refinement round; after each round a candidate stops when its cost
+    is below ``lm.cost_tolerance``, when the round lowered it by less than 1 %, or (with
+    ``per_target``) when another candidate of its target got below that tolerance."""
+    per_target: bool
+    """Only the best candidate per target is wanted (see ``refine_round``)."""
+    min_distance: float
+    """Beam diversity radius in bending-vector units (rad, m)."""
+    block: int
+    """Rows per LM block (per device): the compute granularity of a masked round."""
+    lm: LMConfig = LMConfig()
+    """LM tolerances and damping (damping restarts each round)."""
+
+    @property
+    def rounds(self) -> int:
+        """Rounds in all: the coarse one, then the refinement rounds."""
+        return 1 + -(-self.refine_iterations // max(self.refine_round, 1))
+
+
+def _lm_on_active(residual: Residual, project: Projection, plan: SearchPlan, z: jax.Array,
+                  cost: jax.Array, active: jax.Array, target_of: jax.Array, params: Any,
+                  shared: Any, free: jax.Array, iterations: jax.Array) -> tuple:
+    """LM on the rows where ``active`` holds, in blocks of ``plan.block``: (z, cost, most
+    iterations any block ran). Inactive rows are left untouched and cost no compute."""
+    rows = z.shape[0]
+    block = min(plan.block, rows)
+    blocks = -(-rows // block)
+    order = jnp.argsort(~active, stable=True).astype(jnp.int32)  # active rows first
+    order = jnp.concatenate([order, jnp.zeros(blocks * block - rows, jnp.int32)])
+    count = jnp.sum(active, dtype=jnp.int32)
+    slots = jnp.arange(block, dtype=jnp.int32)
+
+    def body(state: tuple) -> tuple:
+        b, z, cost, used = state
+        slot = b * block + slots
+        live = slot < count
+        first = jax.lax.dynamic_index_in_dim(order, b * block, keepdims=False)
+        # A slot past the active rows repeats the block's first row (which is active):
+        # it iterates exactly as that row, so it never holds the block's loop back.
+        idx = jnp.where(live, jax.lax.dynamic_slice_in_dim(order, b * block, block), first)
+        block_params = jax.tree.map(lambda p: p[target_of[idx]], params)
+        z_b, c_b, it = lm_solve(residual, project, z[idx], block_params, shared, free,
+                                iterations, config=plan.lm)
+        write = jnp.where(live, idx, rows)  # out of range: dropped
+        z = z.at[write].set(z_b, mode="drop")
+        cost = cost.at[write].set(c_b, mode="drop")
+        return b + 1, z, cost, jnp.maximum(used, it)
+
+    def more(state: tuple) -> jax.Array:
+        return state[0] * block < count
+
+    _, z, cost, used = jax.lax.while_loop(more, body, (jnp.int32(0), z, cost, jnp.int32(0)))
+    return z, cost, used
+
+
+def search_targets(residual: Residual, project: Projection, plan: SearchPlan,
+                   z_seeds: jax.Array, params: Any, valid: jax.Array, shared: Any,
+                   free: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """Coarse LM on (T, K) seeds, a diverse beam of ``plan.width``, refinement rounds.
+
+    Args:
+        residual, project: the problem, as for ``stages.lm.lm_solve``.
+        plan: static settings.
+        z_seeds: (T, K, n) starting points (bending-vector units, rad and m).
+        params: pytree of per-target leaves with leading dimension T.
+        valid: (T,) False for padding targets (never iterated).
+        shared: pytree given whole to every residual (scene arrays).
+        free: (n,) 1.0 for the variables LM may move.
+
+    Returns:
+        z (T, width, n) and cost ½‖r‖² (T, width) of the refined beam, and per round
+        (coarse first) the rows iterated (1, rounds) and the most LM iterations any of
+        its blocks ran (1, rounds), for profiling (the leading 1 is one row per device).
+    """
+    t, k, n = z_seeds.shape
+    rows = t * k
+    width = min(plan.width, k)
+    dtype = z_seeds.dtype
+    target_of = jnp.arange(rows, dtype=jnp.int32) // k
+    tolerance = plan.lm.cost_tolerance
+    step = max(plan.refine_round, 1)
+    rounds = plan.rounds
+
+    def budget(r: jax.Array) -> jax.Array:
+        refined = (r - 1) * step
+        return jnp.where(r == 0, plan.coarse_iterations,
+                         jnp.minimum(step, plan.refine_iterations - refined)).astype(jnp.int32)
+
+    def beam_of(z: jax.Array, cost: jax.Array) -> jax.Array:
+        picked = select_beam_device(z.reshape(t, k, n), cost.reshape(t, k), width,
+                                    plan.min_distance)
+        return picked + jnp.arange(t, dtype=jnp.int32)[:, None] * k  # (t, width) rows
+
+    def body(state: tuple) -> tuple:
+        r, z, cost, active, beam, counted, iterated = state
+        before = cost
+        z, cost, used = _lm_on_active(residual, project, plan, z, cost, active, target_of,
+                                      params, shared, free, budget(r))
+        counted = counted.at[r].set(jnp.sum(active, dtype=jnp.int32))
+        iterated = iterated.at[r].set(used)
+
+        def choose_beam(_: None) -> tuple:
+            chosen = beam_of(z, cost)
+            in_beam = jnp.zeros(rows, bool).at[chosen.reshape(-1)].set(True)
+            return chosen, in_beam & jnp.repeat(valid, k)
+
+        def go_on(_: None) -> tuple:
+            # The first refinement round always counts as improving (the coarse cost is
+            # no baseline: damping restarts).
+            baseline = jnp.where(r == 1, jnp.inf, before)
+            keep = active & (cost < 0.99 * baseline) & (cost > tolerance)
+            if plan.per_target:
+                best = jnp.min(cost[beam], axis=1)  # (t,)
+                keep &= best[target_of] > tolerance
+            return beam, keep
+
+        beam, active = jax.lax.cond(r == 0, choose_beam, go_on, None)
+        return r + 1, z, cost, active, beam, counted, iterated
+
+    def more(state: tuple) -> jax.Array:
+        r, *_, active, _, _, _ = state
+        return (r < rounds) & jnp.any(active)
+
+    active = jnp.repeat(valid, k)
+    # Derived from the inputs, so that split over devices every carry varies per shard.
+    zero = jnp.sum(z_seeds[:1, :1, :1]) * 0
+    cost = jnp.full(rows, jnp.inf, dtype) + zero
+    beam = jnp.zeros((t, width), jnp.int32) + zero.astype(jnp.int32)
+    stats = jnp.zeros(rounds, jnp.int32) + zero.astype(jnp.int32)
+    state = (jnp.int32(0), z_seeds.reshape(rows, n), cost, active, beam, stats, stats)
+    _, z, cost, _, beam, counted, iterated = jax.lax.while_loop(more, body, state)
+    return z[beam], cost[beam], counted[None], iterated[None]

@@ -1,0 +1,109 @@
+"""The fused search (``stages.search``: coarse LM, beam and refinement rounds as one
+device program per chunk) against closed forms and against the host-driven path."""
+
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cr_nlp.stages.lm import LMConfig
+from cr_nlp.stages.search import SearchPlan, search_targets
+from cr_nlp.tasks.ik import IKConfig, IKSolver
+
+from .test_ik import LATTICE, TDCR3, TDCR4, free_configurations, targets_from
+
+
+def _square_residual(z: jnp.ndarray, p: jnp.ndarray, shared: None) -> jnp.ndarray:
+    """r = z² − p: two roots ±√p per coordinate."""
+    return z * z - p
+
+
+def _toy_plan(block: int, per_target: bool = False) -> SearchPlan:
+    return SearchPlan(width=2, coarse_iterations=3, refine_iterations=30, refine_round=5,
+                      per_target=per_target, min_distance=0.5, block=block,
+                      lm=LMConfig(cost_tolerance=1e-20))
+
+
+def _toy_search(block: int, per_target: bool = False) -> tuple:
+    rng = np.random.default_rng(3)
+    targets = rng.uniform(0.5, 2.0, (6, 1))
+    seeds = np.linspace(-2.5, 2.5, 8)[None, :, None] + rng.uniform(-0.1, 0.1, (6, 8, 1))
+    valid = np.array([True] * 5 + [False])  # the last target is padding
+    out = search_targets(_square_residual, lambda z: z, _toy_plan(block, per_target),
+                         jnp.asarray(seeds), jnp.asarray(targets), jnp.asarray(valid), None,
+                         jnp.ones(1))
+    return targets, seeds, valid, [np.asarray(x) for x in out]
+
+
+def test_fused_search_finds_both_roots_and_leaves_padding_alone() -> None:
+    targets, seeds, valid, (z, cost, counted, iterated) = _toy_search(block=4)
+    # The diverse beam of two holds both roots ±√p of every valid target.
+    roots = np.sort(z[valid, :, 0], axis=1)
+    np.testing.assert_allclose(roots, np.sqrt(targets[valid]) * [[-1.0, 1.0]], atol=1e-8)
+    assert np.all(cost[valid] < 1e-16)
+    # A padding target is never iterated: its beam is two of its own seeds, cost inf.
+    assert np.all(np.isin(z[~valid].ravel(), seeds[~valid].ravel()))
+    assert np.all(np.isinf(cost[~valid]))
+    # The coarse round iterates every valid seed; the first refinement round the beam;
+    # the rounds stop once every candidate converged.
+    assert counted[0, 0] == 8 * valid.sum() and counted[0, 1] == 2 * valid.sum()
+    assert counted[0, -1] == 0 and 0 < iterated[0, 0] <= 3
+
+
+def test_fused_search_answer_does_not_depend_on_the_block_size() -> None:
+    """Compaction into blocks is bookkeeping: one row per block, a few, or one block for
+    the whole batch give the same refined beam."""
+    _, _, valid, (z_ref, c_ref, _, _) = _toy_search(block=1 << 20)
+    for block in (1, 3, 16):
+        _, _, _, (z, cost, _, _) = _toy_search(block=block)
+        np.testing.assert_allclose(z[valid], z_ref[valid], atol=1e-9)
+        np.testing.assert_allclose(cost[valid], c_ref[valid], atol=1e-16)
+
+
+def test_per_target_search_stops_the_other_candidates() -> None:
+    """With ``per_target`` a target's candidates stop once one converged: after the round
+    in which every target has a converged candidate nothing iterates."""
+    _, _, valid, (z, cost, counted, _) = _toy_search(block=4, per_target=True)
+    assert np.all(cost[valid].min(axis=1) < 1e-16)
+    _, _, _, (_, _, counted_all, _) = _toy_search(block=4, per_target=False)
+    assert counted[0].sum() <= counted_all[0].sum()
+
+
+def _both_paths(robot, scene, count: int, seed: int) -> tuple:  # noqa: ANN001
+    q = free_configurations(robot, count, seed=seed, clearance=0.05)
+    positions, wxyz = targets_from(robot, q)
+    out = {}
+    for fused in (False, True):
+        solver = IKSolver(robot, scene, IKConfig(fused=fused))
+        out[fused] = (solver.solve(positions, wxyz), solver)
+    return out
+
+
+@pytest.mark.parametrize(("robot", "scene"), [(TDCR3, None), (TDCR4, LATTICE)],
+                         ids=["tdcr3-free", "tdcr4_ext-lattice"])
+def test_fused_and_host_driven_search_agree(robot, scene) -> None:  # noqa: ANN001
+    out = _both_paths(robot, scene, 24, seed=21)
+    (old, old_solver), (new, new_solver) = out[False], out[True]
+    assert old.success.all() and new.success.all()
+    np.testing.assert_array_equal(new.success, old.success)
+    # Both reach the target to LM's convergence level, not just below the 1 cm verdict.
+    assert np.median(new.pose_error) < 1e-5 and np.median(old.pose_error) < 1e-5
+    np.testing.assert_allclose(new.pose_error, old.pose_error, atol=1e-4)
+    assert np.all(new.max_violation <= 1e-6) and new.collision_free.all()
+    # One lookup and one fused program against a program per stage, round and chunk.
+    assert new_solver.device_calls == 2 < old_solver.device_calls
+
+
+def test_fused_candidates_are_a_diverse_refined_beam() -> None:
+    """``candidates`` (every beam member refined, not only the best) agrees with the
+    host-driven path on the best candidate per target."""
+    q = free_configurations(TDCR3, 10, seed=4, clearance=0.05)
+    positions, wxyz = targets_from(TDCR3, q)
+    beams = {}
+    for fused in (False, True):
+        beams[fused] = IKSolver(TDCR3, config=IKConfig(fused=fused)).candidates(positions, wxyz)
+    (q_old, err_old), (q_new, err_new) = beams[False], beams[True]
+    assert q_new.shape == q_old.shape
+    assert np.all(err_new.min(axis=1) < 1e-4) and np.all(err_old.min(axis=1) < 1e-4)
+    spread = np.linalg.norm(q_new[:, :, None] - q_new[:, None, :], axis=-1)
+    assert np.any(spread > 1e-3)  # not one answer repeated
