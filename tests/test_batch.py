@@ -24,6 +24,7 @@ from cr_nlp.batch import (
     JobSpec,
     chunk_file,
     close_cluster,
+    read_chunk,
     run_batch,
     solve_chunk,
     start_local_cluster,
@@ -80,7 +81,7 @@ def _targets_file(path: Path, positions, wxyz) -> Path:
 
 
 def _chunk_files(out: Path) -> list[Path]:
-    return sorted(out.glob("chunk_*.json"))
+    return sorted(out.glob("chunk_*.npz"))
 
 
 def test_batch_ik_gives_the_single_process_answers(robot, client, targets, single, tmp_path):
@@ -131,11 +132,11 @@ def test_a_problem_that_raises_is_a_failed_result_not_a_failed_chunk(robot, targ
         record = solve_chunk(spec, 0, positions, wxyz)
     finally:
         del _SOLVERS[spec.key]
-    rows = record["results"]
-    assert len(rows) == 4
-    assert rows[2]["success"] is False and rows[2]["q"] is None
-    assert rows[2]["reason"] == "solver raised RuntimeError: the fragile solver broke"
-    assert [rows[i]["success"] for i in (0, 1, 3)] == [True] * 3
+    columns = record["columns"]
+    assert len(columns["success"]) == 4
+    assert not columns["success"][2] and np.all(np.isnan(columns["q"][2]))
+    assert columns["reason"][2] == "solver raised RuntimeError: the fragile solver broke"
+    assert columns["success"][[0, 1, 3]].all()
 
 
 def test_a_killed_worker_loses_nothing(robot, client, targets, single, tmp_path):
@@ -203,7 +204,7 @@ def test_resume_after_the_client_is_killed_solves_only_the_missing_chunks(
     proc.kill()
     _, stderr = proc.communicate()
     before = {
-        p.name: (p.stat().st_mtime_ns, json.loads(p.read_text())["run"]) for p in _chunk_files(out)
+        p.name: (p.stat().st_mtime_ns, read_chunk(p)["run"]) for p in _chunk_files(out)
     }
     assert 1 <= len(before) < TARGETS, stderr.decode()[-2000:]
     assert not (out / RESULTS).exists()
@@ -257,7 +258,7 @@ def test_resume_after_the_client_is_killed_solves_only_the_missing_chunks(
         progress=False,
     )
     after = {
-        p.name: (p.stat().st_mtime_ns, json.loads(p.read_text())["run"]) for p in _chunk_files(out)
+        p.name: (p.stat().st_mtime_ns, read_chunk(p)["run"]) for p in _chunk_files(out)
     }
     assert len(after) == TARGETS
     assert {name: after[name] for name in before} == before  # not solved again
