@@ -20,9 +20,9 @@ What lands in ``out_dir``:
   ``read_chunk`` reads one: ``{"chunk", "start", "stop", "run", "worker", "pid",
   "seconds", "timing"}`` and the answers: for IK the ``IKResult`` columns as arrays
   (``"columns"``: q, position, wxyz, errors, flags, stage, reason), for planning the
-  rows of ``cr-nlp plan --out`` (``"rows"``). Arrays, not JSON rows, because the
-  solver's answers are arrays: converting 1000 IK answers to JSON rows and back cost
-  ~50 ms per job, a third of the solve itself.
+  rows of ``cr-nlp plan --out`` (``"rows"``). Arrays, not JSON rows: converting 1000
+  IK answers to rows on the worker, to JSON, back and to rows again cost ~60 ms of CPU
+  per job, a third of the penalty-mode solve itself.
 - ``results.json``: assembled at the end from the chunk files, in input order, with the
   schema of ``cr-nlp ik --out`` (``IKResult.to_json``) or ``cr-nlp plan --out``
   (``results_to_json``); its ``timing`` is the worker seconds summed over the chunks.
