@@ -24,9 +24,13 @@ from cr_nlp.batch import (
     JobSpec,
     chunk_file,
     close_cluster,
+    ik_columns,
+    ik_result_from_columns,
+    read_chunk,
     run_batch,
     solve_chunk,
     start_local_cluster,
+    write_chunk,
 )
 from cr_nlp.bench.ik import forward_kinematics
 from cr_nlp.model import load_robot
@@ -80,7 +84,7 @@ def _targets_file(path: Path, positions, wxyz) -> Path:
 
 
 def _chunk_files(out: Path) -> list[Path]:
-    return sorted(out.glob("chunk_*.json"))
+    return sorted(out.glob("chunk_*.npz"))
 
 
 def test_batch_ik_gives_the_single_process_answers(robot, client, targets, single, tmp_path):
@@ -111,6 +115,34 @@ def test_batch_ik_gives_the_single_process_answers(robot, client, targets, singl
     assert set(built.values()) <= {0, 1} and sum(built.values()) >= 1
 
 
+def test_a_chunk_file_round_trips_and_a_damaged_one_is_solved_again(robot, single, tmp_path):
+    """The worker's record survives its chunk file unchanged (arrays bit for bit, the
+    IKResult rebuilt from them gives the same RESULT.json rows); a truncated file, or one
+    of another range, reads as missing."""
+    columns = ik_columns(single)
+    record = {"chunk": 3, "start": 30, "stop": 30 + TARGETS, "run": 2, "worker": "tcp://w",
+              "pid": 7, "seconds": 1.5, "timing": {"explore": 0.25}, "columns": columns}
+    path = chunk_file(tmp_path, 3)
+    write_chunk(path, record)
+    back = read_chunk(path)
+    assert {k: v for k, v in back.items() if k != "columns"} == {
+        k: v for k, v in record.items() if k != "columns"
+    }
+    for key, value in columns.items():
+        np.testing.assert_array_equal(back["columns"][key], value)
+        assert back["columns"][key].dtype == value.dtype
+    rebuilt = ik_result_from_columns(robot, back["columns"], {}, has_scene=False)
+    assert rebuilt.to_json()["results"] == single.to_json()["results"]
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no temporary file left
+
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    assert read_chunk(path) is None
+    write_chunk(path, {**record, "stop": 31})  # its answers do not fill the range
+    assert read_chunk(path) is None
+    assert read_chunk(tmp_path / "absent.npz") is None
+
+
 def test_a_problem_that_raises_is_a_failed_result_not_a_failed_chunk(robot, targets):
     class Fragile:
         """The real solver, except that it raises on targets above 2.5 m."""
@@ -131,11 +163,11 @@ def test_a_problem_that_raises_is_a_failed_result_not_a_failed_chunk(robot, targ
         record = solve_chunk(spec, 0, positions, wxyz)
     finally:
         del _SOLVERS[spec.key]
-    rows = record["results"]
-    assert len(rows) == 4
-    assert rows[2]["success"] is False and rows[2]["q"] is None
-    assert rows[2]["reason"] == "solver raised RuntimeError: the fragile solver broke"
-    assert [rows[i]["success"] for i in (0, 1, 3)] == [True] * 3
+    columns = record["columns"]
+    assert len(columns["success"]) == 4
+    assert not columns["success"][2] and np.all(np.isnan(columns["q"][2]))
+    assert columns["reason"][2] == "solver raised RuntimeError: the fragile solver broke"
+    assert columns["success"][[0, 1, 3]].all()
 
 
 def test_a_killed_worker_loses_nothing(robot, client, targets, single, tmp_path):
@@ -203,7 +235,7 @@ def test_resume_after_the_client_is_killed_solves_only_the_missing_chunks(
     proc.kill()
     _, stderr = proc.communicate()
     before = {
-        p.name: (p.stat().st_mtime_ns, json.loads(p.read_text())["run"]) for p in _chunk_files(out)
+        p.name: (p.stat().st_mtime_ns, read_chunk(p)["run"]) for p in _chunk_files(out)
     }
     assert 1 <= len(before) < TARGETS, stderr.decode()[-2000:]
     assert not (out / RESULTS).exists()
@@ -257,7 +289,7 @@ def test_resume_after_the_client_is_killed_solves_only_the_missing_chunks(
         progress=False,
     )
     after = {
-        p.name: (p.stat().st_mtime_ns, json.loads(p.read_text())["run"]) for p in _chunk_files(out)
+        p.name: (p.stat().st_mtime_ns, read_chunk(p)["run"]) for p in _chunk_files(out)
     }
     assert len(after) == TARGETS
     assert {name: after[name] for name in before} == before  # not solved again

@@ -14,9 +14,14 @@ For each mode (penalty: the JAX stages; exact: plus the Ipopt polish) the rows a
 Every row is timed after a warm-up run on the same cluster (the solvers built and their
 programs compiled on every worker; compile excluded), as the median of ``repeats`` runs,
 each into a fresh output folder (the chunk files and ``results.json`` are part of the
-cost). Columns: seconds, targets per second, success, the largest pose error of the
-successes, whether a batch row succeeded on exactly the targets the in-process solve did,
-the speedup over one worker and the cost relative to the in-process solve.
+cost). The clusters of every worker count are up together and the runs interleaved
+(each repeat runs every row once), so a change of the machine's load during the
+benchmark shifts every row alike. Steady state: the cluster is up and each worker holds
+its solver; starting a ``LocalCluster``, which ``cr-nlp batch --workers N`` does per
+call, is in no row. Columns: seconds, targets per second, success, the largest pose
+error of the successes, whether a batch row succeeded on exactly the targets the
+in-process solve did, the speedup over one worker and the cost relative to the
+in-process solve.
 """
 
 from __future__ import annotations
@@ -56,20 +61,6 @@ COLUMNS = [
     Column("speedup", "speedup vs 1 worker"),
     Column("vs_in_process", "time / in-process"),
 ]
-
-
-def _timed(call: Any, repeats: int, warm_up: Any = None) -> tuple[float, list[float], Any]:
-    """Run ``warm_up`` (default: ``call``) once, then ``call`` ``repeats`` times;
-    (first s, times, last out)."""
-    t0 = time.perf_counter()
-    out = (warm_up or call)()
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = call()
-        times.append(time.perf_counter() - t0)
-    return first, times, out
 
 
 def _row(
@@ -135,55 +126,63 @@ def run_batch_benchmark(
     # --chunk for every row, else what `cr-nlp batch ik` picks for that mode and worker count.
     chunks = {(m, n): int(chunk or default_chunk("ik", targets, n, m == "exact"))
               for m in modes for n in workers}
-    rows: list[dict[str, Any]] = []
     started = time.perf_counter()
     scratch = Path(tempfile.mkdtemp(prefix="cr_nlp_bench_batch_"))
     runs = iter(range(10**9))
-
     solver = IKSolver(robot_model, None, config)
-    reference: dict[str, np.ndarray] = {}  # in-process success flags per mode
+    key = solver_key("ik", robot_model, None, config)
+    clients = {count: start_local_cluster(count, quiet=not progress) for count in workers}
+    runners: dict[tuple[str, int | None], Any] = {}  # (mode, workers or None): a timed call
     for mode in modes:
         exact = mode == "exact"
-        if progress:
-            print(f"bench batch: {mode}, in-process", file=sys.stderr)
-        first, times, result = _timed(
-            lambda exact=exact: solver.solve(*inputs, exact=exact), repeats
-        )
-        rows.append(_row(mode, "in-process", None, None, first, times, result))
-        reference[mode] = result.success
-    solver.close()
+        runners[mode, None] = lambda exact=exact: solver.solve(*inputs, exact=exact)
+        for count, client in clients.items():
 
-    key = solver_key("ik", robot_model, None, config)
-    for count in workers:
-        client = start_local_cluster(count, quiet=not progress)
-        try:
-            for mode in modes:
+            def job(exact: bool = exact, client: Any = client, size: int = chunks[mode, count]):
+                return run_batch("ik", robot_model, inputs, out_dir=scratch / str(next(runs)),
+                                 exact=exact, config=config, client=client, chunk=size,
+                                 progress=progress)
+
+            runners[mode, count] = job
+    try:
+        # Warm-up (first run s): solver builds and compiles or cache loads on every worker.
+        first: dict[tuple[str, int | None], float] = {}
+        for (mode, count), call in runners.items():
+            if progress:
+                print(f"bench batch: warm-up, {mode}, {count or 'in-process'}", file=sys.stderr)
+            t0 = time.perf_counter()
+            if count is None:
+                call()
+            else:
+                _warm_workers(clients[count], key, call)
+            first[mode, count] = time.perf_counter() - t0
+        # Timed runs interleaved (each repeat runs every row once), so that a change of
+        # the machine's load during the benchmark shifts every row alike.
+        times: dict[tuple[str, int | None], list[float]] = {k: [] for k in runners}
+        results: dict[tuple[str, int | None], Any] = {}
+        for repeat in range(repeats):
+            for (mode, count), call in runners.items():
                 if progress:
-                    print(f"bench batch: {mode}, {count} workers", file=sys.stderr)
-
-                size = chunks[mode, count]
-
-                def job(mode: str = mode, client: Any = client, size: int = size) -> Any:
-                    return run_batch(
-                        "ik",
-                        robot_model,
-                        inputs,
-                        out_dir=scratch / str(next(runs)),
-                        exact=mode == "exact",
-                        config=config,
-                        client=client,
-                        chunk=size,
-                        progress=progress,
-                    )
-
-                first, times, result = _timed(
-                    job, repeats, lambda job=job, client=client: _warm_workers(client, key, job)
-                )
-                row = _row(mode, f"batch, {count} workers", count, size, first, times, result)
-                row["same_success"] = bool(np.array_equal(result.success, reference[mode]))
-                rows.append(row)
-        finally:
+                    print(f"bench batch: run {repeat + 1}/{repeats}, {mode}, "
+                          f"{count or 'in-process'}", file=sys.stderr)
+                t0 = time.perf_counter()
+                results[mode, count] = call()
+                times[mode, count].append(time.perf_counter() - t0)
+    finally:
+        solver.close()
+        for client in clients.values():
             close_cluster(client)
+    rows: list[dict[str, Any]] = []
+    for mode, count in runners:
+        result = results[mode, count]
+        if count is None:
+            rows.append(_row(mode, "in-process", None, None, first[mode, count],
+                             times[mode, count], result))
+            continue
+        row = _row(mode, f"batch, {count} workers", count, chunks[mode, count],
+                   first[mode, count], times[mode, count], result)
+        row["same_success"] = bool(np.array_equal(result.success, results[mode, None].success))
+        rows.append(row)
     for row in rows:
         base = next((r for r in rows if r["mode"] == row["mode"] and r["workers"] == 1), None)
         own = next(r for r in rows if r["mode"] == row["mode"] and r["workers"] is None)

@@ -65,7 +65,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the search (default 0)")
     p.add_argument(
-        "--out", required=True, help="DIR for manifest.json, chunk_<id>.json files and results.json"
+        "--out", required=True, help="DIR for manifest.json, chunk_<id>.npz files and results.json"
     )
     where = p.add_mutually_exclusive_group()
     where.add_argument(
@@ -78,8 +78,8 @@ def _common(p: argparse.ArgumentParser) -> None:
         "--chunk",
         type=int,
         help="problems per chunk, one Dask task each (default: about four "
-        "chunks per worker, at most 256 targets or 8 problems; penalty-mode IK: about "
-        "two per worker, at most 4096 targets)",
+        "chunks per worker, at most 256 targets or 8 problems; penalty-mode IK: one "
+        "per worker, at most 4096 targets)",
     )
     p.add_argument(
         "--resume", action="store_true", help="finish the job in DIR: solve only its missing chunks"
