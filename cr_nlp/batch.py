@@ -354,9 +354,11 @@ def solve_chunk(spec: JobSpec, index: int, first: Any, second: Any) -> dict[str,
 # ================================================================ the cluster
 
 
-def _worker_env(devices: int) -> dict[str, str]:
-    """Environment of a local worker: its JAX host-device count, also in ``XLA_FLAGS``
-    (which it would otherwise inherit from this process, set for all the cores)."""
+def worker_env(workers: int) -> dict[str, str]:
+    """Environment of one of ``workers`` local worker processes: its share of the usable
+    cores as JAX host devices (at least one), also in ``XLA_FLAGS`` (which it would
+    otherwise inherit from this process, set for all the cores)."""
+    devices = max(1, len(os.sched_getaffinity(0)) // workers)
     flags = [
         f
         for f in os.environ.get("XLA_FLAGS", "").split()
@@ -390,7 +392,7 @@ def start_local_cluster(workers: int | None = None, quiet: bool = False) -> Any:
             threads_per_worker=1,
             processes=True,
             dashboard_address=":0",
-            env=_worker_env(max(1, cores // workers)),
+            env=worker_env(workers),
         )
     client = Client(cluster)
     if not quiet:

@@ -13,8 +13,12 @@ def test_the_batch_benchmark_writes_its_rows_and_ratios(tmp_path):
         targets=12, workers=(1,), modes=("penalty",), chunk=6, out=tmp_path / "out", progress=False
     )
     by_runner = {row["runner"]: row for row in rows}
-    assert set(by_runner) == {"in-process", "batch, 1 workers"}
+    assert set(by_runner) == {"in-process", "batch, 1 workers", "1 processes, no Dask"}
     local, batch = by_runner["in-process"], by_runner["batch, 1 workers"]
+    plain = by_runner["1 processes, no Dask"]
+    # The machine's ceiling row: the same targets solved in a plain spawned process.
+    assert plain["targets"] == 12 and plain["success_pct"] == 100.0
+    assert plain["same_success"] is True and plain["speedup"] == 1.0 and plain["chunk"] is None
     assert local["targets"] == batch["targets"] == 12
     assert local["success_pct"] == batch["success_pct"] == 100.0
     assert batch["chunk"] == 6 and batch["speedup"] == 1.0 and local["speedup"] is None

@@ -9,7 +9,12 @@ For each mode (penalty: the JAX stages; exact: plus the Ipopt polish) the rows a
   batch over one host device per core, as ``cr-nlp ik`` does);
 - "batch, N workers": ``run_batch`` on a ``LocalCluster`` of N worker processes (one
   thread each; each worker's JAX gets the cores divided among the workers), with
-  ``--chunk`` or else the chunk size ``cr-nlp batch ik`` picks for that mode and count.
+  ``--chunk`` or else the chunk size ``cr-nlp batch ik`` picks for that mode and count;
+- "N processes, no Dask": the machine's own ceiling for the same split, N plain
+  processes (each with the worker's JAX device count) each solving 1/N of the targets
+  with ``IKSolver.solve`` at the same time, no files. Its speedup over one such process
+  is what any scheduler could reach here: on a shared virtual machine two busy
+  processes can each run slower than one alone.
 
 Every row is timed after a warm-up run on the same cluster (the solvers built and their
 programs compiled on every worker; compile excluded), as the median of ``repeats`` runs,
@@ -26,18 +31,28 @@ in-process solve.
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 import statistics
 import sys
 import tempfile
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from .._jax_setup import use_host_devices
-from ..batch import close_cluster, default_chunk, run_batch, solver_key, start_local_cluster
+from ..batch import (
+    close_cluster,
+    default_chunk,
+    run_batch,
+    solver_key,
+    start_local_cluster,
+    worker_env,
+)
 from ..model import load_robot
 from ..tasks.ik import IKConfig, IKSolver
 from .common import Column, environment, environment_markdown, markdown_table, write_report
@@ -58,7 +73,7 @@ COLUMNS = [
     Column("success_pct", "success %"),
     Column("max_pose_error", "max pose error"),
     Column("same_success", "same successes as in-process"),
-    Column("speedup", "speedup vs 1 worker"),
+    Column("speedup", "speedup vs 1 of its kind"),
     Column("vs_in_process", "time / in-process"),
 ]
 
@@ -88,6 +103,68 @@ def _row(
         "min_s": min(times),
         "max_s": max(times),
     }
+
+
+@dataclass
+class _Answers:
+    """The parts of an ``IKResult`` a row reads, gathered from plain processes."""
+
+    success: np.ndarray
+    pose_error: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.success)
+
+
+def _serve(robot: str, config: IKConfig, inputs: tuple[np.ndarray, np.ndarray],
+           requests: Any, replies: Any) -> None:
+    """A plain process of ``_PlainProcesses``: solves the (start, stop, exact) slices it is
+    sent until it gets None; replies (success, pose error)."""
+    from .._jax_setup import use_host_devices as own_devices
+
+    own_devices(int(os.environ["CR_NLP_BATCH_DEVICES"]))
+    solver = IKSolver(load_robot(robot), None, config)
+    for start, stop, exact in iter(requests.get, None):
+        result = solver.solve(inputs[0][start:stop], inputs[1][start:stop], exact=exact)
+        replies.put((start, result.success, result.pose_error))
+    solver.close()
+
+
+class _PlainProcesses:
+    """``count`` processes, started like local Dask workers (spawned, the cores divided
+    among them), each solving its share of the targets when called: the two-process
+    ceiling of the machine for the batch rows."""
+
+    def __init__(self, count: int, robot: str, config: IKConfig,
+                 inputs: tuple[np.ndarray, np.ndarray]) -> None:
+        context = multiprocessing.get_context("spawn")
+        self.count, self.targets = count, len(inputs[0])
+        self.replies = context.Queue()
+        self.requests = [context.Queue() for _ in range(count)]
+        saved = dict(os.environ)
+        os.environ.update(worker_env(count))
+        try:
+            self.processes = [context.Process(target=_serve, daemon=True, args=(
+                robot, config, inputs, queue, self.replies)) for queue in self.requests]
+            for process in self.processes:
+                process.start()
+        finally:
+            os.environ.clear()
+            os.environ.update(saved)
+
+    def __call__(self, exact: bool) -> _Answers:
+        bounds = np.linspace(0, self.targets, self.count + 1).astype(int)
+        for queue, start, stop in zip(self.requests, bounds[:-1], bounds[1:], strict=True):
+            queue.put((int(start), int(stop), exact))
+        parts = sorted((self.replies.get() for _ in self.requests), key=lambda p: p[0])
+        return _Answers(np.concatenate([p[1] for p in parts]),
+                        np.concatenate([p[2] for p in parts]))
+
+    def close(self) -> None:
+        for queue in self.requests:
+            queue.put(None)
+        for process in self.processes:
+            process.join(timeout=30)
 
 
 def _warm_workers(client: Any, key: str, call: Any, tries: int = 3) -> None:
@@ -132,10 +209,13 @@ def run_batch_benchmark(
     solver = IKSolver(robot_model, None, config)
     key = solver_key("ik", robot_model, None, config)
     clients = {count: start_local_cluster(count, quiet=not progress) for count in workers}
-    runners: dict[tuple[str, int | None], Any] = {}  # (mode, workers or None): a timed call
+    plain = {count: _PlainProcesses(count, robot, config, inputs) for count in workers}
+    # (mode, runner label): a timed call; labels name the runner kind and process count.
+    runners: dict[tuple[str, str], Any] = {}
+    kinds: dict[str, tuple[str, int | None]] = {"in-process": ("in-process", None)}
     for mode in modes:
         exact = mode == "exact"
-        runners[mode, None] = lambda exact=exact: solver.solve(*inputs, exact=exact)
+        runners[mode, "in-process"] = lambda exact=exact: solver.solve(*inputs, exact=exact)
         for count, client in clients.items():
 
             def job(exact: bool = exact, client: Any = client, size: int = chunks[mode, count]):
@@ -143,49 +223,59 @@ def run_batch_benchmark(
                                  exact=exact, config=config, client=client, chunk=size,
                                  progress=progress)
 
-            runners[mode, count] = job
+            runners[mode, f"batch, {count} workers"] = job
+            kinds[f"batch, {count} workers"] = ("batch", count)
+        for count, processes in plain.items():
+            runners[mode, f"{count} processes, no Dask"] = (
+                lambda exact=exact, processes=processes: processes(exact))
+            kinds[f"{count} processes, no Dask"] = ("processes", count)
     try:
         # Warm-up (first run s): solver builds and compiles or cache loads on every worker.
-        first: dict[tuple[str, int | None], float] = {}
-        for (mode, count), call in runners.items():
+        first: dict[tuple[str, str], float] = {}
+        for (mode, label), call in runners.items():
             if progress:
-                print(f"bench batch: warm-up, {mode}, {count or 'in-process'}", file=sys.stderr)
+                print(f"bench batch: warm-up, {mode}, {label}", file=sys.stderr)
             t0 = time.perf_counter()
-            if count is None:
-                call()
-            else:
+            kind, count = kinds[label]
+            if kind == "batch":
                 _warm_workers(clients[count], key, call)
-            first[mode, count] = time.perf_counter() - t0
+            else:
+                call()
+            first[mode, label] = time.perf_counter() - t0
         # Timed runs interleaved (each repeat runs every row once), so that a change of
         # the machine's load during the benchmark shifts every row alike.
-        times: dict[tuple[str, int | None], list[float]] = {k: [] for k in runners}
-        results: dict[tuple[str, int | None], Any] = {}
+        times: dict[tuple[str, str], list[float]] = {k: [] for k in runners}
+        results: dict[tuple[str, str], Any] = {}
         for repeat in range(repeats):
-            for (mode, count), call in runners.items():
+            for (mode, label), call in runners.items():
                 if progress:
-                    print(f"bench batch: run {repeat + 1}/{repeats}, {mode}, "
-                          f"{count or 'in-process'}", file=sys.stderr)
+                    print(f"bench batch: run {repeat + 1}/{repeats}, {mode}, {label}",
+                          file=sys.stderr)
                 t0 = time.perf_counter()
-                results[mode, count] = call()
-                times[mode, count].append(time.perf_counter() - t0)
+                results[mode, label] = call()
+                times[mode, label].append(time.perf_counter() - t0)
     finally:
         solver.close()
         for client in clients.values():
             close_cluster(client)
+        for processes in plain.values():
+            processes.close()
     rows: list[dict[str, Any]] = []
-    for mode, count in runners:
-        result = results[mode, count]
-        if count is None:
-            rows.append(_row(mode, "in-process", None, None, first[mode, count],
-                             times[mode, count], result))
-            continue
-        row = _row(mode, f"batch, {count} workers", count, chunks[mode, count],
-                   first[mode, count], times[mode, count], result)
-        row["same_success"] = bool(np.array_equal(result.success, results[mode, None].success))
+    for mode, label in runners:
+        kind, count = kinds[label]
+        result = results[mode, label]
+        row = _row(mode, label, count, chunks[mode, count] if kind == "batch" else None,
+                   first[mode, label], times[mode, label], result)
+        row["kind"] = kind
+        if kind != "in-process":
+            row["same_success"] = bool(np.array_equal(result.success,
+                                                      results[mode, "in-process"].success))
         rows.append(row)
     for row in rows:
-        base = next((r for r in rows if r["mode"] == row["mode"] and r["workers"] == 1), None)
-        own = next(r for r in rows if r["mode"] == row["mode"] and r["workers"] is None)
+        # Speedup over one process of the same kind (one Dask worker, one plain process).
+        base = next((r for r in rows if r["mode"] == row["mode"] and r["kind"] == row["kind"]
+                     and r["workers"] == 1), None)
+        own = next(r for r in rows if r["mode"] == row["mode"] and r["kind"] == "in-process")
         row["speedup"] = (
             base["total_s"] / row["total_s"] if base is not None and row["workers"] else None
         )

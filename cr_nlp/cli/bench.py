@@ -216,7 +216,8 @@ def _add_batch(group: argparse._SubParsersAction) -> None:
     p = group.add_parser(
         "batch", help="batch jobs on Dask: throughput per worker count vs in-process",
         description="Times cr_nlp.batch.run_batch on LocalClusters of --workers worker "
-                    "processes and IKSolver in this process on the same free targets "
+                    "processes, IKSolver in this process, and IKSolver in N plain processes "
+                    "at once (the machine's ceiling for the split) on the same free targets "
                     "(after warm-up, compile excluded); writes batch.md, batch.csv and "
                     "environment.json to --out.")
     p.add_argument("--targets", type=int, default=1000, help="free targets (default 1000)")
