@@ -79,7 +79,10 @@ def _both_paths(robot, scene, count: int, seed: int) -> tuple:  # noqa: ANN001
     return out
 
 
-@pytest.mark.parametrize(("robot", "scene"), [(TDCR3, None), (TDCR4, LATTICE)],
+# The lattice case compiles both paths' programs with a scene (~20 s on 2 cores); the
+# default run keeps the free case, and test_ik's lattice tests run the fused path.
+@pytest.mark.parametrize(("robot", "scene"), [
+    (TDCR3, None), pytest.param(TDCR4, LATTICE, marks=pytest.mark.slow)],
                          ids=["tdcr3-free", "tdcr4_ext-lattice"])
 def test_fused_and_host_driven_search_agree(robot, scene) -> None:  # noqa: ANN001
     out = _both_paths(robot, scene, 24, seed=21)

@@ -197,14 +197,14 @@ def plan_many_problems(robot, count, seed):
     scene = load_scene("shelf")
     # The device search here (the other planner tests run "auto", scipy on a CPU).
     planner = TrajectoryPlanner(robot, scene, TrajectoryConfig(
-        guesses=1, iterations=5, problem_chunk=3, roadmap_search="device"))
+        guesses=1, iterations=5, problem_chunk=2, roadmap_search="device"))
     starts, goals = plan_problems(robot, scene, count, planner.margin, seed=seed)
     return planner, starts, goals
 
 
 def test_planning_many_problems_in_one_call_matches_one_by_one_and_streams(robot,
                                                                            monkeypatch):
-    planner, starts, goals = plan_many_problems(robot, 7, seed=2)
+    planner, starts, goals = plan_many_problems(robot, 5, seed=2)
     blocks = []
     plan_valid = planner._plan_valid
 
@@ -214,7 +214,7 @@ def test_planning_many_problems_in_one_call_matches_one_by_one_and_streams(robot
 
     monkeypatch.setattr(planner, "_plan_valid", spy)
     together = planner.plan(starts, goals)
-    assert blocks == [3, 3, 1]
+    assert blocks == [2, 2, 1]
     alone = [planner.plan(starts[i:i + 1], goals[i:i + 1])[0] for i in range(len(starts))]
     assert [r.success for r in together] == [r.success for r in alone]
     assert [r.stage for r in together] == [r.stage for r in alone]
