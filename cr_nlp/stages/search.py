@@ -51,6 +51,14 @@ class SearchPlan:
         """Rounds in all: the coarse one, then the refinement rounds."""
         return 1 + -(-self.refine_iterations // max(self.refine_round, 1))
 
+    @property
+    def budgets(self) -> tuple[int, ...]:
+        """LM iterations of each round: the coarse one, then ``refine_round`` at a time
+        (the last one what is left of ``refine_iterations``)."""
+        step = max(self.refine_round, 1)
+        return (self.coarse_iterations, *(min(step, self.refine_iterations - r * step)
+                                          for r in range(self.rounds - 1)))
+
 
 def _lm_on_active(residual: Residual, project: Projection, plan: SearchPlan, z: jax.Array,
                   cost: jax.Array, active: jax.Array, target_of: jax.Array, params: Any,
@@ -113,13 +121,9 @@ def search_targets(residual: Residual, project: Projection, plan: SearchPlan,
     dtype = z_seeds.dtype
     target_of = jnp.arange(rows, dtype=jnp.int32) // k
     tolerance = plan.lm.cost_tolerance
-    step = max(plan.refine_round, 1)
     rounds = plan.rounds
 
-    def budget(r: jax.Array) -> jax.Array:
-        refined = (r - 1) * step
-        return jnp.where(r == 0, plan.coarse_iterations,
-                         jnp.minimum(step, plan.refine_iterations - refined)).astype(jnp.int32)
+    budgets = jnp.asarray(plan.budgets, jnp.int32)
 
     def beam_of(z: jax.Array, cost: jax.Array) -> jax.Array:
         picked = select_beam_device(z.reshape(t, k, n), cost.reshape(t, k), width,
@@ -130,7 +134,7 @@ def search_targets(residual: Residual, project: Projection, plan: SearchPlan,
         r, z, cost, active, beam, counted, iterated = state
         before = cost
         z, cost, used = _lm_on_active(residual, project, plan, z, cost, active, target_of,
-                                      params, shared, free, budget(r))
+                                      params, shared, free, budgets[r])
         counted = counted.at[r].set(jnp.sum(active, dtype=jnp.int32))
         iterated = iterated.at[r].set(used)
 

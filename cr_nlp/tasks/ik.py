@@ -488,13 +488,10 @@ class IKSolver:
             self.device_calls += 1
             start = stop
         self._wait(out for _, _, out in runs)
-        budgets = [cfg.coarse_iterations] + [
-            min(max(cfg.refine_round, 1), cfg.refine_iterations - r * max(cfg.refine_round, 1))
-            for r in range(plan.rounds - 1)]
         for _, chunk, (_, _, counted, iterated) in runs:
             counted, iterated = np.asarray(counted).sum(0), np.asarray(iterated).max(0)
             self.lm_calls += [(int(c), chunk * k, b, int(i))
-                              for c, b, i in zip(counted, budgets, iterated, strict=True) if c]
+                              for c, b, i in zip(counted, plan.budgets, iterated, strict=True) if c]
         z = np.concatenate([np.asarray(z)[:rows] for rows, _, (z, *_) in runs])
         cost = np.concatenate([np.asarray(c)[:rows] for rows, _, (_, c, *_) in runs])
         timing.refine += time.perf_counter() - t0 - (timing.compile - c0)
