@@ -522,9 +522,8 @@ class IKSolver:
         start = 0
         for chunk in chunk_plan(len(z), self.config.chunk_size):
             stop = min(start + chunk, len(z))
-            pad = chunk - (stop - start)
-            z_c = np.concatenate([z[start:stop], np.repeat(z[start:start + 1], pad, 0)])
-            c_c = np.concatenate([cost[start:stop], np.repeat(cost[start:start + 1], pad, 0)])
+            z_c = _chunk_rows(z, start, stop, chunk)
+            c_c = _chunk_rows(cost, start, stop, chunk)
             key = ("beam", chunk, z.shape[1], width)
             if key not in self._compiled:
                 t0 = time.perf_counter()
