@@ -204,6 +204,32 @@ def test_a_killed_worker_loses_nothing(robot, client, targets, single, tmp_path)
     assert sorted(manifest["runs"][0]["solved"]) == list(range(TARGETS))
 
 
+def _worker_settings():
+    import dask
+
+    return (
+        os.environ.get("MALLOC_TRIM_THRESHOLD_"),
+        os.environ.get("CR_NLP_BATCH_DEVICES"),
+        dask.config.get("distributed.worker.profile.enabled"),
+        dask.config.get("distributed.admin.tick.interval"),
+    )
+
+
+def test_local_workers_run_without_the_malloc_setting_and_the_profiler(client):
+    """Every worker of ``start_local_cluster`` (replacements of killed ones too: this runs
+    after the kill test on the same cluster) has its share of the cores, keeps glibc's
+    adaptive mmap threshold and runs without Dask's statistical profiler."""
+    client.wait_for_workers(2, timeout=120)
+    settings = client.run(_worker_settings)
+    assert len(settings) == 2
+    cores = len(os.sched_getaffinity(0))
+    for malloc, devices, profile, tick in settings.values():
+        assert malloc is None
+        assert devices == str(max(1, cores // 2))
+        assert profile is False
+        assert tick == "500ms"
+
+
 def test_resume_after_the_client_is_killed_solves_only_the_missing_chunks(
     robot, client, targets, single, tmp_path
 ):
