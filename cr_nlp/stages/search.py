@@ -9,18 +9,25 @@ which rows iterate, and ``lax.while_loop`` runs the rounds. So that finished row
 nothing on a CPU either, each round gathers its active rows to the front (a stable
 sort of the mask) and runs LM on them in blocks of ``SearchPlan.block`` rows, as many
 blocks as there are active rows; on a GPU one block holds the whole chunk.
+``search_with_retries`` adds the retry rounds for the targets still failing to the same
+program: fresh seeds (pool lookup and random draws on the device), the same masked
+search, only where it is needed.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 
-from .explore import select_beam_device
+from .explore import nearest_features, select_beam_device
 from .lm import LMConfig, Projection, Residual, lm_solve
+
+Sampler = Callable[[jax.Array], jax.Array]
+"""(key) → (count, n) random starting points (bending-vector units)."""
 
 
 @dataclass(frozen=True)
@@ -115,6 +122,15 @@ def search_targets(residual: Residual, project: Projection, plan: SearchPlan,
         (coarse first) the rows iterated (1, rounds) and the most LM iterations any of
         its blocks ran (1, rounds), for profiling (the leading 1 is one row per device).
     """
+    z, cost, counted, iterated = _search_rows(residual, project, plan, z_seeds, params,
+                                              valid, shared, free)
+    return z, cost, counted[None], iterated[None]
+
+
+def _search_rows(residual: Residual, project: Projection, plan: SearchPlan,
+                 z_seeds: jax.Array, params: Any, valid: jax.Array, shared: Any,
+                 free: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """``search_targets`` with the per-round counts as (rounds,) arrays."""
     t, k, n = z_seeds.shape
     rows = t * k
     width = min(plan.width, k)
@@ -168,4 +184,108 @@ def search_targets(residual: Residual, project: Projection, plan: SearchPlan,
     stats = jnp.zeros(rounds, jnp.int32) + zero.astype(jnp.int32)
     state = (jnp.int32(0), z_seeds.reshape(rows, n), cost, active, beam, stats, stats)
     _, z, cost, _, beam, counted, iterated = jax.lax.while_loop(more, body, state)
-    return z[beam], cost[beam], counted[None], iterated[None]
+    return z[beam], cost[beam], counted, iterated
+
+
+
+@dataclass(frozen=True)
+class RetryPlan:
+    """Static settings of the retry rounds of ``search_with_retries``."""
+
+    rounds: int
+    """Retry rounds at most; a round runs only if some target is still failing."""
+    seeds: int
+    """Seeds per failing target in a round: its best answer so far, ``nearest``
+    next-nearest pool entries, random configurations for the rest."""
+    nearest: int
+    """Next-nearest pool entries among a round's seeds (further down the pool's ranking
+    each round)."""
+    first_rank: int
+    """Pool ranks the main search already used (its seeds per target)."""
+    success_cost: float
+    """A target whose best cost ½‖r‖² is not below this is failing."""
+    seed: int
+    """Seed of the random configurations (``jax.random``)."""
+
+
+def search_with_retries(residual: Residual, project: Projection, sample: Sampler,
+                        plan: SearchPlan, retry: RetryPlan, z_seeds: jax.Array, params: Any,
+                        valid: jax.Array, features: jax.Array, stream: jax.Array,
+                        shared: Any, free: jax.Array, pool: tuple) -> tuple:
+    """``search_targets`` (with ``per_target``), then retry rounds for the targets whose
+    best cost is still above ``retry.success_cost``, all in one program.
+
+    A retry round is the same search on ``retry.seeds`` seeds per target, with only the
+    failing targets valid (the others are masked: no compute on a CPU): the target's best
+    answer so far, its next-nearest pool entries (one lookup, done on the device in the
+    first retry round, never when every target succeeded) and random configurations
+    within the limits (``sample``, keyed by ``retry.seed``, the target's ``stream``
+    number and the round, so a solve is reproducible). A target keeps the round's answer
+    only if it is better.
+
+    Args:
+        residual, project: the problem, as for ``stages.lm.lm_solve``.
+        sample: (key) → (retry.seeds, n) random bending vectors within the limits.
+        plan, retry: static settings.
+        z_seeds, params, valid, shared, free: as for ``search_targets``.
+        features: (T, 9) target pose features for ``explore.nearest_features``.
+        stream: (T,) int32 number of each target (keys its random seeds).
+        pool: the pool on the device (``SeedPool.device_arrays``).
+
+    Returns:
+        best z (T, n) and cost (T,), per round (the main search's rounds, then each retry
+        round's) the rows iterated and the most LM iterations run (1, rounds·(1 +
+        retry.rounds)), and the targets each retry round retried (1, retry.rounds).
+    """
+    pool_features, pool_valid, pool_z = pool
+    t, k, n = z_seeds.shape
+    # A retry block never exceeds the main search's rows: on a GPU (one block holds the
+    # whole chunk) a round for a few failing targets then costs at most a main round.
+    retry_search = replace(plan, block=min(plan.block, t * k))
+    z, cost, counted, iterated = _search_rows(residual, project, plan, z_seeds, params,
+                                              valid, shared, free)
+    best = jnp.argmin(cost, axis=1)
+    z_best, c_best = z[jnp.arange(t), best], cost[jnp.arange(t), best]
+    ranks = min(retry.first_rank + retry.rounds * retry.nearest, pool_z.shape[0])
+    near = min(retry.nearest, retry.seeds - 1)
+    zero = (c_best[:1] * 0).astype(jnp.int32)  # varies per shard, like the carries
+    base = jax.random.key(retry.seed)
+    keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(stream)
+
+    def failing(c_best: jax.Array) -> jax.Array:
+        return valid & ~(c_best < retry.success_cost)
+
+    def body(state: tuple) -> tuple:
+        r, z_best, c_best, nearest, counted, iterated, retried = state
+        todo = failing(c_best)
+        seeds = jax.vmap(sample)(jax.vmap(lambda key: jax.random.fold_in(key, r))(keys))
+        if near:
+            nearest = jax.lax.cond(r == 0, lambda: nearest_features(
+                pool_features, pool_valid, features, ranks) + zero, lambda: nearest)
+            rank = retry.first_rank + r * retry.nearest + jnp.arange(near)
+            pooled = pool_z[jnp.take(nearest, jnp.minimum(rank, ranks - 1), axis=1)]
+            seeds = seeds.at[:, 1:1 + near].set(
+                jnp.where((rank < ranks)[None, :, None], pooled, seeds[:, 1:1 + near]))
+        seeds = seeds.at[:, 0].set(z_best)  # the best so far stays in the race
+        z, cost, c_round, i_round = _search_rows(residual, project, retry_search, seeds,
+                                                 params, todo, shared, free)
+        pick = jnp.argmin(cost, axis=1)
+        z_new, c_new = z[jnp.arange(t), pick], cost[jnp.arange(t), pick]
+        better = todo & (c_new < c_best)
+        span = plan.rounds * (1 + r)
+        return (r + 1, jnp.where(better[:, None], z_new, z_best),
+                jnp.where(better, c_new, c_best), nearest,
+                jax.lax.dynamic_update_slice(counted, c_round, (span,)),
+                jax.lax.dynamic_update_slice(iterated, i_round, (span,)),
+                retried.at[r].set(jnp.sum(todo, dtype=jnp.int32)))
+
+    def more(state: tuple) -> jax.Array:
+        r, _, c_best, *_ = state
+        return (r < retry.rounds) & jnp.any(failing(c_best))
+
+    rest = jnp.zeros(plan.rounds * retry.rounds, jnp.int32) + zero
+    state = (jnp.int32(0), z_best, c_best, jnp.zeros((t, ranks), jnp.int32) + zero,
+             jnp.concatenate([counted, rest]), jnp.concatenate([iterated, rest]),
+             jnp.zeros(retry.rounds, jnp.int32) + zero)
+    _, z_best, c_best, _, counted, iterated, retried = jax.lax.while_loop(more, body, state)
+    return z_best, c_best, counted[None], iterated[None], retried[None]

@@ -11,8 +11,8 @@ target in pose by a jitted lookup, a few coarse LM steps on all of them, a diver
 of the best chosen on the device), refine (LM on the beam, best per target, retries with
 fresh seeds for the targets still failing), polish (optional: Ipopt with the constraints
 as constraints). Large batches stream through in parts of ``IKConfig.stream_size``. The
-coarse steps, the beam and the refinement rounds of a chunk of targets run as one device
-program (``stages.search``, ``IKConfig.fused``).
+coarse steps, the beam, the refinement rounds and the retries of a chunk of targets run as
+one device program (``stages.search``, ``IKConfig.fused``).
 """
 
 from __future__ import annotations
@@ -36,9 +36,14 @@ from ..model.limits import clip_to_limits, limit_violation_q, project_z
 from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
 from ..stages.chunks import SMALLEST_CHUNK as SMALLEST_CHUNK
 from ..stages.chunks import chunk_plan as chunk_plan
-from ..stages.explore import SeedPool, select_beam_device, sobol_configurations
+from ..stages.explore import (
+    SeedPool,
+    random_configurations_z,
+    select_beam_device,
+    sobol_configurations,
+)
 from ..stages.lm import LMConfig, lm_solve
-from ..stages.search import SearchPlan, search_targets
+from ..stages.search import RetryPlan, SearchPlan, search_targets, search_with_retries
 from ..world import Scene, check_many, load_scene, scene_arrays
 from ..world.clearance import body_gap_tolerance
 from ..world.penalty import sphere_clearances_z
@@ -68,7 +73,7 @@ class IKConfig:
     chunks on the host-driven path, ``_refine``)."""
     retry_rounds: int = 2
     """Extra rounds, with fresh random seeds, for the targets whose penalised residual is
-    still above ``success_tolerance``."""
+    still above ``success_tolerance`` (with ``fused``, inside the search program)."""
     retry_seeds: int = 32
     """Seeds per failing target in a retry round."""
     polish_attempts: int = 3
@@ -96,10 +101,11 @@ class IKConfig:
     batch (measured with tracemalloc, tdcr3: 2000 targets in one part peaked at 7.8 MB
     of host arrays, in parts of 500 at 2.3 MB)."""
     fused: bool | None = None
-    """Run coarse steps, beam selection and the refinement rounds of a chunk of targets
-    as one device program (``stages.search``: per-row masks and ``lax.while_loop``)
-    instead of one program per stage and round with the unfinished problems repacked on
-    the host in between. None: fused on every backend (see ``search_block``). Measured
+    """Run coarse steps, beam selection, the refinement rounds and the retry rounds of a
+    chunk of targets as one device program (``stages.search``: per-row masks and
+    ``lax.while_loop``; the retries draw their random seeds with ``jax.random`` and look
+    up their pool seeds on the device) instead of one program per stage and round with
+    the unfinished problems repacked on the host in between. None: fused on every backend (see ``search_block``). Measured
     on 2 CPU cores under load 5–8 (interleaved, median CPU seconds per solve, host-driven
     → fused): 1000 free tdcr3 targets 0.29 → 0.26, lattice 100 targets tdcr3 0.99 →
     0.89 and tdcr4_ext 1.74 → 1.64; device calls per solve 25 → 2 and 11 → 2.
@@ -322,6 +328,9 @@ class IKSolver:
         size, iteration budget, iterations run), for profiling."""
         self.stream_parts: list[int] = []
         """Targets per part of the last ``solve``'s stream (``IKConfig.stream_size``)."""
+        self.retried: list[int] = []
+        """Targets retried in each retry round of the last ``solve`` (summed over its
+        stream parts and chunks; 0 for a round that did not run)."""
         self.device_calls = 0
         """Compiled programs the last ``solve``/``candidates`` launched (lookups, LM,
         beam selection, fused searches): its device round trips."""
@@ -455,18 +464,25 @@ class IKSolver:
         return z.reshape(t, width, n), cost.reshape(t, width)
 
     def _search_fused(self, z_seeds: np.ndarray, positions: np.ndarray,
-                      rotations: np.ndarray, timing: IKTiming,
-                      per_target: bool) -> tuple[np.ndarray, np.ndarray]:
+                      rotations: np.ndarray, timing: IKTiming, per_target: bool,
+                      pool: SeedPool | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``_search_beam`` as one ``stages.search.search_targets`` program per chunk of
         targets (``chunk_plan`` over ``chunk_size`` targets; padding targets are masked
-        out). The whole search is booked as refinement time. Appends one ``lm_calls``
+        out). With ``pool`` the program also runs the retry rounds with seeds from that
+        pool (``search_with_retries``) and returns the best z (T, n) and cost (T,) per
+        target. The whole search is booked as refinement time. Appends one ``lm_calls``
         entry per chunk and round: (rows iterated, rows of the chunk, budget, most
         iterations run)."""
         t, k, n = z_seeds.shape
         cfg = self.config
-        plan = self._search_plan(k, per_target)
+        plan = self._search_plan(per_target)
+        retry = None if pool is None else RetryPlan(
+            rounds=cfg.retry_rounds, seeds=cfg.retry_seeds, nearest=cfg.retry_seeds // 2,
+            first_rank=min(cfg.seeds_per_target, len(pool)),
+            success_cost=0.5 * cfg.success_tolerance ** 2, seed=cfg.seed)
         t0 = time.perf_counter()
         c0 = timing.compile
+        features = None if pool is None else pool.target_features(positions, rotations)
         runs = []
         start = 0
         for chunk in chunk_plan(t, cfg.chunk_size):
@@ -475,29 +491,47 @@ class IKSolver:
             args = (jnp.asarray(padded(z_seeds), self.dtype),
                     (jnp.asarray(padded(positions), self.dtype),
                      jnp.asarray(padded(rotations).reshape(-1, 9), self.dtype)),
-                    jnp.asarray(np.arange(chunk) < stop - start), self._arrays, self._free)
-            key = ("search", chunk, k, per_target)
+                    jnp.asarray(np.arange(chunk) < stop - start))
+            if retry is None:
+                args += (self._arrays, self._free)
+                batched = (True, True, True, False, False)
+                search = partial(search_targets, self._residual, self._project, plan)
+            else:
+                # Each target's number in this part keys its random retry seeds.
+                args += (jnp.asarray(padded(features), self.dtype),
+                         jnp.arange(start, start + chunk, dtype=jnp.int32),
+                         self._arrays, self._free, pool.device_arrays())
+                batched = (True, True, True, True, True, False, False, False)
+                sample = partial(random_configurations_z, self.robot, count=cfg.retry_seeds,
+                                 dtype=self.dtype)
+                search = partial(search_with_retries, self._residual, self._project, sample,
+                                 plan, retry)
+            key = ("search", chunk, k, per_target, retry)
             if key not in self._compiled:
                 t1 = time.perf_counter()
-                program = split_over_devices(
-                    partial(search_targets, self._residual, self._project, plan),
-                    (True, True, True, False, False), chunk, outputs=4)
+                program = split_over_devices(search, batched, chunk,
+                                             outputs=4 if retry is None else 5)
                 self._compiled[key] = program.lower(*args).compile()
                 timing.compile += time.perf_counter() - t1
             runs.append((stop - start, chunk, self._compiled[key](*args)))
             self.device_calls += 1
             start = stop
         self._wait(out for _, _, out in runs)
-        for _, chunk, (_, _, counted, iterated) in runs:
+        budgets = plan.budgets * (1 + (retry.rounds if retry else 0))
+        for _, chunk, (_, _, counted, iterated, *retried) in runs:
             counted, iterated = np.asarray(counted).sum(0), np.asarray(iterated).max(0)
-            self.lm_calls += [(int(c), chunk * k, b, int(i))
-                              for c, b, i in zip(counted, plan.budgets, iterated, strict=True) if c]
+            rows = [chunk * (k if r < plan.rounds else retry.seeds) for r in range(len(budgets))]
+            self.lm_calls += [(int(c), size, b, int(i)) for c, size, b, i
+                              in zip(counted, rows, budgets, iterated, strict=True) if c]
+            if retried:
+                self.retried = [a + int(b) for a, b in
+                                zip(self.retried, np.asarray(retried[0]).sum(0), strict=True)]
         z = np.concatenate([np.asarray(z)[:rows] for rows, _, (z, *_) in runs])
         cost = np.concatenate([np.asarray(c)[:rows] for rows, _, (_, c, *_) in runs])
         timing.refine += time.perf_counter() - t0 - (timing.compile - c0)
         return z, cost
 
-    def _search_plan(self, seeds: int, per_target: bool) -> SearchPlan:
+    def _search_plan(self, per_target: bool) -> SearchPlan:
         cfg = self.config
         block = cfg.search_block
         if block is None:
@@ -505,7 +539,7 @@ class IKSolver:
             block = ((128 if self.scene is None else 64) if jax.default_backend() == "cpu"
                      else 1 << 30)
         return SearchPlan(
-            width=min(cfg.beam_width, seeds), coarse_iterations=cfg.coarse_iterations,
+            width=cfg.beam_width, coarse_iterations=cfg.coarse_iterations,
             refine_iterations=cfg.refine_iterations, refine_round=cfg.refine_round,
             per_target=per_target, min_distance=float(cfg.beam_min_distance), block=block,
             lm=LMConfig(cost_tolerance=0.5 * cfg.converged_error ** 2))
@@ -637,6 +671,7 @@ class IKSolver:
         self.stream_parts = []
         self.device_wait = 0.0
         self.device_calls = 0
+        self.retried = [0] * self.config.retry_rounds
         pool_wait = self._pool.wait_seconds if self._pool is not None else 0.0
         pool_calls = self._pool.calls if self._pool is not None else 0
         positions, wxyz, reasons = validate_targets(self.robot, positions, wxyz)
@@ -668,14 +703,20 @@ class IKSolver:
         nearest = pool.nearest(pos_v, rot_v, cfg.seeds_per_target)
         self._account_pool(pool, c0, t0, timing)
         used = nearest.shape[1]
+        if self._fused and cfg.retry_rounds > 0:
+            # The retries run inside the search program (no host round trip per round).
+            z_best, cost = self._search_fused(pool.z[nearest], pos_v, rot_v, timing,
+                                              per_target=True, pool=pool)
+            return clip_to_limits(self.robot, z_to_q_numpy(z_best))
         z_best, cost = self._search(pool.z[nearest], pos_v, rot_v, timing)
         ok = np.sqrt(2 * cost) < cfg.success_tolerance
         near = cfg.retry_seeds // 2
         retry_nearest = None
-        for _ in range(cfg.retry_rounds):
+        for r in range(cfg.retry_rounds):
             todo = np.flatnonzero(~ok)
             if not len(todo):
                 break
+            self.retried[r] += len(todo)
             t0 = time.perf_counter()
             c0 = pool.compile_seconds
             if retry_nearest is None:
