@@ -248,9 +248,8 @@ def search_with_retries(residual: Residual, project: Projection, sample: Sampler
     z_best, c_best = z[jnp.arange(t), best], cost[jnp.arange(t), best]
     ranks = min(retry.first_rank + retry.rounds * retry.nearest, pool_z.shape[0])
     near = min(retry.nearest, retry.seeds - 1)
-    zero = (c_best[:1] * 0).astype(jnp.int32)  # varies per shard, like the carries
+    zero = jnp.sum(stream[:1], dtype=jnp.int32) * 0  # varies per shard, like the carries
     base = jax.random.key(retry.seed)
-    keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(stream)
 
     def failing(c_best: jax.Array) -> jax.Array:
         return valid & ~(c_best < retry.success_cost)
@@ -258,7 +257,8 @@ def search_with_retries(residual: Residual, project: Projection, sample: Sampler
     def body(state: tuple) -> tuple:
         r, z_best, c_best, nearest, counted, iterated, retried = state
         todo = failing(c_best)
-        seeds = jax.vmap(sample)(jax.vmap(lambda key: jax.random.fold_in(key, r))(keys))
+        keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.fold_in(base, r), i))(stream)
+        seeds = jax.vmap(sample)(keys)
         if near:
             nearest = jax.lax.cond(r == 0, lambda: nearest_features(
                 pool_features, pool_valid, features, ranks) + zero, lambda: nearest)

@@ -105,10 +105,11 @@ class IKConfig:
     chunk of targets as one device program (``stages.search``: per-row masks and
     ``lax.while_loop``; the retries draw their random seeds with ``jax.random`` and look
     up their pool seeds on the device) instead of one program per stage and round with
-    the unfinished problems repacked on the host in between. None: fused on every backend (see ``search_block``). Measured
-    on 2 CPU cores under load 5–8 (interleaved, median CPU seconds per solve, host-driven
-    → fused): 1000 free tdcr3 targets 0.29 → 0.26, lattice 100 targets tdcr3 0.99 →
-    0.89 and tdcr4_ext 1.74 → 1.64; device calls per solve 25 → 2 and 11 → 2.
+    the unfinished problems repacked on the host in between. None: fused on every
+    backend (see ``search_block``). Measured on 2 CPU cores under load 5–8 (interleaved,
+    median CPU seconds per solve, host-driven → fused): 1000 free tdcr3 targets 0.29 →
+    0.26, lattice 100 targets tdcr3 0.99 → 0.89 and tdcr4_ext 1.74 → 1.64; device calls
+    per solve 25 → 2 and 11 → 2.
     Chunks hold up to ``chunk_size`` targets (each with its seeds)."""
     search_block: int | None = None
     """Fused search: LM rows per block and device; a round runs its active rows in as
@@ -520,9 +521,9 @@ class IKSolver:
         budgets = plan.budgets * (1 + (retry.rounds if retry else 0))
         for _, chunk, (_, _, counted, iterated, *retried) in runs:
             counted, iterated = np.asarray(counted).sum(0), np.asarray(iterated).max(0)
-            rows = [chunk * (k if r < plan.rounds else retry.seeds) for r in range(len(budgets))]
+            sizes = [chunk * (k if r < plan.rounds else retry.seeds) for r in range(len(budgets))]
             self.lm_calls += [(int(c), size, b, int(i)) for c, size, b, i
-                              in zip(counted, rows, budgets, iterated, strict=True) if c]
+                              in zip(counted, sizes, budgets, iterated, strict=True) if c]
             if retried:
                 self.retried = [a + int(b) for a, b in
                                 zip(self.retried, np.asarray(retried[0]).sum(0), strict=True)]
