@@ -43,7 +43,7 @@ from ..stages.explore import (
     sobol_configurations,
 )
 from ..stages.lm import LMConfig, lm_solve
-from ..stages.search import RetryPlan, SearchPlan, search_targets, search_with_retries
+from ..stages.search import RetryPlan, SearchPlan, retry_targets, search_targets
 from ..world import Scene, check_many, load_scene, scene_arrays
 from ..world.clearance import body_gap_tolerance
 from ..world.penalty import sphere_clearances_z
@@ -465,72 +465,95 @@ class IKSolver:
         return z.reshape(t, width, n), cost.reshape(t, width)
 
     def _search_fused(self, z_seeds: np.ndarray, positions: np.ndarray,
-                      rotations: np.ndarray, timing: IKTiming, per_target: bool,
-                      pool: SeedPool | None = None) -> tuple[np.ndarray, np.ndarray]:
+                      rotations: np.ndarray, timing: IKTiming,
+                      per_target: bool) -> tuple[np.ndarray, np.ndarray]:
         """``_search_beam`` as one ``stages.search.search_targets`` program per chunk of
         targets (``chunk_plan`` over ``chunk_size`` targets; padding targets are masked
-        out). With ``pool`` the program also runs the retry rounds with seeds from that
-        pool (``search_with_retries``) and returns the best z (T, n) and cost (T,) per
-        target. The whole search is booked as refinement time. Appends one ``lm_calls``
+        out). The whole search is booked as refinement time. Appends one ``lm_calls``
         entry per chunk and round: (rows iterated, rows of the chunk, budget, most
         iterations run)."""
-        t, k, n = z_seeds.shape
-        cfg = self.config
+        k = z_seeds.shape[1]
         plan = self._search_plan(per_target)
-        retry = None if pool is None else RetryPlan(
-            rounds=cfg.retry_rounds, seeds=cfg.retry_seeds, nearest=cfg.retry_seeds // 2,
-            first_rank=min(cfg.seeds_per_target, len(pool)),
-            success_cost=0.5 * cfg.success_tolerance ** 2, seed=cfg.seed)
+        search = partial(search_targets, self._residual, self._project, plan)
         t0 = time.perf_counter()
         c0 = timing.compile
-        features = None if pool is None else pool.target_features(positions, rotations)
+        runs = self._run_fused(("search", k, per_target), search,
+                               (z_seeds, (positions, rotations.reshape(-1, 9))), 4, timing)
+        for _, chunk, (_, _, counted, iterated) in runs:
+            self._count_rounds(counted, iterated, chunk * k, plan.budgets)
+        z = np.concatenate([np.asarray(z)[:rows] for rows, _, (z, *_) in runs])
+        cost = np.concatenate([np.asarray(c)[:rows] for rows, _, (_, c, *_) in runs])
+        timing.refine += time.perf_counter() - t0 - (timing.compile - c0)
+        return z, cost
+
+    def _retry_fused(self, z_best: np.ndarray, cost: np.ndarray, positions: np.ndarray,
+                     rotations: np.ndarray, stream: np.ndarray, pool: SeedPool,
+                     timing: IKTiming) -> tuple[np.ndarray, np.ndarray]:
+        """Every retry round of the failing targets given (best z (T, n), cost (T,)) as
+        one ``stages.search.retry_targets`` program per chunk: z (T, n), cost (T,). Booked
+        as refinement time; ``lm_calls`` and ``retried`` as for the host-driven rounds."""
+        cfg = self.config
+        plan = self._search_plan(per_target=True)
+        retry = RetryPlan(rounds=cfg.retry_rounds, seeds=cfg.retry_seeds,
+                          nearest=cfg.retry_seeds // 2,
+                          first_rank=min(cfg.seeds_per_target, len(pool)),
+                          success_cost=0.5 * cfg.success_tolerance ** 2, seed=cfg.seed)
+        sample = partial(random_configurations_z, self.robot, count=cfg.retry_seeds,
+                         dtype=self.dtype)
+        search = partial(retry_targets, self._residual, self._project, sample, plan, retry)
+        t0 = time.perf_counter()
+        c0 = timing.compile
+        runs = self._run_fused(
+            ("retry", retry), search,
+            (z_best, cost, (positions, rotations.reshape(-1, 9)),
+             pool.target_features(positions, rotations), stream.astype(np.int32)),
+            5, timing, pool.device_arrays())
+        for _, chunk, (_, _, counted, iterated, retried) in runs:
+            self._count_rounds(counted, iterated, chunk * retry.seeds,
+                               plan.budgets * retry.rounds)
+            self.retried = [a + int(b) for a, b in
+                            zip(self.retried, np.asarray(retried).sum(0), strict=True)]
+        z = np.concatenate([np.asarray(z)[:rows] for rows, _, (z, *_) in runs])
+        cost = np.concatenate([np.asarray(c)[:rows] for rows, _, (_, c, *_) in runs])
+        timing.refine += time.perf_counter() - t0 - (timing.compile - c0)
+        return z, cost
+
+    def _run_fused(self, name: tuple, search: Any, per_target: tuple, outputs: int,
+                   timing: IKTiming, *whole: Any) -> list[tuple[int, int, Any]]:
+        """Launch ``search`` over ``chunk_plan`` chunks of the targets: its arguments are
+        the ``per_target`` arrays (pytrees of leading dimension T, padded per chunk; real
+        numbers in ``dtype``), the valid-target mask, the scene arrays, the free-variable
+        mask and ``whole``. One compiled program per name and chunk, split over every
+        device. Returns (targets, chunk, outputs) per chunk, all dispatched and ready."""
+        count = len(jax.tree.leaves(per_target)[0])
         runs = []
         start = 0
-        for chunk in chunk_plan(t, cfg.chunk_size):
-            stop = min(start + chunk, t)
+        for chunk in chunk_plan(count, self.config.chunk_size):
+            stop = min(start + chunk, count)
             padded = partial(_chunk_rows, start=start, stop=stop, size=chunk)
-            args = (jnp.asarray(padded(z_seeds), self.dtype),
-                    (jnp.asarray(padded(positions), self.dtype),
-                     jnp.asarray(padded(rotations).reshape(-1, 9), self.dtype)),
-                    jnp.asarray(np.arange(chunk) < stop - start))
-            if retry is None:
-                args += (self._arrays, self._free)
-                batched = (True, True, True, False, False)
-                search = partial(search_targets, self._residual, self._project, plan)
-            else:
-                # Each target's number in this part keys its random retry seeds.
-                args += (jnp.asarray(padded(features), self.dtype),
-                         jnp.arange(start, start + chunk, dtype=jnp.int32),
-                         self._arrays, self._free, pool.device_arrays())
-                batched = (True, True, True, True, True, False, False, False)
-                sample = partial(random_configurations_z, self.robot, count=cfg.retry_seeds,
-                                 dtype=self.dtype)
-                search = partial(search_with_retries, self._residual, self._project, sample,
-                                 plan, retry)
-            key = ("search", chunk, k, per_target, retry)
+            rows = jax.tree.map(lambda x, padded=padded: jnp.asarray(
+                padded(x), self.dtype if x.dtype.kind == "f" else None), per_target)
+            args = (*rows, jnp.asarray(np.arange(chunk) < stop - start), self._arrays,
+                    self._free, *whole)
+            key = (*name, chunk)
             if key not in self._compiled:
                 t1 = time.perf_counter()
-                program = split_over_devices(search, batched, chunk,
-                                             outputs=4 if retry is None else 5)
+                batched = (True,) * (len(per_target) + 1) + (False,) * (2 + len(whole))
+                program = split_over_devices(search, batched, chunk, outputs=outputs)
                 self._compiled[key] = program.lower(*args).compile()
                 timing.compile += time.perf_counter() - t1
             runs.append((stop - start, chunk, self._compiled[key](*args)))
             self.device_calls += 1
             start = stop
         self._wait(out for _, _, out in runs)
-        budgets = plan.budgets * (1 + (retry.rounds if retry else 0))
-        for _, chunk, (_, _, counted, iterated, *retried) in runs:
-            counted, iterated = np.asarray(counted).sum(0), np.asarray(iterated).max(0)
-            sizes = [chunk * (k if r < plan.rounds else retry.seeds) for r in range(len(budgets))]
-            self.lm_calls += [(int(c), size, b, int(i)) for c, size, b, i
-                              in zip(counted, sizes, budgets, iterated, strict=True) if c]
-            if retried:
-                self.retried = [a + int(b) for a, b in
-                                zip(self.retried, np.asarray(retried[0]).sum(0), strict=True)]
-        z = np.concatenate([np.asarray(z)[:rows] for rows, _, (z, *_) in runs])
-        cost = np.concatenate([np.asarray(c)[:rows] for rows, _, (_, c, *_) in runs])
-        timing.refine += time.perf_counter() - t0 - (timing.compile - c0)
-        return z, cost
+        return runs
+
+    def _count_rounds(self, counted: Any, iterated: Any, rows: int,
+                      budgets: tuple[int, ...]) -> None:
+        """One ``lm_calls`` entry per round of a fused program that iterated any row."""
+        counted, iterated = np.asarray(counted).sum(0), np.asarray(iterated).max(0)
+        self.lm_calls += [(int(c), rows, b, int(i))
+                          for c, b, i in zip(counted, budgets, iterated, strict=True) if c]
 
     def _search_plan(self, per_target: bool) -> SearchPlan:
         cfg = self.config
@@ -704,13 +727,15 @@ class IKSolver:
         nearest = pool.nearest(pos_v, rot_v, cfg.seeds_per_target)
         self._account_pool(pool, c0, t0, timing)
         used = nearest.shape[1]
-        if self._fused and cfg.retry_rounds > 0:
-            # The retries run inside the search program (no host round trip per round).
-            z_best, cost = self._search_fused(pool.z[nearest], pos_v, rot_v, timing,
-                                              per_target=True, pool=pool)
-            return clip_to_limits(self.robot, z_to_q_numpy(z_best))
         z_best, cost = self._search(pool.z[nearest], pos_v, rot_v, timing)
         ok = np.sqrt(2 * cost) < cfg.success_tolerance
+        if self._fused and cfg.retry_rounds > 0:
+            # Every retry round in one more program, only when some target failed.
+            todo = np.flatnonzero(~ok)
+            if len(todo):
+                z_best[todo], cost[todo] = self._retry_fused(
+                    z_best[todo], cost[todo], pos_v[todo], rot_v[todo], todo, pool, timing)
+            return clip_to_limits(self.robot, z_to_q_numpy(z_best))
         near = cfg.retry_seeds // 2
         retry_nearest = None
         for r in range(cfg.retry_rounds):
