@@ -11,8 +11,9 @@ target in pose by a jitted lookup, a few coarse LM steps on all of them, a diver
 of the best chosen on the device), refine (LM on the beam, best per target, retries with
 fresh seeds for the targets still failing), polish (optional: Ipopt with the constraints
 as constraints). Large batches stream through in parts of ``IKConfig.stream_size``. The
-coarse steps, the beam, the refinement rounds and the retries of a chunk of targets run as
-one device program (``stages.search``, ``IKConfig.fused``).
+coarse steps, the beam and the refinement rounds of a chunk of targets run as one device
+program, all retry rounds of its failing targets as one more (``stages.search``,
+``IKConfig.fused``).
 """
 
 from __future__ import annotations
@@ -73,7 +74,7 @@ class IKConfig:
     chunks on the host-driven path, ``_refine``)."""
     retry_rounds: int = 2
     """Extra rounds, with fresh random seeds, for the targets whose penalised residual is
-    still above ``success_tolerance`` (with ``fused``, inside the search program)."""
+    still above ``success_tolerance`` (with ``fused``, all rounds in one program)."""
     retry_seeds: int = 32
     """Seeds per failing target in a retry round."""
     polish_attempts: int = 3
@@ -101,15 +102,15 @@ class IKConfig:
     batch (measured with tracemalloc, tdcr3: 2000 targets in one part peaked at 7.8 MB
     of host arrays, in parts of 500 at 2.3 MB)."""
     fused: bool | None = None
-    """Run coarse steps, beam selection, the refinement rounds and the retry rounds of a
-    chunk of targets as one device program (``stages.search``: per-row masks and
-    ``lax.while_loop``; the retries draw their random seeds with ``jax.random`` and look
-    up their pool seeds on the device) instead of one program per stage and round with
-    the unfinished problems repacked on the host in between. None: fused on every
-    backend (see ``search_block``). Measured on 2 CPU cores under load 5–8 (interleaved,
-    median CPU seconds per solve, host-driven → fused): 1000 free tdcr3 targets 0.29 →
-    0.26, lattice 100 targets tdcr3 0.99 → 0.89 and tdcr4_ext 1.74 → 1.64; device calls
-    per solve 25 → 2 and 11 → 2.
+    """Run coarse steps, beam selection and the refinement rounds of a chunk of targets
+    as one device program (``stages.search``: per-row masks and ``lax.while_loop``), and
+    every retry round of the targets still failing as one more (``retry_targets``: seeds
+    looked up and drawn with ``jax.random`` on the device), instead of one program per
+    stage and round with the unfinished problems repacked on the host in between. None:
+    fused on every backend (see ``search_block``). Measured on 2 CPU cores under load 5–8
+    (interleaved, median CPU seconds per solve, host-driven → fused): 1000 free tdcr3
+    targets 0.29 → 0.26, lattice 100 targets tdcr3 0.99 → 0.89 and tdcr4_ext 1.74 →
+    1.64; device calls per solve 25 → 2 and 11 → 2.
     Chunks hold up to ``chunk_size`` targets (each with its seeds)."""
     search_block: int | None = None
     """Fused search: LM rows per block and device; a round runs its active rows in as
