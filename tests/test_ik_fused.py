@@ -6,6 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from cr_nlp.model.limits import limit_violation_q
 from cr_nlp.stages.lm import LMConfig
 from cr_nlp.stages.search import SearchPlan, search_targets
 from cr_nlp.tasks.ik import IKConfig, IKSolver
@@ -110,3 +111,62 @@ def test_fused_candidates_are_a_diverse_refined_beam() -> None:
     assert np.all(err_new.min(axis=1) < 1e-4) and np.all(err_old.min(axis=1) < 1e-4)
     spread = np.linalg.norm(q_new[:, :, None] - q_new[:, None, :], axis=-1)
     assert np.any(spread > 1e-3)  # not one answer repeated
+
+
+def _solve_with(config: IKConfig, positions: np.ndarray, wxyz: np.ndarray) -> tuple:
+    solver = IKSolver(TDCR3, config=config)
+    return solver.solve(positions, wxyz), solver
+
+
+def _assert_verified(result, positions: np.ndarray) -> None:  # noqa: ANN001
+    """Every success holds by an independent forward kinematics and the limits."""
+    reached, _ = targets_from(TDCR3, result.q[result.success])
+    assert np.all(np.linalg.norm(reached - positions[result.success], axis=1) < 1e-2)
+    assert np.all(limit_violation_q(TDCR3, result.q[result.success]) <= 1e-6)
+
+
+def test_fused_retries_run_inside_the_search_program() -> None:
+    """Targets the search cannot reach (98 % of the robot's length from its base but off
+    its axis: only a nearly straight robot reaches that far) are retried on both paths;
+    the fused path launches one lookup, one search and one retry program for both
+    rounds, and a solve is reproducible. Same 24 targets as the tdcr3 case above, so
+    the lookup and search programs come from the compilation cache."""
+    q = free_configurations(TDCR3, 20, seed=21, clearance=0.05)
+    positions, wxyz = targets_from(TDCR3, q)
+    sideways = np.array([[1.0, 0, 0], [0, 1, 0], [0, 0, -1], [-0.6, 0.8, 0]])
+    positions = np.concatenate([positions, np.asarray(TDCR3.base_position)
+                                + 0.98 * TDCR3.total_length_max * sideways])
+    wxyz = np.concatenate([wxyz, np.tile([1.0, 0, 0, 0], (4, 1))])
+    (old, old_solver), (new, new_solver) = (_solve_with(IKConfig(fused=fused), positions, wxyz)
+                                            for fused in (False, True))
+    reachable = np.arange(24) < 20
+    np.testing.assert_array_equal(new.success, reachable)
+    np.testing.assert_array_equal(old.success, reachable)
+    _assert_verified(new, positions)
+    # The unreachable four fail every round on both paths.
+    assert new_solver.retried == old_solver.retried == [4, 4]
+    assert new_solver.device_calls == 3 < old_solver.device_calls
+    # Both retry rounds ran in the retry program: each one's coarse round iterated the
+    # four targets' 32 seeds.
+    assert [c[0] for c in new_solver.lm_calls].count(4 * 32) == 2
+    # Random retry seeds come from IKConfig.seed: another solver, the same answers.
+    again, _ = _solve_with(IKConfig(fused=True), positions, wxyz)
+    np.testing.assert_array_equal(again.q, new.q)
+    np.testing.assert_array_equal(new_solver.solve(positions, wxyz).q, new.q)
+
+
+@pytest.mark.slow
+def test_fused_retries_rescue_targets_like_the_host_loop() -> None:
+    """With one seed per target and tiny LM budgets most targets fail the main search;
+    the retry rounds (one fused program) rescue them at least as often as the
+    host-driven retry loop, which launches programs per stage, round and retry."""
+    q = free_configurations(TDCR3, 60, seed=1, clearance=0.05)
+    positions, wxyz = targets_from(TDCR3, q)
+    tiny = dict(seeds_per_target=1, coarse_iterations=1, refine_iterations=2, refine_round=1)
+    (old, old_solver), (new, new_solver), (none, _) = (
+        _solve_with(IKConfig(fused=fused, retry_rounds=rounds, **tiny), positions, wxyz)
+        for fused, rounds in ((False, 2), (True, 2), (True, 0)))
+    assert new_solver.retried[0] > 20 and old_solver.retried[0] > 20
+    assert new.success.sum() >= old.success.sum() > none.success.sum()
+    _assert_verified(new, positions)
+    assert new_solver.device_calls == 3 < old_solver.device_calls

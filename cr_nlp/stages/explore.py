@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 from functools import lru_cache, partial
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -18,7 +19,7 @@ import numpy as np
 from scipy.stats import qmc
 
 from .._jax_setup import split_over_devices
-from ..model import Robot, q_to_z_numpy
+from ..model import Robot, q_to_z, q_to_z_numpy
 from ..model._ops import NUMPY
 from ..model.kinematics import model_q_to_z, model_segment_frames
 from .chunks import chunk_plan
@@ -46,6 +47,18 @@ def sobol_configurations(robot: Robot, count: int, seed: int = 0) -> np.ndarray:
     q = lo + (hi - lo) * sample
     q[:, 0::3] = hi[0::3] * np.sqrt(sample[:, 0::3])
     return q
+
+
+def random_configurations_z(robot: Robot, key: jax.Array, count: int,
+                            dtype: Any = jnp.float32) -> jax.Array:
+    """(count, 3n) bending vectors (rad, rad, m) of configurations drawn at random inside
+    the limits by ``jax.random`` (traceable: the fused search draws its retry seeds on
+    the device), with the distribution of ``sobol_configurations`` (θ = θmax·√s)."""
+    lo, hi = robot.q_bounds()
+    sample = jax.random.uniform(key, (count, robot.dof), dtype)
+    q = jnp.asarray(lo, dtype) + jnp.asarray(hi - lo, dtype) * sample
+    q = q.at[:, 0::3].set(jnp.asarray(hi[0::3], dtype) * jnp.sqrt(sample[:, 0::3]))
+    return q_to_z(robot, q)
 
 
 def pose_features(position: np.ndarray, rotation: np.ndarray) -> np.ndarray:
@@ -131,6 +144,7 @@ class SeedPool:
         valid = np.arange(blocks * block) < count
         self._device_features = jnp.asarray(padded.reshape(blocks, block, -1), self.dtype)
         self._device_valid = jnp.asarray(valid.reshape(blocks, block))
+        self._device_z: jax.Array | None = None
         self._programs: dict[tuple[int, int], object] = {}
         self.compile_seconds = 0.0
         """Seconds spent compiling lookup programs so far (one per chunk shape and k)."""
@@ -143,12 +157,26 @@ class SeedPool:
     def __len__(self) -> int:
         return len(self.q)
 
+    def target_features(self, target_position: np.ndarray,
+                        target_rotation: np.ndarray) -> np.ndarray:
+        """(T, 9) pose features of targets (positions (T, 3) m, rotations (T, 3, 3)),
+        centred as the pool's: the ``targets`` argument of ``nearest_features``."""
+        return pose_features(target_position, target_rotation).reshape(-1, 9) - self._centre
+
+    def device_arrays(self) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """The pool on the device, for programs that look up seeds themselves (the fused
+        search's retries): features and valid mask as ``nearest_features`` takes them,
+        and the entries' bending vectors (P, 3n) (rad, rad, m)."""
+        if self._device_z is None:
+            self._device_z = jnp.asarray(self.z, self.dtype)
+        return self._device_features, self._device_valid, self._device_z
+
     def nearest(self, target_position: np.ndarray, target_rotation: np.ndarray,
                 k: int) -> np.ndarray:
         """(T, k) indices of the pool entries whose tip poses are nearest each target,
         nearest first (T targets: positions (T, 3) m, rotations (T, 3, 3))."""
         k = min(k, len(self))
-        features = pose_features(target_position, target_rotation).reshape(-1, 9)
+        features = self.target_features(target_position, target_rotation)
         count = len(features)
         if count == 0 or k == 0:
             return np.zeros((count, k), dtype=np.int64)
@@ -157,7 +185,7 @@ class SeedPool:
         for chunk in chunk_plan(count, self.chunk_size):
             stop = min(start + chunk, count)
             rows = np.zeros((chunk, features.shape[1]))
-            rows[: stop - start] = features[start:stop] - self._centre
+            rows[: stop - start] = features[start:stop]
             args = (self._device_features, self._device_valid, jnp.asarray(rows, self.dtype))
             if (chunk, k) not in self._programs:
                 t0 = time.perf_counter()

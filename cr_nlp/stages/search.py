@@ -9,18 +9,25 @@ which rows iterate, and ``lax.while_loop`` runs the rounds. So that finished row
 nothing on a CPU either, each round gathers its active rows to the front (a stable
 sort of the mask) and runs LM on them in blocks of ``SearchPlan.block`` rows, as many
 blocks as there are active rows; on a GPU one block holds the whole chunk.
+``retry_targets`` runs every retry round for the targets still failing as one more
+program: fresh seeds (pool lookup and random draws on the device), the same masked
+search, rounds until every target succeeded.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 
-from .explore import select_beam_device
+from .explore import nearest_features, select_beam_device
 from .lm import LMConfig, Projection, Residual, lm_solve
+
+Sampler = Callable[[jax.Array], jax.Array]
+"""(key) → (count, n) random starting points (bending-vector units)."""
 
 
 @dataclass(frozen=True)
@@ -115,6 +122,15 @@ def search_targets(residual: Residual, project: Projection, plan: SearchPlan,
         (coarse first) the rows iterated (1, rounds) and the most LM iterations any of
         its blocks ran (1, rounds), for profiling (the leading 1 is one row per device).
     """
+    z, cost, counted, iterated = _search_rows(residual, project, plan, z_seeds, params,
+                                              valid, shared, free)
+    return z, cost, counted[None], iterated[None]
+
+
+def _search_rows(residual: Residual, project: Projection, plan: SearchPlan,
+                 z_seeds: jax.Array, params: Any, valid: jax.Array, shared: Any,
+                 free: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """``search_targets`` with the per-round counts as (rounds,) arrays."""
     t, k, n = z_seeds.shape
     rows = t * k
     width = min(plan.width, k)
@@ -168,4 +184,102 @@ def search_targets(residual: Residual, project: Projection, plan: SearchPlan,
     stats = jnp.zeros(rounds, jnp.int32) + zero.astype(jnp.int32)
     state = (jnp.int32(0), z_seeds.reshape(rows, n), cost, active, beam, stats, stats)
     _, z, cost, _, beam, counted, iterated = jax.lax.while_loop(more, body, state)
-    return z[beam], cost[beam], counted[None], iterated[None]
+    return z[beam], cost[beam], counted, iterated
+
+
+
+@dataclass(frozen=True)
+class RetryPlan:
+    """Static settings of ``retry_targets``."""
+
+    rounds: int
+    """Retry rounds at most; a round runs only if some target is still failing."""
+    seeds: int
+    """Seeds per failing target in a round: its best answer so far, ``nearest``
+    next-nearest pool entries, random configurations for the rest."""
+    nearest: int
+    """Next-nearest pool entries among a round's seeds (further down the pool's ranking
+    each round)."""
+    first_rank: int
+    """Pool ranks the main search already used (its seeds per target)."""
+    success_cost: float
+    """A target whose best cost ½‖r‖² is not below this is failing."""
+    seed: int
+    """Seed of the random configurations (``jax.random``)."""
+
+
+def retry_targets(residual: Residual, project: Projection, sample: Sampler,
+                  plan: SearchPlan, retry: RetryPlan, z_best: jax.Array, c_best: jax.Array,
+                  params: Any, features: jax.Array, stream: jax.Array, valid: jax.Array,
+                  shared: Any, free: jax.Array, pool: tuple) -> tuple:
+    """Up to ``retry.rounds`` retry rounds, as one program, for targets whose best cost
+    after ``search_targets`` is still above ``retry.success_cost``.
+
+    A round is the same masked search (``plan``) on ``retry.seeds`` seeds per target,
+    only for the targets still failing: the target's best answer so far, its next-nearest
+    pool entries (one lookup on the device, in the first round) and random
+    configurations within the limits (``sample``, keyed by ``retry.seed``, the target's
+    ``stream`` number and the round, so a solve is reproducible). A target keeps a
+    round's answer only if it is better; the rounds stop when every target succeeded.
+
+    Args:
+        residual, project: the problem, as for ``stages.lm.lm_solve``.
+        sample: (key) → (retry.seeds, n) random bending vectors within the limits.
+        plan, retry: static settings.
+        z_best: (T, n) best answers so far (bending-vector units); c_best: (T,) their
+            cost ½‖r‖².
+        params, shared, free: as for ``search_targets``.
+        features: (T, 9) target pose features for ``explore.nearest_features``.
+        stream: (T,) int32 number of each target (keys its random seeds).
+        valid: (T,) False for padding targets (never retried).
+        pool: the seed pool on the device (``SeedPool.device_arrays``).
+
+    Returns:
+        z (T, n) and cost (T,), per round of each retry's search the rows iterated and
+        the most LM iterations run (1, plan.rounds · retry.rounds), and the targets each
+        retry round retried (1, retry.rounds) (the leading 1: one row per device).
+    """
+    pool_features, pool_valid, pool_z = pool
+    t = z_best.shape[0]
+    ranks = min(retry.first_rank + retry.rounds * retry.nearest, pool_z.shape[0])
+    near = min(retry.nearest, retry.seeds - 1)
+    zero = jnp.sum(stream[:1], dtype=jnp.int32) * 0  # varies per shard, like the carries
+    base = jax.random.key(retry.seed)
+    # Next-nearest pool entries, ranked once for every round.
+    nearest = nearest_features(pool_features, pool_valid, features, ranks) if near else None
+
+    def failing(c_best: jax.Array) -> jax.Array:
+        return valid & ~(c_best < retry.success_cost)
+
+    def body(state: tuple) -> tuple:
+        r, z_best, c_best, counted, iterated, retried = state
+        todo = failing(c_best)
+        keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.fold_in(base, r), i))(stream)
+        seeds = jax.vmap(sample)(keys)
+        if near:
+            rank = retry.first_rank + r * retry.nearest + jnp.arange(near)
+            pooled = pool_z[jnp.take(nearest, jnp.minimum(rank, ranks - 1), axis=1)]
+            seeds = seeds.at[:, 1:1 + near].set(
+                jnp.where((rank < ranks)[None, :, None], pooled, seeds[:, 1:1 + near]))
+        seeds = seeds.at[:, 0].set(z_best)  # the best so far stays in the race
+        z, cost, c_round, i_round = _search_rows(residual, project, plan, seeds, params,
+                                                 todo, shared, free)
+        pick = jnp.argmin(cost, axis=1)
+        z_new, c_new = z[jnp.arange(t), pick], cost[jnp.arange(t), pick]
+        better = todo & (c_new < c_best)
+        span = plan.rounds * r
+        return (r + 1, jnp.where(better[:, None], z_new, z_best),
+                jnp.where(better, c_new, c_best),
+                jax.lax.dynamic_update_slice(counted, c_round, (span,)),
+                jax.lax.dynamic_update_slice(iterated, i_round, (span,)),
+                retried.at[r].set(jnp.sum(todo, dtype=jnp.int32)))
+
+    def more(state: tuple) -> jax.Array:
+        r, _, c_best, *_ = state
+        return (r < retry.rounds) & jnp.any(failing(c_best))
+
+    stats = jnp.zeros(plan.rounds * retry.rounds, jnp.int32) + zero
+    state = (jnp.int32(0), z_best, c_best, stats, stats,
+             jnp.zeros(retry.rounds, jnp.int32) + zero)
+    _, z_best, c_best, counted, iterated, retried = jax.lax.while_loop(more, body, state)
+    return z_best, c_best, counted[None], iterated[None], retried[None]

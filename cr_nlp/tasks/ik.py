@@ -12,7 +12,8 @@ of the best chosen on the device), refine (LM on the beam, best per target, retr
 fresh seeds for the targets still failing), polish (optional: Ipopt with the constraints
 as constraints). Large batches stream through in parts of ``IKConfig.stream_size``. The
 coarse steps, the beam and the refinement rounds of a chunk of targets run as one device
-program (``stages.search``, ``IKConfig.fused``).
+program, all retry rounds of its failing targets as one more (``stages.search``,
+``IKConfig.fused``).
 """
 
 from __future__ import annotations
@@ -36,9 +37,14 @@ from ..model.limits import clip_to_limits, limit_violation_q, project_z
 from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
 from ..stages.chunks import SMALLEST_CHUNK as SMALLEST_CHUNK
 from ..stages.chunks import chunk_plan as chunk_plan
-from ..stages.explore import SeedPool, select_beam_device, sobol_configurations
+from ..stages.explore import (
+    SeedPool,
+    random_configurations_z,
+    select_beam_device,
+    sobol_configurations,
+)
 from ..stages.lm import LMConfig, lm_solve
-from ..stages.search import SearchPlan, search_targets
+from ..stages.search import RetryPlan, SearchPlan, retry_targets, search_targets
 from ..world import Scene, check_many, load_scene, scene_arrays
 from ..world.clearance import body_gap_tolerance
 from ..world.penalty import sphere_clearances_z
@@ -68,7 +74,7 @@ class IKConfig:
     chunks on the host-driven path, ``_refine``)."""
     retry_rounds: int = 2
     """Extra rounds, with fresh random seeds, for the targets whose penalised residual is
-    still above ``success_tolerance``."""
+    still above ``success_tolerance`` (with ``fused``, all rounds in one program)."""
     retry_seeds: int = 32
     """Seeds per failing target in a retry round."""
     polish_attempts: int = 3
@@ -97,12 +103,14 @@ class IKConfig:
     of host arrays, in parts of 500 at 2.3 MB)."""
     fused: bool | None = None
     """Run coarse steps, beam selection and the refinement rounds of a chunk of targets
-    as one device program (``stages.search``: per-row masks and ``lax.while_loop``)
-    instead of one program per stage and round with the unfinished problems repacked on
-    the host in between. None: fused on every backend (see ``search_block``). Measured
-    on 2 CPU cores under load 5–8 (interleaved, median CPU seconds per solve, host-driven
-    → fused): 1000 free tdcr3 targets 0.29 → 0.26, lattice 100 targets tdcr3 0.99 →
-    0.89 and tdcr4_ext 1.74 → 1.64; device calls per solve 25 → 2 and 11 → 2.
+    as one device program (``stages.search``: per-row masks and ``lax.while_loop``), and
+    every retry round of the targets still failing as one more (``retry_targets``: seeds
+    looked up and drawn with ``jax.random`` on the device), instead of one program per
+    stage and round with the unfinished problems repacked on the host in between. None:
+    fused on every backend (see ``search_block``). Measured on 2 CPU cores under load 5–8
+    (interleaved, median CPU seconds per solve, host-driven → fused): 1000 free tdcr3
+    targets 0.29 → 0.26, lattice 100 targets tdcr3 0.99 → 0.89 and tdcr4_ext 1.74 →
+    1.64; device calls per solve 25 → 2 and 11 → 2.
     Chunks hold up to ``chunk_size`` targets (each with its seeds)."""
     search_block: int | None = None
     """Fused search: LM rows per block and device; a round runs its active rows in as
@@ -322,6 +330,9 @@ class IKSolver:
         size, iteration budget, iterations run), for profiling."""
         self.stream_parts: list[int] = []
         """Targets per part of the last ``solve``'s stream (``IKConfig.stream_size``)."""
+        self.retried: list[int] = []
+        """Targets retried in each retry round of the last ``solve`` (summed over its
+        stream parts and chunks; 0 for a round that did not run)."""
         self.device_calls = 0
         """Compiled programs the last ``solve``/``candidates`` launched (lookups, LM,
         beam selection, fused searches): its device round trips."""
@@ -462,42 +473,90 @@ class IKSolver:
         out). The whole search is booked as refinement time. Appends one ``lm_calls``
         entry per chunk and round: (rows iterated, rows of the chunk, budget, most
         iterations run)."""
-        t, k, n = z_seeds.shape
-        cfg = self.config
-        plan = self._search_plan(k, per_target)
+        k = z_seeds.shape[1]
+        plan = self._search_plan(per_target)
+        search = partial(search_targets, self._residual, self._project, plan)
         t0 = time.perf_counter()
         c0 = timing.compile
+        runs = self._run_fused(("search", k, per_target), search,
+                               (z_seeds, (positions, rotations.reshape(-1, 9))), 4, timing)
+        for _, chunk, (_, _, counted, iterated) in runs:
+            self._count_rounds(counted, iterated, chunk * k, plan.budgets)
+        z = np.concatenate([np.asarray(z)[:rows] for rows, _, (z, *_) in runs])
+        cost = np.concatenate([np.asarray(c)[:rows] for rows, _, (_, c, *_) in runs])
+        timing.refine += time.perf_counter() - t0 - (timing.compile - c0)
+        return z, cost
+
+    def _retry_fused(self, z_best: np.ndarray, cost: np.ndarray, positions: np.ndarray,
+                     rotations: np.ndarray, stream: np.ndarray, pool: SeedPool,
+                     timing: IKTiming) -> tuple[np.ndarray, np.ndarray]:
+        """Every retry round of the failing targets given (best z (T, n), cost (T,)) as
+        one ``stages.search.retry_targets`` program per chunk: z (T, n), cost (T,). Booked
+        as refinement time; ``lm_calls`` and ``retried`` as for the host-driven rounds."""
+        cfg = self.config
+        plan = self._search_plan(per_target=True)
+        retry = RetryPlan(rounds=cfg.retry_rounds, seeds=cfg.retry_seeds,
+                          nearest=cfg.retry_seeds // 2,
+                          first_rank=min(cfg.seeds_per_target, len(pool)),
+                          success_cost=0.5 * cfg.success_tolerance ** 2, seed=cfg.seed)
+        sample = partial(random_configurations_z, self.robot, count=cfg.retry_seeds,
+                         dtype=self.dtype)
+        search = partial(retry_targets, self._residual, self._project, sample, plan, retry)
+        t0 = time.perf_counter()
+        c0 = timing.compile
+        runs = self._run_fused(
+            ("retry", retry), search,
+            (z_best, cost, (positions, rotations.reshape(-1, 9)),
+             pool.target_features(positions, rotations), stream.astype(np.int32)),
+            5, timing, pool.device_arrays())
+        for _, chunk, (_, _, counted, iterated, retried) in runs:
+            self._count_rounds(counted, iterated, chunk * retry.seeds,
+                               plan.budgets * retry.rounds)
+            self.retried = [a + int(b) for a, b in
+                            zip(self.retried, np.asarray(retried).sum(0), strict=True)]
+        z = np.concatenate([np.asarray(z)[:rows] for rows, _, (z, *_) in runs])
+        cost = np.concatenate([np.asarray(c)[:rows] for rows, _, (_, c, *_) in runs])
+        timing.refine += time.perf_counter() - t0 - (timing.compile - c0)
+        return z, cost
+
+    def _run_fused(self, name: tuple, search: Any, per_target: tuple, outputs: int,
+                   timing: IKTiming, *whole: Any) -> list[tuple[int, int, Any]]:
+        """Launch ``search`` over ``chunk_plan`` chunks of the targets: its arguments are
+        the ``per_target`` arrays (pytrees of leading dimension T, padded per chunk; real
+        numbers in ``dtype``), the valid-target mask, the scene arrays, the free-variable
+        mask and ``whole``. One compiled program per name and chunk, split over every
+        device. Returns (targets, chunk, outputs) per chunk, all dispatched and ready."""
+        count = len(jax.tree.leaves(per_target)[0])
         runs = []
         start = 0
-        for chunk in chunk_plan(t, cfg.chunk_size):
-            stop = min(start + chunk, t)
+        for chunk in chunk_plan(count, self.config.chunk_size):
+            stop = min(start + chunk, count)
             padded = partial(_chunk_rows, start=start, stop=stop, size=chunk)
-            args = (jnp.asarray(padded(z_seeds), self.dtype),
-                    (jnp.asarray(padded(positions), self.dtype),
-                     jnp.asarray(padded(rotations).reshape(-1, 9), self.dtype)),
-                    jnp.asarray(np.arange(chunk) < stop - start), self._arrays, self._free)
-            key = ("search", chunk, k, per_target)
+            rows = jax.tree.map(lambda x, padded=padded: jnp.asarray(
+                padded(x), self.dtype if x.dtype.kind == "f" else None), per_target)
+            args = (*rows, jnp.asarray(np.arange(chunk) < stop - start), self._arrays,
+                    self._free, *whole)
+            key = (*name, chunk)
             if key not in self._compiled:
                 t1 = time.perf_counter()
-                program = split_over_devices(
-                    partial(search_targets, self._residual, self._project, plan),
-                    (True, True, True, False, False), chunk, outputs=4)
+                batched = (True,) * (len(per_target) + 1) + (False,) * (2 + len(whole))
+                program = split_over_devices(search, batched, chunk, outputs=outputs)
                 self._compiled[key] = program.lower(*args).compile()
                 timing.compile += time.perf_counter() - t1
             runs.append((stop - start, chunk, self._compiled[key](*args)))
             self.device_calls += 1
             start = stop
         self._wait(out for _, _, out in runs)
-        for _, chunk, (_, _, counted, iterated) in runs:
-            counted, iterated = np.asarray(counted).sum(0), np.asarray(iterated).max(0)
-            self.lm_calls += [(int(c), chunk * k, b, int(i))
-                              for c, b, i in zip(counted, plan.budgets, iterated, strict=True) if c]
-        z = np.concatenate([np.asarray(z)[:rows] for rows, _, (z, *_) in runs])
-        cost = np.concatenate([np.asarray(c)[:rows] for rows, _, (_, c, *_) in runs])
-        timing.refine += time.perf_counter() - t0 - (timing.compile - c0)
-        return z, cost
+        return runs
 
-    def _search_plan(self, seeds: int, per_target: bool) -> SearchPlan:
+    def _count_rounds(self, counted: Any, iterated: Any, rows: int,
+                      budgets: tuple[int, ...]) -> None:
+        """One ``lm_calls`` entry per round of a fused program that iterated any row."""
+        counted, iterated = np.asarray(counted).sum(0), np.asarray(iterated).max(0)
+        self.lm_calls += [(int(c), rows, b, int(i))
+                          for c, b, i in zip(counted, budgets, iterated, strict=True) if c]
+
+    def _search_plan(self, per_target: bool) -> SearchPlan:
         cfg = self.config
         block = cfg.search_block
         if block is None:
@@ -505,7 +564,7 @@ class IKSolver:
             block = ((128 if self.scene is None else 64) if jax.default_backend() == "cpu"
                      else 1 << 30)
         return SearchPlan(
-            width=min(cfg.beam_width, seeds), coarse_iterations=cfg.coarse_iterations,
+            width=cfg.beam_width, coarse_iterations=cfg.coarse_iterations,
             refine_iterations=cfg.refine_iterations, refine_round=cfg.refine_round,
             per_target=per_target, min_distance=float(cfg.beam_min_distance), block=block,
             lm=LMConfig(cost_tolerance=0.5 * cfg.converged_error ** 2))
@@ -637,6 +696,7 @@ class IKSolver:
         self.stream_parts = []
         self.device_wait = 0.0
         self.device_calls = 0
+        self.retried = [0] * self.config.retry_rounds
         pool_wait = self._pool.wait_seconds if self._pool is not None else 0.0
         pool_calls = self._pool.calls if self._pool is not None else 0
         positions, wxyz, reasons = validate_targets(self.robot, positions, wxyz)
@@ -670,12 +730,20 @@ class IKSolver:
         used = nearest.shape[1]
         z_best, cost = self._search(pool.z[nearest], pos_v, rot_v, timing)
         ok = np.sqrt(2 * cost) < cfg.success_tolerance
+        if self._fused and cfg.retry_rounds > 0:
+            # Every retry round in one more program, only when some target failed.
+            todo = np.flatnonzero(~ok)
+            if len(todo):
+                z_best[todo], cost[todo] = self._retry_fused(
+                    z_best[todo], cost[todo], pos_v[todo], rot_v[todo], todo, pool, timing)
+            return clip_to_limits(self.robot, z_to_q_numpy(z_best))
         near = cfg.retry_seeds // 2
         retry_nearest = None
-        for _ in range(cfg.retry_rounds):
+        for r in range(cfg.retry_rounds):
             todo = np.flatnonzero(~ok)
             if not len(todo):
                 break
+            self.retried[r] += len(todo)
             t0 = time.perf_counter()
             c0 = pool.compile_seconds
             if retry_nearest is None:
