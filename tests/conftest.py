@@ -21,6 +21,18 @@ if TYPE_CHECKING:  # the world and model modules are imported lazily, after the 
 ROOT = Path(__file__).resolve().parent.parent
 MODELS = ROOT / "models"
 
+# XLA's CPU backend spent most of the suite's time compiling: LLVM optimising the
+# solvers' machine code, for test problems that then run in milliseconds. The tests
+# compile with LLVM's optimisations off: the same XLA programs (XLA's own HLO passes
+# still run, no fast-math either way), results equal up to rounding, slower machine code.
+# Measured on 2 loaded cores with empty caches, test_follow_exact's fixture 53 s → 37 s,
+# test_follow_exact + test_ik's exact test + the parallel-polish test + test_compile_cache
+# 194 s → 151 s. Set before JAX starts; a level already in $XLA_FLAGS is kept. Processes
+# the tests start (the CLI, pool workers, the notebooks' kernels in the same pytest run)
+# inherit it.
+if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = " ".join(
+        [os.environ.get("XLA_FLAGS", ""), "--xla_backend_optimization_level=0"]).strip()
 use_host_devices()  # the solvers' sharded path runs in the tests as it does in the CLI
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_compilation_cache_dir",
