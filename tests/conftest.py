@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 
 import jax
 import numpy as np
+import pytest
 
 from cr_nlp._jax_setup import use_host_devices
 
@@ -26,6 +27,26 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("CR_NLP_JAX_CACHE", str(ROOT / ".jax_cache")))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """The default run (slow tests deselected, as in CI) compiles with XLA's LLVM
+    optimisations off.
+
+    Most of that run's time was XLA compiling programs that then solve small problems in
+    milliseconds. Level 0 gives the same XLA programs (XLA's own HLO passes still run, no
+    fast-math either way): results equal up to rounding, slower machine code. Measured
+    on 2 shared cores with empty caches (old → level 0): test_follow_exact +
+    test_exact_verdict's parallel polish + test_ik's exact test + test_compile_cache
+    194 s → 151 s, notebook 03 113 s → 65 s; but test_roadmap_search 45 s → 50 s and the
+    slow 1000-problem test 103 s → 270 s, so a run with the slow tests keeps XLA's
+    default. Runs before JAX starts (collection imports the solvers); a level already in
+    $XLA_FLAGS is kept. Processes the tests start (the CLI, pool workers, the notebooks'
+    kernels in the same run) inherit it."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "not slow" in (config.getoption("markexpr") or "") and \
+            "xla_backend_optimization_level" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_backend_optimization_level=0".strip()
 
 
 def write_mixed_scene(root: Path, extra: Sequence[dict] = ()) -> Scene:
