@@ -13,8 +13,14 @@ def test_the_batch_benchmark_writes_its_rows_and_ratios(tmp_path):
         targets=12, workers=(1,), modes=("penalty",), chunk=6, out=tmp_path / "out", progress=False
     )
     by_runner = {row["runner"]: row for row in rows}
-    assert set(by_runner) == {"in-process", "batch, 1 workers", "1 processes, no Dask"}
+    assert set(by_runner) == {"in-process", "cr-nlp ik --out", "batch, 1 workers",
+                              "1 processes, no Dask"}
     local, batch = by_runner["in-process"], by_runner["batch, 1 workers"]
+    # cr-nlp ik's own work: the same solve, then its RESULT.json (in the scratch folder).
+    cli = by_runner["cr-nlp ik --out"]
+    assert cli["same_success"] is True and cli["speedup"] is None and cli["targets"] == 12
+    assert batch["vs_cli"] == pytest.approx(batch["total_s"] / cli["total_s"])
+    assert cli["vs_in_process"] == pytest.approx(cli["total_s"] / local["total_s"])
     plain = by_runner["1 processes, no Dask"]
     # The machine's ceiling row: the same targets solved in a plain spawned process.
     assert plain["targets"] == 12 and plain["success_pct"] == 100.0

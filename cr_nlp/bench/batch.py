@@ -7,6 +7,9 @@ For each mode (penalty: the JAX stages; exact: plus the Ipopt polish) the rows a
 
 - "in-process": ``IKSolver.solve`` on all targets in this process (its JAX shards the
   batch over one host device per core, as ``cr-nlp ik`` does);
+- "cr-nlp ik --out": what ``cr-nlp ik`` does with them in steady state: the same solve,
+  then RESULT.json written as that command writes it (``cli._io.write_json``), since a
+  batch row's time includes writing its ``results.json`` of the same schema;
 - "batch, N workers": ``run_batch`` on a ``LocalCluster`` of N worker processes (one
   thread each; each worker's JAX gets the cores divided among the workers), with
   ``--chunk`` or else the chunk size ``cr-nlp batch ik`` picks for that mode and count;
@@ -53,6 +56,7 @@ from ..batch import (
     start_local_cluster,
     worker_env,
 )
+from ..cli._io import write_json
 from ..model import load_robot
 from ..tasks.ik import IKConfig, IKSolver
 from .common import Column, environment, environment_markdown, markdown_table, write_report
@@ -75,6 +79,7 @@ COLUMNS = [
     Column("same_success", "same successes as in-process"),
     Column("speedup", "speedup vs 1 of its kind"),
     Column("vs_in_process", "time / in-process"),
+    Column("vs_cli", "time / cr-nlp ik --out"),
 ]
 
 
@@ -167,6 +172,17 @@ class _PlainProcesses:
             process.join(timeout=30)
 
 
+CLI = "cr-nlp ik --out"
+"""The runner label of ``cr-nlp ik``'s own work: solve, then write RESULT.json."""
+
+
+def _solve_and_write(solver: IKSolver, inputs: tuple[np.ndarray, np.ndarray], exact: bool,
+                     path: Path) -> Any:
+    result = solver.solve(*inputs, exact=exact)
+    write_json(result.to_json(), str(path))
+    return result
+
+
 def _warm_workers(client: Any, key: str, call: Any, tries: int = 3) -> None:
     """Run ``call`` (a batch job) until every worker holds the solver ``key``: the timed
     runs then pay no solver build or compile on any worker."""
@@ -212,10 +228,13 @@ def run_batch_benchmark(
     plain = {count: _PlainProcesses(count, robot, config, inputs) for count in workers}
     # (mode, runner label): a timed call; labels name the runner kind and process count.
     runners: dict[tuple[str, str], Any] = {}
-    kinds: dict[str, tuple[str, int | None]] = {"in-process": ("in-process", None)}
+    kinds: dict[str, tuple[str, int | None]] = {"in-process": ("in-process", None),
+                                                CLI: ("cli", None)}
     for mode in modes:
         exact = mode == "exact"
         runners[mode, "in-process"] = lambda exact=exact: solver.solve(*inputs, exact=exact)
+        runners[mode, CLI] = lambda exact=exact: _solve_and_write(
+            solver, inputs, exact, scratch / f"{next(runs)}.json")
         for count, client in clients.items():
 
             def job(exact: bool = exact, client: Any = client, size: int = chunks[mode, count]):
@@ -280,6 +299,8 @@ def run_batch_benchmark(
             base["total_s"] / row["total_s"] if base is not None and row["workers"] else None
         )
         row["vs_in_process"] = row["total_s"] / own["total_s"]
+        cli = next(r for r in rows if r["mode"] == row["mode"] and r["kind"] == "cli")
+        row["vs_cli"] = row["total_s"] / cli["total_s"]
     env = environment()
     env["benchmark wall time"] = f"{time.perf_counter() - started:.0f} s"
     env["settings"] = (
@@ -299,7 +320,8 @@ def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str]) -> str:
             "Free targets (no obstacles), steady state after a warm-up on every worker "
             '(compile excluded); "first run s" is the warm-up (solver builds, compiles or '
             "cache loads on the workers). Batch rows include writing the chunk files and "
-            "results.json.",
+            'results.json; "cr-nlp ik --out" is the same solve plus writing RESULT.json as '
+            "that command does.",
             markdown_table(rows, COLUMNS),
             "## Environment",
             environment_markdown(env),
