@@ -36,17 +36,25 @@ holds B × ``NEAREST_BLOCK`` distances at a time, whatever the pool's size."""
 def sobol_configurations(robot: Robot, count: int, seed: int = 0) -> np.ndarray:
     """(count, 3n) configurations (θ, φ, L) spread quasi-uniformly inside the limits.
 
-    θ is drawn as θmax·√s (uniform over the bending-vector disk, so straight-ish shapes
-    are not oversampled), φ uniform over its range, L uniform over its range.
+    Sobol points mapped by ``configurations_from_unit`` (θ = θmax·√s, φ and L uniform).
     """
-    lo, hi = robot.q_bounds()
     # The first ``count`` points of a power-of-two draw: the same points as
     # ``random(count)``, without scipy's warning about unbalanced sample sizes.
     power = int(np.ceil(np.log2(max(count, 1))))
     sample = qmc.Sobol(d=robot.dof, scramble=True, seed=seed).random_base2(power)[:count]
-    q = lo + (hi - lo) * sample
-    q[:, 0::3] = hi[0::3] * np.sqrt(sample[:, 0::3])
-    return q
+    return configurations_from_unit(robot, sample)
+
+
+def configurations_from_unit(robot: Robot, sample: Any, xp: Any = np) -> Any:
+    """(…, 3n) configurations (θ, φ, L) from points ``sample`` of the unit cube (…, 3n):
+    θ = θmax·√s (uniform over the bending-vector disk, so straight-ish shapes are not
+    oversampled), φ and L uniform over their ranges. ``xp``: numpy, or jax.numpy inside
+    a traced program (the result in the sample's dtype)."""
+    lo, hi = robot.q_bounds()
+    theta = np.arange(robot.dof) % 3 == 0
+    dtype = sample.dtype
+    return xp.where(theta, xp.asarray(hi, dtype) * xp.sqrt(sample),
+                    xp.asarray(lo, dtype) + xp.asarray(hi - lo, dtype) * sample)
 
 
 def random_configurations_z(robot: Robot, key: jax.Array, count: int,
@@ -54,11 +62,8 @@ def random_configurations_z(robot: Robot, key: jax.Array, count: int,
     """(count, 3n) bending vectors (rad, rad, m) of configurations drawn at random inside
     the limits by ``jax.random`` (traceable: the fused search draws its retry seeds on
     the device), with the distribution of ``sobol_configurations`` (θ = θmax·√s)."""
-    lo, hi = robot.q_bounds()
     sample = jax.random.uniform(key, (count, robot.dof), dtype)
-    q = jnp.asarray(lo, dtype) + jnp.asarray(hi - lo, dtype) * sample
-    q = q.at[:, 0::3].set(jnp.asarray(hi[0::3], dtype) * jnp.sqrt(sample[:, 0::3]))
-    return q_to_z(robot, q)
+    return q_to_z(robot, configurations_from_unit(robot, sample, jnp))
 
 
 def pose_features(position: np.ndarray, rotation: np.ndarray) -> np.ndarray:
