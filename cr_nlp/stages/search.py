@@ -187,7 +187,6 @@ def _search_rows(residual: Residual, project: Projection, plan: SearchPlan,
     return z[beam], cost[beam], counted, iterated
 
 
-
 @dataclass(frozen=True)
 class RetryPlan:
     """Static settings of ``retry_targets``."""

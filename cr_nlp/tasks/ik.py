@@ -476,15 +476,11 @@ class IKSolver:
         k = z_seeds.shape[1]
         plan = self._search_plan(per_target)
         search = partial(search_targets, self._residual, self._project, plan)
-        t0 = time.perf_counter()
-        c0 = timing.compile
-        runs = self._run_fused(("search", k, per_target), search,
-                               (z_seeds, (positions, rotations.reshape(-1, 9))), 4, timing)
-        for _, chunk, (_, _, counted, iterated) in runs:
+        z, cost, runs = self._run_fused(("search", k, per_target), search,
+                                        (z_seeds, (positions, rotations.reshape(-1, 9))), 4,
+                                        timing)
+        for chunk, (_, _, counted, iterated) in runs:
             self._count_rounds(counted, iterated, chunk * k, plan.budgets)
-        z = np.concatenate([np.asarray(z)[:rows] for rows, _, (z, *_) in runs])
-        cost = np.concatenate([np.asarray(c)[:rows] for rows, _, (_, c, *_) in runs])
-        timing.refine += time.perf_counter() - t0 - (timing.compile - c0)
         return z, cost
 
     def _retry_fused(self, z_best: np.ndarray, cost: np.ndarray, positions: np.ndarray,
@@ -502,30 +498,30 @@ class IKSolver:
         sample = partial(random_configurations_z, self.robot, count=cfg.retry_seeds,
                          dtype=self.dtype)
         search = partial(retry_targets, self._residual, self._project, sample, plan, retry)
-        t0 = time.perf_counter()
-        c0 = timing.compile
-        runs = self._run_fused(
+        z, cost, runs = self._run_fused(
             ("retry", retry), search,
             (z_best, cost, (positions, rotations.reshape(-1, 9)),
              pool.target_features(positions, rotations), stream.astype(np.int32)),
             5, timing, pool.device_arrays())
-        for _, chunk, (_, _, counted, iterated, retried) in runs:
+        for chunk, (_, _, counted, iterated, retried) in runs:
             self._count_rounds(counted, iterated, chunk * retry.seeds,
                                plan.budgets * retry.rounds)
             self.retried = [a + int(b) for a, b in
                             zip(self.retried, np.asarray(retried).sum(0), strict=True)]
-        z = np.concatenate([np.asarray(z)[:rows] for rows, _, (z, *_) in runs])
-        cost = np.concatenate([np.asarray(c)[:rows] for rows, _, (_, c, *_) in runs])
-        timing.refine += time.perf_counter() - t0 - (timing.compile - c0)
         return z, cost
 
     def _run_fused(self, name: tuple, search: Any, per_target: tuple, outputs: int,
-                   timing: IKTiming, *whole: Any) -> list[tuple[int, int, Any]]:
+                   timing: IKTiming, *whole: Any) -> tuple[np.ndarray, np.ndarray,
+                                                           list[tuple[int, Any]]]:
         """Launch ``search`` over ``chunk_plan`` chunks of the targets: its arguments are
         the ``per_target`` arrays (pytrees of leading dimension T, padded per chunk; real
         numbers in ``dtype``), the valid-target mask, the scene arrays, the free-variable
-        mask and ``whole``. One compiled program per name and chunk, split over every
-        device. Returns (targets, chunk, outputs) per chunk, all dispatched and ready."""
+        mask and ``whole``; its first two outputs are z and cost per target. One compiled
+        program per name and chunk, split over every device; booked as refinement time
+        (compiling as compile time). Returns z and cost of the T targets, and (chunk,
+        outputs) per chunk, all ready."""
+        t0 = time.perf_counter()
+        c0 = timing.compile
         count = len(jax.tree.leaves(per_target)[0])
         runs = []
         start = 0
@@ -547,7 +543,10 @@ class IKSolver:
             self.device_calls += 1
             start = stop
         self._wait(out for _, _, out in runs)
-        return runs
+        z = np.concatenate([np.asarray(out[0])[:rows] for rows, _, out in runs])
+        cost = np.concatenate([np.asarray(out[1])[:rows] for rows, _, out in runs])
+        timing.refine += time.perf_counter() - t0 - (timing.compile - c0)
+        return z, cost, [(chunk, out) for _, chunk, out in runs]
 
     def _count_rounds(self, counted: Any, iterated: Any, rows: int,
                       budgets: tuple[int, ...]) -> None:
