@@ -65,12 +65,12 @@ QUIET_WORKERS = {
     "distributed.admin.tick.interval": "500ms",
     "distributed.admin.system-monitor.interval": "5s",
 }
-"""Dask settings of the scheduler and workers that
-``start_local_cluster`` starts. A chunk is seconds of CPU-bound work in one worker
-thread, and Dask's defaults spend CPU beside it: the statistical profiler takes the GIL
-to sample every thread's stack 100 times a second, the event loop ticks every 20 ms and
-the system and memory monitors poll every 0.5 and 0.1 s (idle, measured: 4 % of a core
-per worker and 6 % for the scheduler with the defaults, 0.4 % and 1 % with these)."""
+"""Dask settings of the scheduler and workers that ``start_local_cluster`` starts. A
+chunk is seconds of CPU-bound work in one worker thread, and Dask's defaults spend CPU
+beside it: the statistical profiler takes the GIL to sample every thread's stack 100
+times a second, the event loop ticks every 20 ms and the system and memory monitors poll
+every 0.5 and 0.1 s (idle, measured: 4 % of a core per worker and 6 % for the scheduler
+with the defaults, 0.4 % and 1 % with these)."""
 DEVICES_ENV = "CR_NLP_BATCH_DEVICES"
 """Environment variable of a worker process: JAX host devices for its solver (set by
 ``start_local_cluster``: the cores divided among the workers)."""
@@ -232,18 +232,25 @@ _SOLVERS: dict[str, Any] = {}
 _SOLVERS_LOCK = threading.Lock()
 
 
+def prepare_worker_process() -> None:
+    """JAX in a local worker process, before its first solver: the host devices
+    ``start_local_cluster`` gave it (``DEVICES_ENV``; a no-op once JAX has started) and
+    the persistent compilation cache."""
+    from ._jax_setup import enable_compilation_cache, use_host_devices
+
+    devices = os.environ.get(DEVICES_ENV)
+    if devices:
+        use_host_devices(int(devices))
+    enable_compilation_cache()
+
+
 def _worker_solver(spec: JobSpec) -> Any:
     """This process's solver for ``spec`` (built on first use, then reused by every chunk
     with the same robot, scene and settings)."""
     with _SOLVERS_LOCK:
         solver = _SOLVERS.get(spec.key)
         if solver is None:
-            from ._jax_setup import enable_compilation_cache, use_host_devices
-
-            devices = os.environ.get(DEVICES_ENV)
-            if devices:  # before JAX starts in this process; a no-op afterwards
-                use_host_devices(int(devices))
-            enable_compilation_cache()
+            prepare_worker_process()
             if spec.kind == "ik":
                 from .tasks.ik import IKSolver
 

@@ -51,6 +51,7 @@ from .._jax_setup import use_host_devices
 from ..batch import (
     close_cluster,
     default_chunk,
+    prepare_worker_process,
     run_batch,
     solver_key,
     start_local_cluster,
@@ -123,11 +124,10 @@ class _Answers:
 
 def _serve(robot: str, config: IKConfig, inputs: tuple[np.ndarray, np.ndarray],
            requests: Any, replies: Any) -> None:
-    """A plain process of ``_PlainProcesses``: solves the (start, stop, exact) slices it is
-    sent until it gets None; replies (success, pose error)."""
-    from .._jax_setup import use_host_devices as own_devices
-
-    own_devices(int(os.environ["CR_NLP_BATCH_DEVICES"]))
+    """A plain process of ``_PlainProcesses``, set up as a batch worker: solves the
+    (start, stop, exact) slices it is sent until it gets None; replies (success, pose
+    error)."""
+    prepare_worker_process()
     solver = IKSolver(load_robot(robot), None, config)
     for start, stop, exact in iter(requests.get, None):
         result = solver.solve(inputs[0][start:stop], inputs[1][start:stop], exact=exact)
