@@ -64,8 +64,8 @@ def test_a_report_becomes_its_own_section_of_the_benchmarks_file() -> None:
     text = replace_section("# Benchmarks\n\nBy hand.\n", "ik-free", report,
                            "cr-nlp bench ik --suite free", ENV)
     begin, end = section_markers("ik-free")
-    assert text.startswith("# Benchmarks\n\nBy hand.\n\n" + begin + "\n## IK benchmark\n\n")
-    assert text.endswith("### Environment\n\n- cores: 2\n\n" + end + "\n")
+    assert text.startswith("# Benchmarks\n\nBy hand.\n\n" + begin + "\n### IK benchmark\n\n")
+    assert text.endswith("#### Environment\n\n- cores: 2\n\n" + end + "\n")
     line = provenance_line("cr-nlp bench ik --suite free", ENV)
     assert line in text
     for fact in ("`cr-nlp bench ik --suite free`", "2026-11-24 21:00 UTC", "Python 3.11.7",

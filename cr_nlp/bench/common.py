@@ -228,24 +228,25 @@ def provenance_line(command: str, env: Mapping[str, str]) -> str:
 
 
 def _demote_headings(report: str) -> list[str]:
-    """The report's lines with every Markdown heading one level deeper (not in code)."""
+    """The report's lines with every Markdown heading two levels deeper (not in code):
+    a report's title becomes a ``###`` section under the file's ``##`` task headings."""
     lines, in_code = [], False
     for line in report.strip("\n").splitlines():
         if line.startswith("```"):
             in_code = not in_code
-        lines.append("#" + line if not in_code and line.startswith("#") else line)
+        lines.append("##" + line if not in_code and line.startswith("#") else line)
     return lines
 
 
 def replace_section(text: str, section: str, report: str, command: str,
                     env: Mapping[str, str]) -> str:
     """``text`` (a Markdown file's content) with the section ``section`` set to ``report``
-    (headings one level deeper, its title first, then the ``provenance_line``): the part
+    (headings two levels deeper, its title first, then the ``provenance_line``): the part
     between the section's markers is replaced, or the section is appended at the end.
     Everything outside the markers is kept as it is."""
     begin, end = section_markers(section)
     lines = _demote_headings(report)
-    title = lines[:1] if lines and lines[0].startswith("##") else []
+    title = lines[:1] if lines and lines[0].startswith("###") else []
     rest = "\n".join(lines[len(title):]).strip("\n")
     body = "\n\n".join([*title, provenance_line(command, env), rest])
     block = f"{begin}\n{body}\n\n{end}"
