@@ -5,7 +5,13 @@ from pathlib import Path
 
 import pytest
 
-from cr_nlp.bench.common import read_csv, write_report
+from cr_nlp.bench.common import (
+    provenance_line,
+    read_csv,
+    replace_section,
+    section_markers,
+    write_report,
+)
 from cr_nlp.cli import build_parser, main
 
 BENCHMARKS = ("ik", "plan", "follow", "clearance", "batch")
@@ -46,3 +52,52 @@ def test_the_report_writer_prints_and_writes_every_file(
     assert record == {"environment": env, "sizes": {"targets": 5}}
     assert write_report("x", "quiet", None, echo=False) is None
     assert capsys.readouterr().out == ""
+
+
+ENV = {"date": "2026-11-24 21:00 UTC", "python": "3.11.7", "jax": "0.10.2", "casadi": "3.8.2",
+       "numpy": "2.4.6", "backend": "cpu", "devices": "cpu:0, cpu:1", "cpu": "Test CPU",
+       "cores": "2", "load average (1, 5, 15 min)": "0.10, 0.20, 0.30"}
+
+
+def test_a_report_becomes_its_own_section_of_the_benchmarks_file() -> None:
+    report = "# IK benchmark\n\n| a |\n|---:|\n| 1 |\n\n## Environment\n\n- cores: 2\n"
+    text = replace_section("# Benchmarks\n\nBy hand.\n", "ik-free", report,
+                           "cr-nlp bench ik --suite free", ENV)
+    begin, end = section_markers("ik-free")
+    assert text.startswith("# Benchmarks\n\nBy hand.\n\n" + begin + "\n### IK benchmark\n\n")
+    assert text.endswith("#### Environment\n\n- cores: 2\n\n" + end + "\n")
+    line = provenance_line("cr-nlp bench ik --suite free", ENV)
+    assert line in text
+    for fact in ("`cr-nlp bench ik --suite free`", "2026-11-24 21:00 UTC", "Python 3.11.7",
+                 "jax 0.10.2", "casadi 3.8.2", "numpy 2.4.6", "Test CPU", "2 cores",
+                 "cpu:0, cpu:1"):
+        assert fact in line
+    # A second suite is appended; running the first again replaces only its own section.
+    text = replace_section(text, "follow", "# Follow\n\n| b |\n", "cr-nlp bench follow", ENV)
+    again = replace_section(text + "\nAfter.\n", "ik-free", "# IK benchmark\n\n| a |\n| 2 |\n",
+                            "cr-nlp bench ik --suite free --repeats 5", ENV)
+    assert again.count(begin) == 1 and again.count(end) == 1
+    assert "| 2 |" in again and "| 1 |" not in again and "--repeats 5" in again
+    assert "By hand." in again and "\nAfter.\n" in again and "| b |" in again
+    assert again.index(begin) < again.index(section_markers("follow")[0])
+    with pytest.raises(ValueError, match="ik-free"):
+        replace_section(begin + "\nno end\n", "ik-free", report, "cr-nlp bench ik", ENV)
+
+
+def test_bench_markdown_writes_the_section_with_command_and_environment(
+        tmp_path: Path) -> None:
+    doc = tmp_path / "benchmarks.md"
+    doc.write_text("# Benchmarks\n\nKept.\n")
+    argv = ["bench", "clearance", "--configs", "64", "--repeats", "1", "--scene", "lattice",
+            "--out", str(tmp_path / "out"), "--markdown", str(doc)]
+    for _ in range(2):  # the second run replaces the section written by the first
+        assert main(argv) == 0
+    text = doc.read_text()
+    begin, end = section_markers("clearance")
+    assert text.startswith("# Benchmarks\n\nKept.\n") and text.count(begin) == 1
+    section = text[text.index(begin):text.index(end)]
+    report = (tmp_path / "out" / "clearance.md").read_text()
+    table = [line for line in report.splitlines() if line.startswith("|")]
+    assert table and all(line in section for line in table)
+    env = json.loads((tmp_path / "out" / "environment.json").read_text())["environment"]
+    assert provenance_line("cr-nlp " + " ".join(argv), env) in section

@@ -205,3 +205,65 @@ def write_report(name: str, report: str, out: str | Path | None,
     record = {"environment": env if env is not None else environment(), **(settings or {})}
     write_text(json.dumps(record, indent=2), out / "environment.json")
     return path
+
+
+# ================================================================ docs/benchmarks.md
+
+
+def section_markers(section: str) -> tuple[str, str]:
+    """The HTML comments that open and close a benchmark's section in a Markdown file."""
+    return f"<!-- cr-nlp bench: {section} -->", f"<!-- end cr-nlp bench: {section} -->"
+
+
+def provenance_line(command: str, env: Mapping[str, str]) -> str:
+    """One line saying where a table came from: the command, the UTC date, the versions
+    (python, jax, casadi, numpy) and the device (JAX backend and devices, CPU model,
+    usable cores, load average), from an ``environment()`` record."""
+    get = env.get
+    return (f"Written by `{command}` on {get('date', '?')}: Python {get('python', '?')}, "
+            f"jax {get('jax', '?')}, casadi {get('casadi', '?')}, numpy {get('numpy', '?')}; "
+            f"{get('backend', '?')} ({get('devices', '?')}), CPU {get('cpu', '?')}, "
+            f"{get('cores', '?')} cores, load average "
+            f"{get('load average (1, 5, 15 min)', '?')}.")
+
+
+def _demote_headings(report: str) -> list[str]:
+    """The report's lines with every Markdown heading two levels deeper (not in code):
+    a report's title becomes a ``###`` section under the file's ``##`` task headings."""
+    lines, in_code = [], False
+    for line in report.strip("\n").splitlines():
+        if line.startswith("```"):
+            in_code = not in_code
+        lines.append("##" + line if not in_code and line.startswith("#") else line)
+    return lines
+
+
+def replace_section(text: str, section: str, report: str, command: str,
+                    env: Mapping[str, str]) -> str:
+    """``text`` (a Markdown file's content) with the section ``section`` set to ``report``
+    (headings two levels deeper, its title first, then the ``provenance_line``): the part
+    between the section's markers is replaced, or the section is appended at the end.
+    Everything outside the markers is kept as it is."""
+    begin, end = section_markers(section)
+    lines = _demote_headings(report)
+    title = lines[:1] if lines and lines[0].startswith("###") else []
+    rest = "\n".join(lines[len(title):]).strip("\n")
+    body = "\n\n".join([*title, provenance_line(command, env), rest])
+    block = f"{begin}\n{body}\n\n{end}"
+    start = text.find(begin)
+    if start < 0:
+        return text.rstrip("\n") + ("\n\n" if text.strip() else "") + block + "\n"
+    stop = text.find(end, start)
+    if stop < 0:
+        raise ValueError(f"the section {section!r} has its opening marker but no {end!r}")
+    return text[:start] + block + text[stop + len(end):]
+
+
+def publish_markdown(path: str | Path, section: str, report: str, command: str,
+                     env: Mapping[str, str]) -> Path:
+    """Write a benchmark's report into the Markdown file ``path`` (e.g. docs/benchmarks.md)
+    as the section ``section`` (``replace_section``), creating the file if needed; the
+    other sections stay. Returns the path."""
+    path = Path(path)
+    old = path.read_text() if path.exists() else ""
+    return write_text(replace_section(old, section, report, command, env), path)

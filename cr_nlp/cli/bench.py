@@ -1,15 +1,18 @@
 """``cr-nlp bench ik|plan|follow|clearance|batch``: benchmarks that print tables (not tests).
 
 Every benchmark gets the same options from ``add_common_options`` (``--out`` folder,
-``--repeats``, ``--robot``, ``--seed``, ``--devices``, ``--no-progress``) and writes its
-report through ``cr_nlp.bench.common.write_report`` (Markdown printed and saved, CSV per
-table, ``environment.json``). Adding a benchmark: one ``_add_<name>`` function here that
-calls ``add_common_options`` and points ``run`` at the library's ``run_<name>_benchmark``.
+``--repeats``, ``--robot``, ``--seed``, ``--devices``, ``--no-progress``, ``--markdown``) and
+writes its report through ``cr_nlp.bench.common.write_report`` (Markdown printed and saved,
+CSV per table, ``environment.json``); ``--markdown FILE`` also puts it, with the command,
+versions, device and date, into its own section of FILE (docs/benchmarks.md).
+Adding a benchmark: one ``_add_<name>`` function here that calls ``add_common_options`` and
+points ``run`` at the library's ``run_<name>_benchmark``.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -30,7 +33,7 @@ def add_common_options(p: argparse.ArgumentParser, name: str, *,
     """The options every benchmark shares: ``--out`` (default ``bench_results/<name>``),
     ``--repeats`` (timed runs after a warm-up; its default, or no option when
     ``repeats`` is False), ``--robot`` (file or bundled name), ``--seed``, ``--devices``
-    (host devices, default one per core) and ``--no-progress``."""
+    (host devices, default one per core), ``--no-progress`` and ``--markdown``."""
     p.add_argument("--out", default=f"bench_results/{name}",
                    help=f"output folder (default bench_results/{name})")
     if repeats is not False:
@@ -45,6 +48,10 @@ def add_common_options(p: argparse.ArgumentParser, name: str, *,
     p.add_argument("--devices", type=int, default=None,
                    help="JAX host devices to shard batches over (default: one per core)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--markdown", metavar="FILE", default=None,
+                   help="also write the report into FILE (e.g. docs/benchmarks.md) as this "
+                        "benchmark's section (replaced if present), with the command, "
+                        "versions, device and date")
 
 
 def _check_repeats(args: argparse.Namespace) -> None:
@@ -55,6 +62,23 @@ def _check_repeats(args: argparse.Namespace) -> None:
 def _wrote(args: argparse.Namespace, name: str) -> None:
     print(f"wrote {Path(args.out) / (name + '.md')}, its CSV files and environment.json",
           file=sys.stderr)
+    if args.markdown:
+        _publish(args, name)
+
+
+def _publish(args: argparse.Namespace, name: str) -> None:
+    """``--markdown FILE``: the report just written to ``--out`` becomes the section
+    ``<name>`` (``<name>-<suite>`` for one suite) of FILE."""
+    from ..bench.common import publish_markdown
+
+    out = Path(args.out)
+    env = json.loads((out / "environment.json").read_text())["environment"]
+    suite = getattr(args, "suite", "all")
+    section = name if suite == "all" else f"{name}-{suite}"
+    command = getattr(args, "command_line", None) or "cr-nlp bench " + name
+    path = publish_markdown(args.markdown, section, (out / f"{name}.md").read_text(),
+                            command, env)
+    print(f"wrote the section {section!r} of {path}", file=sys.stderr)
 
 
 # ---------------------------------------------------------------- ik

@@ -8,6 +8,7 @@ Adding a subcommand: a module ``cr_nlp/cli/<name>.py`` with ``add_parser(subpars
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 from collections.abc import Sequence
 
@@ -46,7 +47,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from ..model import ModelFileError
     from ._io import UsageError
 
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    args.command_line = shlex.join(["cr-nlp", *argv])  # what a report says it came from
     # Every core for the batched stages (before JAX starts); ``--devices`` where given.
     use_host_devices(getattr(args, "devices", None))
     enable_compilation_cache()
