@@ -138,6 +138,9 @@ _PER_TARGET = ("pose_error", "position_error", "rotation_error", "max_violation"
                "min_clearance")
 """The float columns of an ``IKResult`` that ``IKSolver.verify`` fills per target."""
 _VERIFIED = {"min_clearance": "clearance"}
+COLUMNS = ("q", "position", "wxyz", *_PER_TARGET, "collision_free", "success", "stage",
+           "reason")
+"""The per-target fields of an ``IKResult`` (``IKResult.columns``)."""
 """``IKResult`` column → the key of ``IKSolver.verify``'s output where they differ."""
 
 
@@ -237,6 +240,28 @@ class IKResult(ResultIO):
             stage=[str(e["stage"]) for e in entries],
             reason=[e["reason"] or "" for e in entries],
             timing=StageTiming.from_dict(data.get("timing")), has_scene=has_scene)
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """The per-target fields as arrays (``COLUMNS``; stage and reason as strings): the
+        compact form a batch job's chunk files hold."""
+        return {k: np.asarray(getattr(self, k), dtype=str if k in ("stage", "reason") else None)
+                for k in COLUMNS}
+
+    @classmethod
+    def from_columns(cls, robot: Robot, columns: dict[str, np.ndarray],
+                     timing: StageTiming | dict[str, float] | None = None,
+                     has_scene: bool = False) -> IKResult:
+        """The result of ``columns()`` (of one result, or concatenated over many)."""
+        if not isinstance(timing, StageTiming):
+            timing = StageTiming.from_dict(timing)
+        return cls(
+            robot, *(np.asarray(columns[k], dtype=float) for k in COLUMNS[:3]),
+            **{k: np.asarray(columns[k], dtype=float) for k in _PER_TARGET},
+            collision_free=np.asarray(columns["collision_free"], dtype=bool),
+            success=np.asarray(columns["success"], dtype=bool),
+            stage=[str(x) for x in columns["stage"]],
+            reason=[str(x) for x in columns["reason"]],
+            timing=timing, has_scene=has_scene)
 
     def save_csv(self, path: str | Path) -> Path:
         """One row per target: ``target``, ``success``, ``pose_error``,

@@ -635,8 +635,8 @@ class Viewer:
         verdict = "**reached**" if answer.success else f"**not reached**: {answer.reason}"
         clearance = (
             ""
-            if not np.isfinite(answer.clearance)
-            else f"  \nclearance {answer.clearance:.4f} m (python-fcl)"
+            if not np.isfinite(answer.min_clearance)
+            else f"  \nclearance {answer.min_clearance:.4f} m (python-fcl)"
         )
         if hasattr(self, "_live_text"):
             self._live_text.content = (
