@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, fields
 from typing import Any
 
 
 @dataclass
-class StageTiming:
+class StageTiming(Mapping):
     """Seconds per stage (DESIGN.md §2's stages; compile time kept apart from the work).
 
-    Read as attributes (``timing.refine``) or as a mapping (``timing["refine"]``,
-    ``"total"`` included), written as ``as_dict()`` in every RESULT.json."""
+    Read as attributes (``timing.refine``) or as a read-only mapping stage → seconds
+    (``timing["refine"]``, ``dict(timing)``; ``"total"`` included), written as
+    ``as_dict()`` in every RESULT.json."""
 
     compile: float = 0.0
     """Tracing and compiling JAX programs (first call of a shape; 0 from the cache)."""
@@ -34,6 +36,12 @@ class StageTiming:
         if stage not in self.stages():
             raise KeyError(f"no timing stage {stage!r}: the stages are {', '.join(self.stages())}")
         return float(getattr(self, stage))
+
+    def __iter__(self) -> Iterator[str]:
+        return iter((*self.stages(), "total"))
+
+    def __len__(self) -> int:
+        return len(self.stages()) + 1
 
     @classmethod
     def stages(cls) -> tuple[str, ...]:
