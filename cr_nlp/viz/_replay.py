@@ -245,25 +245,17 @@ def _deg(x: Any) -> Any:
 
 
 def _trajectory_motions(robot: Robot, results: list[Any], **_: Any) -> list[Motion]:
-    from ..tasks.trajectory import tendon_names
 
     motions = []
     for i, result in enumerate(results):
         if result.q is None:
             continue
         motions.append(
-            Motion(
-                label=f"problem {i}",
-                q=result.q,
-                times=result.times,
-                tendon_lengths=np.asarray(result.tendon_lengths, dtype=float),
-                tendon_names=tendon_names(robot),
-                summary=f"plan, problem {i}: "
-                + _verdict_line(
-                    result.success, result.reason, result.stage, _finite(result.max_violation)
-                )
-                + f"  \ntip path: {_fmt(_finite(result.path_length), ' m')}"
-                + f"  \nmin clearance: {_fmt(_finite(result.min_clearance), ' m')}",
+            _motion(
+                robot,
+                result,
+                f"problem {i}",
+                f"tip path: {_fmt(_finite(result.path_length), ' m')}",
             )
         )
     if not motions:
@@ -276,7 +268,6 @@ def _trajectory_motions(robot: Robot, results: list[Any], **_: Any) -> list[Moti
 
 def _follow_motion(robot: Robot, results: list[Any], path: Any = None, **_: Any) -> list[Motion]:
     from ..tasks.paths import load_path
-    from ..tasks.trajectory import tendon_names
 
     (result,) = results
     reference = np.asarray(result.path.positions, dtype=float)
@@ -288,22 +279,31 @@ def _follow_motion(robot: Robot, results: list[Any], path: Any = None, **_: Any)
                 f"the follow result {len(result.q)}"
             )
     err = 1e3 * result.position_error
-    name = result.path.name
-    motion = Motion(
-        label=f"follow '{name}'",
+    detail = f"position error: mean {np.nanmean(err):.3g} mm, max {np.nanmax(err):.3g} mm"
+    return [_motion(robot, result, f"follow '{result.path.name}'", detail, reference)]
+
+
+def _motion(
+    robot: Robot, result: Any, label: str, detail: str, reference: Any = None
+) -> Motion:
+    """The motion of a trajectory or follow result, its verdict, ``detail`` and the
+    minimum clearance as the summary."""
+    from ..tasks.trajectory import tendon_names
+
+    return Motion(
+        label=label,
         q=result.q,
         times=result.times,
         tendon_lengths=np.asarray(result.tendon_lengths, dtype=float),
         tendon_names=tendon_names(robot),
-        summary=f"follow '{name}': "
+        summary=f"{label}: "
         + _verdict_line(
             result.success, result.reason, result.stage, _finite(result.max_violation)
         )
-        + f"  \nposition error: mean {np.nanmean(err):.3g} mm, max {np.nanmax(err):.3g} mm"
+        + f"  \n{detail}"
         + f"  \nmin clearance: {_fmt(_finite(result.min_clearance), ' m')}",
         reference=reference,
     )
-    return [motion]
 
 
 _READERS = {"ik": _ik_answers, "trajectory": _trajectory_motions, "follow": _follow_motion}
