@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cr_nlp import load_result
+from cr_nlp import load_result, load_results
 from cr_nlp.batch import (
     _SOLVERS,
     MANIFEST,
@@ -36,6 +36,7 @@ from cr_nlp.model import load_robot
 from cr_nlp.tasks.ik import IKConfig, IKResult, IKSolver
 
 from .conftest import ROOT, random_q
+from .test_results import assert_same_result
 
 TARGETS = 30
 BAD = "target wxyz is not a unit quaternion"
@@ -408,7 +409,11 @@ def test_batch_plan_results_pass_the_independent_check(robot, client, tmp_path):
         assert verdict["max_violation"] == pytest.approx(result.max_violation, abs=1e-12)
     assert results[0].success and results[2].success
     data = json.loads((out / RESULTS).read_text())
-    assert data.keys() == {"robot", "results", "summary", "timing"}
+    assert data.keys() == {"kind", "schema_version", "robot", "results", "summary", "timing"}
+    assert data["kind"] == "trajectory"
+    # Read back through the result protocol: the TrajectoryResults run_batch returned.
+    for back, result in zip(load_results(out / RESULTS, robot), results, strict=True):
+        assert_same_result(back, result)
     assert data["summary"]["problems"] == 3
     assert data["summary"]["success_rate"] == pytest.approx(2 / 3)
     assert [row["stage"] for row in data["results"]] == [r.stage for r in results]
