@@ -69,9 +69,9 @@ def run(args: argparse.Namespace) -> int:
                            progress=sys.stderr.isatty())
     timing = planner.last_timing
     if args.out == "-":  # several results: the one-file form of them all
-        print(json.dumps(trajectories_to_dict(results, timing), indent=2))
+        print(json.dumps(trajectories_to_dict(results, timing, robot), indent=2))
     else:
-        save_results(results, args.out, timing)
+        save_results(results, args.out, timing, robot)
     if args.csv:
         folder = Path(args.csv)
         for i, result in enumerate(results):

@@ -595,13 +595,14 @@ def _trajectories_fields(results: list[TrajectoryResult],
 
 
 def trajectories_to_dict(results: list[TrajectoryResult],
-                         timing: StageTiming | dict[str, float] | None = None) -> dict[str, Any]:
+                         timing: StageTiming | dict[str, float] | None = None,
+                         robot: Robot | None = None) -> dict[str, Any]:
     """The RESULT.json form of many trajectories (``cr-nlp plan``): the header (kind
-    "trajectory"), one entry per result, a summary and the batch's ``timing`` (s)."""
-    if not results:
-        raise ValueError("no trajectories to write")
+    "trajectory"), one entry per result, a summary and the batch's ``timing`` (s).
+    ``robot`` names the robot of an empty list."""
+    name = results[0].robot.name if results else (robot.name if robot is not None else None)
     return {"kind": TrajectoryResult.kind, "schema_version": SCHEMA_VERSION,
-            "robot": results[0].robot.name, **_trajectories_fields(results, timing)}
+            "robot": name, **_trajectories_fields(results, timing)}
 
 
 def trajectories_from_dict(data: Any, robot: Robot | str | None = None,
@@ -617,12 +618,13 @@ def trajectories_from_dict(data: Any, robot: Robot | str | None = None,
 
 
 def save_results(results: list[TrajectoryResult], path: str | Path,
-                 timing: StageTiming | dict[str, float] | None = None) -> Path:
+                 timing: StageTiming | dict[str, float] | None = None,
+                 robot: Robot | None = None) -> Path:
     """Write ``trajectories_to_dict`` to ``path`` (.json) or every result to one .npz
     (``q_<i>``, ``tendon_lengths_<i>``, ``success``, ``dt``) by the file's suffix."""
     path = Path(path)
     if path.suffix != ".npz":
-        return write_json(trajectories_to_dict(results, timing), path)
+        return write_json(trajectories_to_dict(results, timing, robot), path)
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays: dict[str, Any] = {
         "success": np.array([r.success for r in results]),

@@ -178,12 +178,12 @@ def read_result(
     Raises:
         ValueError: not a result (no or an unknown ``kind``), or for another robot.
     """
-    from ..tasks._result import results_from_dict
+    from ..tasks._result import check_header, results_from_dict
 
-    results = results_from_dict(data, robot, source=source)
-    kind = results[0].kind
+    kind = check_header(data, source or "the result")
     if kind not in _READERS:
         raise ValueError(f"{source or 'the result'}: the viewer cannot show a {kind!r} result")
+    results = results_from_dict(data, robot, source=source)
     return _READERS[kind](robot, results, targets=targets, path=path)
 
 
