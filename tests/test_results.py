@@ -207,3 +207,21 @@ def test_stage_timing_reads_as_a_mapping_and_round_trips() -> None:
     assert StageTiming.from_dict(timing.as_dict()) == timing
     with pytest.raises(ValueError, match="unknown stage"):
         StageTiming.from_dict({"init": 1.0})
+
+
+def test_the_public_api_is_one_import_line() -> None:
+    namespace: dict = {}
+    exec("from cr_nlp import IKSolver, IKConfig, IKResult, TrajectoryPlanner, TrajectoryConfig, "
+         "TrajectoryResult, PathFollower, FollowConfig, FollowResult, LiveIKSolver, run_batch, "
+         "load_path", namespace)
+    from cr_nlp.batch import run_batch
+    from cr_nlp.tasks.follow import PathFollower
+    from cr_nlp.tasks.live_ik import LiveIKSolver
+
+    assert namespace["run_batch"] is run_batch and namespace["PathFollower"] is PathFollower
+    assert namespace["LiveIKSolver"] is LiveIKSolver
+    # Every result class is the one its kind names in the registry.
+    from cr_nlp.tasks._result import result_class
+
+    for cls in (namespace["IKResult"], namespace["TrajectoryResult"], namespace["FollowResult"]):
+        assert result_class(cls.kind) is cls

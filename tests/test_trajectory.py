@@ -123,6 +123,7 @@ def test_cli_plans_and_reports_bad_input(tmp_path, robot):
     data = json.loads(out.read_text())
     rows = data["results"]
     assert len(rows) == 4 and "total" in data["timing"]
+    assert data["kind"] == "trajectory" and data["schema_version"] == SCHEMA_VERSION
     first = rows[0]
     assert len(first["q"]) == 12 and first["dt"] == 0.5
     assert len(first["tendon_lengths"]) == 12 and len(first["tendon_lengths"][0]) == 9
