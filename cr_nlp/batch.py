@@ -19,13 +19,18 @@ What lands in ``out_dir``:
   fsync, ``os.replace``) as soon as it arrives; a chunk file is complete or absent.
   ``read_chunk`` reads one: ``{"chunk", "start", "stop", "run", "worker", "pid",
   "seconds", "timing"}`` and the answers: for IK the ``IKResult`` columns as arrays
-  (``"columns"``: q, position, wxyz, errors, flags, stage, reason), for planning the
-  rows of ``cr-nlp plan --out`` (``"rows"``). Arrays, not JSON rows: converting 1000
+  (``"columns"``, ``IKResult.columns``: q, position, wxyz, errors, flags, stage, reason),
+  for planning the entries of ``cr-nlp plan --out`` (``"rows"``,
+  ``TrajectoryResult.entry``). Arrays, not JSON rows: converting 1000
   IK answers to rows on the worker, to JSON, back and to rows again cost ~60 ms of CPU
   per job, a third of the penalty-mode solve itself.
-- ``results.json``: assembled at the end from the chunk files, in input order, with the
-  schema of ``cr-nlp ik --out`` (``IKResult.to_json``) or ``cr-nlp plan --out``
-  (``results_to_json``); its ``timing`` is the worker seconds summed over the chunks.
+- ``results.json``: assembled at the end from the chunk files, in input order: the
+  RESULT.json of ``cr-nlp ik --out`` (kind "ik", ``IKResult.to_dict``) or ``cr-nlp plan
+  --out`` (kind "trajectory", ``trajectories_to_dict``), readable by
+  ``tasks.load_result``; its ``timing`` is the worker seconds summed over the chunks.
+
+What differs between the kinds of job (solver, inputs, a chunk's answers, the results)
+is in one adapter per kind (``_IKJobs``, ``_PlanJobs``).
 
 This module is an interface (beside ``cli/``): it imports ``tasks/``, nothing imports it
 but the CLI and the benchmarks.
@@ -51,12 +56,11 @@ from typing import Any
 
 import numpy as np
 
-KINDS = ("ik", "plan")
-"""The job kinds: IK targets, start/goal planning problems."""
 MANIFEST = "manifest.json"
 RESULTS = "results.json"
-MANIFEST_VERSION = 2
-"""2: chunk files hold arrays (``chunk_<id>.npz``); 1 held JSON rows."""
+MANIFEST_VERSION = 3
+"""3: answers in the result protocol's field names (``tasks._result``, schema 1); 2: chunk
+files hold arrays (``chunk_<id>.npz``); 1 held JSON rows."""
 PRE_SPAWN = "distributed.nanny.pre-spawn-environ"
 """Dask's config of the environment its nannies set before spawning a worker process."""
 QUIET_WORKERS = {
@@ -123,12 +127,7 @@ def default_chunk(kind: str, count: int, slots: int, exact: bool = True) -> int:
     most 8 problems. Penalty-mode IK (milliseconds per target, batched in JAX): one chunk
     per worker thread of at most 4096 targets (a chunk of 125 targets cost ~50 ms more
     than its share of one 1000-target call). The caps bound what a dying worker loses."""
-    if kind == "ik" and not exact:
-        per_slot, largest = 1, 4096
-    elif kind == "ik":
-        per_slot, largest = 2, 256
-    else:
-        per_slot, largest = 4, 8
+    per_slot, largest = _ADAPTERS[kind].chunking(exact)
     return int(min(largest, max(1, math.ceil(count / max(per_slot * slots, 1)))))
 
 
@@ -153,13 +152,7 @@ def _without_source(obj: Any) -> Any:
 def _inputs_hash(kind: str, inputs: tuple[Any, Any], problems: Sequence[str] | None) -> str:
     # No reasons and all-empty reasons are the same job (the API's None, the CLI's list).
     marks = [str(p) for p in problems] if problems and any(problems) else []
-    if kind == "ik":  # the float64 bytes: hashing their JSON text cost ~5 ms per 1000
-        arrays = [np.ascontiguousarray(x, dtype="<f8") for x in inputs]
-        return _digest(b"".join([json.dumps([[a.shape for a in arrays], marks]).encode(),
-                                 *(a.tobytes() for a in arrays)]))
-    # Raw rows, possibly ragged or malformed: validated per problem on the worker.
-    data = [_plain(inputs[0]), _plain(inputs[1])]
-    return _digest(json.dumps([data, marks]).encode())
+    return _ADAPTERS[kind].inputs_digest(inputs, marks)
 
 
 def _plain(rows: Any) -> Any:
@@ -251,81 +244,150 @@ def _worker_solver(spec: JobSpec) -> Any:
         solver = _SOLVERS.get(spec.key)
         if solver is None:
             prepare_worker_process()
-            if spec.kind == "ik":
-                from .tasks.ik import IKSolver
-
-                solver = IKSolver(spec.robot, spec.scene, spec.config)
-            else:
-                from .tasks.trajectory import TrajectoryPlanner
-
-                solver = TrajectoryPlanner(spec.robot, spec.scene, spec.config)
+            solver = _ADAPTERS[spec.kind].solver(spec)
             _SOLVERS[spec.key] = solver
     return solver
 
 
-IK_COLUMNS = ("q", "position", "wxyz", "pose_error", "position_error", "rotation_error",
-              "max_violation", "clearance", "collision_free", "success", "stage", "reason")
-"""The ``IKResult`` fields a chunk carries, in the order of its constructor."""
+# ================================================================ the kinds of job
 
 
-def ik_columns(result: Any) -> dict[str, np.ndarray]:
-    """An ``IKResult``'s per-target fields as arrays (stage and reason as strings)."""
-    return {k: np.asarray(getattr(result, k), dtype=str if k in ("stage", "reason") else None)
-            for k in IK_COLUMNS}
+class _IKJobs:
+    """IK targets: inputs (positions (T, 3) m, wxyz (T, 4)); a chunk's answers are the
+    ``IKResult`` columns as arrays (``IKResult.columns``)."""
 
+    answers = "columns"
+    uses_init = False
 
-def ik_result_from_columns(robot: Any, columns: dict[str, np.ndarray],
-                           timing: dict[str, float], has_scene: bool) -> Any:
-    """The ``IKResult`` of ``ik_columns`` (over one chunk, or concatenated over many)."""
-    from .tasks.ik import IKResult, IKTiming
+    @staticmethod
+    def chunking(exact: bool) -> tuple[int, int]:
+        return (2, 256) if exact else (1, 4096)
 
-    names = {f.name for f in dataclasses.fields(IKTiming)}
-    fields = {k: np.asarray(columns[k], dtype=float)
-              for k in IK_COLUMNS[:8]}  # q … clearance
-    return IKResult(
-        robot,
-        **fields,
-        collision_free=np.asarray(columns["collision_free"], dtype=bool),
-        success=np.asarray(columns["success"], dtype=bool),
-        stage=[str(x) for x in columns["stage"]],
-        reason=[str(x) for x in columns["reason"]],
-        timing=IKTiming(**{k: v for k, v in timing.items() if k in names}),
-        has_scene=has_scene,
-    )
+    @staticmethod
+    def default_config() -> Any:
+        from .tasks.ik import IKConfig
 
+        return IKConfig()
 
-def _failed(spec: JobSpec, count: int, reason: str) -> Any:
-    """The answers of ``count`` problems that raised: IK columns or planning rows."""
-    if spec.kind == "ik":
-        nan = np.full(count, np.nan)
-        failed = np.zeros(count, bool)
-        return {
-            "q": np.full((count, spec.robot.dof), np.nan),
-            "position": np.full((count, 3), np.nan),
-            "wxyz": np.full((count, 4), np.nan),
-            **{k: nan for k in IK_COLUMNS[3:8]},
-            "collision_free": failed,
-            "success": failed,
-            "stage": np.full(count, "none"),
-            "reason": np.full(count, reason),
-        }
-    from .tasks.trajectory import TrajectoryResult
+    @staticmethod
+    def solver(spec: JobSpec) -> Any:
+        from .tasks.ik import IKSolver
 
-    return [
-        TrajectoryResult(spec.robot, None, spec.config.dt, False, reason, "error").to_json()
-        for _ in range(count)
-    ]
+        return IKSolver(spec.robot, spec.scene, spec.config)
 
+    @staticmethod
+    def normalise(first: Any, second: Any) -> tuple[Any, Any]:
+        first = np.asarray(first, dtype=float).reshape(-1, 3)
+        second = np.asarray(second, dtype=float).reshape(-1, 4)
+        if len(first) != len(second):
+            raise BatchError(f"{len(first)} positions but {len(second)} orientations")
+        return first, second
 
-def _solve(spec: JobSpec, solver: Any, first: Any, second: Any) -> tuple[Any, dict]:
-    """The answers (IK columns or planning rows) and the stage seconds of one call."""
-    if spec.kind == "ik":
+    @staticmethod
+    def inputs_digest(inputs: tuple[Any, Any], marks: list[str]) -> str:
+        # The float64 bytes: hashing their JSON text cost ~5 ms per 1000.
+        arrays = [np.ascontiguousarray(x, dtype="<f8") for x in inputs]
+        return _digest(b"".join([json.dumps([[a.shape for a in arrays], marks]).encode(),
+                                 *(a.tobytes() for a in arrays)]))
+
+    @staticmethod
+    def solve(spec: JobSpec, solver: Any, first: Any, second: Any) -> tuple[Any, dict]:
         result = solver.solve(first, second, exact=spec.exact)
-        return ik_columns(result), result.timing.as_dict()
-    from .tasks.trajectory import results_to_json
+        return result.columns(), result.timing.as_dict()
 
-    results = solver.plan(list(first), list(second), exact=spec.exact, init=spec.init)
-    return results_to_json(results)["results"], solver.last_timing.as_dict()
+    @staticmethod
+    def failed(spec: JobSpec, count: int, reason: str) -> Any:
+        from .tasks.ik import IKResult
+
+        nan = np.full(count, np.nan)
+        return IKResult(
+            spec.robot, np.full((count, spec.robot.dof), np.nan), np.full((count, 3), np.nan),
+            np.full((count, 4), np.nan), nan, nan, nan, nan, nan,
+            collision_free=np.zeros(count, bool), success=np.zeros(count, bool),
+            stage=["none"] * count, reason=[reason] * count).columns()
+
+    @staticmethod
+    def join(parts: list[Any]) -> Any:
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+    @staticmethod
+    def assemble(spec: JobSpec, answers: list[Any], timing: dict[str, float],
+                 problems: Sequence[str] | None) -> tuple[Any, dict[str, Any]]:
+        from .tasks.ik import IKResult
+
+        result = IKResult.from_columns(spec.robot, _IKJobs.join(answers), timing,
+                                       has_scene=spec.scene is not None)
+        for i, problem in enumerate(problems or []):
+            if problem:
+                result.reason[i] = problem
+        return result, result.to_dict()
+
+
+class _PlanJobs:
+    """Planning problems: inputs (starts, goals), raw rows θ, φ, L validated per problem
+    on the worker; a chunk's answers are RESULT.json entries (``TrajectoryResult.entry``)."""
+
+    answers = "rows"
+    uses_init = True
+
+    @staticmethod
+    def chunking(exact: bool) -> tuple[int, int]:
+        return (4, 8)
+
+    @staticmethod
+    def default_config() -> Any:
+        from .tasks.trajectory import TrajectoryConfig
+
+        return TrajectoryConfig()
+
+    @staticmethod
+    def solver(spec: JobSpec) -> Any:
+        from .tasks.trajectory import TrajectoryPlanner
+
+        return TrajectoryPlanner(spec.robot, spec.scene, spec.config)
+
+    @staticmethod
+    def normalise(first: Any, second: Any) -> tuple[Any, Any]:
+        first, second = list(first), list(second)
+        if len(first) != len(second):
+            raise BatchError(f"{len(first)} starts but {len(second)} goals")
+        return first, second
+
+    @staticmethod
+    def inputs_digest(inputs: tuple[Any, Any], marks: list[str]) -> str:
+        # Raw rows, possibly ragged or malformed: validated per problem on the worker.
+        return _digest(json.dumps([[_plain(inputs[0]), _plain(inputs[1])], marks]).encode())
+
+    @staticmethod
+    def solve(spec: JobSpec, solver: Any, first: Any, second: Any) -> tuple[Any, dict]:
+        results = solver.plan(list(first), list(second), exact=spec.exact, init=spec.init)
+        return [r.entry() for r in results], solver.last_timing.as_dict()
+
+    @staticmethod
+    def failed(spec: JobSpec, count: int, reason: str) -> Any:
+        from .tasks.trajectory import TrajectoryResult
+
+        return [TrajectoryResult(spec.robot, None, spec.config.dt, False, reason,
+                                 "error").entry() for _ in range(count)]
+
+    @staticmethod
+    def join(parts: list[Any]) -> Any:
+        return [row for part in parts for row in part]
+
+    @staticmethod
+    def assemble(spec: JobSpec, answers: list[Any], timing: dict[str, float],
+                 problems: Sequence[str] | None) -> tuple[Any, dict[str, Any]]:
+        from .tasks.trajectory import TrajectoryResult, trajectories_to_dict
+
+        results = [TrajectoryResult.from_entry(spec.robot, row)
+                   for row in _PlanJobs.join(answers)]
+        return results, trajectories_to_dict(results, timing)
+
+
+_ADAPTERS: dict[str, Any] = {"ik": _IKJobs, "plan": _PlanJobs}
+"""Job kind → what differs between kinds: solver, inputs, answers, results."""
+KINDS = tuple(_ADAPTERS)
+"""The job kinds: IK targets, start/goal planning problems."""
 
 
 def solve_chunk(spec: JobSpec, index: int, first: Any, second: Any) -> dict[str, Any]:
@@ -333,32 +395,31 @@ def solve_chunk(spec: JobSpec, index: int, first: Any, second: Any) -> dict[str,
     wxyz (k, 4)) or planning problems (``first`` starts, ``second`` goals, rad and m).
 
     Returns the chunk's record: the answers in input order (IK: ``"columns"``, the
-    ``IKResult`` fields as arrays, ``ik_columns``; planning: ``"rows"`` of the RESULT.json
-    schema), the solver's stage seconds, the worker's address and pid. The solver's
-    random generator is reseeded from (seed, chunk index), so a chunk re-run after a
-    failure or on resume gives the same answers. A problem that raises becomes a failed
-    answer with its reason; the chunk itself raises only where Dask should retry it.
+    ``IKResult`` fields as arrays, ``IKResult.columns``; planning: ``"rows"``, RESULT.json
+    entries, ``TrajectoryResult.entry``), the solver's stage seconds, the worker's address
+    and pid. The solver's random generator is reseeded from (seed, chunk index), so a
+    chunk re-run after a failure or on resume gives the same answers. A problem that
+    raises becomes a failed answer with its reason; the chunk itself raises only where
+    Dask should retry it.
     """
     t0 = time.perf_counter()
     solver = _worker_solver(spec)
     solver._rng = np.random.default_rng([spec.config.seed, index])
+    kind = _ADAPTERS[spec.kind]
     try:
-        answers, timing = _solve(spec, solver, first, second)
+        answers, timing = kind.solve(spec, solver, first, second)
     except Exception:  # one problem's error must not sink its neighbours: solve one by one
         parts, timing = [], {}
         for k in range(len(first)):
             try:
-                one, one_timing = _solve(spec, solver, first[k : k + 1], second[k : k + 1])
+                one, one_timing = kind.solve(spec, solver, first[k : k + 1], second[k : k + 1])
             except Exception as exc:
-                one = _failed(spec, 1, f"solver raised {type(exc).__name__}: {exc}")
+                one = kind.failed(spec, 1, f"solver raised {type(exc).__name__}: {exc}")
                 one_timing = {}
             parts.append(one)
             for key, value in one_timing.items():
                 timing[key] = timing.get(key, 0.0) + value
-        if spec.kind == "ik":
-            answers = {k: np.concatenate([p[k] for p in parts]) for k in IK_COLUMNS}
-        else:
-            answers = [row for part in parts for row in part]
+        answers = kind.join(parts)
     try:
         from distributed import get_worker
 
@@ -367,7 +428,7 @@ def solve_chunk(spec: JobSpec, index: int, first: Any, second: Any) -> dict[str,
         worker = ""
     return {
         "chunk": index,
-        "columns" if spec.kind == "ik" else "rows": answers,
+        kind.answers: answers,
         "timing": timing,
         "worker": worker,
         "pid": os.getpid(),
@@ -519,14 +580,21 @@ def run_batch(
         raise BatchError(f"kind must be one of {KINDS}, got {kind!r}")
     if sum(x is not None for x in (client, workers, scheduler)) > 1:
         raise BatchError("give at most one of client, workers and scheduler")
+    jobs = _ADAPTERS[kind]
     robot = load_robot(robot)
     scene = load_scene(scene) if isinstance(scene, (str, Path, dict)) else scene
-    first, second = _normalise_inputs(kind, inputs)
+    try:
+        first, second = inputs
+    except (TypeError, ValueError):
+        raise BatchError(
+            "inputs must be a pair: (positions, wxyz) for ik, (starts, goals) for plan"
+        ) from None
+    first, second = jobs.normalise(first, second)
     count = len(first)
     if problems is not None and len(problems) != count:
         raise BatchError(f"{len(problems)} problems for {count} inputs")
     if config is None:
-        config = _default_config(kind)
+        config = jobs.default_config()
     if init not in ("roadmap", "straight"):
         raise BatchError(f"init must be 'roadmap' or 'straight', got {init!r}")
     key = solver_key(kind, robot, scene, config)
@@ -537,7 +605,7 @@ def run_batch(
         "robot": robot.name,
         "scene": getattr(scene, "name", None),
         "exact": bool(exact),
-        "init": init if kind == "plan" else None,
+        "init": init if jobs.uses_init else None,
         "config": json.loads(json.dumps(dataclasses.asdict(config))),
         "settings": _digest((key, init)),  # robot, scene and config contents
         "count": count,
@@ -568,35 +636,6 @@ def run_batch(
         if own_client is not None:
             close_cluster(own_client)
     return _assemble(spec, out, manifest, problems)
-
-
-def _default_config(kind: str) -> Any:
-    if kind == "ik":
-        from .tasks.ik import IKConfig
-
-        return IKConfig()
-    from .tasks.trajectory import TrajectoryConfig
-
-    return TrajectoryConfig()
-
-
-def _normalise_inputs(kind: str, inputs: tuple[Any, Any]) -> tuple[Any, Any]:
-    try:
-        first, second = inputs
-    except (TypeError, ValueError):
-        raise BatchError(
-            "inputs must be a pair: (positions, wxyz) for ik, (starts, goals) for plan"
-        ) from None
-    if kind == "ik":
-        first = np.asarray(first, dtype=float).reshape(-1, 3)
-        second = np.asarray(second, dtype=float).reshape(-1, 4)
-        if len(first) != len(second):
-            raise BatchError(f"{len(first)} positions but {len(second)} orientations")
-        return first, second
-    first, second = list(first), list(second)
-    if len(first) != len(second):
-        raise BatchError(f"{len(first)} starts but {len(second)} goals")
-    return first, second
 
 
 def _open_manifest(
@@ -734,47 +773,7 @@ def _assemble(
         for key, value in record.get("timing", {}).items():
             if key != "total":
                 timing[key] = timing.get(key, 0.0) + float(value)
-    if spec.kind == "ik":
-        columns = {k: np.concatenate([r["columns"][k] for r in records]) for k in IK_COLUMNS}
-        result = ik_result_from_columns(spec.robot, columns, timing, spec.scene is not None)
-        for i, problem in enumerate(problems or []):
-            if problem:
-                result.reason[i] = problem
-        _write_atomic(out / RESULTS, result.to_json())
-        return result
-    from .tasks.trajectory import results_to_json
-
-    results = [trajectory_result_from_row(spec.robot, row) for r in records for row in r["rows"]]
-    _write_atomic(
-        out / RESULTS, results_to_json(results, {**timing, "total": sum(timing.values())})
-    )
-    return results
-
-
-def _float(value: Any) -> float:
-    return math.nan if value is None else float(value)
-
-
-def trajectory_result_from_row(robot: Any, row: dict[str, Any]) -> Any:
-    """The ``TrajectoryResult`` of one RESULT.json row (``TrajectoryResult.to_json``;
-    the LM cost is not in the file: NaN)."""
-    from .tasks.trajectory import TrajectoryResult
-
-    q = None if row["q"] is None else np.asarray(row["q"], dtype=float)
-    tendons = row["tendon_lengths"]
-    return TrajectoryResult(
-        robot,
-        q,
-        float(row["dt"]),
-        bool(row["success"]),
-        row["reason"] or "",
-        row["stage"],
-        path_length=_float(row["path_length"]),
-        min_clearance=_float(row["min_clearance"]),
-        max_violation=_float(row["max_violation"]),
-        violations={k: _float(v) for k, v in row["violations"].items()},
-        tendon_lengths=None if tendons is None else np.asarray(tendons, dtype=float),
-        tendon_speed=_float(row["tendon_speed"]),
-        tendon_accel=_float(row["tendon_accel"]),
-        timing=dict(row["timing"]),
-    )
+    kind = _ADAPTERS[spec.kind]
+    result, data = kind.assemble(spec, [r[kind.answers] for r in records], timing, problems)
+    _write_atomic(out / RESULTS, data)
+    return result

@@ -53,7 +53,7 @@ def _ik(out: Path, exact: bool) -> DemoRow:
     start = time.perf_counter()
     result = IKSolver(robot, scene).solve(positions, wxyz, exact=exact)
     seconds = time.perf_counter() - start
-    (out / "ik_result.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
+    result.save(out / "ik_result.json")
     from .model.rotations import matrix_from_wxyz
 
     targets = list(zip(positions, matrix_from_wxyz(wxyz), strict=True))
@@ -67,7 +67,7 @@ def _ik(out: Path, exact: bool) -> DemoRow:
 
 
 def _plan(out: Path, exact: bool) -> DemoRow:
-    from .tasks.trajectory import TrajectoryPlanner, save_results, tendon_names
+    from .tasks.trajectory import TrajectoryPlanner, tendon_names
     from .viz import trajectory_figure
 
     (problem,) = json.loads(bundled_file("problems", "tdcr3_shelf_demo").read_text())["problems"]
@@ -75,7 +75,7 @@ def _plan(out: Path, exact: bool) -> DemoRow:
     start = time.perf_counter()
     (result,) = planner.plan([problem["start"]], [problem["goal"]], exact=exact)
     seconds = time.perf_counter() - start
-    save_results([result], out / "plan_result.json", planner.last_timing.as_dict())
+    result.save(out / "plan_result.json")
     files = ["plan_result.json"]
     if result.q is not None:
         result.save_csv(out / "plan_tendons.csv")
@@ -101,7 +101,7 @@ def _follow(out: Path, exact: bool) -> DemoRow:
     result.save_csv(out / "follow_tendons.csv")
     follow_figure(result, follower.scene, tendon_names(follower.robot),
                   title=f"{result.path.name}: {result.stage}").savefig(out / "follow.png", dpi=120)
-    err = result.position_error_mm
+    err = 1e3 * result.position_error
     return DemoRow("follow", f"'{result.path.name}', {len(err)} waypoints",
                    "yes" if result.success else f"no ({result.reason})",
                    f"position error mean {np.mean(err):.2f} mm, max {np.max(err):.2f} mm",

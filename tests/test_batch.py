@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cr_nlp import load_result, load_results
 from cr_nlp.batch import (
     _SOLVERS,
     MANIFEST,
@@ -24,8 +25,6 @@ from cr_nlp.batch import (
     JobSpec,
     chunk_file,
     close_cluster,
-    ik_columns,
-    ik_result_from_columns,
     read_chunk,
     run_batch,
     solve_chunk,
@@ -34,9 +33,10 @@ from cr_nlp.batch import (
 )
 from cr_nlp.bench.ik import forward_kinematics
 from cr_nlp.model import load_robot
-from cr_nlp.tasks.ik import IKConfig, IKSolver
+from cr_nlp.tasks.ik import IKConfig, IKResult, IKSolver
 
 from .conftest import ROOT, random_q
+from .test_results import assert_same_result
 
 TARGETS = 30
 BAD = "target wxyz is not a unit quaternion"
@@ -103,12 +103,15 @@ def test_batch_ik_gives_the_single_process_answers(robot, client, targets, singl
     assert dp.max() < tol and da.max() < tol
     # results.json: the schema of `cr-nlp ik --out`, the rows of the returned result.
     data = json.loads((out / RESULTS).read_text())
-    reference = single.to_json()
+    reference = single.to_dict()
     assert data.keys() == reference.keys()
     assert data["summary"].keys() == reference["summary"].keys()
     assert data["timing"].keys() == reference["timing"].keys()
     assert [row.keys() for row in data["results"]] == [row.keys() for row in reference["results"]]
-    assert data["results"] == json.loads(json.dumps(result.to_json()["results"]))
+    assert data["results"] == json.loads(json.dumps(result.to_dict()["results"]))
+    # ...read back through the result protocol, as `cr-nlp view` reads it.
+    back = load_result(out / RESULTS)
+    assert isinstance(back, IKResult) and back.to_dict()["results"] == data["results"]
     assert data["summary"]["success_rate"] == pytest.approx((TARGETS - 1) / TARGETS)
     # Solvers were built once per worker process, not per chunk (5 chunks, 2 workers).
     built = client.run(lambda: len(__import__("cr_nlp.batch").batch._SOLVERS))
@@ -119,7 +122,7 @@ def test_a_chunk_file_round_trips_and_a_damaged_one_is_solved_again(robot, singl
     """The worker's record survives its chunk file unchanged (arrays bit for bit, the
     IKResult rebuilt from them gives the same RESULT.json rows); a truncated file, or one
     of another range, reads as missing."""
-    columns = ik_columns(single)
+    columns = single.columns()
     record = {"chunk": 3, "start": 30, "stop": 30 + TARGETS, "run": 2, "worker": "tcp://w",
               "pid": 7, "seconds": 1.5, "timing": {"explore": 0.25}, "columns": columns}
     path = chunk_file(tmp_path, 3)
@@ -131,8 +134,8 @@ def test_a_chunk_file_round_trips_and_a_damaged_one_is_solved_again(robot, singl
     for key, value in columns.items():
         np.testing.assert_array_equal(back["columns"][key], value)
         assert back["columns"][key].dtype == value.dtype
-    rebuilt = ik_result_from_columns(robot, back["columns"], {}, has_scene=False)
-    assert rebuilt.to_json()["results"] == single.to_json()["results"]
+    rebuilt = IKResult.from_columns(robot, back["columns"], {}, has_scene=False)
+    assert rebuilt.to_dict()["results"] == single.to_dict()["results"]
     assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no temporary file left
 
     data = path.read_bytes()
@@ -406,7 +409,11 @@ def test_batch_plan_results_pass_the_independent_check(robot, client, tmp_path):
         assert verdict["max_violation"] == pytest.approx(result.max_violation, abs=1e-12)
     assert results[0].success and results[2].success
     data = json.loads((out / RESULTS).read_text())
-    assert data.keys() == {"robot", "results", "summary", "timing"}
+    assert data.keys() == {"kind", "schema_version", "robot", "results", "summary", "timing"}
+    assert data["kind"] == "trajectory"
+    # Read back through the result protocol: the TrajectoryResults run_batch returned.
+    for back, result in zip(load_results(out / RESULTS, robot), results, strict=True):
+        assert_same_result(back, result)
     assert data["summary"]["problems"] == 3
     assert data["summary"]["success_rate"] == pytest.approx(2 / 3)
     assert [row["stage"] for row in data["results"]] == [r.stage for r in results]

@@ -61,9 +61,9 @@ def test_a_valid_answer_breaking_a_limit_by_1e_8_is_a_success() -> None:
     result = IKResult(robot, q[None].copy(), checked["position"], checked["wxyz"],
                       collision_free=checked["collision_free"], success=np.zeros(1, bool),
                       stage=["given"], reason=[""], timing=IKTiming(), has_scene=False,
+                      min_clearance=checked["clearance"],
                       **{k: checked[k] for k in ("pose_error", "position_error",
-                                                 "rotation_error", "max_violation",
-                                                 "clearance")})
+                                                 "rotation_error", "max_violation")})
     solver._judge(result, np.ones(1, bool))
     assert result.success[0], result.reason[0]
     # A trajectory with that waypoint is judged by the same rule.

@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from cr_nlp import SCHEMA_VERSION, FollowResult, load_result
 from cr_nlp.cli import main
 from cr_nlp.model import load_robot, tip_pose_z, z_to_q_numpy
 from cr_nlp.model.rotations import wxyz_from_matrix
@@ -22,6 +23,7 @@ from cr_nlp.tasks.paths import ReferencePath
 from cr_nlp.tasks.trajectory import _group_jacobian, tendon_series
 from cr_nlp.world import load_scene, scene_arrays
 
+from .test_results import assert_same_result
 from .test_sequence import numpy_viterbi
 
 ROBOT = load_robot("tdcr3")
@@ -71,16 +73,16 @@ def test_obstacle_is_near_the_reference_body() -> None:
 
 def test_reachable_path_is_tracked_sub_millimetre_clear_of_the_obstacle(followed) -> None:
     r = followed
-    assert r.position_error_mm.shape == (WAYPOINTS,)
-    assert np.max(r.position_error_mm) < 1.0, r.position_error_mm
-    assert np.max(r.rotation_error_deg) < 0.1, r.rotation_error_deg
+    assert r.position_error.shape == (WAYPOINTS,)
+    assert np.max(r.position_error) < 1e-3, r.position_error                # 1 mm
+    assert np.max(r.rotation_error) < np.radians(0.1), r.rotation_error
     assert r.reached.all() and r.success, r.reason
     assert r.collision_free and r.min_clearance >= 0.002
-    assert r.max_violation <= 1e-6 and r.stage == "lm"
+    assert r.max_violation <= 1e-6 and r.stage == "refine"
     assert r.tendon_speed <= ROBOT.tendon_speed_max
     assert r.tendon_lengths.shape == (WAYPOINTS, ROBOT.n_tendons)
     assert set(r.timing) >= {"compile", "explore", "refine", "polish", "verify", "total"}
-    for name in ("q", "tip_positions", "tip_wxyz", "position_error_mm", "rotation_error_deg",
+    for name in ("q", "position", "wxyz", "pose_error", "position_error", "rotation_error",
                  "tendon_lengths"):
         assert getattr(r, name).dtype == np.float64, name
 
@@ -107,7 +109,7 @@ def test_redundant_robot_steers_its_body_around_a_ball_on_the_reference_motion()
 
     r = PathFollower(robot, scene, CONFIG).follow(path)
     assert r.success and r.reached.all(), r.reason
-    assert np.max(r.position_error_mm) < 1.0 and np.max(r.rotation_error_deg) < 0.1
+    assert np.max(r.position_error) < 1e-3 and np.max(r.rotation_error) < np.radians(0.1)
     verdict = check_many(robot, scene, r.q)
     assert r.collision_free and np.min(verdict.obstacle_distance) >= 0.002
     assert r.max_violation <= 1e-6
@@ -122,8 +124,8 @@ def test_unreachable_waypoints_are_reported_per_waypoint(follower) -> None:
     assert not r.success and "not reached" in r.reason
     np.testing.assert_array_equal(np.flatnonzero(~r.reached), [10, 11, 12])
     assert r.summary()["unreached_stretches"] == [[10, 12]]
-    assert np.all(r.position_error_mm[10:13] > 9000.0)
-    assert np.max(r.position_error_mm[:8]) < 1.0 and np.max(r.position_error_mm[15:]) < 1.0
+    assert np.all(r.position_error[10:13] > 9.0)
+    assert np.max(r.position_error[:8]) < 1e-3 and np.max(r.position_error[15:]) < 1e-3
 
 
 def test_stage_one_table_and_sequence_agree_with_numpy(follower) -> None:
@@ -152,7 +154,8 @@ def test_stage_one_table_and_sequence_agree_with_numpy(follower) -> None:
 
 def test_result_files(followed, tmp_path: Path) -> None:
     data = json.loads(followed.save(tmp_path / "r.json").read_text())
-    for key in ("q", "position_error_mm", "rotation_error_deg", "tendon_lengths",
+    assert data["kind"] == "follow" and data["schema_version"] == SCHEMA_VERSION
+    for key in ("q", "position_error", "rotation_error", "tendon_lengths",
                 "collision_free", "min_clearance", "max_violation", "timing", "reached"):
         assert key in data
     assert len(data["q"]) == WAYPOINTS and data["summary"]["unreached"] == []
@@ -161,6 +164,9 @@ def test_result_files(followed, tmp_path: Path) -> None:
     rows = list(csv.reader(followed.save_csv(tmp_path / "r.csv").open()))
     assert rows[0][0] == "time_s" and len(rows) == WAYPOINTS + 1
     assert len(rows[0]) == 1 + ROBOT.n_tendons
+    # The result protocol: the same FollowResult back from its dict and from its file.
+    assert_same_result(FollowResult.from_dict(followed.to_dict()), followed)
+    assert_same_result(load_result(tmp_path / "r.json"), followed)
 
 
 def test_waypoint_jacobians_match_autodiff_and_the_model() -> None:
@@ -216,7 +222,7 @@ def test_cli_happy_path(tmp_path: Path, capsys, follower, monkeypatch) -> None:
     assert built == [("tdcr3", "passing", ["ball"], 0)]
     data = json.loads(out.read_text())
     assert len(data["q"]) == WAYPOINTS and data["collision_free"] is True
-    assert max(data["position_error_mm"]) < 1.0
+    assert data["kind"] == "follow" and max(data["position_error"]) < 1e-3
     assert (tmp_path / "t.csv").exists()
     assert "waypoints reached" in capsys.readouterr().err
 

@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cr_nlp import SCHEMA_VERSION, IKResult, load_result
 from cr_nlp.cli import main
 from cr_nlp.model import Robot, tip_pose
 from cr_nlp.model.limits import limit_violation_q
@@ -69,7 +70,7 @@ def test_round_trip_without_obstacles(which: str, request: pytest.FixtureRequest
     assert np.all(result.pose_error[ok] < 0.01)
     assert np.mean(result.pose_error[ok]) < 5e-4
     for name in ("q", "position", "wxyz", "pose_error", "position_error", "rotation_error",
-                 "max_violation", "clearance"):
+                 "max_violation", "min_clearance"):
         assert getattr(result, name).dtype == np.float64, name
 
 
@@ -150,6 +151,14 @@ def test_cli_ik_writes_the_documented_result(tmp_path: Path) -> None:
         assert len(row["q"]) == 9 and len(row["theta"]) == 3 and row["max_violation"] >= 0
     assert not rows[4]["success"] and "out of reach" in rows[4]["reason"]
     assert not rows[5]["success"] and "malformed pose" in rows[5]["reason"]
+    # The result protocol: kind and version, read back as the IKResult it was, and the
+    # reached poses are the model's tip at the answers (float64, independently).
+    assert data["kind"] == "ik" and data["schema_version"] == SCHEMA_VERSION
+    result = load_result(out)
+    assert isinstance(result, IKResult) and result.to_dict() == data
+    p, r = targets_from(TDCR3, result.q[:4])
+    np.testing.assert_allclose(result.position[:4], p, atol=1e-9)
+    assert np.isnan(result.q[4:]).all() and result.reason[5] == rows[5]["reason"]
 
 
 @pytest.mark.parametrize(("content", "message"), [

@@ -11,20 +11,23 @@ import math
 import numpy as np
 import pytest
 
+from cr_nlp import SCHEMA_VERSION, load_results
 from cr_nlp.cli import plan as plan_command
 from cr_nlp.model import load_robot
 from cr_nlp.tasks.trajectory import (
     TrajectoryConfig,
     TrajectoryPlanner,
+    TrajectoryResult,
     interpolate_trajectory,
-    results_to_json,
     tendon_series,
     tip_positions,
+    trajectories_to_dict,
     verify_trajectory,
 )
 from cr_nlp.world import load_scene
 
 from .conftest import MODELS
+from .test_results import assert_same_result
 
 ROBOT = MODELS / "robots" / "tdcr3.json"
 
@@ -52,7 +55,7 @@ def test_roadmap_init_finds_the_passage_the_straight_line_misses(shelf_planner):
     assert not straight.success and "collision" in straight.reason
     found = shelf_planner.plan([SHELF_START], [SHELF_GOAL], init="roadmap")[0]
     assert found.success, found.reason
-    assert found.stage == "lm (roadmap)"
+    assert found.stage == "refine (roadmap)"
     assert found.max_violation <= 1e-6
     assert found.min_clearance >= 0.0
     np.testing.assert_allclose(found.q[0], SHELF_START)
@@ -120,6 +123,7 @@ def test_cli_plans_and_reports_bad_input(tmp_path, robot):
     data = json.loads(out.read_text())
     rows = data["results"]
     assert len(rows) == 4 and "total" in data["timing"]
+    assert data["kind"] == "trajectory" and data["schema_version"] == SCHEMA_VERSION
     first = rows[0]
     assert len(first["q"]) == 12 and first["dt"] == 0.5
     assert len(first["tendon_lengths"]) == 12 and len(first["tendon_lengths"][0]) == 9
@@ -154,8 +158,13 @@ def test_results_json_and_npz_round_trip(tmp_path, shelf_planner):
     save_results(results, tmp_path / "r.json", shelf_planner.last_timing.as_dict())
     save_results(results, tmp_path / "r.npz")
     loaded = json.loads((tmp_path / "r.json").read_text())
-    assert loaded == json.loads(json.dumps(results_to_json(
+    assert loaded == json.loads(json.dumps(trajectories_to_dict(
         results, shelf_planner.last_timing.as_dict())))
+    assert loaded["kind"] == "trajectory" and loaded["schema_version"] == SCHEMA_VERSION
+    # The result protocol: the same TrajectoryResults back from the file (the LM cost too).
+    (back,) = load_results(tmp_path / "r.json")
+    assert_same_result(back, results[0])
+    assert_same_result(TrajectoryResult.from_dict(results[0].to_dict()), results[0])
     arrays = np.load(tmp_path / "r.npz")
     np.testing.assert_allclose(arrays["q_0"], results[0].q)
     assert arrays["success"][0] == results[0].success
@@ -210,7 +219,8 @@ def test_one_verdict_a_margin_violation_is_a_failure_in_both_modes(shelf_planner
     monkeypatch.setattr(T, "verify_trajectory", verify_with_a_short_margin)
     penalty = shelf_planner.plan([SHELF_START], [SHELF_GOAL])[0]
     exact = shelf_planner.plan([SHELF_START], [SHELF_GOAL], exact=True)[0]
-    assert "polish failed: from lm" in exact.stage and "Infeasible_Problem_Detected" in exact.stage
+    assert "polish failed: from refine" in exact.stage
+    assert "Infeasible_Problem_Detected" in exact.stage
     for result in (penalty, exact):
         assert not result.success and result.max_violation > 1e-6
         assert "breaks the clearance by 0.001 m" in result.reason

@@ -10,7 +10,8 @@ The fixtures under tests/data are real results of the penalty stages:
 tdcr3_shelf_demo --out …``, ``ik_lattice_result.json`` is ``cr-nlp ik --robot tdcr3
 --scene lattice --targets tdcr3_lattice --out …`` and ``follow_icra_result.json`` is
 ``cr-nlp follow --robot tdcr3 --scene follow_icra --path icra --out …`` (150 waypoints,
-written compactly with numbers to 10 significant digits).
+written compactly with numbers to 10 significant digits), all three in the result
+protocol's schema_version 1.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cr_nlp import bundled_file
 from cr_nlp.model import load_robot
 from cr_nlp.model._ops import NUMPY
 from cr_nlp.model.kinematics import model_q_to_z, model_segment_frames
@@ -138,7 +140,7 @@ def test_a_150_waypoint_follow_result_scrubs_without_solving() -> None:
         )
         # The reference is the icra path the result followed: tip within its error.
         gap_mm = 1e3 * np.linalg.norm(motion.tips - motion.reference, axis=1)
-        np.testing.assert_allclose(gap_mm, data["position_error_mm"], atol=1e-3)
+        np.testing.assert_allclose(gap_mm, 1e3 * np.asarray(data["position_error"]), atol=1e-3)
         start = time.perf_counter()
         for k in list(range(150)) + list(range(149, -1, -7)):
             view.show_frame(k)
@@ -225,26 +227,19 @@ def test_live_ik_reaches_a_moved_target() -> None:
 def test_reading_results_rejects_what_is_not_one() -> None:
     viewer = _viewer_module()
     robot = load_robot("tdcr3")
-    with pytest.raises(ValueError, match="not a result of cr-nlp ik, plan or follow"):
+    with pytest.raises(ValueError, match="no 'kind' field: not a result of cr-nlp ik"):
         viewer.read_result(robot, {"poses": []})
-    with pytest.raises(ValueError, match="for robot 'tdcr4_ext'"):
-        viewer.read_result(robot, {"robot": "tdcr4_ext", "results": []})
-    ik = {
-        "robot": "tdcr3",
-        "results": [
-            {
-                "q": [0.3, 0.1, 1, 0.2, 0.0, 1, 0.1, 0.0, 1],
-                "position": [0.1, 0.0, 2.9],
-                "wxyz": [1, 0, 0, 0],
-                "pose_error": 0.001,
-                "success": True,
-                "stage": "refine",
-            }
-        ],
-    }
-    answers = viewer.read_result(robot, ik, targets=([[0.1, 0.0, 2.9]], [[1, 0, 0, 0]]))
-    assert isinstance(answers, viewer.Answers) and len(answers.q) == 1
+    plan = json.loads(PLAN.read_text())
+    with pytest.raises(ValueError, match="for robot 'tdcr3', not 'tdcr4_ext'"):
+        viewer.read_result(load_robot("tdcr4_ext"), plan)
+    ik = json.loads(PLAN.with_name("ik_lattice_result.json").read_text())
+    targets = viewer.targets_of(bundled_file("targets", "tdcr3_lattice"))
+    answers = viewer.read_result(robot, ik, targets=targets)
+    assert isinstance(answers, viewer.Answers) and len(answers.q) == len(ik["results"])
     assert answers.targets[0] is not None and "success" in answers.text[0]
+    np.testing.assert_allclose(answers.q[0], ik["results"][0]["q"])
+    with pytest.raises(ValueError, match="3 targets for 20 ik answers"):
+        viewer.read_result(robot, ik, targets=(targets[0][:3], targets[1][:3]))
 
 
 # ---------------------------------------------------------------- the browser
@@ -432,10 +427,13 @@ def test_cli_view_rejects_a_result_for_another_robot(tmp_path, capsys) -> None:
     _viewer_module()
     from cr_nlp.cli import main
 
+    assert main(["view", "--robot", "tdcr4_ext", "--result", str(PLAN), "--no-live-ik"]) == 2
+    assert f"{PLAN}: the result is for robot 'tdcr3'" in capsys.readouterr().err
+    # A file without "kind" (not a result, or one written before the result protocol).
     result = tmp_path / "r.json"
-    result.write_text(json.dumps({"robot": "tdcr4_ext", "results": []}))
+    result.write_text(json.dumps({"robot": "tdcr3", "results": []}))
     assert main(["view", "--robot", "tdcr3", "--result", str(result), "--no-live-ik"]) == 2
-    assert "is for robot 'tdcr4_ext'" in capsys.readouterr().err
+    assert f"{result}: no 'kind' field" in capsys.readouterr().err
 
 
 def test_tip_pose_is_the_model_tip() -> None:
@@ -449,21 +447,20 @@ def test_tip_pose_is_the_model_tip() -> None:
     np.testing.assert_allclose(matrix_from_wxyz(wxyz[None])[0], expected_rotation, atol=1e-9)
 
 
-def test_a_follow_result_finds_its_reference_path_by_name_or_argument() -> None:
+def test_a_follow_result_carries_its_reference_path_or_takes_another() -> None:
     viewer = _viewer_module()
     from cr_nlp.tasks.paths import ReferencePath, load_path
 
     robot = load_robot("tdcr3")
     data = json.loads(FOLLOW.read_text())
-    icra = load_path("icra").positions
+    icra = load_path("icra")
     (motion,) = viewer.read_result(robot, data)
-    np.testing.assert_array_equal(motion.reference, icra)
-    renamed = dict(data, path="my_letters")  # a path file not at hand: no reference
-    (motion,) = viewer.read_result(robot, renamed)
-    assert motion.reference is None
-    (motion,) = viewer.read_result(robot, renamed, path="icra")
-    np.testing.assert_array_equal(motion.reference, icra)
-    full = load_path("icra")
-    short = ReferencePath("short", full.positions[:10], full.wxyz[:10], full.dt, full.pen_down[:10])
+    np.testing.assert_allclose(motion.reference, icra.positions, atol=1e-9)  # 10 digits
+    moved = icra.positions + [0.0, 0.1, 0.0]
+    other = ReferencePath("moved", moved, icra.wxyz, icra.dt, icra.pen_down)
+    (motion,) = viewer.read_result(robot, data, path=other)
+    np.testing.assert_array_equal(motion.reference, moved)
+    short = ReferencePath("short", icra.positions[:10], icra.wxyz[:10], icra.dt,
+                          icra.pen_down[:10])
     with pytest.raises(ValueError, match="has 10 waypoints, the follow result 150"):
-        viewer.read_result(robot, renamed, path=short)
+        viewer.read_result(robot, data, path=short)

@@ -8,7 +8,7 @@ For each mode (penalty: the JAX stages; exact: plus the Ipopt polish) the rows a
 - "in-process": ``IKSolver.solve`` on all targets in this process (its JAX shards the
   batch over one host device per core, as ``cr-nlp ik`` does);
 - "cr-nlp ik --out": what ``cr-nlp ik`` does with them in steady state: the same solve,
-  then RESULT.json written as that command writes it (``cli._io.write_json``), since a
+  then RESULT.json written as that command writes it (``IKResult.save``), since a
   batch row's time includes writing its ``results.json`` of the same schema;
 - "batch, N workers": ``run_batch`` on a ``LocalCluster`` of N worker processes (one
   thread each; each worker's JAX gets the cores divided among the workers), with
@@ -57,7 +57,6 @@ from ..batch import (
     start_local_cluster,
     worker_env,
 )
-from ..cli._io import write_json
 from ..model import load_robot
 from ..tasks.ik import IKConfig, IKSolver
 from .common import Column, environment, environment_markdown, markdown_table, write_report
@@ -179,7 +178,7 @@ CLI = "cr-nlp ik --out"
 def _solve_and_write(solver: IKSolver, inputs: tuple[np.ndarray, np.ndarray], exact: bool,
                      path: Path) -> Any:
     result = solver.solve(*inputs, exact=exact)
-    write_json(result.to_json(), str(path))
+    result.save(path)
     return result
 
 

@@ -52,8 +52,8 @@ def measure_follow(follower: Any, shape: str, exact: bool, repeats: int,
         t0 = time.perf_counter()
         result = follower.follow(reference, exact=exact)
         seconds.append(time.perf_counter() - t0)
-        polish.append(result.timing.get("polish", 0.0))
-    pos, rot = result.position_error_mm, result.rotation_error_deg
+        polish.append(result.timing.polish)
+    pos, rot = 1e3 * result.position_error, np.degrees(result.rotation_error)
     return {
         "shape": reference.name, "mode": "exact" if exact else "penalty",
         "waypoints": len(reference),

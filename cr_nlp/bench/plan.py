@@ -184,11 +184,10 @@ def measure_planner(planner: TrajectoryPlanner, scene: str, method: str, starts:
     for r in results:
         verdict = _judge(planner, r.q, r.dt)
         verdicts.append({**verdict, "success": verdict["success"] and r.success})
-    per_problem = [sum(v for k, v in r.timing.items() if k != "compile") for r in results]
+    per_problem = [r.timing.total - r.timing.compile for r in results]
     row = _summary(scene, method, verdicts, per_problem, wall / len(starts), first)
     if exact:
-        row["median_polish"] = float(np.median([r.timing.get("polish", np.nan)
-                                                for r in results]))
+        row["median_polish"] = float(np.median([r.timing.polish for r in results]))
         row["polished_pct"] = 100.0 * float(np.mean([r.stage == "polish" for r in results]))
     return row, results
 

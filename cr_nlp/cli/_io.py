@@ -94,6 +94,15 @@ def write_json(data: Any, path: str | None) -> None:
         Path(path).write_text(text + "\n")
 
 
+def write_result(result: Any, path: str) -> None:
+    """A result to ``--out``: ``result.save(path)``, or ``result.to_dict()`` as JSON on
+    stdout for '-' (``tasks._result``: the RESULT.json with its kind)."""
+    if path == "-":
+        print(json.dumps(result.to_dict(), indent=2))
+    else:
+        result.save(path)
+
+
 def configurations_from_args(robot: Robot, q: str | None, q_file: str | None) -> np.ndarray:
     """(k, 3n) configurations from ``--q`` or ``--q-file`` ({"q": [[...], ...]})."""
     import numpy as np

@@ -2,9 +2,10 @@
 
 PATH.json is the ``tasks.paths`` format (``{"poses": [{"position": [x, y, z], "wxyz":
 [w, x, y, z]}, ...], "dt": seconds}``) or a bundled path name ("square", "sine",
-"icra"). RESULT.json (``FollowResult.to_json``) holds one row per waypoint: ``q``,
-``position_error_mm``, ``rotation_error_deg``, ``reached``, ``tendon_lengths``, and the
-verdict ``collision_free``, ``min_clearance`` (m), ``max_violation``, ``timing`` (s).
+"icra"). RESULT.json (``FollowResult.to_dict``, kind "follow") holds one row per
+waypoint: ``q``, ``position``, ``pose_error``, ``position_error`` (m),
+``rotation_error`` (rad), ``reached``, ``tendon_lengths``, and the verdict
+``collision_free``, ``min_clearance`` (m), ``max_violation``, ``timing`` (s).
 Waypoints the robot cannot reach are reported per waypoint (``reached`` false), never a
 crash; a malformed file is a usage error (exit status 2).
 """
@@ -15,7 +16,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from ._io import UsageError, load_robot_arg, load_scene_arg, resolve
+from ._io import UsageError, load_robot_arg, load_scene_arg, resolve, write_result
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -61,13 +62,10 @@ def run(args: argparse.Namespace) -> int:
                                  dt=args.dt)
     except ValueError as exc:
         raise UsageError(f"--path: {exc}") from None
-    out = Path(args.out) if args.out != "-" else None
-    if out is not None and out.suffix == ".csv":
-        result.save_csv(out)
-    elif out is not None:
-        result.save(out)
+    if Path(args.out).suffix == ".csv":
+        result.save_csv(args.out)
     else:
-        print(json.dumps(result.to_json(), indent=2))
+        write_result(result, args.out)
     if args.csv:
         result.save_csv(args.csv)
     s, timing = result.summary(), result.timing

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ._io import UsageError, fmt, load_robot_arg, load_scene_arg, resolve, write_json
+from ._io import UsageError, fmt, load_robot_arg, load_scene_arg, resolve, write_result
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -38,9 +38,8 @@ def run(args: argparse.Namespace) -> int:
     for i, problem in enumerate(problems):
         if problem:
             result.reason[i] = problem
-    data = result.to_json()
-    write_json(data, args.out)
-    summary, timing = data["summary"], data["timing"]
+    write_result(result, args.out)
+    summary, timing = result.summary(), result.timing
     print(f"{robot.name}: {summary['targets']} targets, "
           f"{100 * summary['success_rate']:.1f} % success, mean pose error "
           f"{fmt(summary['mean_pose_error_success'])} (successes), max violation "

@@ -14,10 +14,11 @@ python-fcl) becomes a failed result with its reason, never a crash of the batch.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
-from ._io import load_robot_arg, load_scene_arg, read_problems, resolve, write_json
+from ._io import load_robot_arg, load_scene_arg, read_problems, resolve
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -45,7 +46,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Plan, write RESULT.json (and the CSVs) and print a one-line summary on stderr."""
-    from ..tasks.trajectory import TrajectoryConfig, TrajectoryPlanner, results_to_json
+    from ..tasks.trajectory import (
+        TrajectoryConfig,
+        TrajectoryPlanner,
+        save_results,
+        trajectories_to_dict,
+    )
 
     robot = load_robot_arg(args.robot)
     scene = load_scene_arg(args.scene)
@@ -61,15 +67,18 @@ def run(args: argparse.Namespace) -> int:
     goals = [g if g is not None else [] for g in goals]
     results = planner.plan(starts, goals, exact=args.exact, init=args.init,
                            progress=sys.stderr.isatty())
-    data = results_to_json(results, planner.last_timing.as_dict())
-    write_json(data, args.out)
+    timing = planner.last_timing
+    if args.out == "-":  # several results: the one-file form of them all
+        print(json.dumps(trajectories_to_dict(results, timing, robot), indent=2))
+    else:
+        save_results(results, args.out, timing, robot)
     if args.csv:
         folder = Path(args.csv)
         for i, result in enumerate(results):
             if result.q is not None:
                 result.save_csv(folder / f"problem_{i}.csv")
-    summary, timing = data["summary"], data["timing"]
-    print(f"{robot.name}: {summary['problems']} problems, "
-          f"{100 * summary['success_rate']:.1f} % success; {timing['total']:.2f} s "
+    rate = sum(r.success for r in results) / max(len(results), 1)
+    print(f"{robot.name}: {len(results)} problems, "
+          f"{100 * rate:.1f} % success; {timing['total']:.2f} s "
           f"(compile {timing['compile']:.2f} s)", file=sys.stderr)
     return 0

@@ -4,8 +4,9 @@ and a result of ``cr-nlp ik``, ``plan`` or ``follow``; live IK by dragging a tar
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
-from ._io import UsageError, load_robot_arg, load_scene_arg, read_json, resolve
+from ._io import UsageError, load_robot_arg, load_scene_arg, resolve
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -50,7 +51,8 @@ def run(args: argparse.Namespace) -> int:
 
     robot = load_robot_arg(args.robot)
     scene = load_scene_arg(args.scene)
-    result = read_json(args.result, "--result") if args.result else None
+    if args.result and not Path(args.result).is_file():
+        raise UsageError(f"--result: file not found: {args.result}")
     targets = None
     if args.targets:
         try:
@@ -61,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
         viewer = Viewer(
             robot,
             scene,
-            result,
+            args.result,
             port=args.port,
             host=args.host,
             targets=targets,

@@ -1,19 +1,64 @@
-"""Wall-clock seconds per solver stage: the fields of a subclass are its stages."""
+"""Wall-clock seconds per solver stage, the same stage names for every task."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, fields
+from typing import Any
 
 
 @dataclass
-class StageTiming:
-    """Seconds per stage; compile time is one of the stages, kept apart from the work."""
+class StageTiming(Mapping):
+    """Seconds per stage (DESIGN.md §2's stages; compile time kept apart from the work).
+
+    Read as attributes (``timing.refine``) or as a read-only mapping stage → seconds
+    (``timing["refine"]``, ``dict(timing)``; ``"total"`` included), written as
+    ``as_dict()`` in every RESULT.json."""
+
+    compile: float = 0.0
+    """Tracing and compiling JAX programs (first call of a shape; 0 from the cache)."""
+    explore: float = 0.0
+    """Stage 1: seeds, beam, roadmap, per-waypoint IK."""
+    refine: float = 0.0
+    """Stage 2: the batched LM."""
+    polish: float = 0.0
+    """Stage 3: Ipopt (exact mode only)."""
+    verify: float = 0.0
+    """The independent float64 / python-fcl verdict."""
 
     @property
     def total(self) -> float:
         return float(sum(getattr(self, f.name) for f in fields(self)))
 
+    def __getitem__(self, stage: str) -> float:
+        if stage == "total":
+            return self.total
+        if stage not in self.stages():
+            raise KeyError(f"no timing stage {stage!r}: the stages are {', '.join(self.stages())}")
+        return float(getattr(self, stage))
+
+    def __iter__(self) -> Iterator[str]:
+        return iter((*self.stages(), "total"))
+
+    def __len__(self) -> int:
+        return len(self.stages()) + 1
+
+    @classmethod
+    def stages(cls) -> tuple[str, ...]:
+        """The stage names, in order."""
+        return tuple(f.name for f in fields(cls))
+
     def as_dict(self) -> dict[str, float]:
-        out = {f.name: float(getattr(self, f.name)) for f in fields(self)}
+        out = {name: float(getattr(self, name)) for name in self.stages()}
         out["total"] = self.total
         return out
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any] | None) -> StageTiming:
+        """The timing of ``as_dict``'s form ("total" is derived; unknown stages raise)."""
+        data = {k: v for k, v in (data or {}).items() if k != "total"}
+        unknown = sorted(set(data) - set(cls.stages()))
+        if unknown:
+            raise ValueError(f"timing: unknown stage(s) {unknown}; the stages are "
+                             f"{', '.join(cls.stages())}")
+        return cls(**{k: float(v) for k, v in data.items()})

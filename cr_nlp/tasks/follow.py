@@ -36,8 +36,6 @@ its neighbours, and the result reports them (``reached`` False), never an except
 
 from __future__ import annotations
 
-import csv
-import json
 import math
 import threading
 import time
@@ -45,7 +43,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import jax
 import jax.monitoring
@@ -61,6 +59,7 @@ from ..model.kinematics import (
     model_segment_frames,
     model_segment_transform,
     model_tendon_lengths,
+    pose_error,
 )
 from ..model.lie import rotation_log, so3_right_jacobian_inverse
 from ..model.limits import clip_to_limits, project_z
@@ -71,6 +70,7 @@ from ..stages.sequence import smoothest_choice
 from ..world import Scene, load_scene, scene_arrays
 from ..world.clearance import SceneArrays, body_gap_tolerance
 from ..world.verdict import VIOLATION_TOLERANCE
+from ._result import ResultFileError, ResultIO, array, as_float, num, nums, write_series_csv
 from ._timing import StageTiming
 from .ik import IKConfig, IKSolver, validate_targets
 from .paths import ReferencePath, load_path
@@ -478,15 +478,18 @@ def tip_poses(robot: Robot, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def tracking_errors(robot: Robot, q: np.ndarray, positions: np.ndarray,
                     wxyz: np.ndarray) -> dict[str, np.ndarray]:
-    """Per-waypoint tip pose and its distance to the reference, float64: ``tip_positions``
-    (T, 3) m, ``tip_wxyz`` (T, 4), ``position_error_mm`` (T,) and ``rotation_error_deg``
-    (T,) (the angle of R_tipᵀ·R_ref)."""
+    """Per-waypoint tip pose and its distance to the reference, float64: ``position``
+    (T, 3) m, ``wxyz`` (T, 4), ``pose_error`` (T,) (‖log(T_tip⁻¹·T_ref)‖, DESIGN.md §1),
+    ``position_error`` (T,) m and ``rotation_error`` (T,) rad (the angle of
+    R_tipᵀ·R_ref)."""
     position, rotation = tip_poses(robot, q)
-    relative = np.einsum("tji,tjk->tik", rotation, matrix_from_wxyz(wxyz))
+    reference = matrix_from_wxyz(wxyz)
+    relative = np.einsum("tji,tjk->tik", rotation, reference)
     cos_angle = np.clip((np.trace(relative, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    return {"tip_positions": position, "tip_wxyz": wxyz_from_matrix(rotation),
-            "position_error_mm": 1e3 * np.linalg.norm(position - positions, axis=1),
-            "rotation_error_deg": np.degrees(np.arccos(cos_angle))}
+    return {"position": position, "wxyz": wxyz_from_matrix(rotation),
+            "pose_error": pose_error(position, rotation, positions, reference),
+            "position_error": np.linalg.norm(position - positions, axis=1),
+            "rotation_error": np.arccos(cos_angle)}
 
 
 def unreached_stretches(reached: np.ndarray) -> list[tuple[int, int]]:
@@ -506,34 +509,31 @@ def unreached_stretches(reached: np.ndarray) -> list[tuple[int, int]]:
 # ================================================================ the result
 
 
-@dataclass
-class FollowTiming(StageTiming):
-    """Wall-clock seconds per stage of one ``follow`` call (compile apart)."""
-
-    compile: float = 0.0
-    explore: float = 0.0
-    refine: float = 0.0
-    polish: float = 0.0
-    verify: float = 0.0
+FollowTiming = StageTiming
+"""Seconds per stage of one ``PathFollower.follow`` call."""
 
 
 @dataclass
-class FollowResult:
-    """A followed path. Units: rad, m, s; errors in mm and degrees."""
+class FollowResult(ResultIO):
+    """A followed path. Units: rad, m, s (millimetre / degree figures in ``summary``)."""
+
+    kind: ClassVar[str] = "follow"
 
     robot: Robot
     path: ReferencePath
     """The reference (positions m, unit quaternions, Δt s)."""
     q: np.ndarray
     """(T, 3n) configurations θ, φ, L, one per waypoint."""
-    tip_positions: np.ndarray
+    position: np.ndarray
     """(T, 3) tip positions reached, m."""
-    tip_wxyz: np.ndarray
+    wxyz: np.ndarray
     """(T, 4) tip orientations reached, unit quaternions (w, x, y, z)."""
-    position_error_mm: np.ndarray
-    """(T,) ‖p_tip − p_ref‖, millimetres."""
-    rotation_error_deg: np.ndarray
-    """(T,) rotation angle between the tip and reference frames, degrees."""
+    pose_error: np.ndarray
+    """(T,) ‖log(T_tip⁻¹·T_ref)‖ (the IK success metric, m and rad mixed)."""
+    position_error: np.ndarray
+    """(T,) ‖p_tip − p_ref‖, m."""
+    rotation_error: np.ndarray
+    """(T,) rotation angle between the tip and reference frames, rad."""
     reached: np.ndarray
     """(T,) bool: position error ≤ ``FollowConfig.position_tolerance_mm`` (default 5 mm)
     and rotation error ≤ ``FollowConfig.rotation_tolerance_deg`` (default 1°)."""
@@ -559,12 +559,12 @@ class FollowResult:
     reason: str
     """"" on success, else why not (unreached waypoints, collision, limits)."""
     stage: str
-    """What produced ``q``: "lm", "polish", "lm (polish failed: <why>)", or in exact mode
-    "lm (feasible: polish not needed)" / "lm (feasible; the polished answer tracked
-    worse)" when the LM answer already keeps every constraint (max violation ≤ 1e-6 by
-    the independent checks)."""
-    timing: dict[str, float] = field(default_factory=dict)
-    """Seconds: compile, explore, refine, polish, verify, total."""
+    """What produced ``q``: "refine", "polish", "refine (polish failed: <why>)", or in
+    exact mode "refine (feasible: polish not needed)" / "refine (feasible; the polished
+    answer tracked worse)" when the LM answer already keeps every constraint (max
+    violation ≤ 1e-6 by the independent checks)."""
+    timing: StageTiming = field(default_factory=StageTiming)
+    """Seconds per stage: compile, explore, refine, polish, verify (and ``total``)."""
     scene_name: str | None = None
     """The scene's name, or None without obstacles."""
     safety_margin: float = 0.002
@@ -583,7 +583,7 @@ class FollowResult:
     def summary(self) -> dict[str, Any]:
         """Tracking statistics: mean/std/max position error (mm), mean/max rotation error
         (degrees), reached count, unreached waypoint indices and stretches."""
-        pos, rot = self.position_error_mm, self.rotation_error_deg
+        pos, rot = 1e3 * self.position_error, np.degrees(self.rotation_error)
         return {
             "waypoints": len(self.q),
             "mean_position_error_mm": float(np.mean(pos)),
@@ -596,11 +596,9 @@ class FollowResult:
             "unreached_stretches": [list(s) for s in unreached_stretches(self.reached)],
         }
 
-    def to_json(self) -> dict[str, Any]:
-        """The RESULT.json form of ``cr-nlp follow``."""
+    def _fields_dict(self) -> dict[str, Any]:
         return {
-            "robot": self.robot.name,
-            "path": self.path.name,
+            "path": self.path.to_dict(),
             "scene": self.scene_name,
             "success": bool(self.success),
             "reason": self.reason or None,
@@ -608,57 +606,74 @@ class FollowResult:
             "dt": self.dt,
             "times": self.times.tolist(),
             "q": self.q.tolist(),
-            "tip_positions": self.tip_positions.tolist(),
-            "tip_wxyz": self.tip_wxyz.tolist(),
-            "position_error_mm": self.position_error_mm.tolist(),
-            "rotation_error_deg": self.rotation_error_deg.tolist(),
+            "position": self.position.tolist(),
+            "wxyz": self.wxyz.tolist(),
+            "pose_error": nums(self.pose_error),
+            "position_error": nums(self.position_error),
+            "rotation_error": nums(self.rotation_error),
             "reached": self.reached.tolist(),
             "tendon_names": tendon_names(self.robot),
             "tendon_lengths": self.tendon_lengths.tolist(),
-            "tendon_speed": _num(self.tendon_speed),
-            "tendon_accel": _num(self.tendon_accel),
+            "tendon_speed": num(self.tendon_speed),
+            "tendon_accel": num(self.tendon_accel),
             "collision_free": bool(self.collision_free),
-            "min_clearance": _num(self.min_clearance),
+            "min_clearance": num(self.min_clearance),
             "safety_margin": self.safety_margin,
-            "max_violation": _num(self.max_violation),
-            "violations": {k: _num(v) for k, v in self.violations.items()},
+            "max_violation": num(self.max_violation),
+            "violations": {k: num(v) for k, v in self.violations.items()},
             "summary": self.summary(),
-            "timing": dict(self.timing),
+            "timing": self.timing.as_dict(),
         }
 
-    def save(self, path: str | Path) -> Path:
-        """Write ``to_json`` (.json, or any other suffix) or the arrays as a numpy .npz
-        (by the file's suffix); returns the path."""
+    @classmethod
+    def _from_fields(cls, data: dict[str, Any], robot: Robot) -> FollowResult:
+        path = ReferencePath.from_dict(data["path"], source="path")
+        count = len(path)
+        return cls(
+            robot, path, array(data["q"], robot.dof, "q"), array(data["position"], 3, "position"),
+            array(data["wxyz"], 4, "wxyz"), *(array(data[k]) for k in (
+                "pose_error", "position_error", "rotation_error")),
+            np.array(data["reached"], dtype=bool),
+            array(data["tendon_lengths"], robot.n_tendons, "tendon_lengths"),
+            as_float(data["tendon_speed"]), as_float(data["tendon_accel"]),
+            bool(data["collision_free"]), as_float(data["min_clearance"]),
+            as_float(data["max_violation"]),
+            {k: as_float(v) for k, v in data["violations"].items()},
+            success=bool(data["success"]), reason=data["reason"] or "", stage=data["stage"],
+            timing=StageTiming.from_dict(data["timing"]), scene_name=data["scene"],
+            safety_margin=float(data["safety_margin"]),
+        )._checked(count)
+
+    def _checked(self, count: int) -> FollowResult:
+        """This result, after checking that every per-waypoint field has ``count`` rows."""
+        for name in ("q", "position", "wxyz", "pose_error", "position_error",
+                     "rotation_error", "reached", "tendon_lengths"):
+            if len(getattr(self, name)) != count:
+                raise ResultFileError(f"{name} has {len(getattr(self, name))} rows, the path "
+                                      f"{count} waypoints")
+        return self
+
+    def save(self, path: str | Path, indent: int | None = 2) -> Path:
+        """Write ``to_dict`` as JSON (.json, or any suffix but .npz), or the arrays as a
+        numpy .npz by the file's suffix; returns the path."""
         path = Path(path)
+        if path.suffix != ".npz":
+            return super().save(path, indent)
         path.parent.mkdir(parents=True, exist_ok=True)
-        if path.suffix == ".npz":
-            np.savez(path, q=self.q, times=self.times, dt=self.dt,
-                     tip_positions=self.tip_positions, tip_wxyz=self.tip_wxyz,
-                     target_positions=self.path.positions, target_wxyz=self.path.wxyz,
-                     position_error_mm=self.position_error_mm,
-                     rotation_error_deg=self.rotation_error_deg, reached=self.reached,
-                     tendon_lengths=self.tendon_lengths, collision_free=self.collision_free,
-                     min_clearance=self.min_clearance, max_violation=self.max_violation,
-                     success=self.success, stage=self.stage, reason=self.reason)
-        else:
-            path.write_text(json.dumps(self.to_json(), indent=2) + "\n")
+        np.savez(path, q=self.q, times=self.times, dt=self.dt,
+                 position=self.position, wxyz=self.wxyz,
+                 target_positions=self.path.positions, target_wxyz=self.path.wxyz,
+                 pose_error=self.pose_error, position_error=self.position_error,
+                 rotation_error=self.rotation_error, reached=self.reached,
+                 tendon_lengths=self.tendon_lengths, collision_free=self.collision_free,
+                 min_clearance=self.min_clearance, max_violation=self.max_violation,
+                 success=self.success, stage=self.stage, reason=self.reason)
         return path
 
     def save_csv(self, path: str | Path) -> Path:
         """The tendon-length series for a controller: ``time_s``, then one column per
         tendon (``trajectory.tendon_names``), lengths in metres, one row per waypoint."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with path.open("w", newline="") as handle:
-            writer = csv.writer(handle)
-            writer.writerow(["time_s", *tendon_names(self.robot)])
-            for t, row in zip(self.times, self.tendon_lengths, strict=True):
-                writer.writerow([f"{t:.6f}", *(f"{v:.9f}" for v in row)])
-        return path
-
-
-def _num(x: float) -> float | None:
-    return float(x) if x is not None and np.isfinite(x) else None
+        return write_series_csv(path, self.times, tendon_names(self.robot), self.tendon_lengths)
 
 
 # ================================================================ compile-time accounting
@@ -940,8 +955,9 @@ class PathFollower:
         verdict = verify_trajectory(self.robot, self.scene, q, dt, self.config.safety_margin,
                                     self.config.verify_samples)
         verdict.update(tracking_errors(self.robot, q, path.positions, path.wxyz))
-        verdict["reached"] = ((verdict["position_error_mm"] <= self.config.position_tolerance_mm)
-                              & (verdict["rotation_error_deg"]
+        verdict["reached"] = ((1e3 * verdict["position_error"]
+                               <= self.config.position_tolerance_mm)
+                              & (np.degrees(verdict["rotation_error"])
                                  <= self.config.rotation_tolerance_deg))
         return verdict
 
@@ -960,8 +976,8 @@ class PathFollower:
         if verdict["reason"]:
             reasons.append(verdict["reason"])
         return FollowResult(
-            self.robot, path, q, verdict["tip_positions"], verdict["tip_wxyz"],
-            verdict["position_error_mm"], verdict["rotation_error_deg"], reached,
+            self.robot, path, q, verdict["position"], verdict["wxyz"], verdict["pose_error"],
+            verdict["position_error"], verdict["rotation_error"], reached,
             verdict["tendon_lengths"], verdict["tendon_speed"], verdict["tendon_accel"],
             bool(verdict["collision_free"]), float(verdict["min_clearance"]),
             float(verdict["max_violation"]), dict(verdict["violations"]),
@@ -980,7 +996,7 @@ class PathFollower:
                 path file (``tasks.paths`` format).
             exact: polish with Ipopt, the constraints as constraints, minimising the
                 tracking error (``stages.polish_trajectory``); a failed or rejected
-                polish returns the LM answer with ``stage`` "lm (polish failed: …)".
+                polish returns the LM answer with ``stage`` "refine (polish failed: …)".
             progress: print the polish stage's progress to stderr.
             dt: seconds between waypoints (default: the path's own ``dt``).
 
@@ -1024,11 +1040,11 @@ class PathFollower:
         timing.refine = time.perf_counter() - t1 - compiled[0]
         t2 = time.perf_counter()
         verdict = self.verify(q, path, dt)
-        result = self._result(q, path, verdict, "lm", why)
+        result = self._result(q, path, verdict, "refine", why)
         timing.verify = time.perf_counter() - t2
         if exact:
             result = self._polish(result, path, trackable, why, timing, progress)
-        result.timing = timing.as_dict()
+        result.timing = timing
         return result
 
     def _polish(self, lm: FollowResult, path: ReferencePath, trackable: np.ndarray,
@@ -1038,7 +1054,7 @@ class PathFollower:
         try:
             from ..stages.polish_trajectory import TrajectoryPolishConfig, TrajectoryPolisher
         except ImportError:
-            lm.stage = ("lm (polish failed: the Ipopt trajectory stage "
+            lm.stage = ("refine (polish failed: the Ipopt trajectory stage "
                         "cr_nlp.stages.polish_trajectory is not available)")
             return lm
         import sys
@@ -1049,7 +1065,7 @@ class PathFollower:
             # tracked: Ipopt has nothing to enforce. Measured on the bundled shapes, its
             # interior-point iterates left such an answer for another branch (square: mean
             # error 0.0 → 4.3 mm) at 50–150 s per path, so the answer is kept as it is.
-            lm.stage = "lm (feasible: polish not needed)"
+            lm.stage = "refine (feasible: polish not needed)"
             return lm
         t0 = time.perf_counter()
         t = len(lm.q)
@@ -1062,37 +1078,38 @@ class PathFollower:
         if progress:
             print(f"polish (Ipopt): {t} waypoints …", file=sys.stderr)
         # Untrackable waypoints keep the LM's reference: its own tip pose (zero error).
-        positions = np.where(trackable[:, None], path.positions, lm.tip_positions)
-        rotations = matrix_from_wxyz(np.where(trackable[:, None], path.wxyz, lm.tip_wxyz))
+        positions = np.where(trackable[:, None], path.positions, lm.position)
+        rotations = matrix_from_wxyz(np.where(trackable[:, None], path.wxyz, lm.wxyz))
         try:
             out = self._polishers[t].solve(lm.q, path.dt, positions, rotations)
         except Exception as exc:  # noqa: BLE001 — a crashed polish must not lose the answer
-            lm.stage = f"lm (polish failed: {type(exc).__name__}: {exc})"
+            lm.stage = f"refine (polish failed: {type(exc).__name__}: {exc})"
             timing.polish += time.perf_counter() - t0
             return lm
         timing.polish += time.perf_counter() - t0
         if not out.success:
-            lm.stage = f"lm (polish failed: {describe_polish(out)})"
+            lm.stage = f"refine (polish failed: {describe_polish(out)})"
             return lm
         t1 = time.perf_counter()
         q = clip_to_limits(self.robot, np.asarray(out.q, dtype=np.float64))
         verdict = self.verify(q, path, path.dt)
         timing.verify += time.perf_counter() - t1
         if not verdict["success"]:
-            lm.stage = f"lm (polish failed: rejected by the checker: {verdict['reason']})"
+            lm.stage = f"refine (polish failed: rejected by the checker: {verdict['reason']})"
             return lm
         polished = self._result(q, path, verdict, "polish", why)
         if lm.max_violation <= VIOLATION_TOLERANCE and lm.collision_free and \
                 _tracking_cost(polished) > _tracking_cost(lm):
             # Both feasible: keep the one that tracks the path better.
-            lm.stage = "lm (feasible; the polished answer tracked worse)"
+            lm.stage = "refine (feasible; the polished answer tracked worse)"
             return lm
         return polished
 
 
 def _tracking_cost(result: FollowResult) -> float:
     """Σ over waypoints of (position error in mm)² + (rotation error in degrees)²."""
-    return float(np.sum(result.position_error_mm ** 2 + result.rotation_error_deg ** 2))
+    return float(np.sum((1e3 * result.position_error) ** 2
+                        + np.degrees(result.rotation_error) ** 2))
 
 
 def follow_path(robot: Robot | str | dict, path: ReferencePath | str | Path,

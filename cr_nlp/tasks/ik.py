@@ -18,11 +18,12 @@ program, all retry rounds of its failing targets as one more (``stages.search``,
 
 from __future__ import annotations
 
+import csv
 import time
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -49,6 +50,7 @@ from ..world import Scene, check_many, load_scene, scene_arrays
 from ..world.clearance import body_gap_tolerance
 from ..world.penalty import sphere_clearances_z
 from ..world.verdict import VIOLATION_TOLERANCE, failure_reason
+from ._result import ResultIO, array, nums, row_lists
 from ._timing import StageTiming
 
 
@@ -129,20 +131,24 @@ class IKConfig:
                 raise ValueError(f"IKConfig.{name} must be at least 1, got {getattr(self, name)}")
 
 
+IKTiming = StageTiming
+"""Seconds per stage of one ``IKSolver.solve`` call (the tasks' one ``StageTiming``)."""
+
+_PER_TARGET = ("pose_error", "position_error", "rotation_error", "max_violation",
+               "min_clearance")
+"""The float columns of an ``IKResult`` that ``IKSolver.verify`` fills per target."""
+_VERIFIED = {"min_clearance": "clearance"}
+COLUMNS = ("q", "position", "wxyz", *_PER_TARGET, "collision_free", "success", "stage",
+           "reason")
+"""The per-target fields of an ``IKResult`` (``IKResult.columns``)."""
+"""``IKResult`` column → the key of ``IKSolver.verify``'s output where they differ."""
+
+
 @dataclass
-class IKTiming(StageTiming):
-    """Wall-clock seconds per stage (compile apart from steady-state work)."""
-
-    compile: float = 0.0
-    explore: float = 0.0
-    refine: float = 0.0
-    polish: float = 0.0
-    verify: float = 0.0
-
-
-@dataclass
-class IKResult:
+class IKResult(ResultIO):
     """One row per target. Units: rad, m; errors in the pose-error metric, m and rad."""
+
+    kind: ClassVar[str] = "ik"
 
     robot: Robot
     q: np.ndarray                  # (T, 3n) θ, φ, L
@@ -153,12 +159,12 @@ class IKResult:
     rotation_error: np.ndarray     # (T,) rad
     max_violation: np.ndarray      # (T,) largest limit violation (rad, m) or python-fcl
     #                                clearance shortfall below the safety margin (m)
-    clearance: np.ndarray          # (T,) python-fcl signed distance, m (nan without scene)
+    min_clearance: np.ndarray      # (T,) python-fcl signed distance, m (nan without scene)
     collision_free: np.ndarray     # (T,) bool, python-fcl verdict (True without scene)
     success: np.ndarray            # (T,) bool
     stage: list[str]               # which stage produced each answer
     reason: list[str]              # empty on success, else why it failed
-    timing: IKTiming = field(default_factory=IKTiming)
+    timing: StageTiming = field(default_factory=StageTiming)
     has_scene: bool = False
 
     def __len__(self) -> int:
@@ -177,6 +183,8 @@ class IKResult:
         return self.q[:, 2::3]
 
     def summary(self) -> dict[str, Any]:
+        """Success rate, mean pose error (all finite, successes), largest violation, and
+        with a scene the collision-free rate."""
         ok = self.success
         finite = np.isfinite(self.pose_error)
         return {
@@ -189,43 +197,97 @@ class IKResult:
                                     if self.has_scene and len(self) else None),
         }
 
-    def to_json(self) -> dict[str, Any]:
-        """The RESULT.json form (README: ``cr-nlp ik``)."""
+    def _fields_dict(self) -> dict[str, Any]:
         # Whole columns to Python lists at once: per-row indexing and tolist() cost
         # ~15 ms per 1000 rows, paid by every `cr-nlp ik --out` and batch job.
         finite = np.all(np.isfinite(self.q), axis=1).tolist()
         q, theta, phi, length, position, wxyz = (
-            _rows(a, finite) for a in (self.q, self.theta, self.phi, self.length,
-                                       self.position, self.wxyz))
+            row_lists(a, finite) for a in (self.q, self.theta, self.phi, self.length,
+                                      self.position, self.wxyz))
         pose_error, position_error, rotation_error, max_violation = (
-            _nums(a) for a in (self.pose_error, self.position_error, self.rotation_error,
-                               self.max_violation))
+            nums(a) for a in (self.pose_error, self.position_error, self.rotation_error,
+                              self.max_violation))
         none = [None] * len(self)
         collision_free = (np.asarray(self.collision_free, bool).tolist() if self.has_scene
                           else none)
-        clearance = _nums(self.clearance) if self.has_scene else none
+        min_clearance = nums(self.min_clearance) if self.has_scene else none
         success = np.asarray(self.success, bool).tolist()
-        rows = [{"q": q[i], "theta": theta[i], "phi": phi[i], "length": length[i],
-                 "position": position[i], "wxyz": wxyz[i], "pose_error": pose_error[i],
-                 "position_error": position_error[i], "rotation_error": rotation_error[i],
-                 "success": success[i], "collision_free": collision_free[i],
-                 "clearance": clearance[i], "max_violation": max_violation[i],
-                 "stage": self.stage[i], "reason": self.reason[i] or None}
-                for i in range(len(self))]
-        return {"robot": self.robot.name, "results": rows, "summary": self.summary(),
-                "timing": self.timing.as_dict()}
+        entries = [{"q": q[i], "theta": theta[i], "phi": phi[i], "length": length[i],
+                    "position": position[i], "wxyz": wxyz[i], "pose_error": pose_error[i],
+                    "position_error": position_error[i],
+                    "rotation_error": rotation_error[i], "success": success[i],
+                    "collision_free": collision_free[i], "min_clearance": min_clearance[i],
+                    "max_violation": max_violation[i], "stage": self.stage[i],
+                    "reason": self.reason[i] or None}
+                   for i in range(len(self))]
+        return {"has_scene": bool(self.has_scene), "results": entries,
+                "summary": self.summary(), "timing": self.timing.as_dict()}
 
+    @classmethod
+    def _from_fields(cls, data: dict[str, Any], robot: Robot) -> IKResult:
+        entries = data["results"]
+        has_scene = bool(data["has_scene"])
 
-def _rows(values: np.ndarray, keep: list[bool]) -> list[list[float] | None]:
-    """Rows of ``values`` as lists, None where ``keep`` is False."""
-    return [row if k else None for row, k in zip(np.asarray(values).tolist(), keep, strict=True)]
+        def column(name: str, width: int | None = None) -> np.ndarray:
+            return array([e[name] for e in entries], width, name)
 
+        return cls(
+            robot, column("q", robot.dof), column("position", 3), column("wxyz", 4),
+            **{k: column(k) for k in _PER_TARGET},
+            collision_free=np.array([bool(e["collision_free"]) if has_scene else True
+                                     for e in entries], dtype=bool),
+            success=np.array([bool(e["success"]) for e in entries], dtype=bool),
+            stage=[str(e["stage"]) for e in entries],
+            reason=[e["reason"] or "" for e in entries],
+            timing=StageTiming.from_dict(data.get("timing")), has_scene=has_scene)
 
-def _nums(values: np.ndarray) -> list[float | None]:
-    """``values`` as floats, None where not finite (JSON has no NaN)."""
-    values = np.asarray(values, dtype=float)
-    return [v if f else None
-            for v, f in zip(values.tolist(), np.isfinite(values).tolist(), strict=True)]
+    def columns(self) -> dict[str, np.ndarray]:
+        """The per-target fields as arrays (``COLUMNS``; stage and reason as strings): the
+        compact form a batch job's chunk files hold."""
+        return {k: np.asarray(getattr(self, k), dtype=str if k in ("stage", "reason") else None)
+                for k in COLUMNS}
+
+    @classmethod
+    def from_columns(cls, robot: Robot, columns: dict[str, np.ndarray],
+                     timing: StageTiming | dict[str, float] | None = None,
+                     has_scene: bool = False) -> IKResult:
+        """The result of ``columns()`` (of one result, or concatenated over many)."""
+        if not isinstance(timing, StageTiming):
+            timing = StageTiming.from_dict(timing)
+        return cls(
+            robot, *(np.asarray(columns[k], dtype=float) for k in COLUMNS[:3]),
+            **{k: np.asarray(columns[k], dtype=float) for k in _PER_TARGET},
+            collision_free=np.asarray(columns["collision_free"], dtype=bool),
+            success=np.asarray(columns["success"], dtype=bool),
+            stage=[str(x) for x in columns["stage"]],
+            reason=[str(x) for x in columns["reason"]],
+            timing=timing, has_scene=has_scene)
+
+    def save_csv(self, path: str | Path) -> Path:
+        """One row per target: ``target``, ``success``, ``pose_error``,
+        ``position_error_m``, ``rotation_error_rad``, ``min_clearance_m``,
+        ``max_violation``, then q (``theta_<i>``, ``phi_<i>`` rad, ``length_<i>`` m per
+        segment i), ``stage`` and ``reason``; empty cells where not finite."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        names = [f"{p}_{i + 1}" for i in range(self.robot.n_segments)
+                 for p in ("theta", "phi", "length")]
+        columns = [nums(a) for a in (self.pose_error, self.position_error,
+                                     self.rotation_error, self.min_clearance,
+                                     self.max_violation)]
+        q = row_lists(self.q, [True] * len(self))
+        with path.open("w", newline="") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(["target", "success", "pose_error", "position_error_m",
+                             "rotation_error_rad", "min_clearance_m", "max_violation",
+                             *names, "stage", "reason"])
+            for i in range(len(self)):
+                cells = [c[i] for c in columns] + [None if not np.isfinite(v) else v
+                                                   for v in q[i]]
+                writer.writerow([i, int(bool(self.success[i])),
+                                 *("" if v is None else f"{v:.9g}" for v in cells),
+                                 self.stage[i], self.reason[i]])
+        return path
 
 
 # ---------------------------------------------------------------- the problem
@@ -782,15 +844,14 @@ class IKSolver:
         t0 = time.perf_counter()
         valid = np.array([not r for r in reasons])
         n = len(q)
-        fields = {k: np.full(n, np.nan) for k in ("pose_error", "position_error",
-                                                  "rotation_error", "max_violation", "clearance")}
+        fields = {k: np.full(n, np.nan) for k in _PER_TARGET}
         position = np.full((n, 3), np.nan)
         quat = np.full((n, 4), np.nan)
         collision_free = np.zeros(n, bool)
         if valid.any():
             checked = self.verify(q[valid], positions[valid], wxyz[valid])
             for k in fields:
-                fields[k][valid] = checked[k]
+                fields[k][valid] = checked[_VERIFIED.get(k, k)]
             position[valid] = checked["position"]
             quat[valid] = checked["wxyz"]
             collision_free[valid] = checked["collision_free"]
@@ -808,7 +869,7 @@ class IKSolver:
         tol = self.config.success_tolerance
         rows = np.flatnonzero(rows)
         limits = limit_violation_q(self.robot, result.q[rows])
-        clearance = result.clearance[rows]
+        clearance = result.min_clearance[rows]
         collision_free = result.collision_free[rows]
         shortfall = np.maximum(self.config.safety_margin - clearance, 0.0)
         # The rule's passing case, vectorised; every other row gets failure_reason's words
@@ -906,9 +967,8 @@ class IKSolver:
         """Row j of ``verify``'s output into answer i of ``result``."""
         result.position[i] = checked["position"][j]
         result.wxyz[i] = checked["wxyz"][j]
-        for k in ("pose_error", "position_error", "rotation_error", "max_violation",
-                  "clearance"):
-            getattr(result, k)[i] = checked[k][j]
+        for k in _PER_TARGET:
+            getattr(result, k)[i] = checked[_VERIFIED.get(k, k)][j]
         result.collision_free[i] = checked["collision_free"][j]
 
 

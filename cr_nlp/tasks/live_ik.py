@@ -69,7 +69,7 @@ class LiveIKResult:
     """m."""
     rotation_error: float
     """rad."""
-    clearance: float
+    min_clearance: float
     """python-fcl signed distance, m (nan without a scene)."""
     max_violation: float
     """Largest limit violation (rad, m) or clearance shortfall below δ (m)."""
@@ -236,7 +236,7 @@ class LiveIKSolver:
             pose_error=float(row["pose_error"]),
             position_error=float(row["position_error"]),
             rotation_error=float(row["rotation_error"]),
-            clearance=float(row["clearance"]),
+            min_clearance=float(row["clearance"]),
             max_violation=float(row["max_violation"]),
             success=not row["reason"],
             reason=row["reason"],

@@ -17,7 +17,7 @@ length's gradient is undefined where two waypoints coincide) and, by Cauchy–Sc
 and spreads the waypoints evenly at once. A small joint-space term Σ‖zₖ₊₁ − zₖ‖² fixes
 the body's shape where the tip alone leaves it free (three of six bending DOF for tdcr3).
 
-Stages: init (roadmap query, straight line in z, perturbed straight lines), refine (LM
+Stages: explore (roadmap query, straight line in z, perturbed straight lines), refine (LM
 on all guesses of all problems at once, penalties for clearance and tendon limits),
 verify (python-fcl along the densely interpolated motion, float64 tendon finite
 differences, limits), optional polish (``stages.polish_trajectory``: Ipopt with the
@@ -26,14 +26,12 @@ constraints as constraints).
 
 from __future__ import annotations
 
-import csv
-import json
 import math
 import time
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -56,6 +54,17 @@ from ..world.clearance import (
 )
 from ..world.penalty import body_clearances_z
 from ..world.verdict import VIOLATION_TOLERANCE, describe_violations, failure_reason
+from ._result import (
+    SCHEMA_VERSION,
+    ResultFileError,
+    ResultIO,
+    as_float,
+    check_header,
+    num,
+    result_robot,
+    write_json,
+    write_series_csv,
+)
 from ._timing import StageTiming
 
 
@@ -438,8 +447,13 @@ def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
 
 
 @dataclass
-class TrajectoryResult:
-    """One planned trajectory (or the reason there is none). Units: rad, m, s."""
+class TrajectoryResult(ResultIO):
+    """One planned trajectory (or the reason there is none). Units: rad, m, s.
+
+    Its RESULT.json (``to_dict``) is a list of one: the form ``cr-nlp plan --out`` writes
+    for many (``trajectories_to_dict``), so one file layout serves both."""
+
+    kind: ClassVar[str] = "trajectory"
 
     robot: Robot
     q: np.ndarray | None
@@ -453,8 +467,9 @@ class TrajectoryResult:
     reason: str
     """"" on success, else why it failed."""
     stage: str
-    """What produced ``q``: "lm (roadmap)", "lm (straight)", "lm (perturbed)", "polish",
-    or an lm stage with the polish's failure noted; "rejected" for bad input."""
+    """What produced ``q``: "refine (roadmap)", "refine (straight)", "refine (perturbed)",
+    "polish", or a refine stage with the polish's failure noted; "rejected" for bad
+    input."""
     path_length: float = math.nan
     """Tip path length along the interpolated motion, m."""
     min_clearance: float = math.nan
@@ -472,7 +487,7 @@ class TrajectoryResult:
     """Largest |tendon acceleration| by finite differences, m/s²."""
     cost: float = math.nan
     """The LM stage's final penalised cost ½‖r‖² of the chosen guess."""
-    timing: dict[str, float] = field(default_factory=dict)
+    timing: StageTiming = field(default_factory=StageTiming)
     """Seconds per stage for this problem (shared batch work split evenly)."""
 
     @property
@@ -481,8 +496,8 @@ class TrajectoryResult:
         n = 0 if self.q is None else len(self.q)
         return np.arange(n) * self.dt
 
-    def to_json(self) -> dict[str, Any]:
-        """One entry of RESULT.json's ``results`` list."""
+    def entry(self) -> dict[str, Any]:
+        """This trajectory's entry of a RESULT.json ``results`` list."""
         ok = self.q is not None
         return {
             "success": bool(self.success),
@@ -491,30 +506,59 @@ class TrajectoryResult:
             "times": self.times.tolist() if ok else None,
             "tendon_lengths": self.tendon_lengths.tolist() if self.tendon_lengths is not None
             else None,
-            "path_length": _num(self.path_length),
-            "min_clearance": _num(self.min_clearance),
-            "max_violation": _num(self.max_violation),
-            "violations": {k: _num(v) for k, v in self.violations.items()},
-            "tendon_speed": _num(self.tendon_speed),
-            "tendon_accel": _num(self.tendon_accel),
+            "path_length": num(self.path_length),
+            "min_clearance": num(self.min_clearance),
+            "max_violation": num(self.max_violation),
+            "violations": {k: num(v) for k, v in self.violations.items()},
+            "tendon_speed": num(self.tendon_speed),
+            "tendon_accel": num(self.tendon_accel),
+            "cost": num(self.cost),
             "stage": self.stage,
             "reason": self.reason or None,
-            "timing": dict(self.timing),
+            "timing": self.timing.as_dict(),
         }
 
-    def save_csv(self, path: str | Path) -> None:
+    @classmethod
+    def from_entry(cls, robot: Robot, entry: dict[str, Any]) -> TrajectoryResult:
+        """The result of one ``entry()`` (a row of a RESULT.json ``results`` list)."""
+        q, tendons = entry["q"], entry["tendon_lengths"]
+        return cls(
+            robot, None if q is None else np.asarray(q, dtype=float).reshape(-1, robot.dof),
+            float(entry["dt"]), bool(entry["success"]), entry["reason"] or "", entry["stage"],
+            path_length=as_float(entry["path_length"]),
+            min_clearance=as_float(entry["min_clearance"]),
+            max_violation=as_float(entry["max_violation"]),
+            violations={k: as_float(v) for k, v in entry["violations"].items()},
+            tendon_lengths=None if tendons is None else np.asarray(tendons, dtype=float),
+            tendon_speed=as_float(entry["tendon_speed"]),
+            tendon_accel=as_float(entry["tendon_accel"]),
+            cost=as_float(entry.get("cost")),
+            timing=StageTiming.from_dict(entry["timing"]))
+
+    def _fields_dict(self) -> dict[str, Any]:
+        return _trajectories_fields([self], self.timing)
+
+    @classmethod
+    def _from_fields(cls, data: dict[str, Any], robot: Robot) -> TrajectoryResult:
+        entries = data["results"]
+        if len(entries) != 1:
+            raise ResultFileError(f"holds {len(entries)} trajectories, not one: read it with "
+                                  f"load_results / trajectories_from_dict")
+        return cls.from_entry(robot, entries[0])
+
+    @classmethod
+    def list_from_dict(cls, data: Any, robot: Robot | str | None = None,
+                       source: str = "") -> list[TrajectoryResult]:
+        """Every trajectory of a RESULT.json's content (``trajectories_to_dict``)."""
+        return trajectories_from_dict(data, robot, source)
+
+    def save_csv(self, path: str | Path) -> Path:
         """The tendon-length series for a controller: a ``time_s`` column, then one column
         per tendon (``tendon_<segment>_<j>`` for per-segment routing, ``tendon_<j>`` for
         shared), lengths in metres, one row per waypoint."""
         if self.tendon_lengths is None:
             raise ValueError(f"no trajectory to save ({self.reason})")
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with path.open("w", newline="") as handle:
-            writer = csv.writer(handle)
-            writer.writerow(["time_s", *tendon_names(self.robot)])
-            for t, row in zip(self.times, self.tendon_lengths, strict=True):
-                writer.writerow([f"{t:.6f}", *(f"{v:.9f}" for v in row)])
+        return write_series_csv(path, self.times, tendon_names(self.robot), self.tendon_lengths)
 
     def save_npz(self, path: str | Path) -> None:
         """q, times, dt, tendon lengths and the scalar verdicts as a numpy .npz file."""
@@ -527,10 +571,6 @@ class TrajectoryResult:
                  max_violation=self.max_violation, reason=self.reason, stage=self.stage)
 
 
-def _num(x: float) -> float | None:
-    return float(x) if x is not None and np.isfinite(x) else None
-
-
 def tendon_names(robot: Robot) -> list[str]:
     """Column names of the tendon-length series (CSV), in ``tendon_lengths`` order."""
     m = robot.tendons.per_segment
@@ -539,55 +579,72 @@ def tendon_names(robot: Robot) -> list[str]:
     return [f"tendon_{k + 1}_{j + 1}" for k in range(robot.n_segments) for j in range(m)]
 
 
-def results_to_json(results: list[TrajectoryResult],
-                    timing: dict[str, float] | None = None) -> dict[str, Any]:
-    """The RESULT.json form (``cr-nlp plan``): results, a summary and the batch timing."""
+def _trajectories_fields(results: list[TrajectoryResult],
+                         timing: StageTiming | dict[str, float] | None) -> dict[str, Any]:
     ok = [r.success for r in results]
     lengths = [r.path_length for r in results if r.success]
+    if not isinstance(timing, StageTiming):
+        timing = StageTiming.from_dict(timing)
     return {
-        "robot": results[0].robot.name if results else None,
-        "results": [r.to_json() for r in results],
+        "results": [r.entry() for r in results],
         "summary": {"problems": len(results),
                     "success_rate": float(np.mean(ok)) if results else 0.0,
                     "median_path_length": float(np.median(lengths)) if lengths else None},
-        "timing": dict(timing or {}),
+        "timing": timing.as_dict(),
     }
 
 
+def trajectories_to_dict(results: list[TrajectoryResult],
+                         timing: StageTiming | dict[str, float] | None = None,
+                         robot: Robot | None = None) -> dict[str, Any]:
+    """The RESULT.json form of many trajectories (``cr-nlp plan``): the header (kind
+    "trajectory"), one entry per result, a summary and the batch's ``timing`` (s).
+    ``robot`` names the robot of an empty list."""
+    name = results[0].robot.name if results else (robot.name if robot is not None else None)
+    return {"kind": TrajectoryResult.kind, "schema_version": SCHEMA_VERSION,
+            "robot": name, **_trajectories_fields(results, timing)}
+
+
+def trajectories_from_dict(data: Any, robot: Robot | str | None = None,
+                           source: str = "") -> list[TrajectoryResult]:
+    """Every ``TrajectoryResult`` of ``trajectories_to_dict``'s form."""
+    where = source or "the result"
+    check_header(data, where, kind=TrajectoryResult.kind)
+    robot = result_robot(data, robot, where)
+    try:
+        return [TrajectoryResult.from_entry(robot, e) for e in data["results"]]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ResultFileError(f"{where}: not a valid trajectory result ({exc!r})") from None
+
+
 def save_results(results: list[TrajectoryResult], path: str | Path,
-                 timing: dict[str, float] | None = None) -> None:
-    """Write ``results_to_json`` to ``path`` (.json) or every result to one .npz
+                 timing: StageTiming | dict[str, float] | None = None,
+                 robot: Robot | None = None) -> Path:
+    """Write ``trajectories_to_dict`` to ``path`` (.json) or every result to one .npz
     (``q_<i>``, ``tendon_lengths_<i>``, ``success``, ``dt``) by the file's suffix."""
     path = Path(path)
+    if path.suffix != ".npz":
+        return write_json(trajectories_to_dict(results, timing, robot), path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if path.suffix == ".npz":
-        arrays: dict[str, Any] = {
-            "success": np.array([r.success for r in results]),
-            "dt": np.array([r.dt for r in results]),
-            "path_length": np.array([r.path_length for r in results]),
-            "max_violation": np.array([r.max_violation for r in results]),
-        }
-        for i, r in enumerate(results):
-            if r.q is not None:
-                arrays[f"q_{i}"] = r.q
-                arrays[f"tendon_lengths_{i}"] = r.tendon_lengths
-        np.savez(path, **arrays)
-    else:
-        path.write_text(json.dumps(results_to_json(results, timing), indent=2) + "\n")
+    arrays: dict[str, Any] = {
+        "success": np.array([r.success for r in results]),
+        "dt": np.array([r.dt for r in results]),
+        "path_length": np.array([r.path_length for r in results]),
+        "max_violation": np.array([r.max_violation for r in results]),
+    }
+    for i, r in enumerate(results):
+        if r.q is not None:
+            arrays[f"q_{i}"] = r.q
+            arrays[f"tendon_lengths_{i}"] = r.tendon_lengths
+    np.savez(path, **arrays)
+    return path
 
 
 # ================================================================ the planner
 
 
-@dataclass
-class PlanTiming(StageTiming):
-    """Wall-clock seconds per stage of one ``plan`` call (compile apart)."""
-
-    compile: float = 0.0
-    init: float = 0.0
-    refine: float = 0.0
-    verify: float = 0.0
-    polish: float = 0.0
+PlanTiming = StageTiming
+"""Seconds per stage of one ``TrajectoryPlanner.plan`` call."""
 
 
 class TrajectoryPlanner:
@@ -830,7 +887,7 @@ class TrajectoryPlanner:
             g, k = self._guesses(q_to_z_numpy(q_start), q_to_z_numpy(q_goal), path)
             guesses.append(g)
             kinds.append(k)
-        timing.init += time.perf_counter() - t0
+        timing.explore += time.perf_counter() - t0
         all_guesses = np.stack(guesses)                       # (P, G, waypoints, 3n)
         g_count = all_guesses.shape[1]
         first = min(max(cfg.first_round, 1), g_count)
@@ -881,15 +938,15 @@ class TrajectoryPlanner:
                                            int(group[g])))
                 verify_seconds[row] += time.perf_counter() - t2
         timing.verify += float(verify_seconds.sum())
-        share = {"init": timing.init / len(valid), "refine": timing.refine / len(valid),
+        share = {"explore": timing.explore / len(valid), "refine": timing.refine / len(valid),
                  "compile": timing.compile / len(valid)}
         for row, (i, _, _) in enumerate(valid):
             found = best[row]
             assert found is not None
             verdict, g, q, cost_g = found
-            results[i] = _result(self.robot, q, dt, verdict, f"lm ({kinds[row][g]})", cost_g,
-                                 {**share, "verify": float(verify_seconds[row])})
-        return [[(q, f"lm ({kinds[row][g]})") for *_, q, g in
+            results[i] = _result(self.robot, q, dt, verdict, f"refine ({kinds[row][g]})",
+                                 cost_g, StageTiming(**share, verify=float(verify_seconds[row])))
+        return [[(q, f"refine ({kinds[row][g]})") for *_, q, g in
                  sorted(tried[row], key=lambda t: t[:3])] for row in range(len(valid))]
 
     def close(self) -> None:
@@ -949,7 +1006,7 @@ class TrajectoryPlanner:
                 previous.stage = f"{previous.stage} (polish failed: {'; '.join(failures)})"
             result = results[i]
             assert result is not None
-            result.timing = {**previous.timing, "polish": seconds}
+            result.timing = replace(previous.timing, polish=seconds)
         timing.polish += time.perf_counter() - t0
 
 
@@ -991,7 +1048,7 @@ def describe_polish(out: Any) -> str:
 
 
 def _result(robot: Robot, q: np.ndarray, dt: float, verdict: dict[str, Any], stage: str,
-            cost: float, timing: dict[str, float]) -> TrajectoryResult:
+            cost: float, timing: StageTiming) -> TrajectoryResult:
     return TrajectoryResult(
         robot, q, dt, bool(verdict["success"]), verdict["reason"], stage,
         path_length=verdict["path_length"], min_clearance=verdict["min_clearance"],

@@ -361,7 +361,7 @@ def follow_figure(
     title: str | None = None,
 ) -> Figure:
     """A followed path (a ``FollowResult``: ``robot``, ``path`` with ``positions`` m and
-    ``dt`` s, ``q`` (T, 3n), ``position_error_mm``, ``rotation_error_deg``,
+    ``dt`` s, ``q`` (T, 3n), ``position_error`` m, ``rotation_error`` rad,
     ``tendon_lengths`` m): the reference waypoints with the robot at ``snapshots`` evenly
     spaced waypoints (seen from behind the drawing plane, so that letters read left to
     right), box plots of the per-waypoint errors, and the first segment's tendon lengths
@@ -382,13 +382,15 @@ def follow_figure(
         title=title,
     )
     plot_error_boxes(
-        {"position": result.position_error_mm},
+        {"position": 1e3 * np.asarray(result.position_error)},
         ax=fig.add_subplot(spec[0, 1]),
         ylabel="mm",
         title="tracking error per waypoint",
     )
     plot_error_boxes(
-        {"rotation": result.rotation_error_deg}, ax=fig.add_subplot(spec[1, 1]), ylabel="degrees"
+        {"rotation": np.degrees(result.rotation_error)},
+        ax=fig.add_subplot(spec[1, 1]),
+        ylabel="degrees",
     )
     times = np.arange(len(result.q)) * result.path.dt
     plot_tendon_lengths(

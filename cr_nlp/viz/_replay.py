@@ -160,89 +160,80 @@ def _fmt(x: Any, unit: str = "", digits: int = 4) -> str:
     return "n/a" if x is None else f"{x:.{digits}g}{unit}"
 
 
-def _tendon_names(robot: Robot) -> list[str]:
-    from ..tasks.trajectory import tendon_names
-
-    return list(tendon_names(robot))
-
-
 def read_result(
-    robot: Robot, data: Any, targets: Any = None, path: Any = None
+    robot: Robot, data: Any, targets: Any = None, path: Any = None, source: str = ""
 ) -> list[Motion] | Answers:
-    """The motions (plan, follow) or answers (ik) of a RESULT.json's content.
+    """The motions (trajectory, follow) or answers (ik) of a RESULT.json's content, read
+    through the result protocol (``tasks._result``: the file's ``kind`` picks the class).
 
     Args:
         robot: the robot the result is for (its name must match the file's).
         data: the loaded JSON of ``cr-nlp ik``, ``plan`` or ``follow`` ``--out``.
         targets: for an ik result, the target poses ((positions (T, 3) m, wxyz (T, 4)));
             the ik result file holds the reached poses only.
-        path: for a follow result, the reference path (a file, a bundled name or a
-            ``ReferencePath``); default the result's ``path`` name where it resolves.
+        path: for a follow result, another reference path to draw (a file, a bundled name
+            or a ``ReferencePath``) than the one the result holds.
+        source: the file's name, for error messages.
 
     Raises:
-        ValueError: not such a result, or for another robot.
+        ValueError: not a result (no or an unknown ``kind``), or for another robot.
     """
-    if not isinstance(data, dict):
-        raise ValueError("a result must be a JSON object (cr-nlp ik, plan or follow --out)")
-    name = data.get("robot")
-    if name is not None and name != robot.name:
-        raise ValueError(f"the result is for robot {name!r}, the viewer shows {robot.name!r}")
-    rows = data.get("results")
-    if isinstance(rows, list) and rows and isinstance(rows[0], dict) and "pose_error" in rows[0]:
-        return _ik_answers(robot, rows, targets)
-    if isinstance(rows, list) and (not rows or "times" in rows[0]):
-        return _plan_motions(robot, rows)
-    if "tip_positions" in data and "q" in data:
-        return [_follow_motion(robot, data, path)]
-    raise ValueError(
-        "not a result of cr-nlp ik, plan or follow: expected 'results' rows "
-        "with 'pose_error' (ik) or 'times' (plan), or 'q' and 'tip_positions' "
-        "(follow)"
-    )
+    from ..tasks._result import check_header, results_from_dict
+
+    kind = check_header(data, source or "the result")
+    if kind not in _READERS:
+        raise ValueError(f"{source or 'the result'}: the viewer cannot show a {kind!r} result")
+    results = results_from_dict(data, robot, source=source)
+    return _READERS[kind](robot, results, targets=targets, path=path)
 
 
-def _ik_answers(robot: Robot, rows: list[dict], targets: Any) -> Answers:
+def _ik_answers(robot: Robot, results: list[Any], targets: Any = None, **_: Any) -> Answers:
+    (result,) = results
     positions = wxyz = None
     if targets is not None:
         positions = np.asarray(targets[0], dtype=float).reshape(-1, 3)
         wxyz = np.asarray(targets[1], dtype=float).reshape(-1, 4)
-        if len(positions) != len(rows):
-            raise ValueError(f"{len(positions)} targets for {len(rows)} ik answers")
-    qs, reached, goal, text = [], [], [], []
+        if len(positions) != len(result):
+            raise ValueError(f"{len(positions)} targets for {len(result)} ik answers")
     straight = np.ravel([[0.0, 0.0, s.length_min] for s in robot.segments])
-    for i, row in enumerate(rows):
-        q = row.get("q")
-        qs.append(np.asarray(q, dtype=float) if q is not None else straight)
-        reached.append(
-            (np.asarray(row["position"], float), np.asarray(row["wxyz"], float))
-            if row.get("position") is not None
-            else None
-        )
-        goal.append(
-            (positions[i], wxyz[i])
-            if positions is not None and np.all(np.isfinite(positions[i]))
-            else None
-        )
-        clearance = row.get("clearance")
+    solved = np.all(np.isfinite(result.q), axis=1)
+    qs = np.where(solved[:, None], result.q, straight)
+    reached = [
+        (result.position[i], result.wxyz[i]) if np.all(np.isfinite(result.position[i])) else None
+        for i in range(len(result))
+    ]
+    goal = [
+        (positions[i], wxyz[i])
+        if positions is not None and np.all(np.isfinite(positions[i]))
+        else None
+        for i in range(len(result))
+    ]
+    text = []
+    for i in range(len(result)):
+        clearance = _finite(result.min_clearance[i]) if result.has_scene else None
         text.append(
             f"answer {i}: "
             + _verdict_line(
-                row.get("success", False),
-                row.get("reason"),
-                row.get("stage"),
-                row.get("max_violation"),
+                bool(result.success[i]),
+                result.reason[i],
+                result.stage[i],
+                _finite(result.max_violation[i]),
             )
-            + f"  \npose error: {_fmt(row.get('pose_error'))} (m/rad)"
-            + f"  \nposition error: {_fmt(_mm(row.get('position_error')), ' mm')}"
-            + f"  \nrotation error: {_fmt(_deg(row.get('rotation_error')), '°')}"
+            + f"  \npose error: {_fmt(_finite(result.pose_error[i]))} (m/rad)"
+            + f"  \nposition error: {_fmt(_mm(_finite(result.position_error[i])), ' mm')}"
+            + f"  \nrotation error: {_fmt(_deg(_finite(result.rotation_error[i])), '°')}"
             + (
                 f"  \nclearance: {_fmt(clearance, ' m')} (python-fcl)"
                 if clearance is not None
                 else ""
             )
         )
-    ok = sum(bool(r.get("success")) for r in rows)
-    return Answers(np.array(qs), reached, goal, text, f"ik: {ok}/{len(rows)} answers succeed")
+    ok = int(np.count_nonzero(result.success))
+    return Answers(qs, reached, goal, text, f"ik: {ok}/{len(result)} answers succeed")
+
+
+def _finite(x: Any) -> float | None:
+    return float(x) if x is not None and np.isfinite(x) else None
 
 
 def _mm(x: Any) -> Any:
@@ -253,29 +244,18 @@ def _deg(x: Any) -> Any:
     return None if x is None else float(np.degrees(x))
 
 
-def _plan_motions(robot: Robot, rows: list[dict]) -> list[Motion]:
+def _trajectory_motions(robot: Robot, results: list[Any], **_: Any) -> list[Motion]:
+
     motions = []
-    names = _tendon_names(robot)
-    for i, row in enumerate(rows):
-        if row.get("q") is None:
+    for i, result in enumerate(results):
+        if result.q is None:
             continue
-        q = np.asarray(row["q"], dtype=float)
         motions.append(
-            Motion(
-                label=f"problem {i}",
-                q=q,
-                times=np.asarray(row["times"], dtype=float),
-                tendon_lengths=np.asarray(row["tendon_lengths"], dtype=float).reshape(len(q), -1),
-                tendon_names=names,
-                summary=f"plan, problem {i}: "
-                + _verdict_line(
-                    row.get("success", False),
-                    row.get("reason"),
-                    row.get("stage"),
-                    row.get("max_violation"),
-                )
-                + f"  \ntip path: {_fmt(row.get('path_length'), ' m')}"
-                + f"  \nmin clearance: {_fmt(row.get('min_clearance'), ' m')}",
+            _motion(
+                robot,
+                result,
+                f"problem {i}",
+                f"tip path: {_fmt(_finite(result.path_length), ' m')}",
             )
         )
     if not motions:
@@ -286,43 +266,48 @@ def _plan_motions(robot: Robot, rows: list[dict]) -> list[Motion]:
     return motions
 
 
-def _follow_motion(robot: Robot, data: dict, path: Any = None) -> Motion:
-    from ..model import ModelFileError
+def _follow_motion(robot: Robot, results: list[Any], path: Any = None, **_: Any) -> list[Motion]:
     from ..tasks.paths import load_path
 
-    q = np.asarray(data["q"], dtype=float)
-    reference = None
+    (result,) = results
+    reference = np.asarray(result.path.positions, dtype=float)
     if path is not None:
         reference = np.asarray(load_path(path).positions, dtype=float)
-        if len(reference) != len(q):
+        if len(reference) != len(result.q):
             raise ValueError(
-                f"the reference path has {len(reference)} waypoints, the follow result {len(q)}"
+                f"the reference path has {len(reference)} waypoints, "
+                f"the follow result {len(result.q)}"
             )
-    else:
-        try:  # the result's path by name; a file not at hand: the tip trace still shows
-            found = load_path(str(data.get("path")))
-            if len(found.positions) == len(q):
-                reference = np.asarray(found.positions, dtype=float)
-        except (ModelFileError, OSError, ValueError):
-            reference = None
-    err = np.asarray(data.get("position_error_mm") or [np.nan], dtype=float)
+    err = 1e3 * result.position_error
+    detail = f"position error: mean {np.nanmean(err):.3g} mm, max {np.nanmax(err):.3g} mm"
+    return [_motion(robot, result, f"follow '{result.path.name}'", detail, reference)]
+
+
+def _motion(
+    robot: Robot, result: Any, label: str, detail: str, reference: Any = None
+) -> Motion:
+    """The motion of a trajectory or follow result, its verdict, ``detail`` and the
+    minimum clearance as the summary."""
+    from ..tasks.trajectory import tendon_names
+
     return Motion(
-        label=f"follow '{data.get('path')}'",
-        q=q,
-        times=np.asarray(data.get("times") or np.arange(len(q)) * data["dt"], dtype=float),
-        tendon_lengths=np.asarray(data["tendon_lengths"], dtype=float).reshape(len(q), -1),
-        tendon_names=list(data.get("tendon_names") or _tendon_names(robot)),
-        summary=f"follow '{data.get('path')}': "
+        label=label,
+        q=result.q,
+        times=result.times,
+        tendon_lengths=np.asarray(result.tendon_lengths, dtype=float),
+        tendon_names=tendon_names(robot),
+        summary=f"{label}: "
         + _verdict_line(
-            data.get("success", False),
-            data.get("reason"),
-            data.get("stage"),
-            data.get("max_violation"),
+            result.success, result.reason, result.stage, _finite(result.max_violation)
         )
-        + f"  \nposition error: mean {np.nanmean(err):.3g} mm, max {np.nanmax(err):.3g} mm"
-        + f"  \nmin clearance: {_fmt(data.get('min_clearance'), ' m')}",
+        + f"  \n{detail}"
+        + f"  \nmin clearance: {_fmt(_finite(result.min_clearance), ' m')}",
         reference=reference,
     )
+
+
+_READERS = {"ik": _ik_answers, "trajectory": _trajectory_motions, "follow": _follow_motion}
+"""Result kind → what the viewer shows of it."""
 
 
 def precompute(motion: Motion, mesh: RobotMesh, scene: Scene | None) -> None:

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import json
 import socket
 import sys
 import threading
@@ -29,6 +28,7 @@ except ImportError as exc:  # the optional extra
 
 from ..model import Robot, load_robot
 from ..model.rotations import wxyz_from_matrix
+from ..tasks._result import read_json
 from ..world import Scene, load_scene
 from ..world.scene import (
     BoxPart,
@@ -132,9 +132,14 @@ class Viewer:
             if scene is not None and not isinstance(scene, Scene)
             else scene
         )
+        source = ""
         if isinstance(result, str | Path):
-            result = json.loads(Path(result).read_text())
-        content = read_result(self.robot, result, targets, path) if result is not None else None
+            source, result = str(result), read_json(result)
+        content = (
+            read_result(self.robot, result, targets, path, source=source)
+            if result is not None
+            else None
+        )
         self.motions: list[Motion] = content if isinstance(content, list) else []
         self.answers: Answers | None = content if isinstance(content, Answers) else None
         self._mesh = RobotMesh(self.robot)
@@ -635,8 +640,8 @@ class Viewer:
         verdict = "**reached**" if answer.success else f"**not reached**: {answer.reason}"
         clearance = (
             ""
-            if not np.isfinite(answer.clearance)
-            else f"  \nclearance {answer.clearance:.4f} m (python-fcl)"
+            if not np.isfinite(answer.min_clearance)
+            else f"  \nclearance {answer.min_clearance:.4f} m (python-fcl)"
         )
         if hasattr(self, "_live_text"):
             self._live_text.content = (
