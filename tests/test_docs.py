@@ -67,3 +67,14 @@ def test_the_benchmarks_file_has_well_formed_sections() -> None:
         assert text.count(begin) == 1 and text.count(end) == 1
         section = text[text.index(begin):text.index(end)]
         assert "\n| " in section and re.search(r"20\d\d-\d\d-\d\d", section), name
+
+
+def test_the_readme_imports_exist() -> None:
+    """Every name a README Python block imports from cr_nlp is exported at the top level."""
+    import cr_nlp
+
+    blocks = re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+    imported = [alias.name for block in blocks for node in ast.walk(ast.parse(block))
+                if isinstance(node, ast.ImportFrom) and node.module == "cr_nlp"
+                for alias in node.names]
+    assert imported and [name for name in imported if not hasattr(cr_nlp, name)] == []
