@@ -11,7 +11,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from . import batch, bench, demo, fk, follow, ik, plan, show, view
+from . import batch, bench, calibrate, demo, fk, follow, ik, plan, predict, show, view
 
 SUBCOMMANDS = [
     fk,
@@ -19,6 +19,8 @@ SUBCOMMANDS = [
     plan,
     follow,
     batch,
+    calibrate,
+    predict,
     show,
     view,
     bench,
