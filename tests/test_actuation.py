@@ -33,7 +33,7 @@ def _calibrated_like(robot: Robot, seed: int = 0) -> Robot:
         gains=tuple(rng.uniform(0.85, 1.15, t)),
         tendon_angle_deltas=tuple(rng.uniform(-0.05, 0.05, t)),
         segment_stiffness=tuple(np.r_[1.0, rng.uniform(0.5, 2.0, n - 1)]),
-        tendon_stiffness_ratio=5.0,
+        tendon_stiffness_ratio=tuple(rng.uniform(2.0, 10.0, n)),
         tip_marker=(0.001, -0.002, 0.008),
     )
     return dataclasses.replace(robot, actuation=act)
@@ -80,8 +80,8 @@ def test_equilibrium_minimises_the_energy_found_by_an_independent_solver() -> No
             short = (np.cos(alpha) * runs * v[None, :, 0]
                      + np.sin(alpha) * runs * v[None, :, 1]).sum(axis=1)
             stretch = np.maximum(w - short, 0.0)
-            return 0.5 * float(np.sum(c[:, None] * v * v)) + 0.5 * act.tendon_stiffness_ratio \
-                * float(np.sum(stretch ** 2))
+            kappa = np.repeat(act.tendon_stiffness_ratio, 3)
+            return 0.5 * float(np.sum(c[:, None] * v * v) + np.sum(kappa * stretch ** 2))
 
         best = minimize(energy, np.zeros(6), method="Powell",
                         options={"xtol": 1e-12, "ftol": 1e-15, "maxfev": 40000}).x
@@ -163,7 +163,7 @@ def test_actuation_block_round_trips_and_is_validated(tmp_path) -> None:
     with pytest.raises(ModelFileError, match=r"actuation\.gains"):
         Robot.from_dict(bad)
     bad = robot.to_dict()
-    bad["actuation"]["tendon_stiffness_ratio"] = -1.0
+    bad["actuation"]["tendon_stiffness_ratio"] = [1.0, -1.0, 2.0]
     with pytest.raises(ModelFileError, match="tendon_stiffness_ratio.*positive"):
         Robot.from_dict(bad)
     bad = robot.to_dict()

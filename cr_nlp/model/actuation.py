@@ -10,10 +10,11 @@ vectors u_i = θ_i(cos φ_i, sin φ_i), the path shortening of tendon j is ``r·
 (DESIGN.md §1: ``ℓ = L − r·θ·cos(α − φ)``). The tendon is stretched by ``s_j = p_j − r(B u)_j``
 when that is positive and slack otherwise. The backbone takes the shape of least energy
 
-    E(u) = ½ Σ_i c_i ‖u_i‖² + ½ κ Σ_j max(0, s_j / r)²,
+    E(u) = ½ Σ_i c_i ‖u_i‖² + ½ Σ_j κ_j max(0, s_j / r)²,
 
 with c_i = (EI_i / EI_1)·(L_total / L_i) the segments' bending stiffness and
-κ = k_t r² L_total / EI_1 the tendon stiffness ratio (both dimensionless). E is convex and
+κ_j = k_j r² L_total / EI_1 the tendon stiffness ratio (both dimensionless; κ is given
+per group of tendons anchored at the same segment, since their lengths differ). E is convex and
 strictly so, so the shape is unique; the tension of tendon j is ∝ κ·max(0, s_j) ≥ 0: a
 slack tendon carries nothing, and releasing it further changes nothing. The minimiser is
 found by Newton steps with a line search on E (a few active-set changes), and
@@ -25,7 +26,6 @@ The robot file's optional ``actuation`` block holds the calibrated parameters
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 from functools import partial
 from typing import Any
@@ -56,8 +56,9 @@ class Actuation:
     """Per-tendon correction of its angle α (rad), added to the nominal routing."""
     segment_stiffness: tuple[float, ...]
     """Bending stiffness EI of each segment relative to the first (dimensionless)."""
-    tendon_stiffness_ratio: float = NOMINAL_TENDON_STIFFNESS_RATIO
-    """κ = k_t·r²·L_total / EI_1: tendon axial stiffness against backbone bending."""
+    tendon_stiffness_ratio: tuple[float, ...] = ()
+    """κ = k_t·r²·L_total / EI_1 per segment (its tendons' axial stiffness against backbone
+    bending; shared routing uses the last); empty: 100 for every segment."""
     tip_marker: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Position of the measured point (e.g. a motion-capture marker) in the tip frame, m."""
     model_error_mean: float | None = None
@@ -69,7 +70,8 @@ class Actuation:
     def nominal(cls, robot: Robot) -> Actuation:
         """Zero offsets 0, gains 1, no angle corrections, equal stiffness, κ = 100."""
         t, n = robot.n_tendons, robot.n_segments
-        return cls((0.0,) * t, (1.0,) * t, (0.0,) * t, (1.0,) * n)
+        return cls((0.0,) * t, (1.0,) * t, (0.0,) * t, (1.0,) * n,
+                   (NOMINAL_TENDON_STIFFNESS_RATIO,) * n)
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form of the ``actuation`` block (round-trips through ``parse_actuation``)."""
@@ -78,7 +80,7 @@ class Actuation:
             "gains": list(self.gains),
             "tendon_angle_deltas": list(self.tendon_angle_deltas),
             "segment_stiffness": list(self.segment_stiffness),
-            "tendon_stiffness_ratio": self.tendon_stiffness_ratio,
+            "tendon_stiffness_ratio": list(self.tendon_stiffness_ratio),
             "tip_marker": list(self.tip_marker),
         }
         if self.model_error_mean is not None:
@@ -104,8 +106,13 @@ def parse_actuation(checker: Any, raw: Any, n_tendons: int, n_segments: int) -> 
             raise checker.fail(f"actuation.{key}", f"must all be positive, got {list(values)}")
         return values
 
-    kappa = checker.number(a.get("tendon_stiffness_ratio", NOMINAL_TENDON_STIFFNESS_RATIO),
-                           "actuation.tendon_stiffness_ratio", positive=True)
+    raw_kappa = a.get("tendon_stiffness_ratio", NOMINAL_TENDON_STIFFNESS_RATIO)
+    if isinstance(raw_kappa, (int, float)) and not isinstance(raw_kappa, bool):
+        raw_kappa = [raw_kappa] * n_segments
+    kappa = checker.vector(raw_kappa, "actuation.tendon_stiffness_ratio", n_segments)
+    if any(v <= 0 for v in kappa):
+        raise checker.fail("actuation.tendon_stiffness_ratio",
+                           f"must be positive, got {list(kappa)}")
     errors = {}
     for key in ("model_error_mean", "model_error_p95"):
         errors[key] = (checker.number(a[key], f"actuation.{key}", nonnegative=True)
@@ -157,6 +164,14 @@ def _offset_owner(robot: Robot) -> np.ndarray:
     return np.array([[k] * n for k in range(n) for _ in range(m)])
 
 
+def _groups(robot: Robot) -> np.ndarray:
+    """(n_tendons,) the segment each tendon is anchored at (its stiffness group)."""
+    n, m = robot.n_segments, robot.tendons.per_segment
+    if robot.tendons.routing == "shared":
+        return np.full(m, n - 1)
+    return np.repeat(np.arange(n), m)
+
+
 def params_of(robot: Robot) -> dict[str, np.ndarray]:
     """The robot's model parameters as a dict of float64 arrays (the calibration's
     unknowns and the forward model's inputs): lengths (n) m, radius m, segment_offsets
@@ -173,7 +188,9 @@ def params_of(robot: Robot) -> dict[str, np.ndarray]:
         "zero_offsets": np.array(act.zero_offsets, float),
         "gains": np.array(act.gains, float),
         "log_stiffness": np.log(np.array(act.segment_stiffness, float)),
-        "log_kappa": np.array(math.log(act.tendon_stiffness_ratio), float),
+        "log_kappa": np.log(np.array(act.tendon_stiffness_ratio or
+                                     (NOMINAL_TENDON_STIFFNESS_RATIO,) * robot.n_segments,
+                                     float)),
         "marker": np.array(act.tip_marker, float),
         "base_position": np.array(robot.base_position, float),
         "base_rotation": matrix_from_wxyz(np.array(robot.base_wxyz, float)),
@@ -199,7 +216,8 @@ def robot_with_params(robot: Robot, params: dict[str, Any],
         gains=tuple(float(v) for v in p["gains"]),
         tendon_angle_deltas=tuple(float(v) for v in p["angle_deltas"]),
         segment_stiffness=tuple(float(v) for v in stiffness),
-        tendon_stiffness_ratio=float(np.exp(p["log_kappa"] - p["log_stiffness"][0])),
+        tendon_stiffness_ratio=tuple(float(v) for v in
+                                     np.exp(p["log_kappa"] - p["log_stiffness"][0])),
         tip_marker=tuple(float(v) for v in p["marker"]),  # type: ignore[arg-type]
         model_error_mean=model_error[0],
         model_error_p95=model_error[1],
@@ -219,13 +237,15 @@ class _Topology:
     runs_through: tuple[tuple[float, ...], ...]
     nominal_angles: tuple[tuple[float, ...], ...]
     offset_owner: tuple[tuple[int, ...], ...]
+    group: tuple[int, ...]
     n_segments: int
 
     @classmethod
     def of(cls, robot: Robot) -> _Topology:
         as_tuple = lambda a: tuple(tuple(row) for row in a.tolist())  # noqa: E731
         return cls(as_tuple(tendon_segments(robot)), as_tuple(_nominal_angles(robot)),
-                   as_tuple(_offset_owner(robot)), robot.n_segments)
+                   as_tuple(_offset_owner(robot)), tuple(_groups(robot).tolist()),
+                   robot.n_segments)
 
 
 def _routing(topo: _Topology, params: dict[str, Any]) -> jax.Array:
@@ -248,12 +268,12 @@ def _stiffness(params: dict[str, Any]) -> jax.Array:
 def _energy(u: jax.Array, w: jax.Array, c: jax.Array, b: jax.Array,
             kappa: jax.Array) -> jax.Array:
     stretch = jnp.maximum(w - b @ u, 0.0)
-    return 0.5 * jnp.sum(c * u * u) + 0.5 * kappa * jnp.sum(stretch * stretch)
+    return 0.5 * jnp.sum(c * u * u) + 0.5 * jnp.sum(kappa * stretch * stretch)
 
 
 def _gradient(u: jax.Array, w: jax.Array, c: jax.Array, b: jax.Array,
               kappa: jax.Array) -> jax.Array:
-    return c * u - kappa * (b.T @ jnp.maximum(w - b @ u, 0.0))
+    return c * u - b.T @ (kappa * jnp.maximum(w - b @ u, 0.0))
 
 
 _STEPS = (1.0, 0.5, 0.25, 0.1, 0.03)
@@ -267,7 +287,7 @@ def _newton(w: jax.Array, c: jax.Array, b: jax.Array, kappa: jax.Array,
 
     def step(_: int, u: jax.Array) -> jax.Array:
         taut = (w - b @ u > 0.0).astype(w.dtype)
-        hessian = jnp.diag(c) + kappa * (b.T * taut) @ b
+        hessian = jnp.diag(c) + (b.T * (kappa * taut)) @ b
         direction = -jnp.linalg.solve(hessian, _gradient(u, w, c, b, kappa))
         trials = u + steps[:, None] * direction
         energies = jax.vmap(lambda v: _energy(v, w, c, b, kappa))(trials)
@@ -318,7 +338,7 @@ def bending_vectors(robot: Robot, params: dict[str, Any], commands: jax.Array,
     topo = _Topology.of(robot)
     b = _routing(topo, params)
     c = _stiffness(params)
-    kappa = jnp.exp(params["log_kappa"])
+    kappa = jnp.exp(params["log_kappa"])[np.asarray(topo.group)]
     pull = params["gains"] * (commands - params["zero_offsets"]) / params["radius"]
     flat = pull.reshape(-1, pull.shape[-1])
     u = jax.vmap(lambda row: bending_from_pull(row, c, b, kappa, iterations))(flat)
@@ -419,7 +439,7 @@ def commands_for_configuration(robot: Robot, q: Any, slack: float = 0.0) -> np.n
         jp = {k: jnp.asarray(v, jnp.float64) for k, v in p.items()}
         b = np.asarray(_routing(_Topology.of(robot), jp))
         c = np.asarray(_stiffness(jp))
-    kappa = float(np.exp(p["log_kappa"]))
+    kappa = np.exp(p["log_kappa"])[_groups(robot)]
     n, m = robot.n_segments, robot.tendons.per_segment
     moment = c * u                                           # (N, 2n) = Bᵀ λ
     tension = np.zeros((len(q), robot.n_tendons))

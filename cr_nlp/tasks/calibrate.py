@@ -207,6 +207,7 @@ def calibrate(robot: Robot, train: Measurements, validation: Measurements | None
         measured = jnp.asarray(train.tip, jnp.float64)
         iterations = config.inner_iterations
 
+        @jax.jit
         def tips(params: dict[str, Any]) -> jax.Array:
             return measured_point(robot, params, commands, iterations)
 
