@@ -36,10 +36,10 @@ def _rows(n: int, seed: int = 0) -> list[list]:
 @pytest.mark.parametrize("edit, message", [
     (lambda rows, header: (rows, header[:5] + header[6:]),
      r"bad\.csv: tendon column 'tendon_5' not found"),
-    (lambda rows, header: ([r if k != 2 else r[:11] + ["nan"] + r[12:]
+    (lambda rows, header: ([r if k != 2 else r[:10] + ["nan"] + r[11:]
                             for k, r in enumerate(rows)], header),
      r"bad\.csv: column 'tip_x', row 3: 'nan' is not a finite number"),
-    (lambda rows, header: ([r if k != 1 else r[:3] + ["1,5"] + r[4:]
+    (lambda rows, header: ([r if k != 1 else r[:3] + [1, 5] + r[4:]
                             for k, r in enumerate(rows)], header),
      r"bad\.csv: row 2 has 14 cells, the header has 13"),
     (lambda rows, header: ([r if k != 0 else r[:4] + ["x"] + r[5:]
@@ -82,6 +82,7 @@ def test_predict_writes_the_model_tip_in_the_data_units(tmp_path, capsys) -> Non
     assert "tip error mm: mean 0.00" in capsys.readouterr().out
 
 
+@pytest.mark.slow  # a second full fit (~15 s on a quiet 2-core CPU); test_calibrate has one
 def test_calibrate_writes_a_robot_file_every_command_accepts(tmp_path, capsys) -> None:
     train = _write(tmp_path / "train.csv", _rows(60, seed=5))
     val = _write(tmp_path / "val.csv", _rows(20, seed=6))
