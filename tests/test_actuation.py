@@ -170,3 +170,68 @@ def test_actuation_block_round_trips_and_is_validated(tmp_path) -> None:
     bad["actuation"]["gain"] = 1.0
     with pytest.raises(ModelFileError, match=r"actuation\.gain.*unknown"):
         Robot.from_dict(bad)
+
+
+@pytest.mark.slow  # two IK compilations (API float64, CLI float32): ~50 s on a loaded CPU
+def test_ik_answers_carry_motor_commands_that_reproduce_them(tmp_path) -> None:
+    from cr_nlp.cli import main
+    from cr_nlp.tasks.ik import IKConfig, IKSolver
+
+    robot = dataclasses.replace(_calibrated_like(load_robot("ftdcr_v6"), seed=5),
+                                base_position=(0.01, -0.02, 0.0))
+    robot = dataclasses.replace(robot, actuation=dataclasses.replace(
+        robot.actuation, tip_marker=(0.0, 0.0, 0.0), model_error_p95=0.004))
+    q = np.array([[0.5, 0.3, 0.1, 0.4, 2.0, 0.1, 0.9, -1.0, 0.022],
+                  [0.2, -2.0, 0.1, 0.7, 0.5, 0.1, 0.3, 3.0, 0.022]])
+    pos, rot = tip_pose(robot, q)
+    from cr_nlp.model.rotations import wxyz_from_matrix
+
+    wxyz = np.array([wxyz_from_matrix(r) for r in rot])
+    result = IKSolver(robot, None, IKConfig(pool_size=512, dtype="float64")).solve(pos, wxyz)
+    assert result.success.all()
+    d = result.tendon_displacements
+    assert d.shape == (2, 9)
+    np.testing.assert_allclose(predict_tip(robot, d), result.position, atol=1e-9)
+    assert np.max(np.linalg.norm(predict_tip(robot, d) - pos, axis=1)) < 1e-3
+    rows = result.to_json()["results"]
+    np.testing.assert_allclose(rows[1]["tendon_displacements"], d[1])
+    # The command line: --csv writes them, --model-margin auto reads the calibrated p95.
+    robot_file, targets = tmp_path / "robot.json", tmp_path / "targets.json"
+    robot_file.write_text(json.dumps(robot.to_dict()))
+    targets.write_text(json.dumps({"poses": [{"position": p.tolist(), "wxyz": w.tolist()}
+                                             for p, w in zip(pos, wxyz, strict=True)]}))
+    assert main(["ik", "--robot", str(robot_file), "--targets", str(targets), "--out",
+                 str(tmp_path / "r.json"), "--csv", str(tmp_path / "d.csv"),
+                 "--model-margin", "auto"]) == 0
+    written = np.loadtxt(tmp_path / "d.csv", delimiter=",", skiprows=1)[:, 1:]
+    q_cli = np.array([r["q"] for r in json.loads((tmp_path / "r.json").read_text())["results"]])
+    np.testing.assert_allclose(predict_tip(robot, written), tip_pose(robot, q_cli)[0],
+                               atol=1e-8)
+
+
+def test_results_of_a_calibrated_robot_carry_motor_commands(tmp_path) -> None:
+    from cr_nlp.tasks.ik import IKResult
+    from cr_nlp.tasks.trajectory import TrajectoryResult
+
+    robot = _calibrated_like(load_robot("ftdcr_v6"), seed=6)
+    q = np.array([[0.5, 0.3, 0.1, 0.4, 2.0, 0.1, 0.9, -1.0, 0.022],
+                  [np.nan] * 9])
+    pos, _ = tip_pose(robot, q[:1])
+    ik = IKResult(robot, q, *(np.zeros((2, k)) for k in (3, 4)), *(np.zeros(2),) * 5,
+                  np.ones(2, bool), np.ones(2, bool), ["lm"] * 2, ["", "failed"])
+    rows = ik.to_json()["results"]
+    assert rows[1]["tendon_displacements"] is None
+    marker = dataclasses.replace(robot, actuation=dataclasses.replace(
+        robot.actuation, tip_marker=(0.0, 0.0, 0.0)))
+    np.testing.assert_allclose(predict_tip(marker, [rows[0]["tendon_displacements"]]), pos,
+                               atol=1e-10)
+    plan = TrajectoryResult(robot, np.repeat(q[:1], 3, axis=0), 0.1, True, "", "lm",
+                            tendon_lengths=np.zeros((3, 9)))
+    plan.save_csv(tmp_path / "plan.csv")
+    header = (tmp_path / "plan.csv").read_text().splitlines()[0].split(",")
+    assert header[10:] == [f"{name}_displacement" for name in header[1:10]]
+    assert "tendon_displacements" in plan.to_json()
+    plain = IKResult(load_robot("ftdcr_v6"), q, *(np.zeros((2, k)) for k in (3, 4)),
+                     *(np.zeros(2),) * 5, np.ones(2, bool), np.ones(2, bool), ["lm"] * 2,
+                     ["", ""])
+    assert plain.tendon_displacements is not None   # the bundled file has an actuation block

@@ -117,3 +117,30 @@ def configurations_from_args(robot: Robot, q: str | None, q_file: str | None) ->
 def fmt(x: float | None) -> str:
     """A summary number: 3 significant digits, "n/a" for None."""
     return "n/a" if x is None else f"{x:.3g}"
+
+
+def add_model_margin_option(p: Any) -> None:
+    """``--model-margin``: metres added to the clearance margin, or ``auto``."""
+    p.add_argument("--model-margin", default=None,
+                   help="add to the clearance margin (m), or 'auto': the robot file's "
+                        "calibrated 95th-percentile tip error (actuation.model_error_p95), "
+                        "so that the clearance holds for the real robot")
+
+
+def model_margin(robot: Robot, value: str | None) -> float:
+    """The extra clearance margin of a ``--model-margin`` value, metres (0 without one)."""
+    if value is None:
+        return 0.0
+    if value == "auto":
+        act = getattr(robot, "actuation", None)
+        if act is None or act.model_error_p95 is None:
+            raise UsageError(f"--model-margin auto: {robot.name} has no calibrated error "
+                             f"(actuation.model_error_p95); run cr-nlp calibrate first")
+        return float(act.model_error_p95)
+    try:
+        margin = float(value)
+    except ValueError:
+        raise UsageError(f"--model-margin: expected metres or 'auto', got {value!r}") from None
+    if not margin >= 0.0:
+        raise UsageError(f"--model-margin must be ≥ 0 m, got {value}")
+    return margin

@@ -477,3 +477,17 @@ def _bracketing_tensions(need: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     if not done.all():
         raise ValueError("the tendon directions cannot hold this shape")
     return out
+
+
+def planned_displacements(robot: Robot, q: Any) -> np.ndarray | None:
+    """Motor commands for planned configurations: (N, n_tendons) tendon displacements, m
+    (``commands_for_configuration``, taut tendons just taut), NaN rows where q is not
+    finite; None when the robot file has no ``actuation`` block (no calibrated zero)."""
+    if getattr(robot, "actuation", None) is None or q is None:
+        return None
+    q = np.atleast_2d(np.asarray(q, dtype=np.float64))
+    out = np.full((len(q), robot.n_tendons), np.nan)
+    finite = np.all(np.isfinite(q), axis=1)
+    if finite.any():
+        out[finite] = commands_for_configuration(robot, q[finite])
+    return out

@@ -55,6 +55,7 @@ import numpy as np
 from .._jax_setup import enable_compilation_cache, split_over_devices
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import JAX, NUMPY
+from ..model.actuation import planned_displacements
 from ..model.derivatives import kinematics_jacobians_z
 from ..model.kinematics import (
     model_base,
@@ -78,6 +79,7 @@ from .trajectory import (
     _groups_from,
     _has_clearance,
     describe_polish,
+    displacement_names,
     tendon_names,
     verify_trajectory,
 )
@@ -569,6 +571,13 @@ class FollowResult:
     """The scene's name, or None without obstacles."""
     safety_margin: float = 0.002
     """δ, metres, used by the verdict."""
+    tendon_displacements: np.ndarray | None = None
+    """(T, n_tendons) motor commands at the waypoints, m (positive = pulled), when the
+    robot file has an ``actuation`` block (``model.actuation``); else None."""
+
+    def __post_init__(self) -> None:
+        if self.tendon_displacements is None:
+            self.tendon_displacements = planned_displacements(self.robot, self.q)
 
     @property
     def dt(self) -> float:
@@ -615,6 +624,8 @@ class FollowResult:
             "reached": self.reached.tolist(),
             "tendon_names": tendon_names(self.robot),
             "tendon_lengths": self.tendon_lengths.tolist(),
+            **({"tendon_displacements": self.tendon_displacements.tolist()}
+               if self.tendon_displacements is not None else {}),
             "tendon_speed": _num(self.tendon_speed),
             "tendon_accel": _num(self.tendon_accel),
             "collision_free": bool(self.collision_free),
@@ -651,8 +662,11 @@ class FollowResult:
         path.parent.mkdir(parents=True, exist_ok=True)
         with path.open("w", newline="") as handle:
             writer = csv.writer(handle)
-            writer.writerow(["time_s", *tendon_names(self.robot)])
-            for t, row in zip(self.times, self.tendon_lengths, strict=True):
+            writer.writerow(["time_s", *tendon_names(self.robot),
+                             *displacement_names(self.robot, self.tendon_displacements)])
+            rows = (self.tendon_lengths if self.tendon_displacements is None
+                    else np.hstack([self.tendon_lengths, self.tendon_displacements]))
+            for t, row in zip(self.times, rows, strict=True):
                 writer.writerow([f"{t:.6f}", *(f"{v:.9f}" for v in row)])
         return path
 

@@ -42,6 +42,7 @@ import numpy as np
 from .._jax_setup import enable_compilation_cache
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import JAX, NUMPY
+from ..model.actuation import planned_displacements
 from ..model.derivatives import backbone_jacobian_z, tip_jacobian_z
 from ..model.kinematics import model_segment_frames, model_tendon_lengths
 from ..model.limits import limit_violation_q, project_z
@@ -474,6 +475,13 @@ class TrajectoryResult:
     """The LM stage's final penalised cost ½‖r‖² of the chosen guess."""
     timing: dict[str, float] = field(default_factory=dict)
     """Seconds per stage for this problem (shared batch work split evenly)."""
+    tendon_displacements: np.ndarray | None = None
+    """(H+1, n_tendons) motor commands at the waypoints, m (positive = pulled), when the
+    robot file has an ``actuation`` block (``model.actuation``); else None."""
+
+    def __post_init__(self) -> None:
+        if self.tendon_displacements is None:
+            self.tendon_displacements = planned_displacements(self.robot, self.q)
 
     @property
     def times(self) -> np.ndarray:
@@ -491,6 +499,8 @@ class TrajectoryResult:
             "times": self.times.tolist() if ok else None,
             "tendon_lengths": self.tendon_lengths.tolist() if self.tendon_lengths is not None
             else None,
+            **({"tendon_displacements": self.tendon_displacements.tolist()}
+               if self.tendon_displacements is not None else {}),
             "path_length": _num(self.path_length),
             "min_clearance": _num(self.min_clearance),
             "max_violation": _num(self.max_violation),
@@ -512,8 +522,10 @@ class TrajectoryResult:
         path.parent.mkdir(parents=True, exist_ok=True)
         with path.open("w", newline="") as handle:
             writer = csv.writer(handle)
-            writer.writerow(["time_s", *tendon_names(self.robot)])
-            for t, row in zip(self.times, self.tendon_lengths, strict=True):
+            writer.writerow(["time_s", *tendon_names(self.robot),
+                             *displacement_names(self.robot, self.tendon_displacements)])
+            for t, row in zip(self.times, _with_displacements(
+                    self.tendon_lengths, self.tendon_displacements), strict=True):
                 writer.writerow([f"{t:.6f}", *(f"{v:.9f}" for v in row)])
 
     def save_npz(self, path: str | Path) -> None:
@@ -525,6 +537,18 @@ class TrajectoryResult:
                                  else np.zeros((0, n_t))),
                  path_length=self.path_length, min_clearance=self.min_clearance,
                  max_violation=self.max_violation, reason=self.reason, stage=self.stage)
+
+
+def displacement_names(robot: Robot, displacements: np.ndarray | None) -> list[str]:
+    """CSV column names of the motor commands (``<tendon name>_displacement``, m), none
+    without them."""
+    if displacements is None:
+        return []
+    return [f"{name}_displacement" for name in tendon_names(robot)]
+
+
+def _with_displacements(lengths: np.ndarray, displacements: np.ndarray | None) -> np.ndarray:
+    return lengths if displacements is None else np.hstack([lengths, displacements])
 
 
 def _num(x: float) -> float | None:
