@@ -6,8 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from ._io import load_robot_arg
-from ._measured import add_data_options, read_data_arg
+from ._io import add_data_options, load_robot_arg, read_data_arg
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

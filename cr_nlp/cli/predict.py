@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ._io import load_robot_arg
-from ._measured import add_data_options, read_data_arg
+from ._io import add_data_options, load_robot_arg, read_data_arg
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -16,9 +16,10 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from .._resources import resolve_file
+from ._actuation_block import parse_actuation
 
 if TYPE_CHECKING:
-    from .actuation import Actuation
+    from ._actuation_block import Actuation
 
 Routing = Literal["shared", "per_segment"]
 
@@ -342,7 +343,6 @@ def _parse_robot(data: Any, source: str) -> Robot:
 
     actuation = None
     if "actuation" in d:
-        from .actuation import parse_actuation  # (it imports this module)
         actuation = parse_actuation(c, d["actuation"], per_segment * (
             1 if routing == "shared" else n), n)
 
