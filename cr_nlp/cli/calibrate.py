@@ -33,7 +33,8 @@ def run(args: argparse.Namespace) -> int:
     result = calibrate(robot, train, val)
     calibrated = result.robot.to_dict()
     calibrated["description"] = (f"{robot.name} calibrated by cr-nlp calibrate on "
-                                 f"{train.source} ({len(train)} rows)")
+                                 f"{Path(train.source).name} ({len(train)} rows; "
+                                 f"validation error in actuation.model_error_*)")
     Path(args.out).write_text(json.dumps(calibrated, indent=2) + "\n")
     report = result.report()
     report["train_file"], report["validation_file"] = train.source, val.source if val else None

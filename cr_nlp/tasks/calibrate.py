@@ -244,8 +244,8 @@ def calibrate(robot: Robot, train: Measurements, validation: Measurements | None
         del fitted["base_rotvec"]
     length = robot_length(robot)
     calibrated = robot_with_params(robot, fitted)
-    train_stats = ErrorStats.of(tip_errors(calibrated, train), robot_length(calibrated))
-    val_stats = (ErrorStats.of(tip_errors(calibrated, validation), robot_length(calibrated))
+    train_stats = ErrorStats.of(tip_errors(calibrated, train), length)
+    val_stats = (ErrorStats.of(tip_errors(calibrated, validation), length)
                  if validation is not None else None)
     recorded = val_stats or train_stats
     calibrated = robot_with_params(robot, fitted, (recorded.mean, recorded.p95))
