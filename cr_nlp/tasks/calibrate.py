@@ -153,6 +153,7 @@ class _Packing:
                  priors: dict[str, Prior]) -> None:
         self.nominal = nominal
         self.groups: list[tuple[str, slice, np.ndarray]] = []
+        self._masks: dict[str, np.ndarray] = {}
         start = 0
         for name, prior in priors.items():
             if not prior.fit:
@@ -172,7 +173,6 @@ class _Packing:
                 continue
             self.groups.append((name, slice(start, start + size), scale))
             start += size
-            self._masks = getattr(self, "_masks", {})
             self._masks[name] = mask
         self.size = start
         self.bounds = np.concatenate([np.full(sl.stop - sl.start, priors[name].bound)
@@ -217,7 +217,6 @@ def calibrate(robot: Robot, train: Measurements, validation: Measurements | None
             nominal["base_position"] = nominal["base_position"] - shift
         pack = _Packing(robot, nominal, config.priors)
         weight = 1.0 / config.noise
-        n_data = 3 * len(train)
 
         @jax.jit
         def residuals(x: jax.Array) -> jax.Array:
@@ -238,7 +237,6 @@ def calibrate(robot: Robot, train: Measurements, validation: Measurements | None
             bounds=(-pack.bounds, pack.bounds), method="trf", loss=config.robust_loss,
             f_scale=3.0, x_scale=1.0, max_nfev=config.max_evaluations, xtol=1e-10,
             ftol=1e-10, gtol=1e-10)
-        del n_data
         fitted = {k: np.asarray(v) for k, v in pack.unpack(jnp.asarray(solution.x)).items()}
         fitted["base_rotation"] = np.asarray(_rotation_of(fitted))
         del fitted["base_rotvec"]
