@@ -60,3 +60,24 @@ def resolve_file(value: str | Path, kind: str) -> Path:
     singular = kind.removesuffix("s")
     raise FileNotFoundError(f"{value}: file not found, and not a bundled {singular} name "
                             f"(bundled: {names})")
+
+
+def resolve_data_file(value: str | Path) -> Path:
+    """A measurement CSV: ``value`` as a path when that file exists, else a bare name
+    ("ftdcr_v6_train") of a bundled recording, ``models/data/<robot>/<name>.csv``.
+
+    Raises:
+        FileNotFoundError: neither; the message names the bundled recordings.
+    """
+    path = Path(value)
+    if path.is_file():
+        return path
+    folder = models_root() / "data"
+    bundled = sorted(folder.glob("*/*.csv")) if folder.is_dir() else []
+    if path.suffix == "" and path.name == str(value):
+        for candidate in bundled:
+            if candidate.stem == str(value):
+                return candidate
+    names = ", ".join(p.stem for p in bundled) or "none"
+    raise FileNotFoundError(f"{value}: file not found, and not a bundled recording "
+                            f"(bundled: {names})")

@@ -14,6 +14,7 @@ if TYPE_CHECKING:
     import numpy as np
 
     from ..model import Robot
+    from ..tasks.measurements import Measurements
     from ..world import Scene
 
 
@@ -126,3 +127,63 @@ def configurations_from_args(robot: Robot, q: str | None, q_file: str | None) ->
 def fmt(x: float | None) -> str:
     """A summary number: 3 significant digits, "n/a" for None."""
     return "n/a" if x is None else f"{x:.3g}"
+
+
+def add_model_margin_option(p: Any) -> None:
+    """``--model-margin``: metres added to the clearance margin, or ``auto``."""
+    p.add_argument("--model-margin", default=None,
+                   help="add to the clearance margin (m), or 'auto': the robot file's "
+                        "calibrated 95th-percentile tip error (actuation.model_error_p95), "
+                        "so that the clearance holds for the real robot")
+
+
+def model_margin(robot: Robot, value: str | None) -> float:
+    """The extra clearance margin of a ``--model-margin`` value, metres (0 without one)."""
+    if value is None:
+        return 0.0
+    if value == "auto":
+        act = getattr(robot, "actuation", None)
+        if act is None or act.model_error_p95 is None:
+            raise UsageError(f"--model-margin auto: {robot.name} has no calibrated error "
+                             f"(actuation.model_error_p95); run cr-nlp calibrate first")
+        return float(act.model_error_p95)
+    try:
+        margin = float(value)
+    except ValueError:
+        raise UsageError(f"--model-margin: expected metres or 'auto', got {value!r}") from None
+    if not margin >= 0.0:
+        raise UsageError(f"--model-margin must be ≥ 0 m, got {value}")
+    return margin
+
+
+def add_data_options(p: Any) -> None:
+    """``--tendon-columns``, ``--tip-columns`` and ``--units``."""
+    p.add_argument("--tendon-columns",
+                   help="command columns in the robot file's tendon order "
+                        "(default tendon_1,…,tendon_N)")
+    p.add_argument("--tip-columns", default="tip_x,tip_y,tip_z",
+                   help="measured tip columns x,y,z (default tip_x,tip_y,tip_z)")
+    p.add_argument("--units", choices=["m", "mm"], default="m",
+                   help="length unit of commands and tip in the file (default m)")
+
+
+def read_data_arg(robot: Robot, value: str, args: Any, *,
+                  require_tip: bool = True) -> Measurements:
+    """The measurements of a ``--data``/``--validate`` value (a CSV file, or a bundled
+    recording's name such as ``ftdcr_v6_train``); ``require_tip=False``: a file without
+    the tip columns gives commands only."""
+    from .._resources import resolve_data_file
+    from ..tasks.measurements import DataFileError, read_measurements
+
+    try:
+        path = resolve_data_file(value)
+    except FileNotFoundError as exc:
+        raise UsageError(str(exc)) from None
+    columns = (args.tendon_columns.split(",") if args.tendon_columns else None)
+    tips = args.tip_columns.split(",")
+    try:
+        return read_measurements(path, robot.n_tendons, tendon_columns=columns,
+                                 tip_columns=tips, units=args.units,
+                                 require_tip=require_tip)
+    except DataFileError as exc:
+        raise UsageError(str(exc)) from None

@@ -16,7 +16,15 @@ import argparse
 import sys
 from pathlib import Path
 
-from ._io import UsageError, load_robot_arg, load_scene_arg, resolve, write_result
+from ._io import (
+    UsageError,
+    add_model_margin_option,
+    load_robot_arg,
+    load_scene_arg,
+    model_margin,
+    resolve,
+    write_result,
+)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -36,7 +44,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="RESULT.json to write ('-' for stdout); a .npz suffix writes numpy "
                         "arrays, a .csv suffix the tendon-length series")
     p.add_argument("--csv", help="also write the tendon-length series (time_s, one column per "
-                                 "tendon, m) to this CSV file")
+                                 "tendon, m; with a calibrated robot also "
+                                 "<tendon>_displacement, m) to this CSV file")
+    add_model_margin_option(p)
     p.set_defaults(run=run)
 
 
@@ -56,7 +66,9 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--path: {args.path} is not valid JSON: {exc}") from None
     if args.dt is not None and not (math.isfinite(args.dt) and args.dt > 0):
         raise UsageError(f"--dt must be a positive number of seconds, got {args.dt}")
-    follower = PathFollower(robot, scene, FollowConfig(seed=args.seed))
+    follower = PathFollower(robot, scene, FollowConfig(
+        seed=args.seed, safety_margin=FollowConfig.safety_margin
+        + model_margin(robot, args.model_margin)))
     try:
         result = follower.follow(path, exact=args.exact, progress=sys.stderr.isatty(),
                                  dt=args.dt)

@@ -4,8 +4,18 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 
-from ._io import UsageError, fmt, load_robot_arg, load_scene_arg, resolve, write_result
+from ._io import (
+    UsageError,
+    add_model_margin_option,
+    fmt,
+    load_robot_arg,
+    load_scene_arg,
+    model_margin,
+    resolve,
+    write_result,
+)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -20,6 +30,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="polish every answer with Ipopt, constraints as hard constraints")
     p.add_argument("--seed", type=int, default=0, help="seed of the search (default 0)")
     p.add_argument("--out", required=True, help="RESULT.json to write ('-' for stdout)")
+    p.add_argument("--csv", help="also write the motor commands (a robot file with an "
+                                 "actuation block): target, then one column per tendon, m")
+    add_model_margin_option(p)
     p.set_defaults(run=run)
 
 
@@ -33,12 +46,17 @@ def run(args: argparse.Namespace) -> int:
         positions, wxyz, problems = read_targets(resolve(args.targets, "targets", "--targets"))
     except ValueError as exc:
         raise UsageError(f"--targets: {exc}") from None
-    solver = IKSolver(robot, scene, IKConfig(seed=args.seed))
+    config = IKConfig(seed=args.seed)
+    config = replace(config, safety_margin=config.safety_margin
+                     + model_margin(robot, args.model_margin))
+    solver = IKSolver(robot, scene, config)
     result = solver.solve(positions, wxyz, exact=args.exact, progress=sys.stderr.isatty())
     for i, problem in enumerate(problems):
         if problem:
             result.reason[i] = problem
     write_result(result, args.out)
+    if args.csv:
+        _write_commands(args.csv, robot, result.tendon_displacements)
     summary, timing = result.summary(), result.timing
     print(f"{robot.name}: {summary['targets']} targets, "
           f"{100 * summary['success_rate']:.1f} % success, mean pose error "
@@ -46,3 +64,19 @@ def run(args: argparse.Namespace) -> int:
           f"{fmt(summary['max_violation'])}; {timing['total']:.2f} s "
           f"(compile {timing['compile']:.2f} s)", file=sys.stderr)
     return 0
+
+
+def _write_commands(path: str, robot: object, displacements: object) -> None:
+    """One row per target: ``target`` then the tendon displacements (m) by tendon name."""
+    import csv
+
+    from ..tasks.trajectory import tendon_names
+
+    if displacements is None:
+        raise UsageError(f"--csv: {robot.name} has no actuation block (no calibrated zero); "
+                         f"calibrate it with cr-nlp calibrate")
+    with open(path, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["target", *tendon_names(robot)])
+        for i, row in enumerate(displacements):
+            writer.writerow([i, *(f"{v:.9f}" for v in row)])

@@ -12,7 +12,7 @@ import shlex
 import sys
 from collections.abc import Sequence
 
-from . import batch, bench, demo, fk, follow, ik, plan, show, view
+from . import batch, bench, calibrate, demo, fk, follow, ik, plan, predict, show, view
 
 SUBCOMMANDS = [
     fk,
@@ -20,6 +20,8 @@ SUBCOMMANDS = [
     plan,
     follow,
     batch,
+    calibrate,
+    predict,
     show,
     view,
     bench,

@@ -18,7 +18,14 @@ import json
 import sys
 from pathlib import Path
 
-from ._io import load_robot_arg, load_scene_arg, read_problems, resolve
+from ._io import (
+    add_model_margin_option,
+    load_robot_arg,
+    load_scene_arg,
+    model_margin,
+    read_problems,
+    resolve,
+)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -40,7 +47,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the perturbed guesses")
     p.add_argument("--out", required=True, help="RESULT.json to write ('-' for stdout)")
     p.add_argument("--csv", help="directory for one tendon-length CSV per result "
-                                 "(problem_<i>.csv: time_s, then one column per tendon, m)")
+                                 "(problem_<i>.csv: time_s, then one column per tendon, m; "
+                                 "with a calibrated robot also <tendon>_displacement, m)")
+    add_model_margin_option(p)
     p.set_defaults(run=run)
 
 
@@ -61,6 +70,10 @@ def run(args: argparse.Namespace) -> int:
         config = TrajectoryConfig(waypoints=horizon + 1, seed=args.seed)
     if dt is not None:
         config = TrajectoryConfig(waypoints=config.waypoints, dt=dt, seed=args.seed)
+    from dataclasses import replace
+
+    config = replace(config, safety_margin=config.safety_margin
+                     + model_margin(robot, args.model_margin))
     planner = TrajectoryPlanner(robot, scene, config)
     # None entries (a problem without "start"/"goal") fail validation with a reason.
     starts = [s if s is not None else [] for s in starts]

@@ -1,5 +1,9 @@
 """The robot model: files, PCC kinematics, tendons and pose error (one source, two backends)."""
 
+from .actuation import Actuation as Actuation
+from .actuation import commands_for_configuration as commands_for_configuration
+from .actuation import configuration_from_commands as configuration_from_commands
+from .actuation import predict_tip as predict_tip
 from .kinematics import CasadiModel as CasadiModel
 from .kinematics import backbone_points as backbone_points
 from .kinematics import backbone_points_z as backbone_points_z

@@ -11,11 +11,15 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
 from .._resources import resolve_file
+from ._actuation_block import parse_actuation
+
+if TYPE_CHECKING:
+    from ._actuation_block import Actuation
 
 Routing = Literal["shared", "per_segment"]
 
@@ -82,6 +86,8 @@ class Robot:
     tendon_speed_max: float = math.inf
     tendon_accel_max: float = math.inf
     source: str = field(default="", compare=False)
+    actuation: Actuation | None = None
+    """Calibrated motor-command model (``model.actuation``), or None: nominal."""
 
     # ------------------------------------------------------------ sizes and bounds
     @property
@@ -204,6 +210,8 @@ class Robot:
             out["tendon_speed_max"] = self.tendon_speed_max
         if math.isfinite(self.tendon_accel_max):
             out["tendon_accel_max"] = self.tendon_accel_max
+        if self.actuation is not None:
+            out["actuation"] = self.actuation.to_dict()
         return out
 
 
@@ -242,7 +250,7 @@ def load_robot(robot: str | Path | Robot | dict) -> Robot:
 # ---------------------------------------------------------------- validation helpers
 
 _TOP_KEYS = {"name", "description", "segments", "backbone_radius", "points_per_segment",
-             "tendons", "base", "tendon_speed_max", "tendon_accel_max"}
+             "tendons", "base", "tendon_speed_max", "tendon_accel_max", "actuation"}
 _SEGMENT_KEYS = {"length", "theta_max", "phi_range", "name"}
 _TENDON_KEYS = {"per_segment", "radius", "offsets", "routing"}
 _BASE_KEYS = {"position", "wxyz"}
@@ -333,6 +341,11 @@ def _parse_robot(data: Any, source: str) -> Robot:
     accel = c.number(d["tendon_accel_max"], "tendon_accel_max",
                      positive=True) if "tendon_accel_max" in d else math.inf
 
+    actuation = None
+    if "actuation" in d:
+        actuation = parse_actuation(c, d["actuation"], per_segment * (
+            1 if routing == "shared" else n), n)
+
     return Robot(
         name=name,
         segments=segments,
@@ -344,6 +357,7 @@ def _parse_robot(data: Any, source: str) -> Robot:
         tendon_speed_max=speed,
         tendon_accel_max=accel,
         source=source,
+        actuation=actuation,
     )
 
 

@@ -53,6 +53,7 @@ import numpy as np
 from .._jax_setup import enable_compilation_cache, split_over_devices
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import JAX, NUMPY
+from ..model.actuation import planned_displacements
 from ..model.derivatives import kinematics_jacobians_z
 from ..model.kinematics import (
     model_base,
@@ -77,6 +78,7 @@ from .paths import ReferencePath, load_path
 from .trajectory import (
     _groups_from,
     _has_clearance,
+    controller_columns,
     describe_polish,
     tendon_names,
     verify_trajectory,
@@ -569,6 +571,13 @@ class FollowResult(ResultIO):
     """The scene's name, or None without obstacles."""
     safety_margin: float = 0.002
     """δ, metres, used by the verdict."""
+    tendon_displacements: np.ndarray | None = None
+    """(T, n_tendons) motor commands at the waypoints, m (positive = pulled), when the
+    robot file has an ``actuation`` block (``model.actuation``); else None."""
+
+    def __post_init__(self) -> None:
+        if self.tendon_displacements is None:
+            self.tendon_displacements = planned_displacements(self.robot, self.q)
 
     @property
     def dt(self) -> float:
@@ -614,6 +623,8 @@ class FollowResult(ResultIO):
             "reached": self.reached.tolist(),
             "tendon_names": tendon_names(self.robot),
             "tendon_lengths": self.tendon_lengths.tolist(),
+            **({"tendon_displacements": self.tendon_displacements.tolist()}
+               if self.tendon_displacements is not None else {}),
             "tendon_speed": num(self.tendon_speed),
             "tendon_accel": num(self.tendon_accel),
             "collision_free": bool(self.collision_free),
@@ -673,7 +684,8 @@ class FollowResult(ResultIO):
     def save_csv(self, path: str | Path) -> Path:
         """The tendon-length series for a controller: ``time_s``, then one column per
         tendon (``trajectory.tendon_names``), lengths in metres, one row per waypoint."""
-        return write_series_csv(path, self.times, tendon_names(self.robot), self.tendon_lengths)
+        return write_series_csv(path, self.times, *controller_columns(
+            self.robot, self.tendon_lengths, self.tendon_displacements))
 
 
 # ================================================================ compile-time accounting

@@ -32,6 +32,7 @@ import numpy as np
 from .._jax_setup import enable_compilation_cache, split_over_devices
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import NUMPY
+from ..model.actuation import planned_displacements
 from ..model.derivatives import pose_residual
 from ..model.kinematics import model_pose_error, model_q_to_z, model_segment_frames
 from ..model.limits import clip_to_limits, limit_violation_q, project_z
@@ -166,6 +167,13 @@ class IKResult(ResultIO):
     reason: list[str]              # empty on success, else why it failed
     timing: StageTiming = field(default_factory=StageTiming)
     has_scene: bool = False
+    tendon_displacements: np.ndarray | None = None
+    """(T, n_tendons) motor commands reproducing each answer, m (positive = pulled), when
+    the robot file has an ``actuation`` block (``model.actuation``); else None."""
+
+    def __post_init__(self) -> None:
+        if self.tendon_displacements is None:
+            self.tendon_displacements = planned_displacements(self.robot, self.q)
 
     def __len__(self) -> int:
         return len(self.q)
@@ -220,6 +228,10 @@ class IKResult(ResultIO):
                     "max_violation": max_violation[i], "stage": self.stage[i],
                     "reason": self.reason[i] or None}
                    for i in range(len(self))]
+        if self.tendon_displacements is not None:
+            for entry, d in zip(entries, row_lists(self.tendon_displacements, finite),
+                                strict=True):
+                entry["tendon_displacements"] = d
         return {"has_scene": bool(self.has_scene), "results": entries,
                 "summary": self.summary(), "timing": self.timing.as_dict()}
 

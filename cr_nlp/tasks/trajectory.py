@@ -40,6 +40,7 @@ import numpy as np
 from .._jax_setup import enable_compilation_cache
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import JAX, NUMPY
+from ..model.actuation import planned_displacements
 from ..model.derivatives import backbone_jacobian_z, tip_jacobian_z
 from ..model.kinematics import model_segment_frames, model_tendon_lengths
 from ..model.limits import limit_violation_q, project_z
@@ -489,6 +490,13 @@ class TrajectoryResult(ResultIO):
     """The LM stage's final penalised cost ½‖r‖² of the chosen guess."""
     timing: StageTiming = field(default_factory=StageTiming)
     """Seconds per stage for this problem (shared batch work split evenly)."""
+    tendon_displacements: np.ndarray | None = None
+    """(H+1, n_tendons) motor commands at the waypoints, m (positive = pulled), when the
+    robot file has an ``actuation`` block (``model.actuation``); else None."""
+
+    def __post_init__(self) -> None:
+        if self.tendon_displacements is None:
+            self.tendon_displacements = planned_displacements(self.robot, self.q)
 
     @property
     def times(self) -> np.ndarray:
@@ -506,6 +514,8 @@ class TrajectoryResult(ResultIO):
             "times": self.times.tolist() if ok else None,
             "tendon_lengths": self.tendon_lengths.tolist() if self.tendon_lengths is not None
             else None,
+            **({"tendon_displacements": self.tendon_displacements.tolist()}
+               if self.tendon_displacements is not None else {}),
             "path_length": num(self.path_length),
             "min_clearance": num(self.min_clearance),
             "max_violation": num(self.max_violation),
@@ -558,7 +568,8 @@ class TrajectoryResult(ResultIO):
         shared), lengths in metres, one row per waypoint."""
         if self.tendon_lengths is None:
             raise ValueError(f"no trajectory to save ({self.reason})")
-        return write_series_csv(path, self.times, tendon_names(self.robot), self.tendon_lengths)
+        return write_series_csv(path, self.times, *controller_columns(
+            self.robot, self.tendon_lengths, self.tendon_displacements))
 
     def save_npz(self, path: str | Path) -> None:
         """q, times, dt, tendon lengths and the scalar verdicts as a numpy .npz file."""
@@ -569,6 +580,17 @@ class TrajectoryResult(ResultIO):
                                  else np.zeros((0, n_t))),
                  path_length=self.path_length, min_clearance=self.min_clearance,
                  max_violation=self.max_violation, reason=self.reason, stage=self.stage)
+
+
+def controller_columns(robot: Robot, lengths: np.ndarray,
+                       displacements: np.ndarray | None) -> tuple[list[str], np.ndarray]:
+    """A controller's time-series columns: the tendon lengths (m, ``tendon_names``), then
+    the motor commands (``<tendon name>_displacement``, m) when there are any; the names and
+    the (T, columns) values."""
+    if displacements is None:
+        return tendon_names(robot), lengths
+    return ([*tendon_names(robot), *(f"{name}_displacement" for name in tendon_names(robot))],
+            np.hstack([lengths, displacements]))
 
 
 def tendon_names(robot: Robot) -> list[str]:

@@ -1,0 +1,98 @@
+"""The robot file's ``actuation`` block: the calibrated parameters of the motor-command
+model (``model.actuation``), its schema and validation. Imports nothing of the model, so
+that ``robot.py`` can parse the block while loading a file."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+NOMINAL_TENDON_STIFFNESS_RATIO = 100.0
+"""κ without a calibration: tendons 100× stiffer than the backbone in bending."""
+
+
+@dataclass(frozen=True)
+class Actuation:
+    """The calibrated actuation of a robot (the robot file's ``actuation`` block).
+
+    Per-tendon tuples follow the robot file's tendon order (segment by segment).
+    """
+
+    zero_offsets: tuple[float, ...]
+    """Command (m) at which each tendon is just taut with the backbone straight."""
+    gains: tuple[float, ...]
+    """Effective pull per commanded metre (dimensionless, > 0)."""
+    tendon_angle_deltas: tuple[float, ...]
+    """Per-tendon correction of its angle α (rad), added to the nominal routing."""
+    segment_stiffness: tuple[float, ...]
+    """Bending stiffness EI of each segment relative to the first (dimensionless)."""
+    tendon_stiffness_ratio: tuple[float, ...] = ()
+    """κ = k_t·r²·L_total / EI_1 per segment (its tendons' axial stiffness against backbone
+    bending; shared routing uses the last); empty: 100 for every segment."""
+    tip_marker: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Position of the measured point (e.g. a motion-capture marker) in the tip frame, m."""
+    model_error_mean: float | None = None
+    """Mean tip error (m) of this model on the calibration's validation rows (or train)."""
+    model_error_p95: float | None = None
+    """95th percentile tip error (m), the figure ``--model-margin auto`` adds."""
+
+    @classmethod
+    def nominal(cls, n_tendons: int, n_segments: int) -> Actuation:
+        """Zero offsets 0, gains 1, no angle corrections, equal stiffness, κ = 100."""
+        t, n = n_tendons, n_segments
+        return cls((0.0,) * t, (1.0,) * t, (0.0,) * t, (1.0,) * n,
+                   (NOMINAL_TENDON_STIFFNESS_RATIO,) * n)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON form of the ``actuation`` block (round-trips through ``parse_actuation``)."""
+        out: dict[str, Any] = {
+            "zero_offsets": list(self.zero_offsets),
+            "gains": list(self.gains),
+            "tendon_angle_deltas": list(self.tendon_angle_deltas),
+            "segment_stiffness": list(self.segment_stiffness),
+            "tendon_stiffness_ratio": list(self.tendon_stiffness_ratio),
+            "tip_marker": list(self.tip_marker),
+        }
+        if self.model_error_mean is not None:
+            out["model_error_mean"] = self.model_error_mean
+        if self.model_error_p95 is not None:
+            out["model_error_p95"] = self.model_error_p95
+        return out
+
+
+_ACTUATION_KEYS = {"zero_offsets", "gains", "tendon_angle_deltas", "segment_stiffness",
+                   "tendon_stiffness_ratio", "tip_marker", "model_error_mean",
+                   "model_error_p95", "description"}
+
+
+def parse_actuation(checker: Any, raw: Any, n_tendons: int, n_segments: int) -> Actuation:
+    """The ``actuation`` block of a robot file, checked field by field (``ModelFileError``
+    naming the field). ``checker`` is robot.py's field checker."""
+    a = checker.obj(raw, "actuation", _ACTUATION_KEYS, set())
+
+    def vec(key: str, size: int, default: float, positive: bool = False) -> tuple[float, ...]:
+        values = checker.vector(a.get(key, [default] * size), f"actuation.{key}", size)
+        if positive and any(v <= 0 for v in values):
+            raise checker.fail(f"actuation.{key}", f"must all be positive, got {list(values)}")
+        return values
+
+    raw_kappa = a.get("tendon_stiffness_ratio", NOMINAL_TENDON_STIFFNESS_RATIO)
+    if isinstance(raw_kappa, (int, float)) and not isinstance(raw_kappa, bool):
+        raw_kappa = [raw_kappa] * n_segments
+    kappa = checker.vector(raw_kappa, "actuation.tendon_stiffness_ratio", n_segments)
+    if any(v <= 0 for v in kappa):
+        raise checker.fail("actuation.tendon_stiffness_ratio",
+                           f"must be positive, got {list(kappa)}")
+    errors = {}
+    for key in ("model_error_mean", "model_error_p95"):
+        errors[key] = (checker.number(a[key], f"actuation.{key}", nonnegative=True)
+                       if key in a else None)
+    return Actuation(
+        zero_offsets=vec("zero_offsets", n_tendons, 0.0),
+        gains=vec("gains", n_tendons, 1.0, positive=True),
+        tendon_angle_deltas=vec("tendon_angle_deltas", n_tendons, 0.0),
+        segment_stiffness=vec("segment_stiffness", n_segments, 1.0, positive=True),
+        tendon_stiffness_ratio=kappa,
+        tip_marker=vec("tip_marker", 3, 0.0),  # type: ignore[arg-type]
+        **errors,
+    )

@@ -1,0 +1,69 @@
+"""Calibration recovers a synthetic robot with known offsets, slack and base pose from noisy
+samples of its own model, and its held-out error falls to the noise level."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from cr_nlp.model import load_robot
+from cr_nlp.model.actuation import Actuation, predict_tip
+from cr_nlp.model.rotations import wxyz_from_matrix
+from cr_nlp.tasks.calibrate import CalibrationConfig, calibrate, tip_errors
+from cr_nlp.tasks.measurements import Measurements
+
+NOISE = 2e-4  # m per coordinate
+
+
+def _truth():
+    nominal = load_robot("ftdcr_v6")
+    rng = np.random.default_rng(7)
+    yaw, tilt = 2.0, 0.03  # the measurement frame is turned by ~115° and tilted
+    c, s = np.cos(yaw), np.sin(yaw)
+    rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]) @ np.array(
+        [[1, 0, 0], [0, np.cos(tilt), -np.sin(tilt)], [0, np.sin(tilt), np.cos(tilt)]])
+    act = Actuation(
+        zero_offsets=tuple(rng.uniform(-0.8e-3, 0.2e-3, 9)),   # mostly slack at zero
+        gains=tuple(rng.uniform(0.9, 1.1, 9)),
+        tendon_angle_deltas=tuple(rng.uniform(-0.04, 0.04, 9)),
+        segment_stiffness=(1.0, 0.8, 0.5),
+        tendon_stiffness_ratio=(8.0, 5.0, 4.0),
+        tip_marker=(0.0, 0.0, 0.008),
+    )
+    truth = dataclasses.replace(
+        nominal, actuation=act, base_position=(0.012, -0.02, 0.005),
+        base_wxyz=tuple(wxyz_from_matrix(rot)),
+        tendons=dataclasses.replace(nominal.tendons, offsets=(0.05, 0.55, 1.0)))
+    return nominal, truth
+
+
+def _sample(robot, rows: int, seed: int) -> Measurements:
+    rng = np.random.default_rng(seed)
+    # Antagonistic bends per segment (pull one side, release the other) plus single pulls.
+    cmd = rng.uniform(-4e-3, 4e-3, (rows, 9))
+    cmd[rows // 2:] = np.where(rng.random((rows - rows // 2, 9)) < 0.3, cmd[rows // 2:], -6e-3)
+    tip = predict_tip(robot, cmd) + rng.normal(0.0, NOISE, (rows, 3))
+    return Measurements(cmd, tip, f"synthetic-{seed}")
+
+
+def test_calibration_recovers_a_synthetic_robot() -> None:
+    nominal, truth = _truth()
+    train, held_out = _sample(truth, 240, 1), _sample(truth, 80, 2)
+    result = calibrate(nominal, train, held_out, CalibrationConfig(noise=NOISE))
+    noise_mean = NOISE * np.sqrt(8 / np.pi)            # mean length of a 3-D normal vector
+    assert result.nominal_train.mean > 20 * noise_mean  # the nominal robot is far off
+    assert result.validation.mean < 1.3 * noise_mean, result.report()
+    # Noise-free predictions on the held-out commands agree to a fraction of the noise.
+    exact = dataclasses.replace(held_out, tip=predict_tip(truth, held_out.commands))
+    assert tip_errors(result.robot, exact).mean() < 0.5 * noise_mean
+    fit, act, true_act = result.robot, result.robot.actuation, truth.actuation
+    np.testing.assert_allclose(fit.base_position, truth.base_position, atol=1e-3)
+    assert abs(abs(np.dot(fit.base_wxyz, truth.base_wxyz)) - 1.0) < 1e-4   # ~1.6° or better
+    # Gains and radius enter as gain / radius: compare that, and the zero offsets of the
+    # tendons the data pulled taut.
+    np.testing.assert_allclose(np.array(act.gains) / fit.tendons.radius,
+                               np.array(true_act.gains) / truth.tendons.radius, rtol=0.05)
+    np.testing.assert_allclose(act.zero_offsets, true_act.zero_offsets, atol=2e-4)
+    np.testing.assert_allclose(act.tip_marker, true_act.tip_marker, atol=2e-3)
+    assert fit.actuation.model_error_p95 == result.validation.p95
