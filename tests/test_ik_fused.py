@@ -52,7 +52,6 @@ def test_fused_search_finds_both_roots_and_leaves_padding_alone() -> None:
     assert counted[0, -1] == 0 and 0 < iterated[0, 0] <= 3
 
 
-@pytest.mark.usefixtures("float64")  # the toy roots to 1e-8, costs below 1e-16
 def test_fused_search_answer_does_not_depend_on_the_block_size() -> None:
     """Compaction into blocks is bookkeeping: one row per block, a few, or one block for
     the whole batch give the same refined beam."""
