@@ -4,7 +4,7 @@ helpers shared by the world tests.
 The tests run in a user's numeric configuration: ``import cr_nlp`` leaves JAX's x64 off,
 so JAX arrays default to float32 and the batched stages run their float32 paths. A test
 that needs float64 JAX arrays (agreement at 1e-9 with an independent float64 evaluation,
-derivative checks by finite differences) asks for it with the ``float64`` fixture, which
+derivatives against autodiff or CasADi) asks for it with the ``float64`` fixture, which
 turns x64 on for that test only."""
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ use_host_devices()  # the solvers' sharded path runs in the tests as it does in 
 jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("CR_NLP_JAX_CACHE", str(ROOT / ".jax_cache")))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+SESSION_X64 = bool(jax.config.jax_enable_x64)  # off, unless $JAX_ENABLE_X64 asks for it
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -56,11 +57,11 @@ def pytest_configure(config: pytest.Config) -> None:
 
 @pytest.fixture(autouse=True)
 def _x64_stays_off() -> Iterator[None]:
-    """Fail the test that left JAX's x64 switched on for the rest of the session."""
+    """Fail the test that changed JAX's x64 setting for the rest of the session."""
     yield
-    if jax.config.jax_enable_x64:
-        jax.config.update("jax_enable_x64", False)
-        pytest.fail("the test switched jax_enable_x64 on for the session; use the float64 fixture")
+    if bool(jax.config.jax_enable_x64) != SESSION_X64:
+        jax.config.update("jax_enable_x64", SESSION_X64)
+        pytest.fail("the test changed jax_enable_x64 for the session; use the float64 fixture")
 
 
 @pytest.fixture
@@ -70,7 +71,6 @@ def float64() -> Iterator[None]:
     ``jax.enable_x64`` is a context-local setting that jit caches key on, so code compiled
     inside the test is not reused by the float32 tests after it. Arrays a test builds at
     import or in a wider-scoped fixture are built without it."""
-    assert not jax.config.jax_enable_x64, "x64 is on for the whole session: tests must not set it"
     with jax.enable_x64(True):
         yield
 
