@@ -1,11 +1,17 @@
-"""Test-wide settings: float64 for agreement tests, a persistent JAX compilation cache;
-helpers shared by the world tests."""
+"""Test-wide settings: a persistent JAX compilation cache and the ``float64`` fixture;
+helpers shared by the world tests.
+
+The tests run in a user's numeric configuration: ``import cr_nlp`` leaves JAX's x64 off,
+so JAX arrays default to float32 and the batched stages run their float32 paths. A test
+that needs float64 JAX arrays (agreement at 1e-9 with an independent float64 evaluation,
+derivatives against autodiff or CasADi) asks for it with the ``float64`` fixture, which
+turns x64 on for that test only."""
 
 from __future__ import annotations
 
 import json
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -23,10 +29,10 @@ ROOT = Path(__file__).resolve().parent.parent
 MODELS = ROOT / "models"
 
 use_host_devices()  # the solvers' sharded path runs in the tests as it does in the CLI
-jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_compilation_cache_dir",
                   os.environ.get("CR_NLP_JAX_CACHE", str(ROOT / ".jax_cache")))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+SESSION_X64 = bool(jax.config.jax_enable_x64)  # off, unless $JAX_ENABLE_X64 asks for it
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -47,6 +53,26 @@ def pytest_configure(config: pytest.Config) -> None:
     if "not slow" in (config.getoption("markexpr") or "") and \
             "xla_backend_optimization_level" not in flags:
         os.environ["XLA_FLAGS"] = f"{flags} --xla_backend_optimization_level=0".strip()
+
+
+@pytest.fixture(autouse=True)
+def _x64_stays_off() -> Iterator[None]:
+    """Fail the test that changed JAX's x64 setting for the rest of the session."""
+    yield
+    if bool(jax.config.jax_enable_x64) != SESSION_X64:
+        jax.config.update("jax_enable_x64", SESSION_X64)
+        pytest.fail("the test changed jax_enable_x64 for the session; use the float64 fixture")
+
+
+@pytest.fixture
+def float64() -> Iterator[None]:
+    """JAX's x64 on for one test (JAX arrays default to float64), off again after it.
+
+    ``jax.enable_x64`` is a context-local setting that jit caches key on, so code compiled
+    inside the test is not reused by the float32 tests after it. Arrays a test builds at
+    import or in a wider-scoped fixture are built without it."""
+    with jax.enable_x64(True):
+        yield
 
 
 def write_mixed_scene(root: Path, extra: Sequence[dict] = ()) -> Scene:

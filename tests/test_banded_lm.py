@@ -20,6 +20,9 @@ from cr_nlp.stages.banded_lm import (
 )
 from cr_nlp.stages.lm import lm_solve
 
+# Dense and banded algebra agree to 1e-9 or tighter: float64 JAX arrays, x64 on per test.
+pytestmark = pytest.mark.usefixtures("float64")
+
 
 def unary(z, p, shared):
     return jnp.concatenate([jnp.sin(z) - p, z[:1] * z[1:2]])

@@ -38,6 +38,8 @@ TDCR4 = Robot.from_file(MODELS / "robots" / "tdcr4_ext.json")
 ROBOTS = [TDCR3, TDCR4]
 # The 4-segment jacfwd references take a minute to compile on 2 cores: slow-marked.
 ROBOTS_SLOW4 = [TDCR3, pytest.param(TDCR4, marks=pytest.mark.slow)]
+# Every check here compares float64 derivatives at 1e-9 or tighter: JAX's x64 on for each.
+pytestmark = pytest.mark.usefixtures("float64")
 
 
 def configurations(robot: Robot, count: int, seed: int) -> np.ndarray:

@@ -169,6 +169,7 @@ def test_result_files(followed, tmp_path: Path) -> None:
     assert_same_result(load_result(tmp_path / "r.json"), followed)
 
 
+@pytest.mark.usefixtures("float64")  # closed-form Jacobians against autodiff at 1e-12
 def test_waypoint_jacobians_match_autodiff_and_the_model() -> None:
     # Each check is jitted: op-by-op, the model's entry-by-entry code took most of a minute.
     z = jnp.asarray([0.7, -0.4, 1.0, 1.1, 0.9, 1.0, -0.3, 0.8, 1.0])

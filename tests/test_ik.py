@@ -214,6 +214,7 @@ def test_chunk_plan_covers_every_problem_with_little_padding(count: int, largest
     assert chunk_plan(0, largest) == []
 
 
+@pytest.mark.usefixtures("float64")  # float64 scene arrays; autodiff at 1e-12
 @pytest.mark.parametrize("robot", [TDCR3, TDCR4], ids=["tdcr3", "tdcr4_ext"])
 @pytest.mark.slow  # a benchmark run or a repeat of covered work: `pytest -m slow`
 def test_per_sphere_clearances_and_jacobian_match_the_pair_distances(robot: Robot) -> None:

@@ -36,6 +36,7 @@ def _toy_search(block: int, per_target: bool = False) -> tuple:
     return targets, seeds, valid, [np.asarray(x) for x in out]
 
 
+@pytest.mark.usefixtures("float64")  # the toy roots to 1e-8, costs below 1e-16
 def test_fused_search_finds_both_roots_and_leaves_padding_alone() -> None:
     targets, seeds, valid, (z, cost, counted, iterated) = _toy_search(block=4)
     # The diverse beam of two holds both roots ±√p of every valid target.
@@ -61,6 +62,7 @@ def test_fused_search_answer_does_not_depend_on_the_block_size() -> None:
         np.testing.assert_allclose(cost[valid], c_ref[valid], atol=1e-16)
 
 
+@pytest.mark.usefixtures("float64")  # the toy roots to 1e-8, costs below 1e-16
 def test_per_target_search_stops_the_other_candidates() -> None:
     """With ``per_target`` a target's candidates stop once one converged: after the round
     in which every target has a converged candidate nothing iterates."""

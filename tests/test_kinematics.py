@@ -117,6 +117,7 @@ def test_per_segment_tendons_closed_form() -> None:
 
 # ------------------------------------------------------------------ JAX vs CasADi
 
+@pytest.mark.usefixtures("float64")  # JAX Jacobians against CasADi at 1e-9
 @pytest.mark.parametrize("robot", [TDCR3, pytest.param(TDCR4, marks=pytest.mark.slow)],
                          ids=["tdcr3", "tdcr4_ext"])
 def test_jax_and_casadi_agree_values_and_jacobians(robot: Robot) -> None:
@@ -152,6 +153,7 @@ def test_jax_and_casadi_agree_values_and_jacobians(robot: Robot) -> None:
                                jac_t, atol=1e-9)
 
 
+@pytest.mark.usefixtures("float64")  # JAX Jacobians against CasADi at 1e-9
 def test_pose_error_jax_and_casadi_agree() -> None:
     rng = np.random.default_rng(3)
     qs = random_q(TDCR3, rng, 100)
@@ -216,6 +218,7 @@ angles = st.floats(0.0, np.pi, allow_nan=False)
 azimuths = st.floats(-np.pi, np.pi, allow_nan=False)
 
 
+@pytest.mark.usefixtures("float64")  # the JAX q ↔ z round trip at 1e-12
 @settings(max_examples=60, deadline=None)
 @given(st.lists(st.tuples(angles, azimuths), min_size=3, max_size=3))
 def test_bending_vector_round_trip(segments: list[tuple[float, float]]) -> None:
@@ -229,6 +232,7 @@ def test_bending_vector_round_trip(segments: list[tuple[float, float]]) -> None:
 twists = st.lists(st.floats(-2.0, 2.0, allow_nan=False), min_size=6, max_size=6)
 
 
+@pytest.mark.usefixtures("float64")  # the JAX SE(3) log ∘ exp round trip at 1e-9
 @settings(max_examples=100, deadline=None)
 @given(twists)
 def test_se3_log_exp_round_trip(xi: list[float]) -> None:

@@ -1,23 +1,19 @@
 """Stage 3 (polish): Ipopt from a warm start, constraints as constraints, verdicts re-checked."""
 
-import jax
+import casadi as ca
+import numpy as np
+import pytest
 
-jax.config.update("jax_enable_x64", True)
-
-import casadi as ca  # noqa: E402
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-
-from cr_nlp.model import load_robot, tip_pose  # noqa: E402
-from cr_nlp.model.limits import limit_violation_q  # noqa: E402
-from cr_nlp.stages import polish as polish_module  # noqa: E402
-from cr_nlp.stages.polish import (  # noqa: E402
+from cr_nlp.model import load_robot, tip_pose
+from cr_nlp.model.limits import limit_violation_q
+from cr_nlp.stages import polish as polish_module
+from cr_nlp.stages.polish import (
     IKPolisher,
     PolishConfig,
     PolishResult,
     polish_many,
 )
-from cr_nlp.world import (  # noqa: E402
+from cr_nlp.world import (
     ConvexPart,
     Obstacle,
     Scene,
@@ -27,7 +23,7 @@ from cr_nlp.world import (  # noqa: E402
     scene_arrays,
 )
 
-from .conftest import MODELS  # noqa: E402
+from .conftest import MODELS
 
 
 @pytest.fixture(scope="module")

@@ -209,7 +209,9 @@ def test_quaternion_conversions_are_float64() -> None:
 
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
-def test_jax_in_gives_jax_out_under_jit(dtype: jnp.dtype) -> None:
+def test_jax_in_gives_jax_out_under_jit(dtype: jnp.dtype, request: pytest.FixtureRequest) -> None:
+    if dtype == jnp.float64:
+        request.getfixturevalue("float64")  # float64 JAX arrays need x64
     q = jnp.asarray(configurations(TDCR3, 8, 8), dtype)
 
     @jax.jit

@@ -27,8 +27,6 @@ from cr_nlp.world import (
 
 from .conftest import MODELS, random_q, write_mixed_scene
 
-jax.config.update("jax_enable_x64", True)
-
 
 @pytest.fixture(scope="module")
 def tdcr3() -> Robot:
@@ -92,6 +90,7 @@ def test_self_pairs_only_between_segments_two_apart(tdcr3: Robot) -> None:
         == np.inf
 
 
+@pytest.mark.usefixtures("float64")  # closed-form clearances at 1e-12
 def test_straight_robot_values(tdcr3: Robot) -> None:
     straight = np.array([0.0, 0.0, 1.0] * 3)
     lattice = scene_arrays(load_scene("lattice"))
@@ -107,6 +106,7 @@ def test_straight_robot_values(tdcr3: Robot) -> None:
     assert float(clearance_z(tdcr3, lattice, q_to_z(tdcr3, straight))) == pytest.approx(0.1)
 
 
+@pytest.mark.usefixtures("float64")  # float32 against the float64 default
 def test_batch_shapes_and_dtypes(tdcr3: Robot) -> None:
     scene = load_scene("lattice")
     qs = random_q(tdcr3, 12, seed=3).reshape(3, 4, 9)
@@ -123,6 +123,7 @@ def test_batch_shapes_and_dtypes(tdcr3: Robot) -> None:
     np.testing.assert_allclose(np.asarray(single), np.asarray(full), atol=2e-5)
 
 
+@pytest.mark.usefixtures("float64")  # the bounds at 1e-12
 def test_soft_clearance_bounds(tdcr3: Robot, mixed_scene: Scene) -> None:
     qs = random_q(tdcr3, 600, seed=2)   # the batch of the test above: compiled already
     arrays = scene_arrays(mixed_scene)
@@ -155,6 +156,7 @@ def test_body_chain_starts_at_the_base(tdcr3: Robot) -> None:
 
 # Smoothing changes only the convex-part formula: the mixed scene (every kind) runs with
 # it, the shelf (convex parts only) without; each JAX derivative compiles in seconds.
+@pytest.mark.usefixtures("float64")  # JAX against CasADi at 1e-10
 @pytest.mark.parametrize(("scene_name", "smoothing"), [("mixed", 0.01), ("shelf", 0.0)])
 def test_jax_and_casadi_agree_on_values_and_jacobians(tdcr3: Robot, mixed_scene: Scene,
                                                       scene_name: str, smoothing: float) -> None:
@@ -192,6 +194,7 @@ def _casadi_jacobian(f: ca.Function) -> ca.Function:
     return ca.Function("jacobian_q", [q], [ca.jacobian(f(q), q)])
 
 
+@pytest.mark.usefixtures("float64")  # the JAX q_to_z feeds a 1e-12 comparison
 def test_casadi_keeps_only_near_pairs(tdcr3: Robot) -> None:
     scene = load_scene("lattice")
     straight = np.array([0.0, 0.0, 1.0] * 3)

@@ -14,8 +14,6 @@ from cr_nlp.world import BoxPart, CapsulePart, ConvexPart, CylinderPart, SphereP
 from cr_nlp.world import distances as dist
 from cr_nlp.world.check import fcl_distance, fcl_object
 
-jax.config.update("jax_enable_x64", True)
-
 FCL_TOL = 2e-5   # fcl's GJK/EPA answers to about 1e-6 m; leave room
 coord = st.floats(-2.0, 2.0, allow_nan=False)
 point = st.tuples(coord, coord, coord).map(np.array)

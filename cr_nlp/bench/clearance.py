@@ -11,6 +11,7 @@ does) before JAX starts, so XLA's CPU backend gets one device per core.
 
 from __future__ import annotations
 
+import contextlib
 import statistics
 import time
 from dataclasses import asdict, dataclass
@@ -61,36 +62,37 @@ def bench_clearance(robot: str = "tdcr3", scene: str = "lattice", configs: int =
     from ..world.clearance import clearance, scene_arrays
     from ..world.scene import load_scene
 
-    rob = load_robot(robot)
-    world = load_scene(scene)
-    float_type = {"float32": jnp.float32, "float64": jnp.float64}[dtype]
-    if dtype == "float64" and not jax.config.jax_enable_x64:
-        jax.config.update("jax_enable_x64", True)
-    arrays = scene_arrays(world, float_type)
-    lo, hi = Robot.q_bounds(rob)
-    devices = jax.devices()
-    batch = configs - configs % len(devices)   # equal shards
-    qs = np.random.default_rng(seed).uniform(lo, hi, (batch, rob.dof))
-    # Each device evaluates its slice of the batch with the scene replicated.
-    sharded = split_over_devices(lambda a, q: clearance(rob, a, q), (False, True), batch)
-    q_all = jnp.asarray(qs, float_type)
+    # float64 needs JAX's x64: on for this measurement only, so the process's other JAX
+    # arrays keep the user's default dtype afterwards.
+    with jax.enable_x64(True) if dtype == "float64" else contextlib.nullcontext():
+        rob = load_robot(robot)
+        world = load_scene(scene)
+        float_type = {"float32": jnp.float32, "float64": jnp.float64}[dtype]
+        arrays = scene_arrays(world, float_type)
+        lo, hi = Robot.q_bounds(rob)
+        devices = jax.devices()
+        batch = configs - configs % len(devices)   # equal shards
+        qs = np.random.default_rng(seed).uniform(lo, hi, (batch, rob.dof))
+        # Each device evaluates its slice of the batch with the scene replicated.
+        sharded = split_over_devices(lambda a, q: clearance(rob, a, q), (False, True), batch)
+        q_all = jnp.asarray(qs, float_type)
 
-    def run() -> Any:
-        return sharded(arrays, q_all).block_until_ready()
+        def run() -> Any:
+            return sharded(arrays, q_all).block_until_ready()
 
-    start = time.perf_counter()
-    run()
-    compile_s = time.perf_counter() - start
-    run()  # warm-up: first run after compiling still touches fresh buffers
-    times = []
-    for _ in range(repeats):
         start = time.perf_counter()
         run()
-        times.append(time.perf_counter() - start)
-    return ClearanceBenchRow(scene=world.name, parts=arrays.n_parts, configs=batch, dtype=dtype,
-                             devices=len(devices), compile_s=compile_s,
-                             median_s=statistics.median(times), min_s=min(times),
-                             max_s=max(times))
+        compile_s = time.perf_counter() - start
+        run()  # warm-up: first run after compiling still touches fresh buffers
+        times = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            run()
+            times.append(time.perf_counter() - start)
+        return ClearanceBenchRow(scene=world.name, parts=arrays.n_parts, configs=batch,
+                                 dtype=dtype, devices=len(devices), compile_s=compile_s,
+                                 median_s=statistics.median(times), min_s=min(times),
+                                 max_s=max(times))
 
 
 COLUMNS = (
