@@ -187,7 +187,7 @@ def test_ik_answers_carry_motor_commands_that_reproduce_them(tmp_path) -> None:
     from cr_nlp.model.rotations import wxyz_from_matrix
 
     wxyz = np.array([wxyz_from_matrix(r) for r in rot])
-    result = IKSolver(robot, None, IKConfig(pool_size=512, dtype="float64")).solve(pos, wxyz)
+    result = IKSolver(robot, None, IKConfig(pool_size=512)).solve(pos, wxyz)
     assert result.success.all()
     d = result.tendon_displacements
     assert d.shape == (2, 9)
