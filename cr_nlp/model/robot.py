@@ -81,12 +81,20 @@ class Robot:
     base_wxyz: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
     tendon_speed_max: float = math.inf
     tendon_accel_max: float = math.inf
+    self_collision: bool = True
+    """Whether segments at least two apart must keep clear of each other (every task's
+    verdict and model); false only for robots whose segments cannot meet."""
     source: str = field(default="", compare=False)
 
     # ------------------------------------------------------------ sizes and bounds
     @property
     def n_segments(self) -> int:
         return len(self.segments)
+
+    @property
+    def has_self_pairs(self) -> bool:
+        """True when self-collision is checked and some segments are two or more apart."""
+        return self.self_collision and self.n_segments >= 3
 
     @property
     def dof(self) -> int:
@@ -204,6 +212,8 @@ class Robot:
             out["tendon_speed_max"] = self.tendon_speed_max
         if math.isfinite(self.tendon_accel_max):
             out["tendon_accel_max"] = self.tendon_accel_max
+        if not self.self_collision:
+            out["self_collision"] = False
         return out
 
 
@@ -242,7 +252,8 @@ def load_robot(robot: str | Path | Robot | dict) -> Robot:
 # ---------------------------------------------------------------- validation helpers
 
 _TOP_KEYS = {"name", "description", "segments", "backbone_radius", "points_per_segment",
-             "tendons", "base", "tendon_speed_max", "tendon_accel_max"}
+             "tendons", "base", "tendon_speed_max", "tendon_accel_max",
+             "self_collision"}
 _SEGMENT_KEYS = {"length", "theta_max", "phi_range", "name"}
 _TENDON_KEYS = {"per_segment", "radius", "offsets", "routing"}
 _BASE_KEYS = {"position", "wxyz"}
@@ -332,6 +343,9 @@ def _parse_robot(data: Any, source: str) -> Robot:
                      positive=True) if "tendon_speed_max" in d else math.inf
     accel = c.number(d["tendon_accel_max"], "tendon_accel_max",
                      positive=True) if "tendon_accel_max" in d else math.inf
+    self_collision = d.get("self_collision", True)
+    if not isinstance(self_collision, bool):
+        raise c.fail("self_collision", f"expected true or false, got {self_collision!r}")
 
     return Robot(
         name=name,
@@ -343,6 +357,7 @@ def _parse_robot(data: Any, source: str) -> Robot:
         base_wxyz=wxyz,  # type: ignore[arg-type]
         tendon_speed_max=speed,
         tendon_accel_max=accel,
+        self_collision=self_collision,
         source=source,
     )
 

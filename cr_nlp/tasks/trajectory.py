@@ -177,7 +177,7 @@ def _groups(robot: Robot, arrays: SceneArrays | None) -> list[np.ndarray]:
     if arrays is not None and arrays.n_parts > 0:
         out += list(body_segments(robot))
         offset = robot.n_points + 1
-    if robot.n_segments >= 3:
+    if robot.has_self_pairs:
         out.append(offset + np.arange(len(self_pairs(robot))))
     return out
 
@@ -240,7 +240,7 @@ def _groups_from(robot: Robot, margin: float, arrays: SceneArrays | None, centre
         values.append(d)
         if jac_centres is not None:
             rows.append(jnp.einsum("nk,nkj->nj", grad, jac_centres))
-    if robot.n_segments >= 3:
+    if robot.has_self_pairs:
         pairs = self_pairs(robot)
         diff = centres[pairs[:, 0]] - centres[pairs[:, 1]]
         norm = jnp.sqrt(jnp.maximum(jnp.sum(diff * diff, axis=-1), 1e-30))
@@ -293,7 +293,7 @@ def _clearance_groups_jvp(robot: Robot, margin: float, primals: tuple,
 
 
 def _has_clearance(robot: Robot, arrays: SceneArrays | None) -> bool:
-    return (arrays is not None and arrays.n_parts > 0) or robot.n_segments >= 3
+    return (arrays is not None and arrays.n_parts > 0) or robot.has_self_pairs
 
 
 def trajectory_residual(robot: Robot, waypoints: int, checks: int, margin: float,
@@ -413,7 +413,7 @@ def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
         "tendon_accel": max(0.0, accel_max - robot.tendon_accel_max),
     }
     min_clearance, first_collision = math.inf, -1
-    if scene is not None or robot.n_segments >= 3:
+    if scene is not None or robot.has_self_pairs:
         verdict = check_many(robot, scene if scene is not None else _NO_OBSTACLES, dense)
         min_clearance = float(np.min(verdict.min_distance))
         hits = np.flatnonzero(verdict.collision)
@@ -739,7 +739,7 @@ class TrajectoryPlanner:
             except (ValueError, TypeError) as exc:
                 out.append((None, None, f"bad goal: {exc}"))
         rows = [i for i, (_, _, reason) in enumerate(out) if not reason]
-        if rows and (self.scene is not None or self.robot.n_segments >= 3):
+        if rows and (self.scene is not None or self.robot.has_self_pairs):
             scene = self.scene if self.scene is not None else _NO_OBSTACLES
             ends = np.stack([q for i in rows for q in out[i][:2]])
             verdict = check_many(self.robot, scene, ends)
