@@ -140,6 +140,22 @@ class Case:
         return self.scene.name if self.scene is not None else "none"
 
 
+@dataclass(frozen=True)
+class RowAnswers:
+    """The answers a row's quality columns come from (its last timed call), kept with
+    the row (key "answers", not written to the files) so that a test can judge them
+    again with the library's verdict."""
+
+    q: np.ndarray
+    """(T, 3n) answers (rad, rad, m)."""
+    positions: np.ndarray
+    """(T, 3) their target positions, metres."""
+    wxyz: np.ndarray
+    """(T, 4) their target orientations."""
+    success: np.ndarray
+    """(T,) the success flags the row's success % counts."""
+
+
 def forward_kinematics(robot: Robot, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Tip positions (T, 3) m and orientations (T, 4) wxyz of configurations q (T, 3n),
     float64 numpy (independent of JAX's precision setting)."""
@@ -240,6 +256,7 @@ def measure_cr_nlp(case: Case, method: str, repeats: int, seed: int = 0) -> dict
         stages.append(result.timing.as_dict())
     row = _quality(result.pose_error, result.success, result.max_violation,
                    result.collision_free, case.scene is not None)
+    row["answers"] = RowAnswers(result.q, case.positions, case.wxyz, result.success)
     row.update(_times(first, walls, compile_s))
     for stage in ("explore", "refine", "polish", "verify"):
         row[f"{stage}_s"] = statistics.median(s[stage] for s in stages)
@@ -308,6 +325,7 @@ def measure_throughput(robot: Robot, sizes: Sequence[int], repeats: int, seed: i
             waits.append(solver.device_wait)
         row = _quality(result.pose_error, result.success, result.max_violation,
                        result.collision_free, False)
+        row["answers"] = RowAnswers(result.q, case.positions, case.wxyz, result.success)
         row.update(_times(first, walls, compile_s))
         for stage in ("explore", "refine", "verify"):
             row[f"{stage}_s"] = statistics.median(s[stage] for s in stages)
@@ -355,6 +373,7 @@ def _baseline_row(case: Case, judge_solver: IKSolver, q: np.ndarray, positions: 
     checked = judge(judge_solver, q, positions, wxyz)
     row = _quality(checked["pose_error"], checked["success"], checked["max_violation"],
                    checked["collision_free"], case.scene is not None)
+    row["answers"] = RowAnswers(np.asarray(q, dtype=float), positions, wxyz, checked["success"])
     row.update(times)
     row["verify_s"] = time.perf_counter() - start  # not part of total_s for baselines
     return row
@@ -421,11 +440,13 @@ def run_ik_benchmark(suite: str = "all", quick: bool = False, repeats: int | Non
 
     Row keys: suite, robot, scene, method, targets, success_pct, collision_free_pct
     (None without a scene), mean_pose_error and median_pose_error (‖log(T⁻¹T_target)‖,
-    mixed m/rad), max_violation (rad or m: limits, and clearance below δ in scenes),
+    mixed m/rad), max_violation (rad or m: limits, clearance below δ to obstacles and
+    between segments at least two apart),
     total_s (median steady-state wall time), per_target_ms, min_s, max_s, runs,
     first_call_s, compile_s (None where nothing compiles), explore_s, refine_s,
     polish_s, verify_s (stage medians, cr_nlp rows), polished_pct and polish_ms (the
-    polish stage per target, exact rows), notes.
+    polish stage per target, exact rows), notes, answers (``RowAnswers``: the answers
+    and success flags the quality columns come from; not written to the files).
     """
     use_host_devices()  # both cores, as the CLI does (no effect once JAX has started)
     if suite not in ("all", *SUITES):
@@ -530,7 +551,8 @@ THROUGHPUT_COLUMNS = (
 """The columns of the throughput table."""
 
 _TITLES = {
-    "free": "IK without obstacles (tdcr3, targets from uniform configurations)",
+    "free": "IK without obstacles (tdcr3, targets from uniform configurations free of "
+            "self-collision)",
     "lattice": "IK among obstacles (3×3×3 sphere lattice, targets from configurations whose "
                "python-fcl clearance ≥ the solver's sphere margin `IKSolver.margin`)",
     "scaling": "IK scaling with the number of segments (no obstacles)",
@@ -563,11 +585,12 @@ def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str],
     d, s = NEWTON_CONFIG, SCIPY_CONFIG
     parts += ["## Notes", "\n".join([
         "- success %: pose error ‖log(T⁻¹·T_target)‖ < 0.01 re-evaluated in float64, every "
-        "limit held and, in the lattice, collision-free by python-fcl; one rule "
-        "(`IKSolver.verify` + the library's success test) for every row.",
+        "limit held, segments at least two apart at least δ = 2 mm apart and, in the "
+        "lattice, at least δ from every obstacle by python-fcl; one rule (`IKSolver.verify`"
+        ", i.e. `world.verdict.judge_many`) for every row.",
         "- mean pose error over all targets (mixed m/rad); max violation: largest limit "
-        "violation, and in the lattice also the clearance shortfall below the safety margin "
-        "δ (m), over all targets.",
+        "violation or clearance shortfall below the safety margin δ (m; obstacles and "
+        "self), over all targets.",
         f"- time s: median wall time of {sizes.repeats} call(s) after a warm-up call on the "
         "same targets; cr_nlp times include its own float64 verification, baseline times "
         "do not. first call s: the warm-up call's wall time (seed pool, compilation or "
