@@ -2,9 +2,11 @@
 
 Problem (DESIGN.md §2): z = bending-vector configuration; f = ½‖log(T_tip⁻¹·T_target)‖²
 as LM residuals; limits by projection; clearance ≥ δ (penalty in JAX, a real
-constraint in the exact stage); success is judged independently of the optimiser:
-pose error < ``IKConfig.success_tolerance`` re-evaluated in float64, every limit held,
-and, with a scene, collision-free by python-fcl.
+constraint in the exact stage), and the same for the self-clearance between segments at
+least two apart, with or without a scene; success is judged independently of the
+optimiser by ``world.verdict`` (``IKSolver.verify``): pose error <
+``IKConfig.success_tolerance`` re-evaluated in float64, every limit held, clearance ≥ δ
+to obstacles (python-fcl) and between segments at least two apart.
 
 Stages: explore (a Sobol seed pool held on the device, the K pool entries nearest each
 target in pose by a jitted lookup, a few coarse LM steps on all of them, a diverse beam
@@ -13,7 +15,10 @@ fresh seeds for the targets still failing), polish (optional: Ipopt with the con
 as constraints). Large batches stream through in parts of ``IKConfig.stream_size``. The
 coarse steps, the beam and the refinement rounds of a chunk of targets run as one device
 program, all retry rounds of its failing targets as one more (``stages.search``,
-``IKConfig.fused``).
+``IKConfig.fused``). Without a scene the search first solves the pose alone (the
+self-clearance rows made a free tdcr3 solve ~8× slower); the targets whose answer's
+segments then come closer than δ are searched again with the self-clearance rows
+(``IKSolver._solve_part``, counted in ``IKSolver.self_repaired``).
 """
 
 from __future__ import annotations
@@ -151,10 +156,13 @@ class IKResult:
     pose_error: np.ndarray         # (T,) ‖log(T⁻¹ T_target)‖
     position_error: np.ndarray     # (T,) m
     rotation_error: np.ndarray     # (T,) rad
-    max_violation: np.ndarray      # (T,) largest limit violation (rad, m) or python-fcl
-    #                                clearance shortfall below the safety margin (m)
-    clearance: np.ndarray          # (T,) python-fcl signed distance, m (nan without scene)
-    collision_free: np.ndarray     # (T,) bool, python-fcl verdict (True without scene)
+    max_violation: np.ndarray      # (T,) largest limit violation (rad, m) or clearance
+    #                                shortfall below the safety margin (m; obstacles by
+    #                                python-fcl, and segments at least two apart)
+    clearance: np.ndarray          # (T,) signed distance, m: the smaller of the python-fcl
+    #                                obstacle distance and the self-clearance (nan when
+    #                                neither is checked)
+    collision_free: np.ndarray     # (T,) bool: no obstacle or self penetration
     success: np.ndarray            # (T,) bool
     stage: list[str]               # which stage produced each answer
     reason: list[str]              # empty on success, else why it failed
