@@ -16,9 +16,9 @@ as constraints). Large batches stream through in parts of ``IKConfig.stream_size
 coarse steps, the beam and the refinement rounds of a chunk of targets run as one device
 program, all retry rounds of its failing targets as one more (``stages.search``,
 ``IKConfig.fused``). Without a scene the search first solves the pose alone (the
-self-clearance rows made a free tdcr3 solve ~8× slower); the targets whose answer's
-segments then come closer than δ are searched again with the self-clearance rows
-(``IKSolver._solve_part``, counted in ``IKSolver.self_repaired``).
+self-clearance rows in every LM row made a free tdcr3 solve ~8× slower); the targets
+whose answer's segments then come closer than δ are searched again with the
+self-clearance rows (``IKSolver._solve_part``, counted in ``IKSolver.self_repaired``).
 """
 
 from __future__ import annotations
@@ -766,8 +766,12 @@ class IKSolver:
                     timing: IKTiming) -> np.ndarray:
         """One part of a stream (valid targets): q (T, 3n). Without a scene, the targets
         whose answer's segments come closer than δ (``world.check``, the verdict's own
-        numbers) are solved again with the self-clearance model, and the new answer
-        replaces the old where the verdict accepts it and not the old."""
+        numbers) are solved again with the self-clearance rows (fused: the retry rounds'
+        one program, with the answer, its pool neighbours and fresh random seeds;
+        host-driven: the whole search), and the new answer replaces the old where the
+        verdict accepts it and not the old. Measured (1000 free tdcr3 targets, 2 cores
+        at load 10, interleaved medians of 5): 0.65 s → 0.90 s per solve, 2 targets
+        repaired; the old path reported 3 successes whose segments overlapped."""
         q = self._search_part(pos_v, rot_v, timing)
         if not self._self_repair:
             return q
@@ -781,7 +785,16 @@ class IKSolver:
         saved = self._residual, self._compiled
         self._residual, self._compiled = self._residuals[True], self._compiled_self
         try:
-            q_new = self._search_part(pos_v[bad], rot_v[bad], timing)
+            if self._fused and self.config.retry_rounds > 0:
+                # One program: the retry rounds (pool neighbours, fresh random seeds and
+                # the answer itself) race every target again.
+                pool = self._seed_pool(timing)
+                z_new, _ = self._retry_fused(
+                    q_to_z_numpy(q[bad]), np.full(len(bad), np.inf), pos_v[bad], rot_v[bad],
+                    bad, pool, timing)
+                q_new = clip_to_limits(self.robot, z_to_q_numpy(z_new))
+            else:
+                q_new = self._search_part(pos_v[bad], rot_v[bad], timing)
         finally:
             self._residual, self._compiled = saved
         t0 = time.perf_counter()
