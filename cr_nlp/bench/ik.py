@@ -608,8 +608,8 @@ def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str],
         f"- scipy {s.method}: one uniform random start per target, bounded θ and L, at most "
         f"{s.max_evaluations} evaluations, CasADi-evaluated pose error; run once on the first "
         f"{sizes.scipy_targets} targets of each case (it is slow).",
-        "- The baselines ignore obstacles; in the lattice their answers are judged by "
-        "python-fcl like every other row.",
+        "- The baselines ignore obstacles and self-collision; their answers are judged "
+        "by the same verdict (python-fcl, self-clearance) as every other row.",
         "- throughput: explore (nearest-pose lookup, coarse LM, beam), refine (LM) and "
         "verify (float64 numpy + python-fcl, host only) are `IKResult.timing`; device wait "
         "is the time the host blocked on device results (`IKSolver.device_wait`: device "
