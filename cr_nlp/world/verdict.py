@@ -24,7 +24,6 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -53,7 +52,8 @@ _NAMES = {
 @dataclass(frozen=True)
 class Verdict:
     """The verdict on one answer (configuration, trajectory or path), from numbers
-    re-evaluated independently of the optimiser that produced it."""
+    re-evaluated independently of the optimiser that produced it. Picklable (it travels
+    with results from worker processes)."""
 
     success: bool
     """Pose error below the tolerance (where there is a target) and every violation at
@@ -169,7 +169,7 @@ def judge(*, margin: float, limits: float = 0.0, min_clearance: float = math.inf
         reason = f"not a number among the pose error {pose_error} and {violations}"
     return Verdict(success=not reason, reason=reason,
                    pose_error=None if pose_error is None else float(pose_error),
-                   violations=MappingProxyType(violations),
+                   violations=dict(violations),
                    max_violation=max(violations.values()),
                    min_clearance=float(min_clearance), self_clearance=float(self_clearance))
 
@@ -225,4 +225,4 @@ def judge_many(*, margin: float, limits: Any, min_clearance: Any = None,
                            pose_error=None if errors is None else errors[i],
                            pose_tolerance=pose_tolerance, tolerance=tolerance).reason
     return Verdicts(success=passing, reason=tuple(reasons),
-                    violations=MappingProxyType(violations), max_violation=worst)
+                    violations=dict(violations), max_violation=worst)
