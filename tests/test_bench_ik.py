@@ -116,6 +116,19 @@ def test_benchmark_writes_csv_and_markdown(free_rows: tuple) -> None:
         assert row["collision_free_pct"] is None  # no scene in this suite
 
 
+def test_every_row_success_is_the_library_verdict_on_its_answers(free_rows: tuple) -> None:
+    """Each row's success flags, and the success % it prints, are the library's verdict
+    (``IKSolver.verify``, self-collision included) on that row's own answers."""
+    rows, _ = free_rows
+    solver = IKSolver(TDCR3)
+    for row in rows:
+        answers = row["answers"]
+        checked = solver.verify(answers.q, answers.positions, answers.wxyz)
+        np.testing.assert_array_equal(checked["success"], answers.success, row["method"])
+        assert row["success_pct"] == pytest.approx(100.0 * checked["success"].mean())
+        assert row["targets"] == len(answers.q)
+
+
 @pytest.mark.slow  # a benchmark run or a repeat of covered work: `pytest -m slow`
 def test_benchmark_success_is_the_shared_judge(free_rows: tuple) -> None:
     """The baseline's success column is recomputed from its answers by the same judge,

@@ -57,7 +57,9 @@ def test_round_trip_without_obstacles(which: str, request: pytest.FixtureRequest
     robot = solver.robot
     rng = np.random.default_rng(11)
     lo, hi = robot.q_bounds()
-    q = rng.uniform(lo, hi, (200, robot.dof))
+    q = rng.uniform(lo, hi, (300, robot.dof))
+    # Targets with an answer the verdict accepts: segments two apart keep δ = 2 mm.
+    q = q[check_many(robot, None, q).self_distance >= 0.002][:200]
     positions, wxyz = targets_from(robot, q)
     result = solver.solve(positions, wxyz)
     assert result.success.mean() >= 0.99

@@ -200,6 +200,7 @@ def test_one_verdict_a_margin_violation_is_a_failure_in_both_modes(shelf_planner
     # the reason says which check failed by how much.
     from cr_nlp.stages.polish_trajectory import TrajectoryPolisher
     from cr_nlp.tasks import trajectory as T
+    from cr_nlp.world.verdict import failure_reason
 
     class Failed:
         success, status, q, violations = False, "Infeasible_Problem_Detected", None, {}
@@ -212,7 +213,7 @@ def test_one_verdict_a_margin_violation_is_a_failure_in_both_modes(shelf_planner
         verdict = true_verify(robot, scene, q, dt, margin, samples, *a, **k)
         verdict["violations"]["clearance"] = 1e-3
         verdict["max_violation"] = max(verdict["violations"].values())
-        verdict["reason"] = T.failure_reason(verdict["violations"])
+        verdict["reason"] = failure_reason(verdict["violations"])
         verdict["success"] = not verdict["reason"]
         return verdict
 

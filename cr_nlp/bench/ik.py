@@ -3,7 +3,8 @@
 Suites:
 
 - ``free``: tdcr3 without obstacles, 1000 targets, each the forward kinematics of a
-  configuration drawn uniformly inside the limits (θ, φ, L independently, fixed seed).
+  configuration drawn uniformly inside the limits (θ, φ, L independently, fixed seed)
+  whose segments keep the safety margin from each other (the verdict checks self-collision).
 - ``lattice``: the 3×3×3 sphere lattice (``models/scenes/lattice.json``), 100 targets
   from configurations whose python-fcl clearance is at least the solver's safety margin
   δ (``IKSolver.margin``), for tdcr3 and tdcr4_ext.
@@ -45,16 +46,13 @@ from .._jax_setup import use_host_devices
 from ..model import Robot, load_robot
 from ..model._ops import NUMPY
 from ..model.kinematics import model_q_to_z, model_segment_frames
-from ..model.limits import limit_violation_q
 from ..model.rotations import wxyz_from_matrix
 from ..tasks.ik import IKConfig, IKSolver
 from ..world import Scene, check_many, load_scene
-from ..world.verdict import VIOLATION_TOLERANCE
 from .baselines import (
     DampedNewtonConfig,
     ScipyConfig,
     damped_newton_ik,
-    random_configurations,
     scipy_ik,
 )
 from .common import (
@@ -142,6 +140,22 @@ class Case:
         return self.scene.name if self.scene is not None else "none"
 
 
+@dataclass(frozen=True)
+class RowAnswers:
+    """The answers a row's quality columns come from (its last timed call), kept with
+    the row (key "answers", not written to the files) so that a test can judge them
+    again with the library's verdict."""
+
+    q: np.ndarray
+    """(T, 3n) answers (rad, rad, m)."""
+    positions: np.ndarray
+    """(T, 3) their target positions, metres."""
+    wxyz: np.ndarray
+    """(T, 4) their target orientations."""
+    success: np.ndarray
+    """(T,) the success flags the row's success % counts."""
+
+
 def forward_kinematics(robot: Robot, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Tip positions (T, 3) m and orientations (T, 4) wxyz of configurations q (T, 3n),
     float64 numpy (independent of JAX's precision setting)."""
@@ -152,9 +166,21 @@ def forward_kinematics(robot: Robot, q: np.ndarray) -> tuple[np.ndarray, np.ndar
     return np.stack(np.broadcast_arrays(*pos), -1).reshape(-1, 3), wxyz_from_matrix(rotation)
 
 
-def free_case(robot: Robot, count: int, seed: int, suite: str = "free") -> Case:
-    """``count`` targets from configurations drawn uniformly inside the limits."""
-    q = random_configurations(robot, count, seed)
+def free_case(robot: Robot, count: int, seed: int, suite: str = "free",
+              margin: float = IKConfig.safety_margin) -> Case:
+    """``count`` targets from configurations drawn uniformly inside the limits, kept in
+    the order drawn where segments at least two apart keep ``margin`` (m) from each
+    other (the library's verdict would reject the others: 1.5 % of tdcr3's draws, 9 % of
+    tdcr6_ext's)."""
+    rng = np.random.default_rng(seed)
+    lo, hi = robot.q_bounds()
+    kept: list[np.ndarray] = []
+    while sum(len(k) for k in kept) < count:
+        q = rng.uniform(lo, hi, (max(count, 64), robot.dof))
+        if robot.has_self_pairs:
+            q = q[check_many(robot, None, q).self_distance >= margin]
+        kept.append(q)
+    q = np.concatenate(kept)[:count]
     positions, wxyz = forward_kinematics(robot, q)
     return Case(suite, robot, None, q, positions, wxyz)
 
@@ -184,14 +210,10 @@ def lattice_case(robot: Robot, scene: Scene, count: int, margin: float, seed: in
 
 def judge(solver: IKSolver, q: np.ndarray, positions: np.ndarray,
           wxyz: np.ndarray) -> dict[str, np.ndarray]:
-    """``solver.verify`` of answers q (T, 3n) plus the library's success rule: pose error
-    below ``success_tolerance``, every limit held, python-fcl collision-free (scenes)."""
-    checked = solver.verify(np.asarray(q, dtype=float), positions, wxyz)
-    finite = np.all(np.isfinite(q), axis=1)
-    limits_ok = limit_violation_q(solver.robot, q) <= VIOLATION_TOLERANCE
-    checked["success"] = (finite & (checked["pose_error"] < solver.config.success_tolerance)
-                          & checked["collision_free"] & limits_ok)
-    return checked
+    """The library's verdict on answers q (T, 3n), whoever produced them:
+    ``solver.verify`` (float64 pose error, limits, python-fcl clearance, self-clearance;
+    ``world.verdict.judge_many``), exactly what ``IKSolver.solve`` reports for its own."""
+    return solver.verify(np.asarray(q, dtype=float), positions, wxyz)
 
 
 def _quality(pose_error: np.ndarray, success: np.ndarray, max_violation: np.ndarray,
@@ -234,6 +256,7 @@ def measure_cr_nlp(case: Case, method: str, repeats: int, seed: int = 0) -> dict
         stages.append(result.timing.as_dict())
     row = _quality(result.pose_error, result.success, result.max_violation,
                    result.collision_free, case.scene is not None)
+    row["answers"] = RowAnswers(result.q, case.positions, case.wxyz, result.success)
     row.update(_times(first, walls, compile_s))
     for stage in ("explore", "refine", "polish", "verify"):
         row[f"{stage}_s"] = statistics.median(s[stage] for s in stages)
@@ -302,6 +325,7 @@ def measure_throughput(robot: Robot, sizes: Sequence[int], repeats: int, seed: i
             waits.append(solver.device_wait)
         row = _quality(result.pose_error, result.success, result.max_violation,
                        result.collision_free, False)
+        row["answers"] = RowAnswers(result.q, case.positions, case.wxyz, result.success)
         row.update(_times(first, walls, compile_s))
         for stage in ("explore", "refine", "verify"):
             row[f"{stage}_s"] = statistics.median(s[stage] for s in stages)
@@ -349,6 +373,7 @@ def _baseline_row(case: Case, judge_solver: IKSolver, q: np.ndarray, positions: 
     checked = judge(judge_solver, q, positions, wxyz)
     row = _quality(checked["pose_error"], checked["success"], checked["max_violation"],
                    checked["collision_free"], case.scene is not None)
+    row["answers"] = RowAnswers(np.asarray(q, dtype=float), positions, wxyz, checked["success"])
     row.update(times)
     row["verify_s"] = time.perf_counter() - start  # not part of total_s for baselines
     return row
@@ -415,11 +440,13 @@ def run_ik_benchmark(suite: str = "all", quick: bool = False, repeats: int | Non
 
     Row keys: suite, robot, scene, method, targets, success_pct, collision_free_pct
     (None without a scene), mean_pose_error and median_pose_error (‖log(T⁻¹T_target)‖,
-    mixed m/rad), max_violation (rad or m: limits, and clearance below δ in scenes),
+    mixed m/rad), max_violation (rad or m: limits, clearance below δ to obstacles and
+    between segments at least two apart),
     total_s (median steady-state wall time), per_target_ms, min_s, max_s, runs,
     first_call_s, compile_s (None where nothing compiles), explore_s, refine_s,
     polish_s, verify_s (stage medians, cr_nlp rows), polished_pct and polish_ms (the
-    polish stage per target, exact rows), notes.
+    polish stage per target, exact rows), notes, answers (``RowAnswers``: the answers
+    and success flags the quality columns come from; not written to the files).
     """
     use_host_devices()  # both cores, as the CLI does (no effect once JAX has started)
     if suite not in ("all", *SUITES):
@@ -524,7 +551,8 @@ THROUGHPUT_COLUMNS = (
 """The columns of the throughput table."""
 
 _TITLES = {
-    "free": "IK without obstacles (tdcr3, targets from uniform configurations)",
+    "free": "IK without obstacles (tdcr3, targets from uniform configurations free of "
+            "self-collision)",
     "lattice": "IK among obstacles (3×3×3 sphere lattice, targets from configurations whose "
                "python-fcl clearance ≥ the solver's sphere margin `IKSolver.margin`)",
     "scaling": "IK scaling with the number of segments (no obstacles)",
@@ -557,11 +585,12 @@ def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str],
     d, s = NEWTON_CONFIG, SCIPY_CONFIG
     parts += ["## Notes", "\n".join([
         "- success %: pose error ‖log(T⁻¹·T_target)‖ < 0.01 re-evaluated in float64, every "
-        "limit held and, in the lattice, collision-free by python-fcl; one rule "
-        "(`IKSolver.verify` + the library's success test) for every row.",
+        "limit held, segments at least two apart at least δ = 2 mm apart and, in the "
+        "lattice, at least δ from every obstacle by python-fcl; one rule (`IKSolver.verify`"
+        ", i.e. `world.verdict.judge_many`) for every row.",
         "- mean pose error over all targets (mixed m/rad); max violation: largest limit "
-        "violation, and in the lattice also the clearance shortfall below the safety margin "
-        "δ (m), over all targets.",
+        "violation or clearance shortfall below the safety margin δ (m; obstacles and "
+        "self), over all targets.",
         f"- time s: median wall time of {sizes.repeats} call(s) after a warm-up call on the "
         "same targets; cr_nlp times include its own float64 verification, baseline times "
         "do not. first call s: the warm-up call's wall time (seed pool, compilation or "
@@ -579,8 +608,8 @@ def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str],
         f"- scipy {s.method}: one uniform random start per target, bounded θ and L, at most "
         f"{s.max_evaluations} evaluations, CasADi-evaluated pose error; run once on the first "
         f"{sizes.scipy_targets} targets of each case (it is slow).",
-        "- The baselines ignore obstacles; in the lattice their answers are judged by "
-        "python-fcl like every other row.",
+        "- The baselines ignore obstacles and self-collision; their answers are judged "
+        "by the same verdict (python-fcl, self-clearance) as every other row.",
         "- throughput: explore (nearest-pose lookup, coarse LM, beam), refine (LM) and "
         "verify (float64 numpy + python-fcl, host only) are `IKResult.timing`; device wait "
         "is the time the host blocked on device results (`IKSolver.device_wait`: device "

@@ -85,6 +85,9 @@ class Robot:
     base_wxyz: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
     tendon_speed_max: float = math.inf
     tendon_accel_max: float = math.inf
+    self_collision: bool = True
+    """Whether segments at least two apart must keep clear of each other (every task's
+    verdict and model); false only for robots whose segments cannot meet."""
     source: str = field(default="", compare=False)
     actuation: Actuation | None = None
     """Calibrated motor-command model (``model.actuation``), or None: nominal."""
@@ -93,6 +96,11 @@ class Robot:
     @property
     def n_segments(self) -> int:
         return len(self.segments)
+
+    @property
+    def has_self_pairs(self) -> bool:
+        """True when self-collision is checked and some segments are two or more apart."""
+        return self.self_collision and self.n_segments >= 3
 
     @property
     def dof(self) -> int:
@@ -212,6 +220,8 @@ class Robot:
             out["tendon_accel_max"] = self.tendon_accel_max
         if self.actuation is not None:
             out["actuation"] = self.actuation.to_dict()
+        if not self.self_collision:
+            out["self_collision"] = False
         return out
 
 
@@ -250,7 +260,8 @@ def load_robot(robot: str | Path | Robot | dict) -> Robot:
 # ---------------------------------------------------------------- validation helpers
 
 _TOP_KEYS = {"name", "description", "segments", "backbone_radius", "points_per_segment",
-             "tendons", "base", "tendon_speed_max", "tendon_accel_max", "actuation"}
+             "tendons", "base", "tendon_speed_max", "tendon_accel_max", "actuation",
+             "self_collision"}
 _SEGMENT_KEYS = {"length", "theta_max", "phi_range", "name"}
 _TENDON_KEYS = {"per_segment", "radius", "offsets", "routing"}
 _BASE_KEYS = {"position", "wxyz"}
@@ -340,6 +351,9 @@ def _parse_robot(data: Any, source: str) -> Robot:
                      positive=True) if "tendon_speed_max" in d else math.inf
     accel = c.number(d["tendon_accel_max"], "tendon_accel_max",
                      positive=True) if "tendon_accel_max" in d else math.inf
+    self_collision = d.get("self_collision", True)
+    if not isinstance(self_collision, bool):
+        raise c.fail("self_collision", f"expected true or false, got {self_collision!r}")
 
     actuation = None
     if "actuation" in d:
@@ -356,6 +370,7 @@ def _parse_robot(data: Any, source: str) -> Robot:
         base_wxyz=wxyz,  # type: ignore[arg-type]
         tendon_speed_max=speed,
         tendon_accel_max=accel,
+        self_collision=self_collision,
         source=source,
         actuation=actuation,
     )

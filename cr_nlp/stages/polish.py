@@ -196,7 +196,7 @@ class IKPolisher:
         self._lbx = np.ravel([[-s.theta_max, -s.theta_max, s.length_min] for s in robot.segments])
         self._ubx = np.ravel([[s.theta_max, s.theta_max, s.length_max] for s in robot.segments])
         self._n_bodies = robot.n_points + 1
-        self._self_pairs = (self_pairs(robot) if robot.n_segments >= 3
+        self._self_pairs = (self_pairs(robot) if robot.has_self_pairs
                             else np.zeros((0, 2), dtype=np.int64))
         self._pools, _ = make_pools(robot, self.scene, config.max_pairs, include_self=True)
         self._pairs = PairDistances(robot, self.scene)

@@ -253,7 +253,7 @@ class TrajectoryPolisher:
         self._n_configs = w + config.interpolation_checks * (w - 1)
         self._samples = np.arange(1, config.verify_samples) / config.verify_samples
         self._n_bodies = robot.n_points + 1
-        self._self_pairs = (self_pairs(robot) if robot.n_segments >= 3
+        self._self_pairs = (self_pairs(robot) if robot.has_self_pairs
                             else np.zeros((0, 2), dtype=np.int64))
         self._pools, _ = make_pools(robot, self.scene, config.max_pairs, include_self=True)
         self._pairs = PairDistances(robot, self.scene)

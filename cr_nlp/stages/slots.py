@@ -102,7 +102,7 @@ def make_pools(robot: Robot, scene: Scene | None, capacity: int,
             first += count
         with jax.enable_x64(True):
             arrays = scene_arrays(scene, dtype=jnp.float64)
-    n_self = len(self_pairs(robot)) if robot.n_segments >= 3 else 0
+    n_self = len(self_pairs(robot)) if robot.has_self_pairs else 0
     if include_self and n_self:
         pools.append(Pool("self", min(capacity, n_self), 0, np.zeros((0, 0))))
     return pools, arrays

@@ -24,11 +24,10 @@ from .._jax_setup import enable_compilation_cache
 from ..model import Robot, load_robot
 from ..model._ops import NUMPY
 from ..model.kinematics import model_q_to_z
-from ..model.limits import clip_to_limits, limit_violation_q, project_z
+from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz
 from ..stages.lm import LMConfig, lm_solve
 from ..world import Scene, load_scene, scene_arrays
-from ..world.verdict import failure_reason
 from .ik import IKConfig, IKSolver, ik_residual, validate_targets
 
 
@@ -154,18 +153,9 @@ class LiveIKSolver:
         return clip_to_limits(self.robot, q)
 
     def _verify(self, q: np.ndarray, position: np.ndarray, wxyz: np.ndarray) -> dict[str, Any]:
+        """``IKSolver.verify`` of one answer: its numbers and the library's verdict."""
         checked = self.ik.verify(q[None], position[None], wxyz[None])
-        row = {k: v[0] for k, v in checked.items()}
-        violations = {"limits": float(limit_violation_q(self.robot, q))}
-        if self.scene is not None:
-            violations["clearance"] = max(0.0, self.config.safety_margin - float(row["clearance"]))
-        row["reason"] = failure_reason(
-            violations,
-            pose_error=float(row["pose_error"]),
-            pose_tolerance=self.config.success_tolerance,
-            min_clearance=None if row["collision_free"] else float(row["clearance"]),
-        )
-        return row
+        return {k: v[0] for k, v in checked.items()}
 
     def solve(
         self,
@@ -207,7 +197,7 @@ class LiveIKSolver:
         stage = "refine"
 
         search = self.config.fallback_search if search is None else search
-        if row["reason"] and search:
+        if not row["success"] and search:
             t0 = time.perf_counter()
             found = self.ik.solve(position[None], wxyz[None])
             timing["search"] = time.perf_counter() - t0
@@ -238,8 +228,8 @@ class LiveIKSolver:
             rotation_error=float(row["rotation_error"]),
             min_clearance=float(row["clearance"]),
             max_violation=float(row["max_violation"]),
-            success=not row["reason"],
-            reason=row["reason"],
+            success=bool(row["success"]),
+            reason=str(row["reason"]),
             stage=stage,
             seconds=time.perf_counter() - t_start,
             timing=timing,
@@ -255,6 +245,6 @@ class LiveIKSolver:
 def _better(a: dict[str, Any], b: dict[str, Any]) -> bool:
     """Is verified answer a better than b: a success over a failure, else the smaller
     pose error."""
-    if (not a["reason"]) != (not b["reason"]):
-        return not a["reason"]
+    if bool(a["success"]) != bool(b["success"]):
+        return bool(a["success"])
     return float(a["pose_error"]) < float(b["pose_error"])

@@ -54,7 +54,7 @@ from ..world.clearance import (
     self_pairs,
 )
 from ..world.penalty import body_clearances_z
-from ..world.verdict import VIOLATION_TOLERANCE, describe_violations, failure_reason
+from ..world.verdict import VIOLATION_TOLERANCE, describe_violations, judge
 from ._result import (
     SCHEMA_VERSION,
     ResultFileError,
@@ -187,7 +187,7 @@ def _groups(robot: Robot, arrays: SceneArrays | None) -> list[np.ndarray]:
     if arrays is not None and arrays.n_parts > 0:
         out += list(body_segments(robot))
         offset = robot.n_points + 1
-    if robot.n_segments >= 3:
+    if robot.has_self_pairs:
         out.append(offset + np.arange(len(self_pairs(robot))))
     return out
 
@@ -250,7 +250,7 @@ def _groups_from(robot: Robot, margin: float, arrays: SceneArrays | None, centre
         values.append(d)
         if jac_centres is not None:
             rows.append(jnp.einsum("nk,nkj->nj", grad, jac_centres))
-    if robot.n_segments >= 3:
+    if robot.has_self_pairs:
         pairs = self_pairs(robot)
         diff = centres[pairs[:, 0]] - centres[pairs[:, 1]]
         norm = jnp.sqrt(jnp.maximum(jnp.sum(diff * diff, axis=-1), 1e-30))
@@ -303,7 +303,7 @@ def _clearance_groups_jvp(robot: Robot, margin: float, primals: tuple,
 
 
 def _has_clearance(robot: Robot, arrays: SceneArrays | None) -> bool:
-    return (arrays is not None and arrays.n_parts > 0) or robot.n_segments >= 3
+    return (arrays is not None and arrays.n_parts > 0) or robot.has_self_pairs
 
 
 def trajectory_residual(robot: Robot, waypoints: int, checks: int, margin: float,
@@ -394,12 +394,15 @@ def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
             checks every piece's end, so the whole motion, not only the waypoints, is judged.
         tolerance: the largest violation of any family a success may have.
 
-    Returns a dict: ``success`` (every violation ≤ ``tolerance``: clearance ≥ δ − tolerance
-    by fcl along the whole motion, limits and tendon limits), ``reason`` ("" on success,
-    else each failed check and by how much), ``violations``
-    (largest violation per constraint family: ``clearance`` m below δ, ``limits`` rad or
-    m, ``tendon_speed`` m/s, ``tendon_accel`` m/s²), ``max_violation`` (their maximum),
-    ``min_clearance`` (m, fcl, +inf without obstacles), ``collision_free``,
+    Returns a dict: ``success`` (``world.verdict.judge``: every violation ≤ ``tolerance``:
+    clearance to obstacles and between segments at least two apart ≥ δ − tolerance
+    along the whole motion, limits and tendon limits), ``reason`` ("" on success, else
+    each failed check and by how much), ``violations`` (largest violation per constraint
+    family: ``clearance`` and ``self_clearance`` m below δ, ``limits`` rad or m,
+    ``tendon_speed`` m/s, ``tendon_accel`` m/s²), ``max_violation`` (their maximum),
+    ``min_clearance`` (m, the smaller of the python-fcl obstacle distance and the
+    self-clearance, +inf with neither), ``self_clearance`` (m, +inf when not checked),
+    ``verdict`` (the ``world.verdict.Verdict``), ``collision_free``,
     ``path_length`` (m, the tip path along the dense motion), ``tendon_lengths``
     (H+1, n_tendons) m, ``tendon_speed`` and ``tendon_accel`` (largest |value|, m/s and
     m/s²) and ``first_collision`` (index into the dense motion, −1 if none).
@@ -416,28 +419,27 @@ def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
              else np.zeros((0, lengths.shape[1])))
     speed_max = float(np.max(np.abs(speed))) if speed.size else 0.0
     accel_max = float(np.max(np.abs(accel))) if accel.size else 0.0
-    violations = {
-        "clearance": 0.0,
-        "limits": float(np.max(limit_violation_q(robot, q))),
-        "tendon_speed": max(0.0, speed_max - robot.tendon_speed_max),
-        "tendon_accel": max(0.0, accel_max - robot.tendon_accel_max),
-    }
-    min_clearance, first_collision = math.inf, -1
-    if scene is not None or robot.n_segments >= 3:
-        verdict = check_many(robot, scene if scene is not None else _NO_OBSTACLES, dense)
-        min_clearance = float(np.min(verdict.min_distance))
-        hits = np.flatnonzero(verdict.collision)
+    min_clearance, self_clearance, first_collision = math.inf, math.inf, -1
+    if scene is not None or robot.has_self_pairs:
+        checked = check_many(robot, scene, dense)
+        min_clearance = float(np.min(checked.obstacle_distance))
+        self_clearance = float(np.min(checked.self_distance))
+        hits = np.flatnonzero(checked.collision)
         first_collision = int(hits[0]) if len(hits) else -1
-        violations["clearance"] = max(0.0, margin - min_clearance)
     where = ""
     if first_collision >= 0:
         at = first_collision / samples
         where = f"at t = {at * dt:.3f} s (interval {int(at)})"
-    reason = failure_reason(violations, min_clearance=min_clearance if first_collision >= 0
-                            else None, collision_where=where, tolerance=tolerance)
+    verdict = judge(margin=margin, limits=float(np.max(limit_violation_q(robot, q))),
+                    min_clearance=min_clearance, self_clearance=self_clearance,
+                    tendon_speed=speed_max - robot.tendon_speed_max,
+                    tendon_accel=accel_max - robot.tendon_accel_max,
+                    collision_where=where, tolerance=tolerance)
     return {
-        "success": not reason, "reason": reason, "violations": violations,
-        "max_violation": max(violations.values()), "min_clearance": min_clearance,
+        "success": verdict.success, "reason": verdict.reason,
+        "violations": dict(verdict.violations), "max_violation": verdict.max_violation,
+        "min_clearance": min(min_clearance, self_clearance),
+        "self_clearance": self_clearance, "verdict": verdict,
         "collision_free": first_collision < 0, "path_length": path_length,
         "tendon_lengths": lengths, "tendon_speed": speed_max, "tendon_accel": accel_max,
         "first_collision": first_collision,
@@ -818,7 +820,7 @@ class TrajectoryPlanner:
             except (ValueError, TypeError) as exc:
                 out.append((None, None, f"bad goal: {exc}"))
         rows = [i for i, (_, _, reason) in enumerate(out) if not reason]
-        if rows and (self.scene is not None or self.robot.n_segments >= 3):
+        if rows and (self.scene is not None or self.robot.has_self_pairs):
             scene = self.scene if self.scene is not None else _NO_OBSTACLES
             ends = np.stack([q for i in rows for q in out[i][:2]])
             verdict = check_many(self.robot, scene, ends)

@@ -4,6 +4,7 @@
 - ``distances``: body sphere ↔ part signed distances, written once for JAX and CasADi.
 - ``clearance``: the differentiable clearance (JAX, batched) and per-pair CasADi functions.
 - ``check``: the python-fcl verdict that decides collision-free.
+- ``verdict``: the one success rule of every task (``Verdict``, ``judge``, ``judge_many``).
 - ``builders``: the bundled scenes and furniture meshes, as code.
 """
 
@@ -46,3 +47,7 @@ from .scene import bundled_scene_path as bundled_scene_path
 from .scene import coacd_cache_dir as coacd_cache_dir
 from .scene import coacd_cache_stats as coacd_cache_stats
 from .scene import load_scene as load_scene
+from .verdict import Verdict as Verdict
+from .verdict import Verdicts as Verdicts
+from .verdict import judge as judge
+from .verdict import judge_many as judge_many

@@ -212,9 +212,11 @@ def _axis(part: Part) -> tuple[np.ndarray, np.ndarray, float]:
 
 
 _SCENES: weakref.WeakKeyDictionary[Scene, _FclScene] = weakref.WeakKeyDictionary()
+_NO_OBSTACLES = Scene("no obstacles", ())
 
 
-def _fcl_scene(scene: Scene) -> _FclScene:
+def _fcl_scene(scene: Scene | None) -> _FclScene:
+    scene = _NO_OBSTACLES if scene is None else scene
     built = _SCENES.get(scene)
     if built is None:
         built = _SCENES[scene] = _FclScene(scene)
@@ -517,13 +519,14 @@ def _verdicts(robot: Robot, fscene: _FclScene,
     if len(fscene.other_index):
         _fcl_search(r, fscene, chains[:, :-1], chains[:, 1:], obstacle, part)
     i, j = _far_pairs(chains.shape[1] - 1, robot.points_per_segment)
-    if len(i):
+    if len(i) and robot.self_collision:
         own = _self_distance(r, a, b, i, j)
     return obstacle, part, own
 
 
-def check(robot: Robot, scene: Scene, q: Any) -> CheckResult:
-    """The verdict for one configuration q (3n; rad, rad, m)."""
+def check(robot: Robot, scene: Scene | None, q: Any) -> CheckResult:
+    """The verdict for one configuration q (3n; rad, rad, m); ``scene`` None: the robot's
+    self-collision only."""
     q = np.asarray(q, dtype=np.float64)
     if q.shape != (robot.dof,):
         raise ValueError(f"check takes one configuration of {robot.dof} entries, got {q.shape}")
@@ -535,8 +538,9 @@ def check(robot: Robot, scene: Scene, q: Any) -> CheckResult:
                        self_distance=float(many.self_distance[0]))
 
 
-def check_many(robot: Robot, scene: Scene, qs: Any) -> CheckManyResult:
-    """The verdicts for a batch of configurations qs (B, 3n)."""
+def check_many(robot: Robot, scene: Scene | None, qs: Any) -> CheckManyResult:
+    """The verdicts for a batch of configurations qs (B, 3n); ``scene`` None: the robot's
+    self-collision only (``robot.self_collision`` false: none)."""
     qs = np.asarray(qs, dtype=np.float64).reshape(-1, robot.dof)
     chains = body_chain(robot, qs)
     fscene = _fcl_scene(scene)

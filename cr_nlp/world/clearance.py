@@ -136,7 +136,10 @@ def body_segments(robot: Robot) -> list[np.ndarray]:
 
 
 def self_pairs(robot: Robot) -> np.ndarray:
-    """(M, 2) body-sphere index pairs on segments at least two apart (M = 0 for n < 3)."""
+    """(M, 2) body-sphere index pairs on segments at least two apart (M = 0 for n < 3 or
+    when the robot file turns self-collision off)."""
+    if not robot.has_self_pairs:
+        return np.zeros((0, 2), dtype=np.int64)
     chains = body_segments(robot)
     pairs = {(int(i), int(j)) if i < j else (int(j), int(i))
              for s in range(robot.n_segments) for t in range(s + 2, robot.n_segments)
@@ -232,7 +235,7 @@ def _clearance(robot: Robot, arrays: SceneArrays, x: jax.Array, is_q: bool,
     # One reduction per kind: no concatenated (…, N, P) array is built just to be reduced.
     for block in _kind_blocks(robot, arrays, centres, face_smoothing):
         out = jnp.minimum(out, jnp.min(block, axis=(-2, -1)))
-    if include_self and robot.n_segments >= 3:
+    if include_self and robot.has_self_pairs:
         out = jnp.minimum(out, jnp.min(_self_block(robot, centres), axis=-1))
     return out
 
@@ -242,7 +245,7 @@ def _soft_clearance(robot: Robot, arrays: SceneArrays, x: jax.Array, is_q: bool,
     centres = _centres(robot, x, is_q)
     flat = [b.reshape(b.shape[:-2] + (-1,))
             for b in _kind_blocks(robot, arrays, centres, face_smoothing)]
-    if robot.n_segments >= 3:
+    if robot.has_self_pairs:
         flat.append(_self_block(robot, centres))
     if not flat:
         return jnp.full(centres.shape[:-2], jnp.inf, centres.dtype)
@@ -331,7 +334,7 @@ def all_pair_distances_numpy(robot: Robot, arrays: SceneArrays | None, z: Any,
         if blocks:
             pairs = np.concatenate(blocks, axis=-1)
             rows.append(pairs.reshape(pairs.shape[:-2] + (-1,)))
-    if include_self and robot.n_segments >= 3:
+    if include_self and robot.has_self_pairs:
         rows.append(_self_block(robot, centres, NUMPY))
     if not rows:
         return np.zeros(z.shape[:-1] + (0,))
@@ -370,7 +373,7 @@ class PairDistances:
                    a.cylinder_radius.shape[0], a.convex_planes.shape[0]] if a is not None
                   else [0] * 5)
         self._kind_starts = np.cumsum([0] + counts)
-        self._self_pairs = self_pairs(robot) if robot.n_segments >= 3 else np.zeros((0, 2), int)
+        self._self_pairs = self_pairs(robot) if robot.has_self_pairs else np.zeros((0, 2), int)
 
     @property
     def size(self) -> int:
@@ -468,7 +471,7 @@ def casadi_clearance(robot: Robot, scene: Scene, near_q: Any, margin: float = 0.
     near = np.asarray(pair_distances(robot, SceneArrays(*map(jnp.asarray, arrays_np)),
                                      jnp.asarray(q0), face_smoothing))
     near_self = (np.asarray(self_distances(robot, jnp.asarray(q0)))
-                 if include_self and robot.n_segments >= 3 else np.zeros(0))
+                 if include_self and robot.has_self_pairs else np.zeros(0))
     obstacle_pairs = np.argwhere(near < margin).reshape(-1, 2)
     all_self = self_pairs(robot)
     chosen_self = all_self[near_self < margin] if len(near_self) else all_self[:0]

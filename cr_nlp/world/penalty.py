@@ -54,7 +54,7 @@ def self_pair_blocks(robot: Robot) -> tuple[tuple[int, int, int, int], ...]:
     row when s ≥ 1 (that pair is in block (s − 1, t)) and its last column when t < n − 1
     (that pair is in block (s, t + 1))."""
     chains = body_segments(robot)
-    n = robot.n_segments
+    n = robot.n_segments if robot.self_collision else 0
     blocks = []
     for s in range(n):
         for t in range(s + 2, n):
@@ -109,7 +109,7 @@ def _values(robot: Robot, arrays: SceneArrays | None, centres: jax.Array) -> jax
     parts = []
     if _has_obstacles(arrays):
         parts.append(_nearest_obstacle(robot, arrays, centres))
-    if robot.n_segments >= 3:
+    if robot.has_self_pairs:
         parts.append(_self_values(robot, centres))
     if not parts:
         return jnp.zeros((0,), centres.dtype)
@@ -148,7 +148,7 @@ def _clearance_jvp(robot: Robot, primals: tuple,
     if _has_obstacles(arrays):
         grad = jax.grad(lambda c: jnp.sum(_nearest_obstacle(robot, arrays, c)))(centres)
         out.append(jnp.sum(grad * centres_dot, axis=-1))
-    if robot.n_segments >= 3:
+    if robot.has_self_pairs:
         out.append(_self_tangent(robot, centres, centres_dot))
     tangent = jnp.concatenate(out) if out else jnp.zeros((0,), centres.dtype)
     return value, tangent
@@ -215,7 +215,7 @@ def _sphere_values(robot: Robot, arrays: SceneArrays | None,
     parts, grads = [], []
     if _has_obstacles(arrays):
         parts.append(_nearest_obstacle(robot, arrays, centres))
-    if robot.n_segments >= 3:
+    if robot.has_self_pairs:
         d, g = nearest_self_clearances(robot, centres)
         parts.append(d)
         grads.append(g)
