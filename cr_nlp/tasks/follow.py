@@ -11,11 +11,11 @@ tendon lengths).
 
 Stages:
 
-1. explore: IK on every ``ik_stride``-th waypoint in one batch (``IKSolver.candidates``:
-   a refined beam of distinct answers per waypoint), each answer carried to the
-   neighbouring IK waypoints by continuation (a few LM steps per waypoint), then the
-   sequence with the smallest configuration jumps (``stages.sequence.smoothest_choice``,
-   dynamic programming on the device, in the same program as the candidate table).
+1. explore (``stages.continuation``): IK on every ``ik_stride``-th waypoint in one batch
+   (``IKSolver.candidates``: a refined beam of distinct answers per waypoint), each answer
+   carried to the neighbouring IK waypoints by continuation (a few LM steps per waypoint
+   on this module's ``follow_unary``), then the sequence with the smallest configuration
+   jumps (``stages.sequence.smoothest_choice``), its jumps bridged by continuation.
 2. refine: all waypoints jointly by the block-banded LM (``stages.banded_lm``): every
    residual depends on at most three consecutive waypoints (tracking and clearance: one;
    smoothness, tendon speed, clearance between waypoints: two; tendon acceleration:
