@@ -140,9 +140,10 @@ def test_stage_one_table_and_sequence_agree_with_numpy(follower) -> None:
     assert np.isinf(errors[between, :width]).all()
     assert np.isfinite(errors[between, width:]).all()   # reached by both chains
     seconds = np.full(WAYPOINTS - 1, DT)
-    no_chains = follower._chains(z[:0, 0], np.zeros((0, 1), int), np.zeros((0, 1), bool),
-                                 np.zeros(0, int), path.positions, path.wxyz, DT)
-    _, _, chosen, speed = follower._choose((z, errors), no_chains, 0, seconds)
+    stage = follower.continuation
+    no_chains = stage.chains(z[:0, 0], np.zeros((0, 1), int), np.zeros((0, 1), bool),
+                             np.zeros(0, int), path.positions, path.wxyz, follower._shared(DT))
+    _, _, chosen, speed = stage.choose((z, errors), no_chains, 0, seconds)
     pick = numpy_viterbi(z, errors, follower.config.ik.success_tolerance)
     # Where the forward and backward chains meet on one answer (µm apart) the float32 sums
     # may pick either of the two: same sequence up to such near-ties.
@@ -191,7 +192,9 @@ def test_waypoint_jacobians_match_autodiff_and_the_model() -> None:
     # A margin of 1.5 m that every group feels.
     values, jac = jax.jit(lambda x: _group_jacobian(ROBOT, 1.5, arrays, x))(z)
     assert np.all(np.asarray(values) > 0)
-    groups = jax.jit(lambda x: F.clearance_groups(ROBOT, 1.5, arrays, x))
+    # The waypoint residual's clearance rows (values from the model's kinematics, their
+    # Jacobian from the custom JVP) against the trajectory's group Jacobian.
+    groups = jax.jit(lambda x: F.waypoint_residual(ROBOT, 1.5, x, target, arrays)[6:])
     np.testing.assert_allclose(groups(z), values, atol=1e-12)
     np.testing.assert_allclose(jax.jit(jax.jacfwd(groups))(z), jac, atol=1e-12)
 

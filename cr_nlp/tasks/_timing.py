@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, fields
 from typing import Any
+
+import jax.monitoring
 
 
 @dataclass
@@ -62,3 +66,30 @@ class StageTiming(Mapping):
             raise ValueError(f"timing: unknown stage(s) {unknown}; the stages are "
                              f"{', '.join(cls.stages())}")
         return cls(**{k: float(v) for k, v in data.items()})
+
+
+# ================================================================ compile-time accounting
+
+_COMPILE = threading.local()
+
+
+def _on_duration(event: str, duration: float, **_: Any) -> None:
+    if event.startswith("/jax/core/compile/") and getattr(_COMPILE, "active", False):
+        _COMPILE.seconds += duration
+
+
+jax.monitoring.register_event_duration_secs_listener(_on_duration)
+
+
+@contextmanager
+def compile_seconds() -> Any:
+    """Collects JAX's tracing/lowering/compile durations inside the block (this thread):
+    yields a one-element list that holds the total once the block ends."""
+    out = [0.0]
+    previous = (getattr(_COMPILE, "active", False), getattr(_COMPILE, "seconds", 0.0))
+    _COMPILE.active, _COMPILE.seconds = True, 0.0
+    try:
+        yield out
+    finally:
+        out[0] = _COMPILE.seconds
+        _COMPILE.active, _COMPILE.seconds = previous[0], previous[1] + out[0]

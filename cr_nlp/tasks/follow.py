@@ -11,11 +11,11 @@ tendon lengths).
 
 Stages:
 
-1. explore: IK on every ``ik_stride``-th waypoint in one batch (``IKSolver.candidates``:
-   a refined beam of distinct answers per waypoint), each answer carried to the
-   neighbouring IK waypoints by continuation (a few LM steps per waypoint), then the
-   sequence with the smallest configuration jumps (``stages.sequence.smoothest_choice``,
-   dynamic programming on the device, in the same program as the candidate table).
+1. explore (``stages.continuation``): IK on every ``ik_stride``-th waypoint in one batch
+   (``IKSolver.candidates``: a refined beam of distinct answers per waypoint), each answer
+   carried to the neighbouring IK waypoints by continuation (a few LM steps per waypoint
+   on this module's ``follow_unary``), then the sequence with the smallest configuration
+   jumps (``stages.sequence.smoothest_choice``), its jumps bridged by continuation.
 2. refine: all waypoints jointly by the block-banded LM (``stages.banded_lm``): every
    residual depends on at most three consecutive waypoints (tracking and clearance: one;
    smoothness, tendon speed, clearance between waypoints: two; tendon acceleration:
@@ -37,9 +37,7 @@ its neighbours, and the result reports them (``reached`` False), never an except
 from __future__ import annotations
 
 import math
-import threading
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -50,32 +48,33 @@ import jax.monitoring
 import jax.numpy as jnp
 import numpy as np
 
-from .._jax_setup import enable_compilation_cache, split_over_devices
+from .._jax_setup import enable_compilation_cache
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
-from ..model._ops import JAX, NUMPY
+from ..model._ops import JAX
 from ..model.actuation import planned_displacements
 from ..model.derivatives import kinematics_jacobians_z
 from ..model.kinematics import (
-    model_base,
+    model_backbone,
     model_segment_frames,
-    model_segment_transform,
-    model_tendon_lengths,
     pose_error,
+    tip_pose,
 )
 from ..model.lie import rotation_log, so3_right_jacobian_inverse
 from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
 from ..stages.banded_lm import ChainResidual, banded_lm_solve
-from ..stages.lm import LMConfig, lm_solve
-from ..stages.sequence import smoothest_choice
+from ..stages.continuation import BranchContinuation, ContinuationSettings
+from ..stages.lm import LMConfig
+from ..stages.tendon_penalty import tendon_accel_excess, tendon_speed_excess
 from ..world import Scene, load_scene, scene_arrays
 from ..world.clearance import SceneArrays, body_gap_tolerance
 from ..world.verdict import VIOLATION_TOLERANCE
 from ._result import ResultFileError, ResultIO, array, as_float, num, nums, write_series_csv
-from ._timing import StageTiming
+from ._timing import StageTiming, compile_seconds
 from .ik import IKConfig, IKSolver, validate_targets
 from .paths import ReferencePath, load_path
 from .trajectory import (
+    _clearance_groups,
     _groups_from,
     _has_clearance,
     controller_columns,
@@ -180,42 +179,29 @@ class FollowConfig:
 #
 # The LM needs, per waypoint, a 6 × 3n tracking Jacobian and a G × 3n clearance Jacobian.
 # Pushing 3n tangents through the model's entry-by-entry code costs thousands of small
-# XLA operations per call; here the values come from the same model functions
-# (``model_segment_transform``, ``model_base``) evaluated on whole arrays (one 3 × 3
-# matrix product per segment), the derivatives from the model's closed forms
-# (``model.derivatives``), and the residuals get their Jacobians from the primal alone
+# XLA operations per call; the residuals below take their values from the model
+# (``model.kinematics``), their derivatives from the model's closed forms
+# (``model.derivatives``), and get their Jacobians from the primal alone
 # (``jax.custom_jvp``), so the banded LM's forward-mode pass over a window costs one
 # matrix product.
 
 
-def _stack_transform(transform: Any, dtype: Any) -> tuple[jax.Array, jax.Array]:
-    # The barrier stops XLA's fusion from recomputing the entries in every consumer
-    # (as ``Ops.materialize`` in the model; measured 5–10× here).
-    rot, pos = jax.lax.optimization_barrier(transform)
-    rot = jnp.stack(jnp.broadcast_arrays(*rot), axis=-1).astype(dtype)
-    pos = jnp.stack(jnp.broadcast_arrays(*pos), axis=-1).astype(dtype)
-    return rot.reshape(rot.shape[:-1] + (3, 3)), pos
+def _with_base(robot: Robot, points: jax.Array) -> jax.Array:
+    """Body-sphere centres (N, 3) m in ``world.clearance._centres`` order: the base
+    point, then the backbone points (n·k, 3)."""
+    return jnp.concatenate([jnp.asarray(robot.base_position, points.dtype)[None], points])
 
 
 def waypoint_kinematics(robot: Robot, z: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Tip rotation (3, 3), tip position (3,) m and body-sphere centres (N, 3) m of one
-    bending-vector configuration z (3n,): the model's kinematics (``model_segment_frames``,
-    ``world.clearance._centres`` order: the base, then ``points_per_segment`` points per
-    segment) evaluated in array form."""
-    dtype = z.dtype
-    k = robot.points_per_segment
-    fractions = jnp.arange(1, k + 1, dtype=dtype) / k
-    rot, pos = _stack_transform(model_base(robot), dtype)
-    centres = [pos[None]]
-    for i in range(robot.n_segments):
-        ux, uy, length = z[3 * i], z[3 * i + 1], z[3 * i + 2]
-        _, points = _stack_transform(model_segment_transform(
-            JAX, ux * fractions, uy * fractions, length * fractions), dtype)
-        centres.append(pos + points @ rot.T)
-        local_rot, local_pos = _stack_transform(model_segment_transform(JAX, ux, uy, length),
-                                                dtype)
-        rot, pos = rot @ local_rot, pos + rot @ local_pos
-    return rot, pos, jnp.concatenate(centres)
+    bending-vector configuration z (3n,), from one evaluation of the model's frames
+    (``model_segment_frames``, ``model_backbone``), in z's dtype."""
+    entries = [z[i] for i in range(robot.dof)]
+    frames = model_segment_frames(JAX, robot, entries)
+    rot, pos = frames[-1]
+    points = model_backbone(JAX, robot, entries, frames).astype(z.dtype)
+    return (jnp.stack(jnp.broadcast_arrays(*rot)).reshape(3, 3).astype(z.dtype),
+            jnp.stack(jnp.broadcast_arrays(*pos)).astype(z.dtype), _with_base(robot, points))
 
 
 def waypoint_jacobians(robot: Robot, z: jax.Array) -> dict[str, jax.Array]:
@@ -224,9 +210,8 @@ def waypoint_jacobians(robot: Robot, z: jax.Array) -> dict[str, jax.Array]:
     ``d_position`` (3, 3n), ``body_rates`` (3, 3n) (Rᵀ∂R/∂z_k as vectors) and
     ``d_centres`` (N, 3, 3n)."""
     kin = kinematics_jacobians_z(robot, z)
-    base = jnp.asarray(robot.base_position, z.dtype)[None]
     return {"rotation": kin.rotation, "position": kin.position,
-            "centres": jnp.concatenate([base, kin.points]),
+            "centres": _with_base(robot, kin.points),
             "d_position": kin.jacobian[:3], "body_rates": kin.rotation.T @ kin.jacobian[3:],
             "d_centres": jnp.concatenate([jnp.zeros((1, 3, robot.dof), z.dtype),
                                           kin.d_points])}
@@ -263,32 +248,15 @@ def _tracking_error_jvp(robot: Robot, primals: tuple, tangents: tuple) -> tuple:
     return value, _tracking_jacobian(kin, value) @ z_dot
 
 
-@partial(jax.custom_jvp, nondiff_argnums=(0, 1))
-def clearance_groups(robot: Robot, margin: float, arrays: SceneArrays | None,
-                     z: jax.Array) -> jax.Array:
-    """Grouped clearance shortfalls (G,) m of one configuration z (3n,) below the sphere
-    margin (m); differentiable in z with a Jacobian built from the primal."""
-    return _groups_from(robot, margin, arrays, waypoint_kinematics(robot, z)[2], None)[0]
-
-
-@clearance_groups.defjvp
-def _clearance_groups_jvp(robot: Robot, margin: float, primals: tuple,
-                          tangents: tuple) -> tuple:
-    arrays, z = primals
-    z_dot = tangents[1]
-    kin = waypoint_jacobians(robot, z)
-    values, jac = _groups_from(robot, margin, arrays, kin["centres"], kin["d_centres"])
-    return values, jac @ z_dot
-
-
 # ================================================================ residuals
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(0, 1))
 def waypoint_residual(robot: Robot, margin: float, z: jax.Array, target: Any,
                       arrays: SceneArrays | None) -> jax.Array:
-    """``tracking_error`` (6,) then ``clearance_groups`` (G,) of one waypoint z (3n,),
-    sharing one kinematics Jacobian (the LM's per-waypoint term)."""
+    """``tracking_error`` (6,) then the grouped clearance shortfalls (G,) m of one waypoint
+    z (3n,) (``tasks.trajectory._groups_from``), sharing one kinematics Jacobian (the LM's
+    per-waypoint term)."""
     rot, pos, centres = waypoint_kinematics(robot, z)
     out = [_tracking_from(rot, pos, target)]
     if _has_clearance(robot, arrays):
@@ -310,12 +278,6 @@ def _waypoint_residual_jvp(robot: Robot, margin: float, primals: tuple,
         values.append(groups)
         jac.append(groups_jac)
     return jnp.concatenate(values), jnp.concatenate(jac) @ z_dot
-
-
-def _lengths(robot: Robot, z: jax.Array) -> jax.Array:
-    """Tendon lengths (n_tendons,) m of one configuration z (linear in z)."""
-    values = model_tendon_lengths(JAX, robot, [z[i] for i in range(robot.dof)])
-    return jnp.stack(jnp.broadcast_arrays(*values)).astype(z.dtype)
 
 
 def follow_unary(robot: Robot, margin: float, weights: tuple[float, float, float],
@@ -348,12 +310,10 @@ def follow_pair(robot: Robot, margin: float, checks: int, weights: tuple[float, 
     out = [sqrt_smooth * step]
     if checks and _has_clearance(robot, arrays):
         for c in range(1, checks + 1):
-            out.append(sqrt_clear * clearance_groups(robot, margin, arrays,
-                                                     z_a + (c / (checks + 1)) * step))
+            out.append(sqrt_clear * _clearance_groups(robot, margin, arrays,
+                                                      z_a + (c / (checks + 1)) * step))
     if math.isfinite(robot.tendon_speed_max):
-        speed = (_lengths(robot, z_b) - _lengths(robot, z_a)) / dt
-        over = jnp.abs(speed) / (limit_fraction * robot.tendon_speed_max) - 1.0
-        out.append(sqrt_tendon * jnp.maximum(over, 0.0))
+        out.append(sqrt_tendon * tendon_speed_excess(robot, limit_fraction, z_a, z_b, dt))
     return jnp.concatenate(out)
 
 
@@ -361,9 +321,7 @@ def follow_triple(robot: Robot, sqrt_tendon: float, limit_fraction: float, z_a: 
                   z_b: jax.Array, z_c: jax.Array, target: Any, shared: Any) -> jax.Array:
     """√w_t·max(0, |Δ²ℓ/Δt²|/(f·a_max) − 1) per tendon at the middle waypoint z_b."""
     _, dt = shared
-    accel = (_lengths(robot, z_c) - 2.0 * _lengths(robot, z_b) + _lengths(robot, z_a)) / (dt * dt)
-    over = jnp.abs(accel) / (limit_fraction * robot.tendon_accel_max) - 1.0
-    return sqrt_tendon * jnp.maximum(over, 0.0)
+    return sqrt_tendon * tendon_accel_excess(robot, limit_fraction, z_a, z_b, z_c, dt)
 
 
 def follow_terms(robot: Robot, margin: float, config: FollowConfig) -> ChainResidual:
@@ -382,100 +340,7 @@ def follow_terms(robot: Robot, margin: float, config: FollowConfig) -> ChainResi
     return ChainResidual(unary, pair, triple)
 
 
-def _project_chain(robot: Robot, z: jax.Array) -> jax.Array:
-    """``project_z`` on every waypoint of a (T, 3n) chain."""
-    return project_z(robot, z)
-
-
-def _continue_chains(robot: Robot, margin: float, weights: tuple[float, float, float],
-                     iterations: int, z_start: jax.Array, index: jax.Array, active: jax.Array,
-                     positions: jax.Array, rotations: jax.Array, track: jax.Array, shared: Any,
-                     free: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Numerical continuation of C IK answers along the path (stage 1's branch keeper).
-
-    Chain c starts at ``z_start[c]`` (3n,) and visits the waypoints ``index[c, 0]``,
-    ``index[c, 1]``, … (C, L) in turn, ``iterations`` LM steps per waypoint from the
-    previous waypoint's answer, so it stays on one branch of the IK solutions; where
-    ``active[c, τ]`` (C, L) is False the chain holds still. Returns z (C, L, 3n) and the
-    penalised residual norms (C, L) at every visited waypoint (pose error m/rad, plus
-    √w_c times the clearance shortfall, m)."""
-    residual = partial(follow_unary, robot, margin, weights)
-    project = partial(project_z, robot)
-    config = LMConfig(cost_tolerance=1e-14)
-
-    def step(z: jax.Array, tau: jax.Array) -> tuple[jax.Array, tuple]:
-        at = index[:, tau]
-        target = (positions[at], rotations[at], track[at])
-        solved, cost, _ = lm_solve(residual, project, z, target, shared, free,
-                                   jnp.int32(iterations), config=config)
-        z_out = jnp.where(active[:, tau, None], solved, z)
-        return z_out, (z_out, jnp.sqrt(2.0 * cost))
-
-    _, (z, err) = jax.lax.scan(step, z_start, jnp.arange(index.shape[1]))
-    return jnp.swapaxes(z, 0, 1), jnp.swapaxes(err, 0, 1)
-
-
-def _pad_chains(starts: np.ndarray, index: np.ndarray, active: np.ndarray,
-                column: np.ndarray) -> tuple[np.ndarray, ...]:
-    """C chains (starts (C, 3n); index, active (C, L); table column (C,)) padded with
-    inactive ones to a multiple of 16, so that few chain programs are compiled (the
-    anchors' 90 chains of a 150-waypoint path run as 96, not 128)."""
-    extra = 16 * -(-len(starts) // 16) - len(starts)
-    return (np.concatenate([starts, np.repeat(starts[:1], extra, 0)]),
-            np.concatenate([index, np.zeros((extra, index.shape[1]), int)]),
-            np.concatenate([active, np.zeros((extra, index.shape[1]), bool)]),
-            np.concatenate([column, np.full(extra, column[-1] if len(column) else 0)]))
-
-
-def _extend_table(extra: int, table_z: jax.Array, table_err: jax.Array, chain_z: jax.Array,
-                  chain_err: jax.Array, index: jax.Array, active: jax.Array,
-                  column: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Stage 1's candidate table (R, K, 3n) z and (R, K) residual norms with ``extra``
-    empty columns appended and the chains' answers written in: chain c's answer at its
-    τ-th waypoint goes to row ``index[c, τ]``, column ``column[c]``, where
-    ``active[c, τ]``; a residual that is not finite counts as no answer (inf)."""
-    r = table_z.shape[0]
-    dtype = chain_z.dtype
-    table_z = jnp.concatenate([table_z.astype(dtype),
-                               jnp.zeros((r, extra, table_z.shape[2]), dtype)], axis=1)
-    table_err = jnp.concatenate([table_err.astype(dtype),
-                                 jnp.full((r, extra), jnp.inf, dtype)], axis=1)
-    rows = jnp.where(active, index, r)                      # row r: dropped
-    columns = jnp.broadcast_to(column[:, None], index.shape)
-    chain_err = jnp.where(active & jnp.isfinite(chain_err), chain_err, jnp.inf)
-    return (table_z.at[rows, columns].set(chain_z, mode="drop"),
-            table_err.at[rows, columns].set(chain_err, mode="drop"))
-
-
-def _extend_and_choose(robot: Robot, extra: int, table_z: jax.Array, table_err: jax.Array,
-                       chain_z: jax.Array, chain_err: jax.Array, index: jax.Array,
-                       active: jax.Array, column: jax.Array, tolerance: jax.Array,
-                       seconds: jax.Array) -> tuple[jax.Array, ...]:
-    """``_extend_table``, then the smoothest sequence through it
-    (``stages.sequence.smoothest_choice``) and its tendon speeds, in one device program.
-
-    Returns the table (z, residual norms), the chosen (R, 3n) z and the largest tendon
-    speed (R − 1,) m/s of every interval (Δℓ over ``seconds`` (R − 1,) s)."""
-    table_z, table_err = _extend_table(extra, table_z, table_err, chain_z, chain_err, index,
-                                       active, column)
-    choice = smoothest_choice(table_z, table_err, tolerance)
-    chosen = table_z[jnp.arange(table_z.shape[0]), choice]
-    lengths = jax.vmap(partial(_lengths, robot))(chosen)
-    speed = jnp.max(jnp.abs(jnp.diff(lengths, axis=0)), axis=1) / seconds
-    return table_z, table_err, chosen, speed
-
-
 # ================================================================ measures (float64)
-
-
-def tip_poses(robot: Robot, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Tip positions (B, 3) m and rotation matrices (B, 3, 3) of (B, 3n) configurations
-    (θ, φ, L), float64 numpy."""
-    z = q_to_z_numpy(q)
-    rot, pos = model_segment_frames(NUMPY, robot, [z[:, i] for i in range(robot.dof)])[-1]
-    position = np.stack(np.broadcast_arrays(*pos), axis=-1).reshape(-1, 3)
-    rotation = np.stack(np.broadcast_arrays(*rot), axis=-1).reshape(-1, 3, 3)
-    return position, rotation
 
 
 def tracking_errors(robot: Robot, q: np.ndarray, positions: np.ndarray,
@@ -484,7 +349,7 @@ def tracking_errors(robot: Robot, q: np.ndarray, positions: np.ndarray,
     (T, 3) m, ``wxyz`` (T, 4), ``pose_error`` (T,) (‖log(T_tip⁻¹·T_ref)‖, DESIGN.md §1),
     ``position_error`` (T,) m and ``rotation_error`` (T,) rad (the angle of
     R_tipᵀ·R_ref)."""
-    position, rotation = tip_poses(robot, q)
+    position, rotation = tip_pose(robot, np.asarray(q, np.float64))
     reference = matrix_from_wxyz(wxyz)
     relative = np.einsum("tji,tjk->tik", rotation, reference)
     cos_angle = np.clip((np.trace(relative, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
@@ -688,33 +553,6 @@ class FollowResult(ResultIO):
             self.robot, self.tendon_lengths, self.tendon_displacements))
 
 
-# ================================================================ compile-time accounting
-
-_COMPILE = threading.local()
-
-
-def _on_duration(event: str, duration: float, **_: Any) -> None:
-    if event.startswith("/jax/core/compile/") and getattr(_COMPILE, "active", False):
-        _COMPILE.seconds += duration
-
-
-jax.monitoring.register_event_duration_secs_listener(_on_duration)
-
-
-@contextmanager
-def _compile_seconds() -> Any:
-    """Collects JAX's tracing/lowering/compile durations inside the block (this thread):
-    yields a one-element list that holds the total once the block ends."""
-    out = [0.0]
-    previous = (getattr(_COMPILE, "active", False), getattr(_COMPILE, "seconds", 0.0))
-    _COMPILE.active, _COMPILE.seconds = True, 0.0
-    try:
-        yield out
-    finally:
-        out[0] = _COMPILE.seconds
-        _COMPILE.active, _COMPILE.seconds = previous[0], previous[1] + out[0]
-
-
 # ================================================================ the follower
 
 
@@ -738,14 +576,19 @@ class PathFollower:
         self._arrays: SceneArrays | None = (scene_arrays(self.scene, dtype=self.dtype)
                                             if self.scene is not None else None)
         self._terms = follow_terms(self.robot, self.margin, config)
-        self._project = partial(_project_chain, self.robot)
+        self._project = partial(project_z, self.robot)
         free = np.ones(self.robot.dof)
         free[2::3] = ~self.robot.lengths_fixed()   # a fixed length is not a variable
         self._free = jnp.asarray(free, self.dtype)
         self._compiled: dict[Any, Any] = {}
-        self._choose_program = jax.jit(partial(_extend_and_choose, self.robot),
-                                       static_argnums=0)
-        self._extend = jax.jit(_extend_table, static_argnums=0)
+        chain_weights = (1.0, 1.0, math.sqrt(config.ik.clearance_weight))
+        self.continuation = BranchContinuation(
+            self.robot, partial(follow_unary, self.robot, float(self.margin), chain_weights),
+            lambda positions, wxyz: self.ik_solver.candidates(positions, wxyz), free,
+            self.dtype, ContinuationSettings(
+                config.continuation_iterations, config.continuation_rounds, config.max_jumps,
+                config.bridge_window, config.ik_stride, config.ik.success_tolerance))
+        """Stage 1 (``stages.continuation``): IK candidates, continuation, bridging."""
         self._ik: IKSolver | None = None
         self._polishers: dict[int, Any] = {}
         self.last_timing = FollowTiming()
@@ -764,42 +607,17 @@ class PathFollower:
         chosen for the smallest jumps; untrackable waypoints are interpolated in z between
         their trackable neighbours (the nearest one's at the ends; straight if none).
 
-        The candidates come from ``waypoint_candidates`` (full IK on every
-        ``ik_stride``-th waypoint, continuation in between). The IK can still miss the
-        branch the neighbours use; then the chosen sequence jumps (a tendon would have to
-        move faster than ``tendon_speed_max``). Each such jump is bridged by continuation:
-        the answers on both sides are carried across, waypoint by waypoint, and added to
-        the candidates before choosing again (``continuation_rounds`` times).
-
-        On the device each round is two programs (the continuation chains; the candidate
-        table, the sequence and its tendon speeds) and one read back (the chosen
-        sequence and its speeds, to find the jumps)."""
+        The candidates and the sequence come from ``stages.continuation``: full IK on every
+        ``ik_stride``-th waypoint, continuation in between, the smoothest sequence, and
+        each jump (a tendon would have to move faster than ``tendon_speed_max``) bridged by
+        continuation from both sides (``continuation_rounds`` times)."""
         t = len(positions)
         z = np.zeros((t, self.robot.dof))
         z[:, 2::3] = [0.5 * (s.length_min + s.length_max) for s in self.robot.segments]
         rows = np.flatnonzero(trackable)
         if len(rows):
-            positions, wxyz = positions[rows], wxyz[rows]
-            seconds = dt * np.diff(rows)
-            base, ends, chains = self._anchor_chains(positions, wxyz, dt)
-            table = self._choose(base, chains, 0, seconds)
-            chosen, speed = jax.device_get(table[2:])
-            bridged: set[int] = set()
-            for _ in range(self.config.continuation_rounds):
-                # An interval bridged once is not bridged again: measured on icra, the
-                # one jump that no branch crosses (waypoint 70) was bridged a second time
-                # from the answers the first round's chains brought, with the same final
-                # answer (0.1 s; 1.3 s per round with whole-path chains).
-                jumps = [i for i in self._jumps(speed) if i not in bridged]
-                if not jumps:
-                    break
-                bridged |= set(jumps)
-                width = table[0].shape[1]
-                chains = self._bridge(chosen, np.array(jumps), positions, wxyz, dt, ends,
-                                      width)
-                ends = None   # the ends' own answers are carried once
-                table = self._choose(table[:2], chains, len(chains[2]), seconds)
-                chosen, speed = jax.device_get(table[2:])
+            chosen = self.continuation.sequence(positions[rows], wxyz[rows], dt * np.diff(rows),
+                                                self._shared(dt))
             for k in range(self.robot.dof):
                 z[:, k] = np.interp(np.arange(t), rows, np.asarray(chosen[:, k], np.float64))
         return z_to_q_numpy(z)
@@ -807,129 +625,13 @@ class PathFollower:
     def waypoint_candidates(self, positions: np.ndarray, wxyz: np.ndarray,
                             dt: float) -> tuple[np.ndarray, np.ndarray]:
         """IK candidates for R trackable waypoints (positions (R, 3) m, wxyz (R, 4)):
-        z (R, K, 3n) and penalised residual norms (R, K) (m/rad; inf: no candidate).
+        z (R, K, 3n) and penalised residual norms (R, K) (m/rad; inf: no candidate), as
+        ``stages.continuation.BranchContinuation.table`` builds them."""
+        return self.continuation.table(positions, wxyz, self._shared(dt))
 
-        ``IKSolver.candidates`` runs only on the anchors, every ``ik_stride``-th waypoint
-        and the last; neighbouring waypoints are close, so each anchor's B answers are
-        carried to the next anchor (forward) and the previous one (backward) by
-        continuation. Slots: [0, B) the anchors' own IK answers, [B, 2B) the forward
-        chains, [2B, 3B) the backward chains (K = 3B; B = K with ``ik_stride`` 1)."""
-        base, _, chains = self._anchor_chains(positions, wxyz, dt)
-        z, errors = self._extend(0, *base, *chains)
-        return np.asarray(z, np.float64), np.asarray(errors, np.float64)
-
-    def _anchor_chains(self, positions: np.ndarray, wxyz: np.ndarray,
-                       dt: float) -> tuple[tuple, tuple, tuple]:
-        """``waypoint_candidates`` before its table is filled in: the anchors' table
-        (z (R, K, 3n), residual norms (R, K), numpy, K = 3B), the first and last
-        waypoints' own IK answers ((B, 3n) each, numpy) and the continuation chains on
-        the device (z (C, L, 3n), residual norms (C, L), then index, active (C, L) and
-        the table column (C,) of every chain, numpy)."""
-        r = len(positions)
-        stride = max(int(self.config.ik_stride), 1)
-        anchors = np.unique(np.r_[np.arange(0, r, stride), r - 1])
-        q, err = self.ik_solver.candidates(positions[anchors], wxyz[anchors])
-        z_anchor = q_to_z_numpy(q)                                   # (A, B, 3n)
-        ends = (z_anchor[0], z_anchor[-1])
-        width = z_anchor.shape[1]
-        slots = width if len(anchors) == r else 3 * width
-        z = np.zeros((r, slots, self.robot.dof))
-        errors = np.full((r, slots), np.inf)
-        z[anchors, :width], errors[anchors, :width] = z_anchor, err
-        # Chain order: (interval between anchors, beam, forward/backward).
-        lo, hi = anchors[:-1], anchors[1:]
-        tau = np.arange(stride)
-        visits = tau < (hi - lo)[:, None]                              # (A − 1, S)
-        index = np.where(visits[:, None], np.stack([lo[:, None] + 1 + tau,
-                                                    hi[:, None] - 1 - tau], axis=1), 0)
-        shape = (len(lo), width, 2)
-        index = np.broadcast_to(index[:, None], shape + (stride,)).reshape(-1, stride)
-        active = np.broadcast_to(visits[:, None, None], shape + (stride,)).reshape(-1, stride)
-        starts = np.stack([z_anchor[:-1], z_anchor[1:]], axis=2).reshape(-1, self.robot.dof)
-        column = np.broadcast_to(width * np.arange(1, 3) + np.arange(width)[:, None],
-                                 shape).reshape(-1)
-        if len(anchors) == r:   # every waypoint has its own IK: nothing to continue
-            starts, index, active, column = (x[:0] for x in (starts, index, active, column))
-        return (z, errors), ends, self._chains(starts, index, active, column, positions,
-                                               wxyz, dt)
-
-    def _chains(self, starts: np.ndarray, index: np.ndarray, active: np.ndarray,
-                column: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
-                dt: float) -> tuple[Any, ...]:
-        """``_continue_chains`` for C chains (starts (C, 3n); index, active (C, L); table
-        column (C,)) over the R waypoints (positions (R, 3) m, wxyz (R, 4)), padded by
-        ``_pad_chains``: z (C', L, 3n) and residual norms (C', L) on the device (not
-        waited for), then index, active and column padded alike. R is padded to a power
-        of two (at least 32), so few programs are compiled."""
-        starts, index, active, column = _pad_chains(starts, index, active, column)
-        padded, length = index.shape
-        if padded == 0:
-            dtype = self.dtype
-            return (np.zeros((0, length, self.robot.dof), dtype), np.zeros((0, length), dtype),
-                    index, active, column)
-        # The waypoint tables are padded too (never visited: ``index`` < R).
-        rows = max(32, 1 << (len(positions) - 1).bit_length())
-        positions = np.concatenate([positions, np.repeat(positions[:1], rows - len(positions), 0)])
-        rotations = matrix_from_wxyz(wxyz).reshape(-1, 9)
-        rotations = np.concatenate([rotations, np.repeat(rotations[:1], rows - len(rotations), 0)])
-        # numpy in the program's dtypes: jnp.asarray would launch one conversion each.
-        dtype = self.dtype
-        args = (starts.astype(dtype), index.astype(np.int32), active,
-                positions.astype(dtype), rotations.astype(dtype), np.ones(rows, dtype),
-                (self._arrays, np.asarray(dt, dtype)), self._free)
-        key = ("chains", padded, length, rows)
-        if key not in self._compiled:
-            weights = (1.0, 1.0, math.sqrt(self.config.ik.clearance_weight))
-            fn = partial(_continue_chains, self.robot, float(self.margin), weights,
-                         self.config.continuation_iterations)
-            # Chains are independent: split over the devices like the IK's LM (measured:
-            # unsplit, the anchors' 96 chains ran on one core).
-            program = split_over_devices(fn, (True,) * 3 + (False,) * 5, padded, outputs=2)
-            self._compiled[key] = program.lower(*args).compile()
-        z, err = self._compiled[key](*args)
-        return z, err, index, active, column
-
-    def _choose(self, table: tuple, chains: tuple, extra: int,
-                seconds: np.ndarray) -> tuple[Any, ...]:
-        """``_extend_and_choose`` on the device (not waited for): the table (z, residual
-        norms) with ``extra`` columns for the chains, the chosen (R, 3n) z and the
-        tendon speed (R − 1,) m/s of every interval."""
-        tolerance = np.asarray(self.config.ik.success_tolerance, self.dtype)
-        return self._choose_program(extra, *table, *chains, tolerance,
-                                    np.asarray(seconds, self.dtype))
-
-    def _jumps(self, speed: np.ndarray) -> np.ndarray:
-        """Intervals (indices i: between rows i and i+1) of a sequence whose tendon speed
-        (R − 1,) m/s exceeds the limit, the largest first (at most ``max_jumps``)."""
-        limit = self.robot.tendon_speed_max if math.isfinite(self.robot.tendon_speed_max) \
-            else np.inf
-        speed = np.asarray(speed, np.float64)
-        bad = np.flatnonzero(speed > limit)
-        return bad[np.argsort(-speed[bad], kind="stable")][: self.config.max_jumps]
-
-    def _bridge(self, z: np.ndarray, jumps: np.ndarray, positions: np.ndarray,
-                wxyz: np.ndarray, dt: float, ends: tuple[np.ndarray, np.ndarray] | None,
-                width: int) -> tuple[Any, ...]:
-        """Continuation chains (``_chains``' output) into new table columns from
-        ``width`` on: from each jump's left answer (of the (R, 3n) sequence z) forward
-        and its right answer backward, and (``ends``: the (B, 3n) candidates of the first
-        and last waypoints) from every first candidate forward and every last one
-        backward; each chain walks at most ``bridge_window`` waypoints (one compiled
-        shape whatever the jump's place)."""
-        r = len(z)
-        window = max(int(self.config.bridge_window), 1)
-        first_row = np.stack([jumps, jumps + 1], axis=1).reshape(-1)
-        starts = z[first_row]
-        if ends is not None:
-            pairs = np.stack([ends[0], ends[1]], axis=1)               # (B, 2, 3n)
-            starts = np.concatenate([pairs.reshape(-1, z.shape[1]), starts])
-            first_row = np.concatenate([np.tile([0, r - 1], len(ends[0])), first_row])
-        forward = np.arange(len(first_row)) % 2 == 0
-        tau = np.arange(window)
-        index = np.where(forward[:, None], first_row[:, None] + tau, first_row[:, None] - tau)
-        active = (index >= 0) & (index < r)
-        return self._chains(starts, np.clip(index, 0, r - 1), active,
-                            width + np.arange(len(starts)), positions, wxyz, dt)
+    def _shared(self, dt: float) -> tuple:
+        """The residuals' shared data: (scene arrays or None, Δt s) in the device dtype."""
+        return (self._arrays, np.asarray(dt, self.dtype))
 
     # ------------------------------------------------------------ stage 2
     def refine(self, q0: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
@@ -957,8 +659,7 @@ class PathFollower:
         params = (safe_positions.astype(dtype), safe_rotations.reshape(-1, 9).astype(dtype),
                   trackable.astype(dtype))
         z0 = q_to_z_numpy(q0).astype(dtype)
-        shared = (self._arrays, np.asarray(dt, dtype))
-        return z0, params, shared, self._free, np.int32(self.config.iterations)
+        return z0, params, self._shared(dt), self._free, np.int32(self.config.iterations)
 
     # ------------------------------------------------------------ verification
     def verify(self, q: np.ndarray, path: ReferencePath, dt: float) -> dict[str, Any]:
@@ -1041,12 +742,12 @@ class PathFollower:
         timing = FollowTiming()
         self.last_timing = timing
         t0 = time.perf_counter()
-        with _compile_seconds() as compiled:
+        with compile_seconds() as compiled:
             q0 = self.initial_sequence(positions, wxyz, trackable, dt)
         timing.compile += compiled[0]
         timing.explore = time.perf_counter() - t0 - compiled[0]
         t1 = time.perf_counter()
-        with _compile_seconds() as compiled:
+        with compile_seconds() as compiled:
             q, _, _ = self.refine(q0, positions, wxyz, trackable, dt)
         timing.compile += compiled[0]
         timing.refine = time.perf_counter() - t1 - compiled[0]

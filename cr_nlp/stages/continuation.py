@@ -1,0 +1,321 @@
+"""Branch keeping along a path: IK answers carried from waypoint to waypoint by numerical
+continuation, a candidate table, the smoothest sequence through it, and jump bridging.
+
+Stage 1 ("explore") of path following. Independent IK at every waypoint may land on a
+different branch of the IK solutions at neighbouring waypoints; a sequence that switches
+branch jumps (a tendon would have to move faster than it can). This stage:
+
+1. runs the caller's batched IK (``candidates``) on every ``stride``-th waypoint (the
+   anchors) and the last, and carries each anchor's answers to the neighbouring anchors by
+   continuation chains (``continue_chains``: a few LM steps per waypoint, each from the
+   previous waypoint's answer, so a chain stays on one branch);
+2. writes every chain's answers into a candidate table (R waypoints × K slots) and picks
+   the sequence with the smallest configuration jumps (``stages.sequence.smoothest_choice``)
+   in one device program (``extend_and_choose``);
+3. finds the intervals where that sequence's tendon speed exceeds the robot's limit
+   (the jumps) and bridges each: chains from the answers on both sides walk across the
+   jump (at most ``bridge_window`` waypoints) and their answers join the table before the
+   sequence is chosen again (``rounds`` times).
+
+The problem enters only as the residual of one waypoint (``WaypointResidual``); the task
+(``tasks.follow``) owns it. Configurations are bending vectors z (rad, rad, m).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import partial
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._jax_setup import split_over_devices
+from ..model import Robot, q_to_z_numpy
+from ..model.kinematics import tendon_lengths_z
+from ..model.limits import project_z
+from ..model.rotations import matrix_from_wxyz
+from .lm import LMConfig, lm_solve
+from .sequence import smoothest_choice
+
+WaypointResidual = Callable[[jax.Array, Any, Any], jax.Array]
+"""r(z, target, shared) of one waypoint: z (3n,), target = (position (3,) m, rotation (9,)
+row major, tracking switch ()), shared the caller's common data (scene arrays, Δt, …).
+Its norm is the candidate's residual norm (pose error m/rad plus penalties)."""
+
+Candidates = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+"""IK on A waypoints (positions (A, 3) m, wxyz (A, 4)): configurations q (A, B, 3n)
+(θ, φ, L) and residual norms (A, B) (inf: no answer), B answers per waypoint."""
+
+
+@dataclass(frozen=True)
+class ContinuationSettings:
+    """Settings of the branch-keeping stage (``tasks.follow.FollowConfig`` fills them)."""
+
+    iterations: int = 6
+    """LM iterations per waypoint of a continuation chain."""
+    rounds: int = 2
+    """Rounds of (find the jumps of the chosen sequence, bridge them, choose again)."""
+    max_jumps: int = 4
+    """Most jumps bridged per round (the largest first)."""
+    bridge_window: int = 40
+    """Waypoints each bridging chain walks from its jump outward."""
+    stride: int = 10
+    """IK on every ``stride``-th waypoint (and the last); 1: IK on every waypoint."""
+    tolerance: float = 0.01
+    """Candidates with a residual norm at or above this are used only where a waypoint has
+    no better one (``smoothest_choice``)."""
+
+
+def continue_chains(residual: WaypointResidual, project: Callable[[jax.Array], jax.Array],
+                    iterations: int, z_start: jax.Array, index: jax.Array, active: jax.Array,
+                    positions: jax.Array, rotations: jax.Array, track: jax.Array, shared: Any,
+                    free: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Numerical continuation of C answers along the path.
+
+    Chain c starts at ``z_start[c]`` (3n,) and visits the waypoints ``index[c, 0]``,
+    ``index[c, 1]``, … (C, L) in turn, ``iterations`` LM steps per waypoint from the
+    previous waypoint's answer; where ``active[c, τ]`` (C, L) is False the chain holds
+    still. ``positions`` (R, 3) m, ``rotations`` (R, 9), ``track`` (R,) are the waypoint
+    targets. Returns z (C, L, 3n) and the residual norms (C, L) at every visited
+    waypoint."""
+    config = LMConfig(cost_tolerance=1e-14)
+
+    def step(z: jax.Array, tau: jax.Array) -> tuple[jax.Array, tuple]:
+        at = index[:, tau]
+        target = (positions[at], rotations[at], track[at])
+        solved, cost, _ = lm_solve(residual, project, z, target, shared, free,
+                                   jnp.int32(iterations), config=config)
+        z_out = jnp.where(active[:, tau, None], solved, z)
+        return z_out, (z_out, jnp.sqrt(2.0 * cost))
+
+    _, (z, err) = jax.lax.scan(step, z_start, jnp.arange(index.shape[1]))
+    return jnp.swapaxes(z, 0, 1), jnp.swapaxes(err, 0, 1)
+
+
+def pad_chains(starts: np.ndarray, index: np.ndarray, active: np.ndarray,
+               column: np.ndarray) -> tuple[np.ndarray, ...]:
+    """C chains (starts (C, 3n); index, active (C, L); table column (C,)) padded with
+    inactive ones to a multiple of 16, so that few chain programs are compiled (the
+    anchors' 90 chains of a 150-waypoint path run as 96, not 128)."""
+    extra = 16 * -(-len(starts) // 16) - len(starts)
+    return (np.concatenate([starts, np.repeat(starts[:1], extra, 0)]),
+            np.concatenate([index, np.zeros((extra, index.shape[1]), int)]),
+            np.concatenate([active, np.zeros((extra, index.shape[1]), bool)]),
+            np.concatenate([column, np.full(extra, column[-1] if len(column) else 0)]))
+
+
+def extend_table(extra: int, table_z: jax.Array, table_err: jax.Array, chain_z: jax.Array,
+                 chain_err: jax.Array, index: jax.Array, active: jax.Array,
+                 column: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The candidate table (R, K, 3n) z and (R, K) residual norms with ``extra`` empty
+    columns appended and the chains' answers written in: chain c's answer at its τ-th
+    waypoint goes to row ``index[c, τ]``, column ``column[c]``, where ``active[c, τ]``; a
+    residual that is not finite counts as no answer (inf)."""
+    r = table_z.shape[0]
+    dtype = chain_z.dtype
+    table_z = jnp.concatenate([table_z.astype(dtype),
+                               jnp.zeros((r, extra, table_z.shape[2]), dtype)], axis=1)
+    table_err = jnp.concatenate([table_err.astype(dtype),
+                                 jnp.full((r, extra), jnp.inf, dtype)], axis=1)
+    rows = jnp.where(active, index, r)                      # row r: dropped
+    columns = jnp.broadcast_to(column[:, None], index.shape)
+    chain_err = jnp.where(active & jnp.isfinite(chain_err), chain_err, jnp.inf)
+    return (table_z.at[rows, columns].set(chain_z, mode="drop"),
+            table_err.at[rows, columns].set(chain_err, mode="drop"))
+
+
+def extend_and_choose(robot: Robot, extra: int, table_z: jax.Array, table_err: jax.Array,
+                      chain_z: jax.Array, chain_err: jax.Array, index: jax.Array,
+                      active: jax.Array, column: jax.Array, tolerance: jax.Array,
+                      seconds: jax.Array) -> tuple[jax.Array, ...]:
+    """``extend_table``, then the smoothest sequence through it
+    (``stages.sequence.smoothest_choice``) and its tendon speeds, in one device program.
+
+    Returns the table (z, residual norms), the chosen (R, 3n) z and the largest tendon
+    speed (R − 1,) m/s of every interval (Δℓ over ``seconds`` (R − 1,) s)."""
+    table_z, table_err = extend_table(extra, table_z, table_err, chain_z, chain_err, index,
+                                      active, column)
+    choice = smoothest_choice(table_z, table_err, tolerance)
+    chosen = table_z[jnp.arange(table_z.shape[0]), choice]
+    lengths = tendon_lengths_z(robot, chosen).astype(chosen.dtype)
+    speed = jnp.max(jnp.abs(jnp.diff(lengths, axis=0)), axis=1) / seconds
+    return table_z, table_err, chosen, speed
+
+
+class BranchContinuation:
+    """Stage 1 of path following for one robot: candidates by IK and continuation, the
+    smoothest sequence, jump bridging (module docstring). Programs are compiled once per
+    shape and reused across paths.
+
+    Args:
+        robot: the robot.
+        residual: the waypoint residual the chains minimise (``WaypointResidual``); must be
+            hashable (a module-level function or a ``functools.partial`` of one).
+        candidates: the batched IK (``Candidates``).
+        free: (3n,) 1.0 for the variables the chains may move, 0.0 for fixed lengths.
+        dtype: JAX dtype of the device programs.
+        settings: ``ContinuationSettings``.
+    """
+
+    def __init__(self, robot: Robot, residual: WaypointResidual, candidates: Candidates,
+                 free: Any, dtype: Any, settings: ContinuationSettings) -> None:
+        self.robot = robot
+        self.residual = residual
+        self.candidates = candidates
+        self.free = jnp.asarray(free, dtype)
+        self.dtype = jnp.dtype(dtype)
+        self.settings = settings
+        self._compiled: dict[Any, Any] = {}
+        self._choose_program = jax.jit(partial(extend_and_choose, robot), static_argnums=0)
+        self._extend = jax.jit(extend_table, static_argnums=0)
+
+    def sequence(self, positions: np.ndarray, wxyz: np.ndarray, seconds: np.ndarray,
+                 shared: Any) -> np.ndarray:
+        """The chosen (R, 3n) z (rad, rad, m; the device dtype) for R waypoints
+        (positions (R, 3) m, wxyz (R, 4)); ``seconds`` (R − 1,) s between consecutive
+        waypoints (tendon speeds); ``shared`` goes to the residual.
+
+        On the device each round is two programs (the chains; the table, the sequence and
+        its tendon speeds) and one read back (the chosen sequence and its speeds)."""
+        base, ends, chains = self.anchor_chains(positions, wxyz, shared)
+        table = self.choose(base, chains, 0, seconds)
+        chosen, speed = jax.device_get(table[2:])
+        bridged: set[int] = set()
+        for _ in range(self.settings.rounds):
+            # An interval bridged once is not bridged again: measured on icra, the one
+            # jump that no branch crosses (waypoint 70) was bridged a second time from the
+            # answers the first round's chains brought, with the same final answer (0.1 s;
+            # 1.3 s per round with whole-path chains).
+            jumps = [i for i in self.jumps(speed) if i not in bridged]
+            if not jumps:
+                break
+            bridged |= set(jumps)
+            width = table[0].shape[1]
+            chains = self.bridge(chosen, np.array(jumps), positions, wxyz, shared, ends,
+                                 width)
+            ends = None   # the ends' own answers are carried once
+            table = self.choose(table[:2], chains, len(chains[2]), seconds)
+            chosen, speed = jax.device_get(table[2:])
+        return np.asarray(chosen)
+
+    def table(self, positions: np.ndarray, wxyz: np.ndarray,
+              shared: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Candidates for R waypoints: z (R, K, 3n) and residual norms (R, K) (inf: no
+        candidate), float64. Slots: [0, B) the anchors' own IK answers, [B, 2B) the
+        forward chains, [2B, 3B) the backward chains (K = 3B; K = B with ``stride`` 1)."""
+        base, _, chains = self.anchor_chains(positions, wxyz, shared)
+        z, errors = self._extend(0, *base, *chains)
+        return np.asarray(z, np.float64), np.asarray(errors, np.float64)
+
+    def anchor_chains(self, positions: np.ndarray, wxyz: np.ndarray,
+                      shared: Any) -> tuple[tuple, tuple, tuple]:
+        """``table`` before it is filled in: the anchors' table (z (R, K, 3n), residual
+        norms (R, K), numpy, K = 3B), the first and last waypoints' own IK answers ((B, 3n)
+        each, numpy) and the chains (``chains``' output) from every anchor to its
+        neighbouring anchors."""
+        r = len(positions)
+        stride = max(int(self.settings.stride), 1)
+        anchors = np.unique(np.r_[np.arange(0, r, stride), r - 1])
+        q, err = self.candidates(positions[anchors], wxyz[anchors])
+        z_anchor = q_to_z_numpy(q)                                   # (A, B, 3n)
+        ends = (z_anchor[0], z_anchor[-1])
+        width = z_anchor.shape[1]
+        slots = width if len(anchors) == r else 3 * width
+        dof = self.robot.dof
+        z = np.zeros((r, slots, dof))
+        errors = np.full((r, slots), np.inf)
+        z[anchors, :width], errors[anchors, :width] = z_anchor, err
+        # Chain order: (interval between anchors, beam, forward/backward).
+        lo, hi = anchors[:-1], anchors[1:]
+        tau = np.arange(stride)
+        visits = tau < (hi - lo)[:, None]                              # (A − 1, S)
+        index = np.where(visits[:, None], np.stack([lo[:, None] + 1 + tau,
+                                                    hi[:, None] - 1 - tau], axis=1), 0)
+        shape = (len(lo), width, 2)
+        index = np.broadcast_to(index[:, None], shape + (stride,)).reshape(-1, stride)
+        active = np.broadcast_to(visits[:, None, None], shape + (stride,)).reshape(-1, stride)
+        starts = np.stack([z_anchor[:-1], z_anchor[1:]], axis=2).reshape(-1, dof)
+        column = np.broadcast_to(width * np.arange(1, 3) + np.arange(width)[:, None],
+                                 shape).reshape(-1)
+        if len(anchors) == r:   # every waypoint has its own IK: nothing to continue
+            starts, index, active, column = (x[:0] for x in (starts, index, active, column))
+        return (z, errors), ends, self.chains(starts, index, active, column, positions, wxyz,
+                                              shared)
+
+    def chains(self, starts: np.ndarray, index: np.ndarray, active: np.ndarray,
+               column: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
+               shared: Any) -> tuple[Any, ...]:
+        """``continue_chains`` for C chains (starts (C, 3n); index, active (C, L); table
+        column (C,)) over the R waypoints (positions (R, 3) m, wxyz (R, 4)), padded by
+        ``pad_chains``: z (C', L, 3n) and residual norms (C', L) on the device (not waited
+        for), then index, active and column padded alike. R is padded to a power of two
+        (at least 32), so few programs are compiled."""
+        starts, index, active, column = pad_chains(starts, index, active, column)
+        padded, length = index.shape
+        dtype = self.dtype
+        if padded == 0:
+            return (np.zeros((0, length, self.robot.dof), dtype), np.zeros((0, length), dtype),
+                    index, active, column)
+        # The waypoint tables are padded too (never visited: ``index`` < R).
+        rows = max(32, 1 << (len(positions) - 1).bit_length())
+        positions = np.concatenate([positions, np.repeat(positions[:1], rows - len(positions), 0)])
+        rotations = matrix_from_wxyz(wxyz).reshape(-1, 9)
+        rotations = np.concatenate([rotations, np.repeat(rotations[:1], rows - len(rotations), 0)])
+        # numpy in the program's dtypes: jnp.asarray would launch one conversion each.
+        args = (starts.astype(dtype), index.astype(np.int32), active,
+                positions.astype(dtype), rotations.astype(dtype), np.ones(rows, dtype),
+                shared, self.free)
+        key = (padded, length, rows)
+        if key not in self._compiled:
+            fn = partial(continue_chains, self.residual, partial(project_z, self.robot),
+                         self.settings.iterations)
+            # Chains are independent: split over the devices like the IK's LM (measured:
+            # unsplit, the anchors' 96 chains ran on one core).
+            program = split_over_devices(fn, (True,) * 3 + (False,) * 5, padded, outputs=2)
+            self._compiled[key] = program.lower(*args).compile()
+        z, err = self._compiled[key](*args)
+        return z, err, index, active, column
+
+    def choose(self, table: tuple, chains: tuple, extra: int,
+               seconds: np.ndarray) -> tuple[Any, ...]:
+        """``extend_and_choose`` on the device (not waited for): the table (z, residual
+        norms) with ``extra`` columns for the chains, the chosen (R, 3n) z and the tendon
+        speed (R − 1,) m/s of every interval."""
+        tolerance = np.asarray(self.settings.tolerance, self.dtype)
+        return self._choose_program(extra, *table, *chains, tolerance,
+                                    np.asarray(seconds, self.dtype))
+
+    def jumps(self, speed: np.ndarray) -> np.ndarray:
+        """Intervals (indices i: between rows i and i+1) of a sequence whose tendon speed
+        (R − 1,) m/s exceeds the robot's limit, the largest first (at most
+        ``max_jumps``)."""
+        speed = np.asarray(speed, np.float64)
+        bad = np.flatnonzero(speed > self.robot.tendon_speed_max)   # inf: never
+        return bad[np.argsort(-speed[bad], kind="stable")][: self.settings.max_jumps]
+
+    def bridge(self, z: np.ndarray, jumps: np.ndarray, positions: np.ndarray,
+               wxyz: np.ndarray, shared: Any, ends: tuple[np.ndarray, np.ndarray] | None,
+               width: int) -> tuple[Any, ...]:
+        """Continuation chains (``chains``' output) into new table columns from ``width``
+        on: from each jump's left answer (of the (R, 3n) sequence z) forward and its right
+        answer backward, and (``ends``: the (B, 3n) candidates of the first and last
+        waypoints) from every first candidate forward and every last one backward; each
+        chain walks at most ``bridge_window`` waypoints (one compiled shape whatever the
+        jump's place)."""
+        r = len(z)
+        window = max(int(self.settings.bridge_window), 1)
+        first_row = np.stack([jumps, jumps + 1], axis=1).reshape(-1)
+        starts = z[first_row]
+        if ends is not None:
+            pairs = np.stack([ends[0], ends[1]], axis=1)               # (B, 2, 3n)
+            starts = np.concatenate([pairs.reshape(-1, z.shape[1]), starts])
+            first_row = np.concatenate([np.tile([0, r - 1], len(ends[0])), first_row])
+        forward = np.arange(len(first_row)) % 2 == 0
+        tau = np.arange(window)
+        index = np.where(forward[:, None], first_row[:, None] + tau, first_row[:, None] - tau)
+        active = (index >= 0) & (index < r)
+        return self.chains(starts, np.clip(index, 0, r - 1), active,
+                           width + np.arange(len(starts)), positions, wxyz, shared)
