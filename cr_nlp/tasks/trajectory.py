@@ -45,6 +45,7 @@ from ..model._ops import JAX, NUMPY
 from ..model.derivatives import backbone_jacobian_z, tip_jacobian_z
 from ..model.kinematics import model_segment_frames, model_tendon_lengths
 from ..model.limits import limit_violation_q, project_z
+from ..stages.banded_lm import ChainResidual, banded_lm_solve
 from ..stages.lm import LMConfig, lm_solve
 from ..world import Scene, check_many, load_scene, scene_arrays
 from ..world.clearance import (
@@ -114,6 +115,12 @@ class TrajectoryConfig:
     chunks waste little on padding and on waiting for the chunk's slowest trajectory."""
     dtype: str = "float32"
     """JAX dtype of the LM stage ("float64" needs jax_enable_x64)."""
+    lm_structure: str = "banded"
+    """How the LM stage solves its normal equations: "banded" (``stages.banded_lm``: the
+    residual as per-waypoint, pair and triple terms, a block-tridiagonal Cholesky; each
+    trajectory stops on its own once converged) or "dense" (``stages.lm``: one Jacobian
+    of the whole trajectory, a dense (waypoints·3n)² Cholesky; kept as the reference the
+    banded form is checked against)."""
 
     seed: int = 0
     """Seed of the perturbed guesses."""
@@ -137,6 +144,9 @@ class TrajectoryConfig:
         if self.roadmap_search not in ("auto", "device", "scipy"):
             raise ValueError(f"roadmap_search must be 'auto', 'device' or 'scipy', "
                              f"got {self.roadmap_search!r}")
+        if self.lm_structure not in ("banded", "dense"):
+            raise ValueError(f"lm_structure must be 'banded' or 'dense', "
+                             f"got {self.lm_structure!r}")
         if self.problem_chunk < 1:
             raise ValueError(f"problem_chunk must be ≥ 1, got {self.problem_chunk}")
 
@@ -332,6 +342,76 @@ def trajectory_residual(robot: Robot, waypoints: int, checks: int, margin: float
         over = jnp.abs(accel) / (limit_fraction * robot.tendon_accel_max) - 1.0
         out.append(math.sqrt(w_tendon) * jnp.maximum(over, 0.0).reshape(-1))
     return jnp.concatenate(out)
+
+
+def _tendon_lengths(robot: Robot, z: jax.Array) -> jax.Array:
+    """Tendon lengths (n_tendons,) m of one configuration z (3n,) (linear in z)."""
+    values = model_tendon_lengths(JAX, robot, [z[i] for i in range(robot.dof)])
+    return jnp.stack(jnp.broadcast_arrays(*values)).astype(z.dtype)
+
+
+def trajectory_unary(robot: Robot, margin: float, sqrt_clear: float, z: jax.Array,
+                     params: Any, shared: Any) -> jax.Array:
+    """√w_clear · grouped clearance shortfalls (m) of one waypoint z (3n,);
+    ``shared`` = (scene arrays or None, Δt)."""
+    arrays, _ = shared
+    return sqrt_clear * _clearance_groups(robot, margin, arrays, z)
+
+
+def trajectory_pair(robot: Robot, margin: float, checks: int,
+                    weights: tuple[float, float, float, float], limit_fraction: float,
+                    z_a: jax.Array, z_b: jax.Array, params: Any, shared: Any) -> jax.Array:
+    """Residuals of one interval z_a → z_b (each (3n,)): √w_path·(p(z_b) − p(z_a)) (m),
+    √w_smooth·(z_b − z_a) (rad, m), √w_clear·grouped clearance shortfalls (m) at
+    ``checks`` evenly spaced points inside the interval, and √w_tendon·max(0,
+    |Δℓ/Δt|/(f·v_max) − 1) per tendon. ``weights`` = (√w_path, √w_smooth, √w_clear,
+    √w_tendon); f = ``limit_fraction``; ``shared`` = (scene arrays or None, Δt s)."""
+    sqrt_path, sqrt_smooth, sqrt_clear, sqrt_tendon = weights
+    arrays, dt = shared
+    step = z_b - z_a
+    out = [sqrt_path * (_tip_position(robot, z_b) - _tip_position(robot, z_a)),
+           sqrt_smooth * step]
+    if checks and _has_clearance(robot, arrays):
+        for c in range(1, checks + 1):
+            out.append(sqrt_clear * _clearance_groups(robot, margin, arrays,
+                                                      z_a + (c / (checks + 1)) * step))
+    if math.isfinite(robot.tendon_speed_max):
+        speed = (_tendon_lengths(robot, z_b) - _tendon_lengths(robot, z_a)) / dt
+        over = jnp.abs(speed) / (limit_fraction * robot.tendon_speed_max) - 1.0
+        out.append(sqrt_tendon * jnp.maximum(over, 0.0))
+    return jnp.concatenate(out)
+
+
+def trajectory_triple(robot: Robot, sqrt_tendon: float, limit_fraction: float,
+                      z_a: jax.Array, z_b: jax.Array, z_c: jax.Array, params: Any,
+                      shared: Any) -> jax.Array:
+    """√w_tendon·max(0, |Δ²ℓ/Δt²|/(f·a_max) − 1) per tendon at the middle waypoint z_b
+    (dimensionless); ``shared`` = (scene arrays or None, Δt s)."""
+    _, dt = shared
+    accel = (_tendon_lengths(robot, z_c) - 2.0 * _tendon_lengths(robot, z_b)
+             + _tendon_lengths(robot, z_a)) / (dt * dt)
+    over = jnp.abs(accel) / (limit_fraction * robot.tendon_accel_max) - 1.0
+    return sqrt_tendon * jnp.maximum(over, 0.0)
+
+
+def trajectory_terms(robot: Robot, margin: float, config: TrajectoryConfig,
+                     scene: SceneArrays | None) -> ChainResidual:
+    """``trajectory_residual`` as window terms for the banded LM (``stages.banded_lm``):
+    the same residuals (hence the same cost ½‖r‖²) grouped by the waypoints they touch.
+    ``scene`` only decides whether clearance terms exist."""
+    sqrt = math.sqrt
+    clear = _has_clearance(robot, scene)
+    unary = (partial(trajectory_unary, robot, float(margin), sqrt(config.clearance_weight))
+             if clear else None)
+    pair = partial(trajectory_pair, robot, float(margin),
+                   config.interpolation_checks if clear else 0,
+                   (sqrt(config.path_weight), sqrt(config.smoothness_weight),
+                    sqrt(config.clearance_weight), sqrt(config.tendon_weight)),
+                   config.tendon_limit_fraction)
+    triple = (partial(trajectory_triple, robot, sqrt(config.tendon_weight),
+                      config.tendon_limit_fraction)
+              if math.isfinite(robot.tendon_accel_max) else None)
+    return ChainResidual(unary, pair, triple)
 
 
 def _project_waypoints(robot: Robot, waypoints: int, z: jax.Array) -> jax.Array:
@@ -615,6 +695,7 @@ class TrajectoryPlanner:
         self._residual = partial(trajectory_residual, self.robot, n, config.interpolation_checks,
                                  float(self.margin), weights, config.tendon_limit_fraction)
         self._project = partial(_project_waypoints, self.robot, n)
+        self._terms = trajectory_terms(self.robot, self.margin, config, self._arrays)
         free = np.ones((n, self.robot.dof))
         free[:, 2::3] = ~self.robot.lengths_fixed()
         free[0] = free[-1] = 0.0                       # start and goal are fixed
@@ -716,9 +797,26 @@ class TrajectoryPlanner:
         # The block-banded LM (stages.banded_lm, used for 150-waypoint paths) was measured
         # on 8 shelf problems: 15 % faster per iteration at 24 waypoints but twice the
         # compile time (113 s against 54 s, cold cache), so trajectories stay dense.
-        config = LMConfig(cost_tolerance=0.0, linear_solver="cholesky")
-        solve = partial(lm_solve, self._residual, self._project, config=config)
-        return jax.jit(lambda *a: solve(*a)[:2]).lower(*args)
+        if self.config.lm_structure == "dense":
+            config = LMConfig(cost_tolerance=0.0, linear_solver="cholesky")
+            solve = partial(lm_solve, self._residual, self._project, config=config)
+            return jax.jit(lambda *a: solve(*a)[:2]).lower(*args)
+        # One banded solve per trajectory, vmapped: a trajectory that has converged keeps
+        # its iterate (the loop's batched predicate masks it) while the others go on.
+        n, dof = self.config.waypoints, self.robot.dof
+        one = partial(banded_lm_solve, self._terms, partial(project_z, self.robot),
+                      config=LMConfig(cost_tolerance=0.0))
+
+        def solve_chunk(z0: jax.Array, dt: jax.Array, arrays: SceneArrays | None,
+                        free: jax.Array, iterations: jax.Array) -> tuple[jax.Array, jax.Array]:
+            def single(z: jax.Array, step: jax.Array) -> tuple[jax.Array, jax.Array]:
+                out, cost, _ = one(z.reshape(n, dof), None, (arrays, step),
+                                   free.reshape(n, dof), iterations)
+                return out.reshape(-1), cost
+
+            return jax.vmap(single)(z0, dt)
+
+        return jax.jit(solve_chunk).lower(*args)
 
     def validate(self, start: Any, goal: Any) -> tuple[np.ndarray | None, np.ndarray | None, str]:
         """Full (3n,) start and goal, or a reason why the problem cannot be planned."""
