@@ -108,6 +108,10 @@ class TrajectoryConfig:
     polish_attempts: int = 3
     """Exact mode: LM candidates (best first) the polish starts from in turn until one
     polish passes the verification."""
+    polish_accepted: bool = False
+    """Exact mode: also polish the problems whose LM answer the verification already
+    accepts (Ipopt may then shorten their paths). False: such answers are kept as they
+    are and only the rejected ones are polished."""
     polish_workers: int = 1
     """Exact mode: processes that polish problems in parallel (``stages.pool``); 1 polishes
     in this process. The answers are the same either way."""
@@ -777,6 +781,8 @@ class TrajectoryPlanner:
         free[0] = free[-1] = 0.0                       # start and goal are fixed
         self._free = jnp.asarray(free.reshape(-1), self.dtype)
         self._compiled: dict[int, Any] = {}
+        self.last_programs = 0
+        """LM device programs launched by the last ``plan`` call (one per chunk)."""
         self._roadmap: Any = None
         self._polisher: Any = None
         self._polish_pool: Any = None
@@ -860,6 +866,7 @@ class TrajectoryPlanner:
                 self._compiled[chunk] = self._lower(args).compile()
                 timing.compile += time.perf_counter() - t0
             z, cost = self._compiled[chunk](*args)[:2]
+            self.last_programs += 1
             z_out.append(np.array(z[: stop - start], dtype=np.float64))
             cost_out.append(np.array(cost[: stop - start], dtype=np.float64))
         return np.concatenate(z_out), np.concatenate(cost_out)
@@ -944,14 +951,15 @@ class TrajectoryPlanner:
                 without fixed lengths; a list of rows of mixed lengths is allowed (a bad
                 row is a failed result, not an exception).
             goals: (P, 3n) goal configurations, same form.
-            exact: polish every trajectory with Ipopt (``stages.polish_trajectory``), the
+            exact: polish the trajectories with Ipopt (``stages.polish_trajectory``), the
                 constraints as constraints: tendon speed and acceleration limits, bending
                 limits, and clearance ≥ ``margin`` at every waypoint and at every sample
-                the verification checks. A polished answer replaces the LM answer only
-                when the verification accepts it (``stage == "polish"``); a failed polish
-                is retried from the next LM candidate (``polish_attempts``), and if none
-                passes, the LM answer stays with its own verdict, its ``stage`` noting why
-                each polish failed.
+                the verification checks. Only the problems whose LM answer the
+                verification rejects are polished, unless ``config.polish_accepted``. A
+                polished answer replaces the LM answer only when the verification
+                accepts it (``stage == "polish"``); a failed polish is retried from the
+                next LM candidate (``polish_attempts``), and if none passes, the LM answer
+                stays with its own verdict, its ``stage`` noting why each polish failed.
             init: "roadmap" (roadmap path, straight line, perturbed) or "straight"
                 (straight line and perturbed ones only).
             progress: show a progress bar for the exact stage.
@@ -965,6 +973,7 @@ class TrajectoryPlanner:
         dt = float(cfg.dt if dt is None else dt)
         timing = PlanTiming()
         self.last_timing = timing
+        self.last_programs = 0
         results: list[TrajectoryResult | None] = [None] * len(starts)
         valid: list[tuple[int, np.ndarray, np.ndarray]] = []
         t0 = time.perf_counter()
@@ -1099,8 +1108,20 @@ class TrajectoryPlanner:
         less often than the LM stage). ``bar``: a tqdm bar advanced per problem, or None."""
         t0 = time.perf_counter()
         cfg = self.config
+        # A penalty answer the independent verdict accepts needs no polish to be valid.
+        todo = []
+        for row, (i, _, _) in enumerate(valid):
+            result = results[i]
+            assert result is not None
+            if result.success and not cfg.polish_accepted:
+                result.timing = {**result.timing, "polish": 0.0}
+                if bar is not None:
+                    bar.update(1)
+            else:
+                todo.append(row)
+        valid = [valid[row] for row in todo]
         items = [(candidates[row][: cfg.polish_attempts], dt, cfg.safety_margin,
-                  cfg.verify_samples) for row in range(len(valid))]
+                  cfg.verify_samples) for row in todo]
         if cfg.polish_workers > 1 and len(items) > 1:
             if self._polish_pool is None:
                 from ..stages.pool import PolishPool
