@@ -116,7 +116,8 @@ def random_block_tridiagonal(s: int, k: int, rng: np.random.Generator) -> np.nda
     block lower-bidiagonal L with a dominant diagonal."""
     factor = np.zeros((s * k, s * k))
     for i in range(s):
-        factor[i * k:(i + 1) * k, i * k:(i + 1) * k] = rng.normal(size=(k, k)) / np.sqrt(k) + 2.0 * np.eye(k)
+        diagonal = rng.normal(size=(k, k)) / np.sqrt(k) + 2.0 * np.eye(k)
+        factor[i * k:(i + 1) * k, i * k:(i + 1) * k] = diagonal
         if i:
             factor[i * k:(i + 1) * k, (i - 1) * k:i * k] = rng.normal(size=(k, k)) / np.sqrt(k)
     return factor @ factor.T
