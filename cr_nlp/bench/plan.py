@@ -186,6 +186,13 @@ def measure_planner(planner: TrajectoryPlanner, scene: str, method: str, starts:
         verdicts.append({**verdict, "success": verdict["success"] and r.success})
     per_problem = [r.timing.total - r.timing.compile for r in results]
     row = _summary(scene, method, verdicts, per_problem, wall / len(starts), first)
+    # Per-stage seconds per problem of the timed batch (``PlanTiming``: roadmap query and
+    # initial guesses, LM, float64 verdict, Ipopt polish) and the LM's device programs.
+    stages = planner.last_timing
+    for key, seconds in (("query_time", stages.init), ("lm_time", stages.refine),
+                         ("verdict_time", stages.verify), ("polish_time", stages.polish)):
+        row[key] = seconds / len(starts)
+    row["programs"] = planner.last_programs
     if exact:
         row["median_polish"] = float(np.median([r.timing.polish for r in results]))
         row["polished_pct"] = 100.0 * float(np.mean([r.stage == "polish" for r in results]))
@@ -263,6 +270,10 @@ def _pooled(rows: Sequence[dict[str, Any]], verdict_rows: dict[str, list[dict[st
                                                for r in mine),
             "polished_pct": weighted("polished_pct") if all(
                 "polished_pct" in r for r in mine) else math.nan,
+            **{key: weighted(key) if all(key in r for r in mine) else math.nan
+               for key in ("query_time", "lm_time", "verdict_time", "polish_time")},
+            "programs": sum(r["programs"] for r in mine) if all(
+                "programs" in r for r in mine) else None,
         })
     return out
 
@@ -419,6 +430,11 @@ COLUMNS = (
     Column("median_path_length", "median path (m)", fixed(3)),
     Column("time_per_problem", "time/problem (s)", fixed(3)),
     Column("median_time", "median time (s)", fixed(3)),
+    Column("query_time", "query (s)", fixed(3)),
+    Column("lm_time", "LM (s)", fixed(3)),
+    Column("verdict_time", "verdict (s)", fixed(3)),
+    Column("polish_time", "polish (s)", fixed(3)),
+    Column("programs", "LM programs"),
     Column("median_polish", "exact stage median (s)", fixed(3)),
     Column("polished_pct", "polished %", fixed(1)),
     Column("max_violation", "max violation"),
@@ -436,8 +452,11 @@ def format_report(rows: Sequence[dict[str, Any]], builds: Sequence[dict[str, Any
              "Success and collision-free are judged by `verify_trajectory` (python-fcl along "
              "the interpolated motion, limits, tendon speed/acceleration over Δt) for every "
              "row. time/problem: batch wall time / problems (RRT: mean per problem); median "
-             "time: median of per-problem times; first call: warm-up (compilation, roadmap "
-             "load). RRT-Connect is not shortcut; it uses the planner's waypoints and Δt.",
+             "time: median of per-problem times; query / LM / verdict / polish: each stage's "
+             "batch seconds / problems (query: roadmap query and initial guesses); LM "
+             "programs: compiled LM calls of the timed batch; first call: warm-up "
+             "(compilation, roadmap load). RRT-Connect is not shortcut; it uses the "
+             "planner's waypoints and Δt.",
              "## Roadmap build",
              markdown_table(builds, (Column("scene", "scene"),
                                      Column("build_seconds", "build (s)", fixed(2)),

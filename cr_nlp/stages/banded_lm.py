@@ -299,43 +299,48 @@ def banded_lm_solve(terms: ChainResidual, project: Callable[[jax.Array], jax.Arr
     fixed_diag = (1.0 - free)[:, :, None] * eye
     z0 = project(z0)
 
-    def step_system(z: jax.Array) -> tuple[BandedMatrix, jax.Array]:
-        h, g = normal_equations(chain_jacobians(terms, z, params, shared), t)
+    def step_system(z: jax.Array) -> tuple[BandedMatrix, jax.Array, jax.Array]:
+        blocks = chain_jacobians(terms, z, params, shared)
+        h, g = normal_equations(blocks, t)
         g = g * free
         # Fixed variables: zero coupling, unit diagonal, zero gradient (a zero step).
         h = BandedMatrix(h.diag * free[:, :, None] * free[:, None, :] + fixed_diag,
                          h.upper1 * free[:-1, :, None] * free[1:, None, :],
                          h.upper2 * free[:-2, :, None] * free[2:, None, :])
-        return h, g
+        cost = 0.5 * sum(jnp.sum(r * r) for _, r, _ in blocks)
+        return h, g, cost
 
     def body(state: tuple) -> tuple:
-        z, cost, lam, nu, done, it = state
-        h, g = step_system(z)
+        z, cost, h, g, lam, nu, done, it = state
         diag = jnp.diagonal(h.diag, axis1=-2, axis2=-1)            # (T, d)
         scale = jnp.maximum(diag, 1e-9 * jnp.max(diag) + 1e-12)
         step = solve_banded(_damped(h, lam, scale), -g)
         z_new = project(z + step)
-        cost_new = chain_cost(terms, z_new, params, shared)
+        # The trial point's cost and its normal equations in one pass over the windows:
+        # the next iteration needs them whenever the step is accepted.
+        h_new, g_new, cost_new = step_system(z_new)
         actual = z_new - z
         predicted = -(jnp.sum(g * actual) + 0.5 * jnp.sum(actual * banded_matvec(h, actual)))
         rho = (cost - cost_new) / jnp.maximum(predicted, 1e-30)
         accept = (cost_new < cost) & jnp.isfinite(cost_new)
         stalled = accept & (cost - cost_new < config.stall_tolerance * cost)
         done = done | stalled | (cost_new < config.cost_tolerance) | (lam > 1e10)
-        z = jnp.where(accept, z_new, z)
-        cost = jnp.where(accept, cost_new, cost)
+        keep = partial(jnp.where, accept)
+        z, cost = keep(z_new, z), keep(cost_new, cost)
+        h = jax.tree_util.tree_map(keep, h_new, h)
+        g = keep(g_new, g)
         shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * jnp.clip(rho, 0.0, 1.0) - 1.0) ** 3)
         lam = jnp.clip(jnp.where(accept, lam * shrink, lam * nu), 1e-12, 1e12)
         nu = jnp.where(accept, 2.0, nu * 2.0)
-        return z, cost, lam.astype(dtype), nu.astype(dtype), done, it + 1
+        return z, cost, h, g, lam.astype(dtype), nu.astype(dtype), done, it + 1
 
     def running(state: tuple) -> jax.Array:
         *_, done, it = state
         more = ~done if config.stop_when_converged else True
         return (it < iterations) & more
 
-    cost0 = chain_cost(terms, z0, params, shared)
-    state = (z0, cost0, jnp.asarray(config.initial_damping, dtype), jnp.asarray(2.0, dtype),
-             cost0 < config.cost_tolerance, jnp.int32(0))
-    z, cost, _, _, _, it = jax.lax.while_loop(running, body, state)
+    h0, g0, cost0 = step_system(z0)
+    state = (z0, cost0, h0, g0, jnp.asarray(config.initial_damping, dtype),
+             jnp.asarray(2.0, dtype), cost0 < config.cost_tolerance, jnp.int32(0))
+    z, cost, _, _, _, _, _, it = jax.lax.while_loop(running, body, state)
     return z, cost, it

@@ -42,10 +42,12 @@ from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import JAX, NUMPY
 from ..model.actuation import planned_displacements
 from ..model.derivatives import backbone_jacobian_z, tip_jacobian_z
-from ..model.kinematics import model_segment_frames, model_tendon_lengths
+from ..model.kinematics import backbone_points_z, model_segment_frames, model_tendon_lengths
 from ..model.limits import limit_violation_q, project_z
+from ..stages.banded_lm import ChainResidual, banded_lm_solve
 from ..stages.lm import LMConfig, lm_solve
 from ..world import Scene, check_many, load_scene, scene_arrays
+from ..world.broad_phase import PartBalls, part_balls
 from ..world.clearance import (
     SceneArrays,
     _kind_blocks,
@@ -116,6 +118,10 @@ class TrajectoryConfig:
     polish_attempts: int = 3
     """Exact mode: LM candidates (best first) the polish starts from in turn until one
     polish passes the verification."""
+    polish_accepted: bool = False
+    """Exact mode: also polish the problems whose LM answer the verification already
+    accepts (Ipopt may then shorten their paths). False: such answers are kept as they
+    are and only the rejected ones are polished."""
     polish_workers: int = 1
     """Exact mode: processes that polish problems in parallel (``stages.pool``); 1 polishes
     in this process. The answers are the same either way."""
@@ -124,6 +130,16 @@ class TrajectoryConfig:
     chunks waste little on padding and on waiting for the chunk's slowest trajectory."""
     dtype: str = "float32"
     """JAX dtype of the LM stage ("float64" needs jax_enable_x64)."""
+    near_parts: int = 8
+    """Banded LM: per body sphere, only the parts (of each kind) whose bounding balls are
+    this many nearest are measured for its clearance terms (``world.broad_phase``); 0
+    measures every part. The verification always checks every part."""
+    lm_structure: str = "banded"
+    """How the LM stage solves its normal equations: "banded" (``stages.banded_lm``: the
+    residual as per-waypoint, pair and triple terms, a block-tridiagonal Cholesky; each
+    trajectory stops on its own once converged) or "dense" (``stages.lm``: one Jacobian
+    of the whole trajectory, a dense (waypoints·3n)² Cholesky; kept as the reference the
+    banded form is checked against)."""
 
     seed: int = 0
     """Seed of the perturbed guesses."""
@@ -147,6 +163,9 @@ class TrajectoryConfig:
         if self.roadmap_search not in ("auto", "device", "scipy"):
             raise ValueError(f"roadmap_search must be 'auto', 'device' or 'scipy', "
                              f"got {self.roadmap_search!r}")
+        if self.lm_structure not in ("banded", "dense"):
+            raise ValueError(f"lm_structure must be 'banded' or 'dense', "
+                             f"got {self.lm_structure!r}")
         if self.problem_chunk < 1:
             raise ValueError(f"problem_chunk must be ≥ 1, got {self.problem_chunk}")
 
@@ -212,18 +231,52 @@ _KIND_FIELDS = (("sphere_center", "sphere_radius"),
                 ("convex_planes",))
 
 
-def _nearest_and_gradient(robot: Robot, arrays: SceneArrays,
-                          centres: jax.Array) -> tuple[jax.Array, jax.Array]:
+def _candidates(arrays: SceneArrays, balls: PartBalls, near: int, present: list[int],
+                centres: jax.Array) -> list[jax.Array]:
+    """Broad phase: per present part kind, the indices (N, k) of the parts each body
+    sphere (centres (N, 3) m) may be nearest to: the ``near`` parts whose bounding balls
+    (``world.broad_phase``) are nearest to it, or every part of a kind with at most
+    ``near`` parts."""
+    out = []
+    for kind in present:
+        count = getattr(arrays, _KIND_FIELDS[kind][0]).shape[0]
+        if count <= near:
+            out.append(jnp.broadcast_to(jnp.arange(count), (centres.shape[0], count)))
+            continue
+        ball_centres, radii = balls[kind]
+        gap = jnp.sqrt(jnp.sum((centres[:, None] - ball_centres[None]) ** 2, axis=-1)) - radii
+        out.append(jax.lax.top_k(-gap, near)[1])
+    return out
+
+
+def _nearest_and_gradient(robot: Robot, arrays: SceneArrays, centres: jax.Array,
+                          balls: PartBalls | None = None,
+                          near: int = 0) -> tuple[jax.Array, jax.Array]:
     """Each body sphere's nearest-obstacle distance (N,) m and its gradient (N, 3) with
     respect to the sphere's centre. The gradient of a min is that of its argmin, so only
     the nearest part of each kind is differentiated (measured 10–20× cheaper than the
-    reverse pass over every (sphere, part) pair)."""
-    blocks = _kind_blocks(robot, arrays, centres, 0.0)
+    reverse pass over every (sphere, part) pair). With ``balls`` and ``near`` > 0 only the
+    ``near`` parts per kind whose bounding balls are nearest to a sphere are measured
+    (``_candidates``); a part outside them is taken to be farther."""
     present = [k for k, f in enumerate(_KIND_FIELDS) if getattr(arrays, f[0]).shape[0]]
+    if balls is not None and near > 0:
+        candidates = _candidates(arrays, balls, near, present, centres)
+        gathered = dict(arrays._asdict())
+        axes = dict.fromkeys(gathered)
+        for kind, idx in zip(present, candidates, strict=True):
+            for name in _KIND_FIELDS[kind]:
+                gathered[name] = getattr(arrays, name)[idx]           # (N, k, …)
+                axes[name] = 0
+        blocks = jax.vmap(lambda one, c: [b[0] for b in _kind_blocks(robot, one, c[None], 0.0)],
+                          in_axes=(SceneArrays(**axes), 0))(SceneArrays(**gathered), centres)
+        chosen = [jnp.take_along_axis(idx, jnp.argmin(b, axis=-1)[:, None], axis=1)
+                  for idx, b in zip(candidates, blocks, strict=True)]
+    else:
+        blocks = _kind_blocks(robot, arrays, centres, 0.0)
+        chosen = [jnp.argmin(b, axis=-1)[:, None] for b in blocks]
     picked = dict(arrays._asdict())
     axes = dict.fromkeys(picked)
-    for kind, block in zip(present, blocks, strict=True):
-        nearest = jnp.argmin(block, axis=-1)[:, None]          # (N, 1): one part per sphere
+    for kind, nearest in zip(present, chosen, strict=True):   # (N, 1): one part per sphere
         for name in _KIND_FIELDS[kind]:
             picked[name] = getattr(arrays, name)[nearest]
             axes[name] = 0
@@ -238,15 +291,17 @@ def _nearest_and_gradient(robot: Robot, arrays: SceneArrays,
 
 
 def _groups_from(robot: Robot, margin: float, arrays: SceneArrays | None, centres: jax.Array,
-                 jac_centres: jax.Array | None) -> tuple[jax.Array, jax.Array | None]:
+                 jac_centres: jax.Array | None, balls: PartBalls | None = None,
+                 near: int = 0) -> tuple[jax.Array, jax.Array | None]:
     """Grouped clearance shortfalls (G,) m of the body spheres' centres (N, 3) m
     (``_group_values``: per segment the norm of max(0, δ − d) over its spheres'
     nearest-obstacle distances, then the norm over the self pairs) and, given the centres'
     Jacobian (N, 3, d), theirs (G, d) (else None). Shared by this module's LM and
-    ``tasks.follow``, which build the centre Jacobian differently."""
+    ``tasks.follow``, which build the centre Jacobian differently. ``balls``, ``near``:
+    the broad phase of ``_nearest_and_gradient`` (None, 0: every part)."""
     values, rows = [], []
     if arrays is not None and arrays.n_parts > 0:
-        d, grad = _nearest_and_gradient(robot, arrays, centres)
+        d, grad = _nearest_and_gradient(robot, arrays, centres, balls, near)
         values.append(d)
         if jac_centres is not None:
             rows.append(jnp.einsum("nk,nkj->nj", grad, jac_centres))
@@ -302,6 +357,37 @@ def _clearance_groups_jvp(robot: Robot, margin: float, primals: tuple,
     return values, jac @ z_dot
 
 
+def _body_centres_z(robot: Robot, z: jax.Array) -> jax.Array:
+    """Body-sphere centres (N, 3) m of one z (3n,), ``world.clearance._centres`` order:
+    the base, then the backbone points."""
+    base = jnp.asarray(robot.base_position, z.dtype)[None]
+    return jnp.concatenate([base, backbone_points_z(robot, z).astype(z.dtype)])
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
+def near_clearance_groups(robot: Robot, margin: float, near: int, arrays: SceneArrays | None,
+                          balls: PartBalls | None, z: jax.Array) -> jax.Array:
+    """``_group_values`` (G,) m of one configuration z (3n,) with the broad phase of
+    ``_nearest_and_gradient``: only the ``near`` parts per kind whose bounding balls
+    (``balls``, ``world.broad_phase``) are nearest to a body sphere are measured (``near``
+    0 or ``balls`` None: every part). Its Jacobian comes from the primal alone."""
+    return _groups_from(robot, margin, arrays, _body_centres_z(robot, z), None, balls,
+                        near)[0]
+
+
+@near_clearance_groups.defjvp
+def _near_clearance_groups_jvp(robot: Robot, margin: float, near: int, primals: tuple,
+                               tangents: tuple) -> tuple:
+    arrays, balls, z = primals
+    z_dot = tangents[2]
+    points, d_points = backbone_jacobian_z(robot, z)
+    base = jnp.asarray(robot.base_position, z.dtype)[None]
+    centres = jnp.concatenate([base, points])
+    jac_centres = jnp.concatenate([jnp.zeros((1, 3, robot.dof), z.dtype), d_points])
+    values, jac = _groups_from(robot, margin, arrays, centres, jac_centres, balls, near)
+    return values, jac @ z_dot
+
+
 def _has_clearance(robot: Robot, arrays: SceneArrays | None) -> bool:
     return (arrays is not None and arrays.n_parts > 0) or robot.has_self_pairs
 
@@ -342,6 +428,78 @@ def trajectory_residual(robot: Robot, waypoints: int, checks: int, margin: float
         over = jnp.abs(accel) / (limit_fraction * robot.tendon_accel_max) - 1.0
         out.append(math.sqrt(w_tendon) * jnp.maximum(over, 0.0).reshape(-1))
     return jnp.concatenate(out)
+
+
+def _tendon_lengths(robot: Robot, z: jax.Array) -> jax.Array:
+    """Tendon lengths (n_tendons,) m of one configuration z (3n,) (linear in z)."""
+    values = model_tendon_lengths(JAX, robot, [z[i] for i in range(robot.dof)])
+    return jnp.stack(jnp.broadcast_arrays(*values)).astype(z.dtype)
+
+
+def trajectory_unary(robot: Robot, margin: float, near: int, sqrt_clear: float, z: jax.Array,
+                     params: Any, shared: Any) -> jax.Array:
+    """√w_clear · grouped clearance shortfalls (m) of one waypoint z (3n,)
+    (``near_clearance_groups``); ``shared`` = (scene arrays or None, part balls or None,
+    Δt s)."""
+    arrays, balls, _ = shared
+    return sqrt_clear * near_clearance_groups(robot, margin, near, arrays, balls, z)
+
+
+def trajectory_pair(robot: Robot, margin: float, near: int, checks: int,
+                    weights: tuple[float, float, float, float], limit_fraction: float,
+                    z_a: jax.Array, z_b: jax.Array, params: Any, shared: Any) -> jax.Array:
+    """Residuals of one interval z_a → z_b (each (3n,)): √w_path·(p(z_b) − p(z_a)) (m),
+    √w_smooth·(z_b − z_a) (rad, m), √w_clear·grouped clearance shortfalls (m) at
+    ``checks`` evenly spaced points inside the interval, and √w_tendon·max(0,
+    |Δℓ/Δt|/(f·v_max) − 1) per tendon. ``weights`` = (√w_path, √w_smooth, √w_clear,
+    √w_tendon); f = ``limit_fraction``; ``shared`` as for ``trajectory_unary``."""
+    sqrt_path, sqrt_smooth, sqrt_clear, sqrt_tendon = weights
+    arrays, balls, dt = shared
+    step = z_b - z_a
+    out = [sqrt_path * (_tip_position(robot, z_b) - _tip_position(robot, z_a)),
+           sqrt_smooth * step]
+    if checks and _has_clearance(robot, arrays):
+        for c in range(1, checks + 1):
+            out.append(sqrt_clear * near_clearance_groups(
+                robot, margin, near, arrays, balls, z_a + (c / (checks + 1)) * step))
+    if math.isfinite(robot.tendon_speed_max):
+        speed = (_tendon_lengths(robot, z_b) - _tendon_lengths(robot, z_a)) / dt
+        over = jnp.abs(speed) / (limit_fraction * robot.tendon_speed_max) - 1.0
+        out.append(sqrt_tendon * jnp.maximum(over, 0.0))
+    return jnp.concatenate(out)
+
+
+def trajectory_triple(robot: Robot, sqrt_tendon: float, limit_fraction: float,
+                      z_a: jax.Array, z_b: jax.Array, z_c: jax.Array, params: Any,
+                      shared: Any) -> jax.Array:
+    """√w_tendon·max(0, |Δ²ℓ/Δt²|/(f·a_max) − 1) per tendon at the middle waypoint z_b
+    (dimensionless); ``shared`` as for ``trajectory_unary``."""
+    dt = shared[2]
+    accel = (_tendon_lengths(robot, z_c) - 2.0 * _tendon_lengths(robot, z_b)
+             + _tendon_lengths(robot, z_a)) / (dt * dt)
+    over = jnp.abs(accel) / (limit_fraction * robot.tendon_accel_max) - 1.0
+    return sqrt_tendon * jnp.maximum(over, 0.0)
+
+
+def trajectory_terms(robot: Robot, margin: float, config: TrajectoryConfig,
+                     scene: SceneArrays | None) -> ChainResidual:
+    """``trajectory_residual`` as window terms for the banded LM (``stages.banded_lm``):
+    the same residuals (hence the same cost ½‖r‖²) grouped by the waypoints they touch.
+    ``scene`` only decides whether clearance terms exist."""
+    sqrt = math.sqrt
+    clear = _has_clearance(robot, scene)
+    near = config.near_parts
+    unary = (partial(trajectory_unary, robot, float(margin), near,
+                     sqrt(config.clearance_weight)) if clear else None)
+    pair = partial(trajectory_pair, robot, float(margin), near,
+                   config.interpolation_checks if clear else 0,
+                   (sqrt(config.path_weight), sqrt(config.smoothness_weight),
+                    sqrt(config.clearance_weight), sqrt(config.tendon_weight)),
+                   config.tendon_limit_fraction)
+    triple = (partial(trajectory_triple, robot, sqrt(config.tendon_weight),
+                      config.tendon_limit_fraction)
+              if math.isfinite(robot.tendon_accel_max) else None)
+    return ChainResidual(unary, pair, triple)
 
 
 def _project_waypoints(robot: Robot, waypoints: int, z: jax.Array) -> jax.Array:
@@ -696,11 +854,16 @@ class TrajectoryPlanner:
         self._residual = partial(trajectory_residual, self.robot, n, config.interpolation_checks,
                                  float(self.margin), weights, config.tendon_limit_fraction)
         self._project = partial(_project_waypoints, self.robot, n)
+        self._balls = (part_balls(self.scene, self.dtype)
+                       if self.scene is not None and config.near_parts > 0 else None)
+        self._terms = trajectory_terms(self.robot, self.margin, config, self._arrays)
         free = np.ones((n, self.robot.dof))
         free[:, 2::3] = ~self.robot.lengths_fixed()
         free[0] = free[-1] = 0.0                       # start and goal are fixed
         self._free = jnp.asarray(free.reshape(-1), self.dtype)
         self._compiled: dict[int, Any] = {}
+        self.last_programs = 0
+        """LM device programs launched by the last ``plan`` call (one per chunk)."""
         self._roadmap: Any = None
         self._polisher: Any = None
         self._polish_pool: Any = None
@@ -784,6 +947,7 @@ class TrajectoryPlanner:
                 self._compiled[chunk] = self._lower(args).compile()
                 timing.compile += time.perf_counter() - t0
             z, cost = self._compiled[chunk](*args)[:2]
+            self.last_programs += 1
             z_out.append(np.array(z[: stop - start], dtype=np.float64))
             cost_out.append(np.array(cost[: stop - start], dtype=np.float64))
         return np.concatenate(z_out), np.concatenate(cost_out)
@@ -794,12 +958,32 @@ class TrajectoryPlanner:
         the sharded program of a 16-trajectory chunk never returned (every thread waiting
         on a futex), while the same program unsharded, where XLA's own thread pool
         parallelises the large JᵀJ products, runs normally."""
-        # The block-banded LM (stages.banded_lm, used for 150-waypoint paths) was measured
-        # on 8 shelf problems: 15 % faster per iteration at 24 waypoints but twice the
-        # compile time (113 s against 54 s, cold cache), so trajectories stay dense.
-        config = LMConfig(cost_tolerance=0.0, linear_solver="cholesky")
-        solve = partial(lm_solve, self._residual, self._project, config=config)
-        return jax.jit(lambda *a: solve(*a)[:2]).lower(*args)
+        # Measured on 20 shelf problems, 2 shared cores under load, same process: the
+        # banded LM with the clearance broad phase took 1.98 s of LM per problem against
+        # the dense LM's 3.86 s, same successes and path lengths; its first compilation
+        # is longer (about 200 s against 34 s with a cold cache under that load).
+        if self.config.lm_structure == "dense":
+            config = LMConfig(cost_tolerance=0.0, linear_solver="cholesky")
+            solve = partial(lm_solve, self._residual, self._project, config=config)
+            return jax.jit(lambda *a: solve(*a)[:2]).lower(*args)
+        # One banded solve per trajectory, vmapped: a trajectory that has converged keeps
+        # its iterate (the loop's batched predicate masks it) while the others go on.
+        n, dof = self.config.waypoints, self.robot.dof
+        one = partial(banded_lm_solve, self._terms, partial(project_z, self.robot),
+                      config=LMConfig(cost_tolerance=0.0))
+
+        balls = self._balls
+
+        def solve_chunk(z0: jax.Array, dt: jax.Array, arrays: SceneArrays | None,
+                        free: jax.Array, iterations: jax.Array) -> tuple[jax.Array, jax.Array]:
+            def single(z: jax.Array, step: jax.Array) -> tuple[jax.Array, jax.Array]:
+                out, cost, _ = one(z.reshape(n, dof), None, (arrays, balls, step),
+                                   free.reshape(n, dof), iterations)
+                return out.reshape(-1), cost
+
+            return jax.vmap(single)(z0, dt)
+
+        return jax.jit(solve_chunk).lower(*args)
 
     def validate(self, start: Any, goal: Any) -> tuple[np.ndarray | None, np.ndarray | None, str]:
         """Full (3n,) start and goal, or a reason why the problem cannot be planned."""
@@ -849,14 +1033,15 @@ class TrajectoryPlanner:
                 without fixed lengths; a list of rows of mixed lengths is allowed (a bad
                 row is a failed result, not an exception).
             goals: (P, 3n) goal configurations, same form.
-            exact: polish every trajectory with Ipopt (``stages.polish_trajectory``), the
+            exact: polish the trajectories with Ipopt (``stages.polish_trajectory``), the
                 constraints as constraints: tendon speed and acceleration limits, bending
                 limits, and clearance ≥ ``margin`` at every waypoint and at every sample
-                the verification checks. A polished answer replaces the LM answer only
-                when the verification accepts it (``stage == "polish"``); a failed polish
-                is retried from the next LM candidate (``polish_attempts``), and if none
-                passes, the LM answer stays with its own verdict, its ``stage`` noting why
-                each polish failed.
+                the verification checks. Only the problems whose LM answer the
+                verification rejects are polished, unless ``config.polish_accepted``. A
+                polished answer replaces the LM answer only when the verification
+                accepts it (``stage == "polish"``); a failed polish is retried from the
+                next LM candidate (``polish_attempts``), and if none passes, the LM answer
+                stays with its own verdict, its ``stage`` noting why each polish failed.
             init: "roadmap" (roadmap path, straight line, perturbed) or "straight"
                 (straight line and perturbed ones only).
             progress: show a progress bar for the exact stage.
@@ -870,6 +1055,7 @@ class TrajectoryPlanner:
         dt = float(cfg.dt if dt is None else dt)
         timing = PlanTiming()
         self.last_timing = timing
+        self.last_programs = 0
         results: list[TrajectoryResult | None] = [None] * len(starts)
         valid: list[tuple[int, np.ndarray, np.ndarray]] = []
         t0 = time.perf_counter()
@@ -1004,8 +1190,20 @@ class TrajectoryPlanner:
         less often than the LM stage). ``bar``: a tqdm bar advanced per problem, or None."""
         t0 = time.perf_counter()
         cfg = self.config
+        # A penalty answer the independent verdict accepts needs no polish to be valid.
+        todo = []
+        for row, (i, _, _) in enumerate(valid):
+            result = results[i]
+            assert result is not None
+            if result.success and not cfg.polish_accepted:
+                result.timing = {**result.timing, "polish": 0.0}
+                if bar is not None:
+                    bar.update(1)
+            else:
+                todo.append(row)
+        valid = [valid[row] for row in todo]
         items = [(candidates[row][: cfg.polish_attempts], dt, cfg.safety_margin,
-                  cfg.verify_samples) for row in range(len(valid))]
+                  cfg.verify_samples) for row in todo]
         if cfg.polish_workers > 1 and len(items) > 1:
             if self._polish_pool is None:
                 from ..stages.pool import PolishPool

@@ -1,0 +1,114 @@
+"""The banded trajectory LM: its window terms define the dense problem, its broad phase
+measures the nearest parts, and planning answers agree with the dense LM's."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cr_nlp.model import load_robot
+from cr_nlp.stages.banded_lm import (
+    banded_to_dense,
+    chain_cost,
+    chain_jacobians,
+    normal_equations,
+)
+from cr_nlp.tasks.trajectory import (
+    TrajectoryConfig,
+    TrajectoryPlanner,
+    _group_values,
+    near_clearance_groups,
+    trajectory_residual,
+    trajectory_terms,
+)
+from cr_nlp.world import load_scene, scene_arrays
+from cr_nlp.world.broad_phase import part_balls
+
+from .conftest import MODELS
+
+ROBOT = load_robot(MODELS / "robots" / "tdcr3.json")
+
+
+def random_trajectory(waypoints: int, seed: int) -> np.ndarray:
+    """(waypoints, 9) bending vectors near the shelf's boards, float64."""
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(-1.2, 1.2, (waypoints, ROBOT.dof))
+    z[:, 2::3] = 1.0
+    return z
+
+
+@pytest.mark.parametrize("scene_name", [pytest.param("shelf", marks=pytest.mark.slow),
+                                        "random_27"])
+def test_window_terms_give_the_dense_residuals_cost_and_normal_equations(scene_name):
+    """``trajectory_terms`` (the banded LM's problem) against ``trajectory_residual`` (the
+    dense LM's), float64, at a trajectory in contact with the scene: the same ½‖r‖², and
+    JᵀJ and Jᵀr of the dense residual's forward-mode Jacobian equal the banded blocks."""
+    config = TrajectoryConfig(waypoints=6, near_parts=0)
+    arrays = scene_arrays(load_scene(scene_name), dtype=jnp.float64)
+    margin, dt = 0.05, 0.35
+    weights = (config.path_weight, config.smoothness_weight, config.clearance_weight,
+               config.tendon_weight)
+    dense = partial(trajectory_residual, ROBOT, config.waypoints, config.interpolation_checks,
+                    margin, weights, config.tendon_limit_fraction)
+    terms = trajectory_terms(ROBOT, margin, config, arrays)
+    z = jnp.asarray(random_trajectory(config.waypoints, 7))
+    shared = (arrays, None, jnp.float64(dt))
+    r = jax.jit(dense)(z.reshape(-1), jnp.float64(dt), arrays)
+    assert float(jnp.sum(r[r > 0])) > 0.0                     # penalties are active
+    assert float(jax.jit(lambda z: chain_cost(terms, z, None, shared))(z)) == pytest.approx(
+        0.5 * float(r @ r), rel=1e-12)
+    jac = jax.jit(jax.jacfwd(dense))(z.reshape(-1), jnp.float64(dt), arrays)
+    h, g = jax.jit(lambda z: normal_equations(chain_jacobians(terms, z, None, shared),
+                                              config.waypoints))(z)
+    np.testing.assert_allclose(banded_to_dense(h), jac.T @ jac, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(g).reshape(-1), jac.T @ r, rtol=1e-9, atol=1e-9)
+
+
+def test_broad_phase_measures_the_nearest_parts():
+    """``near_clearance_groups`` with every part equals ``_group_values`` (world.penalty's
+    distances), float64, on 120 random configurations of tdcr3. With the 8 nearest
+    bounding balls it is the same on random_27 (27 spheres: the ball is the part, exact by
+    construction); in the shelf (57 convex parts) a sphere deep inside a board may find
+    its face-plane minimum outside them: a smaller shortfall, never a larger one, and the
+    same value and Jacobian for ≥ 99 % of the groups."""
+    z = jnp.asarray(random_trajectory(120, 3))
+    for name in ("shelf", "random_27"):
+        scene = load_scene(name)
+        arrays = scene_arrays(scene, dtype=jnp.float64)
+        balls = part_balls(scene, jnp.float64)
+        reference = jax.jit(jax.vmap(partial(_group_values, ROBOT, 0.05, arrays)))(z)
+        assert int(jnp.sum(reference > 0)) > 50                # many groups in contact
+        all_parts = partial(near_clearance_groups, ROBOT, 0.05, 0, arrays, None)
+        ref_jac = jax.jit(jax.vmap(jax.jacfwd(all_parts)))(z)
+        for near in (0, 8):
+            fn = partial(near_clearance_groups, ROBOT, 0.05, near, arrays, balls)
+            values = np.asarray(jax.jit(jax.vmap(fn))(z))
+            jac = np.asarray(jax.jit(jax.vmap(jax.jacfwd(fn)))(z))
+            same = np.abs(values - reference) <= 1e-12
+            assert np.all(values <= reference + 1e-12)
+            assert same.mean() >= (1.0 if near == 0 or name == "random_27" else 0.99)
+            np.testing.assert_allclose(jac[same], np.asarray(ref_jac)[same], atol=1e-10)
+
+
+@pytest.mark.slow  # two planners' compilations: `pytest -m slow`
+def test_banded_and_dense_lm_plan_alike_on_the_shelf():
+    """Before/after: the banded LM (default) and the dense LM plan 6 shelf problems of the
+    benchmark protocol with the same successes and path lengths within 2 %."""
+    from cr_nlp.bench.plan import plan_problems
+
+    scene = load_scene("shelf")
+    config = TrajectoryConfig()
+    banded = TrajectoryPlanner(ROBOT, scene, config)
+    dense = TrajectoryPlanner(ROBOT, scene, replace(config, lm_structure="dense"))
+    starts, goals = plan_problems(ROBOT, scene, 6, banded.margin, seed=0)
+    a, b = banded.plan(starts, goals), dense.plan(starts, goals)
+    assert [r.success for r in a] == [r.success for r in b]
+    assert sum(r.success for r in a) >= 5
+    for ra, rb in zip(a, b, strict=True):
+        if ra.success:
+            assert ra.path_length == pytest.approx(rb.path_length, rel=0.02)
