@@ -44,6 +44,7 @@ def random_trajectory(waypoints: int, seed: int) -> np.ndarray:
 
 @pytest.mark.parametrize("scene_name", [pytest.param("shelf", marks=pytest.mark.slow),
                                         "random_27"])
+@pytest.mark.usefixtures("float64")
 def test_window_terms_give_the_dense_residuals_cost_and_normal_equations(scene_name):
     """``trajectory_terms`` (the banded LM's problem) against ``trajectory_residual`` (the
     dense LM's), float64, at a trajectory in contact with the scene: the same ½‖r‖², and
@@ -69,6 +70,7 @@ def test_window_terms_give_the_dense_residuals_cost_and_normal_equations(scene_n
     np.testing.assert_allclose(np.asarray(g).reshape(-1), jac.T @ r, rtol=1e-9, atol=1e-9)
 
 
+@pytest.mark.usefixtures("float64")
 def test_broad_phase_measures_the_nearest_parts():
     """``near_clearance_groups`` with every part equals ``_group_values`` (world.penalty's
     distances), float64, on 120 random configurations of tdcr3. With the 8 nearest
