@@ -3,8 +3,8 @@
 Every module under ``cr_nlp`` is parsed with ``ast`` (nothing is imported), and every import
 statement — at module level, inside functions, under ``TYPE_CHECKING`` — becomes an edge
 of the intra-package import graph (relative imports resolved; ``from pkg import name``
-points at ``pkg.name`` when that is a module, else at ``pkg``). The layers (DESIGN.md,
-STYLE.md) are model → world → stages → tasks → interfaces; ``_resources`` and
+points at ``pkg.name`` when that is a module, else at ``pkg``). The layers (docs/design.md §5)
+are model → world → stages → tasks → interfaces; ``_resources`` and
 ``_jax_setup`` sit below them all, the package's ``__init__`` (the public surface) above.
 """
 

@@ -1,5 +1,5 @@
 """The public kinematics answer numpy in float64 (against an independent float64 evaluation
-written here from DESIGN.md §1), and JAX in with JAX out, traceable."""
+written here from docs/design.md §1), and JAX in with JAX out, traceable."""
 
 import jax
 import jax.numpy as jnp
@@ -39,7 +39,7 @@ def ry(a: float) -> np.ndarray:
 
 
 def segment(theta: float, phi: float, length: float) -> np.ndarray:
-    """The PCC segment transform as DESIGN.md §1 writes it: Rz(φ)·Ry(θ)·Rz(−φ) and
+    """The PCC segment transform as docs/design.md §1 writes it: Rz(φ)·Ry(θ)·Rz(−φ) and
     d = (L/θ)(cos φ (1 − cos θ), sin φ (1 − cos θ), sin θ), d = (0, 0, L) at θ = 0."""
     t = np.eye(4)
     t[:3, :3] = rz(phi) @ ry(theta) @ rz(-phi)

@@ -1,4 +1,4 @@
-"""Benchmark suites: each a command that prints a table (DESIGN.md §4).
+"""Benchmark suites: each a command that prints a table (docs/design.md §4).
 
 - ``ik``: ``cr-nlp bench ik`` (``run_ik_benchmark``), cr_nlp's IK against the baselines.
 - ``baselines``: damped Newton–Raphson and a scipy derivative-free method, numpy in/out.

@@ -3,7 +3,7 @@ the one report writer (``write_report``).
 
 A table is a list of row dicts and a list of ``Column``s that say which keys to show,
 under which header, and how to format the numbers. Every table is printed and written
-with the environment it was measured in (DESIGN.md §4, "How to measure").
+with the environment it was measured in (docs/design.md §4, "How to measure").
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""``cr-nlp bench follow``: the path-following benchmark of DESIGN.md §4 on this machine.
+"""``cr-nlp bench follow``: the path-following benchmark of docs/design.md §4 on this machine.
 
 tdcr3 follows the three bundled shapes (``models/paths/{square,sine,icra}.json``, 150
 waypoints, Δt = 0.1 s) among the two spheres of their scenes (``follow_square`` …).

@@ -1,4 +1,4 @@
-"""``cr-nlp bench ik``: the IK benchmarks of DESIGN.md §4 on this machine.
+"""``cr-nlp bench ik``: the IK benchmarks of docs/design.md §4 on this machine.
 
 Suites:
 

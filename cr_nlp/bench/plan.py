@@ -1,4 +1,4 @@
-"""``cr-nlp bench plan``: the trajectory-planning benchmark of DESIGN.md §4 on this machine.
+"""``cr-nlp bench plan``: the trajectory-planning benchmark of docs/design.md §4 on this machine.
 
 Problems: tdcr3 in the shelf, cabinet and random (``models/scenes/random_27.json``)
 scenes; per scene, start/goal pairs of configurations that are collision-free by

@@ -88,7 +88,7 @@ def _add_ik(group: argparse._SubParsersAction) -> None:
     from ..bench.ik import FULL, QUICK, SUITES
 
     p = group.add_parser(
-        "ik", help="IK benchmark: cr_nlp vs damped Newton–Raphson and scipy (DESIGN.md §4)",
+        "ik", help="IK benchmark: cr_nlp vs damped Newton–Raphson and scipy (docs/design.md §4)",
         description="Runs the IK suites, prints Markdown tables and writes ik.md, ik.csv and "
                     "environment.json to --out.")
     p.add_argument("--suite", choices=("all", *SUITES), default="all",
@@ -135,7 +135,7 @@ def _add_plan(group: argparse._SubParsersAction) -> None:
 
     p = group.add_parser(
         "plan", help="trajectory benchmark: roadmap/straight-line + LM, exact, RRT-Connect",
-        description="Runs the trajectory-planning benchmark (DESIGN.md §4), prints Markdown "
+        description="Runs the trajectory-planning benchmark (docs/design.md §4), prints Markdown "
                     "tables and writes plan.md, plan.csv, roadmap_build.csv, iterations.csv "
                     "and iterations.png to --out.")
     p.add_argument("--quick", action="store_true",
@@ -181,7 +181,7 @@ def _add_follow(group: argparse._SubParsersAction) -> None:
 
     p = group.add_parser(
         "follow", help="path-following benchmark: square, sine, ICRA; penalty and exact",
-        description="Runs the path-following benchmark (DESIGN.md §4), prints a Markdown "
+        description="Runs the path-following benchmark (docs/design.md §4), prints a Markdown "
                     "table and writes follow.md, follow.csv and figures to --out.")
     p.add_argument("--shapes", nargs="+", default=list(SHAPES),
                    help="bundled shapes (square sine icra) or path files (no obstacles)")

@@ -1,13 +1,13 @@
 """Forward kinematics from motor commands: tendon displacements → shape → tip (PCC with slack).
 
-Conventions (DESIGN.md §1b): commanded displacement d (m) per tendon in the robot file's
+Conventions (docs/design.md §1b): commanded displacement d (m) per tendon in the robot file's
 order, positive = pulled, from the calibrated zero. A tendon pulls, never pushes.
 
 The model. Tendon j's effective pull is ``p_j = g_j·(d_j − d0_j)`` (gain g, zero offset
 d0: the command at which the tendon is just taut on the straight backbone). In bending
 vectors u_i = θ_i(cos φ_i, sin φ_i), the path shortening of tendon j is ``r·(B u)_j`` with
 ``B[j, segment i] = (cos α_ij, sin α_ij)`` for each segment the tendon runs through
-(DESIGN.md §1: ``ℓ = L − r·θ·cos(α − φ)``). The tendon is stretched by ``s_j = p_j − r(B u)_j``
+(docs/design.md §1: ``ℓ = L − r·θ·cos(α − φ)``). The tendon is stretched by ``s_j = p_j − r(B u)_j``
 when that is positive and slack otherwise. The backbone takes the shape of least energy
 
     E(u) = ½ Σ_i c_i ‖u_i‖² + ½ Σ_j κ_j max(0, s_j / r)²,
@@ -70,7 +70,7 @@ def _nominal_angles(robot: Robot) -> np.ndarray:
 
 def _offset_owner(robot: Robot) -> np.ndarray:
     """(n_tendons, n_segments) index of the segment whose offset applies to tendon j in
-    segment i (DESIGN.md §1: per-segment routing uses the tendon's own segment)."""
+    segment i (docs/design.md §1: per-segment routing uses the tendon's own segment)."""
     n, m = robot.n_segments, robot.tendons.per_segment
     if robot.tendons.routing == "shared":
         return np.tile(np.arange(n), (m, 1))

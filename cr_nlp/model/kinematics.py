@@ -1,6 +1,6 @@
 """PCC kinematics, tendon lengths and pose error: written once, evaluated by JAX and CasADi.
 
-Conventions (DESIGN.md §1): segment i has bending angle θᵢ ∈ [0, θmaxᵢ]
+Conventions (docs/design.md §1): segment i has bending angle θᵢ ∈ [0, θmaxᵢ]
 (radians), azimuth φᵢ (radians) and arc length Lᵢ (metres);
 ``q = [θ1, φ1, L1, …, θn, φn, Ln]``. The segment transform is
 ``R = Rz(φ)·Ry(θ)·Rz(−φ)``, ``d = (L/θ)·[cos φ (1 − cos θ), sin φ (1 − cos θ), sin θ]``.
@@ -273,7 +273,7 @@ def tendon_lengths_z(robot: Robot, z: jax.Array) -> jax.Array:
 
 
 def tendon_lengths(robot: Robot, q: Any) -> Any:
-    """Tendon lengths (…, n_tendons) in metres for the robot's routing (see DESIGN.md §1).
+    """Tendon lengths (…, n_tendons) in metres for the robot's routing (see docs/design.md §1).
 
     ``q`` (…, 3n) in radians and metres; numpy in → float64 numpy out, JAX in → JAX out.
     """
@@ -311,7 +311,7 @@ def pose_error_vector(position: Any, rotation: Any, target_position: Any,
 
 
 def pose_error(position: Any, rotation: Any, target_position: Any, target_rotation: Any) -> Any:
-    """The success metric ‖log(T⁻¹·T_target)‖₂ (…,) (mixed metres/radians, DESIGN.md §1).
+    """The success metric ‖log(T⁻¹·T_target)‖₂ (…,) (mixed metres/radians, docs/design.md §1).
 
     Positions (…, 3) m, rotations (…, 3, 3). All numpy in → float64 numpy out; any JAX
     array in → JAX out (traceable).

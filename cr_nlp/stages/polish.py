@@ -1,7 +1,7 @@
 """Stage 3, polish: the IK problem with its constraints as real constraints, solved by Ipopt.
 
 The variable is the bending vector ``z = [ux1, uy1, L1, …]`` (rad, rad, m), warm-started
-from stage 2's answer. Constraints (DESIGN.md §2):
+from stage 2's answer. Constraints (docs/design.md §2):
 
 - simple bounds: ``|uxᵢ|, |uyᵢ| ≤ θmaxᵢ``, ``Lᵢ`` in its range (``lbx = ubx`` when fixed);
 - ``‖uᵢ‖² ≤ θmaxᵢ²`` (smooth form of θᵢ ≤ θmaxᵢ);

@@ -11,7 +11,7 @@ rad, m), one row per waypoint. Two objectives share the constraints:
   ``f = ½Σ_k (w_v‖v_k‖² + w_ω‖ω_k‖²) + w_smooth·Σ‖z_{k+1} − z_k‖²`` with
   ``(v_k, ω_k) = log(T_tip(z_k)⁻¹·T_target_k)`` (m, rad).
 
-Constraints (DESIGN.md §2):
+Constraints (docs/design.md §2):
 
 - box bounds ``|uxᵢ|, |uyᵢ| ≤ θmaxᵢ``, ``Lᵢ`` in its range; bending disk
   ``uxᵢ² + uyᵢ² ≤ θmaxᵢ²`` per segment and waypoint;

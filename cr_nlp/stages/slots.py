@@ -1,7 +1,7 @@
 """Pair slots: the clearance constraints of the exact stage and their first derivatives.
 
 A clearance constraint of the exact stage is one row ``d ≥ δ`` per (body sphere, nearby
-obstacle part) pair and per nearby self pair (DESIGN.md §2). Every NLP is built once per
+obstacle part) pair and per nearby self pair (docs/design.md §2). Every NLP is built once per
 robot and scene and re-solved with new parameters, so the rows cannot be chosen when the
 NLP is built. Instead each part kind of the scene (and the robot itself) owns a pool of
 ``capacity`` rows, "slots", per configuration: a slot's body sphere is a parameter (its

@@ -2,7 +2,7 @@
 
 Tendon lengths are linear in the bending vector z (``model.kinematics.tendon_lengths_z``);
 speed and acceleration are finite differences over the time step Δt between waypoints
-(DESIGN.md §1). A penalty LM aims at a fraction f ≤ 1 of each limit, so that the small
+(docs/design.md §1). A penalty LM aims at a fraction f ≤ 1 of each limit, so that the small
 overshoot a penalty leaves still lies inside the real limit.
 """
 

@@ -13,7 +13,7 @@ import jax.monitoring
 
 @dataclass
 class StageTiming(Mapping):
-    """Seconds per stage (DESIGN.md §2's stages; compile time kept apart from the work).
+    """Seconds per stage (docs/design.md §2's stages; compile time kept apart from the work).
 
     Read as attributes (``timing.refine``) or as a read-only mapping stage → seconds
     (``timing["refine"]``, ``dict(timing)``; ``"total"`` included), written as

@@ -1,9 +1,9 @@
 """Path following: the tip traces a reference path while the body avoids obstacles and
 the tendons move smoothly.
 
-Problem (DESIGN.md §2): z = (z₀, …, z_{T−1}), one bending-vector configuration per
+Problem (docs/design.md §2): z = (z₀, …, z_{T−1}), one bending-vector configuration per
 waypoint of the path (time step Δt between waypoints); f = Σₜ pose error to the
-reference pose (the 6-vector log(T_tip⁻¹·T_ref), DESIGN.md §1) plus a small smoothness
+reference pose (the 6-vector log(T_tip⁻¹·T_ref), docs/design.md §1) plus a small smoothness
 term; c = clearance ≥ δ at every waypoint and along the motion between waypoints,
 tendon speed |Δℓ/Δt| ≤ v_max and acceleration |Δ²ℓ/Δt²| ≤ a_max; limits by projection.
 Between waypoints the robot moves linearly in z (as ``tasks.trajectory``: linear in the
@@ -346,7 +346,7 @@ def follow_terms(robot: Robot, margin: float, config: FollowConfig) -> ChainResi
 def tracking_errors(robot: Robot, q: np.ndarray, positions: np.ndarray,
                     wxyz: np.ndarray) -> dict[str, np.ndarray]:
     """Per-waypoint tip pose and its distance to the reference, float64: ``position``
-    (T, 3) m, ``wxyz`` (T, 4), ``pose_error`` (T,) (‖log(T_tip⁻¹·T_ref)‖, DESIGN.md §1),
+    (T, 3) m, ``wxyz`` (T, 4), ``pose_error`` (T,) (‖log(T_tip⁻¹·T_ref)‖, docs/design.md §1),
     ``position_error`` (T,) m and ``rotation_error`` (T,) rad (the angle of
     R_tipᵀ·R_ref)."""
     position, rotation = tip_pose(robot, np.asarray(q, np.float64))

@@ -1,6 +1,6 @@
 """Inverse kinematics: the problem, the batched solver and its result.
 
-Problem (DESIGN.md §2): z = bending-vector configuration; f = ½‖log(T_tip⁻¹·T_target)‖²
+Problem (docs/design.md §2): z = bending-vector configuration; f = ½‖log(T_tip⁻¹·T_target)‖²
 as LM residuals; limits by projection; clearance ≥ δ (penalty in JAX, a real
 constraint in the exact stage), and the same for the self-clearance between segments at
 least two apart, with or without a scene; success is judged independently of the

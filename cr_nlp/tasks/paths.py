@@ -4,7 +4,7 @@ A path file is JSON: ``{"poses": [{"position": [x, y, z], "wxyz": [w, x, y, z]},
 "dt": seconds}`` with optional ``"pen_down": [bool, ...]`` (False on the pen-up moves
 between strokes, which the tip still follows) and ``"name"``/``"description"``.
 
-The benchmark shapes (DESIGN.md §4) lie in the plane x = 1.5 m in front of the robot,
+The benchmark shapes (docs/design.md §4) lie in the plane x = 1.5 m in front of the robot,
 inside the regions the bundled ``follow_*`` scenes were built around
 (``world.builders.PATH_REGIONS``), with the tip pointing along +x, towards the plane:
 a 1.0 m square with sharp corners, a sinusoid, and the letters "ICRA".

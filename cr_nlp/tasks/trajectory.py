@@ -1,6 +1,6 @@
 """Trajectory planning: the problem, the batched solver, the independent verification.
 
-Problem (DESIGN.md §2): z = (z₀, …, z_H), one bending-vector configuration per waypoint
+Problem (docs/design.md §2): z = (z₀, …, z_H), one bending-vector configuration per waypoint
 (``waypoints = H + 1``), the time step Δt between waypoints fixed; start z₀ and goal z_H
 fixed; f = end-effector path; c = clearance ≥ δ at every waypoint and along the motion
 between them, tendon speed |Δℓ/Δt| ≤ v_max and acceleration |Δ²ℓ/Δt²| ≤ a_max (finite

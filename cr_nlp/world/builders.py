@@ -120,7 +120,7 @@ LATTICE_Z = (-0.8, 0.2, 1.2)
 
 
 def lattice_scene(radius: float = 0.2) -> dict[str, Any]:
-    """The collision-IK benchmark (DESIGN.md §4): 27 spheres of ``radius`` m on the
+    """The collision-IK benchmark (docs/design.md §4): 27 spheres of ``radius`` m on the
     3×3×3 lattice x ∈ {−0.8, 0, 0.8}, y ∈ {−0.4, 0.4, 1.2}, z ∈ {−0.8, 0.2, 1.2} m."""
     obstacles = [
         {"type": "sphere", "name": f"lattice_{i}{j}{k}", "center": [x, y, z], "radius": radius}

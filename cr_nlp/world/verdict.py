@@ -1,4 +1,4 @@
-"""The one success rule of every task and both modes (DESIGN.md §1).
+"""The one success rule of every task and both modes (docs/design.md §1).
 
 An answer is a success if and only if
 
