@@ -24,6 +24,8 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
+from ..model.actuation import planned_displacements
+
 if TYPE_CHECKING:
     from ..model import Robot
 
@@ -120,6 +122,14 @@ class ResultIO:
 
     kind: ClassVar[str]
     robot: Robot
+    q: np.ndarray
+    tendon_displacements: np.ndarray | None
+
+    def __post_init__(self) -> None:
+        # Plans in motor commands: a robot with a calibrated zero (an ``actuation`` block)
+        # gets the displacements that reproduce its configurations (model.actuation).
+        if self.tendon_displacements is None:
+            self.tendon_displacements = planned_displacements(self.robot, self.q)
 
     def _fields_dict(self) -> dict[str, Any]:
         raise NotImplementedError

@@ -51,7 +51,6 @@ import numpy as np
 from .._jax_setup import enable_compilation_cache
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import JAX
-from ..model.actuation import planned_displacements
 from ..model.derivatives import kinematics_jacobians_z
 from ..model.kinematics import (
     model_backbone,
@@ -439,10 +438,6 @@ class FollowResult(ResultIO):
     tendon_displacements: np.ndarray | None = None
     """(T, n_tendons) motor commands at the waypoints, m (positive = pulled), when the
     robot file has an ``actuation`` block (``model.actuation``); else None."""
-
-    def __post_init__(self) -> None:
-        if self.tendon_displacements is None:
-            self.tendon_displacements = planned_displacements(self.robot, self.q)
 
     @property
     def dt(self) -> float:

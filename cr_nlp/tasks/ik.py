@@ -37,7 +37,6 @@ import numpy as np
 from .._jax_setup import enable_compilation_cache, split_over_devices
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import NUMPY
-from ..model.actuation import planned_displacements
 from ..model.derivatives import pose_residual
 from ..model.kinematics import model_pose_error, model_q_to_z, model_segment_frames
 from ..model.limits import clip_to_limits, limit_violation_q, project_z
@@ -178,10 +177,6 @@ class IKResult(ResultIO):
     tendon_displacements: np.ndarray | None = None
     """(T, n_tendons) motor commands reproducing each answer, m (positive = pulled), when
     the robot file has an ``actuation`` block (``model.actuation``); else None."""
-
-    def __post_init__(self) -> None:
-        if self.tendon_displacements is None:
-            self.tendon_displacements = planned_displacements(self.robot, self.q)
 
     def __len__(self) -> int:
         return len(self.q)

@@ -40,7 +40,6 @@ import numpy as np
 from .._jax_setup import enable_compilation_cache
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import JAX, NUMPY
-from ..model.actuation import planned_displacements
 from ..model.derivatives import backbone_jacobian_z, tip_jacobian_z
 from ..model.kinematics import backbone_points_z, model_segment_frames, model_tendon_lengths
 from ..model.limits import limit_violation_q, project_z
@@ -653,10 +652,6 @@ class TrajectoryResult(ResultIO):
     tendon_displacements: np.ndarray | None = None
     """(H+1, n_tendons) motor commands at the waypoints, m (positive = pulled), when the
     robot file has an ``actuation`` block (``model.actuation``); else None."""
-
-    def __post_init__(self) -> None:
-        if self.tendon_displacements is None:
-            self.tendon_displacements = planned_displacements(self.robot, self.q)
 
     @property
     def times(self) -> np.ndarray:
