@@ -16,6 +16,7 @@ from typing import Any, Literal
 import numpy as np
 
 from .._resources import resolve_file
+from .mechanics import Mechanics, parse_mechanics
 
 Routing = Literal["shared", "per_segment"]
 
@@ -82,6 +83,8 @@ class Robot:
     tendon_speed_max: float = math.inf
     tendon_accel_max: float = math.inf
     source: str = field(default="", compare=False)
+    mechanics: Mechanics | None = None
+    """Material and masses for the Cosserat statics model (``mechanics`` block), or None."""
 
     # ------------------------------------------------------------ sizes and bounds
     @property
@@ -204,6 +207,8 @@ class Robot:
             out["tendon_speed_max"] = self.tendon_speed_max
         if math.isfinite(self.tendon_accel_max):
             out["tendon_accel_max"] = self.tendon_accel_max
+        if self.mechanics is not None:
+            out["mechanics"] = self.mechanics.to_dict()
         return out
 
 
@@ -242,7 +247,7 @@ def load_robot(robot: str | Path | Robot | dict) -> Robot:
 # ---------------------------------------------------------------- validation helpers
 
 _TOP_KEYS = {"name", "description", "segments", "backbone_radius", "points_per_segment",
-             "tendons", "base", "tendon_speed_max", "tendon_accel_max"}
+             "tendons", "base", "tendon_speed_max", "tendon_accel_max", "mechanics"}
 _SEGMENT_KEYS = {"length", "theta_max", "phi_range", "name"}
 _TENDON_KEYS = {"per_segment", "radius", "offsets", "routing"}
 _BASE_KEYS = {"position", "wxyz"}
@@ -344,6 +349,7 @@ def _parse_robot(data: Any, source: str) -> Robot:
         tendon_speed_max=speed,
         tendon_accel_max=accel,
         source=source,
+        mechanics=parse_mechanics(c, d["mechanics"], n) if "mechanics" in d else None,
     )
 
 
