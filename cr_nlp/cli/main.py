@@ -11,10 +11,11 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from . import batch, bench, demo, fk, follow, ik, plan, show, view
+from . import batch, bench, demo, fk, follow, ik, plan, show, statics, view
 
 SUBCOMMANDS = [
     fk,
+    statics,
     ik,
     plan,
     follow,

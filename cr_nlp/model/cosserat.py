@@ -394,7 +394,8 @@ def _shoot(lay: _Layout, config: StaticsConfig, tension: jax.Array, tip_force: j
         one = jnp.ones((), x0.dtype)
         state = (x0, zero, one, r0, j0, g0, one, jnp.asarray(0))
         x, lam, _, r, _, _, _, it = jax.lax.while_loop(cond, body, state)
-        return x, (it, lam)
+        # aux as floats: custom_root's JVP rule gives aux tangents of the solution's dtype
+        return x, (it.astype(x.dtype), lam)
 
     def tangent_solve(g: Any, y: jax.Array) -> jax.Array:
         return _solve3(jax.jacfwd(g)(y), y)
@@ -425,7 +426,7 @@ def statics_single(robot: Robot, config: StaticsConfig = StaticsConfig()) -> Any
         return {
             "positions": positions, "rotations": rotations,
             "tendon_displacements": straight.astype(ell.dtype) - ell,
-            "residual": residual, "iterations": iterations,
+            "residual": residual, "iterations": jax.lax.stop_gradient(iterations).astype(jnp.int32),
             # A last check on the final pass itself (the loop's own flag is a twin).
             "converged": jnp.isfinite(residual) & (residual <= 10.0 * tol),
             "base_moment": base_moment, "load_reached": load_reached,
@@ -474,9 +475,7 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
     Raises:
         ValueError: wrong shapes, negative or non-finite tensions, a robot without mechanics.
     """
-    t = np.asarray(tensions, dtype=float)
-    single = t.ndim == 1
-    t = np.atleast_2d(t)
+    t = np.atleast_2d(np.asarray(tensions, dtype=float))
     if t.ndim != 2 or t.shape[1] != robot.n_tendons:
         raise ValueError(f"tensions: {robot.name} has {robot.n_tendons} tendons, got shape "
                          f"{np.shape(tensions)}")
@@ -489,14 +488,19 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
     base_pos = np.asarray(robot.base_position)
     loads = [_as_cases(v, batch, 3, n) @ base_rot for v, n in
              ((tip_force, "tip_force"), (tip_moment, "tip_moment"), (gravity, "gravity"))]
-    dtype = jnp.float64 if config.dtype == "float64" else jnp.float32
-    if dtype == jnp.float64 and not jax.config.jax_enable_x64:
-        raise ValueError("float64 statics need jax_enable_x64 (set dtype='float32' otherwise)")
-    out = _batched(robot, config)(jnp.asarray(t, dtype), *(jnp.asarray(v, dtype) for v in loads))
-    out = {k: np.asarray(v) for k, v in out.items()}
+    if config.dtype not in ("float64", "float32"):
+        raise ValueError(f"dtype: 'float64' or 'float32', got {config.dtype!r}")
+    dtype = np.float64 if config.dtype == "float64" else np.float32
+    # float64 without touching the process-wide flag (the batched stages keep theirs).
+    # Batches are padded to a power of two (at least 8) so that a few programs serve
+    # every size; padded rows have no load and finish in one iteration.
+    padded = max(8, 1 << (batch - 1).bit_length())
+    inputs = [np.concatenate([v, np.zeros((padded - batch, v.shape[1]))]) for v in (t, *loads)]
+    with jax.enable_x64(config.dtype == "float64"):
+        out = _batched(robot, config)(*(jnp.asarray(v, dtype) for v in inputs))
+        out = {k: np.asarray(v)[:batch] for k, v in out.items()}
     positions = out["positions"].astype(float) @ base_rot.T + base_pos
     rotations = np.einsum("ij,bpjk->bpik", base_rot, out["rotations"].astype(float))
-    del single
     return StaticsResult(
         positions=positions, rotations=rotations,
         arc_length=_layout(robot, config).arc_length,
