@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._jax_setup import split_over_devices
 from .kinematics import tendon_angles
 from .robot import Robot
 from .rotations import matrix_from_wxyz, wxyz_from_matrix
@@ -437,8 +438,10 @@ def statics_single(robot: Robot, config: StaticsConfig = StaticsConfig()) -> Any
 
 
 @functools.lru_cache(maxsize=32)
-def _batched(robot: Robot, config: StaticsConfig) -> Any:
-    return jax.jit(jax.vmap(statics_single(robot, config)))
+def _batched(robot: Robot, config: StaticsConfig, batch: int) -> Any:
+    """The jitted, vmapped solve, its batch split over the JAX devices (one per core with
+    ``use_host_devices``); no LAPACK inside, so the split is safe on CPU."""
+    return split_over_devices(jax.vmap(statics_single(robot, config)), (True,) * 4, batch)
 
 
 def _as_cases(value: Any, batch: int, size: int, name: str) -> np.ndarray:
@@ -497,7 +500,7 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
     padded = max(8, 1 << (batch - 1).bit_length())
     inputs = [np.concatenate([v, np.zeros((padded - batch, v.shape[1]))]) for v in (t, *loads)]
     with jax.enable_x64(config.dtype == "float64"):
-        out = _batched(robot, config)(*(jnp.asarray(v, dtype) for v in inputs))
+        out = _batched(robot, config, padded)(*(jnp.asarray(v, dtype) for v in inputs))
         out = {k: np.asarray(v)[:batch] for k, v in out.items()}
     positions = out["positions"].astype(float) @ base_rot.T + base_pos
     rotations = np.einsum("ij,bpjk->bpik", base_rot, out["rotations"].astype(float))
