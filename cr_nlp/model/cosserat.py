@@ -35,7 +35,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._jax_setup import split_over_devices
 from .kinematics import tendon_angles
 from .robot import Robot
 from .rotations import matrix_from_wxyz, wxyz_from_matrix
@@ -439,9 +438,10 @@ def statics_single(robot: Robot, config: StaticsConfig = StaticsConfig()) -> Any
 
 @functools.lru_cache(maxsize=32)
 def _batched(robot: Robot, config: StaticsConfig, batch: int) -> Any:
-    """The jitted, vmapped solve, its batch split over the JAX devices (one per core with
-    ``use_host_devices``); no LAPACK inside, so the split is safe on CPU."""
-    return split_over_devices(jax.vmap(statics_single(robot, config)), (True,) * 4, batch)
+    """The jitted, vmapped solve for one padded batch size, on one device (jax 0.10's
+    shard_map rejects the RK stages' inner scan carry: its zeros are not 'varying')."""
+    del batch
+    return jax.jit(jax.vmap(statics_single(robot, config)))
 
 
 def _as_cases(value: Any, batch: int, size: int, name: str) -> np.ndarray:
@@ -495,9 +495,9 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
         raise ValueError(f"dtype: 'float64' or 'float32', got {config.dtype!r}")
     dtype = np.float64 if config.dtype == "float64" else np.float32
     # float64 without touching the process-wide flag (the batched stages keep theirs).
-    # Batches are padded to a power of two (at least 8) so that a few programs serve
+    # Batches are padded to a power of two (at least 16) so that a few programs serve
     # every size; padded rows have no load and finish in one iteration.
-    padded = max(8, 1 << (batch - 1).bit_length())
+    padded = max(16, 1 << (batch - 1).bit_length())
     inputs = [np.concatenate([v, np.zeros((padded - batch, v.shape[1]))]) for v in (t, *loads)]
     with jax.enable_x64(config.dtype == "float64"):
         out = _batched(robot, config, padded)(*(jnp.asarray(v, dtype) for v in inputs))
