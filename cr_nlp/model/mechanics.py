@@ -10,10 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
-
-if TYPE_CHECKING:
-    from .robot import _Checker
+from typing import Any
 
 _MECHANICS_KEYS = {"youngs_modulus", "poisson_ratio", "backbone_outer_radius",
                    "backbone_inner_radius", "linear_density", "disks_per_segment",
@@ -85,8 +82,9 @@ class Mechanics:
         return out
 
 
-def parse_mechanics(c: _Checker, raw: Any, n_segments: int) -> Mechanics:
-    """Validate the ``mechanics`` block with the robot loader's checker ``c``.
+def parse_mechanics(c: Any, raw: Any, n_segments: int) -> Mechanics:
+    """Validate the ``mechanics`` block with the robot loader's checker ``c`` (robot.py's
+    ``_Checker``; not imported here, robot.py imports this module).
 
     Raises ``ModelFileError`` naming ``mechanics.<field>`` for a missing, unknown or
     out-of-range entry.
