@@ -1,4 +1,4 @@
-"""``cr-nlp bench ik|plan|follow|clearance|batch``: benchmarks that print tables (not tests).
+"""``cr-nlp bench ik|plan|follow|clearance|batch|statics``: benchmarks that print tables.
 
 Every benchmark gets the same options from ``add_common_options`` (``--out`` folder,
 ``--repeats``, ``--robot``, ``--seed``, ``--devices``, ``--no-progress``, ``--markdown``) and
@@ -231,6 +231,39 @@ def _run_clearance(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------- statics
+
+
+def _add_statics(group: argparse._SubParsersAction) -> None:
+    from ..bench.statics import SETS
+
+    p = group.add_parser("statics", help="Cosserat statics: solves per second and "
+                                         "convergence for 10^2-10^5 cases")
+    p.add_argument("--cases", type=int, nargs="+", default=[100, 1000, 10_000],
+                   help="batch sizes (default 100 1000 10000)")
+    p.add_argument("--loads", nargs="+", choices=SETS, default=list(SETS),
+                   help="load sets (default: tensions mixed)")
+    p.add_argument("--dtype", nargs="+", default=["float64", "float32"],
+                   choices=["float32", "float64"])
+    add_common_options(p, "statics", repeats=5,
+                       repeats_help="timed runs (median reported; default 5)", robot=False,
+                       seed=True)
+    p.add_argument("--robot", default="tdcr2_rao2021",
+                   help="robot with a mechanics block (default tdcr2_rao2021)")
+    p.set_defaults(run=_run_statics)
+
+
+def _run_statics(args: argparse.Namespace) -> int:
+    from ..bench.statics import run_statics_benchmark
+
+    _check_repeats(args)
+    run_statics_benchmark(robot=args.robot, sizes=tuple(args.cases),
+                          load_sets=tuple(args.loads), dtypes=tuple(args.dtype),
+                          repeats=args.repeats, seed=args.seed, out=args.out)
+    _wrote(args, "statics")
+    return 0
+
+
 # ---------------------------------------------------------------- batch
 
 
@@ -269,5 +302,5 @@ def _run_batch(args: argparse.Namespace) -> int:
     return 0
 
 
-BENCHMARKS = [_add_ik, _add_plan, _add_follow, _add_clearance, _add_batch]
+BENCHMARKS = [_add_ik, _add_plan, _add_follow, _add_clearance, _add_batch, _add_statics]
 """The ``cr-nlp bench`` benchmarks, in ``--help`` order."""

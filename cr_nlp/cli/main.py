@@ -12,10 +12,11 @@ import shlex
 import sys
 from collections.abc import Sequence
 
-from . import batch, bench, calibrate, demo, fk, follow, ik, plan, predict, show, view
+from . import batch, bench, calibrate, demo, fk, follow, ik, plan, predict, show, statics, view
 
 SUBCOMMANDS = [
     fk,
+    statics,
     ik,
     plan,
     follow,

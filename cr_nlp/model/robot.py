@@ -17,6 +17,7 @@ import numpy as np
 
 from .._resources import resolve_file
 from ._actuation_block import parse_actuation
+from .mechanics import Mechanics, parse_mechanics
 
 if TYPE_CHECKING:
     from ._actuation_block import Actuation
@@ -91,6 +92,8 @@ class Robot:
     source: str = field(default="", compare=False)
     actuation: Actuation | None = None
     """Calibrated motor-command model (``model.actuation``), or None: nominal."""
+    mechanics: Mechanics | None = None
+    """Material and masses for the Cosserat statics model (``mechanics`` block), or None."""
 
     # ------------------------------------------------------------ sizes and bounds
     @property
@@ -222,6 +225,8 @@ class Robot:
             out["actuation"] = self.actuation.to_dict()
         if not self.self_collision:
             out["self_collision"] = False
+        if self.mechanics is not None:
+            out["mechanics"] = self.mechanics.to_dict()
         return out
 
 
@@ -261,7 +266,7 @@ def load_robot(robot: str | Path | Robot | dict) -> Robot:
 
 _TOP_KEYS = {"name", "description", "segments", "backbone_radius", "points_per_segment",
              "tendons", "base", "tendon_speed_max", "tendon_accel_max", "actuation",
-             "self_collision"}
+             "self_collision", "mechanics"}
 _SEGMENT_KEYS = {"length", "theta_max", "phi_range", "name"}
 _TENDON_KEYS = {"per_segment", "radius", "offsets", "routing"}
 _BASE_KEYS = {"position", "wxyz"}
@@ -373,6 +378,7 @@ def _parse_robot(data: Any, source: str) -> Robot:
         self_collision=self_collision,
         source=source,
         actuation=actuation,
+        mechanics=parse_mechanics(c, d["mechanics"], n) if "mechanics" in d else None,
     )
 
 
