@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from cr_nlp.bench.ik import free_case
 from cr_nlp.model import Robot, tip_pose
-from cr_nlp.model.rotations import wxyz_from_matrix
 from cr_nlp.stages.explore import (
     SeedPool,
     pose_features,
@@ -100,12 +100,10 @@ def test_device_beam_selection_with_tied_costs_keeps_a_lowest_cost_pick() -> Non
 
 
 def targets(robot: Robot, count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    lo, hi = robot.q_bounds()
-    p, r = (
-        np.asarray(x, dtype=float) for x in tip_pose(robot, rng.uniform(lo, hi, (count, robot.dof)))
-    )
-    return p, wxyz_from_matrix(r)
+    """Tip poses of configurations drawn inside the limits whose segments keep the
+    verdict's margin from each other (the benchmark's free targets)."""
+    case = free_case(robot, count, seed)
+    return case.positions, case.wxyz
 
 
 def _streamed_peak(solver: IKSolver, positions: np.ndarray, wxyz: np.ndarray) -> tuple:

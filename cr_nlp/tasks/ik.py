@@ -768,9 +768,12 @@ class IKSolver:
             "self_clearance": np.full(len(q), np.inf),
         }
         if self.scene is not None or robot.has_self_pairs:
-            checked = check_many(robot, self.scene, q)
-            out["obstacle_clearance"] = checked.obstacle_distance
-            out["self_clearance"] = checked.self_distance
+            # In parts of the stream's size: the check's temporaries grow with its rows.
+            step = max(int(self.config.stream_size), 1)
+            parts = [check_many(robot, self.scene, q[i:i + step])
+                     for i in (range(0, len(q), step) if len(q) else [0])]
+            out["obstacle_clearance"] = np.concatenate([c.obstacle_distance for c in parts])
+            out["self_clearance"] = np.concatenate([c.self_distance for c in parts])
         nearest = np.minimum(out["obstacle_clearance"], out["self_clearance"])
         out["clearance"] = np.where(np.isfinite(nearest), nearest, np.nan)
         out["collision_free"] = ~(nearest < 0.0)

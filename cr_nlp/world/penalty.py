@@ -184,7 +184,11 @@ def nearest_self_clearances(robot: Robot, centres: jax.Array) -> tuple[jax.Array
     partner sphere, and the (R, N, 3) derivative of those distances by the centres
     (unit vector on the sphere itself, its negative on the partner)."""
     rows, mask = _self_partners(robot)
-    own = centres[rows]                                            # (R, 3)
+    # The rows picked by a 0/1 product, not a gather: a gather's index dtype follows the
+    # x64 setting at trace time, which a program traced in one setting and reused in the
+    # other got wrong (int32 + int64 in JAX's index normalisation).
+    select = jnp.asarray(np.eye(centres.shape[0])[rows], centres.dtype)  # (R, N)
+    own = select @ centres                                         # (R, 3)
     diff = own[:, None, :] - centres[None, :, :]                   # (R, N, 3)
     sq = jnp.sum(diff * diff, axis=-1)
     sq = jnp.where(jnp.asarray(mask), sq, jnp.inf)
@@ -195,7 +199,6 @@ def nearest_self_clearances(robot: Robot, centres: jax.Array) -> tuple[jax.Array
     d_vec = own - onehot @ centres                                 # (R, 3)
     norm = jnp.sqrt(jnp.maximum(jnp.sum(d_vec * d_vec, axis=-1), 1e-30))
     unit = d_vec / norm[:, None]
-    select = jnp.asarray(np.eye(centres.shape[0])[rows], centres.dtype)  # (R, N)
     grad = (select - onehot)[:, :, None] * unit[:, None, :]
     return norm - 2.0 * robot.backbone_radius, grad
 
