@@ -45,6 +45,7 @@ from ..model.kinematics import backbone_points_z, model_segment_frames, model_te
 from ..model.limits import limit_violation_q, project_z
 from ..stages.banded_lm import ChainResidual, banded_lm_solve
 from ..stages.lm import LMConfig, lm_solve
+from ..stages.tendon_penalty import tendon_accel_excess, tendon_speed_excess
 from ..world import Scene, check_many, load_scene, scene_arrays
 from ..world.broad_phase import PartBalls, part_balls
 from ..world.clearance import (
@@ -429,12 +430,6 @@ def trajectory_residual(robot: Robot, waypoints: int, checks: int, margin: float
     return jnp.concatenate(out)
 
 
-def _tendon_lengths(robot: Robot, z: jax.Array) -> jax.Array:
-    """Tendon lengths (n_tendons,) m of one configuration z (3n,) (linear in z)."""
-    values = model_tendon_lengths(JAX, robot, [z[i] for i in range(robot.dof)])
-    return jnp.stack(jnp.broadcast_arrays(*values)).astype(z.dtype)
-
-
 def trajectory_unary(robot: Robot, margin: float, near: int, sqrt_clear: float, z: jax.Array,
                      params: Any, shared: Any) -> jax.Array:
     """√w_clear · grouped clearance shortfalls (m) of one waypoint z (3n,)
@@ -462,9 +457,7 @@ def trajectory_pair(robot: Robot, margin: float, near: int, checks: int,
             out.append(sqrt_clear * near_clearance_groups(
                 robot, margin, near, arrays, balls, z_a + (c / (checks + 1)) * step))
     if math.isfinite(robot.tendon_speed_max):
-        speed = (_tendon_lengths(robot, z_b) - _tendon_lengths(robot, z_a)) / dt
-        over = jnp.abs(speed) / (limit_fraction * robot.tendon_speed_max) - 1.0
-        out.append(sqrt_tendon * jnp.maximum(over, 0.0))
+        out.append(sqrt_tendon * tendon_speed_excess(robot, limit_fraction, z_a, z_b, dt))
     return jnp.concatenate(out)
 
 
@@ -473,11 +466,7 @@ def trajectory_triple(robot: Robot, sqrt_tendon: float, limit_fraction: float,
                       shared: Any) -> jax.Array:
     """√w_tendon·max(0, |Δ²ℓ/Δt²|/(f·a_max) − 1) per tendon at the middle waypoint z_b
     (dimensionless); ``shared`` as for ``trajectory_unary``."""
-    dt = shared[2]
-    accel = (_tendon_lengths(robot, z_c) - 2.0 * _tendon_lengths(robot, z_b)
-             + _tendon_lengths(robot, z_a)) / (dt * dt)
-    over = jnp.abs(accel) / (limit_fraction * robot.tendon_accel_max) - 1.0
-    return sqrt_tendon * jnp.maximum(over, 0.0)
+    return sqrt_tendon * tendon_accel_excess(robot, limit_fraction, z_a, z_b, z_c, shared[2])
 
 
 def trajectory_terms(robot: Robot, margin: float, config: TrajectoryConfig,
