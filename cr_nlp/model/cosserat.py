@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._jax_setup import split_over_devices
 from .kinematics import tendon_angles
 from .robot import Robot
 from .rotations import matrix_from_wxyz, wxyz_from_matrix
@@ -295,8 +296,10 @@ def _integrate(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
     n_tendons = lay.active.shape[1]
     xs = (jnp.asarray(lay.step_length, dtype), jnp.asarray(lay.mass_distal, dtype),
           jnp.asarray(lay.active, dtype))
-    zero = jnp.zeros((), dtype)
-    one = jnp.ones((), dtype)
+    # Start values made from the inputs (not fresh constants): when the batch is split over
+    # devices (shard_map) a loop carry must vary over the devices like the values it takes.
+    zero = 0 * (base_moment[0] + tension.sum() + tip_force[0] + gravity[0])
+    one = zero + 1
     p0 = (zero, zero, zero)
     r0 = (one, zero, zero, zero, one, zero, zero, zero, one)
     l0 = tuple(zero for _ in range(n_tendons))
@@ -323,7 +326,7 @@ def _integrate(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
             k = (dp, drot, dmom, tuple(s * act[i] for i, s in enumerate(dl)))
             return (k, axpy(total, weight, k)), None
 
-        zeros = jax.tree_util.tree_map(jnp.zeros_like, carry)
+        zeros = jax.tree_util.tree_map(lambda a: 0 * a, carry)  # varying, as above
         (_, slope), _ = jax.lax.scan(stage, (zeros, zeros),
                                      (stage_shift, stage_weight, stage_point))
         new = axpy(carry, h, slope)
@@ -387,9 +390,9 @@ def _shooting(lay: _Layout, config: StaticsConfig, tension: jax.Array, tip_force
     def start(x0: jax.Array) -> _Newton:
         unloaded = (jnp.all(tip_force == 0) & jnp.all(tip_moment == 0)
                     & jnp.all(gravity == 0))
-        lam0 = jnp.where(unloaded, 1.0, 0.0).astype(dtype)
+        lam0 = jnp.where(unloaded, 1.0, 0.0).astype(dtype) + 0 * x0[0]
         r0, j0, g0 = linearized(x0, lam0)
-        one = jnp.ones((), dtype)
+        one = 1 + 0 * x0[0]  # varies like x0 (see _integrate)
         return _Newton(x0, lam0, one, r0, j0, g0, one, jnp.asarray(0))
 
     def done(state: _Newton) -> jax.Array:
@@ -502,7 +505,8 @@ def _programs(robot: Robot, config: StaticsConfig) -> tuple[Any, Any, Any]:
     def first(tension: jax.Array, force: jax.Array, moment: jax.Array,
               gravity: jax.Array) -> _Newton:
         start, iterate, done = _shooting(lay, config, tension, force, moment, gravity)
-        return _run(iterate, done, start(jnp.zeros(3, tension.dtype)),
+        zero = 0 * tension[:1]  # varies over the devices like the state (see _integrate)
+        return _run(iterate, done, start(jnp.broadcast_to(zero, (3,))),
                     min(_FIRST_ROUND, config.max_iterations))
 
     def further(tension: jax.Array, force: jax.Array, moment: jax.Array,
@@ -514,7 +518,22 @@ def _programs(robot: Robot, config: StaticsConfig) -> tuple[Any, Any, Any]:
                moment: jax.Array, gravity: jax.Array) -> dict[str, jax.Array]:
         return _finish(lay, config, base_moment, tension, force, moment, gravity)
 
-    return jax.jit(jax.vmap(first)), jax.jit(jax.vmap(further)), jax.jit(jax.vmap(finish))
+    return (_split(jax.vmap(first), 4), _split(jax.vmap(further), 5),
+            _split(jax.vmap(finish), 5))
+
+
+def _split(fn: Any, arguments: int) -> Any:
+    """``fn`` jitted, its batch split over the JAX devices (one per CPU core when the
+    process asked for host devices) when the batch divides evenly, else on one."""
+    programs: dict[int, Any] = {}
+
+    def call(*args: Any) -> Any:
+        size = args[0].shape[0]
+        if size not in programs:
+            programs[size] = split_over_devices(fn, (True,) * arguments, size, outputs=1)
+        return programs[size](*args)
+
+    return call
 
 
 def _padded(rows: np.ndarray, edge: bool = False) -> np.ndarray:
