@@ -374,6 +374,30 @@ def _chunk_rows(x: np.ndarray, start: int, stop: int, size: int) -> np.ndarray:
     return np.concatenate([part, np.repeat(part[:1], pad, 0)]) if pad else part
 
 
+@dataclass(frozen=True)
+class _Checked:
+    """``IKSolver.verify``'s verdict on one answer, as ``stages.accept`` reads it."""
+
+    success: bool
+    reason: str
+    row: dict[str, Any] | None
+    """Every number ``verify`` returned for the answer (None: the result holds them)."""
+
+
+def _other_candidates(beam: np.ndarray, answer: np.ndarray,
+                      apart: float = 1e-4) -> list[np.ndarray]:
+    """A target's beam candidates (width, 3n), best first, that differ from its answer
+    and from each other by more than ``apart`` (rad or m) in some variable, finite ones
+    only: the exact stage's next warm starts (candidates of one beam that refined to the
+    same answer are one)."""
+    kept: list[np.ndarray] = []
+    for q in beam:
+        if np.all(np.isfinite(q)) and all(np.max(np.abs(q - other)) > apart
+                                          for other in (answer, *kept)):
+            kept.append(q)
+    return kept
+
+
 class IKSolver:
     """Batched IK for one robot (and optionally one scene); reuse it across calls.
 
@@ -528,11 +552,13 @@ class IKSolver:
         return z, cost
 
     def _search(self, z_seeds: np.ndarray, positions: np.ndarray, rotations: np.ndarray,
-                timing: IKTiming) -> tuple[np.ndarray, np.ndarray]:
-        """Coarse LM on (T, K) seeds, diverse beam, refinement; best z (T, n), cost (T,)."""
+                timing: IKTiming) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Coarse LM on (T, K) seeds, diverse beam, refinement: best z (T, n), its cost
+        (T,), and the whole beam z (T, width, n) best first."""
         z, cost = self._search_beam(z_seeds, positions, rotations, timing, per_target=True)
-        best = np.argmin(cost, axis=1)
-        return z[np.arange(len(z)), best], cost[np.arange(len(z)), best]
+        order = np.argsort(cost, axis=1)
+        z = np.take_along_axis(z, order[..., None], axis=1)
+        return z[:, 0], np.take_along_axis(cost, order, axis=1)[:, 0], z
 
     def _search_beam(self, z_seeds: np.ndarray, positions: np.ndarray, rotations: np.ndarray,
                      timing: IKTiming, per_target: bool = False) -> tuple[np.ndarray,
@@ -818,25 +844,28 @@ class IKSolver:
         positions, wxyz, reasons = validate_targets(self.robot, positions, wxyz)
         valid = np.array([not r for r in reasons], dtype=bool)
         q_out = np.full((len(positions), self.robot.dof), np.nan)
+        beam = np.full((len(positions), self.config.beam_width, self.robot.dof), np.nan)
         idx = np.flatnonzero(valid)
         step = max(int(self.config.stream_size), 1)
         for start in range(0, len(idx), step):
             part = idx[start:start + step]
             self.stream_parts.append(len(part))
-            q_out[part] = self._solve_part(positions[part], matrix_from_wxyz(wxyz[part]),
-                                           timing)
+            q_out[part], found = self._solve_part(positions[part],
+                                                  matrix_from_wxyz(wxyz[part]), timing)
+            beam[part, :found.shape[1]] = found
         if self._pool is not None:
             self.device_wait += self._pool.wait_seconds - pool_wait
             self.device_calls += self._pool.calls - pool_calls
         stage = np.where(valid, "refine", "none").tolist()
         result = self._finish(q_out, positions, wxyz, reasons, stage, timing)
         if exact and len(idx):
-            self._polish(result, positions, wxyz, idx, timing, progress)
+            self._polish(result, positions, wxyz, idx, beam, timing, progress)
         return result
 
     def _solve_part(self, pos_v: np.ndarray, rot_v: np.ndarray,
-                    timing: IKTiming) -> np.ndarray:
-        """One part of a stream (valid targets): q (T, 3n). Without a scene, the targets
+                    timing: IKTiming) -> tuple[np.ndarray, np.ndarray]:
+        """One part of a stream (valid targets): q (T, 3n) and the search's refined beam
+        (T, width, 3n) best first (``_search_part``). Without a scene, the targets
         whose answer's segments come closer than δ (``world.check``, the verdict's own
         numbers) are solved again with the self-clearance rows (fused: the retry rounds'
         one program, with the answer, its pool neighbours and fresh random seeds;
@@ -844,15 +873,15 @@ class IKSolver:
         verdict accepts it and not the old. Measured (1000 free tdcr3 targets, 2 cores
         at load 10, interleaved medians of 5): 0.65 s → 0.90 s per solve, 2 targets
         repaired; the old path reported 3 successes whose segments overlapped."""
-        q = self._search_part(pos_v, rot_v, timing)
+        q, beam = self._search_part(pos_v, rot_v, timing)
         if not self._self_repair:
-            return q
+            return q, beam
         t0 = time.perf_counter()
         own = check_many(self.robot, None, q).self_distance
         bad = np.flatnonzero(~(own >= self.config.safety_margin))
         timing.verify += time.perf_counter() - t0
         if not len(bad):
-            return q
+            return q, beam
         self.self_repaired += len(bad)
         saved = self._residual, self._compiled
         self._residual, self._compiled = self._residuals[True], self._compiled_self
@@ -866,7 +895,7 @@ class IKSolver:
                     bad, pool, timing)
                 q_new = clip_to_limits(self.robot, z_to_q_numpy(z_new))
             else:
-                q_new = self._search_part(pos_v[bad], rot_v[bad], timing)
+                q_new = self._search_part(pos_v[bad], rot_v[bad], timing)[0]
         finally:
             self._residual, self._compiled = saved
         t0 = time.perf_counter()
@@ -875,11 +904,12 @@ class IKSolver:
                 & ~self.verify(q[bad], pos_v[bad], wxyz)["success"])
         q[bad[take]] = q_new[take]
         timing.verify += time.perf_counter() - t0
-        return q
+        return q, beam
 
     def _search_part(self, pos_v: np.ndarray, rot_v: np.ndarray,
-                     timing: IKTiming) -> np.ndarray:
-        """Explore, refine and retry one part of a stream (valid targets): q (T, 3n)."""
+                     timing: IKTiming) -> tuple[np.ndarray, np.ndarray]:
+        """Explore, refine and retry one part of a stream (valid targets): q (T, 3n), and
+        the search's refined beam (T, width, 3n) best first."""
         cfg = self.config
         pool = self._seed_pool(timing)
         t0 = time.perf_counter()
@@ -887,7 +917,9 @@ class IKSolver:
         nearest = pool.nearest(pos_v, rot_v, cfg.seeds_per_target)
         self._account_pool(pool, c0, t0, timing)
         used = nearest.shape[1]
-        z_best, cost = self._search(pool.z[nearest], pos_v, rot_v, timing)
+        z_best, cost, beam = self._search(pool.z[nearest], pos_v, rot_v, timing)
+        beam_q = clip_to_limits(self.robot, z_to_q_numpy(beam.reshape(-1, beam.shape[-1])))
+        beam_q = beam_q.reshape(*beam.shape[:2], -1)
         ok = np.sqrt(2 * cost) < cfg.success_tolerance
         if self._fused and cfg.retry_rounds > 0:
             # Every retry round in one more program, only when some target failed.
@@ -895,7 +927,7 @@ class IKSolver:
             if len(todo):
                 z_best[todo], cost[todo] = self._retry_fused(
                     z_best[todo], cost[todo], pos_v[todo], rot_v[todo], todo, pool, timing)
-            return clip_to_limits(self.robot, z_to_q_numpy(z_best))
+            return clip_to_limits(self.robot, z_to_q_numpy(z_best)), beam_q
         near = cfg.retry_seeds // 2
         retry_nearest = None
         for r in range(cfg.retry_rounds):
@@ -922,12 +954,12 @@ class IKSolver:
             seeds[:, 1: 1 + next_nearest.shape[1]] = pool.z[next_nearest]
             seeds[:, 0] = z_best[todo]  # keep the best so far in the race
             timing.explore += time.perf_counter() - t0
-            z_new, c_new = self._search(seeds, pos_v[todo], rot_v[todo], timing)
+            z_new, c_new, _ = self._search(seeds, pos_v[todo], rot_v[todo], timing)
             better = c_new < cost[todo]
             z_best[todo[better]] = z_new[better]
             cost[todo[better]] = c_new[better]
             ok = np.sqrt(2 * cost) < cfg.success_tolerance
-        return clip_to_limits(self.robot, z_to_q_numpy(z_best))
+        return clip_to_limits(self.robot, z_to_q_numpy(z_best)), beam_q
 
     @staticmethod
     def _account_pool(pool: SeedPool, compile_before: float, started: float,
@@ -958,12 +990,14 @@ class IKSolver:
         return result
 
     def _polish(self, result: IKResult, positions: np.ndarray, wxyz: np.ndarray,
-                idx: np.ndarray, timing: IKTiming, progress: bool) -> None:
-        """Exact stage: polish every answer; where the polish fails or the verification
-        rejects it, polish the target's other beam candidates (``candidates``) in turn,
-        up to ``config.polish_attempts`` polishes in all. A verified polish replaces the
-        answer; otherwise the refined answer stays with its own verdict (exact mode never
-        succeeds less often than the penalty stages)."""
+                idx: np.ndarray, beam: np.ndarray, timing: IKTiming, progress: bool) -> None:
+        """Exact stage (``stages.accept.polish_and_accept``): polish every answer; where
+        the polish fails or the verdict rejects it, polish the target's other beam
+        candidates (``beam``: (T, width, 3n), the search's own refined beam, best first)
+        in turn, up to ``config.polish_attempts`` polishes in all. An accepted polish
+        replaces the answer; otherwise the refined answer stays with its own verdict
+        (exact mode never succeeds less often than the penalty stages)."""
+        from ..stages.accept import Polished, polish_and_accept
         from ..stages.polish import IKPolisher, build_polisher, polish_many
 
         t0 = time.perf_counter()
@@ -975,66 +1009,59 @@ class IKSolver:
                                     self.config.polish_workers)
         rotations = matrix_from_wxyz(wxyz)
         todo = np.asarray(idx)
-        starts = result.q[todo]
-        why: dict[int, list[str]] = {int(i): [] for i in todo}
-        for attempt in range(max(self.config.polish_attempts, 1)):
-            if not len(todo):
-                break
-            if attempt == 1:
-                # The other beam candidates of the targets still failing, best first.
-                q_beam, _ = self.candidates(positions[todo], wxyz[todo])
-                beam = {int(i): q_beam[k] for k, i in enumerate(todo)}
-            if attempt >= 1:
-                if attempt > q_beam.shape[1]:
-                    break
-                starts = np.stack([beam[int(i)][attempt - 1] for i in todo])
-            o_tol = self._polisher.config.violation_tolerance
-            outs = polish_many(self._polisher, starts, positions[todo], rotations[todo],
-                               progress=progress and attempt == 0,
-                               pool=self._polish_pool if len(todo) > 1 else None)
+        alternatives = {int(i): _other_candidates(beam[i], result.q[i]) for i in todo}
+        cfg = self._polisher.config
+
+        def candidate(attempt: int, rows: np.ndarray) -> list[np.ndarray | None]:
+            if attempt == 0:
+                return [result.q[i] for i in todo[rows]]
+            return [alternatives[i][attempt - 1] if attempt <= len(alternatives[i]) else None
+                    for i in todo[rows].tolist()]
+
+        def polish(starts: list[np.ndarray], rows: np.ndarray,
+                   attempt: int) -> list[Polished[np.ndarray]]:
+            targets = todo[rows]
+            outs = polish_many(self._polisher, np.stack(starts), positions[targets],
+                               rotations[targets], progress=progress and attempt == 0,
+                               pool=self._polish_pool if len(rows) > 1 else None)
             # Valid polishes; one that misses the polish's own 1e-6 pose tolerance still
             # counts where it is nearer the target than the answer it started from.
-            good = np.array([o.success or (o.max_violation <= o_tol and np.isfinite(
-                o.pose_error) and o.pose_error < result.pose_error[i])
-                for i, o in zip(todo, outs, strict=True)], bool)
-            for i, o in zip(todo, outs, strict=True):
-                if not o.success and not good[list(todo).index(i)]:
-                    cfg = self._polisher.config
-                    why[int(i)].append(o.failure(cfg.pose_tolerance, cfg.violation_tolerance))
-            kept = np.zeros(len(todo), bool)
-            if good.any():
-                t1 = time.perf_counter()
-                rows = todo[good]
-                polished = np.stack([o.q for o, g in zip(outs, good, strict=True) if g])
-                checked = self.verify(polished, positions[rows], wxyz[rows])
-                for j, i in enumerate(rows):
-                    before = (result.q[i].copy(), result.stage[i])
-                    result.q[i] = polished[j]
-                    self._store(result, i, checked, j)
-                    if result.success[i]:
-                        result.stage[i] = "polish"
-                        kept[np.flatnonzero(todo == i)] = True
-                    else:
-                        why[int(i)].append(f"rejected by the checker: {result.reason[i]}")
-                        result.q[i] = before[0]
-                        self._store(result, i, self.verify(before[0][None], positions[i][None],
-                                                           wxyz[i][None]), 0)
-                timing.verify += time.perf_counter() - t1
-            todo = todo[~kept]
-        for i in todo:
-            result.stage[i] = f"refine (polish failed: {'; '.join(why[int(i)])})"
-        timing.polish += time.perf_counter() - t0
+            return [Polished(o.q) if o.success or (
+                o.max_violation <= cfg.violation_tolerance and np.isfinite(o.pose_error)
+                and o.pose_error < result.pose_error[i])
+                else Polished(None, o.failure(cfg.pose_tolerance, cfg.violation_tolerance))
+                for i, o in zip(targets, outs, strict=True)]
+
+        def judge(answers: list[np.ndarray], rows: np.ndarray) -> list[_Checked]:
+            targets = todo[rows]
+            checked = self.verify(np.stack(answers), positions[targets], wxyz[targets])
+            return [_Checked(bool(checked["success"][j]), str(checked["reason"][j]),
+                             {k: v[j] for k, v in checked.items()})
+                    for j in range(len(targets))]
+
+        kept = [_Checked(bool(result.success[i]), result.reason[i], None) for i in todo]
+        accepted = polish_and_accept([result.q[i] for i in todo], kept, candidate, polish,
+                                     judge, max(self.config.polish_attempts, 1))
+        for i, outcome in zip(todo.tolist(), accepted.outcomes, strict=True):
+            if outcome.accepted:
+                result.q[i] = outcome.answer
+                self._store(result, i, outcome.verdict.row)
+                result.stage[i] = "polish"
+            else:
+                result.stage[i] = f"refine (polish failed: {'; '.join(outcome.failures)})"
+        timing.verify += accepted.judge_seconds
+        timing.polish += time.perf_counter() - t0 - accepted.judge_seconds
 
     @staticmethod
-    def _store(result: IKResult, i: int, checked: dict[str, np.ndarray], j: int) -> None:
-        """Row j of ``verify``'s output (numbers and verdict) into answer i of ``result``."""
-        result.position[i] = checked["position"][j]
-        result.wxyz[i] = checked["wxyz"][j]
+    def _store(result: IKResult, i: int, row: dict[str, Any]) -> None:
+        """One row of ``verify``'s output (numbers and verdict) into answer i of ``result``."""
+        result.position[i] = row["position"]
+        result.wxyz[i] = row["wxyz"]
         for k in _PER_TARGET:
-            getattr(result, k)[i] = checked[_VERIFIED.get(k, k)][j]
-        result.collision_free[i] = checked["collision_free"][j]
-        result.success[i] = checked["success"][j]
-        result.reason[i] = str(checked["reason"][j])
+            getattr(result, k)[i] = row[_VERIFIED.get(k, k)]
+        result.collision_free[i] = row["collision_free"]
+        result.success[i] = row["success"]
+        result.reason[i] = str(row["reason"])
 
 
 def solve_ik(robot: Robot | str | dict, positions: Any, wxyz: Any,

@@ -26,6 +26,7 @@ from ..model._ops import NUMPY
 from ..model.kinematics import model_q_to_z
 from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz
+from ..stages.accept import Polished, accept_first
 from ..stages.lm import LMConfig, lm_solve
 from ..world import Scene, load_scene, scene_arrays
 from .ik import IKConfig, IKSolver, ik_residual, validate_targets
@@ -171,8 +172,9 @@ class LiveIKSolver:
             q_current: the answer to start from, e.g. the previous update's ``q``.
             position: (3,) target tip position, metres.
             wxyz: (4,) target tip orientation, unit quaternion (w, x, y, z).
-            exact: polish the LM answer with Ipopt (constraints as constraints); the LM
-                answer is kept where the polish fails or does worse.
+            exact: polish the answer with Ipopt (constraints as constraints;
+                ``stages.accept``): the polished answer replaces it where the verdict
+                accepts the polished one, else the answer stays with its own verdict.
             search: run the batched search when the warm start misses (seconds on a CPU);
                 None: ``config.fallback_search``. The viewer searches only when a drag
                 ends, so that dragging stays fast.
@@ -212,12 +214,21 @@ class LiveIKSolver:
                 from ..stages.polish import IKPolisher
 
                 self._polisher = IKPolisher(self.robot, self.scene, safety_margin=self.ik.margin)
-            polished = self._polisher.solve(q, position, rotation)
+
+            def polish(start: np.ndarray) -> Polished[np.ndarray]:
+                out = self._polisher.solve(start, position, rotation)
+                return (Polished(np.asarray(out.q, dtype=float)) if np.all(np.isfinite(out.q))
+                        else Polished(None, out.failure()))
+
+            def judge(answer: np.ndarray) -> _Row:
+                checked = self._verify(answer, position, wxyz)
+                return _Row(bool(checked["success"]), str(checked["reason"]), checked)
+
+            outcome = accept_first([q], q, _Row(bool(row["success"]), str(row["reason"]), row),
+                                   polish, judge)
             timing["polish"] = time.perf_counter() - t0
-            if np.all(np.isfinite(polished.q)):
-                other = self._verify(polished.q, position, wxyz)
-                if _better(other, row):
-                    q, row, stage = np.asarray(polished.q, dtype=float), other, "polish"
+            if outcome.accepted:
+                q, row, stage = outcome.answer, outcome.verdict.checked, "polish"
 
         return LiveIKResult(
             q=np.asarray(q, dtype=float),
@@ -240,6 +251,16 @@ class LiveIKSolver:
         if reasons[0]:
             raise ValueError(reasons[0])
         return positions, quats, reasons
+
+
+@dataclass(frozen=True)
+class _Row:
+    """One verified answer as ``stages.accept`` reads it."""
+
+    success: bool
+    reason: str
+    checked: dict[str, Any]
+    """``IKSolver.verify``'s numbers of the answer."""
 
 
 def _better(a: dict[str, Any], b: dict[str, Any]) -> bool:
