@@ -118,7 +118,7 @@ def test_ik_exact_retries_from_the_search_beam_without_searching_again(monkeypat
 
     from cr_nlp.bench.ik import forward_kinematics
     from cr_nlp.model import load_robot
-    from cr_nlp.stages import polish as polish_module
+    from cr_nlp.stages import ik_exact
     from cr_nlp.tasks.ik import IKSolver
     from cr_nlp.world import check_many
 
@@ -131,7 +131,7 @@ def test_ik_exact_retries_from_the_search_beam_without_searching_again(monkeypat
     solver = IKSolver(robot)
     first = solver.solve(positions, wxyz)
 
-    real = polish_module.polish_many
+    real = ik_exact.polish_many
     starts: list[np.ndarray] = []
 
     def first_polish_fails(polisher, q0s, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003
@@ -145,7 +145,7 @@ def test_ik_exact_retries_from_the_search_beam_without_searching_again(monkeypat
     def no_search(*args, **kwargs):  # noqa: ANN002, ANN003
         raise AssertionError("the exact stage must not search again")
 
-    monkeypatch.setattr(polish_module, "polish_many", first_polish_fails)
+    monkeypatch.setattr(ik_exact, "polish_many", first_polish_fails)
     monkeypatch.setattr(IKSolver, "candidates", no_search)
     exact = solver.solve(positions, wxyz, exact=True)
     assert len(starts) >= 2 and 0 < len(starts[1]) <= len(q_true)
