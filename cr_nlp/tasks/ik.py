@@ -19,22 +19,18 @@ policy of ``stages.accept``. Large batches stream through in parts of
 
 from __future__ import annotations
 
-import csv
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import partial
-from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._jax_setup import enable_compilation_cache
-from ..model import Robot, load_robot
-from ..model._ops import NUMPY
+from ..model import Robot, load_robot, pose_error, tip_pose
 from ..model.derivatives import pose_residual
-from ..model.kinematics import model_pose_error, model_q_to_z, model_segment_frames
 from ..model.limits import limit_violation_q, project_z
 from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
 from ..stages.chunks import SMALLEST_CHUNK as SMALLEST_CHUNK
@@ -46,7 +42,9 @@ from ..world import Scene, check_many, load_scene, scene_arrays
 from ..world.clearance import body_gap_tolerance
 from ..world.penalty import sphere_clearances_z
 from ..world.verdict import judge_many
-from ._result import ResultIO, array, nums, row_lists
+from ._ik_result import COLUMNS as COLUMNS
+from ._ik_result import PER_TARGET, VERIFIED
+from ._ik_result import IKResult as IKResult
 from ._targets import read_targets as read_targets
 from ._targets import validate_targets as validate_targets
 from ._timing import StageTiming
@@ -120,172 +118,6 @@ class IKConfig:
 IKTiming = StageTiming
 """Seconds per stage of one ``IKSolver.solve`` call (the tasks' one ``StageTiming``)."""
 
-_PER_TARGET = ("pose_error", "position_error", "rotation_error", "max_violation",
-               "min_clearance")
-"""The float columns of an ``IKResult`` that ``IKSolver.verify`` fills per target."""
-_VERIFIED = {"min_clearance": "clearance"}
-"""``IKResult`` column → the key of ``IKSolver.verify``'s output where they differ."""
-COLUMNS = ("q", "position", "wxyz", *_PER_TARGET, "collision_free", "success", "stage",
-           "reason")
-"""The per-target fields of an ``IKResult`` (``IKResult.columns``)."""
-
-
-@dataclass
-class IKResult(ResultIO):
-    """One row per target. Units: rad, m; errors in the pose-error metric, m and rad."""
-
-    kind: ClassVar[str] = "ik"
-
-    robot: Robot
-    q: np.ndarray                  # (T, 3n) θ, φ, L
-    position: np.ndarray           # (T, 3) tip position reached, m
-    wxyz: np.ndarray               # (T, 4) tip orientation reached
-    pose_error: np.ndarray         # (T,) ‖log(T⁻¹ T_target)‖
-    position_error: np.ndarray     # (T,) m
-    rotation_error: np.ndarray     # (T,) rad
-    max_violation: np.ndarray      # (T,) largest limit violation (rad, m) or clearance
-    #                                shortfall below the safety margin (m; obstacles by
-    #                                python-fcl, and segments at least two apart)
-    min_clearance: np.ndarray      # (T,) signed distance, m: the smaller of the python-fcl
-    #                                obstacle distance and the self-clearance (nan when
-    #                                neither is checked)
-    collision_free: np.ndarray     # (T,) bool: no obstacle or self penetration
-    success: np.ndarray            # (T,) bool
-    stage: list[str]               # which stage produced each answer
-    reason: list[str]              # empty on success, else why it failed
-    timing: StageTiming = field(default_factory=StageTiming)
-    has_scene: bool = False
-    tendon_displacements: np.ndarray | None = None
-    """(T, n_tendons) motor commands reproducing each answer, m (positive = pulled), when
-    the robot file has an ``actuation`` block (``model.actuation``); else None."""
-
-    def __len__(self) -> int:
-        return len(self.q)
-
-    @property
-    def theta(self) -> np.ndarray:
-        return self.q[:, 0::3]
-
-    @property
-    def phi(self) -> np.ndarray:
-        return self.q[:, 1::3]
-
-    @property
-    def length(self) -> np.ndarray:
-        return self.q[:, 2::3]
-
-    def summary(self) -> dict[str, Any]:
-        """Success rate, mean pose error (all finite, successes), largest violation, and
-        with a scene the collision-free rate."""
-        ok = self.success
-        finite = np.isfinite(self.pose_error)
-        return {
-            "targets": len(self),
-            "success_rate": float(ok.mean()) if len(self) else 0.0,
-            "mean_pose_error": float(self.pose_error[finite].mean()) if finite.any() else None,
-            "mean_pose_error_success": float(self.pose_error[ok].mean()) if ok.any() else None,
-            "max_violation": float(np.nanmax(self.max_violation)) if len(self) else None,
-            "collision_free_rate": (float(self.collision_free.mean())
-                                    if self.has_scene and len(self) else None),
-        }
-
-    def _fields_dict(self) -> dict[str, Any]:
-        # Whole columns to Python lists at once: per-row indexing and tolist() cost
-        # ~15 ms per 1000 rows, paid by every `cr-nlp ik --out` and batch job.
-        finite = np.all(np.isfinite(self.q), axis=1).tolist()
-        q, theta, phi, length, position, wxyz = (
-            row_lists(a, finite) for a in (self.q, self.theta, self.phi, self.length,
-                                      self.position, self.wxyz))
-        pose_error, position_error, rotation_error, max_violation = (
-            nums(a) for a in (self.pose_error, self.position_error, self.rotation_error,
-                              self.max_violation))
-        none = [None] * len(self)
-        collision_free = (np.asarray(self.collision_free, bool).tolist() if self.has_scene
-                          else none)
-        min_clearance = nums(self.min_clearance) if self.has_scene else none
-        success = np.asarray(self.success, bool).tolist()
-        entries = [{"q": q[i], "theta": theta[i], "phi": phi[i], "length": length[i],
-                    "position": position[i], "wxyz": wxyz[i], "pose_error": pose_error[i],
-                    "position_error": position_error[i],
-                    "rotation_error": rotation_error[i], "success": success[i],
-                    "collision_free": collision_free[i], "min_clearance": min_clearance[i],
-                    "max_violation": max_violation[i], "stage": self.stage[i],
-                    "reason": self.reason[i] or None}
-                   for i in range(len(self))]
-        if self.tendon_displacements is not None:
-            for entry, d in zip(entries, row_lists(self.tendon_displacements, finite),
-                                strict=True):
-                entry["tendon_displacements"] = d
-        return {"has_scene": bool(self.has_scene), "results": entries,
-                "summary": self.summary(), "timing": self.timing.as_dict()}
-
-    @classmethod
-    def _from_fields(cls, data: dict[str, Any], robot: Robot) -> IKResult:
-        entries = data["results"]
-        has_scene = bool(data["has_scene"])
-
-        def column(name: str, width: int | None = None) -> np.ndarray:
-            return array([e[name] for e in entries], width, name)
-
-        return cls(
-            robot, column("q", robot.dof), column("position", 3), column("wxyz", 4),
-            **{k: column(k) for k in _PER_TARGET},
-            collision_free=np.array([bool(e["collision_free"]) if has_scene else True
-                                     for e in entries], dtype=bool),
-            success=np.array([bool(e["success"]) for e in entries], dtype=bool),
-            stage=[str(e["stage"]) for e in entries],
-            reason=[e["reason"] or "" for e in entries],
-            timing=StageTiming.from_dict(data.get("timing")), has_scene=has_scene)
-
-    def columns(self) -> dict[str, np.ndarray]:
-        """The per-target fields as arrays (``COLUMNS``; stage and reason as strings): the
-        compact form a batch job's chunk files hold."""
-        return {k: np.asarray(getattr(self, k), dtype=str if k in ("stage", "reason") else None)
-                for k in COLUMNS}
-
-    @classmethod
-    def from_columns(cls, robot: Robot, columns: dict[str, np.ndarray],
-                     timing: StageTiming | dict[str, float] | None = None,
-                     has_scene: bool = False) -> IKResult:
-        """The result of ``columns()`` (of one result, or concatenated over many)."""
-        if not isinstance(timing, StageTiming):
-            timing = StageTiming.from_dict(timing)
-        return cls(
-            robot, *(np.asarray(columns[k], dtype=float) for k in COLUMNS[:3]),
-            **{k: np.asarray(columns[k], dtype=float) for k in _PER_TARGET},
-            collision_free=np.asarray(columns["collision_free"], dtype=bool),
-            success=np.asarray(columns["success"], dtype=bool),
-            stage=[str(x) for x in columns["stage"]],
-            reason=[str(x) for x in columns["reason"]],
-            timing=timing, has_scene=has_scene)
-
-    def save_csv(self, path: str | Path) -> Path:
-        """One row per target: ``target``, ``success``, ``pose_error``,
-        ``position_error_m``, ``rotation_error_rad``, ``min_clearance_m``,
-        ``max_violation``, then q (``theta_<i>``, ``phi_<i>`` rad, ``length_<i>`` m per
-        segment i), ``stage`` and ``reason``; empty cells where not finite."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        names = [f"{p}_{i + 1}" for i in range(self.robot.n_segments)
-                 for p in ("theta", "phi", "length")]
-        columns = [nums(a) for a in (self.pose_error, self.position_error,
-                                     self.rotation_error, self.min_clearance,
-                                     self.max_violation)]
-        q = row_lists(self.q, [True] * len(self))
-        with path.open("w", newline="") as handle:
-            writer = csv.writer(handle)
-            writer.writerow(["target", "success", "pose_error", "position_error_m",
-                             "rotation_error_rad", "min_clearance_m", "max_violation",
-                             *names, "stage", "reason"])
-            for i in range(len(self)):
-                cells = [c[i] for c in columns] + [None if not np.isfinite(v) else v
-                                                   for v in q[i]]
-                writer.writerow([i, int(bool(self.success[i])),
-                                 *("" if v is None else f"{v:.9g}" for v in cells),
-                                 self.stage[i], self.reason[i]])
-        return path
-
-
 # ---------------------------------------------------------------- the problem
 
 def ik_residual(robot: Robot, margin: float, weight: float, z: jax.Array, target: Any,
@@ -314,6 +146,11 @@ class _Checked:
     reason: str
     row: dict[str, Any] | None
     """Every number ``verify`` returned for the answer (None: the result holds them)."""
+
+
+def _counter(name: str, doc: str) -> property:
+    """A read-only ``IKSolver`` attribute: one of its search's ``SearchCounters``."""
+    return property(lambda solver: getattr(solver._search.counters, name), doc=doc)
 
 
 class IKSolver:
@@ -370,33 +207,14 @@ class IKSolver:
         """Targets per part of the last ``solve``'s stream (``IKConfig.stream_size``)."""
 
     # The search's counters of the last ``solve``/``candidates`` (``stages.ik_search``).
-    @property
-    def lm_calls(self) -> list[tuple[int, int, int, int]]:
-        """Per round of a fused program that iterated any row: (rows iterated, rows of
-        the chunk, iteration budget, most iterations run), for profiling."""
-        return self._search.counters.lm_calls
-
-    @property
-    def retried(self) -> list[int]:
-        """Targets retried in each retry round (0 for a round that did not run)."""
-        return self._search.counters.retried
-
-    @property
-    def self_repaired(self) -> int:
-        """Targets searched again with the self-clearance model because their first
-        answer's segments came closer than δ (no scene only)."""
-        return self._search.counters.self_repaired
-
-    @property
-    def device_calls(self) -> int:
-        """Compiled programs launched (lookups, fused searches): device round trips."""
-        return self._search.counters.device_calls
-
-    @property
-    def device_wait(self) -> float:
-        """Seconds spent waiting for device results with no host work to overlap: the
-        device's share of the wall time; the rest is host work."""
-        return self._search.counters.device_wait
+    lm_calls = _counter("lm_calls", "Per round of a search program that iterated any row: "
+                        "(rows iterated, rows of the chunk, budget, most iterations run).")
+    retried = _counter("retried", "Targets retried in each retry round (0: did not run).")
+    self_repaired = _counter("self_repaired", "Targets searched again with the "
+                             "self-clearance rows (no scene: their answer came closer than δ).")
+    device_calls = _counter("device_calls", "Compiled programs launched: device round trips.")
+    device_wait = _counter("device_wait", "Seconds waiting for device results with no host "
+                           "work to overlap (the device's share of the wall time).")
 
     def candidates(self, positions: Any, wxyz: Any) -> tuple[np.ndarray, np.ndarray]:
         """Several distinct IK answers per target (the refined beam), for callers that
@@ -433,20 +251,13 @@ class IKSolver:
         ``self_clearance``: (B,) the answers' self-clearance by ``world.check`` when the
         caller has it already (no scene only; the search's self-repair measured it)."""
         robot = self.robot
-        rot, pos = model_segment_frames(NUMPY, robot, model_q_to_z(NUMPY, robot, q))[-1]
-        rot_m = np.stack(np.broadcast_arrays(*rot), -1).reshape(-1, 3, 3)
-        pos_v = np.stack(np.broadcast_arrays(*pos), -1).reshape(-1, 3)
+        pos_v, rot_m = tip_pose(robot, np.asarray(q, dtype=float).reshape(-1, robot.dof))
         target_r = matrix_from_wxyz(wxyz)
-        goal = (tuple(target_r[:, i, j] for i in range(3) for j in range(3)),
-                tuple(positions[:, i] for i in range(3)))
-        tip = (tuple(rot_m[:, i, j] for i in range(3) for j in range(3)),
-               tuple(pos_v[:, i] for i in range(3)))
-        err = np.stack(np.broadcast_arrays(*model_pose_error(NUMPY, tip, goal)), -1)
         rel_rot = np.einsum("bji,bjk->bik", rot_m, target_r)
         cos_angle = np.clip((np.trace(rel_rot, axis1=1, axis2=2) - 1) / 2, -1, 1)
         out = {
             "position": pos_v, "wxyz": wxyz_from_matrix(rot_m),
-            "pose_error": np.linalg.norm(err, axis=1),
+            "pose_error": pose_error(pos_v, rot_m, positions, target_r),
             "position_error": np.linalg.norm(pos_v - positions, axis=1),
             "rotation_error": np.arccos(cos_angle),
             "obstacle_clearance": np.full(len(q), np.inf),
@@ -526,7 +337,7 @@ class IKSolver:
         t0 = time.perf_counter()
         valid = np.array([not r for r in reasons], dtype=bool)
         n = len(q)
-        fields = {k: np.full(n, np.nan) for k in _PER_TARGET}
+        fields = {k: np.full(n, np.nan) for k in PER_TARGET}
         result = IKResult(self.robot, q, np.full((n, 3), np.nan), np.full((n, 4), np.nan),
                           collision_free=np.zeros(n, bool), success=np.zeros(n, bool),
                           stage=list(stage), reason=list(reasons), timing=timing,
@@ -535,8 +346,8 @@ class IKSolver:
         if len(rows):
             checked = self.verify(q[rows], positions[rows], wxyz[rows],
                                   None if self_clearance is None else self_clearance[rows])
-            for k in ("position", "wxyz", "collision_free", "success", *_PER_TARGET):
-                getattr(result, k)[rows] = checked[_VERIFIED.get(k, k)]
+            for k in ("position", "wxyz", "collision_free", "success", *PER_TARGET):
+                getattr(result, k)[rows] = checked[VERIFIED.get(k, k)]
             for i, why in zip(rows.tolist(), checked["reason"].tolist(), strict=True):
                 result.reason[i] = why
         timing.verify += time.perf_counter() - t0
@@ -585,12 +396,8 @@ class IKSolver:
     @staticmethod
     def _store(result: IKResult, i: int, row: dict[str, Any]) -> None:
         """One row of ``verify``'s output (numbers and verdict) into answer i of ``result``."""
-        result.position[i] = row["position"]
-        result.wxyz[i] = row["wxyz"]
-        for k in _PER_TARGET:
-            getattr(result, k)[i] = row[_VERIFIED.get(k, k)]
-        result.collision_free[i] = row["collision_free"]
-        result.success[i] = row["success"]
+        for k in ("position", "wxyz", "collision_free", "success", *PER_TARGET):
+            getattr(result, k)[i] = row[VERIFIED.get(k, k)]
         result.reason[i] = str(row["reason"])
 
 
