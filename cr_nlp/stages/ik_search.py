@@ -337,9 +337,10 @@ class IKSearch:
         todo = np.flatnonzero(~(cost < s.retry.success_cost))
         if s.retry.rounds > 0 and len(todo):
             # Every retry round in one more program, only when some target failed.
+            pool = self.seed_pool(timing)
             z_best[todo], cost[todo] = self.main.retry(
-                s.plan, self._retry_plan(), self.sample, z_best[todo], cost[todo], positions[todo],
-                rotations[todo], todo, self.seed_pool(timing), timing)
+                s.plan, self._retry_plan(pool), self.sample, z_best[todo], cost[todo],
+                positions[todo], rotations[todo], todo, pool, timing)
         q = self._to_q(z_best)
         beam = self._to_q(z_beam.reshape(-1, z_beam.shape[-1])).reshape(
             *z_beam.shape[:2], -1)
@@ -373,11 +374,11 @@ class IKSearch:
         candidates = self._to_q(z[np.arange(len(bad)), np.argmin(cost, axis=1)])
         left = self._take(q, own, bad, candidates, before, accepts, timing)
         if s.retry.rounds > 0 and len(left):
-            rows = bad[left]
+            rows, pool = bad[left], self.seed_pool(timing)
             z_new, _ = self.repair.retry(
-                plan, self._retry_plan(), self.sample, q_to_z_numpy(q[rows]),
-                np.full(len(rows), np.inf), positions[rows], rotations[rows], rows,
-                self.seed_pool(timing), timing)
+                plan, self._retry_plan(pool), self.sample, q_to_z_numpy(q[rows]),
+                np.full(len(rows), np.inf), positions[rows], rotations[rows], rows, pool,
+                timing)
             self._take(q, own, rows, self._to_q(z_new), before[left], accepts, timing)
 
     def _take(self, q: np.ndarray, own: np.ndarray, rows: np.ndarray, q_new: np.ndarray,
@@ -395,23 +396,17 @@ class IKSearch:
         timing.verify += time.perf_counter() - t0
         return np.flatnonzero(~(ok | before))
 
-    def _retry_plan(self) -> RetryPlan:
+    def _retry_plan(self, pool: SeedPool) -> RetryPlan:
         """The retry rounds, past the pool ranks the main search used (the pool may hold
         fewer entries than seeds per target)."""
-        retry = self.settings.retry
-        return replace(retry, first_rank=min(self.settings.seeds_per_target,
-                                             len(self.seed_pool_built)))
-
-    @property
-    def seed_pool_built(self) -> SeedPool:
-        """The seed pool, which the search has built by the time a retry runs."""
-        assert self.pool is not None, "the pool is built by the search before any retry"
-        return self.pool
+        return replace(self.settings.retry,
+                       first_rank=min(self.settings.seeds_per_target, len(pool)))
 
     def _repair_block(self) -> int:
         """LM rows per block of the repair programs: a small block on a CPU, the whole
         chunk on an accelerator (as the main search)."""
-        return REPAIR_BLOCK if jax.default_backend() == "cpu" else self.settings.plan.block
+        block = self.settings.plan.block
+        return min(REPAIR_BLOCK, block) if jax.default_backend() == "cpu" else block
 
     def _to_q(self, z: np.ndarray) -> np.ndarray:
         return clip_to_limits(self.robot, z_to_q_numpy(z))
