@@ -21,9 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jax_setup import enable_compilation_cache
-from ..model import Robot, load_robot
-from ..model._ops import NUMPY
-from ..model.kinematics import model_q_to_z
+from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz
 from ..stages.accept import Polished, accept_first
@@ -131,7 +129,7 @@ class LiveIKSolver:
 
     def _refine(self, q0: np.ndarray, position: np.ndarray, rotation: np.ndarray) -> np.ndarray:
         """LM from q0 on the one target; returns q (3n,) clipped to the limits."""
-        z0 = np.stack(model_q_to_z(NUMPY, self.robot, q0), axis=-1)[None]
+        z0 = q_to_z_numpy(q0)[None]
         params = (
             jnp.asarray(position[None], self.dtype),
             jnp.asarray(rotation.reshape(1, 9), self.dtype),
@@ -146,12 +144,7 @@ class LiveIKSolver:
             jnp.int32(self.config.iterations),
             config=self._lm_config,
         )
-        z = np.asarray(z[0], dtype=float)
-        q = np.empty_like(z)
-        q[0::3] = np.hypot(z[0::3], z[1::3])
-        q[1::3] = np.arctan2(z[1::3], z[0::3])
-        q[2::3] = z[2::3]
-        return clip_to_limits(self.robot, q)
+        return clip_to_limits(self.robot, z_to_q_numpy(np.asarray(z[0], dtype=float)))
 
     def _verify(self, q: np.ndarray, position: np.ndarray, wxyz: np.ndarray) -> dict[str, Any]:
         """``IKSolver.verify`` of one answer: its numbers and the library's verdict."""
