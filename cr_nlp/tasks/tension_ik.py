@@ -75,7 +75,7 @@ class TensionIKConfig:
     solver and load case)."""
     iterations: int = 20
     """LM iterations at most."""
-    retry_seeds: int = 3
+    retry_seeds: int = 6
     """Targets that fail the verdict are solved again from their next-nearest pool
     entries, this many (0: no retry)."""
     safety_margin: float = 0.002
@@ -364,10 +364,13 @@ class TensionIKSolver:
             ``TensionIKResult`` with every target's tensions and the independent verdict.
         """
         positions = np.atleast_2d(np.asarray(positions, dtype=float))
-        if positions.ndim != 2 or positions.shape[1] != 3 or not np.all(np.isfinite(positions)):
-            raise ValueError(f"positions: expected (B, 3) finite metres, got shape "
+        if positions.ndim != 2 or positions.shape[1] != 3:
+            raise ValueError(f"positions: expected (B, 3) metres, got shape "
                              f"{np.shape(positions)}")
         count = len(positions)
+        finite = np.all(np.isfinite(positions), axis=1)
+        if not finite.all():  # such rows are reported, not solved
+            return self._solve_finite(finite, positions, wxyz, tip_force, tip_moment, gravity)
         if wxyz is None:
             quats = np.full((count, 4), np.nan)
         else:
@@ -381,6 +384,16 @@ class TensionIKSolver:
                                                         (tip_moment, "tip_moment"),
                                                         (gravity, "gravity"))]
         timing = StageTiming()
+        if count == 0:
+            nothing = np.zeros((0, self.robot.n_tendons))
+            empty = np.zeros(0)
+            return TensionIKResult(
+                robot=self.robot, tensions=nothing, target_position=positions,
+                target_wxyz=quats, position=positions, wxyz=quats, pose_error=empty,
+                position_error=empty, rotation_error=empty, min_clearance=empty,
+                max_violation=empty, success=np.zeros(0, bool), reason=[],
+                tip_force=loads[0], tip_moment=loads[1], gravity=loads[2],
+                tendon_displacements=nothing, timing=timing)
         start = time.perf_counter()
         tensions = self._seeds(positions, loads, 0)
         timing.explore = time.perf_counter() - start
@@ -406,6 +419,35 @@ class TensionIKSolver:
             timing.verify += time.perf_counter() - start
         result.timing = timing
         return result
+
+    def _solve_finite(self, finite: np.ndarray, positions: np.ndarray, wxyz: Any,
+                      *loads: Any) -> TensionIKResult:
+        """``solve`` on the rows with finite positions; the others failed, with a reason."""
+        count = len(positions)
+
+        def rows(value: Any, width: int) -> Any:
+            if value is None:
+                return None
+            arr = np.asarray(value, dtype=float)
+            return arr[finite] if arr.ndim == 2 and len(arr) == count else arr
+
+        part = self.solve(positions[finite], rows(wxyz, 4), *(rows(v, 3) for v in loads))
+        full = self.solve(np.zeros((0, 3)))
+        for name in ("tensions", "target_position", "target_wxyz", "position", "wxyz",
+                     "pose_error", "position_error", "rotation_error", "min_clearance",
+                     "max_violation", "success", "tip_force", "tip_moment", "gravity",
+                     "tendon_displacements"):
+            values = getattr(part, name)
+            out = (np.zeros(count, bool) if values.dtype == bool
+                   else np.full((count, *values.shape[1:]), np.nan))
+            out[finite] = values
+            setattr(full, name, out)
+        full.target_position = positions
+        full.reason = ["the target has non-finite coordinates"] * count
+        for i, j in zip(np.flatnonzero(finite).tolist(), range(len(part)), strict=True):
+            full.reason[i] = part.reason[j]
+        full.timing = part.timing
+        return full
 
     def _seeds(self, positions: np.ndarray, loads: list[np.ndarray], rank: int) -> np.ndarray:
         """The pool tensions whose tip is the ``rank``-th nearest to each target, under the
