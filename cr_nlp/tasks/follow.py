@@ -67,15 +67,18 @@ from ..stages.lm import LMConfig
 from ..stages.tendon_penalty import tendon_accel_excess, tendon_speed_excess
 from ..world import Scene, load_scene, scene_arrays
 from ..world.clearance import SceneArrays, body_gap_tolerance
+from ..world.clearance_groups import (
+    body_centres_from,
+    clearance_groups,
+    grouped_shortfalls,
+    has_clearance,
+)
 from ..world.verdict import VIOLATION_TOLERANCE
 from ._result import ResultFileError, ResultIO, array, as_float, num, nums, write_series_csv
 from ._timing import StageTiming, compile_seconds
 from .ik import IKConfig, IKSolver, validate_targets
 from .paths import ReferencePath, load_path
 from .trajectory import (
-    _clearance_groups,
-    _groups_from,
-    _has_clearance,
     controller_columns,
     describe_polish,
     tendon_names,
@@ -185,12 +188,6 @@ class FollowConfig:
 # matrix product.
 
 
-def _with_base(robot: Robot, points: jax.Array) -> jax.Array:
-    """Body-sphere centres (N, 3) m in ``world.clearance._centres`` order: the base
-    point, then the backbone points (n·k, 3)."""
-    return jnp.concatenate([jnp.asarray(robot.base_position, points.dtype)[None], points])
-
-
 def waypoint_kinematics(robot: Robot, z: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Tip rotation (3, 3), tip position (3,) m and body-sphere centres (N, 3) m of one
     bending-vector configuration z (3n,), from one evaluation of the model's frames
@@ -200,7 +197,8 @@ def waypoint_kinematics(robot: Robot, z: jax.Array) -> tuple[jax.Array, jax.Arra
     rot, pos = frames[-1]
     points = model_backbone(JAX, robot, entries, frames).astype(z.dtype)
     return (jnp.stack(jnp.broadcast_arrays(*rot)).reshape(3, 3).astype(z.dtype),
-            jnp.stack(jnp.broadcast_arrays(*pos)).astype(z.dtype), _with_base(robot, points))
+            jnp.stack(jnp.broadcast_arrays(*pos)).astype(z.dtype),
+            body_centres_from(robot, points)[0])
 
 
 def waypoint_jacobians(robot: Robot, z: jax.Array) -> dict[str, jax.Array]:
@@ -209,11 +207,10 @@ def waypoint_jacobians(robot: Robot, z: jax.Array) -> dict[str, jax.Array]:
     ``d_position`` (3, 3n), ``body_rates`` (3, 3n) (Rᵀ∂R/∂z_k as vectors) and
     ``d_centres`` (N, 3, 3n)."""
     kin = kinematics_jacobians_z(robot, z)
-    return {"rotation": kin.rotation, "position": kin.position,
-            "centres": _with_base(robot, kin.points),
+    centres, d_centres = body_centres_from(robot, kin.points, kin.d_points)
+    return {"rotation": kin.rotation, "position": kin.position, "centres": centres,
             "d_position": kin.jacobian[:3], "body_rates": kin.rotation.T @ kin.jacobian[3:],
-            "d_centres": jnp.concatenate([jnp.zeros((1, 3, robot.dof), z.dtype),
-                                          kin.d_points])}
+            "d_centres": d_centres}
 
 
 def _tracking_from(rot: jax.Array, pos: jax.Array, target: Any) -> jax.Array:
@@ -254,12 +251,12 @@ def _tracking_error_jvp(robot: Robot, primals: tuple, tangents: tuple) -> tuple:
 def waypoint_residual(robot: Robot, margin: float, z: jax.Array, target: Any,
                       arrays: SceneArrays | None) -> jax.Array:
     """``tracking_error`` (6,) then the grouped clearance shortfalls (G,) m of one waypoint
-    z (3n,) (``tasks.trajectory._groups_from``), sharing one kinematics Jacobian (the LM's
-    per-waypoint term)."""
+    z (3n,) (``world.clearance_groups.grouped_shortfalls``), sharing one kinematics
+    Jacobian (the LM's per-waypoint term)."""
     rot, pos, centres = waypoint_kinematics(robot, z)
     out = [_tracking_from(rot, pos, target)]
-    if _has_clearance(robot, arrays):
-        out.append(_groups_from(robot, margin, arrays, centres, None)[0])
+    if has_clearance(robot, arrays):
+        out.append(grouped_shortfalls(robot, margin, arrays, centres, None)[0])
     return jnp.concatenate(out)
 
 
@@ -271,8 +268,8 @@ def _waypoint_residual_jvp(robot: Robot, margin: float, primals: tuple,
     kin = waypoint_jacobians(robot, z)
     error = _tracking_from(kin["rotation"], kin["position"], target)
     values, jac = [error], [_tracking_jacobian(kin, error)]
-    if _has_clearance(robot, arrays):
-        groups, groups_jac = _groups_from(robot, margin, arrays, kin["centres"],
+    if has_clearance(robot, arrays):
+        groups, groups_jac = grouped_shortfalls(robot, margin, arrays, kin["centres"],
                                           kin["d_centres"])
         values.append(groups)
         jac.append(groups_jac)
@@ -307,9 +304,9 @@ def follow_pair(robot: Robot, margin: float, checks: int, weights: tuple[float, 
     arrays, dt = shared
     step = z_b - z_a
     out = [sqrt_smooth * step]
-    if checks and _has_clearance(robot, arrays):
+    if checks and has_clearance(robot, arrays):
         for c in range(1, checks + 1):
-            out.append(sqrt_clear * _clearance_groups(robot, margin, arrays,
+            out.append(sqrt_clear * clearance_groups(robot, margin, arrays,
                                                       z_a + (c / (checks + 1)) * step))
     if math.isfinite(robot.tendon_speed_max):
         out.append(sqrt_tendon * tendon_speed_excess(robot, limit_fraction, z_a, z_b, dt))

@@ -40,22 +40,16 @@ import numpy as np
 from .._jax_setup import enable_compilation_cache
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import JAX, NUMPY
-from ..model.derivatives import backbone_jacobian_z, tip_jacobian_z
-from ..model.kinematics import backbone_points_z, model_segment_frames, model_tendon_lengths
+from ..model.derivatives import tip_position_z
+from ..model.kinematics import model_segment_frames, model_tendon_lengths
 from ..model.limits import limit_violation_q, project_z
 from ..stages.banded_lm import ChainResidual, banded_lm_solve
 from ..stages.lm import LMConfig, lm_solve
 from ..stages.tendon_penalty import tendon_accel_excess, tendon_speed_excess
 from ..world import Scene, check_many, load_scene, scene_arrays
-from ..world.broad_phase import PartBalls, part_balls
-from ..world.clearance import (
-    SceneArrays,
-    _kind_blocks,
-    body_gap_tolerance,
-    body_segments,
-    self_pairs,
-)
-from ..world.penalty import body_clearances_z
+from ..world.broad_phase import part_balls
+from ..world.clearance import SceneArrays, body_gap_tolerance
+from ..world.clearance_groups import clearance_groups, has_clearance, near_clearance_groups
 from ..world.verdict import VIOLATION_TOLERANCE, describe_violations, judge
 from ._result import (
     SCHEMA_VERSION,
@@ -173,225 +167,6 @@ class TrajectoryConfig:
 # ================================================================ residuals
 
 
-def _tip_value(robot: Robot, z: jax.Array) -> jax.Array:
-    _, pos = model_segment_frames(JAX, robot, [z[i] for i in range(robot.dof)])[-1]
-    return jnp.stack(jnp.broadcast_arrays(*pos)).astype(z.dtype)
-
-
-@partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _tip_position(robot: Robot, z: jax.Array) -> jax.Array:
-    """Tip position (3,) m of one waypoint z (3n,)."""
-    return _tip_value(robot, z)
-
-
-@_tip_position.defjvp
-def _tip_position_jvp(robot: Robot, primals: tuple, tangents: tuple) -> tuple:
-    # The waypoint's own 3 × 3n Jacobian (closed form, ``model.derivatives``), computed
-    # from the primal only: under the LM's jacfwd over all H·3n directions it is
-    # evaluated once, not once per direction.
-    (z,), (z_dot,) = primals, tangents
-    position, _, jac = tip_jacobian_z(robot, z)
-    return position, jac[:3] @ z_dot
-
-
-def _safe_norm(x: jax.Array) -> jax.Array:
-    eps = jnp.asarray(1e-9, x.dtype)
-    return jnp.sqrt(jnp.sum(x * x, axis=-1) + eps * eps) - eps
-
-
-def _groups(robot: Robot, arrays: SceneArrays | None) -> list[np.ndarray]:
-    """Index sets into ``body_clearances_z``'s output, one per residual group: each
-    segment's body spheres (nearest-obstacle rows), then all self pairs."""
-    out, offset = [], 0
-    if arrays is not None and arrays.n_parts > 0:
-        out += list(body_segments(robot))
-        offset = robot.n_points + 1
-    if robot.has_self_pairs:
-        out.append(offset + np.arange(len(self_pairs(robot))))
-    return out
-
-
-def _group_values(robot: Robot, margin: float, arrays: SceneArrays | None,
-                  z: jax.Array) -> jax.Array:
-    """Grouped clearance shortfalls (m) of one configuration z (3n,): for each segment, the
-    norm of max(0, δ − d) over its body spheres' nearest-obstacle distances
-    (``body_clearances_z``), then the norm over the self pairs. Grouping keeps the LM's
-    residual count (hence the cost of JᵀJ) small; ½‖group‖² equals the per-sphere
-    penalty, so the gradient is unchanged."""
-    shortfall = jnp.maximum(margin - body_clearances_z(robot, arrays, z), 0.0)
-    return jnp.stack([_safe_norm(shortfall[idx]) for idx in _groups(robot, arrays)])
-
-
-# Fields of ``SceneArrays`` per part kind, in ``_kind_blocks`` order.
-_KIND_FIELDS = (("sphere_center", "sphere_radius"),
-                ("box_center", "box_rotation", "box_half_size"),
-                ("capsule_a", "capsule_b", "capsule_radius"),
-                ("cylinder_center", "cylinder_rotation", "cylinder_radius",
-                 "cylinder_half_length"),
-                ("convex_planes",))
-
-
-def _candidates(arrays: SceneArrays, balls: PartBalls, near: int, present: list[int],
-                centres: jax.Array) -> list[jax.Array]:
-    """Broad phase: per present part kind, the indices (N, k) of the parts each body
-    sphere (centres (N, 3) m) may be nearest to: the ``near`` parts whose bounding balls
-    (``world.broad_phase``) are nearest to it, or every part of a kind with at most
-    ``near`` parts."""
-    out = []
-    for kind in present:
-        count = getattr(arrays, _KIND_FIELDS[kind][0]).shape[0]
-        if count <= near:
-            out.append(jnp.broadcast_to(jnp.arange(count), (centres.shape[0], count)))
-            continue
-        ball_centres, radii = balls[kind]
-        gap = jnp.sqrt(jnp.sum((centres[:, None] - ball_centres[None]) ** 2, axis=-1)) - radii
-        out.append(jax.lax.top_k(-gap, near)[1])
-    return out
-
-
-def _nearest_and_gradient(robot: Robot, arrays: SceneArrays, centres: jax.Array,
-                          balls: PartBalls | None = None,
-                          near: int = 0) -> tuple[jax.Array, jax.Array]:
-    """Each body sphere's nearest-obstacle distance (N,) m and its gradient (N, 3) with
-    respect to the sphere's centre. The gradient of a min is that of its argmin, so only
-    the nearest part of each kind is differentiated (measured 10–20× cheaper than the
-    reverse pass over every (sphere, part) pair). With ``balls`` and ``near`` > 0 only the
-    ``near`` parts per kind whose bounding balls are nearest to a sphere are measured
-    (``_candidates``); a part outside them is taken to be farther."""
-    present = [k for k, f in enumerate(_KIND_FIELDS) if getattr(arrays, f[0]).shape[0]]
-    if balls is not None and near > 0:
-        candidates = _candidates(arrays, balls, near, present, centres)
-        gathered = dict(arrays._asdict())
-        axes = dict.fromkeys(gathered)
-        for kind, idx in zip(present, candidates, strict=True):
-            for name in _KIND_FIELDS[kind]:
-                gathered[name] = getattr(arrays, name)[idx]           # (N, k, …)
-                axes[name] = 0
-        blocks = jax.vmap(lambda one, c: [b[0] for b in _kind_blocks(robot, one, c[None], 0.0)],
-                          in_axes=(SceneArrays(**axes), 0))(SceneArrays(**gathered), centres)
-        chosen = [jnp.take_along_axis(idx, jnp.argmin(b, axis=-1)[:, None], axis=1)
-                  for idx, b in zip(candidates, blocks, strict=True)]
-    else:
-        blocks = _kind_blocks(robot, arrays, centres, 0.0)
-        chosen = [jnp.argmin(b, axis=-1)[:, None] for b in blocks]
-    picked = dict(arrays._asdict())
-    axes = dict.fromkeys(picked)
-    for kind, nearest in zip(present, chosen, strict=True):   # (N, 1): one part per sphere
-        for name in _KIND_FIELDS[kind]:
-            picked[name] = getattr(arrays, name)[nearest]
-            axes[name] = 0
-    per_sphere = SceneArrays(**picked)
-
-    def distance(one: SceneArrays, centre: jax.Array) -> jax.Array:
-        rows = _kind_blocks(robot, one, centre[None], 0.0)
-        return jnp.min(jnp.concatenate([b.reshape(-1) for b in rows]))
-
-    return jax.vmap(jax.value_and_grad(distance, argnums=1),
-                    in_axes=(SceneArrays(**axes), 0))(per_sphere, centres)
-
-
-def _groups_from(robot: Robot, margin: float, arrays: SceneArrays | None, centres: jax.Array,
-                 jac_centres: jax.Array | None, balls: PartBalls | None = None,
-                 near: int = 0) -> tuple[jax.Array, jax.Array | None]:
-    """Grouped clearance shortfalls (G,) m of the body spheres' centres (N, 3) m
-    (``_group_values``: per segment the norm of max(0, δ − d) over its spheres'
-    nearest-obstacle distances, then the norm over the self pairs) and, given the centres'
-    Jacobian (N, 3, d), theirs (G, d) (else None). Shared by this module's LM and
-    ``tasks.follow``, which build the centre Jacobian differently. ``balls``, ``near``:
-    the broad phase of ``_nearest_and_gradient`` (None, 0: every part)."""
-    values, rows = [], []
-    if arrays is not None and arrays.n_parts > 0:
-        d, grad = _nearest_and_gradient(robot, arrays, centres, balls, near)
-        values.append(d)
-        if jac_centres is not None:
-            rows.append(jnp.einsum("nk,nkj->nj", grad, jac_centres))
-    if robot.has_self_pairs:
-        pairs = self_pairs(robot)
-        diff = centres[pairs[:, 0]] - centres[pairs[:, 1]]
-        norm = jnp.sqrt(jnp.maximum(jnp.sum(diff * diff, axis=-1), 1e-30))
-        values.append(norm - 2.0 * robot.backbone_radius)
-        if jac_centres is not None:
-            unit = diff / norm[:, None]
-            rows.append(jnp.einsum("nk,nkj->nj", unit,
-                                   jac_centres[pairs[:, 0]] - jac_centres[pairs[:, 1]]))
-    d = jnp.concatenate(values)
-    shortfall = jnp.maximum(margin - d, 0.0)
-    jac_d = jnp.concatenate(rows) if jac_centres is not None else None
-    out, jac = [], []
-    eps = jnp.asarray(1e-9, centres.dtype)
-    for idx in _groups(robot, arrays):
-        s = shortfall[idx]
-        root = jnp.sqrt(jnp.sum(s * s) + eps * eps)
-        out.append(root - eps)
-        if jac_d is not None:
-            jac.append(-(s / root) @ jac_d[idx])
-    return jnp.stack(out), (jnp.stack(jac) if jac_d is not None else None)
-
-
-def _group_jacobian(robot: Robot, margin: float, arrays: SceneArrays | None,
-                    z: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """``_group_values`` (G,) and its Jacobian (G, 3n), from the body spheres' closed-form
-    centre Jacobian (``model.derivatives``) and per-sphere distance gradients (no pass over
-    every tangent direction)."""
-    points, d_points = backbone_jacobian_z(robot, z)
-    # The centres of ``world.clearance._centres``: the base, then the backbone points.
-    base = jnp.asarray(robot.base_position, z.dtype)[None]
-    centres = jnp.concatenate([base, points])
-    jac_centres = jnp.concatenate([jnp.zeros((1, 3, robot.dof), z.dtype), d_points])
-    return _groups_from(robot, margin, arrays, centres, jac_centres)
-
-
-@partial(jax.custom_jvp, nondiff_argnums=(0, 1))
-def _clearance_groups(robot: Robot, margin: float, arrays: SceneArrays | None,
-                      z: jax.Array) -> jax.Array:
-    return _group_values(robot, margin, arrays, z)
-
-
-@_clearance_groups.defjvp
-def _clearance_groups_jvp(robot: Robot, margin: float, primals: tuple,
-                          tangents: tuple) -> tuple:
-    # As for the tip: the configuration's own Jacobian from the primal, then one product.
-    arrays, z = primals
-    z_dot = tangents[1]
-    values, jac = _group_jacobian(robot, margin, arrays, z)
-    return values, jac @ z_dot
-
-
-def _body_centres_z(robot: Robot, z: jax.Array) -> jax.Array:
-    """Body-sphere centres (N, 3) m of one z (3n,), ``world.clearance._centres`` order:
-    the base, then the backbone points."""
-    base = jnp.asarray(robot.base_position, z.dtype)[None]
-    return jnp.concatenate([base, backbone_points_z(robot, z).astype(z.dtype)])
-
-
-@partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
-def near_clearance_groups(robot: Robot, margin: float, near: int, arrays: SceneArrays | None,
-                          balls: PartBalls | None, z: jax.Array) -> jax.Array:
-    """``_group_values`` (G,) m of one configuration z (3n,) with the broad phase of
-    ``_nearest_and_gradient``: only the ``near`` parts per kind whose bounding balls
-    (``balls``, ``world.broad_phase``) are nearest to a body sphere are measured (``near``
-    0 or ``balls`` None: every part). Its Jacobian comes from the primal alone."""
-    return _groups_from(robot, margin, arrays, _body_centres_z(robot, z), None, balls,
-                        near)[0]
-
-
-@near_clearance_groups.defjvp
-def _near_clearance_groups_jvp(robot: Robot, margin: float, near: int, primals: tuple,
-                               tangents: tuple) -> tuple:
-    arrays, balls, z = primals
-    z_dot = tangents[2]
-    points, d_points = backbone_jacobian_z(robot, z)
-    base = jnp.asarray(robot.base_position, z.dtype)[None]
-    centres = jnp.concatenate([base, points])
-    jac_centres = jnp.concatenate([jnp.zeros((1, 3, robot.dof), z.dtype), d_points])
-    values, jac = _groups_from(robot, margin, arrays, centres, jac_centres, balls, near)
-    return values, jac @ z_dot
-
-
-def _has_clearance(robot: Robot, arrays: SceneArrays | None) -> bool:
-    return (arrays is not None and arrays.n_parts > 0) or robot.has_self_pairs
-
-
 def trajectory_residual(robot: Robot, waypoints: int, checks: int, margin: float,
                         weights: tuple[float, float, float, float], limit_fraction: float,
                         z: jax.Array, dt: jax.Array, scene: SceneArrays | None) -> jax.Array:
@@ -408,13 +183,13 @@ def trajectory_residual(robot: Robot, waypoints: int, checks: int, margin: float
     """
     w_path, w_smooth, w_clear, w_tendon = weights
     way = z.reshape(waypoints, robot.dof)
-    tips = jax.vmap(partial(_tip_position, robot))(way)
+    tips = jax.vmap(partial(tip_position_z, robot))(way)
     out = [math.sqrt(w_path) * (tips[1:] - tips[:-1]).reshape(-1),
            math.sqrt(w_smooth) * (way[1:] - way[:-1]).reshape(-1)]
-    if _has_clearance(robot, scene):
+    if has_clearance(robot, scene):
         step = way[1:] - way[:-1]
         configs = [way] + [way[:-1] + (c / (checks + 1)) * step for c in range(1, checks + 1)]
-        groups = jax.vmap(partial(_clearance_groups, robot, margin, scene))(
+        groups = jax.vmap(partial(clearance_groups, robot, margin, scene))(
             jnp.concatenate(configs))
         out.append(math.sqrt(w_clear) * groups.reshape(-1))
     lengths = jnp.stack(model_tendon_lengths(JAX, robot, [way[:, i] for i in range(robot.dof)]),
@@ -450,9 +225,9 @@ def trajectory_pair(robot: Robot, margin: float, near: int, checks: int,
     sqrt_path, sqrt_smooth, sqrt_clear, sqrt_tendon = weights
     arrays, balls, dt = shared
     step = z_b - z_a
-    out = [sqrt_path * (_tip_position(robot, z_b) - _tip_position(robot, z_a)),
+    out = [sqrt_path * (tip_position_z(robot, z_b) - tip_position_z(robot, z_a)),
            sqrt_smooth * step]
-    if checks and _has_clearance(robot, arrays):
+    if checks and has_clearance(robot, arrays):
         for c in range(1, checks + 1):
             out.append(sqrt_clear * near_clearance_groups(
                 robot, margin, near, arrays, balls, z_a + (c / (checks + 1)) * step))
@@ -475,7 +250,7 @@ def trajectory_terms(robot: Robot, margin: float, config: TrajectoryConfig,
     the same residuals (hence the same cost ½‖r‖²) grouped by the waypoints they touch.
     ``scene`` only decides whether clearance terms exist."""
     sqrt = math.sqrt
-    clear = _has_clearance(robot, scene)
+    clear = has_clearance(robot, scene)
     near = config.near_parts
     unary = (partial(trajectory_unary, robot, float(margin), near,
                      sqrt(config.clearance_weight)) if clear else None)
