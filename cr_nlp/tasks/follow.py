@@ -26,7 +26,7 @@ Stages:
    marked in ``FollowResult.stage``.
 
 Every answer is judged in float64 independently of the optimisers:
-``tasks.trajectory.verify_trajectory`` (python-fcl along the interpolated motion, limits,
+``world.motion.verify_trajectory`` (python-fcl along the interpolated motion, limits,
 tendon finite differences) and the tip poses by the numpy backend of the model.
 
 Waypoints outside the robot's reach (farther from the base than its longest length)
@@ -73,6 +73,7 @@ from ..world.clearance_groups import (
     grouped_shortfalls,
     has_clearance,
 )
+from ..world.motion import verify_trajectory
 from ..world.verdict import VIOLATION_TOLERANCE
 from ._result import ResultFileError, ResultIO, array, as_float, num, nums, write_series_csv
 from ._timing import StageTiming, compile_seconds
@@ -82,7 +83,6 @@ from .trajectory import (
     controller_columns,
     describe_polish,
     tendon_names,
-    verify_trajectory,
 )
 
 FOLLOW_IK = IKConfig(seeds_per_target=8, refine_iterations=10)
