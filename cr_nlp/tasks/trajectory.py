@@ -43,9 +43,10 @@ from ..model._ops import JAX
 from ..model.derivatives import tip_position_z
 from ..model.kinematics import model_tendon_lengths
 from ..model.limits import project_z
-from ..stages.banded_lm import ChainResidual, banded_lm_solve
-from ..stages.lm import LMConfig, lm_solve
+from ..stages.banded_lm import ChainResidual
+from ..stages.chain_batch import ChainBatchLM
 from ..stages.tendon_penalty import tendon_accel_excess, tendon_speed_excess
+from ..stages.trajectory_guesses import initial_guesses
 from ..world import Scene, check_many, load_scene, scene_arrays
 from ..world.broad_phase import part_balls
 from ..world.clearance import SceneArrays, body_gap_tolerance
@@ -303,17 +304,20 @@ class TrajectoryPlanner:
         n = config.waypoints
         weights = (config.path_weight, config.smoothness_weight, config.clearance_weight,
                    config.tendon_weight)
-        self._residual = partial(trajectory_residual, self.robot, n, config.interpolation_checks,
-                                 float(self.margin), weights, config.tendon_limit_fraction)
-        self._project = partial(_project_waypoints, self.robot, n)
-        self._balls = (part_balls(self.scene, self.dtype)
-                       if self.scene is not None and config.near_parts > 0 else None)
-        self._terms = trajectory_terms(self.robot, self.margin, config, self._arrays)
+        balls = (part_balls(self.scene, self.dtype)
+                 if self.scene is not None and config.near_parts > 0 else None)
         free = np.ones((n, self.robot.dof))
         free[:, 2::3] = ~self.robot.lengths_fixed()
         free[0] = free[-1] = 0.0                       # start and goal are fixed
-        self._free = jnp.asarray(free.reshape(-1), self.dtype)
-        self._compiled: dict[int, Any] = {}
+        self.lm = ChainBatchLM(
+            trajectory_terms(self.robot, self.margin, config, self._arrays),
+            partial(project_z, self.robot), n, jnp.asarray(free.reshape(-1), self.dtype),
+            self.dtype, config.chunk_size, config.lm_structure,
+            dense_residual=partial(trajectory_residual, self.robot, n,
+                                   config.interpolation_checks, float(self.margin), weights,
+                                   config.tendon_limit_fraction),
+            dense_project=partial(_project_waypoints, self.robot, n), extra=balls)
+        """Stage 2 (``stages.chain_batch``): the LM over chunks of trajectories."""
         self.last_programs = 0
         """LM device programs launched by the last ``plan`` call (one per chunk)."""
         self._roadmap: Any = None
@@ -344,98 +348,6 @@ class TrajectoryPlanner:
         return roadmap.query_many(np.stack([q for _, q, _ in valid]),
                                   np.stack([q for _, _, q in valid]), self.config.waypoints,
                                   self.config.roadmap_search)
-
-    def _guesses(self, z_start: np.ndarray, z_goal: np.ndarray,
-                 path: np.ndarray | None) -> tuple[np.ndarray, list[str]]:
-        """(G, waypoints, 3n) initial trajectories in z and what each one is; ``path`` is
-        the roadmap's (waypoints, 3n) configurations, or None."""
-        cfg = self.config
-        n = cfg.waypoints
-        s = np.linspace(0.0, 1.0, n)[:, None]
-        straight = z_start[None] + s * (z_goal - z_start)[None]
-        guesses, kinds = [], []
-        if path is not None:
-            z = q_to_z_numpy(np.reshape(path, (n, -1)))
-            z[0], z[-1] = z_start, z_goal
-            guesses.append(z)
-            kinds.append("roadmap")
-        guesses.append(straight)
-        kinds.append("straight")
-        bump = np.sin(np.pi * s)
-        bending = np.zeros(self.robot.dof, bool)
-        bending[0::3] = bending[1::3] = True
-        while len(guesses) < cfg.guesses:
-            direction = self._rng.normal(size=self.robot.dof) * bending
-            direction *= cfg.perturbation / max(np.linalg.norm(direction), 1e-12)
-            direction *= math.sqrt(self.robot.n_segments)   # ≈ perturbation per segment
-            guesses.append(straight + bump * direction[None])
-            kinds.append("perturbed")
-        return np.stack(guesses[: cfg.guesses]), kinds[: cfg.guesses]
-
-    def _lm(self, z0: np.ndarray, dt: np.ndarray, timing: PlanTiming) -> tuple[np.ndarray,
-                                                                                np.ndarray]:
-        """LM over (B, waypoints·3n) trajectories in fixed-size chunks; z and cost (B,)."""
-        # One chunk size per planner (one compiled program); a batch smaller than a chunk
-        # gets the smallest power of two (≥ the device count) that holds it.
-        devices = len(jax.devices())
-        chunk = max(2, devices)
-        while chunk < min(len(z0), self.config.chunk_size):
-            chunk *= 2
-        chunk = max(chunk, min(self._compiled, default=0))
-        z_out, cost_out = [], []
-        for start in range(0, len(z0), chunk):
-            stop = min(start + chunk, len(z0))
-            pad = chunk - (stop - start)
-
-            def padded(x: np.ndarray, start: int = start, stop: int = stop,
-                       pad: int = pad) -> np.ndarray:
-                part = x[start:stop]
-                return np.concatenate([part, np.repeat(part[:1], pad, 0)]) if pad else part
-
-            args = (jnp.asarray(padded(z0), self.dtype), jnp.asarray(padded(dt), self.dtype),
-                    self._arrays, self._free, jnp.int32(self.config.iterations))
-            if chunk not in self._compiled:
-                t0 = time.perf_counter()
-                self._compiled[chunk] = self._lower(args).compile()
-                timing.compile += time.perf_counter() - t0
-            z, cost = self._compiled[chunk](*args)[:2]
-            self.last_programs += 1
-            z_out.append(np.array(z[: stop - start], dtype=np.float64))
-            cost_out.append(np.array(cost[: stop - start], dtype=np.float64))
-        return np.concatenate(z_out), np.concatenate(cost_out)
-
-    def _lower(self, args: tuple) -> Any:
-        """The LM program for one chunk, on one device. Unlike IK it is not split with
-        ``shard_map`` over host devices: measured with jax 0.10 on 2 CPU host devices,
-        the sharded program of a 16-trajectory chunk never returned (every thread waiting
-        on a futex), while the same program unsharded, where XLA's own thread pool
-        parallelises the large JᵀJ products, runs normally."""
-        # Measured on 20 shelf problems, 2 shared cores under load, same process: the
-        # banded LM with the clearance broad phase took 1.98 s of LM per problem against
-        # the dense LM's 3.86 s, same successes and path lengths; its first compilation
-        # is longer (about 200 s against 34 s with a cold cache under that load).
-        if self.config.lm_structure == "dense":
-            config = LMConfig(cost_tolerance=0.0, linear_solver="cholesky")
-            solve = partial(lm_solve, self._residual, self._project, config=config)
-            return jax.jit(lambda *a: solve(*a)[:2]).lower(*args)
-        # One banded solve per trajectory, vmapped: a trajectory that has converged keeps
-        # its iterate (the loop's batched predicate masks it) while the others go on.
-        n, dof = self.config.waypoints, self.robot.dof
-        one = partial(banded_lm_solve, self._terms, partial(project_z, self.robot),
-                      config=LMConfig(cost_tolerance=0.0))
-
-        balls = self._balls
-
-        def solve_chunk(z0: jax.Array, dt: jax.Array, arrays: SceneArrays | None,
-                        free: jax.Array, iterations: jax.Array) -> tuple[jax.Array, jax.Array]:
-            def single(z: jax.Array, step: jax.Array) -> tuple[jax.Array, jax.Array]:
-                out, cost, _ = one(z.reshape(n, dof), None, (arrays, balls, step),
-                                   free.reshape(n, dof), iterations)
-                return out.reshape(-1), cost
-
-            return jax.vmap(single)(z0, dt)
-
-        return jax.jit(solve_chunk).lower(*args)
 
     def validate(self, start: Any, goal: Any) -> tuple[np.ndarray | None, np.ndarray | None, str]:
         """Full (3n,) start and goal, or a reason why the problem cannot be planned."""
@@ -546,7 +458,9 @@ class TrajectoryPlanner:
         guesses, kinds = [], []
         paths = self._roadmap_paths(valid, init)
         for (_, q_start, q_goal), path in zip(valid, paths, strict=True):
-            g, k = self._guesses(q_to_z_numpy(q_start), q_to_z_numpy(q_goal), path)
+            g, k = initial_guesses(self.robot, q_to_z_numpy(q_start), q_to_z_numpy(q_goal),
+                                   path, cfg.waypoints, cfg.guesses, cfg.perturbation,
+                                   self._rng)
             guesses.append(g)
             kinds.append(k)
         timing.explore += time.perf_counter() - t0
@@ -568,9 +482,12 @@ class TrajectoryPlanner:
                 continue
             z0 = all_guesses[rows][:, group].reshape(-1, n * dof)
             t1 = time.perf_counter()
-            c1 = timing.compile
-            z, cost = self._lm(z0, np.full(len(z0), dt), timing)
-            timing.refine += time.perf_counter() - t1 - (timing.compile - c1)
+            programs = self.lm.programs
+            z, cost, compiled = self.lm.solve(z0, np.full(len(z0), dt), self._arrays,
+                                              cfg.iterations)
+            self.last_programs += self.lm.programs - programs
+            timing.compile += compiled
+            timing.refine += time.perf_counter() - t1 - compiled
             z = z.reshape(len(rows), len(group), n, dof)
             cost = cost.reshape(len(rows), len(group))
             for k, row in enumerate(rows):
