@@ -222,3 +222,33 @@ def tracking_cost(result: FollowResult) -> float:
     """Σ over waypoints of (position error in mm)² + (rotation error in degrees)²."""
     return float(np.sum((1e3 * result.position_error) ** 2
                         + np.degrees(result.rotation_error) ** 2))
+
+
+def result_from_verdict(robot: Robot, path: ReferencePath, q: np.ndarray,
+                        verdict: dict[str, Any], stage: str, why_untrackable: dict[int, str],
+                        scene_name: str | None, safety_margin: float) -> FollowResult:
+    """The result of the followed path ``q`` (T, 3n) (rad, rad, m) judged by ``verdict``
+    (``PathFollower.verify``'s dict: ``world.motion.verify_trajectory``'s plus the
+    tracking errors and ``reached``); ``why_untrackable``: waypoint index → why it cannot
+    be tracked; ``safety_margin`` δ, m."""
+    reached = np.asarray(verdict["reached"], bool)
+    reasons = []
+    unreached = np.flatnonzero(~reached)
+    if len(unreached):
+        stretches = ", ".join(f"{a}" if a == b else f"{a}–{b}"
+                              for a, b in unreached_stretches(reached))
+        reasons.append(f"{len(unreached)} of {len(q)} waypoints not reached (waypoints "
+                       f"{stretches})")
+        for i, why in sorted(why_untrackable.items())[:3]:
+            reasons.append(f"waypoint {i}: {why}")
+    if verdict["reason"]:
+        reasons.append(verdict["reason"])
+    return FollowResult(
+        robot, path, q, verdict["position"], verdict["wxyz"], verdict["pose_error"],
+        verdict["position_error"], verdict["rotation_error"], reached,
+        verdict["tendon_lengths"], verdict["tendon_speed"], verdict["tendon_accel"],
+        bool(verdict["collision_free"]), float(verdict["min_clearance"]),
+        float(verdict["max_violation"]), dict(verdict["violations"]),
+        success=bool(verdict["success"]) and bool(reached.all()),
+        reason="; ".join(reasons), stage=stage, scene_name=scene_name,
+        safety_margin=safety_margin)

@@ -74,7 +74,7 @@ from ..world.clearance_groups import (
 from ..world.motion import verify_trajectory
 from ..world.verdict import VIOLATION_TOLERANCE
 from ._follow_result import FollowResult as FollowResult
-from ._follow_result import tracking_cost
+from ._follow_result import result_from_verdict, tracking_cost
 from ._follow_result import tracking_errors as tracking_errors
 from ._follow_result import unreached_stretches as unreached_stretches
 from ._timing import StageTiming, compile_seconds
@@ -460,28 +460,9 @@ class PathFollower:
 
     def _result(self, q: np.ndarray, path: ReferencePath, verdict: dict[str, Any], stage: str,
                 why_untrackable: dict[int, str]) -> FollowResult:
-        reached = np.asarray(verdict["reached"], bool)
-        reasons = []
-        unreached = np.flatnonzero(~reached)
-        if len(unreached):
-            stretches = ", ".join(f"{a}" if a == b else f"{a}–{b}"
-                                  for a, b in unreached_stretches(reached))
-            reasons.append(f"{len(unreached)} of {len(q)} waypoints not reached (waypoints "
-                           f"{stretches})")
-            for i, why in sorted(why_untrackable.items())[:3]:
-                reasons.append(f"waypoint {i}: {why}")
-        if verdict["reason"]:
-            reasons.append(verdict["reason"])
-        return FollowResult(
-            self.robot, path, q, verdict["position"], verdict["wxyz"], verdict["pose_error"],
-            verdict["position_error"], verdict["rotation_error"], reached,
-            verdict["tendon_lengths"], verdict["tendon_speed"], verdict["tendon_accel"],
-            bool(verdict["collision_free"]), float(verdict["min_clearance"]),
-            float(verdict["max_violation"]), dict(verdict["violations"]),
-            success=bool(verdict["success"]) and bool(reached.all()),
-            reason="; ".join(reasons), stage=stage,
-            scene_name=self.scene.name if self.scene is not None else None,
-            safety_margin=self.config.safety_margin)
+        return result_from_verdict(self.robot, path, q, verdict, stage, why_untrackable,
+                                   self.scene.name if self.scene is not None else None,
+                                   self.config.safety_margin)
 
     # ------------------------------------------------------------ the solve
     def follow(self, path: ReferencePath | str | Path, exact: bool = False,
