@@ -1,4 +1,4 @@
-"""Trajectory planning: the problem, the batched solver, the independent verification.
+"""Trajectory planning: the problem (config, residuals), its solver wiring and result.
 
 Problem (docs/design.md §2): z = (z₀, …, z_H), one bending-vector configuration per waypoint
 (``waypoints = H + 1``), the time step Δt between waypoints fixed; start z₀ and goal z_H
@@ -17,11 +17,13 @@ length's gradient is undefined where two waypoints coincide) and, by Cauchy–Sc
 and spreads the waypoints evenly at once. A small joint-space term Σ‖zₖ₊₁ − zₖ‖² fixes
 the body's shape where the tip alone leaves it free (three of six bending DOF for tdcr3).
 
-Stages: explore (roadmap query, straight line in z, perturbed straight lines), refine (LM
-on all guesses of all problems at once, penalties for clearance and tendon limits),
-verify (python-fcl along the densely interpolated motion, float64 tendon finite
-differences, limits), optional polish (``stages.polish_trajectory``: Ipopt with the
-constraints as constraints).
+Stages: explore (the roadmap query, ``stages.roadmap``; initial guesses,
+``stages.trajectory_guesses``), refine (``stages.chain_batch``: the LM on all guesses of
+all problems at once, penalties for clearance (``world.clearance_groups``) and tendon
+limits), verify (``world.motion.verify_trajectory``: python-fcl along the densely
+interpolated motion, float64 tendon finite differences, limits), optional polish
+(``stages.polish_trajectory``: Ipopt with the constraints as constraints). The result and
+its file forms are in ``tasks._trajectory_result``.
 """
 
 from __future__ import annotations
