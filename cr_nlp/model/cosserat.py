@@ -13,11 +13,13 @@ The tendons' distributed loads and their end loads are internal to that free bod
 N and M obey the plain rod equations with the external loads only:
 ``N' = −f_ext`` and ``M' = −p' × N``. With a tip force F, a tip moment M_tip and gravity g
 (backbone mass per metre, disk masses) this gives N(s) = F + g·m_distal(s) in closed
-form; the only unknown is M(0) (3 numbers), found by shooting on ``M(L) = M_tip`` with a
-Newton-Broyden iteration. At each integration point the strains come from N and M by
+form; the only unknown is M(0) (3 numbers), found by shooting on ``M(L) = M_tip`` with
+Newton's method and continuation in the loads (``_shooting``). Without a tip force and
+gravity N ≡ 0, so M is constant and M(0) = M_tip: the batched solve integrates those cases
+once, with no iteration. At each integration point the strains come from N and M by
 inverting the constitutive law with the tendons (``_strains``): a small fixed-point
 iteration on the tendons' stretch factors |v + u × r_i|, each step a closed-form 2×2 +
-1×1 + diagonal solve. Without external loads N = M = 0 and the first guess is the answer.
+1×1 + diagonal solve.
 
 The solution M(0) is differentiated implicitly (``jax.lax.custom_root``): derivatives of
 the shape with respect to tensions and loads cost one 3×3 solve, not the unrolled
@@ -35,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._jax_setup import split_over_devices
 from .kinematics import tendon_angles
 from .robot import Robot
 from .rotations import matrix_from_wxyz, wxyz_from_matrix
@@ -44,7 +47,7 @@ from .rotations import matrix_from_wxyz, wxyz_from_matrix
 class StaticsConfig:
     """Discretisation and solver settings of the Cosserat statics."""
 
-    min_steps_per_segment: int = 20
+    min_steps_per_segment: int = 10
     """RK4 steps per segment at least; rounded up to a multiple of the segment's disks
     (disk masses act at step ends)."""
     constitutive_iterations: int = 2
@@ -293,8 +296,10 @@ def _integrate(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
     n_tendons = lay.active.shape[1]
     xs = (jnp.asarray(lay.step_length, dtype), jnp.asarray(lay.mass_distal, dtype),
           jnp.asarray(lay.active, dtype))
-    zero = jnp.zeros((), dtype)
-    one = jnp.ones((), dtype)
+    # Start values made from the inputs (not fresh constants): when the batch is split over
+    # devices (shard_map) a loop carry must vary over the devices like the values it takes.
+    zero = 0 * (base_moment[0] + tension.sum() + tip_force[0] + gravity[0])
+    one = zero + 1
     p0 = (zero, zero, zero)
     r0 = (one, zero, zero, zero, one, zero, zero, zero, one)
     l0 = tuple(zero for _ in range(n_tendons))
@@ -321,7 +326,7 @@ def _integrate(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
             k = (dp, drot, dmom, tuple(s * act[i] for i, s in enumerate(dl)))
             return (k, axpy(total, weight, k)), None
 
-        zeros = jax.tree_util.tree_map(jnp.zeros_like, carry)
+        zeros = jax.tree_util.tree_map(lambda a: 0 * a, carry)  # varying, as above
         (_, slope), _ = jax.lax.scan(stage, (zeros, zeros),
                                      (stage_shift, stage_weight, stage_point))
         new = axpy(carry, h, slope)
@@ -336,72 +341,132 @@ def _integrate(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
     return mom, ell, positions, rotations
 
 
-def _shoot(lay: _Layout, config: StaticsConfig, tension: jax.Array, tip_force: jax.Array,
-           tip_moment: jax.Array, gravity: jax.Array) -> tuple[jax.Array, tuple]:
-    """M(0) with M(L) = M_tip, differentiable implicitly; and (iterations, converged).
+class _Newton(NamedTuple):
+    """The shooting iteration's state for one case (see ``_shoot``)."""
+
+    x: jax.Array        # (3,) M(0), N·m
+    lam: jax.Array      # load factor reached
+    target: jax.Array   # load factor being tried
+    r: jax.Array        # (3,) residual at (x, lam)
+    j: jax.Array        # (3, 3) ∂r/∂M(0)
+    g: jax.Array        # (3,) ∂r/∂λ
+    step: jax.Array     # Newton step length
+    it: jax.Array       # iterations used
+
+
+def _shooting(lay: _Layout, config: StaticsConfig, tension: jax.Array, tip_force: jax.Array,
+              tip_moment: jax.Array, gravity: jax.Array) -> tuple[Any, Any, Any]:
+    """(start, iterate, done) of the shooting on M(0) for one case.
 
     Newton with continuation in the external loads: with the loads scaled by λ = 0 the
     answer is M(0) = 0 exactly (tendons alone); each iteration tries the next λ with a
-    predictor step from the same pass's Jacobian (∂r/∂M(0) and ∂r/∂λ from one jvp over
-    four tangents), keeps it when Newton at least halved the residual it set out to remove
-    (the old one plus the load increment), doubles the increment then and quarters it
-    otherwise. Tendon-only cases finish in one iteration.
+    predictor step from the current Jacobian, keeps it when Newton at least halved the
+    residual it set out to remove (the old one plus the load increment), doubles the
+    increment then and quarters it otherwise. A case without loads starts at λ = 1.
+
+    The Jacobian (∂r/∂M(0), ∂r/∂λ) is taken by forward differences: five primal passes
+    in one vectorised evaluation. XLA's forward-mode derivative of the strain sweeps costs
+    about twenty primal passes per direction on the CPU, so differences are four times
+    cheaper than a three-direction ``jvp`` here; Newton only needs an approximate Jacobian
+    (the residual itself is exact), and derivatives of the converged answer are implicit
+    and exact (``_shoot``).
     """
+    dtype = tension.dtype
     tol = config.resolved_tolerance() * lay.moment_scale
+    root_eps = float(np.sqrt(np.finfo(np.dtype(dtype)).eps))
 
     def scaled_residual(base_moment: jax.Array, lam: jax.Array) -> jax.Array:
         mom, _, _, _ = _integrate(lay, config, base_moment, tension, lam * tip_force,
                                   lam * gravity, False)
         return mom - lam * tip_moment
 
-    def residual(base_moment: jax.Array) -> jax.Array:
-        return scaled_residual(base_moment, jnp.ones((), base_moment.dtype))
-
     def linearized(x: jax.Array, lam: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        # vmap over the tangents of one jvp: the primal pass is shared, not repeated.
-        basis = jnp.eye(4, dtype=x.dtype)
-        r, cols = jax.vmap(lambda t: jax.jvp(scaled_residual, (x, lam), (t[:3], t[3])),
-                           out_axes=(None, 1))(basis)
-        return r, cols[:, :3], cols[:, 3]
+        hx = root_eps * jnp.maximum(jnp.max(jnp.abs(x)), lay.moment_scale)
+        xs = jnp.concatenate([x[None], x[None] + hx * jnp.eye(3, dtype=dtype), x[None]])
+        lams = jnp.concatenate([jnp.broadcast_to(lam, (4,)), (lam + root_eps)[None]])
+        rs = jax.vmap(scaled_residual)(xs, lams)
+        return rs[0], (rs[1:4] - rs[0]).T / hx, (rs[4] - rs[0]) / root_eps
+
+    def start(x0: jax.Array) -> _Newton:
+        unloaded = (jnp.all(tip_force == 0) & jnp.all(tip_moment == 0)
+                    & jnp.all(gravity == 0))
+        lam0 = jnp.where(unloaded, 1.0, 0.0).astype(dtype) + 0 * x0[0]
+        r0, j0, g0 = linearized(x0, lam0)
+        one = 1 + 0 * x0[0]  # varies like x0 (see _integrate)
+        return _Newton(x0, lam0, one, r0, j0, g0, one, jnp.asarray(0))
+
+    def done(state: _Newton) -> jax.Array:
+        return (state.lam >= 1.0) & (jnp.linalg.norm(state.r) <= tol)
+
+    def iterate(state: _Newton) -> _Newton:
+        x, lam, target, r, j, g, step, it = state
+        x_new = x - step * _solve3(j, r + (target - lam) * g)
+        r_new, j_new, g_new = linearized(x_new, target)
+        size, size_new = jnp.linalg.norm(r), jnp.linalg.norm(r_new)
+        continuing = target > lam
+        # The residual the step set out to remove: the old one plus the load increment.
+        predicted = jnp.linalg.norm(r + (target - lam) * g)
+        # A step that lands within the tolerance is always taken.
+        ok = jnp.isfinite(size_new) & ((size_new <= tol)
+                                       | (size_new < jnp.maximum(size, 0.5 * predicted)))
+        x, r, j, g = (jnp.where(ok, a, b) for a, b in
+                      ((x_new, x), (r_new, r), (j_new, j), (g_new, g)))
+        reached = jnp.where(ok, target, lam)
+        # After a success try twice the increment; after a failure a quarter of it.
+        increment = jnp.where(ok, 2.0 * (target - lam), 0.25 * (target - lam))
+        step = jnp.where(ok | continuing, 1.0, 0.25 * step)
+        return _Newton(x, reached, jnp.minimum(1.0, reached + increment), r, j, g, step,
+                       it + 1)
+
+    return start, iterate, done
+
+
+def _run(iterate: Any, done: Any, state: _Newton, iterations: int) -> _Newton:
+    """At most ``iterations`` more Newton iterations from ``state`` (fewer once done)."""
+    limit = state.it + iterations
+    return jax.lax.while_loop(lambda s: ~done(s) & (s.it < limit), iterate, state)
+
+
+def _shoot(lay: _Layout, config: StaticsConfig, tension: jax.Array, tip_force: jax.Array,
+           tip_moment: jax.Array, gravity: jax.Array) -> tuple[jax.Array, tuple]:
+    """M(0) with M(L) = M_tip, differentiable implicitly; and (iterations, λ reached)."""
+    start, iterate, done = _shooting(lay, config, tension, tip_force, tip_moment, gravity)
+
+    def residual(base_moment: jax.Array) -> jax.Array:
+        mom, _, _, _ = _integrate(lay, config, base_moment, tension, tip_force, gravity,
+                                  False)
+        return mom - tip_moment
 
     def solve(f: Any, x0: jax.Array) -> tuple[jax.Array, tuple]:
         del f  # the same residual, reached through its load-scaled family
-        zero = jnp.zeros((), x0.dtype)
-        r0, j0, g0 = linearized(x0, zero)
-
-        def cond(state: tuple) -> jax.Array:
-            _, lam, _, r, _, _, _, it = state
-            done = (lam >= 1.0) & (jnp.linalg.norm(r) <= tol)
-            return ~done & (it < config.max_iterations)
-
-        def body(state: tuple) -> tuple:
-            x, lam, target, r, j, g, step, it = state
-            x_new = x - step * _solve3(j, r + (target - lam) * g)
-            r_new, j_new, g_new = linearized(x_new, target)
-            size, size_new = jnp.linalg.norm(r), jnp.linalg.norm(r_new)
-            continuing = target > lam
-            # The residual the step set out to remove: the old one plus the load increment.
-            predicted = jnp.linalg.norm(r + (target - lam) * g)
-            ok = jnp.isfinite(size_new) & (size_new < jnp.maximum(size, 0.5 * predicted))
-            x, r, j, g = (jnp.where(ok, a, b) for a, b in
-                          ((x_new, x), (r_new, r), (j_new, j), (g_new, g)))
-            reached = jnp.where(ok, target, lam)
-            # After a success try twice the increment; after a failure a quarter of it.
-            increment = jnp.where(ok, 2.0 * (target - lam), 0.25 * (target - lam))
-            step = jnp.where(ok | continuing, 1.0, 0.25 * step)
-            return (x, reached, jnp.minimum(1.0, reached + increment), r, j, g, step, it + 1)
-
-        one = jnp.ones((), x0.dtype)
-        state = (x0, zero, one, r0, j0, g0, one, jnp.asarray(0))
-        x, lam, _, r, _, _, _, it = jax.lax.while_loop(cond, body, state)
+        state = _run(iterate, done, start(x0), config.max_iterations)
         # aux as floats: custom_root's JVP rule gives aux tangents of the solution's dtype
-        return x, (it.astype(x.dtype), lam)
+        return state.x, (state.it.astype(x0.dtype), state.lam)
 
     def tangent_solve(g: Any, y: jax.Array) -> jax.Array:
         return _solve3(jax.jacfwd(g)(y), y)
 
     guess = jnp.zeros(3, tension.dtype)
     return jax.lax.custom_root(residual, guess, solve, tangent_solve, has_aux=True)
+
+
+def _finish(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
+            tension: jax.Array, tip_force: jax.Array, tip_moment: jax.Array,
+            gravity: jax.Array) -> dict[str, jax.Array]:
+    """The shape and its checks for one case from its M(0): one integration pass."""
+    mom, ell, positions, rotations = _integrate(lay, config, base_moment, tension,
+                                                tip_force, gravity, True)
+    straight = jnp.asarray(lay.active.T @ lay.step_length, ell.dtype)
+    residual = jnp.linalg.norm(mom - tip_moment)
+    tol = config.resolved_tolerance() * lay.moment_scale
+    return {
+        "positions": positions, "rotations": rotations,
+        "tendon_displacements": straight - ell, "residual": residual,
+        # A last check on the final pass itself (the loop's own flag is a twin).
+        "converged": jnp.isfinite(residual) & (residual <= 10.0 * tol),
+        "base_moment": base_moment,
+        "base_force": tip_force + gravity * float(lay.total_mass_moment[0]),
+    }
 
 
 def statics_single(robot: Robot, config: StaticsConfig = StaticsConfig()) -> Any:
@@ -413,35 +478,105 @@ def statics_single(robot: Robot, config: StaticsConfig = StaticsConfig()) -> Any
     reverse) with respect to all four inputs through the implicit solution.
     """
     lay = _layout(robot, config)
-    straight = jnp.asarray(lay.active.T @ lay.step_length)
 
     def solve_case(tension: jax.Array, tip_force: jax.Array, tip_moment: jax.Array,
                    gravity: jax.Array) -> dict[str, jax.Array]:
         base_moment, (iterations, load_reached) = _shoot(lay, config, tension, tip_force,
                                                          tip_moment, gravity)
-        mom, ell, positions, rotations = _integrate(lay, config, base_moment, tension,
-                                                    tip_force, gravity, True)
-        residual = jnp.linalg.norm(mom - tip_moment)
-        tol = config.resolved_tolerance() * lay.moment_scale
-        return {
-            "positions": positions, "rotations": rotations,
-            "tendon_displacements": straight.astype(ell.dtype) - ell,
-            "residual": residual, "iterations": jax.lax.stop_gradient(iterations).astype(jnp.int32),
-            # A last check on the final pass itself (the loop's own flag is a twin).
-            "converged": jnp.isfinite(residual) & (residual <= 10.0 * tol),
-            "base_moment": base_moment, "load_reached": load_reached,
-            "base_force": tip_force + gravity * float(lay.total_mass_moment[0]),
-        }
+        out = _finish(lay, config, base_moment, tension, tip_force, tip_moment, gravity)
+        out["iterations"] = jax.lax.stop_gradient(iterations).astype(jnp.int32)
+        out["load_reached"] = load_reached
+        return out
 
     return solve_case
 
 
-@functools.lru_cache(maxsize=32)
-def _batched(robot: Robot, config: StaticsConfig, batch: int) -> Any:
-    """The jitted, vmapped solve for one padded batch size, on one device (jax 0.10's
-    shard_map rejects the RK stages' inner scan carry: its zeros are not 'varying')."""
-    del batch
-    return jax.jit(jax.vmap(statics_single(robot, config)))
+# Newton iterations every case of a batch gets; the few cases that need more continue in
+# a smaller batch, so that they do not hold the whole batch in the loop.
+_FIRST_ROUND = 10
+
+
+@functools.lru_cache(maxsize=64)
+def _programs(robot: Robot, config: StaticsConfig) -> tuple[Any, Any, Any]:
+    """(first round, further rounds, finish): jitted and vmapped over cases; jit keeps one
+    compiled program per padded batch size."""
+    lay = _layout(robot, config)
+
+    def first(tension: jax.Array, force: jax.Array, moment: jax.Array,
+              gravity: jax.Array) -> _Newton:
+        start, iterate, done = _shooting(lay, config, tension, force, moment, gravity)
+        zero = 0 * tension[:1]  # varies over the devices like the state (see _integrate)
+        return _run(iterate, done, start(jnp.broadcast_to(zero, (3,))),
+                    min(_FIRST_ROUND, config.max_iterations))
+
+    def further(tension: jax.Array, force: jax.Array, moment: jax.Array,
+                gravity: jax.Array, state: _Newton) -> _Newton:
+        _, iterate, done = _shooting(lay, config, tension, force, moment, gravity)
+        return _run(iterate, done, state, max(0, config.max_iterations - _FIRST_ROUND))
+
+    def finish(base_moment: jax.Array, tension: jax.Array, force: jax.Array,
+               moment: jax.Array, gravity: jax.Array) -> dict[str, jax.Array]:
+        return _finish(lay, config, base_moment, tension, force, moment, gravity)
+
+    return (_split(jax.vmap(first), 4), _split(jax.vmap(further), 5),
+            _split(jax.vmap(finish), 5))
+
+
+def _split(fn: Any, arguments: int) -> Any:
+    """``fn`` jitted, its batch split over the JAX devices (one per CPU core when the
+    process asked for host devices) when the batch divides evenly, else on one."""
+    programs: dict[int, Any] = {}
+
+    def call(*args: Any) -> Any:
+        size = args[0].shape[0]
+        if size not in programs:
+            programs[size] = split_over_devices(fn, (True,) * arguments, size, outputs=1)
+        return programs[size](*args)
+
+    return call
+
+
+def _padded(rows: np.ndarray, edge: bool = False) -> np.ndarray:
+    """Rows padded to a power of two (at least 16; above 1024 a multiple of 1024) so that a
+    few compiled programs serve every batch size: with zero rows (no load: done at once) or
+    copies of the first row."""
+    size = max(16, 1 << (len(rows) - 1).bit_length())
+    if size > 1024:
+        size = -(-len(rows) // 1024) * 1024
+    fill = (np.repeat(rows[:1], size - len(rows), axis=0) if edge
+            else np.zeros((size - len(rows), *rows.shape[1:]), rows.dtype))
+    return np.concatenate([rows, fill])
+
+
+def _base_moments(robot: Robot, config: StaticsConfig, cases: list[np.ndarray],
+                  dtype: Any) -> tuple[np.ndarray, np.ndarray]:
+    """M(0) (B, 3) and the Newton iterations (B,) of every case.
+
+    Without a tip force and gravity the cut's force N is zero, so M is constant along the
+    robot and M(0) = M_tip exactly (no iteration). The other cases are shot: every case
+    gets ``_FIRST_ROUND`` iterations, then the unfinished ones continue in a smaller batch.
+    """
+    tension, force, moment, gravity = cases
+    base = moment.copy()
+    iterations = np.zeros(len(tension), dtype=int)
+    shot = np.flatnonzero(np.any(force != 0, axis=1) | np.any(gravity != 0, axis=1))
+    if shot.size == 0:
+        return base, iterations
+    first, further, _ = _programs(robot, config)
+    rows = [v[shot] for v in cases]
+    state = first(*(jnp.asarray(_padded(v), dtype) for v in rows))
+    x, its = np.array(state.x)[:shot.size], np.array(state.it)[:shot.size]
+    limit = min(_FIRST_ROUND, config.max_iterations)
+    left = np.flatnonzero(its >= limit)
+    if left.size and config.max_iterations > limit:
+        # Padded with copies of the first unfinished case (zero rows would have no state).
+        def pick(a: Any) -> jax.Array:
+            return jnp.asarray(_padded(np.asarray(a)[left], edge=True))
+
+        more = further(*(pick(v) for v in rows), jax.tree_util.tree_map(pick, state))
+        x[left], its[left] = np.asarray(more.x)[:left.size], np.asarray(more.it)[:left.size]
+    base[shot], iterations[shot] = x, its
+    return base, iterations
 
 
 def _as_cases(value: Any, batch: int, size: int, name: str) -> np.ndarray:
@@ -495,12 +630,11 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
         raise ValueError(f"dtype: 'float64' or 'float32', got {config.dtype!r}")
     dtype = np.float64 if config.dtype == "float64" else np.float32
     # float64 without touching the process-wide flag (the batched stages keep theirs).
-    # Batches are padded to a power of two (at least 16) so that a few programs serve
-    # every size; padded rows have no load and finish in one iteration.
-    padded = max(16, 1 << (batch - 1).bit_length())
-    inputs = [np.concatenate([v, np.zeros((padded - batch, v.shape[1]))]) for v in (t, *loads)]
     with jax.enable_x64(config.dtype == "float64"):
-        out = _batched(robot, config, padded)(*(jnp.asarray(v, dtype) for v in inputs))
+        cases = [t, *loads]
+        base, iterations = _base_moments(robot, config, cases, dtype)
+        finish = _programs(robot, config)[2]
+        out = finish(*(jnp.asarray(_padded(v), dtype) for v in (base, *cases)))
         out = {k: np.asarray(v)[:batch] for k, v in out.items()}
     positions = out["positions"].astype(float) @ base_rot.T + base_pos
     rotations = np.einsum("ij,bpjk->bpik", base_rot, out["rotations"].astype(float))
@@ -509,6 +643,6 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
         arc_length=_layout(robot, config).arc_length,
         tendon_displacements=out["tendon_displacements"].astype(float),
         converged=out["converged"].astype(bool), residual=out["residual"].astype(float),
-        iterations=out["iterations"].astype(int),
+        iterations=iterations,
         base_moment=out["base_moment"].astype(float) @ base_rot.T,
         base_force=out["base_force"].astype(float) @ base_rot.T)
