@@ -568,7 +568,7 @@ class TrajectoryPlanner:
             result = results[i]
             assert result is not None
             if result.success and not cfg.polish_accepted:
-                result.timing = {**result.timing, "polish": 0.0}
+                result.timing = replace(result.timing, polish=0.0)
                 if bar is not None:
                     bar.update(1)
             else:
