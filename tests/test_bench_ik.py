@@ -201,11 +201,10 @@ def test_ik_config_overrides_from_the_command_line() -> None:
     assert args.max_targets == 5000
     assert ik_config_overrides(args.ik_config) == {"chunk_size": 4096,
                                                    "beam_min_distance": 0.2}
-    assert ik_config_overrides(["fused=false", "search_block=none"]) == {
-        "fused": False, "search_block": None}
-    assert ik_config_overrides(["fused=True", "search_block=32"]) == {
-        "fused": True, "search_block": 32}
+    assert ik_config_overrides(["search_block=none", "dtype=float64"]) == {
+        "search_block": None, "dtype": "float64"}
+    assert ik_config_overrides(["search_block=32"]) == {"search_block": 32}
     for bad in (["chunk_size"], ["no_such_field=1"], ["chunk_size=big"], ["stream_size=0"],
-                ["fused=maybe"], ["chunk_size=none"]):
+                ["search_block=maybe"], ["chunk_size=none"], ["fused=false"]):
         with pytest.raises(ValueError):
             ik_config_overrides(bad)

@@ -29,11 +29,8 @@ robot = load_robot("tdcr3")
 case = free_case(robot, 6, seed=1)
 solver = IKSolver(robot, config=IKConfig(pool_size=256, retry_rounds=0))
 result = solver.solve(case.positions, case.wxyz)
-# The LM programs: the fused searches (keyed ("search", chunk, seeds, per_target)) or, on
-# the host-driven path, the LM chunks (keyed by chunk size); the small beam-selection
-# programs compile in less than the cache's minimum compile time and are not kept.
-lm_programs = [key for key in solver._compiled
-               if isinstance(key, int) or key[0] == "search"]
+# The LM programs: the searches (keyed ("search", seeds, plan, chunk)).
+lm_programs = [key for key in solver._search.main.compiled if key[0] == "search"]
 print(json.dumps({**counts, "programs": len(lm_programs),
                   "compile": result.timing.compile, "success": result.success.tolist()}))
 """

@@ -123,10 +123,11 @@ def _stream_check(count: int, part: int) -> None:
     # which a part without failures never compiles) and builds the pool: compiling inside
     # a measured call would count the compiler's allocations as the stream's.
     solver.solve(positions, wxyz)
-    programs = set(solver._compiled)
+    search = solver._search
+    programs = set(search.main.compiled) | set(search.repair.compiled)
     small, small_peak = _streamed_peak(solver, positions[:part], wxyz[:part])
     large, large_peak = _streamed_peak(solver, positions, wxyz)
-    assert set(solver._compiled) == programs
+    assert set(search.main.compiled) | set(search.repair.compiled) == programs
     assert solver.stream_parts == [part] * (count // part) + (
         [count % part] if count % part else []
     )

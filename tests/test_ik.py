@@ -120,9 +120,10 @@ def test_reachable_distance_but_impossible_orientation_is_reported(solver3: IKSo
 def test_seed_pool_and_compiled_code_are_reused_between_calls(solver3: IKSolver) -> None:
     positions, wxyz = targets_from(TDCR3, np.array([[0.3, 0.0, 1.0] * 3]))
     solver3.solve(positions, wxyz)
-    pool, compiled = solver3._pool, dict(solver3._compiled)
+    search = solver3._search
+    pool, compiled = search.pool, dict(search.main.compiled)
     again = solver3.solve(positions, wxyz)
-    assert solver3._pool is pool and solver3._compiled == compiled
+    assert search.pool is pool and search.main.compiled == compiled
     assert again.timing.compile == 0.0
 
 
@@ -269,19 +270,14 @@ def test_per_sphere_clearances_and_jacobian_match_the_pair_distances(robot: Robo
 
 
 @pytest.mark.slow  # a benchmark run or a repeat of covered work: `pytest -m slow`
-@pytest.mark.parametrize("fused", [False, True])
-def test_refinement_rounds_drop_finished_problems(fused: bool) -> None:
+def test_refinement_rounds_drop_finished_problems() -> None:
     """The refinement runs in rounds and later rounds get only the unfinished
-    candidates: the calls (host-driven) or masked rounds (fused) after the first refine
-    round iterate fewer problems."""
-    solver = IKSolver(TDCR4, LATTICE, IKConfig(refine_round=5, fused=fused))
+    candidates: the masked rounds after the first refine round iterate fewer problems."""
+    solver = IKSolver(TDCR4, LATTICE, IKConfig(refine_round=5))
     q = free_configurations(TDCR4, 8, seed=5, clearance=0.05)
     result = solver.solve(*targets_from(TDCR4, q))
     assert result.success.all()
     refine = [call for call in solver.lm_calls if call[2] == 5]
     assert refine, solver.lm_calls
-    if fused:  # a candidate the beam picked twice is one row
-        assert 0 < refine[0][0] <= 8 * solver.config.beam_width
-    else:
-        assert refine[0][0] == 8 * solver.config.beam_width
+    assert 0 < refine[0][0] <= 8 * solver.config.beam_width  # a twice-picked one is one row
     assert len(refine) > 1 and all(later[0] < refine[0][0] for later in refine[1:])

@@ -1,5 +1,6 @@
 """The fused search (``stages.search``: coarse LM, beam and refinement rounds as one
-device program per chunk) against closed forms and against the host-driven path."""
+device program per chunk, driven by ``stages.ik_search``) against closed forms and an
+independent forward kinematics."""
 
 
 import jax.numpy as jnp
@@ -72,46 +73,37 @@ def test_per_target_search_stops_the_other_candidates() -> None:
     assert counted[0].sum() <= counted_all[0].sum()
 
 
-def _both_paths(robot, scene, count: int, seed: int) -> tuple:  # noqa: ANN001
-    q = free_configurations(robot, count, seed=seed, clearance=0.05)
-    positions, wxyz = targets_from(robot, q)
-    out = {}
-    for fused in (False, True):
-        solver = IKSolver(robot, scene, IKConfig(fused=fused))
-        out[fused] = (solver.solve(positions, wxyz), solver)
-    return out
-
-
-# The lattice case compiles both paths' programs with a scene (~20 s on 2 cores); the
-# default run keeps the free case, and test_ik's lattice tests run the fused path.
+# The lattice case compiles the programs with a scene (~20 s on 2 cores); the default run
+# keeps the free case, and test_ik's lattice tests run the search with a scene too.
 @pytest.mark.parametrize(("robot", "scene"), [
     (TDCR3, None), pytest.param(TDCR4, LATTICE, marks=pytest.mark.slow)],
                          ids=["tdcr3-free", "tdcr4_ext-lattice"])
-def test_fused_and_host_driven_search_agree(robot, scene) -> None:  # noqa: ANN001
-    out = _both_paths(robot, scene, 24, seed=21)
-    (old, old_solver), (new, new_solver) = out[False], out[True]
-    assert old.success.all() and new.success.all()
-    np.testing.assert_array_equal(new.success, old.success)
-    # Both reach the target to LM's convergence level, not just below the 1 cm verdict.
-    assert np.median(new.pose_error) < 1e-5 and np.median(old.pose_error) < 1e-5
-    np.testing.assert_allclose(new.pose_error, old.pose_error, atol=1e-4)
-    assert np.all(new.max_violation <= 1e-6) and new.collision_free.all()
-    # One lookup and one fused program against a program per stage, round and chunk.
-    assert new_solver.device_calls == 2 < old_solver.device_calls
+def test_search_reaches_every_target_in_two_device_calls(robot, scene) -> None:  # noqa: ANN001
+    q = free_configurations(robot, 24, seed=21, clearance=0.05)
+    positions, wxyz = targets_from(robot, q)
+    solver = IKSolver(robot, scene)
+    result = solver.solve(positions, wxyz)
+    assert result.success.all()
+    # To LM's convergence level, not just below the 1 cm verdict, by an independent FK.
+    reached, _ = targets_from(robot, result.q)
+    assert np.median(np.linalg.norm(reached - positions, axis=1)) < 1e-5
+    assert np.all(result.max_violation <= 1e-6) and result.collision_free.all()
+    # One lookup and one search program: no retry, no repair was needed.
+    assert solver.device_calls == 2 and solver.retried == [0, 0]
 
 
-def test_fused_candidates_are_a_diverse_refined_beam() -> None:
-    """``candidates`` (every beam member refined, not only the best) agrees with the
-    host-driven path on the best candidate per target."""
+def test_candidates_are_a_diverse_refined_beam() -> None:
+    """``candidates`` (every beam member refined, not only the best): best first, the
+    best at LM's convergence level by an independent FK, not one answer repeated."""
     q = free_configurations(TDCR3, 10, seed=4, clearance=0.05)
     positions, wxyz = targets_from(TDCR3, q)
-    beams = {}
-    for fused in (False, True):
-        beams[fused] = IKSolver(TDCR3, config=IKConfig(fused=fused)).candidates(positions, wxyz)
-    (q_old, err_old), (q_new, err_new) = beams[False], beams[True]
-    assert q_new.shape == q_old.shape
-    assert np.all(err_new.min(axis=1) < 1e-4) and np.all(err_old.min(axis=1) < 1e-4)
-    spread = np.linalg.norm(q_new[:, :, None] - q_new[:, None, :], axis=-1)
+    q_beam, errors = IKSolver(TDCR3).candidates(positions, wxyz)
+    assert q_beam.shape == (10, IKConfig().beam_width, TDCR3.dof)
+    assert np.all(np.diff(errors, axis=1) >= 0)
+    assert np.all(errors[:, 0] < 1e-4)
+    reached, _ = targets_from(TDCR3, q_beam[:, 0])
+    assert np.linalg.norm(reached - positions, axis=1).max() < 1e-4
+    spread = np.linalg.norm(q_beam[:, :, None] - q_beam[:, None, :], axis=-1)
     assert np.any(spread > 1e-3)  # not one answer repeated
 
 
@@ -129,46 +121,43 @@ def _assert_verified(result, positions: np.ndarray) -> None:  # noqa: ANN001
 
 def test_fused_retries_run_inside_the_search_program() -> None:
     """Targets the search cannot reach (98 % of the robot's length from its base but off
-    its axis: only a nearly straight robot reaches that far) are retried on both paths;
-    the fused path launches one lookup, one search and one retry program for both
-    rounds, and a solve is reproducible. Same 24 targets as the tdcr3 case above, so
-    the lookup and search programs come from the compilation cache."""
+    its axis: only a nearly straight robot reaches that far) are retried: one lookup,
+    one search and one retry program for both rounds, and a solve is reproducible. Same
+    24 targets as the tdcr3 case above, so the lookup and search programs come from the
+    compilation cache."""
     q = free_configurations(TDCR3, 20, seed=21, clearance=0.05)
     positions, wxyz = targets_from(TDCR3, q)
     sideways = np.array([[1.0, 0, 0], [0, 1, 0], [0, 0, -1], [-0.6, 0.8, 0]])
     positions = np.concatenate([positions, np.asarray(TDCR3.base_position)
                                 + 0.98 * TDCR3.total_length_max * sideways])
     wxyz = np.concatenate([wxyz, np.tile([1.0, 0, 0, 0], (4, 1))])
-    (old, old_solver), (new, new_solver) = (_solve_with(IKConfig(fused=fused), positions, wxyz)
-                                            for fused in (False, True))
+    new, new_solver = _solve_with(IKConfig(), positions, wxyz)
     reachable = np.arange(24) < 20
     np.testing.assert_array_equal(new.success, reachable)
-    np.testing.assert_array_equal(old.success, reachable)
     _assert_verified(new, positions)
-    # The unreachable four fail every round on both paths.
-    assert new_solver.retried == old_solver.retried == [4, 4]
-    assert new_solver.device_calls == 3 < old_solver.device_calls
+    # The unreachable four fail every round.
+    assert new_solver.retried == [4, 4]
+    assert new_solver.device_calls == 3
     # Both retry rounds ran in the retry program: each one's coarse round iterated the
     # four targets' 32 seeds.
     assert [c[0] for c in new_solver.lm_calls].count(4 * 32) == 2
     # Random retry seeds come from IKConfig.seed: another solver, the same answers.
-    again, _ = _solve_with(IKConfig(fused=True), positions, wxyz)
+    again, _ = _solve_with(IKConfig(), positions, wxyz)
     np.testing.assert_array_equal(again.q, new.q)
     np.testing.assert_array_equal(new_solver.solve(positions, wxyz).q, new.q)
 
 
 @pytest.mark.slow
-def test_fused_retries_rescue_targets_like_the_host_loop() -> None:
+def test_fused_retries_rescue_targets() -> None:
     """With one seed per target and tiny LM budgets most targets fail the main search;
-    the retry rounds (one fused program) rescue them at least as often as the
-    host-driven retry loop, which launches programs per stage, round and retry."""
+    the retry rounds (one program) rescue many of them, verified independently."""
     q = free_configurations(TDCR3, 60, seed=1, clearance=0.05)
     positions, wxyz = targets_from(TDCR3, q)
     tiny = dict(seeds_per_target=1, coarse_iterations=1, refine_iterations=2, refine_round=1)
-    (old, old_solver), (new, new_solver), (none, _) = (
-        _solve_with(IKConfig(fused=fused, retry_rounds=rounds, **tiny), positions, wxyz)
-        for fused, rounds in ((False, 2), (True, 2), (True, 0)))
-    assert new_solver.retried[0] > 20 and old_solver.retried[0] > 20
-    assert new.success.sum() >= old.success.sum() > none.success.sum()
+    (new, new_solver), (none, _) = (
+        _solve_with(IKConfig(retry_rounds=rounds, **tiny), positions, wxyz)
+        for rounds in (2, 0))
+    assert new_solver.retried[0] > 20
+    assert new.success.sum() > none.success.sum() + 10
     _assert_verified(new, positions)
-    assert new_solver.device_calls == 3 < old_solver.device_calls
+    assert new_solver.device_calls == 3

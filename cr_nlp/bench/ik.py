@@ -269,7 +269,7 @@ def measure_cr_nlp(case: Case, method: str, repeats: int, seed: int = 0) -> dict
 
 def ik_config_overrides(items: Sequence[str]) -> dict[str, Any]:
     """``IKConfig`` field values from ``KEY=VALUE`` strings (e.g. ``chunk_size=8192``,
-    ``fused=false``, ``search_block=none``), each converted to the field's type.
+    ``search_block=none``), each converted to the field's type.
 
     Raises:
         ValueError: an item without "=", an unknown field or a value of the wrong type.
@@ -290,8 +290,6 @@ def ik_config_overrides(items: Sequence[str]) -> dict[str, Any]:
         try:
             if optional and value.lower() == "none":
                 out[key] = None
-            elif kind == "bool":
-                out[key] = {"true": True, "false": False}[value.lower()]
             else:
                 out[key] = {"int": int, "float": float}.get(kind, str)(value)
         except (KeyError, ValueError):

@@ -45,6 +45,7 @@ from ..world.clearance import PairDistances, body_gap_tolerance, self_pairs
 from ..world.scene import Scene, load_scene
 from ..world.verdict import VIOLATION_TOLERANCE, describe_violations
 from .compiled import compiled
+from .ipopt import SUCCESS_STATUSES, WarmStart, build_solver, ipopt_options, run_solver
 from .slots import Selection, SlotRows, make_pools, select_slots
 
 MODES = ("equality", "minimize")
@@ -140,7 +141,7 @@ class PolishResult:
         how much."""
         if self.success:
             return ""
-        if self.status not in ("Solve_Succeeded", "Solved_To_Acceptable_Level"):
+        if self.status not in SUCCESS_STATUSES:
             return f"Ipopt: {self.status}"
         if self.max_violation > violation_tolerance:
             broken = describe_violations(self.violations or {"constraint": self.max_violation},
@@ -274,33 +275,17 @@ class IKPolisher:
             hessian += ca.triu(curvature(z, *slots, lam_g[g_smooth.size1():]))
         hess_lag = ca.Function("hess_lag", [z, p, lam_obj, lam_g], [hessian],
                                ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
-        options: dict[str, Any] = {
-            "ipopt.tol": cfg.tol,
-            "ipopt.constr_viol_tol": cfg.constr_viol_tol,
-            "ipopt.max_iter": cfg.max_iter,
-            "ipopt.linear_solver": "mumps",      # HSL solvers are absent: never select them
-            "ipopt.print_level": cfg.print_level,
-            "ipopt.sb": "yes",
-            "print_time": cfg.print_level > 0,
-            "error_on_fail": False,
-            "grad_f": grad_f,
-            "jac_g": jac_g,
-            "hess_lag": hess_lag,
-            # The multipliers of p are not used; their derivative graph is not built.
-            "no_nlp_grad": True,
-            "calc_lam_p": False,
-        }
-        if cfg.warm_start:
-            options.update({"ipopt.mu_init": 1e-6, "ipopt.warm_start_init_point": "yes",
-                            "ipopt.warm_start_bound_push": 1e-9,
-                            "ipopt.warm_start_mult_bound_push": 1e-9})
-        if mode == "minimize":
-            # Least squares from a nearby start: the monotone barrier update stalls (DESIGN
-            # §3). The equality mode measured as fast or faster with the default monotone.
-            options["ipopt.mu_strategy"] = "adaptive"
+        # Least squares from a nearby start: the monotone barrier update stalls
+        # (docs/design.md); the equality mode measured as fast or faster with the default.
+        options = ipopt_options(
+            tol=cfg.tol, constr_viol_tol=cfg.constr_viol_tol, max_iter=cfg.max_iter,
+            print_level=cfg.print_level,
+            warm_start=WarmStart(push=1e-9, mu_init=1e-6) if cfg.warm_start else None,
+            mu_strategy="adaptive" if mode == "minimize" else None,
+            callbacks={"grad_f": grad_f, "jac_g": jac_g, "hess_lag": hess_lag})
         self.builds += 1
-        return ca.nlpsol(f"polish_{robot.name}_{mode}", "ipopt",
-                         {"x": z, "p": p, "f": f, "g": g}, options)
+        return build_solver(f"polish_{robot.name}_{mode}", {"x": z, "p": p, "f": f, "g": g},
+                            options)
 
     # ------------------------------------------------------------ per solve
 
@@ -359,17 +344,9 @@ class IKPolisher:
             upper.insert(0, np.zeros(6))
         parameters = np.concatenate([target_position, target_rotation.ravel(order="F"), z_start,
                                      *[p.ravel(order="F") for p in selection.parameters]])
-        solver = self._solvers[mode]
-        try:
-            solution = solver(x0=x0, p=parameters, lbx=self._lbx, ubx=self._ubx,
-                              lbg=np.concatenate(lower), ubg=np.concatenate(upper))
-            stats = solver.stats()
-            z = np.asarray(solution["x"], dtype=np.float64).reshape(-1)
-            status = str(stats.get("return_status", "unknown"))
-            ipopt_success = bool(stats.get("success", False))
-            iterations = int(stats.get("iter_count", 0))
-        except RuntimeError as exc:                    # a numerical failure is a result
-            z, status, ipopt_success, iterations = x0.copy(), f"error: {exc}", False, 0
+        run = run_solver(self._solvers[mode], x0, p=parameters, lbx=self._lbx, ubx=self._ubx,
+                         lbg=np.concatenate(lower), ubg=np.concatenate(upper))
+        z, status, ipopt_success, iterations = run.x, run.status, run.success, run.iterations
         if not np.all(np.isfinite(z)):
             z, ipopt_success = x0.copy(), False
         z, error, violations, distances = self._evaluate(z, target_position, target_rotation)

@@ -61,6 +61,7 @@ from ..model.limits import limit_violation_q, project_bending
 from ..world.clearance import PairDistances, body_gap_tolerance, self_pairs
 from ..world.scene import Scene, load_scene
 from ..world.verdict import VIOLATION_TOLERANCE
+from .ipopt import WarmStart, build_solver, ipopt_options, run_solver
 from .slots import SlotRows, make_pools, select_slots_batch
 
 OBJECTIVES = ("path", "tracking")
@@ -454,35 +455,19 @@ class TrajectoryPolisher:
         hess_lag = ca.Function("hess_lag", [x, p, lam_f, lam_g], [hessian],
                                ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
 
-        options: dict[str, Any] = {
-            "ipopt.tol": cfg.tol,
-            "ipopt.constr_viol_tol": cfg.constr_viol_tol,
-            "ipopt.max_iter": cfg.max_iter,
-            "ipopt.linear_solver": "mumps",      # HSL solvers are absent: never select them
-            "ipopt.hessian_approximation": cfg.hessian,
-            "ipopt.mu_strategy": "adaptive",
-            # The warm start is stage 2's answer, usually feasible or nearly: start there
-            # instead of pushing it 1e-2 into the interior (measured on the shelf: median
-            # 0.31 → 0.12 s, the same optima; neutral on cabinet and random_27).
-            "ipopt.warm_start_init_point": "yes",
-            "ipopt.warm_start_bound_push": 1e-6,
-            "ipopt.warm_start_mult_bound_push": 1e-6,
-            "ipopt.print_level": cfg.print_level,
-            "ipopt.sb": "yes",
-            "print_time": cfg.print_level > 0,
-            "error_on_fail": False,
-            "jac_g": jac_g,
-            # The multipliers of p are not used; their derivative graph is not built.
-            "no_nlp_grad": True,
-            "calc_lam_p": False,
-        }
-        if cfg.hessian == "exact":
-            options["hess_lag"] = hess_lag
+        # The warm start is stage 2's answer, usually feasible or nearly: start there
+        # instead of pushing it 1e-2 into the interior (measured on the shelf: median
+        # 0.31 → 0.12 s, the same optima; neutral on cabinet and random_27).
+        options = ipopt_options(
+            tol=cfg.tol, constr_viol_tol=cfg.constr_viol_tol, max_iter=cfg.max_iter,
+            print_level=cfg.print_level, warm_start=WarmStart(push=1e-6),
+            mu_strategy="adaptive", hessian_approximation=cfg.hessian,
+            callbacks={"jac_g": jac_g, **({"hess_lag": hess_lag} if cfg.hessian == "exact"
+                                          else {})})
         self.builds += 1
         name = "_".join(["polish_trajectory", robot.name, self.objective, str(w),
                          *map(str, capacities)])
-        return ca.nlpsol(name, "ipopt", {"x": x, "p": p, "f": objective, "g": g},
-                         options), keep_all
+        return build_solver(name, {"x": x, "p": p, "f": objective, "g": g}, options), keep_all
 
     # ------------------------------------------------------------ per solve
 
@@ -661,18 +646,14 @@ class TrajectoryPolisher:
             slots = [s for s, c in zip(slots, capacities, strict=True) if c]
             parameters = np.concatenate([*fixed, *[s.ravel(order="F") for s in slots],
                                          fractions.ravel(order="F")])
-            try:
-                solution = solver(
-                    x0=z.reshape(-1), p=parameters, lbx=low.reshape(-1), ubx=high.reshape(-1),
-                    lbg=np.concatenate([*lower, clearance_lower]),
-                    ubg=np.concatenate([*upper, np.full(clearance_lower.size, np.inf)]))
-                stats = solver.stats()
-                answer = np.asarray(solution["x"], dtype=np.float64).reshape(w, dof)
-                status = str(stats.get("return_status", "unknown"))
-                iterations += int(stats.get("iter_count", 0))
-                objective = float(solution["f"])
-            except RuntimeError as exc:                # a numerical failure is a result
-                answer, status = z, f"error: {exc}"
+            run = run_solver(
+                solver, z, p=parameters, lbx=low.reshape(-1), ubx=high.reshape(-1),
+                lbg=np.concatenate([*lower, clearance_lower]),
+                ubg=np.concatenate([*upper, np.full(clearance_lower.size, np.inf)]))
+            answer, status = run.x.reshape(w, dof), run.status
+            iterations += run.iterations
+            if not run.raised:
+                objective = run.objective
             if not np.all(np.isfinite(answer)):
                 status = f"{status} (non-finite iterate)"
                 break

@@ -1,11 +1,12 @@
 """Stages 1–2 as one device program: coarse LM on every seed, beam selection, and the
 refinement rounds, for one chunk of targets.
 
-The host-driven form of this search (``tasks.ik.IKSolver`` with ``IKConfig.fused``
-False) launches the coarse LM, the beam selection and each refinement round as separate
-programs and repacks the unfinished problems between rounds. Here the whole search is
-one jitted program: every row (target × seed) stays in one array, a boolean mask says
-which rows iterate, and ``lax.while_loop`` runs the rounds. So that finished rows cost
+Instead of launching the coarse LM, the beam selection and each refinement round as
+separate programs and repacking the unfinished problems on the host between rounds (the
+form this search replaced: 25 device calls per 1000-target solve instead of 2), the
+whole search is one jitted program (driven by ``stages.ik_search``): every row (target
+× seed) stays in one array, a boolean mask says which rows iterate, and
+``lax.while_loop`` runs the rounds. So that finished rows cost
 nothing on a CPU either, each round gathers its active rows to the front (a stable
 sort of the mask) and runs LM on them in blocks of ``SearchPlan.block`` rows, as many
 blocks as there are active rows; on a GPU one block holds the whole chunk.

@@ -21,11 +21,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jax_setup import enable_compilation_cache
-from ..model import Robot, load_robot
-from ..model._ops import NUMPY
-from ..model.kinematics import model_q_to_z
+from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz
+from ..stages.accept import Polished, accept_first
 from ..stages.lm import LMConfig, lm_solve
 from ..world import Scene, load_scene, scene_arrays
 from .ik import IKConfig, IKSolver, ik_residual, validate_targets
@@ -130,7 +129,7 @@ class LiveIKSolver:
 
     def _refine(self, q0: np.ndarray, position: np.ndarray, rotation: np.ndarray) -> np.ndarray:
         """LM from q0 on the one target; returns q (3n,) clipped to the limits."""
-        z0 = np.stack(model_q_to_z(NUMPY, self.robot, q0), axis=-1)[None]
+        z0 = q_to_z_numpy(q0)[None]
         params = (
             jnp.asarray(position[None], self.dtype),
             jnp.asarray(rotation.reshape(1, 9), self.dtype),
@@ -145,12 +144,7 @@ class LiveIKSolver:
             jnp.int32(self.config.iterations),
             config=self._lm_config,
         )
-        z = np.asarray(z[0], dtype=float)
-        q = np.empty_like(z)
-        q[0::3] = np.hypot(z[0::3], z[1::3])
-        q[1::3] = np.arctan2(z[1::3], z[0::3])
-        q[2::3] = z[2::3]
-        return clip_to_limits(self.robot, q)
+        return clip_to_limits(self.robot, z_to_q_numpy(np.asarray(z[0], dtype=float)))
 
     def _verify(self, q: np.ndarray, position: np.ndarray, wxyz: np.ndarray) -> dict[str, Any]:
         """``IKSolver.verify`` of one answer: its numbers and the library's verdict."""
@@ -171,8 +165,9 @@ class LiveIKSolver:
             q_current: the answer to start from, e.g. the previous update's ``q``.
             position: (3,) target tip position, metres.
             wxyz: (4,) target tip orientation, unit quaternion (w, x, y, z).
-            exact: polish the LM answer with Ipopt (constraints as constraints); the LM
-                answer is kept where the polish fails or does worse.
+            exact: polish the answer with Ipopt (constraints as constraints;
+                ``stages.accept``): the polished answer replaces it where the verdict
+                accepts the polished one, else the answer stays with its own verdict.
             search: run the batched search when the warm start misses (seconds on a CPU);
                 None: ``config.fallback_search``. The viewer searches only when a drag
                 ends, so that dragging stays fast.
@@ -212,12 +207,21 @@ class LiveIKSolver:
                 from ..stages.polish import IKPolisher
 
                 self._polisher = IKPolisher(self.robot, self.scene, safety_margin=self.ik.margin)
-            polished = self._polisher.solve(q, position, rotation)
+
+            def polish(start: np.ndarray) -> Polished[np.ndarray]:
+                out = self._polisher.solve(start, position, rotation)
+                return (Polished(np.asarray(out.q, dtype=float)) if np.all(np.isfinite(out.q))
+                        else Polished(None, out.failure()))
+
+            def judge(answer: np.ndarray) -> _Row:
+                checked = self._verify(answer, position, wxyz)
+                return _Row(bool(checked["success"]), str(checked["reason"]), checked)
+
+            outcome = accept_first([q], q, _Row(bool(row["success"]), str(row["reason"]), row),
+                                   polish, judge)
             timing["polish"] = time.perf_counter() - t0
-            if np.all(np.isfinite(polished.q)):
-                other = self._verify(polished.q, position, wxyz)
-                if _better(other, row):
-                    q, row, stage = np.asarray(polished.q, dtype=float), other, "polish"
+            if outcome.accepted:
+                q, row, stage = outcome.answer, outcome.verdict.checked, "polish"
 
         return LiveIKResult(
             q=np.asarray(q, dtype=float),
@@ -240,6 +244,16 @@ class LiveIKSolver:
         if reasons[0]:
             raise ValueError(reasons[0])
         return positions, quats, reasons
+
+
+@dataclass(frozen=True)
+class _Row:
+    """One verified answer as ``stages.accept`` reads it."""
+
+    success: bool
+    reason: str
+    checked: dict[str, Any]
+    """``IKSolver.verify``'s numbers of the answer."""
 
 
 def _better(a: dict[str, Any], b: dict[str, Any]) -> bool:

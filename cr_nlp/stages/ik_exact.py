@@ -1,0 +1,79 @@
+"""The IK exact stage: each target's answer, then the other candidates of the search's
+own beam, polished by Ipopt (``stages.polish``) and accepted by the verdict
+(``stages.accept``).
+
+A polish counts as worth judging when Ipopt succeeded, or when it keeps every
+constraint and comes nearer the target than the answer it started from (it may miss the
+polish's own 1e-6 pose tolerance and still pass the task's). Candidates of one beam that
+refined to the same answer are polished once.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from .accept import Acceptance, Judged, Polished, polish_and_accept
+from .polish import IKPolisher, polish_many
+
+
+def other_candidates(beam: np.ndarray, answer: np.ndarray,
+                     apart: float = 1e-4) -> list[np.ndarray]:
+    """A target's beam candidates (width, 3n), best first, that differ from its answer
+    and from each other by more than ``apart`` (rad or m) in some variable, finite ones
+    only: the exact stage's next warm starts."""
+    kept: list[np.ndarray] = []
+    for q in beam:
+        if np.all(np.isfinite(q)) and all(np.max(np.abs(q - other)) > apart
+                                          for other in (answer, *kept)):
+            kept.append(q)
+    return kept
+
+
+def polish_answers(polisher: IKPolisher, answers: np.ndarray, beams: np.ndarray,
+                   pose_errors: np.ndarray, positions: np.ndarray, rotations: np.ndarray,
+                   verdicts: Sequence[Judged],
+                   judge: Callable[[np.ndarray, np.ndarray], Sequence[Judged]],
+                   attempts: int, progress: bool = False, pool: Any = None) -> Acceptance:
+    """Polish T answers and accept the first polish of each that the verdict accepts.
+
+    Args:
+        polisher: the ``IKPolisher`` of the robot and scene.
+        answers: (T, 3n) the penalty stage's answers θ, φ, L (rad, rad, m).
+        beams: (T, width, 3n) the search's refined beam per target, best first (NaN rows
+            where there is none).
+        pose_errors: (T,) the answers' verified pose errors (mixed m/rad).
+        positions: (T, 3) target positions, m; rotations: (T, 3, 3).
+        verdicts: (T,) the verdicts on ``answers`` (kept where no polish is accepted).
+        judge: ``(q (B, 3n), rows (B,)) → verdicts``, rows indexing the T targets.
+        attempts: polishes per target at most.
+        progress: a progress bar for the first attempt.
+        pool: a ``stages.pool.PolishPool`` spreading the polishes over processes, or None.
+
+    Returns:
+        ``stages.accept.Acceptance`` with one outcome per target (answer q (3n,)).
+    """
+    cfg = polisher.config
+    alternatives = [other_candidates(beams[i], answers[i]) for i in range(len(answers))]
+
+    def candidate(attempt: int, rows: np.ndarray) -> list[np.ndarray | None]:
+        if attempt == 0:
+            return list(answers[rows])
+        return [alternatives[i][attempt - 1] if attempt <= len(alternatives[i]) else None
+                for i in rows.tolist()]
+
+    def polish(starts: list[np.ndarray], rows: np.ndarray,
+               attempt: int) -> list[Polished[np.ndarray]]:
+        outs = polish_many(polisher, np.stack(starts), positions[rows], rotations[rows],
+                           progress=progress and attempt == 0,
+                           pool=pool if len(rows) > 1 else None)
+        return [Polished(o.q) if o.success or (
+            o.max_violation <= cfg.violation_tolerance and np.isfinite(o.pose_error)
+            and o.pose_error < pose_errors[i])
+            else Polished(None, o.failure(cfg.pose_tolerance, cfg.violation_tolerance))
+            for i, o in zip(rows.tolist(), outs, strict=True)]
+
+    return polish_and_accept(list(answers), list(verdicts), candidate, polish,
+                             lambda q, rows: judge(np.stack(q), rows), max(attempts, 1))

@@ -1,0 +1,420 @@
+"""The batched IK search as the host drives it: seed pool, chunks of targets, the fused
+device programs of ``stages.search``, the retry rounds and the self-clearance repair.
+
+One part of a stream of targets is solved by
+
+1. explore: the pool entries nearest each target in pose (``SeedPool.nearest``);
+2. search: coarse LM on every seed, a diverse beam, the refinement rounds, as one
+   ``search_targets`` program per chunk of targets (``ChunkRunner``);
+3. retry: every retry round of the targets whose best cost is still above the success
+   level, as one ``retry_targets`` program per chunk (only when some target failed);
+4. self-repair (without a scene only; the search then ran on the pose alone, because the
+   self-clearance rows in every LM row made a free tdcr3 solve ~8× slower): the targets
+   whose answer's segments at least two apart come closer than δ by ``world.check`` are
+   searched again with the self-clearance rows, first from their own beam in a small
+   chunk (the answer and its alternatives, a few LM rows), then, for those still
+   rejected, by the retry program; a new answer replaces the old one where the verdict
+   accepts it and not the old.
+
+Chunks come from ``chunks.chunk_plan`` (two compiled shapes per program); padding
+targets are masked out of every LM round. The self-repair runs on the few rows that need
+it in chunks of at most ``REPAIR_CHUNK`` targets, so a solve whose answers all keep δ
+launches nothing for it, and one with two such answers does not pay for a 128-target
+chunk.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field, replace
+from functools import partial
+from typing import Any, Protocol
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._jax_setup import split_over_devices
+from ..model import Robot, q_to_z_numpy, z_to_q_numpy
+from ..model.limits import clip_to_limits
+from ..world import check_many
+from .chunks import SMALLEST_CHUNK, chunk_plan
+from .explore import SeedPool, random_configurations_z, sobol_configurations
+from .lm import Projection, Residual
+from .search import RetryPlan, SearchPlan, retry_targets, search_targets
+
+REPAIR_CHUNK = 16
+"""Most targets per self-repair program (the larger of its two compiled chunk shapes)."""
+REPAIR_SMALLEST = 4
+"""Fewest targets per self-repair program (its smaller compiled shape)."""
+REPAIR_BLOCK = 32
+"""LM rows per block of the self-repair programs on a CPU (a repair iterates tens of
+rows, not the main search's thousands)."""
+
+
+class Booking(Protocol):
+    """Where the search books its seconds (``tasks._timing.StageTiming`` is one)."""
+
+    compile: float
+    explore: float
+    refine: float
+    verify: float
+
+
+@dataclass
+class SearchCounters:
+    """What the last solve launched, for profiling (reset by ``IKSearch.reset``)."""
+
+    lm_calls: list[tuple[int, int, int, int]] = field(default_factory=list)
+    """Per round of a fused program that iterated any row: (rows iterated, rows of the
+    chunk, iteration budget, most iterations run)."""
+    retried: list[int] = field(default_factory=list)
+    """Targets retried in each retry round (0 for a round that did not run)."""
+    device_calls: int = 0
+    """Compiled programs launched (lookups and fused searches): device round trips."""
+    device_wait: float = 0.0
+    """Seconds spent waiting for device results with no host work to overlap."""
+    self_repaired: int = 0
+    """Targets whose first answer's segments came closer than δ and were searched again
+    with the self-clearance rows."""
+
+
+def _chunk_rows(x: np.ndarray, start: int, stop: int, size: int) -> np.ndarray:
+    """Rows ``start:stop`` of x padded to ``size`` rows with copies of the first (a
+    chunk of a compiled program's fixed batch shape)."""
+    part = x[start:stop]
+    pad = size - (stop - start)
+    return np.concatenate([part, np.repeat(part[:1], pad, 0)]) if pad else part
+
+
+class ChunkRunner:
+    """Runs one problem's fused search programs (``stages.search``) over chunks of
+    targets: one compiled program per program name and chunk shape, split over every
+    JAX device.
+
+    Args:
+        residual, project: the problem, as for ``stages.lm.lm_solve``.
+        shared: pytree given whole to every residual (scene arrays, or None).
+        free: (n,) 1.0 for the variables LM may move.
+        dtype: JAX dtype of the real inputs.
+        counters: where launches, waits and LM rounds are counted.
+        chunk: (largest, smallest) targets per program (``chunk_plan``).
+    """
+
+    def __init__(self, residual: Residual, project: Projection, shared: Any, free: jax.Array,
+                 dtype: Any, counters: SearchCounters, chunk: tuple[int, int]) -> None:
+        self.residual, self.project = residual, project
+        self.shared, self.free, self.dtype = shared, free, dtype
+        self.counters = counters
+        self.chunk = chunk
+        self.compiled: dict[Any, Any] = {}
+
+    def search(self, plan: SearchPlan, z_seeds: np.ndarray, positions: np.ndarray,
+               rotations: np.ndarray, timing: Booking) -> tuple[np.ndarray, np.ndarray]:
+        """Coarse LM on (T, K, n) seeds, a diverse beam, refinement: z (T, width, n) and
+        cost ½‖r‖² (T, width), as ``search_targets`` programs. Booked as refinement."""
+        k = z_seeds.shape[1]
+        search = partial(search_targets, self.residual, self.project, plan)
+        z, cost, runs = self._run(("search", k, plan), search,
+                                  (z_seeds, (positions, rotations.reshape(-1, 9))), 4, timing)
+        for chunk, (_, _, counted, iterated) in runs:
+            self._count_rounds(counted, iterated, chunk * k, plan.budgets)
+        return z, cost
+
+    def retry(self, plan: SearchPlan, retry: RetryPlan, sample: Callable, z_best: np.ndarray,
+              cost: np.ndarray, positions: np.ndarray, rotations: np.ndarray,
+              stream: np.ndarray, pool: SeedPool, timing: Booking) -> tuple[np.ndarray,
+                                                                           np.ndarray]:
+        """Every retry round of the targets given (best z (T, n), cost (T,)) as
+        ``retry_targets`` programs: z (T, n), cost (T,). ``stream``: (T,) numbers keying
+        each target's random seeds. Booked as refinement."""
+        search = partial(retry_targets, self.residual, self.project, sample, plan, retry)
+        z, cost, runs = self._run(
+            ("retry", retry, plan), search,
+            (z_best, cost, (positions, rotations.reshape(-1, 9)),
+             pool.target_features(positions, rotations), stream.astype(np.int32)),
+            5, timing, pool.device_arrays())
+        counters = self.counters
+        for chunk, (_, _, counted, iterated, retried) in runs:
+            self._count_rounds(counted, iterated, chunk * retry.seeds,
+                               plan.budgets * retry.rounds)
+            counters.retried = [a + int(b) for a, b in
+                                zip(counters.retried, np.asarray(retried).sum(0), strict=True)]
+        return z, cost
+
+    def _run(self, name: tuple, search: Any, per_target: tuple, outputs: int,
+             timing: Booking, *whole: Any) -> tuple[np.ndarray, np.ndarray,
+                                                     list[tuple[int, Any]]]:
+        """Launch ``search`` over ``chunk_plan`` chunks of the targets: its arguments are
+        the ``per_target`` arrays (pytrees of leading dimension T, padded per chunk; real
+        numbers in ``dtype``), the valid-target mask, the shared arrays, the free-variable
+        mask and ``whole``; its first two outputs are z and cost per target. Every chunk
+        is dispatched before the first result is waited for. Returns z and cost of the T
+        targets, and (chunk, outputs) per chunk, all ready."""
+        t0 = time.perf_counter()
+        c0 = timing.compile
+        count = len(jax.tree.leaves(per_target)[0])
+        runs = []
+        start = 0
+        for chunk in chunk_plan(count, *self.chunk):
+            stop = min(start + chunk, count)
+            padded = partial(_chunk_rows, start=start, stop=stop, size=chunk)
+            rows = jax.tree.map(lambda x, padded=padded: jnp.asarray(
+                padded(x), self.dtype if x.dtype.kind == "f" else None), per_target)
+            args = (*rows, jnp.asarray(np.arange(chunk) < stop - start), self.shared,
+                    self.free, *whole)
+            key = (*name, chunk)
+            if key not in self.compiled:
+                t1 = time.perf_counter()
+                batched = (True,) * (len(per_target) + 1) + (False,) * (2 + len(whole))
+                program = split_over_devices(search, batched, chunk, outputs=outputs)
+                self.compiled[key] = program.lower(*args).compile()
+                timing.compile += time.perf_counter() - t1
+            runs.append((stop - start, chunk, self.compiled[key](*args)))
+            self.counters.device_calls += 1
+            start = stop
+        wait(self.counters, (out for _, _, out in runs))
+        z = np.concatenate([np.asarray(out[0])[:rows] for rows, _, out in runs])
+        cost = np.concatenate([np.asarray(out[1])[:rows] for rows, _, out in runs])
+        timing.refine += time.perf_counter() - t0 - (timing.compile - c0)
+        return z, cost, [(chunk, out) for _, chunk, out in runs]
+
+    def _count_rounds(self, counted: Any, iterated: Any, rows: int,
+                      budgets: tuple[int, ...]) -> None:
+        """One ``lm_calls`` entry per round of a fused program that iterated any row."""
+        counted, iterated = np.asarray(counted).sum(0), np.asarray(iterated).max(0)
+        self.counters.lm_calls += [(int(c), rows, b, int(i))
+                                   for c, b, i in zip(counted, budgets, iterated, strict=True)
+                                   if c]
+
+
+def wait(counters: SearchCounters, arrays: Iterable[Any]) -> None:
+    """Block until device results are ready, adding the wait to ``device_wait``."""
+    t0 = time.perf_counter()
+    jax.block_until_ready(list(arrays))
+    counters.device_wait += time.perf_counter() - t0
+
+
+@dataclass(frozen=True)
+class SearchSettings:
+    """The static settings of ``IKSearch`` (the IK task fills them from its config)."""
+
+    plan: SearchPlan
+    """The main search (``per_target`` True: only the best candidate is wanted)."""
+    retry: RetryPlan
+    """The retry rounds (``rounds`` 0: none)."""
+    seeds_per_target: int
+    """Pool entries nearest each target that start the coarse LM steps."""
+    pool_size: int
+    """Sobol configurations in the seed pool."""
+    seed: int
+    """Seed of the pool."""
+    chunk_size: int
+    """Most targets per fused program."""
+    margin: float
+    """δ on the sphere body (m): pool entries closer than this to an obstacle or to the
+    robot itself are left out of the pool."""
+    safety_margin: float
+    """δ the verdict checks (m): answers whose segments come closer than this are
+    repaired."""
+    dtype: str = "float32"
+    """JAX dtype of the batched stages."""
+
+
+class IKSearch:
+    """The batched search of one IK problem (robot, optional scene, residuals).
+
+    Args:
+        robot: the robot.
+        scene: the ``Scene`` or None.
+        shared: the scene's arrays for the residuals (``world.scene_arrays``) or None.
+        residuals: the IK residual for the main search, and with the self-clearance rows
+            (the same function when the main search models them already).
+        project: the projection onto the limits (``model.limits.project_z``).
+        free: (n,) 1.0 for the variables LM may move.
+        settings: ``SearchSettings``.
+        self_repair: repair answers whose segments come closer than δ (no scene, the main
+            search on the pose alone).
+    """
+
+    def __init__(self, robot: Robot, scene: Any, shared: Any,
+                 residuals: tuple[Residual, Residual], project: Projection, free: jax.Array,
+                 settings: SearchSettings, self_repair: bool) -> None:
+        self.robot, self.scene, self.settings = robot, scene, settings
+        self.self_repair = self_repair
+        self.dtype = jnp.dtype(settings.dtype)
+        self.counters = SearchCounters()
+        self.main = ChunkRunner(residuals[0], project, shared, free, self.dtype,
+                                self.counters, (settings.chunk_size, SMALLEST_CHUNK))
+        self.repair = ChunkRunner(residuals[1], project, shared, free, self.dtype,
+                                  self.counters, (REPAIR_CHUNK, REPAIR_SMALLEST))
+        self.pool: SeedPool | None = None
+        self.sample = partial(random_configurations_z, robot, count=settings.retry.seeds,
+                              dtype=self.dtype)
+
+    def reset(self) -> None:
+        """Zero the counters (start of a solve)."""
+        self.counters.lm_calls = []
+        self.counters.retried = [0] * self.settings.retry.rounds
+        self.counters.device_calls = 0
+        self.counters.device_wait = 0.0
+        self.counters.self_repaired = 0
+
+    # ------------------------------------------------------------ explore
+    def seed_pool(self, timing: Booking) -> SeedPool:
+        """The Sobol pool (built once; entries without δ of clearance left out)."""
+        if self.pool is None:
+            t0 = time.perf_counter()
+            s = self.settings
+            q = sobol_configurations(self.robot, s.pool_size, s.seed)
+            if self.scene is not None or self.robot.has_self_pairs:
+                q = q[self._collision_free(q)]
+            self.pool = SeedPool(self.robot, q, dtype=s.dtype, chunk_size=s.chunk_size)
+            timing.explore += time.perf_counter() - t0
+        return self.pool
+
+    def _collision_free(self, q: np.ndarray) -> np.ndarray:
+        """Which configurations keep clearance ≥ δ (obstacles and self) by the
+        differentiable clearance (fast)."""
+        from ..world import clearance, self_distances
+
+        x = jnp.asarray(q, self.dtype)
+        if self.scene is None:
+            d = np.min(np.asarray(self_distances(self.robot, x)), axis=-1)
+        else:
+            d = np.asarray(clearance(self.robot, self.main.shared, x))
+        return d >= self.settings.margin
+
+    def nearest(self, positions: np.ndarray, rotations: np.ndarray, k: int,
+                timing: Booking) -> np.ndarray:
+        """(T, k) pool indices nearest each target in pose; booked as exploration."""
+        pool = self.seed_pool(timing)
+        t0 = time.perf_counter()
+        c0, waited, calls = pool.compile_seconds, pool.wait_seconds, pool.calls
+        found = pool.nearest(positions, rotations, k)
+        compiled = pool.compile_seconds - c0
+        timing.compile += compiled
+        timing.explore += time.perf_counter() - t0 - compiled
+        self.counters.device_wait += pool.wait_seconds - waited
+        self.counters.device_calls += pool.calls - calls
+        return found
+
+    # ------------------------------------------------------------ the search
+    def beam(self, positions: np.ndarray, rotations: np.ndarray, per_target: bool,
+             timing: Booking) -> tuple[np.ndarray, np.ndarray]:
+        """Lookup and search: the refined beam z (T, width, n), best first, and its cost
+        ½‖r‖² (T, width). ``per_target``: a target's other candidates stop refining once
+        one converged (only the best is wanted)."""
+        pool = self.seed_pool(timing)
+        nearest = self.nearest(positions, rotations, self.settings.seeds_per_target, timing)
+        plan = replace(self.settings.plan, per_target=per_target)
+        z, cost = self.main.search(plan, pool.z[nearest], positions, rotations, timing)
+        order = np.argsort(cost, axis=1)
+        return (np.take_along_axis(z, order[..., None], axis=1),
+                np.take_along_axis(cost, order, axis=1))
+
+    def solve_part(self, positions: np.ndarray, rotations: np.ndarray, timing: Booking,
+                   accepts: Callable[[np.ndarray, np.ndarray], np.ndarray]
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Search, retry and self-repair one part of a stream (valid targets).
+
+        Args:
+            positions: (T, 3) target positions, m; rotations: (T, 3, 3).
+            timing: where the seconds are booked.
+            accepts: ``(q (B, 3n), rows (B,)) → (B,) bool``: the verdict on answers to
+                the targets ``rows`` of this part (used by the self-repair).
+
+        Returns:
+            q (T, 3n) answers θ, φ, L (rad, rad, m) clipped to the limits; the refined
+            beam (T, width, 3n) best first; and, with ``self_repair``, the answers'
+            self-clearance (T,) by ``world.check`` (m) for the verdict to reuse (+inf
+            without: not measured here).
+        """
+        s = self.settings
+        z_beam, c_beam = self.beam(positions, rotations, True, timing)
+        z_best, cost = z_beam[:, 0].copy(), c_beam[:, 0].copy()
+        todo = np.flatnonzero(~(cost < s.retry.success_cost))
+        if s.retry.rounds > 0 and len(todo):
+            # Every retry round in one more program, only when some target failed.
+            pool = self.seed_pool(timing)
+            z_best[todo], cost[todo] = self.main.retry(
+                s.plan, self._retry_plan(pool), self.sample, z_best[todo], cost[todo],
+                positions[todo], rotations[todo], todo, pool, timing)
+        q = self._to_q(z_best)
+        beam = self._to_q(z_beam.reshape(-1, z_beam.shape[-1])).reshape(
+            *z_beam.shape[:2], -1)
+        own = np.full(len(q), np.inf)
+        if self.self_repair:
+            t0 = time.perf_counter()
+            own = check_many(self.robot, None, q).self_distance
+            timing.verify += time.perf_counter() - t0
+            self._repair(q, own, z_beam, positions, rotations, timing, accepts)
+        return q, beam, own
+
+    def _repair(self, q: np.ndarray, own: np.ndarray, z_beam: np.ndarray,
+                positions: np.ndarray, rotations: np.ndarray, timing: Booking,
+                accepts: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> None:
+        """Search the targets whose answer's segments come closer than δ again, with the
+        self-clearance rows; replace q (and ``own``) in place where the verdict accepts
+        the new answer and not the old. First from each target's own beam (its answer
+        first), then, for those still rejected, the retry program."""
+        s = self.settings
+        bad = np.flatnonzero(~(own >= s.safety_margin))
+        if not len(bad):
+            return
+        self.counters.self_repaired += len(bad)
+        t0 = time.perf_counter()
+        before = accepts(q[bad], bad)
+        timing.verify += time.perf_counter() - t0
+        # The answer itself first, then its beam: all near the target in pose.
+        seeds = np.concatenate([q_to_z_numpy(q[bad])[:, None], z_beam[bad]], axis=1)
+        plan = replace(s.plan, block=self._repair_block())
+        z, cost = self.repair.search(plan, seeds, positions[bad], rotations[bad], timing)
+        candidates = self._to_q(z[np.arange(len(bad)), np.argmin(cost, axis=1)])
+        left = self._take(q, own, bad, candidates, before, accepts, timing)
+        if s.retry.rounds > 0 and len(left):
+            rows, pool = bad[left], self.seed_pool(timing)
+            z_new, _ = self.repair.retry(
+                plan, self._retry_plan(pool), self.sample, q_to_z_numpy(q[rows]),
+                np.full(len(rows), np.inf), positions[rows], rotations[rows], rows, pool,
+                timing)
+            self._take(q, own, rows, self._to_q(z_new), before[left], accepts, timing)
+
+    def _take(self, q: np.ndarray, own: np.ndarray, rows: np.ndarray, q_new: np.ndarray,
+              before: np.ndarray, accepts: Callable[[np.ndarray, np.ndarray], np.ndarray],
+              timing: Booking) -> np.ndarray:
+        """Put q_new into q (and its self-clearance into ``own``) at ``rows`` where the
+        verdict accepts it and not the answer there (``before``); returns the positions
+        within ``rows`` still not accepted."""
+        t0 = time.perf_counter()
+        ok = accepts(q_new, rows)
+        take = ok & ~before
+        if take.any():
+            q[rows[take]] = q_new[take]
+            own[rows[take]] = check_many(self.robot, None, q_new[take]).self_distance
+        timing.verify += time.perf_counter() - t0
+        return np.flatnonzero(~(ok | before))
+
+    def _retry_plan(self, pool: SeedPool) -> RetryPlan:
+        """The retry rounds, past the pool ranks the main search used (the pool may hold
+        fewer entries than seeds per target)."""
+        return replace(self.settings.retry,
+                       first_rank=min(self.settings.seeds_per_target, len(pool)))
+
+    def _repair_block(self) -> int:
+        """LM rows per block of the repair programs: a small block on a CPU, the whole
+        chunk on an accelerator (as the main search)."""
+        block = self.settings.plan.block
+        return min(REPAIR_BLOCK, block) if jax.default_backend() == "cpu" else block
+
+    def _to_q(self, z: np.ndarray) -> np.ndarray:
+        return clip_to_limits(self.robot, z_to_q_numpy(z))
+
+    def candidates(self, positions: np.ndarray, rotations: np.ndarray,
+                   timing: Booking) -> tuple[np.ndarray, np.ndarray]:
+        """Every beam member refined: q (T, width, 3n) best first and the penalised
+        residual norms (T, width)."""
+        z, cost = self.beam(positions, rotations, False, timing)
+        q = self._to_q(z.reshape(-1, z.shape[-1])).reshape(*z.shape[:2], -1)
+        return q, np.sqrt(2.0 * cost)
