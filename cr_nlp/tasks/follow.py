@@ -59,6 +59,7 @@ from ..model.kinematics import (
 from ..model.lie import rotation_log, so3_right_jacobian_inverse
 from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz
+from ..stages.accept import Polished, accept_first
 from ..stages.banded_lm import ChainResidual, banded_lm_solve
 from ..stages.continuation import BranchContinuation, ContinuationSettings
 from ..stages.lm import LMConfig
@@ -72,7 +73,7 @@ from ..world.clearance_groups import (
     has_clearance,
 )
 from ..world.motion import verify_trajectory
-from ..world.verdict import VIOLATION_TOLERANCE
+from ..world.verdict import VIOLATION_TOLERANCE, Verdict
 from ._follow_result import FollowResult as FollowResult
 from ._follow_result import result_from_verdict, tracking_cost
 from ._follow_result import tracking_errors as tracking_errors
@@ -545,7 +546,6 @@ class PathFollower:
             # error 0.0 → 4.3 mm) at 50–150 s per path, so the answer is kept as it is.
             lm.stage = "refine (feasible: polish not needed)"
             return lm
-        t0 = time.perf_counter()
         t = len(lm.q)
         if t not in self._polishers:
             samples = self.config.verify_samples
@@ -558,24 +558,31 @@ class PathFollower:
         # Untrackable waypoints keep the LM's reference: its own tip pose (zero error).
         positions = np.where(trackable[:, None], path.positions, lm.position)
         rotations = matrix_from_wxyz(np.where(trackable[:, None], path.wxyz, lm.wxyz))
-        try:
-            out = self._polishers[t].solve(lm.q, path.dt, positions, rotations)
-        except Exception as exc:  # noqa: BLE001 — a crashed polish must not lose the answer
-            lm.stage = f"refine (polish failed: {type(exc).__name__}: {exc})"
-            timing.polish += time.perf_counter() - t0
+        reports: list[dict[str, Any]] = []
+
+        def polish(q0: np.ndarray) -> Polished[np.ndarray]:
+            t0 = time.perf_counter()
+            try:
+                out = self._polishers[t].solve(q0, path.dt, positions, rotations)
+            except Exception as exc:  # noqa: BLE001 — a crashed polish must not lose the answer
+                return Polished(None, f"{type(exc).__name__}: {exc}")
+            finally:
+                timing.polish += time.perf_counter() - t0
+            if not out.success:
+                return Polished(None, describe_polish(out))
+            return Polished(clip_to_limits(self.robot, np.asarray(out.q, dtype=np.float64)))
+
+        def judge(q: np.ndarray) -> Verdict:
+            t1 = time.perf_counter()
+            reports.append(self.verify(q, path, path.dt))
+            timing.verify += time.perf_counter() - t1
+            return reports[-1]["verdict"]
+
+        outcome = accept_first([lm.q], lm.q, lm, polish, judge)
+        if not outcome.accepted:
+            lm.stage = f"refine (polish failed: {'; '.join(outcome.failures)})"
             return lm
-        timing.polish += time.perf_counter() - t0
-        if not out.success:
-            lm.stage = f"refine (polish failed: {describe_polish(out)})"
-            return lm
-        t1 = time.perf_counter()
-        q = clip_to_limits(self.robot, np.asarray(out.q, dtype=np.float64))
-        verdict = self.verify(q, path, path.dt)
-        timing.verify += time.perf_counter() - t1
-        if not verdict["success"]:
-            lm.stage = f"refine (polish failed: rejected by the checker: {verdict['reason']})"
-            return lm
-        polished = self._result(q, path, verdict, "polish", why)
+        polished = self._result(outcome.answer, path, reports[-1], "polish", why)
         if lm.max_violation <= VIOLATION_TOLERANCE and lm.collision_free and \
                 tracking_cost(polished) > tracking_cost(lm):
             # Both feasible: keep the one that tracks the path better.

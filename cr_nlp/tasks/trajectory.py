@@ -45,6 +45,7 @@ from ..model._ops import JAX
 from ..model.derivatives import tip_position_z
 from ..model.kinematics import model_tendon_lengths
 from ..model.limits import project_z
+from ..stages.accept import Polished, polish_and_accept
 from ..stages.banded_lm import ChainResidual
 from ..stages.chain_batch import ChainBatchLM
 from ..stages.tendon_penalty import tendon_accel_excess, tendon_speed_excess
@@ -57,7 +58,7 @@ from ..world.motion import interpolate_trajectory as interpolate_trajectory
 from ..world.motion import tendon_series as tendon_series
 from ..world.motion import tip_positions as tip_positions
 from ..world.motion import verify_trajectory as verify_trajectory
-from ..world.verdict import describe_violations
+from ..world.verdict import Verdict, describe_violations
 from ._timing import StageTiming
 from ._trajectory_result import TrajectoryResult as TrajectoryResult
 from ._trajectory_result import controller_columns as controller_columns
@@ -555,11 +556,11 @@ class TrajectoryPlanner:
                 candidates: list[list[tuple[np.ndarray, str]]],
                 results: list[TrajectoryResult | None], dt: float, timing: PlanTiming,
                 bar: Any) -> None:
-        """Exact stage: polish each problem's best LM candidate; when the polish fails or
-        the verification rejects it, the next candidate (up to
-        ``config.polish_attempts``). The first verified polish is the answer; if none
-        is, the LM answer stays (it keeps its own verdict: exact mode never succeeds
-        less often than the LM stage). ``bar``: a tqdm bar advanced per problem, or None."""
+        """Exact stage (``stages.accept``): polish each problem's LM candidates in order
+        (best first, at most ``config.polish_attempts``) and keep the first polished
+        answer the verification accepts; if none is, the LM answer stays with its own
+        verdict (exact mode never succeeds less often than the LM stage). ``bar``: a tqdm
+        bar advanced per problem, or None."""
         t0 = time.perf_counter()
         cfg = self.config
         # A penalty answer the independent verdict accepts needs no polish to be valid.
@@ -573,34 +574,61 @@ class TrajectoryPlanner:
                     bar.update(1)
             else:
                 todo.append(row)
-        valid = [valid[row] for row in todo]
-        items = [(candidates[row][: cfg.polish_attempts], dt, cfg.safety_margin,
-                  cfg.verify_samples) for row in todo]
-        if cfg.polish_workers > 1 and len(items) > 1:
-            if self._polish_pool is None:
-                from ..stages.pool import PolishPool
-                self._polish_pool = PolishPool(_trajectory_polisher, (
-                    self.robot, self.scene, cfg.waypoints, self.margin, cfg.verify_samples),
-                    cfg.polish_workers)
-            outcomes = self._polish_pool.map(polish_candidates, items, bar)
-        else:
-            polisher = self.polisher()
-            outcomes = []
-            for item in items:
-                outcomes.append(polish_candidates(polisher, *item))
-                if bar is not None:
-                    bar.update(1)
-        for (i, _, _), (q, verdict, failures, seconds) in zip(valid, outcomes, strict=True):
+        lm = [results[valid[row][0]] for row in todo]
+        options = [candidates[row][: cfg.polish_attempts] for row in todo]
+        seconds = np.zeros(len(todo))
+        reports: dict[int, dict[str, Any]] = {}
+
+        def candidate(attempt: int, rows: np.ndarray) -> list[np.ndarray | None]:
+            return [options[r][attempt][0] if attempt < len(options[r]) else None
+                    for r in rows]
+
+        def polish(starts: list[np.ndarray], rows: np.ndarray,
+                   attempt: int) -> list[Polished[np.ndarray]]:
+            items = [(q0, dt) for q0 in starts]
+            progress = bar if attempt == 0 else None
+            if cfg.polish_workers > 1 and len(items) > 1:
+                if self._polish_pool is None:
+                    from ..stages.pool import PolishPool
+                    self._polish_pool = PolishPool(_trajectory_polisher, (
+                        self.robot, self.scene, cfg.waypoints, self.margin,
+                        cfg.verify_samples), cfg.polish_workers)
+                outs = self._polish_pool.map(polish_one, items, progress)
+            else:
+                polisher = self.polisher()
+                outs = []
+                for item in items:
+                    outs.append(polish_one(polisher, *item))
+                    if progress is not None:
+                        progress.update(1)
+            seconds[rows] += [elapsed for *_, elapsed in outs]
+            return [Polished(q, why) for q, why, _ in outs]
+
+        def judge(answers: list[np.ndarray], rows: np.ndarray) -> list[Verdict]:
+            for q, r in zip(answers, rows, strict=True):
+                t1 = time.perf_counter()
+                reports[int(r)] = self.verify(q, dt)
+                seconds[r] += time.perf_counter() - t1
+            return [reports[int(r)]["verdict"] for r in rows]
+
+        # The LM results stand for their own verdicts (success, reason) when no polish
+        # passes.
+        acceptance = polish_and_accept([r.q for r in lm], lm, candidate, polish, judge,
+                                       max(cfg.polish_attempts, 1))
+        for r, (row, outcome) in enumerate(zip(todo, acceptance.outcomes, strict=True)):
+            i = valid[row][0]
             previous = results[i]
             assert previous is not None
-            if q is not None:
-                results[i] = result_from_verdict(self.robot, q, dt, verdict, "polish",
-                                                 previous.cost, previous.timing)
+            if outcome.accepted:
+                results[i] = result_from_verdict(self.robot, outcome.answer, dt, reports[r],
+                                                 "polish", previous.cost, previous.timing)
             else:
+                failures = [f"from {options[r][k][1]}: {why}"
+                            for k, why in enumerate(outcome.failures)]
                 previous.stage = f"{previous.stage} (polish failed: {'; '.join(failures)})"
             result = results[i]
             assert result is not None
-            result.timing = replace(previous.timing, polish=seconds)
+            result.timing = replace(previous.timing, polish=float(seconds[r]))
         timing.polish += time.perf_counter() - t0
 
 
@@ -614,25 +642,15 @@ def _trajectory_polisher(robot: Robot, scene: Scene | None, waypoints: int, marg
                                                             verify_samples=samples))
 
 
-def polish_candidates(polisher: Any, candidates: list[tuple[np.ndarray, str]], dt: float,
-                      margin: float, samples: int) -> tuple[np.ndarray | None,
-                                                            dict[str, Any] | None,
-                                                            list[str], float]:
-    """Polish the candidates (q, stage name) in turn until one passes
-    ``verify_trajectory`` (δ = ``margin`` m, ``samples`` per interval). Returns (its q,
-    its verdict, why each earlier one failed, seconds), q None if none passed."""
+def polish_one(polisher: Any, q0: np.ndarray, dt: float) -> tuple[np.ndarray | None, str,
+                                                                  float]:
+    """One Ipopt polish of the trajectory ``q0`` (rad, rad, m; ``dt`` s): its answer, or
+    None with why Ipopt failed, and the seconds it took."""
     t0 = time.perf_counter()
-    failures = []
-    for q0, stage in candidates:
-        out = polisher.solve(q0, dt)
-        if not out.success:
-            failures.append(f"from {stage}: {describe_polish(out)}")
-            continue
-        verdict = verify_trajectory(polisher.robot, polisher.scene, out.q, dt, margin, samples)
-        if verdict["success"]:
-            return out.q, verdict, failures, time.perf_counter() - t0
-        failures.append(f"from {stage}: rejected by the checker: {verdict['reason']}")
-    return None, None, failures, time.perf_counter() - t0
+    out = polisher.solve(q0, dt)
+    if not out.success:
+        return None, describe_polish(out), time.perf_counter() - t0
+    return out.q, "", time.perf_counter() - t0
 
 
 def describe_polish(out: Any) -> str:
