@@ -64,6 +64,7 @@ from ..stages.banded_lm import ChainResidual, banded_lm_solve
 from ..stages.continuation import BranchContinuation, ContinuationSettings
 from ..stages.lm import LMConfig
 from ..stages.tendon_penalty import tendon_accel_excess, tendon_speed_excess
+from ..stages.trajectory_exact import describe_polish
 from ..world import Scene, load_scene, scene_arrays
 from ..world.clearance import SceneArrays, body_gap_tolerance
 from ..world.clearance_groups import (
@@ -81,7 +82,6 @@ from ._follow_result import unreached_stretches as unreached_stretches
 from ._timing import StageTiming, compile_seconds
 from .ik import IKConfig, IKSolver, validate_targets
 from .paths import ReferencePath, load_path
-from .trajectory import describe_polish
 
 FOLLOW_IK = IKConfig(seeds_per_target=8, refine_iterations=10)
 """Stage 1's default IK settings: fewer seeds and refinement iterations than a plain IK

@@ -45,10 +45,11 @@ from ..model._ops import JAX
 from ..model.derivatives import tip_position_z
 from ..model.kinematics import model_tendon_lengths
 from ..model.limits import project_z
-from ..stages.accept import Polished, polish_and_accept
 from ..stages.banded_lm import ChainResidual
 from ..stages.chain_batch import ChainBatchLM
 from ..stages.tendon_penalty import tendon_accel_excess, tendon_speed_excess
+from ..stages.trajectory_exact import describe_polish as describe_polish
+from ..stages.trajectory_exact import polish_trajectories, trajectory_polisher
 from ..stages.trajectory_guesses import initial_guesses
 from ..world import Scene, check_many, load_scene, scene_arrays
 from ..world.broad_phase import part_balls
@@ -58,7 +59,7 @@ from ..world.motion import interpolate_trajectory as interpolate_trajectory
 from ..world.motion import tendon_series as tendon_series
 from ..world.motion import tip_positions as tip_positions
 from ..world.motion import verify_trajectory as verify_trajectory
-from ..world.verdict import Verdict, describe_violations
+from ..world.verdict import Verdict
 from ._timing import StageTiming
 from ._trajectory_result import TrajectoryResult as TrajectoryResult
 from ._trajectory_result import controller_columns as controller_columns
@@ -542,21 +543,17 @@ class TrajectoryPlanner:
     def polisher(self) -> Any:
         """The trajectory polisher of this planner (built on first use): rows at every
         waypoint and at every sample the verification checks."""
-        from ..stages.polish_trajectory import TrajectoryPolishConfig, TrajectoryPolisher
-
         if self._polisher is None:
             cfg = self.config
-            self._polisher = TrajectoryPolisher(
-                self.robot, self.scene, cfg.waypoints, safety_margin=self.margin,
-                config=TrajectoryPolishConfig(interpolation_checks=cfg.verify_samples - 1,
-                                              verify_samples=cfg.verify_samples))
+            self._polisher = trajectory_polisher(self.robot, self.scene, cfg.waypoints,
+                                                 self.margin, cfg.verify_samples)
         return self._polisher
 
     def _polish(self, valid: list[tuple[int, np.ndarray, np.ndarray]],
                 candidates: list[list[tuple[np.ndarray, str]]],
                 results: list[TrajectoryResult | None], dt: float, timing: PlanTiming,
                 bar: Any) -> None:
-        """Exact stage (``stages.accept``): polish each problem's LM candidates in order
+        """Exact stage (``stages.trajectory_exact``): polish each problem's LM candidates in order
         (best first, at most ``config.polish_attempts``) and keep the first polished
         answer the verification accepts; if none is, the LM answer stays with its own
         verdict (exact mode never succeeds less often than the LM stage). ``bar``: a tqdm
@@ -574,47 +571,16 @@ class TrajectoryPlanner:
                     bar.update(1)
             else:
                 todo.append(row)
-        lm = [results[valid[row][0]] for row in todo]
         options = [candidates[row][: cfg.polish_attempts] for row in todo]
-        seconds = np.zeros(len(todo))
         reports: dict[int, dict[str, Any]] = {}
 
-        def candidate(attempt: int, rows: np.ndarray) -> list[np.ndarray | None]:
-            return [options[r][attempt][0] if attempt < len(options[r]) else None
-                    for r in rows]
+        def judge(q: np.ndarray, r: int) -> Verdict:
+            reports[r] = self.verify(q, dt)
+            return reports[r]["verdict"]
 
-        def polish(starts: list[np.ndarray], rows: np.ndarray,
-                   attempt: int) -> list[Polished[np.ndarray]]:
-            items = [(q0, dt) for q0 in starts]
-            progress = bar if attempt == 0 else None
-            if cfg.polish_workers > 1 and len(items) > 1:
-                if self._polish_pool is None:
-                    from ..stages.pool import PolishPool
-                    self._polish_pool = PolishPool(_trajectory_polisher, (
-                        self.robot, self.scene, cfg.waypoints, self.margin,
-                        cfg.verify_samples), cfg.polish_workers)
-                outs = self._polish_pool.map(polish_one, items, progress)
-            else:
-                polisher = self.polisher()
-                outs = []
-                for item in items:
-                    outs.append(polish_one(polisher, *item))
-                    if progress is not None:
-                        progress.update(1)
-            seconds[rows] += [elapsed for *_, elapsed in outs]
-            return [Polished(q, why) for q, why, _ in outs]
-
-        def judge(answers: list[np.ndarray], rows: np.ndarray) -> list[Verdict]:
-            for q, r in zip(answers, rows, strict=True):
-                t1 = time.perf_counter()
-                reports[int(r)] = self.verify(q, dt)
-                seconds[r] += time.perf_counter() - t1
-            return [reports[int(r)]["verdict"] for r in rows]
-
-        # The LM results stand for their own verdicts (success, reason) when no polish
-        # passes.
-        acceptance = polish_and_accept([r.q for r in lm], lm, candidate, polish, judge,
-                                       max(cfg.polish_attempts, 1))
+        acceptance, seconds = polish_trajectories(
+            options, [results[valid[row][0]] for row in todo], dt, judge, self.polisher,
+            self._pool if cfg.polish_workers > 1 else None, bar)
         for r, (row, outcome) in enumerate(zip(todo, acceptance.outcomes, strict=True)):
             i = valid[row][0]
             previous = results[i]
@@ -631,32 +597,15 @@ class TrajectoryPlanner:
             result.timing = replace(previous.timing, polish=float(seconds[r]))
         timing.polish += time.perf_counter() - t0
 
-
-def _trajectory_polisher(robot: Robot, scene: Scene | None, waypoints: int, margin: float,
-                         samples: int) -> Any:
-    """The planner's polisher (rows at the verification's samples), for pool workers."""
-    from ..stages.polish_trajectory import TrajectoryPolishConfig, TrajectoryPolisher
-
-    return TrajectoryPolisher(robot, scene, waypoints, safety_margin=margin,
-                              config=TrajectoryPolishConfig(interpolation_checks=samples - 1,
-                                                            verify_samples=samples))
-
-
-def polish_one(polisher: Any, q0: np.ndarray, dt: float) -> tuple[np.ndarray | None, str,
-                                                                  float]:
-    """One Ipopt polish of the trajectory ``q0`` (rad, rad, m; ``dt`` s): its answer, or
-    None with why Ipopt failed, and the seconds it took."""
-    t0 = time.perf_counter()
-    out = polisher.solve(q0, dt)
-    if not out.success:
-        return None, describe_polish(out), time.perf_counter() - t0
-    return out.q, "", time.perf_counter() - t0
-
-
-def describe_polish(out: Any) -> str:
-    """Why a trajectory polish failed: Ipopt's status and the violations it left."""
-    broken = describe_violations(out.violations)
-    return f"Ipopt {out.status}" + (f", {broken}" if broken else "")
+    def _pool(self) -> Any:
+        """The exact stage's worker pool (``stages.pool``), started on first use."""
+        if self._polish_pool is None:
+            from ..stages.pool import PolishPool
+            cfg = self.config
+            self._polish_pool = PolishPool(trajectory_polisher, (
+                self.robot, self.scene, cfg.waypoints, self.margin, cfg.verify_samples),
+                cfg.polish_workers)
+        return self._polish_pool
 
 
 def plan_trajectories(robot: Robot | str | dict, starts: Any, goals: Any,
