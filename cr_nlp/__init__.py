@@ -17,6 +17,9 @@ from .model import load_robot as load_robot
 from .model import pose_error as pose_error
 from .model import tendon_lengths as tendon_lengths
 from .model import tip_pose as tip_pose
+from .model.cosserat import StaticsConfig as StaticsConfig
+from .model.cosserat import StaticsResult as StaticsResult
+from .model.cosserat import solve_statics as solve_statics
 from .model.rotations import matrix_from_wxyz as matrix_from_wxyz
 from .model.rotations import wxyz_from_matrix as wxyz_from_matrix
 from .tasks._result import SCHEMA_VERSION as SCHEMA_VERSION
@@ -34,6 +37,9 @@ from .tasks.live_ik import LiveIKResult as LiveIKResult
 from .tasks.live_ik import LiveIKSolver as LiveIKSolver
 from .tasks.paths import ReferencePath as ReferencePath
 from .tasks.paths import load_path as load_path
+from .tasks.tension_ik import TensionIKConfig as TensionIKConfig
+from .tasks.tension_ik import TensionIKResult as TensionIKResult
+from .tasks.tension_ik import TensionIKSolver as TensionIKSolver
 from .tasks.trajectory import TrajectoryConfig as TrajectoryConfig
 from .tasks.trajectory import TrajectoryPlanner as TrajectoryPlanner
 from .tasks.trajectory import TrajectoryResult as TrajectoryResult

@@ -93,13 +93,67 @@ COLUMNS = [
 ]
 
 
+@dataclass(frozen=True)
+class TensionIKBenchRow:
+    """One measured line of the tension-space IK table (times in seconds)."""
+
+    targets: int
+    loads: str
+    compile_s: float
+    median_s: float
+    success: float
+    median_error_m: float
+    max_error_m: float
+
+
+def bench_tension_ik(robot: str = "tdcr2_rao2021", targets: int = 1000, loads: str = "none",
+                     repeats: int = 3, seed: int = 0) -> TensionIKBenchRow:
+    """Time ``TensionIKSolver.solve`` on ``targets`` tip positions made by forward statics
+    from random feasible tensions (``statics_cases``' tension sets; ``loads`` "force": all
+    under one 0.05 N sideways tip force). Compile and the seed pool are the first call."""
+    from ..tasks.tension_ik import TensionIKSolver
+
+    rob = load_robot(robot)
+    t, _, _ = statics_cases(rob.n_tendons, rob.tendons.per_segment, targets, "tensions",
+                            seed + 1)
+    force = np.array([0.0, 0.05, 0.0]) if loads == "force" else None
+    truth = solve_statics(rob, t, force)
+    goal = truth.tip_position[truth.converged]
+    solver = TensionIKSolver(rob)
+    start = time.perf_counter()
+    result = solver.solve(goal, tip_force=force)
+    compile_s = time.perf_counter() - start
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = solver.solve(goal, tip_force=force)
+        times.append(time.perf_counter() - start)
+    error = result.position_error
+    return TensionIKBenchRow(len(goal), loads, compile_s, statistics.median(times),
+                             float(result.success.mean()), float(np.nanmedian(error)),
+                             float(np.nanmax(error)))
+
+
+IK_COLUMNS = [
+    Column("targets", "targets"),
+    Column("loads", "loads"),
+    Column("compile_s", "first call (s)", fixed(2)),
+    Column("median_s", "median (s)", fixed(3)),
+    Column("success_pct", "success (%)", fixed(1)),
+    Column("median_error_mm", "median error (mm)", lambda v: f"{v:.1e}"),
+    Column("max_error_mm", "max error (mm)", lambda v: f"{v:.3f}"),
+]
+
+
 def run_statics_benchmark(robot: str = "tdcr2_rao2021",
                           sizes: tuple[int, ...] = (100, 1000, 10_000),
                           load_sets: tuple[str, ...] = SETS,
                           dtypes: tuple[str, ...] = ("float64", "float32"), repeats: int = 5,
-                          seed: int = 0, out: str | Path | None = None) -> list[dict[str, Any]]:
-    """Every (size, load set, dtype) row; prints the Markdown table and writes statics.md,
-    statics.csv and environment.json to ``out``."""
+                          seed: int = 0, out: str | Path | None = None,
+                          ik_targets: tuple[int, ...] = (1000,)) -> list[dict[str, Any]]:
+    """Every (size, load set, dtype) row and the tension-space IK rows (``ik_targets``
+    targets, without and under a tip force); prints the Markdown tables and writes
+    statics.md, statics.csv, tension_ik.csv and environment.json to ``out``."""
     rows = []
     for load_set in load_sets:
         for dtype in dtypes:
@@ -107,12 +161,25 @@ def run_statics_benchmark(robot: str = "tdcr2_rao2021",
                 row = bench_statics(robot, cases, load_set, dtype, repeats, seed)
                 rows.append({**asdict(row), "solves_per_s": row.solves_per_s,
                              "converged_pct": 100.0 * row.converged})
+    ik_rows = []
+    for targets in ik_targets:
+        for loads in ("none", "force"):
+            ik = bench_tension_ik(robot, targets, loads, min(repeats, 3), seed)
+            ik_rows.append({**asdict(ik), "success_pct": 100.0 * ik.success,
+                            "median_error_mm": 1e3 * ik.median_error_m,
+                            "max_error_mm": 1e3 * ik.max_error_m})
     env = environment()
     report = (f"## Cosserat statics, {robot}\n\n"
               "`solve_statics` on random cases (tensions 0–6 N on 1–2 tendons per segment; "
               "`mixed`: a third with a 0.3 N tip force, a third with a 0.01 N·m tip "
               f"moment); steady state is the median of {repeats} runs after the first "
-              "call.\n\n" + markdown_table(rows, COLUMNS) + "\n\n" + environment_markdown(env))
-    write_report("statics", report, out, tables={"statics": rows}, env=env,
-                 settings={"robot": robot, "repeats": repeats, "seed": seed})
+              "call.\n\n" + markdown_table(rows, COLUMNS))
+    if ik_rows:
+        report += ("\n\nTension-space IK (`TensionIKSolver`) on tip positions of random "
+                   "feasible tensions (the same tension sets; `force`: all under a 0.05 N "
+                   "sideways tip force); errors by an independent forward solve.\n\n"
+                   + markdown_table(ik_rows, IK_COLUMNS))
+    report += "\n\n" + environment_markdown(env)
+    write_report("statics", report, out, tables={"statics": rows, "tension_ik": ik_rows},
+                 env=env, settings={"robot": robot, "repeats": repeats, "seed": seed})
     return rows

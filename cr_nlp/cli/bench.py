@@ -250,6 +250,9 @@ def _add_statics(group: argparse._SubParsersAction) -> None:
                        seed=True)
     p.add_argument("--robot", default="tdcr2_rao2021",
                    help="robot with a mechanics block (default tdcr2_rao2021)")
+    p.add_argument("--ik-targets", type=int, nargs="*", default=[1000],
+                   help="tension-space IK rows: targets per batch (default 1000; none: "
+                        "no IK rows)")
     p.set_defaults(run=_run_statics)
 
 
@@ -259,7 +262,8 @@ def _run_statics(args: argparse.Namespace) -> int:
     _check_repeats(args)
     run_statics_benchmark(robot=args.robot, sizes=tuple(args.cases),
                           load_sets=tuple(args.loads), dtypes=tuple(args.dtype),
-                          repeats=args.repeats, seed=args.seed, out=args.out)
+                          repeats=args.repeats, seed=args.seed, out=args.out,
+                          ik_targets=tuple(args.ik_targets))
     _wrote(args, "statics")
     return 0
 

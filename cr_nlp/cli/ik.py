@@ -6,6 +6,7 @@ import argparse
 import sys
 from dataclasses import replace
 
+from . import _tension_ik as tension_ik
 from ._io import (
     UsageError,
     add_model_margin_option,
@@ -32,6 +33,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="RESULT.json to write ('-' for stdout)")
     p.add_argument("--csv", help="also write the motor commands (a robot file with an "
                                  "actuation block): target, then one column per tendon, m")
+    p.add_argument("--model", choices=("pcc", "cosserat"), default="pcc",
+                   help="pcc (default): configurations of the constant-curvature model; "
+                        "cosserat: tendon tensions on the Cosserat-rod model (robot files "
+                        "with a mechanics block), written to --out and --csv")
+    tension_ik.add_options(p)
     add_model_margin_option(p)
     p.set_defaults(run=run)
 
@@ -41,6 +47,8 @@ def run(args: argparse.Namespace) -> int:
     from ..tasks.ik import IKConfig, IKSolver, read_targets
 
     robot = load_robot_arg(args.robot)
+    if args.model == "cosserat":
+        return tension_ik.run(args, robot)
     scene = load_scene_arg(args.scene)
     try:
         positions, wxyz, problems = read_targets(resolve(args.targets, "targets", "--targets"))

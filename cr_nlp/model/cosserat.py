@@ -289,8 +289,9 @@ def _integrate(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
                keep_path: bool) -> tuple:
     """RK4 from the base (disk frame = base frame) with M(0) = ``base_moment``.
 
-    Returns (M at the tip (3,), tendon lengths (T,), positions (S+1, 3) or None,
-    rotations (S+1, 3, 3) or None).
+    Returns (M at the tip (3,), tendon lengths (T,), then with ``keep_path`` the positions
+    (S+1, 3) and rotations (S+1, 3, 3) along the arc, else the tip's position (3,) and
+    rotation (3, 3)).
     """
     dtype = base_moment.dtype
     n_tendons = lay.active.shape[1]
@@ -332,10 +333,10 @@ def _integrate(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
         new = axpy(carry, h, slope)
         return new, ((_array(new[0]), _array(new[1]).reshape(3, 3)) if keep_path else None)
 
-    (_, _, mom, ell), path = jax.lax.scan(step, (p0, r0, _vec(base_moment), l0), xs)
+    (tip, frame, mom, ell), path = jax.lax.scan(step, (p0, r0, _vec(base_moment), l0), xs)
     mom, ell = _array(mom), _array(ell) if n_tendons else jnp.zeros(0, dtype)
     if not keep_path:
-        return mom, ell, None, None
+        return mom, ell, _array(tip), _array(frame).reshape(3, 3)
     positions = jnp.concatenate([jnp.zeros((1, 3), dtype), path[0]], axis=0)
     rotations = jnp.concatenate([jnp.eye(3, dtype=dtype)[None], path[1]], axis=0)
     return mom, ell, positions, rotations
@@ -448,6 +449,31 @@ def _shoot(lay: _Layout, config: StaticsConfig, tension: jax.Array, tip_force: j
 
     guess = jnp.zeros(3, tension.dtype)
     return jax.lax.custom_root(residual, guess, solve, tangent_solve, has_aux=True)
+
+
+def tip_equilibrium(robot: Robot, config: StaticsConfig = StaticsConfig()) -> Any:
+    """The per-case JAX function ``f(tension, base_moment, tip_force, tip_moment, gravity)
+    -> (tip position (3,), tip rotation (3, 3), equilibrium residual (3,))`` of one
+    integration pass from a given moment at the base M(0) (N·m), base frame.
+
+    The residual ``M(L) − M_tip`` (N·m) is zero at an equilibrium: a solver may take M(0)
+    as an unknown beside the tensions (tension-space IK does) instead of shooting for it
+    at every step.
+    """
+    lay = _layout(robot, config)
+
+    def tip(tension: jax.Array, base_moment: jax.Array, tip_force: jax.Array,
+            tip_moment: jax.Array, gravity: jax.Array) -> tuple[jax.Array, ...]:
+        mom, _, position, rotation = _integrate(lay, config, base_moment, tension,
+                                                tip_force, gravity, False)
+        return position, rotation, mom - tip_moment
+
+    return tip
+
+
+def moment_scale(robot: Robot) -> float:
+    """E·I / L (N·m per radian of bending over the robot): the size of a moment."""
+    return _layout(robot, StaticsConfig()).moment_scale
 
 
 def _finish(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,

@@ -44,10 +44,20 @@ class LMConfig:
     for n ≲ 24 but its program grows as n³) or ``"cholesky"`` (batched LAPACK
     ``cho_factor``/``cho_solve``, for large n such as a whole trajectory)."""
 
+    jacobian: str = "forward"
+    """How the Jacobian is taken: ``"forward"`` (forward-mode derivatives, exact) or
+    ``"differences"`` (forward differences: n + 1 residual evaluations in one vectorised
+    call, steps √ε·max(|z|, 1), so z should be scaled to order one). Differences serve
+    residuals whose forward-mode derivative XLA compiles poorly, such as an ODE
+    integration with inner fixed-point sweeps (the Cosserat rod)."""
+
     def __post_init__(self) -> None:
         if self.linear_solver not in ("unrolled", "cholesky"):
             raise ValueError(f"linear_solver must be 'unrolled' or 'cholesky', "
                              f"got {self.linear_solver!r}")
+        if self.jacobian not in ("forward", "differences"):
+            raise ValueError(f"jacobian must be 'forward' or 'differences', "
+                             f"got {self.jacobian!r}")
 
 
 def solve_spd(a: jax.Array, b: jax.Array) -> jax.Array:
@@ -85,10 +95,24 @@ def _cost(residual: Residual, z: jax.Array, params: Any, shared: Any) -> jax.Arr
     return 0.5 * jnp.sum(r * r, axis=-1)
 
 
+def _differences(residual: Residual, z: jax.Array, params: Any,
+                 shared: Any) -> tuple[jax.Array, jax.Array]:
+    """(J (B, m, n), r (B, m)) by forward differences, all n + 1 points in one call."""
+    n = z.shape[-1]
+    h = jnp.sqrt(jnp.finfo(z.dtype).eps) * jnp.maximum(jnp.abs(z), 1.0)     # (B, n)
+    points = jnp.concatenate([z[:, None], z[:, None] + jnp.eye(n, dtype=z.dtype) * h[:, None]],
+                             axis=1)                                       # (B, n + 1, n)
+    each = jax.vmap(jax.vmap(residual, in_axes=(0, None, None)), in_axes=(0, 0, None))
+    r = each(points, params, shared)                                       # (B, n + 1, m)
+    j = (r[:, 1:] - r[:, :1]) / h[:, :, None]                              # (B, n, m)
+    return jnp.swapaxes(j, 1, 2), r[:, 0]
+
+
 @partial(jax.jit, static_argnames=("residual", "project", "config"))
 def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any, shared: Any,
-             free: jax.Array, iterations: jax.Array,
-             config: LMConfig = LMConfig()) -> tuple[jax.Array, jax.Array, jax.Array]:
+             free: jax.Array, iterations: jax.Array, config: LMConfig = LMConfig(),
+             bounds: tuple[jax.Array, jax.Array] | None = None
+             ) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Run projected LM on a batch.
 
     Args:
@@ -101,6 +125,10 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
         free: (n,) 1.0 for variables the solver may move, 0.0 for fixed ones.
         iterations: maximum iterations (a traced integer: no recompilation per budget).
         config: tolerances and damping.
+        bounds: optional (lower (n,), upper (n,)) box that ``project`` enforces (±inf where
+            none). A variable on its bound whose gradient points out of the box is held
+            there for the step (the projected-Newton active set), so that the step of the
+            others is not spoiled by a clipped one.
 
     Returns:
         z (B, n), final cost ½‖r‖² (B,), iterations used (scalar).
@@ -116,13 +144,26 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
 
     # One forward-mode pass gives the Jacobian and the residual together.
     jac_and_residual = jax.vmap(jax.jacfwd(with_value, has_aux=True), in_axes=(0, 0, None))
+    if config.jacobian == "differences":
+        jac_and_residual = partial(_differences, residual)
 
     def body(state: tuple) -> tuple:
         z, cost, lam, nu, done, it = state
         j, r = jac_and_residual(z, params, shared)
-        j = j * free
-        g = jnp.einsum("bmi,bm->bi", j, r)
-        h = jnp.einsum("bmi,bmj->bij", j, j) * mask + fixed_diag
+        if bounds is None:
+            j = j * free
+            g = jnp.einsum("bmi,bm->bi", j, r)
+            h = jnp.einsum("bmi,bmj->bij", j, j) * mask + fixed_diag
+        else:
+            g = jnp.einsum("bmi,bm->bi", j, r)
+            tight = 1e-12 * (1.0 + jnp.abs(z))
+            held = (((z <= bounds[0] + tight) & (g > 0))
+                    | ((z >= bounds[1] - tight) & (g < 0)))
+            moving = free * (1.0 - held.astype(dtype))                      # (B, n)
+            j = j * moving[:, None, :]
+            g = g * moving
+            h = (jnp.einsum("bmi,bmj->bij", j, j)
+                 + jax.vmap(jnp.diag)(1.0 - moving))
         diag = jnp.diagonal(h, axis1=-2, axis2=-1)
         # Marquardt scaling with a floor so a vanishing column still gets damped.
         scale = jnp.maximum(diag, 1e-9 * jnp.max(diag, axis=-1, keepdims=True) + 1e-12)

@@ -36,6 +36,7 @@ RESULT_KINDS: dict[str, str] = {
     "ik": "cr_nlp.tasks.ik:IKResult",
     "trajectory": "cr_nlp.tasks.trajectory:TrajectoryResult",
     "follow": "cr_nlp.tasks.follow:FollowResult",
+    "tension_ik": "cr_nlp.tasks.tension_ik:TensionIKResult",
 }
 """kind → "module:class" of its result class (imported on first use)."""
 

@@ -493,10 +493,10 @@ def _self_distance(r: float, a: Xyz, b: Xyz, i: np.ndarray, j: np.ndarray) -> np
     return own - 2.0 * r
 
 
-def _verdicts(robot: Robot, fscene: _FclScene,
-              chains: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _verdicts(robot: Robot, fscene: _FclScene, chains: np.ndarray,
+              per_segment: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Obstacle distance (B,), its part index (B,; −1: none) and self distance (B,) for
-    body chains (B, 1 + n·k, 3)."""
+    body chains (B, 1 + n·k, 3) of k pieces per segment."""
     r = robot.backbone_radius
     count = len(chains)
     obstacle = np.full(count, np.inf)
@@ -518,7 +518,7 @@ def _verdicts(robot: Robot, fscene: _FclScene,
         part = fscene.sphere_index[nearest % spheres]
     if len(fscene.other_index):
         _fcl_search(r, fscene, chains[:, :-1], chains[:, 1:], obstacle, part)
-    i, j = _far_pairs(chains.shape[1] - 1, robot.points_per_segment)
+    i, j = _far_pairs(chains.shape[1] - 1, per_segment)
     if len(i) and robot.self_collision:
         own = _self_distance(r, a, b, i, j)
     return obstacle, part, own
@@ -542,12 +542,25 @@ def check_many(robot: Robot, scene: Scene | None, qs: Any) -> CheckManyResult:
     """The verdicts for a batch of configurations qs (B, 3n); ``scene`` None: the robot's
     self-collision only (``robot.self_collision`` false: none)."""
     qs = np.asarray(qs, dtype=np.float64).reshape(-1, robot.dof)
-    chains = body_chain(robot, qs)
+    return check_chains(robot, scene, body_chain(robot, qs), robot.points_per_segment)
+
+
+def check_chains(robot: Robot, scene: Scene | None, chains: Any,
+                 pieces_per_segment: int) -> CheckManyResult:
+    """The verdicts for backbone polylines of any shape model (e.g. Cosserat statics):
+    ``chains`` (B, 1 + n·k, 3) from the base to the tip in metres, the robot's body a
+    capsule of ``robot.backbone_radius`` around every piece, k pieces per segment (so
+    that pieces of segments at least two apart are checked against each other)."""
+    chains = np.asarray(chains, dtype=np.float64)
+    if chains.ndim != 3 or chains.shape[2] != 3 or (chains.shape[1] - 1) % pieces_per_segment:
+        raise ValueError(f"chains must be (B, 1 + n·{pieces_per_segment}, 3), got "
+                         f"{chains.shape}")
     fscene = _fcl_scene(scene)
     pieces = chains.shape[1] - 1
-    width = max(len(fscene.objects), len(_far_pairs(pieces, robot.points_per_segment)[0]), 1)
+    width = max(len(fscene.objects), len(_far_pairs(pieces, pieces_per_segment)[0]), 1)
     step = max(1, _BATCH_ELEMENTS // (pieces * width))
-    parts = [_verdicts(robot, fscene, chains[s:s + step]) for s in range(0, len(qs), step)]
+    parts = [_verdicts(robot, fscene, chains[s:s + step], pieces_per_segment)
+             for s in range(0, len(chains), step)]
     obstacle, part, own = (np.concatenate([p[k] for p in parts]) if parts else
                            np.zeros(0, dtype=np.int64 if k == 1 else float) for k in range(3))
     min_distance = np.minimum(obstacle, own)

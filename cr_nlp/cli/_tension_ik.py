@@ -1,0 +1,79 @@
+"""``cr-nlp ik --model cosserat``: tendon tensions for target tip positions on the
+Cosserat-rod model (tension-space IK, ``tasks.tension_ik``)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import replace
+
+import numpy as np
+
+from ._io import (
+    UsageError,
+    fmt,
+    load_scene_arg,
+    model_margin,
+    parse_numbers,
+    resolve,
+    write_result,
+)
+
+
+def add_options(p: argparse.ArgumentParser) -> None:
+    """The options ``cr-nlp ik`` takes for ``--model cosserat``."""
+    p.add_argument("--orientation", action="store_true",
+                   help="--model cosserat: also reach the targets' wxyz (robots with the "
+                        "freedom for it); default: positions only")
+    p.add_argument("--tip-force", help="--model cosserat: fx,fy,fz force on the tip, N, "
+                                       "world frame")
+    p.add_argument("--tip-moment", help="--model cosserat: mx,my,mz moment on the tip, N·m")
+    p.add_argument("--gravity", help="--model cosserat: gx,gy,gz gravity, m/s², world frame")
+
+
+def _vector(text: str | None, what: str) -> list[float] | None:
+    if text is None:
+        return None
+    values = parse_numbers(text, what)
+    if len(values) != 3:
+        raise UsageError(f"{what}: expected 3 numbers, got {len(values)}")
+    return values
+
+
+def run(args: argparse.Namespace, robot: object) -> int:
+    """Solve in tension space, write RESULT.json (kind ``tension_ik``) and, with ``--csv``,
+    the tensions; print a one-line summary on stderr."""
+    from ..tasks.ik import read_targets
+    from ..tasks.tension_ik import TensionIKConfig, TensionIKSolver
+
+    if getattr(robot, "mechanics", None) is None:
+        raise UsageError(f"--model cosserat: {robot.name} has no 'mechanics' block (the rod's "
+                         f"stiffness and tension limit); see models/README.md")
+    if args.exact:
+        raise UsageError("--exact: the Cosserat model has no exact (Ipopt) stage; its answers "
+                         "are checked by an independent forward statics solve")
+    try:
+        positions, wxyz, problems = read_targets(resolve(args.targets, "targets", "--targets"))
+    except ValueError as exc:
+        raise UsageError(f"--targets: {exc}") from None
+    loads = {"tip_force": _vector(args.tip_force, "--tip-force"),
+             "tip_moment": _vector(args.tip_moment, "--tip-moment"),
+             "gravity": _vector(args.gravity, "--gravity")}
+    config = TensionIKConfig(seed=args.seed)
+    config = replace(config, safety_margin=config.safety_margin
+                     + model_margin(robot, args.model_margin))
+    solver = TensionIKSolver(robot, load_scene_arg(args.scene), config)
+    result = solver.solve(positions, wxyz if args.orientation else None, **loads)
+    for i, problem in enumerate(problems):
+        if problem:
+            result.reason[i] = problem
+    write_result(result, args.out)
+    if args.csv:
+        result.save_csv(args.csv)
+    summary = result.summary()
+    errors = result.position_error[result.success]
+    print(f"{robot.name} (Cosserat): {summary['targets']} targets, "
+          f"{100 * summary['success_rate']:.1f} % success, median position error "
+          f"{fmt(float(np.median(errors)) if errors.size else None)} m (successes); "
+          f"{result.timing.total:.2f} s", file=sys.stderr)
+    return 0

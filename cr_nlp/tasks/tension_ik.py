@@ -1,0 +1,573 @@
+"""Inverse kinematics in tension space: tendon tensions that put the tip of the Cosserat
+rod model (``model.cosserat``) at target positions (and orientations), batched.
+
+The problem of one target: tensions τ ∈ [0, τ_max]ⁿ and the moment at the base M(0)
+(the shooting unknown of the statics, here an unknown of the IK itself) minimise
+
+    ‖p(τ, M(0)) − p*‖² + ‖L·rot(R*ᵀR)‖² (with an orientation) + w_eq‖L·(M(L) − M_tip)/(EI/L)‖²
+    + ρ²‖τ/τ_max‖²,
+
+one integration pass of the rod per residual evaluation. The equilibrium term is zero at
+a solution, so the answer is an equilibrium of the rod, not a penalty compromise (it and
+M(0) are left out when no tip force or gravity acts: then M(0) = M_tip exactly).
+
+The unknowns. Three or more tendons per segment (evenly around it) bend it in two
+directions, so many tension sets give one shape. The LM therefore works on each tendon
+group's net pull moment d = Σ τ_i (r_i × e3) (2 numbers per segment; one group for shared
+routing), and the tensions are the least ones giving it: the two tendons whose directions
+enclose d (a 2×2 solve), the others slack, capped at τ_max (``_tensions_from_moments``).
+That map is continuous and piecewise linear, needs no bounds in the LM, and never asks
+antagonistic tendons to fight. Robots with fewer than three tendons per group solve
+in the tensions themselves, kept in [0, τ_max] by the LM's active-set projection, with
+ρ (a length, default 10 µm) picking the least-tension answer. The LM's Jacobian is taken
+by forward differences (``LMConfig.jacobian``), and every target starts from the pool
+tension set whose tip is nearest (a batch of forward statics solves).
+
+Success is the one verdict (``world.verdict``) on numbers re-evaluated independently of
+the LM: the tip of a fresh forward statics solve (``solve_statics``, its own shooting) of
+the answer's tensions within ``tolerance`` of the target, that solve converged, the
+tensions within their bounds, and with a scene the clearance of the solved backbone
+(python-fcl capsules, ``world.check.check_chains``) and its self-clearance at least the
+safety margin. Units: metres, radians, newtons, N·m, m/s².
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any, ClassVar, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..model import Robot, load_robot
+from ..model.cosserat import StaticsConfig, StaticsResult, moment_scale, solve_statics
+from ..model.cosserat import tip_equilibrium as _tip_equilibrium
+from ..model.kinematics import tendon_angles
+from ..model.rotations import matrix_from_wxyz
+from ..stages.lm import LMConfig, lm_solve
+from ..world.check import check_chains
+from ..world.scene import Scene, load_scene
+from ..world.verdict import judge_many
+from ._result import ResultIO, array, nums, row_lists
+from ._timing import StageTiming
+
+EQUILIBRIUM_WEIGHT = 10.0
+"""Weight of the equilibrium residual against the tip residual (both in metres)."""
+
+
+@dataclass(frozen=True)
+class TensionIKConfig:
+    """Settings of the tension-space IK."""
+
+    tolerance: float = 1e-4
+    """Success: the re-evaluated tip is within this of the target (m; with orientations
+    the pose error √(‖Δp‖² + (L·Δθ)²), Δθ in rad, L the robot's length)."""
+    tension_weight: float = 1e-5
+    """ρ, metres: the least-tension preference (see the module's docstring)."""
+    pool_size: int = 16384
+    """Random tension sets whose tips seed the search (one forward statics batch, once per
+    solver and load case)."""
+    iterations: int = 20
+    """LM iterations at most."""
+    retry_seeds: int = 6
+    """Targets that fail the verdict are solved again from their next-nearest pool
+    entries, this many (0: no retry)."""
+    safety_margin: float = 0.002
+    """δ, metres: the clearance every answer keeps from obstacles and between segments at
+    least two apart."""
+    seed: int = 0
+    """Seed of the pool."""
+    statics: StaticsConfig = field(default_factory=StaticsConfig)
+    """The rod discretisation (shared by the LM and the verdict's solve) and its dtype."""
+
+
+@dataclass
+class TensionIKResult(ResultIO):
+    """One row per target (SI units; the tip as the independent forward solve puts it)."""
+
+    kind: ClassVar[str] = "tension_ik"
+
+    robot: Robot
+    tensions: np.ndarray          # (B, n_tendons) N
+    target_position: np.ndarray   # (B, 3) m
+    target_wxyz: np.ndarray       # (B, 4), NaN rows: position-only targets
+    position: np.ndarray          # (B, 3) tip of the verdict's forward solve, m
+    wxyz: np.ndarray              # (B, 4) its orientation
+    pose_error: np.ndarray        # (B,) m (see TensionIKConfig.tolerance)
+    position_error: np.ndarray    # (B,) m
+    rotation_error: np.ndarray    # (B,) rad, NaN for position-only targets
+    min_clearance: np.ndarray     # (B,) m to the nearest obstacle (inf: no scene)
+    max_violation: np.ndarray     # (B,) worst violation of the verdict
+    success: np.ndarray           # (B,) bool
+    reason: list[str]
+    tip_force: np.ndarray         # (B, 3) N, world frame
+    tip_moment: np.ndarray        # (B, 3) N·m
+    gravity: np.ndarray           # (B, 3) m/s²
+    tendon_displacements: np.ndarray | None = None   # (B, n_tendons) m, pulled > 0
+    timing: StageTiming = field(default_factory=StageTiming)
+
+    def __len__(self) -> int:
+        return len(self.tensions)
+
+    def summary(self) -> dict[str, Any]:
+        """Success rate and position errors in mm, for people."""
+        ok = self.success
+        return {"targets": len(self), "success_rate": float(np.mean(ok)) if len(self) else 0.0,
+                "median_position_error_mm": float(np.nanmedian(self.position_error) * 1e3)
+                if len(self) else float("nan"),
+                "max_position_error_mm": float(np.nanmax(self.position_error) * 1e3)
+                if len(self) else float("nan"),
+                "time_s": self.timing.total}
+
+    def _fields_dict(self) -> dict[str, Any]:
+        return {
+            "tensions": row_lists(self.tensions),
+            "target_position": row_lists(self.target_position),
+            "target_wxyz": row_lists(self.target_wxyz),
+            "position": row_lists(self.position), "wxyz": row_lists(self.wxyz),
+            "pose_error": nums(self.pose_error), "position_error": nums(self.position_error),
+            "rotation_error": nums(self.rotation_error),
+            "min_clearance": nums(self.min_clearance),
+            "max_violation": nums(self.max_violation),
+            "success": [bool(s) for s in self.success], "reason": list(self.reason),
+            "tip_force": row_lists(self.tip_force), "tip_moment": row_lists(self.tip_moment),
+            "gravity": row_lists(self.gravity),
+            "tendon_displacements": row_lists(self.tendon_displacements),
+            "timing": self.timing.as_dict(), "summary": self.summary(),
+        }
+
+    @classmethod
+    def _from_fields(cls, data: dict[str, Any], robot: Robot) -> TensionIKResult:
+        n = robot.n_tendons
+        count = len(data["tensions"])
+
+        def inf(values: list) -> np.ndarray:
+            out = array(values)
+            return np.where(np.isnan(out), np.inf, out)  # JSON keeps no infinity
+
+        return cls(
+            robot=robot, tensions=array(data["tensions"], n, "tensions"),
+            target_position=array(data["target_position"], 3, "target_position"),
+            target_wxyz=array(data["target_wxyz"], 4, "target_wxyz"),
+            position=array(data["position"], 3, "position"),
+            wxyz=array(data["wxyz"], 4, "wxyz"),
+            pose_error=array(data["pose_error"]), position_error=array(data["position_error"]),
+            rotation_error=array(data["rotation_error"]),
+            min_clearance=inf(data["min_clearance"]),
+            max_violation=array(data["max_violation"]),
+            success=np.array(data["success"], dtype=bool), reason=list(data["reason"]),
+            tip_force=array(data["tip_force"], 3, "tip_force"),
+            tip_moment=array(data["tip_moment"], 3, "tip_moment"),
+            gravity=array(data["gravity"], 3, "gravity"),
+            tendon_displacements=array(data["tendon_displacements"], n,
+                                       "tendon_displacements") if count else np.zeros((0, n)),
+            timing=StageTiming.from_dict(data.get("timing")))
+
+    def save_csv(self, path: str | Path) -> Path:
+        """One row per target: target x, y, z (m), the tensions t1…tN (N), the reached tip
+        x, y, z (m), position error (m), success."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        n = self.robot.n_tendons
+        with path.open("w", newline="") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(["target_x", "target_y", "target_z",
+                             *(f"tension_{i + 1}_N" for i in range(n)),
+                             "tip_x", "tip_y", "tip_z", "position_error", "success"])
+            for i in range(len(self)):
+                writer.writerow([*(f"{v:.9f}" for v in self.target_position[i]),
+                                 *(f"{v:.6f}" for v in self.tensions[i]),
+                                 *(f"{v:.9f}" for v in self.position[i]),
+                                 f"{self.position_error[i]:.3e}", int(self.success[i])])
+        return path
+
+
+# ---------------------------------------------------------------- the LM problem
+
+class _Groups(NamedTuple):
+    """Static description of the tendon groups (numpy): tendons of group g are
+    ``index[g]``, their pull directions r_i × e3 (in the xy plane) ``pull[g]`` (m), and
+    ``pairs[g]`` the neighbouring pairs (i, j) around the circle (positions in the group)."""
+
+    index: np.ndarray   # (G, m) tendon indices
+    pull: np.ndarray    # (G, m, 2) m
+    pairs: np.ndarray   # (m, 2)
+
+
+def _groups(robot: Robot) -> _Groups | None:
+    """The tendon groups of ``robot``, None if a group has fewer than three tendons (their
+    moments then do not cover the plane)."""
+    m = robot.tendons.per_segment
+    if m < 3:
+        return None
+    angles = tendon_angles(robot)
+    if robot.tendons.routing == "shared":
+        angles = angles[:1]
+    index = np.arange(angles.size).reshape(angles.shape)
+    r = robot.tendons.radius
+    # r_i × e3 for r_i = r (cos α, sin α, 0): r (sin α, −cos α, 0)
+    pull = r * np.stack([np.sin(angles), -np.cos(angles)], axis=-1)
+    order = np.argsort(np.mod(angles[0] - angles[0, 0], 2 * np.pi))
+    pairs = np.stack([order, np.roll(order, -1)], axis=-1)
+    return _Groups(index, pull, pairs)
+
+
+def _tensions_from_moments(groups: _Groups, n_tendons: int, tension_max: float,
+                           d: jax.Array) -> jax.Array:
+    """The least tensions (n_tendons,), N, whose groups pull with net moments d (G, 2),
+    N·m: per group the two neighbouring tendons enclosing d, capped at τ_max."""
+    tension = jnp.zeros(n_tendons, d.dtype)
+    for g in range(len(groups.index)):
+        v = groups.pull[g]
+        found = jnp.zeros((), bool)
+        for i, j in groups.pairs:
+            det = v[i, 0] * v[j, 1] - v[i, 1] * v[j, 0]
+            a = (d[g, 0] * v[j, 1] - d[g, 1] * v[j, 0]) / det
+            b = (v[i, 0] * d[g, 1] - v[i, 1] * d[g, 0]) / det
+            use = (a >= 0) & (b >= 0) & ~found
+            found = found | use
+            tension = tension.at[groups.index[g, i]].add(jnp.where(use, a, 0.0))
+            tension = tension.at[groups.index[g, j]].add(jnp.where(use, b, 0.0))
+    return jnp.minimum(tension, tension_max)
+
+
+def _moments_from_tensions(groups: _Groups, tensions: np.ndarray) -> np.ndarray:
+    """(B, G, 2) net pull moments of tension sets (B, n), N·m (the map's inverse on its
+    least-tension sets, and a seed for any set)."""
+    return np.einsum("bgm,gmk->bgk", tensions[:, groups.index], groups.pull)
+
+
+def _residual(robot: Robot, statics: StaticsConfig, weights: tuple[float, float, float, float],
+              shoot: bool, z: jax.Array, p: tuple, shared: Any) -> jax.Array:
+    """One target's residual (metres) at z = (the unknowns of the tensions, then with
+    ``shoot`` M(0)/(EI/L)); ``weights`` are (τ_max N, EI/L N·m, robot length m, ρ m)."""
+    del shared
+    tension_max, scale, length, rho = weights
+    target, target_rot, rot_weight, force, moment, gravity = p
+    n = robot.n_tendons
+    groups = _groups(robot)
+    if groups is None:
+        tension = z[:n] * tension_max
+        width = n
+        unknowns = rho * z[:n]
+    else:
+        width = 2 * len(groups.index)
+        reference = tension_max * robot.tendons.radius
+        tension = _tensions_from_moments(groups, n, tension_max,
+                                         z[:width].reshape(-1, 2) * reference)
+        unknowns = jnp.zeros(0, z.dtype)
+    base_moment = z[width:] * scale if shoot else moment
+    tip, rot, eq = _tip_equilibrium(robot, statics)(tension, base_moment, force, moment,
+                                                    gravity)
+    # rot(R*ᵀR): the vector of its skew part, sin of the angle about its axis.
+    rel = target_rot.T @ rot
+    twist = 0.5 * jnp.stack([rel[2, 1] - rel[1, 2], rel[0, 2] - rel[2, 0],
+                             rel[1, 0] - rel[0, 1]])
+    rows = [tip - target, rot_weight * length * twist, unknowns]
+    if shoot:
+        rows.append(EQUILIBRIUM_WEIGHT * length * eq / scale)
+    return jnp.concatenate(rows)
+
+
+def _project(n: int, z: jax.Array) -> jax.Array:
+    """Tensions onto [0, τ_max] (z's first n entries onto [0, 1]); M(0) is free."""
+    return z.at[:, :n].set(jnp.clip(z[:, :n], 0.0, 1.0))
+
+
+def _identity(z: jax.Array) -> jax.Array:
+    return z
+
+
+class TensionIKSolver:
+    """Tension-space IK of a robot with a ``mechanics`` block (batched, numpy in/out)."""
+
+    def __init__(self, robot: Robot | str | dict, scene: Scene | str | None = None,
+                 config: TensionIKConfig = TensionIKConfig()) -> None:
+        self.robot = load_robot(robot)
+        if self.robot.mechanics is None:
+            raise ValueError(f"{self.robot.name}: tension-space IK needs a 'mechanics' block "
+                             "in the robot file (see models/README.md)")
+        self.scene = None if scene is None else load_scene(scene)
+        self.config = config
+        self.tension_max = float(self.robot.mechanics.tension_max)
+        self.length = float(sum(s.length_min for s in self.robot.segments))
+        self._pool: dict[bytes, tuple[np.ndarray, cKDTree]] = {}
+        self._groups = _groups(self.robot)
+        # One residual and projection object per solver and case (with or without M(0)
+        # as an unknown): lm_solve compiles per object.
+        weights = (self.tension_max, moment_scale(self.robot), self.length,
+                   config.tension_weight)
+        self._residuals = {shoot: partial(_residual, self.robot, config.statics, weights, shoot)
+                           for shoot in (False, True)}
+        self._project = (_identity if self._groups is not None
+                         else partial(_project, self.robot.n_tendons))
+
+    # ------------------------------------------------------------ inputs
+
+    def _loads(self, value: Any, count: int, name: str) -> np.ndarray:
+        if value is None:
+            return np.zeros((count, 3))
+        arr = np.asarray(value, dtype=float)
+        if arr.ndim == 1:
+            arr = np.broadcast_to(arr, (count, arr.shape[0]))
+        if arr.shape != (count, 3) or not np.all(np.isfinite(arr)):
+            raise ValueError(f"{name}: expected 3 finite numbers or ({count}, 3), got shape "
+                             f"{np.shape(value)}")
+        return np.array(arr)
+
+    # ------------------------------------------------------------ the seeds
+
+    def pool(self, force: np.ndarray, moment: np.ndarray,
+             gravity: np.ndarray) -> tuple[np.ndarray, cKDTree]:
+        """(tensions (P, n) N, a k-d tree of their tips (m, world frame)): the seed pool
+        under one load case, random tensions on one or two tendons of each segment (most
+        robots bend with at most two of three), solved once and kept."""
+        key = np.concatenate([force, moment, gravity]).tobytes()
+        if key not in self._pool:
+            rng = np.random.default_rng(self.config.seed)
+            per = self.robot.tendons.per_segment
+            n = self.robot.n_tendons
+            size = self.config.pool_size
+            tensions = rng.uniform(0.0, self.tension_max, (size, n))
+            # Slacken one tendon (or, for a third of the sets, two) of every segment.
+            for s in range(n // per):
+                drop = rng.integers(0, per, size)
+                tensions[np.arange(size), s * per + drop] = 0.0
+                second = rng.random(size) < 1 / 3
+                tensions[np.flatnonzero(second), s * per + (drop[second] + 1) % per] = 0.0
+            result = solve_statics(self.robot, tensions, force, moment, gravity,
+                                   self.config.statics)
+            keep = result.converged
+            self._pool[key] = (tensions[keep], cKDTree(result.tip_position[keep]))
+        return self._pool[key]
+
+    # ------------------------------------------------------------ solve
+
+    def solve(self, positions: Any, wxyz: Any = None, tip_force: Any = None,
+              tip_moment: Any = None, gravity: Any = None) -> TensionIKResult:
+        """Tensions for each target.
+
+        Args:
+            positions: (B, 3) or (3,) target tip positions, m, world frame.
+            wxyz: None (position only) or (B, 4) / (4,) target orientations (unit
+                quaternions w, x, y, z); a row of NaN leaves that target's orientation free.
+            tip_force, tip_moment, gravity: (3,) or (B, 3) loads in the world frame (N,
+                N·m, m/s²); default none.
+
+        Returns:
+            ``TensionIKResult`` with every target's tensions and the independent verdict.
+        """
+        positions = np.atleast_2d(np.asarray(positions, dtype=float))
+        if positions.ndim != 2 or positions.shape[1] != 3:
+            raise ValueError(f"positions: expected (B, 3) metres, got shape "
+                             f"{np.shape(positions)}")
+        count = len(positions)
+        finite = np.all(np.isfinite(positions), axis=1)
+        if not finite.all():  # such rows are reported, not solved
+            return self._solve_finite(finite, positions, wxyz, tip_force, tip_moment, gravity)
+        if wxyz is None:
+            quats = np.full((count, 4), np.nan)
+        else:
+            quats = np.array(np.broadcast_to(np.asarray(wxyz, dtype=float), (count, 4)))
+            rows = ~np.any(np.isnan(quats), axis=1)
+            norms = np.linalg.norm(quats[rows], axis=1)
+            if np.any(np.abs(norms - 1.0) > 1e-6):
+                bad = np.flatnonzero(rows)[np.argmax(np.abs(norms - 1.0))]
+                raise ValueError(f"wxyz: target {bad} is not a unit quaternion")
+        loads = [self._loads(v, count, n) for v, n in ((tip_force, "tip_force"),
+                                                        (tip_moment, "tip_moment"),
+                                                        (gravity, "gravity"))]
+        timing = StageTiming()
+        if count == 0:
+            nothing = np.zeros((0, self.robot.n_tendons))
+            empty = np.zeros(0)
+            return TensionIKResult(
+                robot=self.robot, tensions=nothing, target_position=positions,
+                target_wxyz=quats, position=positions, wxyz=quats, pose_error=empty,
+                position_error=empty, rotation_error=empty, min_clearance=empty,
+                max_violation=empty, success=np.zeros(0, bool), reason=[],
+                tip_force=loads[0], tip_moment=loads[1], gravity=loads[2],
+                tendon_displacements=nothing, timing=timing)
+        start = time.perf_counter()
+        tensions = self._seeds(positions, loads, 0)
+        timing.explore = time.perf_counter() - start
+        start = time.perf_counter()
+        tensions = self._lm(tensions, positions, quats, loads)
+        timing.refine = time.perf_counter() - start
+        start = time.perf_counter()
+        result = self._verdict(tensions, positions, quats, loads, timing)
+        timing.verify = time.perf_counter() - start
+        for k in range(1, self.config.retry_seeds + 1):
+            failed = np.flatnonzero(~result.success)
+            if not failed.size:
+                break
+            start = time.perf_counter()
+            part = [v[failed] for v in loads]
+            retry = self._lm(self._seeds(positions[failed], part, k), positions[failed],
+                             quats[failed], part)
+            timing.refine += time.perf_counter() - start
+            start = time.perf_counter()
+            again = self._verdict(retry, positions[failed], quats[failed], part, timing)
+            better = again.success | (again.pose_error < result.pose_error[failed])
+            _replace_rows(result, again, failed[better], np.flatnonzero(better))
+            timing.verify += time.perf_counter() - start
+        result.timing = timing
+        return result
+
+    def _solve_finite(self, finite: np.ndarray, positions: np.ndarray, wxyz: Any,
+                      *loads: Any) -> TensionIKResult:
+        """``solve`` on the rows with finite positions; the others failed, with a reason."""
+        count = len(positions)
+
+        def rows(value: Any, width: int) -> Any:
+            if value is None:
+                return None
+            arr = np.asarray(value, dtype=float)
+            return arr[finite] if arr.ndim == 2 and len(arr) == count else arr
+
+        part = self.solve(positions[finite], rows(wxyz, 4), *(rows(v, 3) for v in loads))
+        full = self.solve(np.zeros((0, 3)))
+        for name in ("tensions", "target_position", "target_wxyz", "position", "wxyz",
+                     "pose_error", "position_error", "rotation_error", "min_clearance",
+                     "max_violation", "success", "tip_force", "tip_moment", "gravity",
+                     "tendon_displacements"):
+            values = getattr(part, name)
+            out = (np.zeros(count, bool) if values.dtype == bool
+                   else np.full((count, *values.shape[1:]), np.nan))
+            out[finite] = values
+            setattr(full, name, out)
+        full.target_position = positions
+        full.reason = ["the target has non-finite coordinates"] * count
+        for i, j in zip(np.flatnonzero(finite).tolist(), range(len(part)), strict=True):
+            full.reason[i] = part.reason[j]
+        full.timing = part.timing
+        return full
+
+    def _seeds(self, positions: np.ndarray, loads: list[np.ndarray], rank: int) -> np.ndarray:
+        """The pool tensions whose tip is the ``rank``-th nearest to each target, under the
+        target's loads when all targets share one load case, else without loads."""
+        shared = all(np.all(v == v[:1]) for v in loads)
+        case = [v[0] if shared else np.zeros(3) for v in loads]
+        pool_t, tree = self.pool(*case)
+        _, order = tree.query(positions, k=[rank + 1])
+        return pool_t[order[:, 0]]
+
+    def _lm(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,
+            loads: list[np.ndarray]) -> np.ndarray:
+        """LM from the given tensions; returns the answer's tensions (B, n), N."""
+        robot, cfg = self.robot, self.config
+        dtype = np.float64 if cfg.statics.dtype == "float64" else np.float32
+        base_rot = matrix_from_wxyz(np.asarray(robot.base_wxyz))
+        base_pos = np.asarray(robot.base_position)
+        # Targets and loads into the base frame (the rod is solved there).
+        target = (positions - base_pos) @ base_rot
+        oriented = ~np.any(np.isnan(quats), axis=1)
+        target_rot = np.tile(np.eye(3), (len(positions), 1, 1))
+        if oriented.any():
+            target_rot[oriented] = base_rot.T @ np.stack(
+                [matrix_from_wxyz(q) for q in quats[oriented]])
+        force, moment, gravity = (v @ base_rot for v in loads)
+        scale = moment_scale(robot)
+        n = robot.n_tendons
+        shoot = bool(np.any(force) or np.any(gravity))
+        if self._groups is None:
+            z0 = tensions / self.tension_max
+        else:
+            reference = self.tension_max * robot.tendons.radius
+            z0 = _moments_from_tensions(self._groups, tensions).reshape(len(tensions), -1)
+            z0 = z0 / reference
+        width = z0.shape[1]
+        if shoot:  # M(0) starts at the tip moment (exact without force and gravity)
+            z0 = np.concatenate([z0, moment / scale], axis=1)
+        size = max(16, 1 << (len(z0) - 1).bit_length())
+        pad = size - len(z0)
+
+        def padded(a: np.ndarray) -> jax.Array:
+            return jnp.asarray(np.concatenate([a, np.repeat(a[:1], pad, axis=0)]), dtype)
+
+        with jax.enable_x64(dtype == np.float64):
+            params = tuple(padded(a) for a in (target, target_rot,
+                                               oriented.astype(float), force, moment, gravity))
+            bounds = None
+            if self._groups is None:
+                extra = z0.shape[1] - n
+                bounds = (jnp.asarray(np.r_[np.zeros(n), np.full(extra, -np.inf)], dtype),
+                          jnp.asarray(np.r_[np.ones(n), np.full(extra, np.inf)], dtype))
+            z, _, _ = lm_solve(self._residuals[shoot], self._project, padded(z0), params,
+                               None, jnp.ones(z0.shape[1], dtype), jnp.asarray(cfg.iterations),
+                               LMConfig(jacobian="differences", linear_solver="unrolled",
+                                        cost_tolerance=0.5 * (1e-3 * cfg.tolerance) ** 2,
+                                        stall_tolerance=1e-6), bounds=bounds)
+            z = np.asarray(z, dtype=float)[:len(z0), :width]
+        if self._groups is None:
+            return np.clip(z, 0.0, 1.0) * self.tension_max
+        reference = self.tension_max * robot.tendons.radius
+        with jax.enable_x64(True):
+            tension = jax.vmap(partial(_tensions_from_moments, self._groups, n,
+                                       self.tension_max))(
+                jnp.asarray(z.reshape(len(z), -1, 2) * reference))
+        return np.asarray(tension, dtype=float)
+
+    def _verdict(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,
+                 loads: list[np.ndarray], timing: StageTiming) -> TensionIKResult:
+        """The independent check: a fresh forward statics solve of the answer's tensions,
+        the bounds, and with a scene python-fcl clearance of the solved backbone."""
+        cfg = self.config
+        statics: StaticsResult = solve_statics(self.robot, tensions, *loads, cfg.statics)
+        position_error = np.linalg.norm(statics.tip_position - positions, axis=1)
+        oriented = ~np.any(np.isnan(quats), axis=1)
+        rotation_error = np.full(len(positions), np.nan)
+        for i in np.flatnonzero(oriented):
+            rel = matrix_from_wxyz(quats[i]).T @ statics.tip_rotation[i]
+            rotation_error[i] = np.arccos(np.clip(0.5 * (np.trace(rel) - 1.0), -1.0, 1.0))
+        pose_error = np.sqrt(position_error ** 2
+                             + np.where(oriented, self.length * np.nan_to_num(rotation_error),
+                                        0.0) ** 2)
+        pose_error = np.where(statics.converged, pose_error, np.nan)
+        limits = np.maximum(np.max(-tensions, axis=1),
+                            np.max(tensions - self.tension_max, axis=1)).clip(0.0)
+        per_segment = (statics.positions.shape[1] - 1) // len(self.robot.segments)
+        checked = check_chains(self.robot, self.scene, statics.positions, per_segment)
+        verdicts = judge_many(
+            margin=cfg.safety_margin, limits=limits,
+            min_clearance=None if self.scene is None else checked.obstacle_distance,
+            self_clearance=checked.self_distance, pose_error=pose_error,
+            pose_tolerance=cfg.tolerance)
+        reason = [r if c else f"the forward statics did not converge (residual {res:.1e} N·m)"
+                  for r, c, res in zip(verdicts.reason, statics.converged, statics.residual,
+                                       strict=True)]
+        return TensionIKResult(
+            robot=self.robot, tensions=tensions, target_position=positions, target_wxyz=quats,
+            position=np.array(statics.tip_position), wxyz=np.array(statics.tip_wxyz),
+            pose_error=pose_error,
+            position_error=position_error, rotation_error=rotation_error,
+            min_clearance=np.array(checked.obstacle_distance),
+            max_violation=np.array(verdicts.max_violation),
+            success=np.array(verdicts.success & statics.converged), reason=reason,
+            tip_force=loads[0], tip_moment=loads[1], gravity=loads[2],
+            tendon_displacements=np.array(statics.tendon_displacements), timing=timing)
+
+
+def _replace_rows(result: TensionIKResult, other: TensionIKResult, rows: np.ndarray,
+                  from_rows: np.ndarray) -> None:
+    """Rows ``rows`` of ``result`` from rows ``from_rows`` of ``other`` (same targets)."""
+    for name in ("tensions", "position", "wxyz", "pose_error", "position_error",
+                 "rotation_error", "min_clearance", "max_violation", "success",
+                 "tendon_displacements"):
+        values = np.array(getattr(result, name))
+        values[rows] = getattr(other, name)[from_rows]
+        setattr(result, name, values)
+    for i, j in zip(rows.tolist(), from_rows.tolist(), strict=True):
+        result.reason[i] = other.reason[j]
+
+
+def solve_tension_ik(robot: Robot | str | dict, positions: Any, wxyz: Any = None,
+                     **loads: Any) -> TensionIKResult:
+    """One-call tension-space IK with the default config (see ``TensionIKSolver.solve``)."""
+    return TensionIKSolver(robot).solve(positions, wxyz, **loads)

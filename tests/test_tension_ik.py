@@ -1,0 +1,145 @@
+"""Tension-space IK on the Cosserat model: round trips tensions → statics → IK → statics
+(checked by a fresh forward solve, not by the result's own numbers), the least-tension
+map against its definition, a scene's clearance, the result file and the command."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from cr_nlp import load_result
+from cr_nlp.model import load_robot
+from cr_nlp.model.cosserat import solve_statics
+from cr_nlp.tasks.tension_ik import (
+    TensionIKConfig,
+    TensionIKResult,
+    TensionIKSolver,
+    _groups,
+    _moments_from_tensions,
+    _tensions_from_moments,
+)
+
+RAO = load_robot("tdcr2_rao2021")
+TENSION_MAX = RAO.mechanics.tension_max
+
+
+def _random_tensions(count: int, seed: int) -> np.ndarray:
+    """1–3 pulled tendons per segment, U[0, 0.8 τ_max] N (some sets co-contract)."""
+    rng = np.random.default_rng(seed)
+    t = rng.uniform(0.0, 0.8 * TENSION_MAX, (count, RAO.n_tendons))
+    t[rng.random(t.shape) < 0.4] = 0.0
+    return t
+
+
+@pytest.fixture(scope="module")
+def solver() -> TensionIKSolver:
+    return TensionIKSolver(RAO, config=TensionIKConfig(pool_size=4096))
+
+
+def test_least_tensions_give_the_moment_with_two_tendons_per_segment() -> None:
+    import jax
+
+    groups = _groups(RAO)
+    assert groups is not None
+    rng = np.random.default_rng(1)
+    d = rng.normal(scale=0.01, size=(200, 2, 2))            # N·m, well below τ_max·r
+    with jax.enable_x64(True):
+        t = np.asarray(jax.vmap(lambda x: _tensions_from_moments(groups, 6, 1e3, x))(d))
+    assert (t >= 0).all()
+    assert ((t > 0).reshape(200, 2, 3).sum(axis=2) <= 2).all()
+    np.testing.assert_allclose(_moments_from_tensions(groups, t), d, atol=1e-12)
+    # Least: no other non-negative set with that moment has a smaller sum (a third
+    # tendon only adds pull that the other two must cancel).
+    common = t + 0.5                                         # all three pulled
+    np.testing.assert_allclose(_moments_from_tensions(groups, common), d, atol=1e-12)
+    assert (common.sum(axis=1) > t.sum(axis=1)).all()
+
+
+def test_round_trip_tensions_statics_ik_statics(solver: TensionIKSolver) -> None:
+    truth = solve_statics(RAO, _random_tensions(40, seed=2))
+    assert truth.converged.all()
+    result = solver.solve(truth.tip_position)
+    assert result.success.mean() >= 0.975, [r for r in result.reason if r]
+    # Independent of the result's own numbers: solve the answer's tensions afresh.
+    again = solve_statics(RAO, result.tensions)
+    error = np.linalg.norm(again.tip_position - truth.tip_position, axis=1)
+    assert np.all(error[result.success] < 1e-4)
+    assert np.median(error) < 1e-8
+    assert (result.tensions >= 0).all() and (result.tensions <= TENSION_MAX).all()
+    np.testing.assert_allclose(result.tendon_displacements, again.tendon_displacements,
+                               atol=1e-12)
+
+
+def test_round_trip_under_a_tip_force(solver: TensionIKSolver) -> None:
+    force = np.array([0.03, -0.02, 0.0])
+    truth = solve_statics(RAO, _random_tensions(12, seed=3), force)
+    result = solver.solve(truth.tip_position, tip_force=force)
+    assert result.success.mean() >= 11 / 12, [r for r in result.reason if r]
+    again = solve_statics(RAO, result.tensions, force)
+    error = np.linalg.norm(again.tip_position - truth.tip_position, axis=1)
+    assert np.all(error[result.success] < 1e-4)
+    # Without the force in the model the same tensions miss: the load was solved for.
+    unloaded = solve_statics(RAO, result.tensions)
+    assert np.median(np.linalg.norm(unloaded.tip_position - truth.tip_position, axis=1)) > 1e-3
+
+
+def test_an_obstacle_on_the_backbone_fails_the_verdict() -> None:
+    truth = solve_statics(RAO, [[3.0, 0, 0, 0, 0, 0]])
+    middle = truth.positions[0, len(truth.arc_length) // 3]
+    scene = {"obstacles": [{"name": "ball", "type": "sphere", "center": middle.tolist(),
+                            "radius": 0.004}]}
+    blocked = TensionIKSolver(RAO, scene, TensionIKConfig(pool_size=1024, retry_seeds=0))
+    result = blocked.solve(truth.tip_position)
+    # The LM does not see obstacles: it reaches the target through the ball, and the
+    # verdict (python-fcl on the solved backbone) refuses it.
+    assert result.position_error[0] < 1e-4
+    assert not result.success[0]
+    assert "collision" in result.reason[0], result.reason[0]
+    assert result.min_clearance[0] < 0
+
+
+def test_result_file_round_trip(solver: TensionIKSolver, tmp_path) -> None:
+    truth = solve_statics(RAO, _random_tensions(3, seed=4))
+    targets = np.vstack([truth.tip_position, [np.nan, 0, 0]])
+    result = solver.solve(targets)
+    assert not result.success[3] and "non-finite" in result.reason[3]
+    path = result.save(tmp_path / "R.json")
+    assert json.loads(path.read_text())["kind"] == "tension_ik"
+    back = load_result(path)
+    assert isinstance(back, TensionIKResult)
+    np.testing.assert_array_equal(back.tensions[:3], result.tensions[:3])
+    np.testing.assert_array_equal(back.success, result.success)
+    assert back.reason == result.reason
+    again = TensionIKResult.from_dict(result.to_dict())
+    np.testing.assert_array_equal(again.position[:3], result.position[:3])
+    header = result.save_csv(tmp_path / "t.csv").read_text().splitlines()[0]
+    assert header.split(",")[3:9] == [f"tension_{i}_N" for i in range(1, 7)]
+
+
+def test_cli_ik_model_cosserat(tmp_path) -> None:
+    truth = solve_statics(RAO, _random_tensions(4, seed=5))
+    targets = tmp_path / "targets.json"
+    targets.write_text(json.dumps({"poses": [{"position": p.tolist()}
+                                             for p in truth.tip_position]}))
+    out, table = tmp_path / "R.json", tmp_path / "t.csv"
+    run = subprocess.run([sys.executable, "-m", "cr_nlp.cli", "ik", "--model", "cosserat",
+                          "--robot", "tdcr2_rao2021", "--targets", str(targets),
+                          "--out", str(out), "--csv", str(table)],
+                         capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0, run.stderr
+    assert "Cosserat" in run.stderr
+    result = load_result(out)
+    assert result.kind == "tension_ik" and len(result) == 4
+    again = solve_statics(RAO, result.tensions)
+    ok = result.success
+    assert ok.sum() >= 3
+    assert np.all(np.linalg.norm(again.tip_position - truth.tip_position, axis=1)[ok] < 1e-4)
+    assert len(table.read_text().splitlines()) == 5
+    bad = subprocess.run([sys.executable, "-m", "cr_nlp.cli", "ik", "--model", "cosserat",
+                          "--robot", "tdcr3", "--targets", str(targets), "--out", str(out)],
+                         capture_output=True, text=True, timeout=300)
+    assert bad.returncode == 2 and "mechanics" in bad.stderr
