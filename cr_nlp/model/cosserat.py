@@ -28,6 +28,7 @@ iterations. Units: metres, radians, newtons, N·m, kg, m/s².
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -123,7 +124,9 @@ class _Layout(NamedTuple):
     moment_scale: float       # E I / L, N·m per radian of bending over the robot
 
 
-def _layout(robot: Robot, config: StaticsConfig) -> _Layout:
+def _layout(robot: Robot, config: StaticsConfig, coarse: bool = False) -> _Layout:
+    """The integration grid. ``coarse``: half the steps, placed regardless of the disks
+    (whose masses then fall inside steps): the grid of the shooting's Jacobian passes."""
     mech = robot.mechanics
     if mech is None:
         raise ValueError(f"{robot.name}: the robot file has no 'mechanics' block; the "
@@ -141,15 +144,17 @@ def _layout(robot: Robot, config: StaticsConfig) -> _Layout:
         [np.cos(alpha), np.sin(alpha), np.zeros_like(alpha)], axis=-1)
 
     m = robot.tendons.per_segment
-    lengths, active, disk_at_end, seg_of_step = [], [], [], []
+    lengths, active, disk_s = [], [], []
+    start_s = 0.0
     for i, seg in enumerate(robot.segments):
         disks = mech.disks_per_segment[i]
         per_disk = max(1, math.ceil(config.min_steps_per_segment / disks))
-        steps = disks * per_disk
-        for k in range(steps):
+        steps = (max(2, math.ceil(config.min_steps_per_segment / 2)) if coarse
+                 else disks * per_disk)
+        disk_s += [start_s + seg.length_min * (k + 1) / disks for k in range(disks)]
+        start_s += seg.length_min
+        for _ in range(steps):
             lengths.append(seg.length_min / steps)
-            disk_at_end.append((k + 1) % per_disk == 0)
-            seg_of_step.append(i)
             if robot.tendons.routing == "shared":
                 active.append(np.ones(m))
             else:
@@ -157,7 +162,7 @@ def _layout(robot: Robot, config: StaticsConfig) -> _Layout:
     h = np.asarray(lengths)
     arc = np.concatenate([[0.0], np.cumsum(h)])
     total = arc[-1]
-    disk_s = arc[1:][np.asarray(disk_at_end)]
+    disk_s = np.asarray(disk_s)
 
     def distal(s: np.ndarray, include_at: bool) -> np.ndarray:
         rod = mech.linear_density * (total - s)
@@ -355,8 +360,9 @@ class _Newton(NamedTuple):
     it: jax.Array       # iterations used
 
 
-def _shooting(lay: _Layout, config: StaticsConfig, tension: jax.Array, tip_force: jax.Array,
-              tip_moment: jax.Array, gravity: jax.Array) -> tuple[Any, Any, Any]:
+def _shooting(lay: _Layout, coarse: _Layout, config: StaticsConfig, tension: jax.Array,
+              tip_force: jax.Array, tip_moment: jax.Array,
+              gravity: jax.Array) -> tuple[Any, Any, Any]:
     """(start, iterate, done) of the shooting on M(0) for one case.
 
     Newton with continuation in the external loads: with the loads scaled by λ = 0 the
@@ -365,19 +371,22 @@ def _shooting(lay: _Layout, config: StaticsConfig, tension: jax.Array, tip_force
     residual it set out to remove (the old one plus the load increment), doubles the
     increment then and quarters it otherwise. A case without loads starts at λ = 1.
 
-    The Jacobian (∂r/∂M(0), ∂r/∂λ) is taken by forward differences: five primal passes
-    in one vectorised evaluation. XLA's forward-mode derivative of the strain sweeps costs
-    about twenty primal passes per direction on the CPU, so differences are four times
-    cheaper than a three-direction ``jvp`` here; Newton only needs an approximate Jacobian
-    (the residual itself is exact), and derivatives of the converged answer are implicit
-    and exact (``_shoot``).
+    The Jacobian (∂r/∂M(0), ∂r/∂λ) is taken by forward differences: five passes in one
+    vectorised evaluation, on the ``coarse`` grid with one strain sweep (a third of a
+    full pass each). XLA's forward-mode derivative of the strain sweeps costs about twenty
+    primal passes per direction on the CPU. Newton only needs an approximate Jacobian
+    (the residual itself is the full pass), and derivatives of the converged answer are
+    implicit and exact (``_shoot``).
     """
     dtype = tension.dtype
     tol = config.resolved_tolerance() * lay.moment_scale
     root_eps = float(np.sqrt(np.finfo(np.dtype(dtype)).eps))
 
-    def scaled_residual(base_moment: jax.Array, lam: jax.Array) -> jax.Array:
-        mom, _, _, _ = _integrate(lay, config, base_moment, tension, lam * tip_force,
+    rough = dataclasses.replace(config, constitutive_iterations=1)
+
+    def scaled_residual(base_moment: jax.Array, lam: jax.Array, grid: _Layout = lay,
+                        settings: StaticsConfig = config) -> jax.Array:
+        mom, _, _, _ = _integrate(grid, settings, base_moment, tension, lam * tip_force,
                                   lam * gravity, False)
         return mom - lam * tip_moment
 
@@ -385,8 +394,8 @@ def _shooting(lay: _Layout, config: StaticsConfig, tension: jax.Array, tip_force
         hx = root_eps * jnp.maximum(jnp.max(jnp.abs(x)), lay.moment_scale)
         xs = jnp.concatenate([x[None], x[None] + hx * jnp.eye(3, dtype=dtype), x[None]])
         lams = jnp.concatenate([jnp.broadcast_to(lam, (4,)), (lam + root_eps)[None]])
-        rs = jax.vmap(scaled_residual)(xs, lams)
-        return rs[0], (rs[1:4] - rs[0]).T / hx, (rs[4] - rs[0]) / root_eps
+        rs = jax.vmap(lambda a, b: scaled_residual(a, b, coarse, rough))(xs, lams)
+        return scaled_residual(x, lam), (rs[1:4] - rs[0]).T / hx, (rs[4] - rs[0]) / root_eps
 
     def start(x0: jax.Array) -> _Newton:
         unloaded = (jnp.all(tip_force == 0) & jnp.all(tip_moment == 0)
@@ -428,10 +437,12 @@ def _run(iterate: Any, done: Any, state: _Newton, iterations: int) -> _Newton:
     return jax.lax.while_loop(lambda s: ~done(s) & (s.it < limit), iterate, state)
 
 
-def _shoot(lay: _Layout, config: StaticsConfig, tension: jax.Array, tip_force: jax.Array,
-           tip_moment: jax.Array, gravity: jax.Array) -> tuple[jax.Array, tuple]:
+def _shoot(lay: _Layout, coarse: _Layout, config: StaticsConfig, tension: jax.Array,
+           tip_force: jax.Array, tip_moment: jax.Array,
+           gravity: jax.Array) -> tuple[jax.Array, tuple]:
     """M(0) with M(L) = M_tip, differentiable implicitly; and (iterations, λ reached)."""
-    start, iterate, done = _shooting(lay, config, tension, tip_force, tip_moment, gravity)
+    start, iterate, done = _shooting(lay, coarse, config, tension, tip_force, tip_moment,
+                                     gravity)
 
     def residual(base_moment: jax.Array) -> jax.Array:
         mom, _, _, _ = _integrate(lay, config, base_moment, tension, tip_force, gravity,
@@ -503,11 +514,12 @@ def statics_single(robot: Robot, config: StaticsConfig = StaticsConfig()) -> Any
     (N·m), ``iterations``, ``converged`` and ``base_moment``. Differentiable (forward and
     reverse) with respect to all four inputs through the implicit solution.
     """
-    lay = _layout(robot, config)
+    lay, coarse = _layout(robot, config), _layout(robot, config, coarse=True)
 
     def solve_case(tension: jax.Array, tip_force: jax.Array, tip_moment: jax.Array,
                    gravity: jax.Array) -> dict[str, jax.Array]:
-        base_moment, (iterations, load_reached) = _shoot(lay, config, tension, tip_force,
+        base_moment, (iterations, load_reached) = _shoot(lay, coarse, config, tension,
+                                                         tip_force,
                                                          tip_moment, gravity)
         out = _finish(lay, config, base_moment, tension, tip_force, tip_moment, gravity)
         out["iterations"] = jax.lax.stop_gradient(iterations).astype(jnp.int32)
@@ -526,18 +538,18 @@ _FIRST_ROUND = 10
 def _programs(robot: Robot, config: StaticsConfig) -> tuple[Any, Any, Any]:
     """(first round, further rounds, finish): jitted and vmapped over cases; jit keeps one
     compiled program per padded batch size."""
-    lay = _layout(robot, config)
+    lay, coarse = _layout(robot, config), _layout(robot, config, coarse=True)
 
     def first(tension: jax.Array, force: jax.Array, moment: jax.Array,
               gravity: jax.Array) -> _Newton:
-        start, iterate, done = _shooting(lay, config, tension, force, moment, gravity)
+        start, iterate, done = _shooting(lay, coarse, config, tension, force, moment, gravity)
         zero = 0 * tension[:1]  # varies over the devices like the state (see _integrate)
         return _run(iterate, done, start(jnp.broadcast_to(zero, (3,))),
                     min(_FIRST_ROUND, config.max_iterations))
 
     def further(tension: jax.Array, force: jax.Array, moment: jax.Array,
                 gravity: jax.Array, state: _Newton) -> _Newton:
-        _, iterate, done = _shooting(lay, config, tension, force, moment, gravity)
+        _, iterate, done = _shooting(lay, coarse, config, tension, force, moment, gravity)
         return _run(iterate, done, state, max(0, config.max_iterations - _FIRST_ROUND))
 
     def finish(base_moment: jax.Array, tension: jax.Array, force: jax.Array,
@@ -593,7 +605,11 @@ def _base_moments(robot: Robot, config: StaticsConfig, cases: list[np.ndarray],
     state = first(*(jnp.asarray(_padded(v), dtype) for v in rows))
     x, its = np.array(state.x)[:shot.size], np.array(state.it)[:shot.size]
     limit = min(_FIRST_ROUND, config.max_iterations)
-    left = np.flatnonzero(its >= limit)
+    # Unfinished: the loop's own test (``done`` in ``_shooting``), read on the host.
+    tol = config.resolved_tolerance() * _layout(robot, config).moment_scale
+    finished = ((np.asarray(state.lam)[:shot.size] >= 1.0)
+                & (np.linalg.norm(np.asarray(state.r)[:shot.size], axis=1) <= tol))
+    left = np.flatnonzero(~finished & (its >= limit))
     if left.size and config.max_iterations > limit:
         # Padded with copies of the first unfinished case (zero rows would have no state).
         def pick(a: Any) -> jax.Array:
