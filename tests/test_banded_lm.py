@@ -164,3 +164,38 @@ def test_banded_lm_finds_the_known_answer_of_a_linear_chain() -> None:
     expected = np.repeat(np.arange(t, dtype=float)[:, None], d, axis=1)
     np.testing.assert_allclose(np.asarray(z), expected, atol=1e-8)
     assert float(cost) < 1e-16
+
+
+def step_unary(z, p, shared):
+    # shared = (scene arrays, extra, the chain's own scalar): the scalar shifts the target.
+    return jnp.sin(z) - 0.1 * shared[2]
+
+
+def unprojected(z):
+    return z
+
+
+def test_chain_batch_solves_every_chain_as_its_own_banded_solve() -> None:
+    """Three chains in chunks of two (the last padded): each answer equals the single
+    banded solve with that chain's scalar; one program per chunk, compiled once."""
+    from cr_nlp.stages.chain_batch import ChainBatchLM
+
+    t, d = 5, 3
+    terms = ChainResidual(step_unary, pair, None)
+    rng = np.random.default_rng(3)
+    z0 = rng.normal(size=(3, t * d))
+    steps = np.array([0.5, -1.0, 2.0])
+    free = jnp.ones(t * d, jnp.float64).at[:d].set(0.0)       # the first waypoint is fixed
+    batch = ChainBatchLM(terms, unprojected, t, free, jnp.float64, chunk_size=2)
+    z, cost, compiled = batch.solve(z0, steps, None, 25)
+    assert batch.programs == 2 and compiled > 0.0
+    for k in range(3):
+        zk, ck, _ = banded_lm_solve(terms, unprojected, jnp.asarray(z0[k].reshape(t, d)), None,
+                                    (None, None, jnp.float64(steps[k])), free.reshape(t, d),
+                                    jnp.int32(25))
+        np.testing.assert_allclose(z[k], np.asarray(zk).reshape(-1), atol=1e-12)
+        assert cost[k] == pytest.approx(float(ck), rel=1e-12)
+    np.testing.assert_array_equal(z[:, :d], z0[:, :d])
+    again, _, compiled_again = batch.solve(z0[:1], steps[:1], None, 25)
+    assert compiled_again == 0.0 and batch.programs == 3
+    np.testing.assert_allclose(again[0], z[0], atol=1e-12)

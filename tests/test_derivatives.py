@@ -251,24 +251,21 @@ def test_penalty_clearances_differentiate_through_the_closed_form_centres() -> N
 
 
 def test_trajectory_residual_jacobians_use_the_closed_forms_correctly() -> None:
-    """tasks.trajectory's custom JVPs (tip position, grouped clearances) against plain
-    autodiff of the same values."""
-    from cr_nlp.tasks.trajectory import (
-        _clearance_groups,
-        _group_values,
-        _tip_position,
-        _tip_value,
-    )
+    """The chain LMs' custom JVPs (``model.derivatives.tip_position_z``,
+    ``world.clearance_groups.clearance_groups``) against plain autodiff of the same values."""
+    from cr_nlp.model.derivatives import tip_position_z
+    from cr_nlp.model.kinematics import tip_pose_z
     from cr_nlp.world import load_scene, scene_arrays
+    from cr_nlp.world.clearance_groups import clearance_group_values, clearance_groups
 
     arrays = scene_arrays(load_scene(MODELS / "scenes" / "lattice.json"))
     z = jnp.asarray(configurations(TDCR3, 10, 8))
     margin = 1.5  # every group feels it: no zero rows
     pairs = (
-        (lambda x: _tip_position(TDCR3, x), lambda x: _tip_value(TDCR3, x)),
+        (lambda x: tip_position_z(TDCR3, x), lambda x: tip_pose_z(TDCR3, x)[0]),
         (
-            lambda x: _clearance_groups(TDCR3, margin, arrays, x),
-            lambda x: _group_values(TDCR3, margin, arrays, x),
+            lambda x: clearance_groups(TDCR3, margin, arrays, x),
+            lambda x: clearance_group_values(TDCR3, margin, arrays, x),
         ),
     )
     # Clearances: random rows only. A straight robot sits on the lattice's symmetry plane,

@@ -20,8 +20,9 @@ from cr_nlp.tasks import follow as F
 from cr_nlp.tasks.follow import FollowConfig, PathFollower, unreached_stretches
 from cr_nlp.tasks.ik import IKConfig
 from cr_nlp.tasks.paths import ReferencePath
-from cr_nlp.tasks.trajectory import _group_jacobian, tendon_series
+from cr_nlp.tasks.trajectory import tendon_series
 from cr_nlp.world import load_scene, scene_arrays
+from cr_nlp.world.clearance_groups import clearance_group_jacobian
 
 from .test_results import assert_same_result
 from .test_sequence import numpy_viterbi
@@ -190,7 +191,7 @@ def test_waypoint_jacobians_match_autodiff_and_the_model() -> None:
     np.testing.assert_allclose(analytic, auto, atol=1e-10)
     arrays = scene_arrays(load_scene("follow_square"))
     # A margin of 1.5 m that every group feels.
-    values, jac = jax.jit(lambda x: _group_jacobian(ROBOT, 1.5, arrays, x))(z)
+    values, jac = jax.jit(lambda x: clearance_group_jacobian(ROBOT, 1.5, arrays, x))(z)
     assert np.all(np.asarray(values) > 0)
     # The waypoint residual's clearance rows (values from the model's kinematics, their
     # Jacobian from the custom JVP) against the trajectory's group Jacobian.

@@ -21,6 +21,7 @@ from cr_nlp.tasks.trajectory import (
     interpolate_trajectory,
     tendon_series,
     tip_positions,
+    trajectories_from_dict,
     trajectories_to_dict,
     verify_trajectory,
 )
@@ -184,7 +185,14 @@ def test_exact_mode_respects_tendon_limits_where_the_penalty_answer_breaks_them(
     assert not verdict["success"] and "tendon" in verdict["reason"]
     assert max(verdict["violations"]["tendon_speed"],
                verdict["violations"]["tendon_accel"]) > 1e-3
-    exact = planner.plan([start], [goal], init="straight", exact=True)[0]
+    # Beside it, a short move whose LM answer the verdict accepts: it is not polished,
+    # and its result (polish time 0) is written and read back like any other.
+    near = np.add(start, [0.02, 0.0, 0.0] * 3)
+    exact, short = planner.plan([start, start], [goal, near], init="straight", exact=True)
+    assert short.success and short.stage.startswith("refine") and short.timing.polish == 0.0
+    again = trajectories_from_dict(json.loads(json.dumps(trajectories_to_dict([short]))))[0]
+    assert again.stage == short.stage and again.timing.polish == 0.0
+    np.testing.assert_allclose(again.q, short.q)
     assert exact.stage == "polish", exact.stage
     assert exact.success and exact.max_violation <= 1e-6
     checked = verify_trajectory(robot, None, exact.q, config.dt)

@@ -21,13 +21,12 @@ from cr_nlp.stages.banded_lm import (
 from cr_nlp.tasks.trajectory import (
     TrajectoryConfig,
     TrajectoryPlanner,
-    _group_values,
-    near_clearance_groups,
     trajectory_residual,
     trajectory_terms,
 )
 from cr_nlp.world import load_scene, scene_arrays
 from cr_nlp.world.broad_phase import part_balls
+from cr_nlp.world.clearance_groups import clearance_group_values, near_clearance_groups
 
 from .conftest import MODELS
 
@@ -72,7 +71,7 @@ def test_window_terms_give_the_dense_residuals_cost_and_normal_equations(scene_n
 
 @pytest.mark.usefixtures("float64")
 def test_broad_phase_measures_the_nearest_parts():
-    """``near_clearance_groups`` with every part equals ``_group_values`` (world.penalty's
+    """``near_clearance_groups`` with every part equals ``clearance_group_values`` (world.penalty's
     distances), float64, on 120 random configurations of tdcr3. With the 8 nearest
     bounding balls it is the same on random_27 (27 spheres: the ball is the part, exact by
     construction); in the shelf (57 convex parts) a sphere deep inside a board may find
@@ -83,7 +82,7 @@ def test_broad_phase_measures_the_nearest_parts():
         scene = load_scene(name)
         arrays = scene_arrays(scene, dtype=jnp.float64)
         balls = part_balls(scene, jnp.float64)
-        reference = jax.jit(jax.vmap(partial(_group_values, ROBOT, 0.05, arrays)))(z)
+        reference = jax.jit(jax.vmap(partial(clearance_group_values, ROBOT, 0.05, arrays)))(z)
         assert int(jnp.sum(reference > 0)) > 50                # many groups in contact
         all_parts = partial(near_clearance_groups, ROBOT, 0.05, 0, arrays, None)
         ref_jac = jax.jit(jax.vmap(jax.jacfwd(all_parts)))(z)

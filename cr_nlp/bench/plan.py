@@ -189,7 +189,7 @@ def measure_planner(planner: TrajectoryPlanner, scene: str, method: str, starts:
     # Per-stage seconds per problem of the timed batch (``PlanTiming``: roadmap query and
     # initial guesses, LM, float64 verdict, Ipopt polish) and the LM's device programs.
     stages = planner.last_timing
-    for key, seconds in (("query_time", stages.init), ("lm_time", stages.refine),
+    for key, seconds in (("query_time", stages.explore), ("lm_time", stages.refine),
                          ("verdict_time", stages.verify), ("polish_time", stages.polish)):
         row[key] = seconds / len(starts)
     row["programs"] = planner.last_programs

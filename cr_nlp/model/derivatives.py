@@ -386,3 +386,19 @@ def _pose_residual_jvp(robot: Robot, primals: tuple, tangents: tuple) -> tuple:
     z, (target_position, target_rotation) = primals
     value, jac = pose_error_jacobian(robot, z, target_position, target_rotation)
     return value, jac @ tangents[0]
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0,))
+def tip_position_z(robot: Robot, z: jax.Array) -> jax.Array:
+    """Tip position (3,) m of one configuration z (3n,) (rad, rad, m), with the
+    closed-form Jacobian of ``tip_jacobian_z`` as its derivative."""
+    return jnp.stack(jnp.broadcast_arrays(*_tip_entries(robot, z)[1])).astype(z.dtype)
+
+
+@tip_position_z.defjvp
+def _tip_position_jvp(robot: Robot, primals: tuple, tangents: tuple) -> tuple:
+    # As for ``pose_residual``: the waypoint's own 3 × 3n Jacobian from the primal, so
+    # that the LM's jacfwd over all directions evaluates it once.
+    (z,), (z_dot,) = primals, tangents
+    position, _, jac = tip_jacobian_z(robot, z)
+    return position, jac[:3] @ z_dot

@@ -310,37 +310,49 @@ def banded_lm_solve(terms: ChainResidual, project: Callable[[jax.Array], jax.Arr
         cost = 0.5 * sum(jnp.sum(r * r) for _, r, _ in blocks)
         return h, g, cost
 
-    def body(state: tuple) -> tuple:
-        z, cost, h, g, lam, nu, done, it = state
+    def trial(z: jax.Array, h: BandedMatrix, g: jax.Array,
+              lam: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """The damped step's trial point and the reduction the model predicts for it."""
         diag = jnp.diagonal(h.diag, axis1=-2, axis2=-1)            # (T, d)
         scale = jnp.maximum(diag, 1e-9 * jnp.max(diag) + 1e-12)
-        step = solve_banded(_damped(h, lam, scale), -g)
-        z_new = project(z + step)
-        # The trial point's cost and its normal equations in one pass over the windows:
-        # the next iteration needs them whenever the step is accepted.
-        h_new, g_new, cost_new = step_system(z_new)
+        z_new = project(z + solve_banded(_damped(h, lam, scale), -g))
         actual = z_new - z
         predicted = -(jnp.sum(g * actual) + 0.5 * jnp.sum(actual * banded_matvec(h, actual)))
+        return z_new, predicted
+
+    # One evaluation of the normal equations per loop trip, at the pending trial point
+    # (z0 on the first trip, which is always accepted): ``step_system`` is traced once,
+    # not once before the loop and again inside it (its Jacobians dominate the
+    # compilation). Trip k ≥ 1 judges the k-th step, then proposes the next one.
+    def body(state: tuple) -> tuple:
+        z, cost, h, g, lam, nu, done, it, z_trial, predicted = state
+        first = it < 0
+        h_new, g_new, cost_new = step_system(z_trial)
         rho = (cost - cost_new) / jnp.maximum(predicted, 1e-30)
-        accept = (cost_new < cost) & jnp.isfinite(cost_new)
-        stalled = accept & (cost - cost_new < config.stall_tolerance * cost)
+        accept = first | ((cost_new < cost) & jnp.isfinite(cost_new))
+        stalled = ~first & accept & (cost - cost_new < config.stall_tolerance * cost)
         done = done | stalled | (cost_new < config.cost_tolerance) | (lam > 1e10)
         keep = partial(jnp.where, accept)
-        z, cost = keep(z_new, z), keep(cost_new, cost)
+        z, cost = keep(z_trial, z), keep(cost_new, cost)
         h = jax.tree_util.tree_map(keep, h_new, h)
         g = keep(g_new, g)
         shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * jnp.clip(rho, 0.0, 1.0) - 1.0) ** 3)
-        lam = jnp.clip(jnp.where(accept, lam * shrink, lam * nu), 1e-12, 1e12)
-        nu = jnp.where(accept, 2.0, nu * 2.0)
-        return z, cost, h, g, lam.astype(dtype), nu.astype(dtype), done, it + 1
+        lam = jnp.where(first, lam, jnp.clip(jnp.where(accept, lam * shrink, lam * nu),
+                                             1e-12, 1e12)).astype(dtype)
+        nu = jnp.where(first, nu, jnp.where(accept, 2.0, nu * 2.0)).astype(dtype)
+        z_trial, predicted = trial(z, h, g, lam)
+        return z, cost, h, g, lam, nu, done, it + 1, z_trial, predicted
 
     def running(state: tuple) -> jax.Array:
-        *_, done, it = state
-        more = ~done if config.stop_when_converged else True
+        done, it = state[6], state[7]
+        more = (~done | (it < 0)) if config.stop_when_converged else True
         return (it < iterations) & more
 
-    h0, g0, cost0 = step_system(z0)
-    state = (z0, cost0, h0, g0, jnp.asarray(config.initial_damping, dtype),
-             jnp.asarray(2.0, dtype), cost0 < config.cost_tolerance, jnp.int32(0))
-    z, cost, _, _, _, _, _, it = jax.lax.while_loop(running, body, state)
+    zeros = jnp.zeros((max(t - 1, 0), d, d), dtype)
+    h_init = BandedMatrix(jnp.broadcast_to(eye, (t, d, d)), zeros,
+                          jnp.zeros((max(t - 2, 0), d, d), dtype))
+    state = (z0, jnp.asarray(jnp.inf, dtype), h_init, jnp.zeros((t, d), dtype),
+             jnp.asarray(config.initial_damping, dtype), jnp.asarray(2.0, dtype),
+             jnp.asarray(False), jnp.int32(-1), z0, jnp.asarray(1.0, dtype))
+    z, cost, _, _, _, _, _, it, _, _ = jax.lax.while_loop(running, body, state)
     return z, cost, it

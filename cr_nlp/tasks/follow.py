@@ -26,7 +26,7 @@ Stages:
    marked in ``FollowResult.stage``.
 
 Every answer is judged in float64 independently of the optimisers:
-``tasks.trajectory.verify_trajectory`` (python-fcl along the interpolated motion, limits,
+``world.motion.verify_trajectory`` (python-fcl along the interpolated motion, limits,
 tendon finite differences) and the tip poses by the numpy backend of the model.
 
 Waypoints outside the robot's reach (farther from the base than its longest length)
@@ -38,10 +38,10 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import jax
 import jax.monitoring
@@ -55,32 +55,33 @@ from ..model.derivatives import kinematics_jacobians_z
 from ..model.kinematics import (
     model_backbone,
     model_segment_frames,
-    pose_error,
-    tip_pose,
 )
 from ..model.lie import rotation_log, so3_right_jacobian_inverse
 from ..model.limits import clip_to_limits, project_z
-from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
+from ..model.rotations import matrix_from_wxyz
+from ..stages.accept import Polished, accept_first
 from ..stages.banded_lm import ChainResidual, banded_lm_solve
 from ..stages.continuation import BranchContinuation, ContinuationSettings
 from ..stages.lm import LMConfig
 from ..stages.tendon_penalty import tendon_accel_excess, tendon_speed_excess
+from ..stages.trajectory_exact import describe_polish
 from ..world import Scene, load_scene, scene_arrays
 from ..world.clearance import SceneArrays, body_gap_tolerance
-from ..world.verdict import VIOLATION_TOLERANCE
-from ._result import ResultFileError, ResultIO, array, as_float, num, nums, write_series_csv
+from ..world.clearance_groups import (
+    body_centres_from,
+    clearance_groups,
+    grouped_shortfalls,
+    has_clearance,
+)
+from ..world.motion import verify_trajectory
+from ..world.verdict import VIOLATION_TOLERANCE, Verdict
+from ._follow_result import FollowResult as FollowResult
+from ._follow_result import result_from_verdict, tracking_cost
+from ._follow_result import tracking_errors as tracking_errors
+from ._follow_result import unreached_stretches as unreached_stretches
 from ._timing import StageTiming, compile_seconds
 from .ik import IKConfig, IKSolver, validate_targets
 from .paths import ReferencePath, load_path
-from .trajectory import (
-    _clearance_groups,
-    _groups_from,
-    _has_clearance,
-    controller_columns,
-    describe_polish,
-    tendon_names,
-    verify_trajectory,
-)
 
 FOLLOW_IK = IKConfig(seeds_per_target=8, refine_iterations=10)
 """Stage 1's default IK settings: fewer seeds and refinement iterations than a plain IK
@@ -185,12 +186,6 @@ class FollowConfig:
 # matrix product.
 
 
-def _with_base(robot: Robot, points: jax.Array) -> jax.Array:
-    """Body-sphere centres (N, 3) m in ``world.clearance._centres`` order: the base
-    point, then the backbone points (n·k, 3)."""
-    return jnp.concatenate([jnp.asarray(robot.base_position, points.dtype)[None], points])
-
-
 def waypoint_kinematics(robot: Robot, z: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Tip rotation (3, 3), tip position (3,) m and body-sphere centres (N, 3) m of one
     bending-vector configuration z (3n,), from one evaluation of the model's frames
@@ -200,7 +195,8 @@ def waypoint_kinematics(robot: Robot, z: jax.Array) -> tuple[jax.Array, jax.Arra
     rot, pos = frames[-1]
     points = model_backbone(JAX, robot, entries, frames).astype(z.dtype)
     return (jnp.stack(jnp.broadcast_arrays(*rot)).reshape(3, 3).astype(z.dtype),
-            jnp.stack(jnp.broadcast_arrays(*pos)).astype(z.dtype), _with_base(robot, points))
+            jnp.stack(jnp.broadcast_arrays(*pos)).astype(z.dtype),
+            body_centres_from(robot, points)[0])
 
 
 def waypoint_jacobians(robot: Robot, z: jax.Array) -> dict[str, jax.Array]:
@@ -209,11 +205,10 @@ def waypoint_jacobians(robot: Robot, z: jax.Array) -> dict[str, jax.Array]:
     ``d_position`` (3, 3n), ``body_rates`` (3, 3n) (Rᵀ∂R/∂z_k as vectors) and
     ``d_centres`` (N, 3, 3n)."""
     kin = kinematics_jacobians_z(robot, z)
-    return {"rotation": kin.rotation, "position": kin.position,
-            "centres": _with_base(robot, kin.points),
+    centres, d_centres = body_centres_from(robot, kin.points, kin.d_points)
+    return {"rotation": kin.rotation, "position": kin.position, "centres": centres,
             "d_position": kin.jacobian[:3], "body_rates": kin.rotation.T @ kin.jacobian[3:],
-            "d_centres": jnp.concatenate([jnp.zeros((1, 3, robot.dof), z.dtype),
-                                          kin.d_points])}
+            "d_centres": d_centres}
 
 
 def _tracking_from(rot: jax.Array, pos: jax.Array, target: Any) -> jax.Array:
@@ -254,12 +249,12 @@ def _tracking_error_jvp(robot: Robot, primals: tuple, tangents: tuple) -> tuple:
 def waypoint_residual(robot: Robot, margin: float, z: jax.Array, target: Any,
                       arrays: SceneArrays | None) -> jax.Array:
     """``tracking_error`` (6,) then the grouped clearance shortfalls (G,) m of one waypoint
-    z (3n,) (``tasks.trajectory._groups_from``), sharing one kinematics Jacobian (the LM's
-    per-waypoint term)."""
+    z (3n,) (``world.clearance_groups.grouped_shortfalls``), sharing one kinematics
+    Jacobian (the LM's per-waypoint term)."""
     rot, pos, centres = waypoint_kinematics(robot, z)
     out = [_tracking_from(rot, pos, target)]
-    if _has_clearance(robot, arrays):
-        out.append(_groups_from(robot, margin, arrays, centres, None)[0])
+    if has_clearance(robot, arrays):
+        out.append(grouped_shortfalls(robot, margin, arrays, centres, None)[0])
     return jnp.concatenate(out)
 
 
@@ -271,8 +266,8 @@ def _waypoint_residual_jvp(robot: Robot, margin: float, primals: tuple,
     kin = waypoint_jacobians(robot, z)
     error = _tracking_from(kin["rotation"], kin["position"], target)
     values, jac = [error], [_tracking_jacobian(kin, error)]
-    if _has_clearance(robot, arrays):
-        groups, groups_jac = _groups_from(robot, margin, arrays, kin["centres"],
+    if has_clearance(robot, arrays):
+        groups, groups_jac = grouped_shortfalls(robot, margin, arrays, kin["centres"],
                                           kin["d_centres"])
         values.append(groups)
         jac.append(groups_jac)
@@ -307,9 +302,9 @@ def follow_pair(robot: Robot, margin: float, checks: int, weights: tuple[float, 
     arrays, dt = shared
     step = z_b - z_a
     out = [sqrt_smooth * step]
-    if checks and _has_clearance(robot, arrays):
+    if checks and has_clearance(robot, arrays):
         for c in range(1, checks + 1):
-            out.append(sqrt_clear * _clearance_groups(robot, margin, arrays,
+            out.append(sqrt_clear * clearance_groups(robot, margin, arrays,
                                                       z_a + (c / (checks + 1)) * step))
     if math.isfinite(robot.tendon_speed_max):
         out.append(sqrt_tendon * tendon_speed_excess(robot, limit_fraction, z_a, z_b, dt))
@@ -339,213 +334,8 @@ def follow_terms(robot: Robot, margin: float, config: FollowConfig) -> ChainResi
     return ChainResidual(unary, pair, triple)
 
 
-# ================================================================ measures (float64)
-
-
-def tracking_errors(robot: Robot, q: np.ndarray, positions: np.ndarray,
-                    wxyz: np.ndarray) -> dict[str, np.ndarray]:
-    """Per-waypoint tip pose and its distance to the reference, float64: ``position``
-    (T, 3) m, ``wxyz`` (T, 4), ``pose_error`` (T,) (‖log(T_tip⁻¹·T_ref)‖, docs/design.md §1),
-    ``position_error`` (T,) m and ``rotation_error`` (T,) rad (the angle of
-    R_tipᵀ·R_ref)."""
-    position, rotation = tip_pose(robot, np.asarray(q, np.float64))
-    reference = matrix_from_wxyz(wxyz)
-    relative = np.einsum("tji,tjk->tik", rotation, reference)
-    cos_angle = np.clip((np.trace(relative, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    return {"position": position, "wxyz": wxyz_from_matrix(rotation),
-            "pose_error": pose_error(position, rotation, positions, reference),
-            "position_error": np.linalg.norm(position - positions, axis=1),
-            "rotation_error": np.arccos(cos_angle)}
-
-
-def unreached_stretches(reached: np.ndarray) -> list[tuple[int, int]]:
-    """Runs of consecutive unreached waypoints as (first, last) indices, inclusive."""
-    out, start = [], None
-    for i, ok in enumerate(np.asarray(reached, bool)):
-        if not ok and start is None:
-            start = i
-        elif ok and start is not None:
-            out.append((start, i - 1))
-            start = None
-    if start is not None:
-        out.append((start, len(reached) - 1))
-    return out
-
-
-# ================================================================ the result
-
-
 FollowTiming = StageTiming
 """Seconds per stage of one ``PathFollower.follow`` call."""
-
-
-@dataclass
-class FollowResult(ResultIO):
-    """A followed path. Units: rad, m, s (millimetre / degree figures in ``summary``)."""
-
-    kind: ClassVar[str] = "follow"
-
-    robot: Robot
-    path: ReferencePath
-    """The reference (positions m, unit quaternions, Δt s)."""
-    q: np.ndarray
-    """(T, 3n) configurations θ, φ, L, one per waypoint."""
-    position: np.ndarray
-    """(T, 3) tip positions reached, m."""
-    wxyz: np.ndarray
-    """(T, 4) tip orientations reached, unit quaternions (w, x, y, z)."""
-    pose_error: np.ndarray
-    """(T,) ‖log(T_tip⁻¹·T_ref)‖ (the IK success metric, m and rad mixed)."""
-    position_error: np.ndarray
-    """(T,) ‖p_tip − p_ref‖, m."""
-    rotation_error: np.ndarray
-    """(T,) rotation angle between the tip and reference frames, rad."""
-    reached: np.ndarray
-    """(T,) bool: position error ≤ ``FollowConfig.position_tolerance_mm`` (default 5 mm)
-    and rotation error ≤ ``FollowConfig.rotation_tolerance_deg`` (default 1°)."""
-    tendon_lengths: np.ndarray
-    """(T, n_tendons) tendon lengths at the waypoints, m."""
-    tendon_speed: float
-    """Largest |tendon speed| by finite differences, m/s."""
-    tendon_accel: float
-    """Largest |tendon acceleration| by finite differences, m/s²."""
-    collision_free: bool
-    """python-fcl: no contact anywhere along the interpolated motion."""
-    min_clearance: float
-    """Smallest python-fcl distance along the motion, m (+inf with nothing to hit)."""
-    max_violation: float
-    """Largest of ``violations``."""
-    violations: dict[str, float]
-    """Largest violation per family (``verify_trajectory``): clearance (m below δ),
-    limits (rad or m), tendon_speed (m/s), tendon_accel (m/s²)."""
-    success: bool
-    """Every waypoint reached and every violation ≤ 1e-6 (``verify_trajectory``, the one
-    verdict of ``world.verdict``): clearance ≥ δ along the motion, limits, tendon
-    limits."""
-    reason: str
-    """"" on success, else why not (unreached waypoints, collision, limits)."""
-    stage: str
-    """What produced ``q``: "refine", "polish", "refine (polish failed: <why>)", or in
-    exact mode "refine (feasible: polish not needed)" / "refine (feasible; the polished
-    answer tracked worse)" when the LM answer already keeps every constraint (max
-    violation ≤ 1e-6 by the independent checks)."""
-    timing: StageTiming = field(default_factory=StageTiming)
-    """Seconds per stage: compile, explore, refine, polish, verify (and ``total``)."""
-    scene_name: str | None = None
-    """The scene's name, or None without obstacles."""
-    safety_margin: float = 0.002
-    """δ, metres, used by the verdict."""
-    tendon_displacements: np.ndarray | None = None
-    """(T, n_tendons) motor commands at the waypoints, m (positive = pulled), when the
-    robot file has an ``actuation`` block (``model.actuation``); else None."""
-
-    @property
-    def dt(self) -> float:
-        """Seconds between waypoints."""
-        return float(self.path.dt)
-
-    @property
-    def times(self) -> np.ndarray:
-        """(T,) time of each waypoint, seconds."""
-        return np.arange(len(self.q)) * self.dt
-
-    def summary(self) -> dict[str, Any]:
-        """Tracking statistics: mean/std/max position error (mm), mean/max rotation error
-        (degrees), reached count, unreached waypoint indices and stretches."""
-        pos, rot = 1e3 * self.position_error, np.degrees(self.rotation_error)
-        return {
-            "waypoints": len(self.q),
-            "mean_position_error_mm": float(np.mean(pos)),
-            "std_position_error_mm": float(np.std(pos)),
-            "max_position_error_mm": float(np.max(pos)),
-            "mean_rotation_error_deg": float(np.mean(rot)),
-            "max_rotation_error_deg": float(np.max(rot)),
-            "reached": int(np.count_nonzero(self.reached)),
-            "unreached": np.flatnonzero(~self.reached).tolist(),
-            "unreached_stretches": [list(s) for s in unreached_stretches(self.reached)],
-        }
-
-    def _fields_dict(self) -> dict[str, Any]:
-        return {
-            "path": self.path.to_dict(),
-            "scene": self.scene_name,
-            "success": bool(self.success),
-            "reason": self.reason or None,
-            "stage": self.stage,
-            "dt": self.dt,
-            "times": self.times.tolist(),
-            "q": self.q.tolist(),
-            "position": self.position.tolist(),
-            "wxyz": self.wxyz.tolist(),
-            "pose_error": nums(self.pose_error),
-            "position_error": nums(self.position_error),
-            "rotation_error": nums(self.rotation_error),
-            "reached": self.reached.tolist(),
-            "tendon_names": tendon_names(self.robot),
-            "tendon_lengths": self.tendon_lengths.tolist(),
-            **({"tendon_displacements": self.tendon_displacements.tolist()}
-               if self.tendon_displacements is not None else {}),
-            "tendon_speed": num(self.tendon_speed),
-            "tendon_accel": num(self.tendon_accel),
-            "collision_free": bool(self.collision_free),
-            "min_clearance": num(self.min_clearance),
-            "safety_margin": self.safety_margin,
-            "max_violation": num(self.max_violation),
-            "violations": {k: num(v) for k, v in self.violations.items()},
-            "summary": self.summary(),
-            "timing": self.timing.as_dict(),
-        }
-
-    @classmethod
-    def _from_fields(cls, data: dict[str, Any], robot: Robot) -> FollowResult:
-        path = ReferencePath.from_dict(data["path"], source="path")
-        count = len(path)
-        return cls(
-            robot, path, array(data["q"], robot.dof, "q"), array(data["position"], 3, "position"),
-            array(data["wxyz"], 4, "wxyz"), *(array(data[k]) for k in (
-                "pose_error", "position_error", "rotation_error")),
-            np.array(data["reached"], dtype=bool),
-            array(data["tendon_lengths"], robot.n_tendons, "tendon_lengths"),
-            as_float(data["tendon_speed"]), as_float(data["tendon_accel"]),
-            bool(data["collision_free"]), as_float(data["min_clearance"]),
-            as_float(data["max_violation"]),
-            {k: as_float(v) for k, v in data["violations"].items()},
-            success=bool(data["success"]), reason=data["reason"] or "", stage=data["stage"],
-            timing=StageTiming.from_dict(data["timing"]), scene_name=data["scene"],
-            safety_margin=float(data["safety_margin"]),
-        )._checked(count)
-
-    def _checked(self, count: int) -> FollowResult:
-        """This result, after checking that every per-waypoint field has ``count`` rows."""
-        for name in ("q", "position", "wxyz", "pose_error", "position_error",
-                     "rotation_error", "reached", "tendon_lengths"):
-            if len(getattr(self, name)) != count:
-                raise ResultFileError(f"{name} has {len(getattr(self, name))} rows, the path "
-                                      f"{count} waypoints")
-        return self
-
-    def save(self, path: str | Path, indent: int | None = 2) -> Path:
-        """Write ``to_dict`` as JSON (.json, or any suffix but .npz), or the arrays as a
-        numpy .npz by the file's suffix; returns the path."""
-        path = Path(path)
-        if path.suffix != ".npz":
-            return super().save(path, indent)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(path, q=self.q, times=self.times, dt=self.dt,
-                 position=self.position, wxyz=self.wxyz,
-                 target_positions=self.path.positions, target_wxyz=self.path.wxyz,
-                 pose_error=self.pose_error, position_error=self.position_error,
-                 rotation_error=self.rotation_error, reached=self.reached,
-                 tendon_lengths=self.tendon_lengths, collision_free=self.collision_free,
-                 min_clearance=self.min_clearance, max_violation=self.max_violation,
-                 success=self.success, stage=self.stage, reason=self.reason)
-        return path
-
-    def save_csv(self, path: str | Path) -> Path:
-        """The tendon-length series for a controller: ``time_s``, then one column per
-        tendon (``trajectory.tendon_names``), lengths in metres, one row per waypoint."""
-        return write_series_csv(path, self.times, *controller_columns(
-            self.robot, self.tendon_lengths, self.tendon_displacements))
 
 
 # ================================================================ the follower
@@ -671,28 +461,9 @@ class PathFollower:
 
     def _result(self, q: np.ndarray, path: ReferencePath, verdict: dict[str, Any], stage: str,
                 why_untrackable: dict[int, str]) -> FollowResult:
-        reached = np.asarray(verdict["reached"], bool)
-        reasons = []
-        unreached = np.flatnonzero(~reached)
-        if len(unreached):
-            stretches = ", ".join(f"{a}" if a == b else f"{a}–{b}"
-                                  for a, b in unreached_stretches(reached))
-            reasons.append(f"{len(unreached)} of {len(q)} waypoints not reached (waypoints "
-                           f"{stretches})")
-            for i, why in sorted(why_untrackable.items())[:3]:
-                reasons.append(f"waypoint {i}: {why}")
-        if verdict["reason"]:
-            reasons.append(verdict["reason"])
-        return FollowResult(
-            self.robot, path, q, verdict["position"], verdict["wxyz"], verdict["pose_error"],
-            verdict["position_error"], verdict["rotation_error"], reached,
-            verdict["tendon_lengths"], verdict["tendon_speed"], verdict["tendon_accel"],
-            bool(verdict["collision_free"]), float(verdict["min_clearance"]),
-            float(verdict["max_violation"]), dict(verdict["violations"]),
-            success=bool(verdict["success"]) and bool(reached.all()),
-            reason="; ".join(reasons), stage=stage,
-            scene_name=self.scene.name if self.scene is not None else None,
-            safety_margin=self.config.safety_margin)
+        return result_from_verdict(self.robot, path, q, verdict, stage, why_untrackable,
+                                   self.scene.name if self.scene is not None else None,
+                                   self.config.safety_margin)
 
     # ------------------------------------------------------------ the solve
     def follow(self, path: ReferencePath | str | Path, exact: bool = False,
@@ -775,7 +546,6 @@ class PathFollower:
             # error 0.0 → 4.3 mm) at 50–150 s per path, so the answer is kept as it is.
             lm.stage = "refine (feasible: polish not needed)"
             return lm
-        t0 = time.perf_counter()
         t = len(lm.q)
         if t not in self._polishers:
             samples = self.config.verify_samples
@@ -788,36 +558,37 @@ class PathFollower:
         # Untrackable waypoints keep the LM's reference: its own tip pose (zero error).
         positions = np.where(trackable[:, None], path.positions, lm.position)
         rotations = matrix_from_wxyz(np.where(trackable[:, None], path.wxyz, lm.wxyz))
-        try:
-            out = self._polishers[t].solve(lm.q, path.dt, positions, rotations)
-        except Exception as exc:  # noqa: BLE001 — a crashed polish must not lose the answer
-            lm.stage = f"refine (polish failed: {type(exc).__name__}: {exc})"
-            timing.polish += time.perf_counter() - t0
+        reports: list[dict[str, Any]] = []
+
+        def polish(q0: np.ndarray) -> Polished[np.ndarray]:
+            t0 = time.perf_counter()
+            try:
+                out = self._polishers[t].solve(q0, path.dt, positions, rotations)
+            except Exception as exc:  # noqa: BLE001 — a crashed polish must not lose the answer
+                return Polished(None, f"{type(exc).__name__}: {exc}")
+            finally:
+                timing.polish += time.perf_counter() - t0
+            if not out.success:
+                return Polished(None, describe_polish(out))
+            return Polished(clip_to_limits(self.robot, np.asarray(out.q, dtype=np.float64)))
+
+        def judge(q: np.ndarray) -> Verdict:
+            t1 = time.perf_counter()
+            reports.append(self.verify(q, path, path.dt))
+            timing.verify += time.perf_counter() - t1
+            return reports[-1]["verdict"]
+
+        outcome = accept_first([lm.q], lm.q, lm, polish, judge)
+        if not outcome.accepted:
+            lm.stage = f"refine (polish failed: {'; '.join(outcome.failures)})"
             return lm
-        timing.polish += time.perf_counter() - t0
-        if not out.success:
-            lm.stage = f"refine (polish failed: {describe_polish(out)})"
-            return lm
-        t1 = time.perf_counter()
-        q = clip_to_limits(self.robot, np.asarray(out.q, dtype=np.float64))
-        verdict = self.verify(q, path, path.dt)
-        timing.verify += time.perf_counter() - t1
-        if not verdict["success"]:
-            lm.stage = f"refine (polish failed: rejected by the checker: {verdict['reason']})"
-            return lm
-        polished = self._result(q, path, verdict, "polish", why)
+        polished = self._result(outcome.answer, path, reports[-1], "polish", why)
         if lm.max_violation <= VIOLATION_TOLERANCE and lm.collision_free and \
-                _tracking_cost(polished) > _tracking_cost(lm):
+                tracking_cost(polished) > tracking_cost(lm):
             # Both feasible: keep the one that tracks the path better.
             lm.stage = "refine (feasible; the polished answer tracked worse)"
             return lm
         return polished
-
-
-def _tracking_cost(result: FollowResult) -> float:
-    """Σ over waypoints of (position error in mm)² + (rotation error in degrees)²."""
-    return float(np.sum((1e3 * result.position_error) ** 2
-                        + np.degrees(result.rotation_error) ** 2))
 
 
 def follow_path(robot: Robot | str | dict, path: ReferencePath | str | Path,

@@ -1,4 +1,4 @@
-"""Trajectory planning: the problem, the batched solver, the independent verification.
+"""Trajectory planning: the problem (config, residuals), its solver wiring and result.
 
 Problem (docs/design.md §2): z = (z₀, …, z_H), one bending-vector configuration per waypoint
 (``waypoints = H + 1``), the time step Δt between waypoints fixed; start z₀ and goal z_H
@@ -17,21 +17,23 @@ length's gradient is undefined where two waypoints coincide) and, by Cauchy–Sc
 and spreads the waypoints evenly at once. A small joint-space term Σ‖zₖ₊₁ − zₖ‖² fixes
 the body's shape where the tip alone leaves it free (three of six bending DOF for tdcr3).
 
-Stages: explore (roadmap query, straight line in z, perturbed straight lines), refine (LM
-on all guesses of all problems at once, penalties for clearance and tendon limits),
-verify (python-fcl along the densely interpolated motion, float64 tendon finite
-differences, limits), optional polish (``stages.polish_trajectory``: Ipopt with the
-constraints as constraints).
+Stages: explore (the roadmap query, ``stages.roadmap``; initial guesses,
+``stages.trajectory_guesses``), refine (``stages.chain_batch``: the LM on all guesses of
+all problems at once, penalties for clearance (``world.clearance_groups``) and tendon
+limits), verify (``world.motion.verify_trajectory``: python-fcl along the densely
+interpolated motion, float64 tendon finite differences, limits), optional polish
+(``stages.polish_trajectory``: Ipopt with the constraints as constraints). The result and
+its file forms are in ``tasks._trajectory_result``.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -39,36 +41,33 @@ import numpy as np
 
 from .._jax_setup import enable_compilation_cache
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
-from ..model._ops import JAX, NUMPY
-from ..model.derivatives import backbone_jacobian_z, tip_jacobian_z
-from ..model.kinematics import backbone_points_z, model_segment_frames, model_tendon_lengths
-from ..model.limits import limit_violation_q, project_z
-from ..stages.banded_lm import ChainResidual, banded_lm_solve
-from ..stages.lm import LMConfig, lm_solve
+from ..model._ops import JAX
+from ..model.derivatives import tip_position_z
+from ..model.kinematics import model_tendon_lengths
+from ..model.limits import project_z
+from ..stages.banded_lm import ChainResidual
+from ..stages.chain_batch import ChainBatchLM
 from ..stages.tendon_penalty import tendon_accel_excess, tendon_speed_excess
+from ..stages.trajectory_exact import describe_polish as describe_polish
+from ..stages.trajectory_exact import polish_trajectories, trajectory_polisher
+from ..stages.trajectory_guesses import initial_guesses
 from ..world import Scene, check_many, load_scene, scene_arrays
-from ..world.broad_phase import PartBalls, part_balls
-from ..world.clearance import (
-    SceneArrays,
-    _kind_blocks,
-    body_gap_tolerance,
-    body_segments,
-    self_pairs,
-)
-from ..world.penalty import body_clearances_z
-from ..world.verdict import VIOLATION_TOLERANCE, describe_violations, judge
-from ._result import (
-    SCHEMA_VERSION,
-    ResultFileError,
-    ResultIO,
-    as_float,
-    check_header,
-    num,
-    result_robot,
-    write_json,
-    write_series_csv,
-)
+from ..world.broad_phase import part_balls
+from ..world.clearance import SceneArrays, body_gap_tolerance
+from ..world.clearance_groups import clearance_groups, has_clearance, near_clearance_groups
+from ..world.motion import interpolate_trajectory as interpolate_trajectory
+from ..world.motion import tendon_series as tendon_series
+from ..world.motion import tip_positions as tip_positions
+from ..world.motion import verify_trajectory as verify_trajectory
+from ..world.verdict import Verdict
 from ._timing import StageTiming
+from ._trajectory_result import TrajectoryResult as TrajectoryResult
+from ._trajectory_result import controller_columns as controller_columns
+from ._trajectory_result import result_from_verdict
+from ._trajectory_result import save_results as save_results
+from ._trajectory_result import tendon_names as tendon_names
+from ._trajectory_result import trajectories_from_dict as trajectories_from_dict
+from ._trajectory_result import trajectories_to_dict as trajectories_to_dict
 
 
 @dataclass(frozen=True)
@@ -173,225 +172,6 @@ class TrajectoryConfig:
 # ================================================================ residuals
 
 
-def _tip_value(robot: Robot, z: jax.Array) -> jax.Array:
-    _, pos = model_segment_frames(JAX, robot, [z[i] for i in range(robot.dof)])[-1]
-    return jnp.stack(jnp.broadcast_arrays(*pos)).astype(z.dtype)
-
-
-@partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _tip_position(robot: Robot, z: jax.Array) -> jax.Array:
-    """Tip position (3,) m of one waypoint z (3n,)."""
-    return _tip_value(robot, z)
-
-
-@_tip_position.defjvp
-def _tip_position_jvp(robot: Robot, primals: tuple, tangents: tuple) -> tuple:
-    # The waypoint's own 3 × 3n Jacobian (closed form, ``model.derivatives``), computed
-    # from the primal only: under the LM's jacfwd over all H·3n directions it is
-    # evaluated once, not once per direction.
-    (z,), (z_dot,) = primals, tangents
-    position, _, jac = tip_jacobian_z(robot, z)
-    return position, jac[:3] @ z_dot
-
-
-def _safe_norm(x: jax.Array) -> jax.Array:
-    eps = jnp.asarray(1e-9, x.dtype)
-    return jnp.sqrt(jnp.sum(x * x, axis=-1) + eps * eps) - eps
-
-
-def _groups(robot: Robot, arrays: SceneArrays | None) -> list[np.ndarray]:
-    """Index sets into ``body_clearances_z``'s output, one per residual group: each
-    segment's body spheres (nearest-obstacle rows), then all self pairs."""
-    out, offset = [], 0
-    if arrays is not None and arrays.n_parts > 0:
-        out += list(body_segments(robot))
-        offset = robot.n_points + 1
-    if robot.has_self_pairs:
-        out.append(offset + np.arange(len(self_pairs(robot))))
-    return out
-
-
-def _group_values(robot: Robot, margin: float, arrays: SceneArrays | None,
-                  z: jax.Array) -> jax.Array:
-    """Grouped clearance shortfalls (m) of one configuration z (3n,): for each segment, the
-    norm of max(0, δ − d) over its body spheres' nearest-obstacle distances
-    (``body_clearances_z``), then the norm over the self pairs. Grouping keeps the LM's
-    residual count (hence the cost of JᵀJ) small; ½‖group‖² equals the per-sphere
-    penalty, so the gradient is unchanged."""
-    shortfall = jnp.maximum(margin - body_clearances_z(robot, arrays, z), 0.0)
-    return jnp.stack([_safe_norm(shortfall[idx]) for idx in _groups(robot, arrays)])
-
-
-# Fields of ``SceneArrays`` per part kind, in ``_kind_blocks`` order.
-_KIND_FIELDS = (("sphere_center", "sphere_radius"),
-                ("box_center", "box_rotation", "box_half_size"),
-                ("capsule_a", "capsule_b", "capsule_radius"),
-                ("cylinder_center", "cylinder_rotation", "cylinder_radius",
-                 "cylinder_half_length"),
-                ("convex_planes",))
-
-
-def _candidates(arrays: SceneArrays, balls: PartBalls, near: int, present: list[int],
-                centres: jax.Array) -> list[jax.Array]:
-    """Broad phase: per present part kind, the indices (N, k) of the parts each body
-    sphere (centres (N, 3) m) may be nearest to: the ``near`` parts whose bounding balls
-    (``world.broad_phase``) are nearest to it, or every part of a kind with at most
-    ``near`` parts."""
-    out = []
-    for kind in present:
-        count = getattr(arrays, _KIND_FIELDS[kind][0]).shape[0]
-        if count <= near:
-            out.append(jnp.broadcast_to(jnp.arange(count), (centres.shape[0], count)))
-            continue
-        ball_centres, radii = balls[kind]
-        gap = jnp.sqrt(jnp.sum((centres[:, None] - ball_centres[None]) ** 2, axis=-1)) - radii
-        out.append(jax.lax.top_k(-gap, near)[1])
-    return out
-
-
-def _nearest_and_gradient(robot: Robot, arrays: SceneArrays, centres: jax.Array,
-                          balls: PartBalls | None = None,
-                          near: int = 0) -> tuple[jax.Array, jax.Array]:
-    """Each body sphere's nearest-obstacle distance (N,) m and its gradient (N, 3) with
-    respect to the sphere's centre. The gradient of a min is that of its argmin, so only
-    the nearest part of each kind is differentiated (measured 10–20× cheaper than the
-    reverse pass over every (sphere, part) pair). With ``balls`` and ``near`` > 0 only the
-    ``near`` parts per kind whose bounding balls are nearest to a sphere are measured
-    (``_candidates``); a part outside them is taken to be farther."""
-    present = [k for k, f in enumerate(_KIND_FIELDS) if getattr(arrays, f[0]).shape[0]]
-    if balls is not None and near > 0:
-        candidates = _candidates(arrays, balls, near, present, centres)
-        gathered = dict(arrays._asdict())
-        axes = dict.fromkeys(gathered)
-        for kind, idx in zip(present, candidates, strict=True):
-            for name in _KIND_FIELDS[kind]:
-                gathered[name] = getattr(arrays, name)[idx]           # (N, k, …)
-                axes[name] = 0
-        blocks = jax.vmap(lambda one, c: [b[0] for b in _kind_blocks(robot, one, c[None], 0.0)],
-                          in_axes=(SceneArrays(**axes), 0))(SceneArrays(**gathered), centres)
-        chosen = [jnp.take_along_axis(idx, jnp.argmin(b, axis=-1)[:, None], axis=1)
-                  for idx, b in zip(candidates, blocks, strict=True)]
-    else:
-        blocks = _kind_blocks(robot, arrays, centres, 0.0)
-        chosen = [jnp.argmin(b, axis=-1)[:, None] for b in blocks]
-    picked = dict(arrays._asdict())
-    axes = dict.fromkeys(picked)
-    for kind, nearest in zip(present, chosen, strict=True):   # (N, 1): one part per sphere
-        for name in _KIND_FIELDS[kind]:
-            picked[name] = getattr(arrays, name)[nearest]
-            axes[name] = 0
-    per_sphere = SceneArrays(**picked)
-
-    def distance(one: SceneArrays, centre: jax.Array) -> jax.Array:
-        rows = _kind_blocks(robot, one, centre[None], 0.0)
-        return jnp.min(jnp.concatenate([b.reshape(-1) for b in rows]))
-
-    return jax.vmap(jax.value_and_grad(distance, argnums=1),
-                    in_axes=(SceneArrays(**axes), 0))(per_sphere, centres)
-
-
-def _groups_from(robot: Robot, margin: float, arrays: SceneArrays | None, centres: jax.Array,
-                 jac_centres: jax.Array | None, balls: PartBalls | None = None,
-                 near: int = 0) -> tuple[jax.Array, jax.Array | None]:
-    """Grouped clearance shortfalls (G,) m of the body spheres' centres (N, 3) m
-    (``_group_values``: per segment the norm of max(0, δ − d) over its spheres'
-    nearest-obstacle distances, then the norm over the self pairs) and, given the centres'
-    Jacobian (N, 3, d), theirs (G, d) (else None). Shared by this module's LM and
-    ``tasks.follow``, which build the centre Jacobian differently. ``balls``, ``near``:
-    the broad phase of ``_nearest_and_gradient`` (None, 0: every part)."""
-    values, rows = [], []
-    if arrays is not None and arrays.n_parts > 0:
-        d, grad = _nearest_and_gradient(robot, arrays, centres, balls, near)
-        values.append(d)
-        if jac_centres is not None:
-            rows.append(jnp.einsum("nk,nkj->nj", grad, jac_centres))
-    if robot.has_self_pairs:
-        pairs = self_pairs(robot)
-        diff = centres[pairs[:, 0]] - centres[pairs[:, 1]]
-        norm = jnp.sqrt(jnp.maximum(jnp.sum(diff * diff, axis=-1), 1e-30))
-        values.append(norm - 2.0 * robot.backbone_radius)
-        if jac_centres is not None:
-            unit = diff / norm[:, None]
-            rows.append(jnp.einsum("nk,nkj->nj", unit,
-                                   jac_centres[pairs[:, 0]] - jac_centres[pairs[:, 1]]))
-    d = jnp.concatenate(values)
-    shortfall = jnp.maximum(margin - d, 0.0)
-    jac_d = jnp.concatenate(rows) if jac_centres is not None else None
-    out, jac = [], []
-    eps = jnp.asarray(1e-9, centres.dtype)
-    for idx in _groups(robot, arrays):
-        s = shortfall[idx]
-        root = jnp.sqrt(jnp.sum(s * s) + eps * eps)
-        out.append(root - eps)
-        if jac_d is not None:
-            jac.append(-(s / root) @ jac_d[idx])
-    return jnp.stack(out), (jnp.stack(jac) if jac_d is not None else None)
-
-
-def _group_jacobian(robot: Robot, margin: float, arrays: SceneArrays | None,
-                    z: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """``_group_values`` (G,) and its Jacobian (G, 3n), from the body spheres' closed-form
-    centre Jacobian (``model.derivatives``) and per-sphere distance gradients (no pass over
-    every tangent direction)."""
-    points, d_points = backbone_jacobian_z(robot, z)
-    # The centres of ``world.clearance._centres``: the base, then the backbone points.
-    base = jnp.asarray(robot.base_position, z.dtype)[None]
-    centres = jnp.concatenate([base, points])
-    jac_centres = jnp.concatenate([jnp.zeros((1, 3, robot.dof), z.dtype), d_points])
-    return _groups_from(robot, margin, arrays, centres, jac_centres)
-
-
-@partial(jax.custom_jvp, nondiff_argnums=(0, 1))
-def _clearance_groups(robot: Robot, margin: float, arrays: SceneArrays | None,
-                      z: jax.Array) -> jax.Array:
-    return _group_values(robot, margin, arrays, z)
-
-
-@_clearance_groups.defjvp
-def _clearance_groups_jvp(robot: Robot, margin: float, primals: tuple,
-                          tangents: tuple) -> tuple:
-    # As for the tip: the configuration's own Jacobian from the primal, then one product.
-    arrays, z = primals
-    z_dot = tangents[1]
-    values, jac = _group_jacobian(robot, margin, arrays, z)
-    return values, jac @ z_dot
-
-
-def _body_centres_z(robot: Robot, z: jax.Array) -> jax.Array:
-    """Body-sphere centres (N, 3) m of one z (3n,), ``world.clearance._centres`` order:
-    the base, then the backbone points."""
-    base = jnp.asarray(robot.base_position, z.dtype)[None]
-    return jnp.concatenate([base, backbone_points_z(robot, z).astype(z.dtype)])
-
-
-@partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
-def near_clearance_groups(robot: Robot, margin: float, near: int, arrays: SceneArrays | None,
-                          balls: PartBalls | None, z: jax.Array) -> jax.Array:
-    """``_group_values`` (G,) m of one configuration z (3n,) with the broad phase of
-    ``_nearest_and_gradient``: only the ``near`` parts per kind whose bounding balls
-    (``balls``, ``world.broad_phase``) are nearest to a body sphere are measured (``near``
-    0 or ``balls`` None: every part). Its Jacobian comes from the primal alone."""
-    return _groups_from(robot, margin, arrays, _body_centres_z(robot, z), None, balls,
-                        near)[0]
-
-
-@near_clearance_groups.defjvp
-def _near_clearance_groups_jvp(robot: Robot, margin: float, near: int, primals: tuple,
-                               tangents: tuple) -> tuple:
-    arrays, balls, z = primals
-    z_dot = tangents[2]
-    points, d_points = backbone_jacobian_z(robot, z)
-    base = jnp.asarray(robot.base_position, z.dtype)[None]
-    centres = jnp.concatenate([base, points])
-    jac_centres = jnp.concatenate([jnp.zeros((1, 3, robot.dof), z.dtype), d_points])
-    values, jac = _groups_from(robot, margin, arrays, centres, jac_centres, balls, near)
-    return values, jac @ z_dot
-
-
-def _has_clearance(robot: Robot, arrays: SceneArrays | None) -> bool:
-    return (arrays is not None and arrays.n_parts > 0) or robot.has_self_pairs
-
-
 def trajectory_residual(robot: Robot, waypoints: int, checks: int, margin: float,
                         weights: tuple[float, float, float, float], limit_fraction: float,
                         z: jax.Array, dt: jax.Array, scene: SceneArrays | None) -> jax.Array:
@@ -408,13 +188,13 @@ def trajectory_residual(robot: Robot, waypoints: int, checks: int, margin: float
     """
     w_path, w_smooth, w_clear, w_tendon = weights
     way = z.reshape(waypoints, robot.dof)
-    tips = jax.vmap(partial(_tip_position, robot))(way)
+    tips = jax.vmap(partial(tip_position_z, robot))(way)
     out = [math.sqrt(w_path) * (tips[1:] - tips[:-1]).reshape(-1),
            math.sqrt(w_smooth) * (way[1:] - way[:-1]).reshape(-1)]
-    if _has_clearance(robot, scene):
+    if has_clearance(robot, scene):
         step = way[1:] - way[:-1]
         configs = [way] + [way[:-1] + (c / (checks + 1)) * step for c in range(1, checks + 1)]
-        groups = jax.vmap(partial(_clearance_groups, robot, margin, scene))(
+        groups = jax.vmap(partial(clearance_groups, robot, margin, scene))(
             jnp.concatenate(configs))
         out.append(math.sqrt(w_clear) * groups.reshape(-1))
     lengths = jnp.stack(model_tendon_lengths(JAX, robot, [way[:, i] for i in range(robot.dof)]),
@@ -450,9 +230,9 @@ def trajectory_pair(robot: Robot, margin: float, near: int, checks: int,
     sqrt_path, sqrt_smooth, sqrt_clear, sqrt_tendon = weights
     arrays, balls, dt = shared
     step = z_b - z_a
-    out = [sqrt_path * (_tip_position(robot, z_b) - _tip_position(robot, z_a)),
+    out = [sqrt_path * (tip_position_z(robot, z_b) - tip_position_z(robot, z_a)),
            sqrt_smooth * step]
-    if checks and _has_clearance(robot, arrays):
+    if checks and has_clearance(robot, arrays):
         for c in range(1, checks + 1):
             out.append(sqrt_clear * near_clearance_groups(
                 robot, margin, near, arrays, balls, z_a + (c / (checks + 1)) * step))
@@ -475,7 +255,7 @@ def trajectory_terms(robot: Robot, margin: float, config: TrajectoryConfig,
     the same residuals (hence the same cost ½‖r‖²) grouped by the waypoints they touch.
     ``scene`` only decides whether clearance terms exist."""
     sqrt = math.sqrt
-    clear = _has_clearance(robot, scene)
+    clear = has_clearance(robot, scene)
     near = config.near_parts
     unary = (partial(trajectory_unary, robot, float(margin), near,
                      sqrt(config.clearance_weight)) if clear else None)
@@ -495,322 +275,15 @@ def _project_waypoints(robot: Robot, waypoints: int, z: jax.Array) -> jax.Array:
     return project_z(robot, z.reshape(z.shape[:-1] + (waypoints, robot.dof))).reshape(z.shape)
 
 
-# ================================================================ float64 verification
-
-_NO_OBSTACLES = Scene("empty", ())
-"""For self-collision checks of a robot planned without a scene."""
-
-
-def interpolate_trajectory(q: np.ndarray, samples: int) -> np.ndarray:
-    """The motion between waypoints, linear in the bending vector z (hence linear in the
-    tendon lengths): (H·samples + 1, 3n) configurations (rad, rad, m), each interval split
-    into ``samples`` pieces, waypoints included."""
-    z = q_to_z_numpy(q)
-    s = np.arange(samples)[:, None] / samples
-    inner = (z[:-1, None, :] + s[None, :, :] * (z[1:] - z[:-1])[:, None, :]).reshape(-1, z.shape[1])
-    return z_to_q_numpy(np.concatenate([inner, z[-1:]]))
-
-
-def tip_positions(robot: Robot, q: np.ndarray) -> np.ndarray:
-    """(B, 3) tip positions (m) of (B, 3n) configurations, float64 numpy."""
-    z = q_to_z_numpy(q)
-    _, pos = model_segment_frames(NUMPY, robot, [z[:, i] for i in range(robot.dof)])[-1]
-    return np.stack(np.broadcast_arrays(*pos), axis=-1).reshape(-1, 3)
-
-
-def tendon_series(robot: Robot, q: np.ndarray) -> np.ndarray:
-    """(B, n_tendons) tendon lengths (m) of (B, 3n) configurations, float64 numpy."""
-    z = q_to_z_numpy(q)
-    values = model_tendon_lengths(NUMPY, robot, [z[:, i] for i in range(robot.dof)])
-    return np.stack(np.broadcast_arrays(*values), axis=-1).reshape(len(z), -1)
-
-
-def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
-                      margin: float = 0.002, samples: int = 4,
-                      tolerance: float = VIOLATION_TOLERANCE) -> dict[str, Any]:
-    """Float64 verdict on a trajectory, independent of any optimiser (``world.verdict``).
-
-    Args:
-        robot: the robot.
-        scene: obstacles, or None.
-        q: (H+1, 3n) waypoints θ, φ, L (rad, rad, m).
-        dt: seconds between waypoints.
-        margin: δ, metres; a python-fcl distance below it counts as a clearance violation.
-        samples: each interval is split into this many pieces (linear in z) and python-fcl
-            checks every piece's end, so the whole motion, not only the waypoints, is judged.
-        tolerance: the largest violation of any family a success may have.
-
-    Returns a dict: ``success`` (``world.verdict.judge``: every violation ≤ ``tolerance``:
-    clearance to obstacles and between segments at least two apart ≥ δ − tolerance
-    along the whole motion, limits and tendon limits), ``reason`` ("" on success, else
-    each failed check and by how much), ``violations`` (largest violation per constraint
-    family: ``clearance`` and ``self_clearance`` m below δ, ``limits`` rad or m,
-    ``tendon_speed`` m/s, ``tendon_accel`` m/s²), ``max_violation`` (their maximum),
-    ``min_clearance`` (m, the smaller of the python-fcl obstacle distance and the
-    self-clearance, +inf with neither), ``self_clearance`` (m, +inf when not checked),
-    ``verdict`` (the ``world.verdict.Verdict``), ``collision_free``,
-    ``path_length`` (m, the tip path along the dense motion), ``tendon_lengths``
-    (H+1, n_tendons) m, ``tendon_speed`` and ``tendon_accel`` (largest |value|, m/s and
-    m/s²) and ``first_collision`` (index into the dense motion, −1 if none).
-    """
-    q = np.asarray(q, dtype=np.float64)
-    if q.ndim != 2 or q.shape[1] != robot.dof or len(q) < 2:
-        raise ValueError(f"q must be (H+1, {robot.dof}) with H ≥ 1, got {q.shape}")
-    dense = interpolate_trajectory(q, samples)
-    tips = tip_positions(robot, dense)
-    path_length = float(np.sum(np.linalg.norm(np.diff(tips, axis=0), axis=1)))
-    lengths = tendon_series(robot, q)
-    speed = np.diff(lengths, axis=0) / dt
-    accel = (np.diff(lengths, 2, axis=0) / (dt * dt) if len(q) > 2
-             else np.zeros((0, lengths.shape[1])))
-    speed_max = float(np.max(np.abs(speed))) if speed.size else 0.0
-    accel_max = float(np.max(np.abs(accel))) if accel.size else 0.0
-    min_clearance, self_clearance, first_collision = math.inf, math.inf, -1
-    if scene is not None or robot.has_self_pairs:
-        checked = check_many(robot, scene, dense)
-        min_clearance = float(np.min(checked.obstacle_distance))
-        self_clearance = float(np.min(checked.self_distance))
-        hits = np.flatnonzero(checked.collision)
-        first_collision = int(hits[0]) if len(hits) else -1
-    where = ""
-    if first_collision >= 0:
-        at = first_collision / samples
-        where = f"at t = {at * dt:.3f} s (interval {int(at)})"
-    verdict = judge(margin=margin, limits=float(np.max(limit_violation_q(robot, q))),
-                    min_clearance=min_clearance, self_clearance=self_clearance,
-                    tendon_speed=speed_max - robot.tendon_speed_max,
-                    tendon_accel=accel_max - robot.tendon_accel_max,
-                    collision_where=where, tolerance=tolerance)
-    return {
-        "success": verdict.success, "reason": verdict.reason,
-        "violations": dict(verdict.violations), "max_violation": verdict.max_violation,
-        "min_clearance": min(min_clearance, self_clearance),
-        "self_clearance": self_clearance, "verdict": verdict,
-        "collision_free": first_collision < 0, "path_length": path_length,
-        "tendon_lengths": lengths, "tendon_speed": speed_max, "tendon_accel": accel_max,
-        "first_collision": first_collision,
-    }
-
-
-# ================================================================ results
-
-
-@dataclass
-class TrajectoryResult(ResultIO):
-    """One planned trajectory (or the reason there is none). Units: rad, m, s.
-
-    Its RESULT.json (``to_dict``) is a list of one: the form ``cr-nlp plan --out`` writes
-    for many (``trajectories_to_dict``), so one file layout serves both."""
-
-    kind: ClassVar[str] = "trajectory"
-
-    robot: Robot
-    q: np.ndarray | None
-    """(H+1, 3n) waypoints θ, φ, L; None when the problem was rejected before planning."""
-    dt: float
-    """Seconds between waypoints."""
-    success: bool
-    """Verified (``world.verdict``, both modes): every violation ≤ 1e-6 along the whole
-    motion by python-fcl and float64 re-evaluation: clearance ≥ δ, limits, tendon speed
-    and acceleration limits."""
-    reason: str
-    """"" on success, else why it failed."""
-    stage: str
-    """What produced ``q``: "refine (roadmap)", "refine (straight)", "refine (perturbed)",
-    "polish", or a refine stage with the polish's failure noted; "rejected" for bad
-    input."""
-    path_length: float = math.nan
-    """Tip path length along the interpolated motion, m."""
-    min_clearance: float = math.nan
-    """Smallest python-fcl distance along the motion, m (+inf without obstacles)."""
-    max_violation: float = math.nan
-    """Largest of ``violations``."""
-    violations: dict[str, float] = field(default_factory=dict)
-    """Largest violation per family: clearance (m below δ), limits (rad or m),
-    tendon_speed (m/s), tendon_accel (m/s²)."""
-    tendon_lengths: np.ndarray | None = None
-    """(H+1, n_tendons) tendon lengths at the waypoints, m."""
-    tendon_speed: float = math.nan
-    """Largest |tendon speed| by finite differences, m/s."""
-    tendon_accel: float = math.nan
-    """Largest |tendon acceleration| by finite differences, m/s²."""
-    cost: float = math.nan
-    """The LM stage's final penalised cost ½‖r‖² of the chosen guess."""
-    timing: StageTiming = field(default_factory=StageTiming)
-    """Seconds per stage for this problem (shared batch work split evenly)."""
-    tendon_displacements: np.ndarray | None = None
-    """(H+1, n_tendons) motor commands at the waypoints, m (positive = pulled), when the
-    robot file has an ``actuation`` block (``model.actuation``); else None."""
-
-    @property
-    def times(self) -> np.ndarray:
-        """(H+1,) time of each waypoint, seconds."""
-        n = 0 if self.q is None else len(self.q)
-        return np.arange(n) * self.dt
-
-    def entry(self) -> dict[str, Any]:
-        """This trajectory's entry of a RESULT.json ``results`` list."""
-        ok = self.q is not None
-        return {
-            "success": bool(self.success),
-            "q": self.q.tolist() if ok else None,
-            "dt": float(self.dt),
-            "times": self.times.tolist() if ok else None,
-            "tendon_lengths": self.tendon_lengths.tolist() if self.tendon_lengths is not None
-            else None,
-            **({"tendon_displacements": self.tendon_displacements.tolist()}
-               if self.tendon_displacements is not None else {}),
-            "path_length": num(self.path_length),
-            "min_clearance": num(self.min_clearance),
-            "max_violation": num(self.max_violation),
-            "violations": {k: num(v) for k, v in self.violations.items()},
-            "tendon_speed": num(self.tendon_speed),
-            "tendon_accel": num(self.tendon_accel),
-            "cost": num(self.cost),
-            "stage": self.stage,
-            "reason": self.reason or None,
-            "timing": self.timing.as_dict(),
-        }
-
-    @classmethod
-    def from_entry(cls, robot: Robot, entry: dict[str, Any]) -> TrajectoryResult:
-        """The result of one ``entry()`` (a row of a RESULT.json ``results`` list)."""
-        q, tendons = entry["q"], entry["tendon_lengths"]
-        return cls(
-            robot, None if q is None else np.asarray(q, dtype=float).reshape(-1, robot.dof),
-            float(entry["dt"]), bool(entry["success"]), entry["reason"] or "", entry["stage"],
-            path_length=as_float(entry["path_length"]),
-            min_clearance=as_float(entry["min_clearance"]),
-            max_violation=as_float(entry["max_violation"]),
-            violations={k: as_float(v) for k, v in entry["violations"].items()},
-            tendon_lengths=None if tendons is None else np.asarray(tendons, dtype=float),
-            tendon_speed=as_float(entry["tendon_speed"]),
-            tendon_accel=as_float(entry["tendon_accel"]),
-            cost=as_float(entry.get("cost")),
-            timing=StageTiming.from_dict(entry["timing"]))
-
-    def _fields_dict(self) -> dict[str, Any]:
-        return _trajectories_fields([self], self.timing)
-
-    @classmethod
-    def _from_fields(cls, data: dict[str, Any], robot: Robot) -> TrajectoryResult:
-        entries = data["results"]
-        if len(entries) != 1:
-            raise ResultFileError(f"holds {len(entries)} trajectories, not one: read it with "
-                                  f"load_results / trajectories_from_dict")
-        return cls.from_entry(robot, entries[0])
-
-    @classmethod
-    def list_from_dict(cls, data: Any, robot: Robot | str | None = None,
-                       source: str = "") -> list[TrajectoryResult]:
-        """Every trajectory of a RESULT.json's content (``trajectories_to_dict``)."""
-        return trajectories_from_dict(data, robot, source)
-
-    def save_csv(self, path: str | Path) -> Path:
-        """The tendon-length series for a controller: a ``time_s`` column, then one column
-        per tendon (``tendon_<segment>_<j>`` for per-segment routing, ``tendon_<j>`` for
-        shared), lengths in metres, one row per waypoint."""
-        if self.tendon_lengths is None:
-            raise ValueError(f"no trajectory to save ({self.reason})")
-        return write_series_csv(path, self.times, *controller_columns(
-            self.robot, self.tendon_lengths, self.tendon_displacements))
-
-    def save_npz(self, path: str | Path) -> None:
-        """q, times, dt, tendon lengths and the scalar verdicts as a numpy .npz file."""
-        n_t = self.robot.n_tendons
-        np.savez(path, q=self.q if self.q is not None else np.zeros((0, self.robot.dof)),
-                 times=self.times, dt=self.dt, success=self.success,
-                 tendon_lengths=(self.tendon_lengths if self.tendon_lengths is not None
-                                 else np.zeros((0, n_t))),
-                 path_length=self.path_length, min_clearance=self.min_clearance,
-                 max_violation=self.max_violation, reason=self.reason, stage=self.stage)
-
-
-def controller_columns(robot: Robot, lengths: np.ndarray,
-                       displacements: np.ndarray | None) -> tuple[list[str], np.ndarray]:
-    """A controller's time-series columns: the tendon lengths (m, ``tendon_names``), then
-    the motor commands (``<tendon name>_displacement``, m) when there are any; the names and
-    the (T, columns) values."""
-    if displacements is None:
-        return tendon_names(robot), lengths
-    return ([*tendon_names(robot), *(f"{name}_displacement" for name in tendon_names(robot))],
-            np.hstack([lengths, displacements]))
-
-
-def tendon_names(robot: Robot) -> list[str]:
-    """Column names of the tendon-length series (CSV), in ``tendon_lengths`` order."""
-    m = robot.tendons.per_segment
-    if robot.tendons.routing == "shared":
-        return [f"tendon_{j + 1}" for j in range(m)]
-    return [f"tendon_{k + 1}_{j + 1}" for k in range(robot.n_segments) for j in range(m)]
-
-
-def _trajectories_fields(results: list[TrajectoryResult],
-                         timing: StageTiming | dict[str, float] | None) -> dict[str, Any]:
-    ok = [r.success for r in results]
-    lengths = [r.path_length for r in results if r.success]
-    if not isinstance(timing, StageTiming):
-        timing = StageTiming.from_dict(timing)
-    return {
-        "results": [r.entry() for r in results],
-        "summary": {"problems": len(results),
-                    "success_rate": float(np.mean(ok)) if results else 0.0,
-                    "median_path_length": float(np.median(lengths)) if lengths else None},
-        "timing": timing.as_dict(),
-    }
-
-
-def trajectories_to_dict(results: list[TrajectoryResult],
-                         timing: StageTiming | dict[str, float] | None = None,
-                         robot: Robot | None = None) -> dict[str, Any]:
-    """The RESULT.json form of many trajectories (``cr-nlp plan``): the header (kind
-    "trajectory"), one entry per result, a summary and the batch's ``timing`` (s).
-    ``robot`` names the robot of an empty list."""
-    name = results[0].robot.name if results else (robot.name if robot is not None else None)
-    return {"kind": TrajectoryResult.kind, "schema_version": SCHEMA_VERSION,
-            "robot": name, **_trajectories_fields(results, timing)}
-
-
-def trajectories_from_dict(data: Any, robot: Robot | str | None = None,
-                           source: str = "") -> list[TrajectoryResult]:
-    """Every ``TrajectoryResult`` of ``trajectories_to_dict``'s form."""
-    where = source or "the result"
-    check_header(data, where, kind=TrajectoryResult.kind)
-    robot = result_robot(data, robot, where)
-    try:
-        return [TrajectoryResult.from_entry(robot, e) for e in data["results"]]
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ResultFileError(f"{where}: not a valid trajectory result ({exc!r})") from None
-
-
-def save_results(results: list[TrajectoryResult], path: str | Path,
-                 timing: StageTiming | dict[str, float] | None = None,
-                 robot: Robot | None = None) -> Path:
-    """Write ``trajectories_to_dict`` to ``path`` (.json) or every result to one .npz
-    (``q_<i>``, ``tendon_lengths_<i>``, ``success``, ``dt``) by the file's suffix."""
-    path = Path(path)
-    if path.suffix != ".npz":
-        return write_json(trajectories_to_dict(results, timing, robot), path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    arrays: dict[str, Any] = {
-        "success": np.array([r.success for r in results]),
-        "dt": np.array([r.dt for r in results]),
-        "path_length": np.array([r.path_length for r in results]),
-        "max_violation": np.array([r.max_violation for r in results]),
-    }
-    for i, r in enumerate(results):
-        if r.q is not None:
-            arrays[f"q_{i}"] = r.q
-            arrays[f"tendon_lengths_{i}"] = r.tendon_lengths
-    np.savez(path, **arrays)
-    return path
-
-
 # ================================================================ the planner
 
 
 PlanTiming = StageTiming
 """Seconds per stage of one ``TrajectoryPlanner.plan`` call."""
+
+
+_NO_OBSTACLES = Scene("empty", ())
+"""For self-collision checks of a robot planned without a scene."""
 
 
 class TrajectoryPlanner:
@@ -835,17 +308,20 @@ class TrajectoryPlanner:
         n = config.waypoints
         weights = (config.path_weight, config.smoothness_weight, config.clearance_weight,
                    config.tendon_weight)
-        self._residual = partial(trajectory_residual, self.robot, n, config.interpolation_checks,
-                                 float(self.margin), weights, config.tendon_limit_fraction)
-        self._project = partial(_project_waypoints, self.robot, n)
-        self._balls = (part_balls(self.scene, self.dtype)
-                       if self.scene is not None and config.near_parts > 0 else None)
-        self._terms = trajectory_terms(self.robot, self.margin, config, self._arrays)
+        balls = (part_balls(self.scene, self.dtype)
+                 if self.scene is not None and config.near_parts > 0 else None)
         free = np.ones((n, self.robot.dof))
         free[:, 2::3] = ~self.robot.lengths_fixed()
         free[0] = free[-1] = 0.0                       # start and goal are fixed
-        self._free = jnp.asarray(free.reshape(-1), self.dtype)
-        self._compiled: dict[int, Any] = {}
+        self.lm = ChainBatchLM(
+            trajectory_terms(self.robot, self.margin, config, self._arrays),
+            partial(project_z, self.robot), n, jnp.asarray(free.reshape(-1), self.dtype),
+            self.dtype, config.chunk_size, config.lm_structure,
+            dense_residual=partial(trajectory_residual, self.robot, n,
+                                   config.interpolation_checks, float(self.margin), weights,
+                                   config.tendon_limit_fraction),
+            dense_project=partial(_project_waypoints, self.robot, n), extra=balls)
+        """Stage 2 (``stages.chain_batch``): the LM over chunks of trajectories."""
         self.last_programs = 0
         """LM device programs launched by the last ``plan`` call (one per chunk)."""
         self._roadmap: Any = None
@@ -876,98 +352,6 @@ class TrajectoryPlanner:
         return roadmap.query_many(np.stack([q for _, q, _ in valid]),
                                   np.stack([q for _, _, q in valid]), self.config.waypoints,
                                   self.config.roadmap_search)
-
-    def _guesses(self, z_start: np.ndarray, z_goal: np.ndarray,
-                 path: np.ndarray | None) -> tuple[np.ndarray, list[str]]:
-        """(G, waypoints, 3n) initial trajectories in z and what each one is; ``path`` is
-        the roadmap's (waypoints, 3n) configurations, or None."""
-        cfg = self.config
-        n = cfg.waypoints
-        s = np.linspace(0.0, 1.0, n)[:, None]
-        straight = z_start[None] + s * (z_goal - z_start)[None]
-        guesses, kinds = [], []
-        if path is not None:
-            z = q_to_z_numpy(np.reshape(path, (n, -1)))
-            z[0], z[-1] = z_start, z_goal
-            guesses.append(z)
-            kinds.append("roadmap")
-        guesses.append(straight)
-        kinds.append("straight")
-        bump = np.sin(np.pi * s)
-        bending = np.zeros(self.robot.dof, bool)
-        bending[0::3] = bending[1::3] = True
-        while len(guesses) < cfg.guesses:
-            direction = self._rng.normal(size=self.robot.dof) * bending
-            direction *= cfg.perturbation / max(np.linalg.norm(direction), 1e-12)
-            direction *= math.sqrt(self.robot.n_segments)   # ≈ perturbation per segment
-            guesses.append(straight + bump * direction[None])
-            kinds.append("perturbed")
-        return np.stack(guesses[: cfg.guesses]), kinds[: cfg.guesses]
-
-    def _lm(self, z0: np.ndarray, dt: np.ndarray, timing: PlanTiming) -> tuple[np.ndarray,
-                                                                                np.ndarray]:
-        """LM over (B, waypoints·3n) trajectories in fixed-size chunks; z and cost (B,)."""
-        # One chunk size per planner (one compiled program); a batch smaller than a chunk
-        # gets the smallest power of two (≥ the device count) that holds it.
-        devices = len(jax.devices())
-        chunk = max(2, devices)
-        while chunk < min(len(z0), self.config.chunk_size):
-            chunk *= 2
-        chunk = max(chunk, min(self._compiled, default=0))
-        z_out, cost_out = [], []
-        for start in range(0, len(z0), chunk):
-            stop = min(start + chunk, len(z0))
-            pad = chunk - (stop - start)
-
-            def padded(x: np.ndarray, start: int = start, stop: int = stop,
-                       pad: int = pad) -> np.ndarray:
-                part = x[start:stop]
-                return np.concatenate([part, np.repeat(part[:1], pad, 0)]) if pad else part
-
-            args = (jnp.asarray(padded(z0), self.dtype), jnp.asarray(padded(dt), self.dtype),
-                    self._arrays, self._free, jnp.int32(self.config.iterations))
-            if chunk not in self._compiled:
-                t0 = time.perf_counter()
-                self._compiled[chunk] = self._lower(args).compile()
-                timing.compile += time.perf_counter() - t0
-            z, cost = self._compiled[chunk](*args)[:2]
-            self.last_programs += 1
-            z_out.append(np.array(z[: stop - start], dtype=np.float64))
-            cost_out.append(np.array(cost[: stop - start], dtype=np.float64))
-        return np.concatenate(z_out), np.concatenate(cost_out)
-
-    def _lower(self, args: tuple) -> Any:
-        """The LM program for one chunk, on one device. Unlike IK it is not split with
-        ``shard_map`` over host devices: measured with jax 0.10 on 2 CPU host devices,
-        the sharded program of a 16-trajectory chunk never returned (every thread waiting
-        on a futex), while the same program unsharded, where XLA's own thread pool
-        parallelises the large JᵀJ products, runs normally."""
-        # Measured on 20 shelf problems, 2 shared cores under load, same process: the
-        # banded LM with the clearance broad phase took 1.98 s of LM per problem against
-        # the dense LM's 3.86 s, same successes and path lengths; its first compilation
-        # is longer (about 200 s against 34 s with a cold cache under that load).
-        if self.config.lm_structure == "dense":
-            config = LMConfig(cost_tolerance=0.0, linear_solver="cholesky")
-            solve = partial(lm_solve, self._residual, self._project, config=config)
-            return jax.jit(lambda *a: solve(*a)[:2]).lower(*args)
-        # One banded solve per trajectory, vmapped: a trajectory that has converged keeps
-        # its iterate (the loop's batched predicate masks it) while the others go on.
-        n, dof = self.config.waypoints, self.robot.dof
-        one = partial(banded_lm_solve, self._terms, partial(project_z, self.robot),
-                      config=LMConfig(cost_tolerance=0.0))
-
-        balls = self._balls
-
-        def solve_chunk(z0: jax.Array, dt: jax.Array, arrays: SceneArrays | None,
-                        free: jax.Array, iterations: jax.Array) -> tuple[jax.Array, jax.Array]:
-            def single(z: jax.Array, step: jax.Array) -> tuple[jax.Array, jax.Array]:
-                out, cost, _ = one(z.reshape(n, dof), None, (arrays, balls, step),
-                                   free.reshape(n, dof), iterations)
-                return out.reshape(-1), cost
-
-            return jax.vmap(single)(z0, dt)
-
-        return jax.jit(solve_chunk).lower(*args)
 
     def validate(self, start: Any, goal: Any) -> tuple[np.ndarray | None, np.ndarray | None, str]:
         """Full (3n,) start and goal, or a reason why the problem cannot be planned."""
@@ -1078,7 +462,9 @@ class TrajectoryPlanner:
         guesses, kinds = [], []
         paths = self._roadmap_paths(valid, init)
         for (_, q_start, q_goal), path in zip(valid, paths, strict=True):
-            g, k = self._guesses(q_to_z_numpy(q_start), q_to_z_numpy(q_goal), path)
+            g, k = initial_guesses(self.robot, q_to_z_numpy(q_start), q_to_z_numpy(q_goal),
+                                   path, cfg.waypoints, cfg.guesses, cfg.perturbation,
+                                   self._rng)
             guesses.append(g)
             kinds.append(k)
         timing.explore += time.perf_counter() - t0
@@ -1100,9 +486,12 @@ class TrajectoryPlanner:
                 continue
             z0 = all_guesses[rows][:, group].reshape(-1, n * dof)
             t1 = time.perf_counter()
-            c1 = timing.compile
-            z, cost = self._lm(z0, np.full(len(z0), dt), timing)
-            timing.refine += time.perf_counter() - t1 - (timing.compile - c1)
+            programs = self.lm.programs
+            z, cost, compiled = self.lm.solve(z0, np.full(len(z0), dt), self._arrays,
+                                              cfg.iterations)
+            self.last_programs += self.lm.programs - programs
+            timing.compile += compiled
+            timing.refine += time.perf_counter() - t1 - compiled
             z = z.reshape(len(rows), len(group), n, dof)
             cost = cost.reshape(len(rows), len(group))
             for k, row in enumerate(rows):
@@ -1138,8 +527,9 @@ class TrajectoryPlanner:
             found = best[row]
             assert found is not None
             verdict, g, q, cost_g = found
-            results[i] = _result(self.robot, q, dt, verdict, f"refine ({kinds[row][g]})",
-                                 cost_g, StageTiming(**share, verify=float(verify_seconds[row])))
+            results[i] = result_from_verdict(
+                self.robot, q, dt, verdict, f"refine ({kinds[row][g]})", cost_g,
+                StageTiming(**share, verify=float(verify_seconds[row])))
         return [[(q, f"refine ({kinds[row][g]})") for *_, q, g in
                  sorted(tried[row], key=lambda t: t[:3])] for row in range(len(valid))]
 
@@ -1153,25 +543,21 @@ class TrajectoryPlanner:
     def polisher(self) -> Any:
         """The trajectory polisher of this planner (built on first use): rows at every
         waypoint and at every sample the verification checks."""
-        from ..stages.polish_trajectory import TrajectoryPolishConfig, TrajectoryPolisher
-
         if self._polisher is None:
             cfg = self.config
-            self._polisher = TrajectoryPolisher(
-                self.robot, self.scene, cfg.waypoints, safety_margin=self.margin,
-                config=TrajectoryPolishConfig(interpolation_checks=cfg.verify_samples - 1,
-                                              verify_samples=cfg.verify_samples))
+            self._polisher = trajectory_polisher(self.robot, self.scene, cfg.waypoints,
+                                                 self.margin, cfg.verify_samples)
         return self._polisher
 
     def _polish(self, valid: list[tuple[int, np.ndarray, np.ndarray]],
                 candidates: list[list[tuple[np.ndarray, str]]],
                 results: list[TrajectoryResult | None], dt: float, timing: PlanTiming,
                 bar: Any) -> None:
-        """Exact stage: polish each problem's best LM candidate; when the polish fails or
-        the verification rejects it, the next candidate (up to
-        ``config.polish_attempts``). The first verified polish is the answer; if none
-        is, the LM answer stays (it keeps its own verdict: exact mode never succeeds
-        less often than the LM stage). ``bar``: a tqdm bar advanced per problem, or None."""
+        """Exact stage (``stages.trajectory_exact``): polish each problem's LM candidates in order
+        (best first, at most ``config.polish_attempts``) and keep the first polished
+        answer the verification accepts; if none is, the LM answer stays with its own
+        verdict (exact mode never succeeds less often than the LM stage). ``bar``: a tqdm
+        bar advanced per problem, or None."""
         t0 = time.perf_counter()
         cfg = self.config
         # A penalty answer the independent verdict accepts needs no polish to be valid.
@@ -1180,87 +566,46 @@ class TrajectoryPlanner:
             result = results[i]
             assert result is not None
             if result.success and not cfg.polish_accepted:
-                result.timing = {**result.timing, "polish": 0.0}
+                result.timing = replace(result.timing, polish=0.0)
                 if bar is not None:
                     bar.update(1)
             else:
                 todo.append(row)
-        valid = [valid[row] for row in todo]
-        items = [(candidates[row][: cfg.polish_attempts], dt, cfg.safety_margin,
-                  cfg.verify_samples) for row in todo]
-        if cfg.polish_workers > 1 and len(items) > 1:
-            if self._polish_pool is None:
-                from ..stages.pool import PolishPool
-                self._polish_pool = PolishPool(_trajectory_polisher, (
-                    self.robot, self.scene, cfg.waypoints, self.margin, cfg.verify_samples),
-                    cfg.polish_workers)
-            outcomes = self._polish_pool.map(polish_candidates, items, bar)
-        else:
-            polisher = self.polisher()
-            outcomes = []
-            for item in items:
-                outcomes.append(polish_candidates(polisher, *item))
-                if bar is not None:
-                    bar.update(1)
-        for (i, _, _), (q, verdict, failures, seconds) in zip(valid, outcomes, strict=True):
+        options = [candidates[row][: cfg.polish_attempts] for row in todo]
+        reports: dict[int, dict[str, Any]] = {}
+
+        def judge(q: np.ndarray, r: int) -> Verdict:
+            reports[r] = self.verify(q, dt)
+            return reports[r]["verdict"]
+
+        acceptance, seconds = polish_trajectories(
+            options, [results[valid[row][0]] for row in todo], dt, judge, self.polisher,
+            self._pool if cfg.polish_workers > 1 else None, bar)
+        for r, (row, outcome) in enumerate(zip(todo, acceptance.outcomes, strict=True)):
+            i = valid[row][0]
             previous = results[i]
             assert previous is not None
-            if q is not None:
-                results[i] = _result(self.robot, q, dt, verdict, "polish", previous.cost,
-                                     previous.timing)
+            if outcome.accepted:
+                results[i] = result_from_verdict(self.robot, outcome.answer, dt, reports[r],
+                                                 "polish", previous.cost, previous.timing)
             else:
+                failures = [f"from {options[r][k][1]}: {why}"
+                            for k, why in enumerate(outcome.failures)]
                 previous.stage = f"{previous.stage} (polish failed: {'; '.join(failures)})"
             result = results[i]
             assert result is not None
-            result.timing = replace(previous.timing, polish=seconds)
+            result.timing = replace(previous.timing, polish=float(seconds[r]))
         timing.polish += time.perf_counter() - t0
 
-
-def _trajectory_polisher(robot: Robot, scene: Scene | None, waypoints: int, margin: float,
-                         samples: int) -> Any:
-    """The planner's polisher (rows at the verification's samples), for pool workers."""
-    from ..stages.polish_trajectory import TrajectoryPolishConfig, TrajectoryPolisher
-
-    return TrajectoryPolisher(robot, scene, waypoints, safety_margin=margin,
-                              config=TrajectoryPolishConfig(interpolation_checks=samples - 1,
-                                                            verify_samples=samples))
-
-
-def polish_candidates(polisher: Any, candidates: list[tuple[np.ndarray, str]], dt: float,
-                      margin: float, samples: int) -> tuple[np.ndarray | None,
-                                                            dict[str, Any] | None,
-                                                            list[str], float]:
-    """Polish the candidates (q, stage name) in turn until one passes
-    ``verify_trajectory`` (δ = ``margin`` m, ``samples`` per interval). Returns (its q,
-    its verdict, why each earlier one failed, seconds), q None if none passed."""
-    t0 = time.perf_counter()
-    failures = []
-    for q0, stage in candidates:
-        out = polisher.solve(q0, dt)
-        if not out.success:
-            failures.append(f"from {stage}: {describe_polish(out)}")
-            continue
-        verdict = verify_trajectory(polisher.robot, polisher.scene, out.q, dt, margin, samples)
-        if verdict["success"]:
-            return out.q, verdict, failures, time.perf_counter() - t0
-        failures.append(f"from {stage}: rejected by the checker: {verdict['reason']}")
-    return None, None, failures, time.perf_counter() - t0
-
-
-def describe_polish(out: Any) -> str:
-    """Why a trajectory polish failed: Ipopt's status and the violations it left."""
-    broken = describe_violations(out.violations)
-    return f"Ipopt {out.status}" + (f", {broken}" if broken else "")
-
-
-def _result(robot: Robot, q: np.ndarray, dt: float, verdict: dict[str, Any], stage: str,
-            cost: float, timing: StageTiming) -> TrajectoryResult:
-    return TrajectoryResult(
-        robot, q, dt, bool(verdict["success"]), verdict["reason"], stage,
-        path_length=verdict["path_length"], min_clearance=verdict["min_clearance"],
-        max_violation=verdict["max_violation"], violations=dict(verdict["violations"]),
-        tendon_lengths=verdict["tendon_lengths"], tendon_speed=verdict["tendon_speed"],
-        tendon_accel=verdict["tendon_accel"], cost=cost, timing=timing)
+    def _pool(self) -> Any:
+        """The exact stage's worker pool (``stages.pool``), started on first use."""
+        if self._polish_pool is None:
+            from ..stages.pool import PolishPool
+            cfg = self.config
+            self._polish_pool = PolishPool(trajectory_polisher, (
+                self.robot, self.scene, cfg.waypoints, self.margin, cfg.verify_samples),
+                cfg.polish_workers)
+        return self._polish_pool
 
 
 def plan_trajectories(robot: Robot | str | dict, starts: Any, goals: Any,

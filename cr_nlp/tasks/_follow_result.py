@@ -1,0 +1,254 @@
+"""The result of path following: ``FollowResult``, its file forms (RESULT.json, .npz, the
+controller's tendon-length CSV) and the float64 tracking measures it reports. Units: rad,
+m, s (millimetre / degree figures in ``FollowResult.summary``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+
+from ..model import Robot
+from ..model.kinematics import pose_error, tip_pose
+from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
+from ._result import ResultFileError, ResultIO, array, as_float, num, nums, write_series_csv
+from ._timing import StageTiming
+from ._trajectory_result import controller_columns, tendon_names
+from .paths import ReferencePath
+
+
+def tracking_errors(robot: Robot, q: np.ndarray, positions: np.ndarray,
+                    wxyz: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-waypoint tip pose and its distance to the reference, float64: ``position``
+    (T, 3) m, ``wxyz`` (T, 4), ``pose_error`` (T,) (‖log(T_tip⁻¹·T_ref)‖, docs/design.md §1),
+    ``position_error`` (T,) m and ``rotation_error`` (T,) rad (the angle of
+    R_tipᵀ·R_ref)."""
+    position, rotation = tip_pose(robot, np.asarray(q, np.float64))
+    reference = matrix_from_wxyz(wxyz)
+    relative = np.einsum("tji,tjk->tik", rotation, reference)
+    cos_angle = np.clip((np.trace(relative, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    return {"position": position, "wxyz": wxyz_from_matrix(rotation),
+            "pose_error": pose_error(position, rotation, positions, reference),
+            "position_error": np.linalg.norm(position - positions, axis=1),
+            "rotation_error": np.arccos(cos_angle)}
+
+
+def unreached_stretches(reached: np.ndarray) -> list[tuple[int, int]]:
+    """Runs of consecutive unreached waypoints as (first, last) indices, inclusive."""
+    out, start = [], None
+    for i, ok in enumerate(np.asarray(reached, bool)):
+        if not ok and start is None:
+            start = i
+        elif ok and start is not None:
+            out.append((start, i - 1))
+            start = None
+    if start is not None:
+        out.append((start, len(reached) - 1))
+    return out
+
+
+@dataclass
+class FollowResult(ResultIO):
+    """A followed path. Units: rad, m, s (millimetre / degree figures in ``summary``)."""
+
+    kind: ClassVar[str] = "follow"
+
+    robot: Robot
+    path: ReferencePath
+    """The reference (positions m, unit quaternions, Δt s)."""
+    q: np.ndarray
+    """(T, 3n) configurations θ, φ, L, one per waypoint."""
+    position: np.ndarray
+    """(T, 3) tip positions reached, m."""
+    wxyz: np.ndarray
+    """(T, 4) tip orientations reached, unit quaternions (w, x, y, z)."""
+    pose_error: np.ndarray
+    """(T,) ‖log(T_tip⁻¹·T_ref)‖ (the IK success metric, m and rad mixed)."""
+    position_error: np.ndarray
+    """(T,) ‖p_tip − p_ref‖, m."""
+    rotation_error: np.ndarray
+    """(T,) rotation angle between the tip and reference frames, rad."""
+    reached: np.ndarray
+    """(T,) bool: position error ≤ ``FollowConfig.position_tolerance_mm`` (default 5 mm)
+    and rotation error ≤ ``FollowConfig.rotation_tolerance_deg`` (default 1°)."""
+    tendon_lengths: np.ndarray
+    """(T, n_tendons) tendon lengths at the waypoints, m."""
+    tendon_speed: float
+    """Largest |tendon speed| by finite differences, m/s."""
+    tendon_accel: float
+    """Largest |tendon acceleration| by finite differences, m/s²."""
+    collision_free: bool
+    """python-fcl: no contact anywhere along the interpolated motion."""
+    min_clearance: float
+    """Smallest python-fcl distance along the motion, m (+inf with nothing to hit)."""
+    max_violation: float
+    """Largest of ``violations``."""
+    violations: dict[str, float]
+    """Largest violation per family (``verify_trajectory``): clearance (m below δ),
+    limits (rad or m), tendon_speed (m/s), tendon_accel (m/s²)."""
+    success: bool
+    """Every waypoint reached and every violation ≤ 1e-6 (``verify_trajectory``, the one
+    verdict of ``world.verdict``): clearance ≥ δ along the motion, limits, tendon
+    limits."""
+    reason: str
+    """"" on success, else why not (unreached waypoints, collision, limits)."""
+    stage: str
+    """What produced ``q``: "refine", "polish", "refine (polish failed: <why>)", or in
+    exact mode "refine (feasible: polish not needed)" / "refine (feasible; the polished
+    answer tracked worse)" when the LM answer already keeps every constraint (max
+    violation ≤ 1e-6 by the independent checks)."""
+    timing: StageTiming = field(default_factory=StageTiming)
+    """Seconds per stage: compile, explore, refine, polish, verify (and ``total``)."""
+    scene_name: str | None = None
+    """The scene's name, or None without obstacles."""
+    safety_margin: float = 0.002
+    """δ, metres, used by the verdict."""
+    tendon_displacements: np.ndarray | None = None
+    """(T, n_tendons) motor commands at the waypoints, m (positive = pulled), when the
+    robot file has an ``actuation`` block (``model.actuation``); else None."""
+
+    @property
+    def dt(self) -> float:
+        """Seconds between waypoints."""
+        return float(self.path.dt)
+
+    @property
+    def times(self) -> np.ndarray:
+        """(T,) time of each waypoint, seconds."""
+        return np.arange(len(self.q)) * self.dt
+
+    def summary(self) -> dict[str, Any]:
+        """Tracking statistics: mean/std/max position error (mm), mean/max rotation error
+        (degrees), reached count, unreached waypoint indices and stretches."""
+        pos, rot = 1e3 * self.position_error, np.degrees(self.rotation_error)
+        return {
+            "waypoints": len(self.q),
+            "mean_position_error_mm": float(np.mean(pos)),
+            "std_position_error_mm": float(np.std(pos)),
+            "max_position_error_mm": float(np.max(pos)),
+            "mean_rotation_error_deg": float(np.mean(rot)),
+            "max_rotation_error_deg": float(np.max(rot)),
+            "reached": int(np.count_nonzero(self.reached)),
+            "unreached": np.flatnonzero(~self.reached).tolist(),
+            "unreached_stretches": [list(s) for s in unreached_stretches(self.reached)],
+        }
+
+    def _fields_dict(self) -> dict[str, Any]:
+        return {
+            "path": self.path.to_dict(),
+            "scene": self.scene_name,
+            "success": bool(self.success),
+            "reason": self.reason or None,
+            "stage": self.stage,
+            "dt": self.dt,
+            "times": self.times.tolist(),
+            "q": self.q.tolist(),
+            "position": self.position.tolist(),
+            "wxyz": self.wxyz.tolist(),
+            "pose_error": nums(self.pose_error),
+            "position_error": nums(self.position_error),
+            "rotation_error": nums(self.rotation_error),
+            "reached": self.reached.tolist(),
+            "tendon_names": tendon_names(self.robot),
+            "tendon_lengths": self.tendon_lengths.tolist(),
+            **({"tendon_displacements": self.tendon_displacements.tolist()}
+               if self.tendon_displacements is not None else {}),
+            "tendon_speed": num(self.tendon_speed),
+            "tendon_accel": num(self.tendon_accel),
+            "collision_free": bool(self.collision_free),
+            "min_clearance": num(self.min_clearance),
+            "safety_margin": self.safety_margin,
+            "max_violation": num(self.max_violation),
+            "violations": {k: num(v) for k, v in self.violations.items()},
+            "summary": self.summary(),
+            "timing": self.timing.as_dict(),
+        }
+
+    @classmethod
+    def _from_fields(cls, data: dict[str, Any], robot: Robot) -> FollowResult:
+        path = ReferencePath.from_dict(data["path"], source="path")
+        count = len(path)
+        return cls(
+            robot, path, array(data["q"], robot.dof, "q"), array(data["position"], 3, "position"),
+            array(data["wxyz"], 4, "wxyz"), *(array(data[k]) for k in (
+                "pose_error", "position_error", "rotation_error")),
+            np.array(data["reached"], dtype=bool),
+            array(data["tendon_lengths"], robot.n_tendons, "tendon_lengths"),
+            as_float(data["tendon_speed"]), as_float(data["tendon_accel"]),
+            bool(data["collision_free"]), as_float(data["min_clearance"]),
+            as_float(data["max_violation"]),
+            {k: as_float(v) for k, v in data["violations"].items()},
+            success=bool(data["success"]), reason=data["reason"] or "", stage=data["stage"],
+            timing=StageTiming.from_dict(data["timing"]), scene_name=data["scene"],
+            safety_margin=float(data["safety_margin"]),
+        )._checked(count)
+
+    def _checked(self, count: int) -> FollowResult:
+        """This result, after checking that every per-waypoint field has ``count`` rows."""
+        for name in ("q", "position", "wxyz", "pose_error", "position_error",
+                     "rotation_error", "reached", "tendon_lengths"):
+            if len(getattr(self, name)) != count:
+                raise ResultFileError(f"{name} has {len(getattr(self, name))} rows, the path "
+                                      f"{count} waypoints")
+        return self
+
+    def save(self, path: str | Path, indent: int | None = 2) -> Path:
+        """Write ``to_dict`` as JSON (.json, or any suffix but .npz), or the arrays as a
+        numpy .npz by the file's suffix; returns the path."""
+        path = Path(path)
+        if path.suffix != ".npz":
+            return super().save(path, indent)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(path, q=self.q, times=self.times, dt=self.dt,
+                 position=self.position, wxyz=self.wxyz,
+                 target_positions=self.path.positions, target_wxyz=self.path.wxyz,
+                 pose_error=self.pose_error, position_error=self.position_error,
+                 rotation_error=self.rotation_error, reached=self.reached,
+                 tendon_lengths=self.tendon_lengths, collision_free=self.collision_free,
+                 min_clearance=self.min_clearance, max_violation=self.max_violation,
+                 success=self.success, stage=self.stage, reason=self.reason)
+        return path
+
+    def save_csv(self, path: str | Path) -> Path:
+        """The tendon-length series for a controller: ``time_s``, then one column per
+        tendon (``trajectory.tendon_names``), lengths in metres, one row per waypoint."""
+        return write_series_csv(path, self.times, *controller_columns(
+            self.robot, self.tendon_lengths, self.tendon_displacements))
+
+
+def tracking_cost(result: FollowResult) -> float:
+    """Σ over waypoints of (position error in mm)² + (rotation error in degrees)²."""
+    return float(np.sum((1e3 * result.position_error) ** 2
+                        + np.degrees(result.rotation_error) ** 2))
+
+
+def result_from_verdict(robot: Robot, path: ReferencePath, q: np.ndarray,
+                        verdict: dict[str, Any], stage: str, why_untrackable: dict[int, str],
+                        scene_name: str | None, safety_margin: float) -> FollowResult:
+    """The result of the followed path ``q`` (T, 3n) (rad, rad, m) judged by ``verdict``
+    (``PathFollower.verify``'s dict: ``world.motion.verify_trajectory``'s plus the
+    tracking errors and ``reached``); ``why_untrackable``: waypoint index → why it cannot
+    be tracked; ``safety_margin`` δ, m."""
+    reached = np.asarray(verdict["reached"], bool)
+    reasons = []
+    unreached = np.flatnonzero(~reached)
+    if len(unreached):
+        stretches = ", ".join(f"{a}" if a == b else f"{a}–{b}"
+                              for a, b in unreached_stretches(reached))
+        reasons.append(f"{len(unreached)} of {len(q)} waypoints not reached (waypoints "
+                       f"{stretches})")
+        for i, why in sorted(why_untrackable.items())[:3]:
+            reasons.append(f"waypoint {i}: {why}")
+    if verdict["reason"]:
+        reasons.append(verdict["reason"])
+    return FollowResult(
+        robot, path, q, verdict["position"], verdict["wxyz"], verdict["pose_error"],
+        verdict["position_error"], verdict["rotation_error"], reached,
+        verdict["tendon_lengths"], verdict["tendon_speed"], verdict["tendon_accel"],
+        bool(verdict["collision_free"]), float(verdict["min_clearance"]),
+        float(verdict["max_violation"]), dict(verdict["violations"]),
+        success=bool(verdict["success"]) and bool(reached.all()),
+        reason="; ".join(reasons), stage=stage, scene_name=scene_name,
+        safety_margin=safety_margin)

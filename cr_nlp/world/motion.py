@@ -1,0 +1,115 @@
+"""The float64 verdict on a motion through waypoints, independent of any optimiser.
+
+Between waypoints the robot moves linearly in the bending vector z (hence linearly in the
+tendon lengths: the motion of a controller that interpolates the tendon-length series).
+``verify_trajectory`` judges that whole motion: python-fcl along the densely interpolated
+configurations (``world.check``), limits, tendon speed and acceleration by finite
+differences, all through the one success rule of ``world.verdict``. Trajectory planning
+and path following both answer to it. Units: rad, m, s.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from ..model import Robot, q_to_z_numpy, z_to_q_numpy
+from ..model._ops import NUMPY
+from ..model.kinematics import model_segment_frames, model_tendon_lengths
+from ..model.limits import limit_violation_q
+from .check import check_many
+from .scene import Scene
+from .verdict import VIOLATION_TOLERANCE, judge
+
+
+def interpolate_trajectory(q: np.ndarray, samples: int) -> np.ndarray:
+    """The motion between waypoints, linear in the bending vector z (hence linear in the
+    tendon lengths): (H·samples + 1, 3n) configurations (rad, rad, m), each interval split
+    into ``samples`` pieces, waypoints included."""
+    z = q_to_z_numpy(q)
+    s = np.arange(samples)[:, None] / samples
+    inner = (z[:-1, None, :] + s[None, :, :] * (z[1:] - z[:-1])[:, None, :]).reshape(-1, z.shape[1])
+    return z_to_q_numpy(np.concatenate([inner, z[-1:]]))
+
+
+def tip_positions(robot: Robot, q: np.ndarray) -> np.ndarray:
+    """(B, 3) tip positions (m) of (B, 3n) configurations, float64 numpy."""
+    z = q_to_z_numpy(q)
+    _, pos = model_segment_frames(NUMPY, robot, [z[:, i] for i in range(robot.dof)])[-1]
+    return np.stack(np.broadcast_arrays(*pos), axis=-1).reshape(-1, 3)
+
+
+def tendon_series(robot: Robot, q: np.ndarray) -> np.ndarray:
+    """(B, n_tendons) tendon lengths (m) of (B, 3n) configurations, float64 numpy."""
+    z = q_to_z_numpy(q)
+    values = model_tendon_lengths(NUMPY, robot, [z[:, i] for i in range(robot.dof)])
+    return np.stack(np.broadcast_arrays(*values), axis=-1).reshape(len(z), -1)
+
+
+def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
+                      margin: float = 0.002, samples: int = 4,
+                      tolerance: float = VIOLATION_TOLERANCE) -> dict[str, Any]:
+    """Float64 verdict on a trajectory, independent of any optimiser (``world.verdict``).
+
+    Args:
+        robot: the robot.
+        scene: obstacles, or None.
+        q: (H+1, 3n) waypoints θ, φ, L (rad, rad, m).
+        dt: seconds between waypoints.
+        margin: δ, metres; a python-fcl distance below it counts as a clearance violation.
+        samples: each interval is split into this many pieces (linear in z) and python-fcl
+            checks every piece's end, so the whole motion, not only the waypoints, is judged.
+        tolerance: the largest violation of any family a success may have.
+
+    Returns a dict: ``success`` (``world.verdict.judge``: every violation ≤ ``tolerance``:
+    clearance to obstacles and between segments at least two apart ≥ δ − tolerance
+    along the whole motion, limits and tendon limits), ``reason`` ("" on success, else
+    each failed check and by how much), ``violations`` (largest violation per constraint
+    family: ``clearance`` and ``self_clearance`` m below δ, ``limits`` rad or m,
+    ``tendon_speed`` m/s, ``tendon_accel`` m/s²), ``max_violation`` (their maximum),
+    ``min_clearance`` (m, the smaller of the python-fcl obstacle distance and the
+    self-clearance, +inf with neither), ``self_clearance`` (m, +inf when not checked),
+    ``verdict`` (the ``world.verdict.Verdict``), ``collision_free``,
+    ``path_length`` (m, the tip path along the dense motion), ``tendon_lengths``
+    (H+1, n_tendons) m, ``tendon_speed`` and ``tendon_accel`` (largest |value|, m/s and
+    m/s²) and ``first_collision`` (index into the dense motion, −1 if none).
+    """
+    q = np.asarray(q, dtype=np.float64)
+    if q.ndim != 2 or q.shape[1] != robot.dof or len(q) < 2:
+        raise ValueError(f"q must be (H+1, {robot.dof}) with H ≥ 1, got {q.shape}")
+    dense = interpolate_trajectory(q, samples)
+    tips = tip_positions(robot, dense)
+    path_length = float(np.sum(np.linalg.norm(np.diff(tips, axis=0), axis=1)))
+    lengths = tendon_series(robot, q)
+    speed = np.diff(lengths, axis=0) / dt
+    accel = (np.diff(lengths, 2, axis=0) / (dt * dt) if len(q) > 2
+             else np.zeros((0, lengths.shape[1])))
+    speed_max = float(np.max(np.abs(speed))) if speed.size else 0.0
+    accel_max = float(np.max(np.abs(accel))) if accel.size else 0.0
+    min_clearance, self_clearance, first_collision = math.inf, math.inf, -1
+    if scene is not None or robot.has_self_pairs:
+        checked = check_many(robot, scene, dense)
+        min_clearance = float(np.min(checked.obstacle_distance))
+        self_clearance = float(np.min(checked.self_distance))
+        hits = np.flatnonzero(checked.collision)
+        first_collision = int(hits[0]) if len(hits) else -1
+    where = ""
+    if first_collision >= 0:
+        at = first_collision / samples
+        where = f"at t = {at * dt:.3f} s (interval {int(at)})"
+    verdict = judge(margin=margin, limits=float(np.max(limit_violation_q(robot, q))),
+                    min_clearance=min_clearance, self_clearance=self_clearance,
+                    tendon_speed=speed_max - robot.tendon_speed_max,
+                    tendon_accel=accel_max - robot.tendon_accel_max,
+                    collision_where=where, tolerance=tolerance)
+    return {
+        "success": verdict.success, "reason": verdict.reason,
+        "violations": dict(verdict.violations), "max_violation": verdict.max_violation,
+        "min_clearance": min(min_clearance, self_clearance),
+        "self_clearance": self_clearance, "verdict": verdict,
+        "collision_free": first_collision < 0, "path_length": path_length,
+        "tendon_lengths": lengths, "tendon_speed": speed_max, "tendon_accel": accel_max,
+        "first_collision": first_collision,
+    }
