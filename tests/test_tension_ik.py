@@ -14,14 +14,8 @@ import pytest
 from cr_nlp import load_result
 from cr_nlp.model import load_robot
 from cr_nlp.model.cosserat import solve_statics
-from cr_nlp.tasks.tension_ik import (
-    TensionIKConfig,
-    TensionIKResult,
-    TensionIKSolver,
-    _groups,
-    _moments_from_tensions,
-    _tensions_from_moments,
-)
+from cr_nlp.model.tendon_groups import moments_from_tensions, tendon_groups, tensions_from_moments
+from cr_nlp.tasks.tension_ik import TensionIKConfig, TensionIKResult, TensionIKSolver
 
 RAO = load_robot("tdcr2_rao2021")
 TENSION_MAX = RAO.mechanics.tension_max
@@ -43,19 +37,19 @@ def solver() -> TensionIKSolver:
 def test_least_tensions_give_the_moment_with_two_tendons_per_segment() -> None:
     import jax
 
-    groups = _groups(RAO)
+    groups = tendon_groups(RAO)
     assert groups is not None
     rng = np.random.default_rng(1)
     d = rng.normal(scale=0.01, size=(200, 2, 2))            # N·m, well below τ_max·r
     with jax.enable_x64(True):
-        t = np.asarray(jax.vmap(lambda x: _tensions_from_moments(groups, 6, 1e3, x))(d))
+        t = np.asarray(jax.vmap(lambda x: tensions_from_moments(groups, 6, 1e3, x))(d))
     assert (t >= 0).all()
     assert ((t > 0).reshape(200, 2, 3).sum(axis=2) <= 2).all()
-    np.testing.assert_allclose(_moments_from_tensions(groups, t), d, atol=1e-12)
+    np.testing.assert_allclose(moments_from_tensions(groups, t), d, atol=1e-12)
     # Least: no other non-negative set with that moment has a smaller sum (a third
     # tendon only adds pull that the other two must cancel).
     common = t + 0.5                                         # all three pulled
-    np.testing.assert_allclose(_moments_from_tensions(groups, common), d, atol=1e-12)
+    np.testing.assert_allclose(moments_from_tensions(groups, common), d, atol=1e-12)
     assert (common.sum(axis=1) > t.sum(axis=1)).all()
 
 

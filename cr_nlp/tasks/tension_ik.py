@@ -15,7 +15,7 @@ The unknowns. Three or more tendons per segment (evenly around it) bend it in tw
 directions, so many tension sets give one shape. The LM therefore works on each tendon
 group's net pull moment d = Σ τ_i (r_i × e3) (2 numbers per segment; one group for shared
 routing), and the tensions are the least ones giving it: the two tendons whose directions
-enclose d (a 2×2 solve), the others slack, capped at τ_max (``_tensions_from_moments``).
+enclose d (a 2×2 solve), the others slack, capped at τ_max (``model.tendon_groups``).
 That map is continuous and piecewise linear, needs no bounds in the LM, and never asks
 antagonistic tendons to fight. Robots with fewer than three tendons per group solve
 in the tensions themselves, kept in [0, τ_max] by the LM's active-set projection, with
@@ -33,12 +33,10 @@ safety margin. Units: metres, radians, newtons, N·m, m/s².
 
 from __future__ import annotations
 
-import csv
 import time
 from dataclasses import dataclass, field
 from functools import partial
-from pathlib import Path
-from typing import Any, ClassVar, NamedTuple
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -48,13 +46,17 @@ from scipy.spatial import cKDTree
 from ..model import Robot, load_robot
 from ..model.cosserat import StaticsConfig, StaticsResult, moment_scale, solve_statics
 from ..model.cosserat import tip_equilibrium as _tip_equilibrium
-from ..model.kinematics import tendon_angles
 from ..model.rotations import matrix_from_wxyz
+from ..model.tendon_groups import (
+    moments_from_tensions,
+    tendon_groups,
+    tensions_from_moments,
+)
 from ..stages.lm import LMConfig, lm_solve
 from ..world.check import check_chains
 from ..world.scene import Scene, load_scene
 from ..world.verdict import judge_many
-from ._result import ResultIO, array, nums, row_lists
+from ._tension_ik_result import TensionIKResult as TensionIKResult
 from ._timing import StageTiming
 
 EQUILIBRIUM_WEIGHT = 10.0
@@ -87,161 +89,7 @@ class TensionIKConfig:
     """The rod discretisation (shared by the LM and the verdict's solve) and its dtype."""
 
 
-@dataclass
-class TensionIKResult(ResultIO):
-    """One row per target (SI units; the tip as the independent forward solve puts it)."""
-
-    kind: ClassVar[str] = "tension_ik"
-
-    robot: Robot
-    tensions: np.ndarray          # (B, n_tendons) N
-    target_position: np.ndarray   # (B, 3) m
-    target_wxyz: np.ndarray       # (B, 4), NaN rows: position-only targets
-    position: np.ndarray          # (B, 3) tip of the verdict's forward solve, m
-    wxyz: np.ndarray              # (B, 4) its orientation
-    pose_error: np.ndarray        # (B,) m (see TensionIKConfig.tolerance)
-    position_error: np.ndarray    # (B,) m
-    rotation_error: np.ndarray    # (B,) rad, NaN for position-only targets
-    min_clearance: np.ndarray     # (B,) m to the nearest obstacle (inf: no scene)
-    max_violation: np.ndarray     # (B,) worst violation of the verdict
-    success: np.ndarray           # (B,) bool
-    reason: list[str]
-    tip_force: np.ndarray         # (B, 3) N, world frame
-    tip_moment: np.ndarray        # (B, 3) N·m
-    gravity: np.ndarray           # (B, 3) m/s²
-    tendon_displacements: np.ndarray | None = None   # (B, n_tendons) m, pulled > 0
-    timing: StageTiming = field(default_factory=StageTiming)
-
-    def __len__(self) -> int:
-        return len(self.tensions)
-
-    def summary(self) -> dict[str, Any]:
-        """Success rate and position errors in mm, for people."""
-        ok = self.success
-        return {"targets": len(self), "success_rate": float(np.mean(ok)) if len(self) else 0.0,
-                "median_position_error_mm": float(np.nanmedian(self.position_error) * 1e3)
-                if len(self) else float("nan"),
-                "max_position_error_mm": float(np.nanmax(self.position_error) * 1e3)
-                if len(self) else float("nan"),
-                "time_s": self.timing.total}
-
-    def _fields_dict(self) -> dict[str, Any]:
-        return {
-            "tensions": row_lists(self.tensions),
-            "target_position": row_lists(self.target_position),
-            "target_wxyz": row_lists(self.target_wxyz),
-            "position": row_lists(self.position), "wxyz": row_lists(self.wxyz),
-            "pose_error": nums(self.pose_error), "position_error": nums(self.position_error),
-            "rotation_error": nums(self.rotation_error),
-            "min_clearance": nums(self.min_clearance),
-            "max_violation": nums(self.max_violation),
-            "success": [bool(s) for s in self.success], "reason": list(self.reason),
-            "tip_force": row_lists(self.tip_force), "tip_moment": row_lists(self.tip_moment),
-            "gravity": row_lists(self.gravity),
-            "tendon_displacements": row_lists(self.tendon_displacements),
-            "timing": self.timing.as_dict(), "summary": self.summary(),
-        }
-
-    @classmethod
-    def _from_fields(cls, data: dict[str, Any], robot: Robot) -> TensionIKResult:
-        n = robot.n_tendons
-        count = len(data["tensions"])
-
-        def inf(values: list) -> np.ndarray:
-            out = array(values)
-            return np.where(np.isnan(out), np.inf, out)  # JSON keeps no infinity
-
-        return cls(
-            robot=robot, tensions=array(data["tensions"], n, "tensions"),
-            target_position=array(data["target_position"], 3, "target_position"),
-            target_wxyz=array(data["target_wxyz"], 4, "target_wxyz"),
-            position=array(data["position"], 3, "position"),
-            wxyz=array(data["wxyz"], 4, "wxyz"),
-            pose_error=array(data["pose_error"]), position_error=array(data["position_error"]),
-            rotation_error=array(data["rotation_error"]),
-            min_clearance=inf(data["min_clearance"]),
-            max_violation=array(data["max_violation"]),
-            success=np.array(data["success"], dtype=bool), reason=list(data["reason"]),
-            tip_force=array(data["tip_force"], 3, "tip_force"),
-            tip_moment=array(data["tip_moment"], 3, "tip_moment"),
-            gravity=array(data["gravity"], 3, "gravity"),
-            tendon_displacements=array(data["tendon_displacements"], n,
-                                       "tendon_displacements") if count else np.zeros((0, n)),
-            timing=StageTiming.from_dict(data.get("timing")))
-
-    def save_csv(self, path: str | Path) -> Path:
-        """One row per target: target x, y, z (m), the tensions t1…tN (N), the reached tip
-        x, y, z (m), position error (m), success."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        n = self.robot.n_tendons
-        with path.open("w", newline="") as handle:
-            writer = csv.writer(handle)
-            writer.writerow(["target_x", "target_y", "target_z",
-                             *(f"tension_{i + 1}_N" for i in range(n)),
-                             "tip_x", "tip_y", "tip_z", "position_error", "success"])
-            for i in range(len(self)):
-                writer.writerow([*(f"{v:.9f}" for v in self.target_position[i]),
-                                 *(f"{v:.6f}" for v in self.tensions[i]),
-                                 *(f"{v:.9f}" for v in self.position[i]),
-                                 f"{self.position_error[i]:.3e}", int(self.success[i])])
-        return path
-
-
 # ---------------------------------------------------------------- the LM problem
-
-class _Groups(NamedTuple):
-    """Static description of the tendon groups (numpy): tendons of group g are
-    ``index[g]``, their pull directions r_i × e3 (in the xy plane) ``pull[g]`` (m), and
-    ``pairs[g]`` the neighbouring pairs (i, j) around the circle (positions in the group)."""
-
-    index: np.ndarray   # (G, m) tendon indices
-    pull: np.ndarray    # (G, m, 2) m
-    pairs: np.ndarray   # (m, 2)
-
-
-def _groups(robot: Robot) -> _Groups | None:
-    """The tendon groups of ``robot``, None if a group has fewer than three tendons (their
-    moments then do not cover the plane)."""
-    m = robot.tendons.per_segment
-    if m < 3:
-        return None
-    angles = tendon_angles(robot)
-    if robot.tendons.routing == "shared":
-        angles = angles[:1]
-    index = np.arange(angles.size).reshape(angles.shape)
-    r = robot.tendons.radius
-    # r_i × e3 for r_i = r (cos α, sin α, 0): r (sin α, −cos α, 0)
-    pull = r * np.stack([np.sin(angles), -np.cos(angles)], axis=-1)
-    order = np.argsort(np.mod(angles[0] - angles[0, 0], 2 * np.pi))
-    pairs = np.stack([order, np.roll(order, -1)], axis=-1)
-    return _Groups(index, pull, pairs)
-
-
-def _tensions_from_moments(groups: _Groups, n_tendons: int, tension_max: float,
-                           d: jax.Array) -> jax.Array:
-    """The least tensions (n_tendons,), N, whose groups pull with net moments d (G, 2),
-    N·m: per group the two neighbouring tendons enclosing d, capped at τ_max."""
-    tension = jnp.zeros(n_tendons, d.dtype)
-    for g in range(len(groups.index)):
-        v = groups.pull[g]
-        found = jnp.zeros((), bool)
-        for i, j in groups.pairs:
-            det = v[i, 0] * v[j, 1] - v[i, 1] * v[j, 0]
-            a = (d[g, 0] * v[j, 1] - d[g, 1] * v[j, 0]) / det
-            b = (v[i, 0] * d[g, 1] - v[i, 1] * d[g, 0]) / det
-            use = (a >= 0) & (b >= 0) & ~found
-            found = found | use
-            tension = tension.at[groups.index[g, i]].add(jnp.where(use, a, 0.0))
-            tension = tension.at[groups.index[g, j]].add(jnp.where(use, b, 0.0))
-    return jnp.minimum(tension, tension_max)
-
-
-def _moments_from_tensions(groups: _Groups, tensions: np.ndarray) -> np.ndarray:
-    """(B, G, 2) net pull moments of tension sets (B, n), N·m (the map's inverse on its
-    least-tension sets, and a seed for any set)."""
-    return np.einsum("bgm,gmk->bgk", tensions[:, groups.index], groups.pull)
-
 
 def _residual(robot: Robot, statics: StaticsConfig, weights: tuple[float, float, float, float],
               shoot: bool, z: jax.Array, p: tuple, shared: Any) -> jax.Array:
@@ -251,7 +99,7 @@ def _residual(robot: Robot, statics: StaticsConfig, weights: tuple[float, float,
     tension_max, scale, length, rho = weights
     target, target_rot, rot_weight, force, moment, gravity = p
     n = robot.n_tendons
-    groups = _groups(robot)
+    groups = tendon_groups(robot)
     if groups is None:
         tension = z[:n] * tension_max
         width = n
@@ -259,7 +107,7 @@ def _residual(robot: Robot, statics: StaticsConfig, weights: tuple[float, float,
     else:
         width = 2 * len(groups.index)
         reference = tension_max * robot.tendons.radius
-        tension = _tensions_from_moments(groups, n, tension_max,
+        tension = tensions_from_moments(groups, n, tension_max,
                                          z[:width].reshape(-1, 2) * reference)
         unknowns = jnp.zeros(0, z.dtype)
     base_moment = z[width:] * scale if shoot else moment
@@ -298,7 +146,7 @@ class TensionIKSolver:
         self.tension_max = float(self.robot.mechanics.tension_max)
         self.length = float(sum(s.length_min for s in self.robot.segments))
         self._pool: dict[bytes, tuple[np.ndarray, cKDTree]] = {}
-        self._groups = _groups(self.robot)
+        self._groups = tendon_groups(self.robot)
         # One residual and projection object per solver and case (with or without M(0)
         # as an unknown): lm_solve compiles per object.
         weights = (self.tension_max, moment_scale(self.robot), self.length,
@@ -480,7 +328,7 @@ class TensionIKSolver:
             z0 = tensions / self.tension_max
         else:
             reference = self.tension_max * robot.tendons.radius
-            z0 = _moments_from_tensions(self._groups, tensions).reshape(len(tensions), -1)
+            z0 = moments_from_tensions(self._groups, tensions).reshape(len(tensions), -1)
             z0 = z0 / reference
         width = z0.shape[1]
         if shoot:  # M(0) starts at the tip moment (exact without force and gravity)
@@ -509,7 +357,7 @@ class TensionIKSolver:
             return np.clip(z, 0.0, 1.0) * self.tension_max
         reference = self.tension_max * robot.tendons.radius
         with jax.enable_x64(True):
-            tension = jax.vmap(partial(_tensions_from_moments, self._groups, n,
+            tension = jax.vmap(partial(tensions_from_moments, self._groups, n,
                                        self.tension_max))(
                 jnp.asarray(z.reshape(len(z), -1, 2) * reference))
         return np.asarray(tension, dtype=float)

@@ -1,0 +1,115 @@
+"""The result of tension-space IK (``tasks.tension_ik``) and its file forms."""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+
+from ..model import Robot
+from ._result import ResultIO, array, nums, row_lists
+from ._timing import StageTiming
+
+
+@dataclass
+class TensionIKResult(ResultIO):
+    """One row per target (SI units; the tip as the independent forward solve puts it)."""
+
+    kind: ClassVar[str] = "tension_ik"
+
+    robot: Robot
+    tensions: np.ndarray          # (B, n_tendons) N
+    target_position: np.ndarray   # (B, 3) m
+    target_wxyz: np.ndarray       # (B, 4), NaN rows: position-only targets
+    position: np.ndarray          # (B, 3) tip of the verdict's forward solve, m
+    wxyz: np.ndarray              # (B, 4) its orientation
+    pose_error: np.ndarray        # (B,) m (see TensionIKConfig.tolerance)
+    position_error: np.ndarray    # (B,) m
+    rotation_error: np.ndarray    # (B,) rad, NaN for position-only targets
+    min_clearance: np.ndarray     # (B,) m to the nearest obstacle (inf: no scene)
+    max_violation: np.ndarray     # (B,) worst violation of the verdict
+    success: np.ndarray           # (B,) bool
+    reason: list[str]
+    tip_force: np.ndarray         # (B, 3) N, world frame
+    tip_moment: np.ndarray        # (B, 3) N·m
+    gravity: np.ndarray           # (B, 3) m/s²
+    tendon_displacements: np.ndarray | None = None   # (B, n_tendons) m, pulled > 0
+    timing: StageTiming = field(default_factory=StageTiming)
+
+    def __len__(self) -> int:
+        return len(self.tensions)
+
+    def summary(self) -> dict[str, Any]:
+        """Success rate and position errors in mm, for people."""
+        ok = self.success
+        return {"targets": len(self), "success_rate": float(np.mean(ok)) if len(self) else 0.0,
+                "median_position_error_mm": float(np.nanmedian(self.position_error) * 1e3)
+                if len(self) else float("nan"),
+                "max_position_error_mm": float(np.nanmax(self.position_error) * 1e3)
+                if len(self) else float("nan"),
+                "time_s": self.timing.total}
+
+    def _fields_dict(self) -> dict[str, Any]:
+        return {
+            "tensions": row_lists(self.tensions),
+            "target_position": row_lists(self.target_position),
+            "target_wxyz": row_lists(self.target_wxyz),
+            "position": row_lists(self.position), "wxyz": row_lists(self.wxyz),
+            "pose_error": nums(self.pose_error), "position_error": nums(self.position_error),
+            "rotation_error": nums(self.rotation_error),
+            "min_clearance": nums(self.min_clearance),
+            "max_violation": nums(self.max_violation),
+            "success": [bool(s) for s in self.success], "reason": list(self.reason),
+            "tip_force": row_lists(self.tip_force), "tip_moment": row_lists(self.tip_moment),
+            "gravity": row_lists(self.gravity),
+            "tendon_displacements": row_lists(self.tendon_displacements),
+            "timing": self.timing.as_dict(), "summary": self.summary(),
+        }
+
+    @classmethod
+    def _from_fields(cls, data: dict[str, Any], robot: Robot) -> TensionIKResult:
+        n = robot.n_tendons
+        count = len(data["tensions"])
+
+        def inf(values: list) -> np.ndarray:
+            out = array(values)
+            return np.where(np.isnan(out), np.inf, out)  # JSON keeps no infinity
+
+        return cls(
+            robot=robot, tensions=array(data["tensions"], n, "tensions"),
+            target_position=array(data["target_position"], 3, "target_position"),
+            target_wxyz=array(data["target_wxyz"], 4, "target_wxyz"),
+            position=array(data["position"], 3, "position"),
+            wxyz=array(data["wxyz"], 4, "wxyz"),
+            pose_error=array(data["pose_error"]), position_error=array(data["position_error"]),
+            rotation_error=array(data["rotation_error"]),
+            min_clearance=inf(data["min_clearance"]),
+            max_violation=array(data["max_violation"]),
+            success=np.array(data["success"], dtype=bool), reason=list(data["reason"]),
+            tip_force=array(data["tip_force"], 3, "tip_force"),
+            tip_moment=array(data["tip_moment"], 3, "tip_moment"),
+            gravity=array(data["gravity"], 3, "gravity"),
+            tendon_displacements=array(data["tendon_displacements"], n,
+                                       "tendon_displacements") if count else np.zeros((0, n)),
+            timing=StageTiming.from_dict(data.get("timing")))
+
+    def save_csv(self, path: str | Path) -> Path:
+        """One row per target: target x, y, z (m), the tensions t1…tN (N), the reached tip
+        x, y, z (m), position error (m), success."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        n = self.robot.n_tendons
+        with path.open("w", newline="") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(["target_x", "target_y", "target_z",
+                             *(f"tension_{i + 1}_N" for i in range(n)),
+                             "tip_x", "tip_y", "tip_z", "position_error", "success"])
+            for i in range(len(self)):
+                writer.writerow([*(f"{v:.9f}" for v in self.target_position[i]),
+                                 *(f"{v:.6f}" for v in self.tensions[i]),
+                                 *(f"{v:.9f}" for v in self.position[i]),
+                                 f"{self.position_error[i]:.3e}", int(self.success[i])])
+        return path
