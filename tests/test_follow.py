@@ -186,7 +186,7 @@ def test_waypoint_jacobians_match_autodiff_and_the_model() -> None:
     np.testing.assert_allclose(kin["d_centres"], d_centres, atol=1e-12)
     target = (jnp.asarray([1.5, 0.2, 1.3]), jnp.asarray(np.eye(3).reshape(-1)), 1.0)
     analytic = jax.jit(jax.jacfwd(lambda x: F.tracking_error(ROBOT, x, target)))(z)
-    auto = jax.jit(jax.jacfwd(lambda x: F._tracking_from(*F.waypoint_kinematics(ROBOT, x)[:2],
+    auto = jax.jit(jax.jacfwd(lambda x: F.tracking_from(*F.waypoint_kinematics(ROBOT, x)[:2],
                                                          target)))(z)
     np.testing.assert_allclose(analytic, auto, atol=1e-10)
     arrays = scene_arrays(load_scene("follow_square"))
