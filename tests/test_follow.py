@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 from pathlib import Path
 
 import jax
@@ -19,7 +20,7 @@ from cr_nlp.model.rotations import wxyz_from_matrix
 from cr_nlp.tasks import follow as F
 from cr_nlp.tasks.follow import FollowConfig, PathFollower, unreached_stretches
 from cr_nlp.tasks.ik import IKConfig
-from cr_nlp.tasks.paths import ReferencePath
+from cr_nlp.tasks.paths import ReferencePath, checked_path
 from cr_nlp.tasks.trajectory import tendon_series
 from cr_nlp.world import load_scene, scene_arrays
 from cr_nlp.world.clearance_groups import clearance_group_jacobian
@@ -186,7 +187,7 @@ def test_waypoint_jacobians_match_autodiff_and_the_model() -> None:
     np.testing.assert_allclose(kin["d_centres"], d_centres, atol=1e-12)
     target = (jnp.asarray([1.5, 0.2, 1.3]), jnp.asarray(np.eye(3).reshape(-1)), 1.0)
     analytic = jax.jit(jax.jacfwd(lambda x: F.tracking_error(ROBOT, x, target)))(z)
-    auto = jax.jit(jax.jacfwd(lambda x: F._tracking_from(*F.waypoint_kinematics(ROBOT, x)[:2],
+    auto = jax.jit(jax.jacfwd(lambda x: F.tracking_from(*F.waypoint_kinematics(ROBOT, x)[:2],
                                                          target)))(z)
     np.testing.assert_allclose(analytic, auto, atol=1e-10)
     arrays = scene_arrays(load_scene("follow_square"))
@@ -250,3 +251,25 @@ def test_cli_bad_path_input(tmp_path: Path, capsys, content, message: str) -> No
     err = capsys.readouterr().err.strip()
     assert code == 2 and message in err and len(err.splitlines()) == 1, err
     assert not (tmp_path / "r.json").exists()
+
+
+def test_checked_path_names_the_bad_waypoint_and_keeps_a_good_path() -> None:
+    # In-memory paths skip the file checks; checked_path guards the follower itself.
+    good = ReferencePath("p", np.array([[1.0, 0, 2], [1.1, 0, 2]]),
+                         np.array([[1.0, 0, 0, 0]] * 2), 0.1, np.ones(2, bool))
+    assert checked_path(good) is good                    # nothing to change
+    slower = checked_path(good, dt=0.5)
+    assert slower.dt == 0.5 and np.array_equal(slower.positions, good.positions)
+    nan = ReferencePath("p", np.array([[1.0, 0, 2], [np.nan, 0, 2]]), good.wxyz, 0.1,
+                        good.pen_down)
+    tilted = ReferencePath("p", good.positions, np.array([[1.0, 0, 0, 0], [1.0, 1, 0, 0]]),
+                           0.1, good.pen_down)
+    for path, dt, message in ((nan, None, "waypoint 1: the reference pose is not finite"),
+                              (tilted, None, "waypoint 1: wxyz is not a unit quaternion"),
+                              (good, 0.0, "dt must be a positive"),
+                              (good, math.inf, "dt must be a positive")):
+        with pytest.raises(ValueError, match=message):
+            checked_path(path, dt)
+    with pytest.raises(ValueError, match="at least 2 waypoints"):
+        checked_path(ReferencePath("p", good.positions[:1], good.wxyz[:1], 0.1,
+                                   good.pen_down[:1]))

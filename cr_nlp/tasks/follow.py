@@ -23,7 +23,10 @@ Stages:
 3. polish (``exact=True``): Ipopt with the constraints as constraints, minimising the
    tracking error, warm-started from stage 2 (``stages.polish_trajectory``); a polish
    that fails, or that the independent check rejects, returns the stage-2 answer,
-   marked in ``FollowResult.stage``.
+   marked in ``FollowResult.stage`` (``tasks._follow_polish``).
+
+The per-waypoint tracking error with its closed-form Jacobians is in
+``tasks._follow_kinematics``; the reference-path checks are ``tasks.paths.checked_path``.
 
 Every answer is judged in float64 independently of the optimisers:
 ``world.motion.verify_trajectory`` (python-fcl along the interpolated motion, limits,
@@ -50,38 +53,31 @@ import numpy as np
 
 from .._jax_setup import enable_compilation_cache
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
-from ..model._ops import JAX
-from ..model.derivatives import kinematics_jacobians_z
-from ..model.kinematics import (
-    model_backbone,
-    model_segment_frames,
-)
-from ..model.lie import rotation_log, so3_right_jacobian_inverse
 from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz
-from ..stages.accept import Polished, accept_first
 from ..stages.banded_lm import ChainResidual, banded_lm_solve
 from ..stages.continuation import BranchContinuation, ContinuationSettings
 from ..stages.lm import LMConfig
 from ..stages.tendon_penalty import tendon_accel_excess, tendon_speed_excess
-from ..stages.trajectory_exact import describe_polish
 from ..world import Scene, load_scene, scene_arrays
 from ..world.clearance import SceneArrays, body_gap_tolerance
 from ..world.clearance_groups import (
-    body_centres_from,
     clearance_groups,
     grouped_shortfalls,
     has_clearance,
 )
 from ..world.motion import verify_trajectory
-from ..world.verdict import VIOLATION_TOLERANCE, Verdict
+from ._follow_kinematics import tracking_error as tracking_error
+from ._follow_kinematics import tracking_from, tracking_jacobian, waypoint_jacobians
+from ._follow_kinematics import waypoint_kinematics as waypoint_kinematics
+from ._follow_polish import polish_follow
 from ._follow_result import FollowResult as FollowResult
-from ._follow_result import result_from_verdict, tracking_cost
+from ._follow_result import result_from_verdict
 from ._follow_result import tracking_errors as tracking_errors
 from ._follow_result import unreached_stretches as unreached_stretches
 from ._timing import StageTiming, compile_seconds
 from .ik import IKConfig, IKSolver, validate_targets
-from .paths import ReferencePath, load_path
+from .paths import ReferencePath, checked_path
 
 FOLLOW_IK = IKConfig(seeds_per_target=8, refine_iterations=10)
 """Stage 1's default IK settings: fewer seeds and refinement iterations than a plain IK
@@ -175,73 +171,6 @@ class FollowConfig:
                        seed=self.seed)
 
 
-# ================================================================ per-waypoint Jacobians
-#
-# The LM needs, per waypoint, a 6 × 3n tracking Jacobian and a G × 3n clearance Jacobian.
-# Pushing 3n tangents through the model's entry-by-entry code costs thousands of small
-# XLA operations per call; the residuals below take their values from the model
-# (``model.kinematics``), their derivatives from the model's closed forms
-# (``model.derivatives``), and get their Jacobians from the primal alone
-# (``jax.custom_jvp``), so the banded LM's forward-mode pass over a window costs one
-# matrix product.
-
-
-def waypoint_kinematics(robot: Robot, z: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Tip rotation (3, 3), tip position (3,) m and body-sphere centres (N, 3) m of one
-    bending-vector configuration z (3n,), from one evaluation of the model's frames
-    (``model_segment_frames``, ``model_backbone``), in z's dtype."""
-    entries = [z[i] for i in range(robot.dof)]
-    frames = model_segment_frames(JAX, robot, entries)
-    rot, pos = frames[-1]
-    points = model_backbone(JAX, robot, entries, frames).astype(z.dtype)
-    return (jnp.stack(jnp.broadcast_arrays(*rot)).reshape(3, 3).astype(z.dtype),
-            jnp.stack(jnp.broadcast_arrays(*pos)).astype(z.dtype),
-            body_centres_from(robot, points)[0])
-
-
-def waypoint_jacobians(robot: Robot, z: jax.Array) -> dict[str, jax.Array]:
-    """``waypoint_kinematics`` and its closed-form derivatives (``model.derivatives``) for
-    one z (3n,). Returns ``rotation`` (3, 3), ``position`` (3,), ``centres`` (N, 3),
-    ``d_position`` (3, 3n), ``body_rates`` (3, 3n) (Rᵀ∂R/∂z_k as vectors) and
-    ``d_centres`` (N, 3, 3n)."""
-    kin = kinematics_jacobians_z(robot, z)
-    centres, d_centres = body_centres_from(robot, kin.points, kin.d_points)
-    return {"rotation": kin.rotation, "position": kin.position, "centres": centres,
-            "d_position": kin.jacobian[:3], "body_rates": kin.rotation.T @ kin.jacobian[3:],
-            "d_centres": d_centres}
-
-
-def _tracking_from(rot: jax.Array, pos: jax.Array, target: Any) -> jax.Array:
-    target_position, target_rotation, _ = target
-    error = target_rotation.reshape(3, 3).T @ rot
-    return jnp.concatenate([pos - target_position, rotation_log(error)])
-
-
-def _tracking_jacobian(kin: dict[str, jax.Array], error: jax.Array) -> jax.Array:
-    """(6, d) Jacobian of ``tracking_error`` from ``waypoint_jacobians`` and the error."""
-    return jnp.concatenate([kin["d_position"],
-                            so3_right_jacobian_inverse(error[3:]) @ kin["body_rates"]])
-
-
-@partial(jax.custom_jvp, nondiff_argnums=(0,))
-def tracking_error(robot: Robot, z: jax.Array, target: Any) -> jax.Array:
-    """The tracking error of one waypoint z (3n,): the tip position minus the reference
-    position (3,) m, then log(R_refᵀ·R_tip) (3,) rad. Their norms are the reported
-    position and rotation errors. ``target`` = (position (3,), rotation (9,) row major,
-    tracking switch); only z is differentiated."""
-    rot, pos, _ = waypoint_kinematics(robot, z)
-    return _tracking_from(rot, pos, target)
-
-
-@tracking_error.defjvp
-def _tracking_error_jvp(robot: Robot, primals: tuple, tangents: tuple) -> tuple:
-    z, target = primals
-    z_dot = tangents[0]
-    kin = waypoint_jacobians(robot, z)
-    value = _tracking_from(kin["rotation"], kin["position"], target)
-    return value, _tracking_jacobian(kin, value) @ z_dot
-
-
 # ================================================================ residuals
 
 
@@ -252,7 +181,7 @@ def waypoint_residual(robot: Robot, margin: float, z: jax.Array, target: Any,
     z (3n,) (``world.clearance_groups.grouped_shortfalls``), sharing one kinematics
     Jacobian (the LM's per-waypoint term)."""
     rot, pos, centres = waypoint_kinematics(robot, z)
-    out = [_tracking_from(rot, pos, target)]
+    out = [tracking_from(rot, pos, target)]
     if has_clearance(robot, arrays):
         out.append(grouped_shortfalls(robot, margin, arrays, centres, None)[0])
     return jnp.concatenate(out)
@@ -264,8 +193,8 @@ def _waypoint_residual_jvp(robot: Robot, margin: float, primals: tuple,
     z, target, arrays = primals
     z_dot = tangents[0]
     kin = waypoint_jacobians(robot, z)
-    error = _tracking_from(kin["rotation"], kin["position"], target)
-    values, jac = [error], [_tracking_jacobian(kin, error)]
+    error = tracking_from(kin["rotation"], kin["position"], target)
+    values, jac = [error], [tracking_jacobian(kin, error)]
     if has_clearance(robot, arrays):
         groups, groups_jac = grouped_shortfalls(robot, margin, arrays, kin["centres"],
                                           kin["d_centres"])
@@ -481,26 +410,12 @@ class PathFollower:
 
         Raises:
             ValueError: a reference pose that is not finite or not a unit quaternion,
-                a non-positive ``dt``, or fewer than 2 waypoints.
+                a non-positive ``dt``, or fewer than 2 waypoints (``tasks.paths.checked_path``).
         """
-        path = load_path(path)
-        dt = float(path.dt if dt is None else dt)
-        if not dt > 0 or not math.isfinite(dt):
-            raise ValueError(f"dt must be a positive number of seconds, got {dt}")
+        path = checked_path(path, dt)
+        dt = float(path.dt)
         positions = np.asarray(path.positions, dtype=np.float64)
         wxyz = np.asarray(path.wxyz, dtype=np.float64)
-        if len(positions) < 2:
-            raise ValueError(f"a path needs at least 2 waypoints, got {len(positions)}")
-        bad = np.flatnonzero(~np.isfinite(positions).all(1) | ~np.isfinite(wxyz).all(1))
-        if len(bad):
-            raise ValueError(f"waypoint {bad[0]}: the reference pose is not finite")
-        norms = np.linalg.norm(wxyz, axis=1)
-        bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-6)
-        if len(bad):
-            raise ValueError(f"waypoint {bad[0]}: wxyz is not a unit quaternion "
-                             f"(norm {norms[bad[0]]:.6g})")
-        if dt != path.dt:
-            path = ReferencePath(path.name, positions, wxyz, dt, path.pen_down)
         _, _, reasons = validate_targets(self.robot, positions, wxyz)
         trackable = np.array([not r for r in reasons], bool)
         why = {i: r for i, r in enumerate(reasons) if r}
@@ -521,75 +436,27 @@ class PathFollower:
         verdict = self.verify(q, path, dt)
         result = self._result(q, path, verdict, "refine", why)
         timing.verify = time.perf_counter() - t2
-        if exact:
-            result = self._polish(result, path, trackable, why, timing, progress)
+        if exact:   # stage 3 (``tasks._follow_polish``)
+            result = polish_follow(
+                self.robot, self.polisher, result, path, trackable,
+                lambda q: self.verify(q, path, path.dt),
+                lambda q, verdict: self._result(q, path, verdict, "polish", why), timing,
+                progress)
         result.timing = timing
         return result
 
-    def _polish(self, lm: FollowResult, path: ReferencePath, trackable: np.ndarray,
-                why: dict[int, str], timing: FollowTiming, progress: bool) -> FollowResult:
-        """Stage 3: Ipopt from the LM answer; keep it only if the independent verdict
-        agrees (collision-free, every violation ≤ 1e-6)."""
-        try:
+    def polisher(self, waypoints: int) -> Any:
+        """Stage 3's Ipopt polisher for paths of this many waypoints (built on first use;
+        ``stages.polish_trajectory``, objective "tracking", clearance rows at the
+        verification's samples)."""
+        if waypoints not in self._polishers:
             from ..stages.polish_trajectory import TrajectoryPolishConfig, TrajectoryPolisher
-        except ImportError:
-            lm.stage = ("refine (polish failed: the Ipopt trajectory stage "
-                        "cr_nlp.stages.polish_trajectory is not available)")
-            return lm
-        import sys
-
-        if lm.max_violation <= VIOLATION_TOLERANCE and lm.collision_free and \
-                bool(np.all(lm.reached)):
-            # Every constraint already holds (verified independently) and every waypoint is
-            # tracked: Ipopt has nothing to enforce. Measured on the bundled shapes, its
-            # interior-point iterates left such an answer for another branch (square: mean
-            # error 0.0 → 4.3 mm) at 50–150 s per path, so the answer is kept as it is.
-            lm.stage = "refine (feasible: polish not needed)"
-            return lm
-        t = len(lm.q)
-        if t not in self._polishers:
             samples = self.config.verify_samples
-            self._polishers[t] = TrajectoryPolisher(
-                self.robot, self.scene, t, safety_margin=self.margin, objective="tracking",
-                config=TrajectoryPolishConfig(interpolation_checks=samples - 1,
-                                              verify_samples=samples))
-        if progress:
-            print(f"polish (Ipopt): {t} waypoints …", file=sys.stderr)
-        # Untrackable waypoints keep the LM's reference: its own tip pose (zero error).
-        positions = np.where(trackable[:, None], path.positions, lm.position)
-        rotations = matrix_from_wxyz(np.where(trackable[:, None], path.wxyz, lm.wxyz))
-        reports: list[dict[str, Any]] = []
-
-        def polish(q0: np.ndarray) -> Polished[np.ndarray]:
-            t0 = time.perf_counter()
-            try:
-                out = self._polishers[t].solve(q0, path.dt, positions, rotations)
-            except Exception as exc:  # noqa: BLE001 — a crashed polish must not lose the answer
-                return Polished(None, f"{type(exc).__name__}: {exc}")
-            finally:
-                timing.polish += time.perf_counter() - t0
-            if not out.success:
-                return Polished(None, describe_polish(out))
-            return Polished(clip_to_limits(self.robot, np.asarray(out.q, dtype=np.float64)))
-
-        def judge(q: np.ndarray) -> Verdict:
-            t1 = time.perf_counter()
-            reports.append(self.verify(q, path, path.dt))
-            timing.verify += time.perf_counter() - t1
-            return reports[-1]["verdict"]
-
-        outcome = accept_first([lm.q], lm.q, lm, polish, judge)
-        if not outcome.accepted:
-            lm.stage = f"refine (polish failed: {'; '.join(outcome.failures)})"
-            return lm
-        polished = self._result(outcome.answer, path, reports[-1], "polish", why)
-        if lm.max_violation <= VIOLATION_TOLERANCE and lm.collision_free and \
-                tracking_cost(polished) > tracking_cost(lm):
-            # Both feasible: keep the one that tracks the path better.
-            lm.stage = "refine (feasible; the polished answer tracked worse)"
-            return lm
-        return polished
-
+            self._polishers[waypoints] = TrajectoryPolisher(
+                self.robot, self.scene, waypoints, safety_margin=self.margin,
+                objective="tracking", config=TrajectoryPolishConfig(
+                    interpolation_checks=samples - 1, verify_samples=samples))
+        return self._polishers[waypoints]
 
 def follow_path(robot: Robot | str | dict, path: ReferencePath | str | Path,
                 scene: Scene | str | None = None, config: FollowConfig = FollowConfig(),

@@ -96,6 +96,35 @@ def load_path(path: str | Path | ReferencePath) -> ReferencePath:
     return ReferencePath.from_file(candidate)
 
 
+
+def checked_path(path: str | Path | ReferencePath, dt: float | None = None) -> ReferencePath:
+    """``load_path``, then the checks a follower needs: at least 2 waypoints, finite
+    reference poses, unit quaternions (|‖wxyz‖ − 1| ≤ 1e-6) and a positive, finite time
+    step. ``dt``: seconds between waypoints replacing the path's own (None: keep it).
+
+    Raises:
+        ValueError: naming the first bad waypoint, or the bad ``dt``.
+    """
+    path = load_path(path)
+    dt = float(path.dt if dt is None else dt)
+    if not dt > 0 or not math.isfinite(dt):
+        raise ValueError(f"dt must be a positive number of seconds, got {dt}")
+    positions = np.asarray(path.positions, dtype=np.float64)
+    wxyz = np.asarray(path.wxyz, dtype=np.float64)
+    if len(positions) < 2:
+        raise ValueError(f"a path needs at least 2 waypoints, got {len(positions)}")
+    bad = np.flatnonzero(~np.isfinite(positions).all(1) | ~np.isfinite(wxyz).all(1))
+    if len(bad):
+        raise ValueError(f"waypoint {bad[0]}: the reference pose is not finite")
+    norms = np.linalg.norm(wxyz, axis=1)
+    bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-6)
+    if len(bad):
+        raise ValueError(f"waypoint {bad[0]}: wxyz is not a unit quaternion "
+                         f"(norm {norms[bad[0]]:.6g})")
+    if dt != path.dt:
+        path = ReferencePath(path.name, positions, wxyz, dt, path.pen_down)
+    return path
+
 # ---------------------------------------------------------------- the benchmark shapes
 
 def resample_polyline(points: np.ndarray, count: int,

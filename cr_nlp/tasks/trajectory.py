@@ -20,10 +20,12 @@ the body's shape where the tip alone leaves it free (three of six bending DOF fo
 Stages: explore (the roadmap query, ``stages.roadmap``; initial guesses,
 ``stages.trajectory_guesses``), refine (``stages.chain_batch``: the LM on all guesses of
 all problems at once, penalties for clearance (``world.clearance_groups``) and tendon
-limits), verify (``world.motion.verify_trajectory``: python-fcl along the densely
-interpolated motion, float64 tendon finite differences, limits), optional polish
-(``stages.polish_trajectory``: Ipopt with the constraints as constraints). The result and
-its file forms are in ``tasks._trajectory_result``.
+limits; ``stages.trajectory_select``: two rounds of guesses, the best by the verdict),
+verify (``world.motion.verify_trajectory``: python-fcl along the densely interpolated
+motion, float64 tendon finite differences, limits), optional polish
+(``stages.polish_trajectory``: Ipopt with the constraints as constraints;
+``tasks._trajectory_polish``). The result and its file forms are in
+``tasks._trajectory_result``; the start/goal checks are ``world.motion.check_ends``.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jax_setup import enable_compilation_cache
-from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
+from ..model import Robot, load_robot, q_to_z_numpy
 from ..model._ops import JAX
 from ..model.derivatives import tip_position_z
 from ..model.kinematics import model_tendon_lengths
@@ -49,18 +51,20 @@ from ..stages.banded_lm import ChainResidual
 from ..stages.chain_batch import ChainBatchLM
 from ..stages.tendon_penalty import tendon_accel_excess, tendon_speed_excess
 from ..stages.trajectory_exact import describe_polish as describe_polish
-from ..stages.trajectory_exact import polish_trajectories, trajectory_polisher
+from ..stages.trajectory_exact import trajectory_polisher
 from ..stages.trajectory_guesses import initial_guesses
-from ..world import Scene, check_many, load_scene, scene_arrays
+from ..stages.trajectory_select import select_guesses
+from ..world import Scene, load_scene, scene_arrays
 from ..world.broad_phase import part_balls
 from ..world.clearance import SceneArrays, body_gap_tolerance
 from ..world.clearance_groups import clearance_groups, has_clearance, near_clearance_groups
+from ..world.motion import check_ends
 from ..world.motion import interpolate_trajectory as interpolate_trajectory
 from ..world.motion import tendon_series as tendon_series
 from ..world.motion import tip_positions as tip_positions
 from ..world.motion import verify_trajectory as verify_trajectory
-from ..world.verdict import Verdict
 from ._timing import StageTiming
+from ._trajectory_polish import polish_results
 from ._trajectory_result import TrajectoryResult as TrajectoryResult
 from ._trajectory_result import controller_columns as controller_columns
 from ._trajectory_result import result_from_verdict
@@ -282,10 +286,6 @@ PlanTiming = StageTiming
 """Seconds per stage of one ``TrajectoryPlanner.plan`` call."""
 
 
-_NO_OBSTACLES = Scene("empty", ())
-"""For self-collision checks of a robot planned without a scene."""
-
-
 class TrajectoryPlanner:
     """Batched trajectory planning for one robot in one scene; reuse it across calls.
 
@@ -360,31 +360,7 @@ class TrajectoryPlanner:
     def validate_many(self, starts: Any, goals: Any) -> list[tuple[np.ndarray | None,
                                                                    np.ndarray | None, str]]:
         """``validate`` for every (start, goal) pair, python-fcl run once on all ends."""
-        out: list[tuple[np.ndarray | None, np.ndarray | None, str]] = []
-        for start, goal in zip(starts, goals, strict=True):
-            try:
-                q_start = self.robot.full_q(start)
-            except (ValueError, TypeError) as exc:
-                out.append((None, None, f"bad start: {exc}"))
-                continue
-            try:
-                out.append((q_start, self.robot.full_q(goal), ""))
-            except (ValueError, TypeError) as exc:
-                out.append((None, None, f"bad goal: {exc}"))
-        rows = [i for i, (_, _, reason) in enumerate(out) if not reason]
-        if rows and (self.scene is not None or self.robot.has_self_pairs):
-            scene = self.scene if self.scene is not None else _NO_OBSTACLES
-            ends = np.stack([q for i in rows for q in out[i][:2]])
-            verdict = check_many(self.robot, scene, ends)
-            hits = verdict.collision.reshape(-1, 2)
-            distances = verdict.min_distance.reshape(-1, 2)
-            for i, hit, d in zip(rows, hits, distances, strict=True):
-                for name, h, di in zip(("start", "goal"), hit, d, strict=True):
-                    if h:
-                        out[i] = (None, None, f"{name} is in collision by python-fcl "
-                                              f"(distance {di:.4g} m)")
-                        break
-        return out
+        return check_ends(self.robot, self.scene, starts, goals)
 
     def verify(self, q: np.ndarray, dt: float) -> dict[str, Any]:
         """``verify_trajectory`` with this planner's scene, δ and sampling."""
@@ -443,8 +419,13 @@ class TrajectoryPlanner:
             for block in range(0, len(valid), cfg.problem_chunk):
                 part = valid[block:block + cfg.problem_chunk]
                 candidates = self._plan_valid(part, results, dt, init, timing)
-                if exact:
-                    self._polish(part, candidates, results, dt, timing, bar)
+                if exact:   # the exact stage (``stages.trajectory_exact``)
+                    t0 = time.perf_counter()
+                    polish_results(self.robot, [i for i, _, _ in part], candidates, results,
+                                   dt, lambda q: self.verify(q, dt), self.polisher,
+                                   self._pool if cfg.polish_workers > 1 else None,
+                                   cfg.polish_attempts, cfg.polish_accepted, bar)
+                    timing.polish += time.perf_counter() - t0
         finally:
             if bar is not None:
                 bar.close()
@@ -457,7 +438,6 @@ class TrajectoryPlanner:
         problem, every refined guess (q, stage name), best first: the candidates the
         exact stage polishes in turn."""
         cfg = self.config
-        n, dof = cfg.waypoints, self.robot.dof
         t0 = time.perf_counter()
         guesses, kinds = [], []
         paths = self._roadmap_paths(valid, init)
@@ -468,70 +448,22 @@ class TrajectoryPlanner:
             guesses.append(g)
             kinds.append(k)
         timing.explore += time.perf_counter() - t0
-        all_guesses = np.stack(guesses)                       # (P, G, waypoints, 3n)
-        g_count = all_guesses.shape[1]
-        first = min(max(cfg.first_round, 1), g_count)
-        best: list[tuple[dict[str, Any], int, np.ndarray, float] | None] = [None] * len(valid)
-        # Every refined guess: (not verified valid, max violation, cost, q, guess index).
-        tried: list[list[tuple[bool, float, float, np.ndarray, int]]] = [[] for _ in valid]
-        verify_seconds = np.zeros(len(valid))
-        # Round 1: the first guesses of every problem; round 2: the other guesses, only for
-        # the problems that round 1 did not solve.
-        for rows, group in ((np.arange(len(valid)), np.arange(first)),
-                            (None, np.arange(first, g_count))):
-            if rows is None:
-                rows = np.array([r for r, b in enumerate(best)
-                                 if b is None or not b[0]["success"]], dtype=int)
-            if len(rows) == 0 or len(group) == 0:
-                continue
-            z0 = all_guesses[rows][:, group].reshape(-1, n * dof)
-            t1 = time.perf_counter()
-            programs = self.lm.programs
-            z, cost, compiled = self.lm.solve(z0, np.full(len(z0), dt), self._arrays,
-                                              cfg.iterations)
-            self.last_programs += self.lm.programs - programs
-            timing.compile += compiled
-            timing.refine += time.perf_counter() - t1 - compiled
-            z = z.reshape(len(rows), len(group), n, dof)
-            cost = cost.reshape(len(rows), len(group))
-            for k, row in enumerate(rows):
-                _, q_start, q_goal = valid[row]
-                t2 = time.perf_counter()
-                # Best by the independent verdict, then by cost: the first success in
-                # cost order.
-                verified = set()
-                for g in np.argsort(cost[k], kind="stable"):
-                    q = z_to_q_numpy(z[k, g])
-                    q[0], q[-1] = q_start, q_goal
-                    verdict = self.verify(q, dt)
-                    verified.add(int(g))
-                    tried[row].append((not verdict["success"], verdict["max_violation"],
-                                       float(cost[k, g]), q, int(group[g])))
-                    b = best[row]
-                    if b is None or (verdict["success"], -verdict["max_violation"]) > (
-                            b[0]["success"], -b[0]["max_violation"]):
-                        best[row] = (verdict, int(group[g]), q, float(cost[k, g]))
-                    if verdict["success"]:
-                        break
-                for g in range(len(group)):
-                    if g not in verified:      # not verified: ranked after the verified
-                        q = z_to_q_numpy(z[k, g])
-                        q[0], q[-1] = q_start, q_goal
-                        tried[row].append((True, math.inf, float(cost[k, g]), q,
-                                           int(group[g])))
-                verify_seconds[row] += time.perf_counter() - t2
-        timing.verify += float(verify_seconds.sum())
+        sel = select_guesses(self.lm, np.stack(guesses), [(a, b) for _, a, b in valid], dt,
+                             self._arrays, cfg.iterations, cfg.first_round,
+                             lambda q: self.verify(q, dt))
+        self.last_programs += sel.programs
+        timing.compile += sel.compile
+        timing.refine += sel.refine
+        timing.verify += float(sel.verify_seconds.sum())
         share = {"explore": timing.explore / len(valid), "refine": timing.refine / len(valid),
                  "compile": timing.compile / len(valid)}
         for row, (i, _, _) in enumerate(valid):
-            found = best[row]
-            assert found is not None
-            verdict, g, q, cost_g = found
+            verdict, g, q, cost_g = sel.best[row]
             results[i] = result_from_verdict(
                 self.robot, q, dt, verdict, f"refine ({kinds[row][g]})", cost_g,
-                StageTiming(**share, verify=float(verify_seconds[row])))
-        return [[(q, f"refine ({kinds[row][g]})") for *_, q, g in
-                 sorted(tried[row], key=lambda t: t[:3])] for row in range(len(valid))]
+                StageTiming(**share, verify=float(sel.verify_seconds[row])))
+        return [[(q, f"refine ({kinds[row][g]})") for q, g in sel.candidates[row]]
+                for row in range(len(valid))]
 
     def close(self) -> None:
         """Stop the polish pool's worker processes (``polish_workers`` > 1), if any; the
@@ -548,54 +480,6 @@ class TrajectoryPlanner:
             self._polisher = trajectory_polisher(self.robot, self.scene, cfg.waypoints,
                                                  self.margin, cfg.verify_samples)
         return self._polisher
-
-    def _polish(self, valid: list[tuple[int, np.ndarray, np.ndarray]],
-                candidates: list[list[tuple[np.ndarray, str]]],
-                results: list[TrajectoryResult | None], dt: float, timing: PlanTiming,
-                bar: Any) -> None:
-        """Exact stage (``stages.trajectory_exact``): polish each problem's LM candidates in order
-        (best first, at most ``config.polish_attempts``) and keep the first polished
-        answer the verification accepts; if none is, the LM answer stays with its own
-        verdict (exact mode never succeeds less often than the LM stage). ``bar``: a tqdm
-        bar advanced per problem, or None."""
-        t0 = time.perf_counter()
-        cfg = self.config
-        # A penalty answer the independent verdict accepts needs no polish to be valid.
-        todo = []
-        for row, (i, _, _) in enumerate(valid):
-            result = results[i]
-            assert result is not None
-            if result.success and not cfg.polish_accepted:
-                result.timing = replace(result.timing, polish=0.0)
-                if bar is not None:
-                    bar.update(1)
-            else:
-                todo.append(row)
-        options = [candidates[row][: cfg.polish_attempts] for row in todo]
-        reports: dict[int, dict[str, Any]] = {}
-
-        def judge(q: np.ndarray, r: int) -> Verdict:
-            reports[r] = self.verify(q, dt)
-            return reports[r]["verdict"]
-
-        acceptance, seconds = polish_trajectories(
-            options, [results[valid[row][0]] for row in todo], dt, judge, self.polisher,
-            self._pool if cfg.polish_workers > 1 else None, bar)
-        for r, (row, outcome) in enumerate(zip(todo, acceptance.outcomes, strict=True)):
-            i = valid[row][0]
-            previous = results[i]
-            assert previous is not None
-            if outcome.accepted:
-                results[i] = result_from_verdict(self.robot, outcome.answer, dt, reports[r],
-                                                 "polish", previous.cost, previous.timing)
-            else:
-                failures = [f"from {options[r][k][1]}: {why}"
-                            for k, why in enumerate(outcome.failures)]
-                previous.stage = f"{previous.stage} (polish failed: {'; '.join(failures)})"
-            result = results[i]
-            assert result is not None
-            result.timing = replace(previous.timing, polish=float(seconds[r]))
-        timing.polish += time.perf_counter() - t0
 
     def _pool(self) -> Any:
         """The exact stage's worker pool (``stages.pool``), started on first use."""

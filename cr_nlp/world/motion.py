@@ -113,3 +113,34 @@ def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
         "tendon_lengths": lengths, "tendon_speed": speed_max, "tendon_accel": accel_max,
         "first_collision": first_collision,
     }
+
+
+def check_ends(robot: Robot, scene: Scene | None, starts: Any,
+               goals: Any) -> list[tuple[np.ndarray | None, np.ndarray | None, str]]:
+    """Per (start, goal) pair the full (3n,) start and goal q (rad, rad, m, through
+    ``Robot.full_q``), or (None, None, reason) when the pair cannot be planned: a row of
+    the wrong form, or an end in collision by python-fcl (one ``check_many`` on all
+    ends). ``starts``, ``goals``: sequences of rows, short or full form."""
+    out: list[tuple[np.ndarray | None, np.ndarray | None, str]] = []
+    for start, goal in zip(starts, goals, strict=True):
+        try:
+            q_start = robot.full_q(start)
+        except (ValueError, TypeError) as exc:
+            out.append((None, None, f"bad start: {exc}"))
+            continue
+        try:
+            out.append((q_start, robot.full_q(goal), ""))
+        except (ValueError, TypeError) as exc:
+            out.append((None, None, f"bad goal: {exc}"))
+    rows = [i for i, (_, _, reason) in enumerate(out) if not reason]
+    if rows and (scene is not None or robot.has_self_pairs):
+        verdict = check_many(robot, scene, np.stack([q for i in rows for q in out[i][:2]]))
+        hits = verdict.collision.reshape(-1, 2)
+        distances = verdict.min_distance.reshape(-1, 2)
+        for i, hit, d in zip(rows, hits, distances, strict=True):
+            for name, h, di in zip(("start", "goal"), hit, d, strict=True):
+                if h:
+                    out[i] = (None, None, f"{name} is in collision by python-fcl "
+                                          f"(distance {di:.4g} m)")
+                    break
+    return out
