@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cr_nlp.stages.banded_lm import (
+from cr_nlp.stages._banded_lm import (
     BandedMatrix,
     ChainResidual,
     banded_lm_solve,
@@ -19,7 +19,7 @@ from cr_nlp.stages.banded_lm import (
     solve_banded,
     solve_block_tridiagonal,
 )
-from cr_nlp.stages.lm import lm_solve
+from cr_nlp.stages._lm import lm_solve
 
 # Dense and banded algebra agree to 1e-9 or tighter: float64 JAX arrays, x64 on per test.
 pytestmark = pytest.mark.usefixtures("float64")
@@ -178,7 +178,7 @@ def unprojected(z):
 def test_chain_batch_solves_every_chain_as_its_own_banded_solve() -> None:
     """Three chains in chunks of two (the last padded): each answer equals the single
     banded solve with that chain's scalar; one program per chunk, compiled once."""
-    from cr_nlp.stages.chain_batch import ChainBatchLM
+    from cr_nlp.stages._chain_batch import ChainBatchLM
 
     t, d = 5, 3
     terms = ChainResidual(step_unary, pair, None)

@@ -4,8 +4,8 @@ import json
 
 import pytest
 
+from cr_nlp.bench._common import read_csv
 from cr_nlp.bench.batch import run_batch_benchmark
-from cr_nlp.bench.common import read_csv
 
 
 def test_the_batch_benchmark_writes_its_rows_and_ratios(tmp_path):

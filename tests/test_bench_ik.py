@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cr_nlp.bench import baselines
-from cr_nlp.bench.common import Column, format_number, markdown_table, read_csv
+from cr_nlp.bench import _baselines as baselines
+from cr_nlp.bench._common import Column, format_number, markdown_table, read_csv
 from cr_nlp.bench.ik import (
     CR_BEAM,
     CR_SINGLE,

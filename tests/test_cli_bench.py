@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from cr_nlp.bench.common import (
+from cr_nlp.bench._common import (
     provenance_line,
     read_csv,
     replace_section,

@@ -223,16 +223,16 @@ def test_the_same_formulas_run_on_numpy_and_casadi() -> None:
 
 
 def test_penalty_clearances_differentiate_through_the_closed_form_centres() -> None:
-    """world.penalty's custom JVPs (centre rates from ``backbone_jacobian_z``) against
+    """world._penalty's custom JVPs (centre rates from ``backbone_jacobian_z``) against
     plain autodiff of the same values through the model's centres."""
     from cr_nlp.world import load_scene, scene_arrays
-    from cr_nlp.world.clearance import _centres
-    from cr_nlp.world.penalty import (
+    from cr_nlp.world._penalty import (
         _sphere_values,
         _values,
         body_clearances_z,
         sphere_clearances_z,
     )
+    from cr_nlp.world.clearance import _centres
 
     arrays = scene_arrays(load_scene(MODELS / "scenes" / "lattice.json"))
     z = jnp.asarray(configurations(TDCR3, 6, 7))
@@ -252,11 +252,11 @@ def test_penalty_clearances_differentiate_through_the_closed_form_centres() -> N
 
 def test_trajectory_residual_jacobians_use_the_closed_forms_correctly() -> None:
     """The chain LMs' custom JVPs (``model.derivatives.tip_position_z``,
-    ``world.clearance_groups.clearance_groups``) against plain autodiff of the same values."""
+    ``world._clearance_groups.clearance_groups``) against plain autodiff of the same values."""
     from cr_nlp.model.derivatives import tip_position_z
     from cr_nlp.model.kinematics import tip_pose_z
     from cr_nlp.world import load_scene, scene_arrays
-    from cr_nlp.world.clearance_groups import clearance_group_values, clearance_groups
+    from cr_nlp.world._clearance_groups import clearance_group_values, clearance_groups
 
     arrays = scene_arrays(load_scene(MODELS / "scenes" / "lattice.json"))
     z = jnp.asarray(configurations(TDCR3, 10, 8))

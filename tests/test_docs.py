@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from cr_nlp.bench.common import section_markers
+from cr_nlp.bench._common import section_markers
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", ROOT / "CHANGELOG.md", ROOT / "models" / "README.md",

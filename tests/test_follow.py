@@ -23,7 +23,7 @@ from cr_nlp.tasks.ik import IKConfig
 from cr_nlp.tasks.paths import ReferencePath, checked_path
 from cr_nlp.tasks.trajectory import tendon_series
 from cr_nlp.world import load_scene, scene_arrays
-from cr_nlp.world.clearance_groups import clearance_group_jacobian
+from cr_nlp.world._clearance_groups import clearance_group_jacobian
 
 from .test_results import assert_same_result
 from .test_sequence import numpy_viterbi

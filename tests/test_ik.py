@@ -228,17 +228,17 @@ def test_per_sphere_clearances_and_jacobian_match_the_pair_distances(robot: Robo
     import jax.numpy as jnp
 
     from cr_nlp.model import q_to_z
+    from cr_nlp.world._penalty import (
+        _self_partners,
+        body_clearances_z,
+        penalty_self_pairs,
+        sphere_clearances_z,
+    )
     from cr_nlp.world.clearance import (
         pair_distances_z,
         scene_arrays,
         self_distances_z,
         self_pairs,
-    )
-    from cr_nlp.world.penalty import (
-        _self_partners,
-        body_clearances_z,
-        penalty_self_pairs,
-        sphere_clearances_z,
     )
 
     pairs = self_pairs(robot)

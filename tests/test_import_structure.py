@@ -205,3 +205,12 @@ def test_every_cli_module_is_a_registered_subcommand(graph: dict[str, set[str]])
     crossing = [f"{a} imports {b}" for a in sorted(modules) for b in sorted(graph[a])
                 if b in modules]
     assert not crossing, "subcommands importing each other:\n" + "\n".join(crossing)
+
+
+def test_internal_modules_are_private_by_name() -> None:
+    """The stages layer is internal machinery: every module there is private by name
+    (``_name.py``); users import the tasks (or the top-level ``cr_nlp``), never a stage."""
+    stages = Path(cr_nlp.__file__).parent / "stages"
+    public = sorted(p.name for p in stages.glob("*.py")
+                    if not p.name.startswith("_"))
+    assert not public, f"public modules in cr_nlp/stages: {public}"

@@ -6,8 +6,8 @@ import pytest
 
 from cr_nlp.model import load_robot, tip_pose
 from cr_nlp.model.limits import limit_violation_q
-from cr_nlp.stages import polish as polish_module
-from cr_nlp.stages.polish import (
+from cr_nlp.stages import _polish as polish_module
+from cr_nlp.stages._polish import (
     IKPolisher,
     PolishConfig,
     PolishResult,

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from cr_nlp.model import CasadiModel, load_robot
-from cr_nlp.stages import polish_trajectory as module
-from cr_nlp.stages.polish_trajectory import TrajectoryPolishConfig, TrajectoryPolisher
+from cr_nlp.stages import _polish_trajectory as module
+from cr_nlp.stages._polish_trajectory import TrajectoryPolishConfig, TrajectoryPolisher
 from cr_nlp.tasks.trajectory import tendon_series, verify_trajectory
 from cr_nlp.world import load_scene
 

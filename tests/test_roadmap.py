@@ -1,12 +1,12 @@
-"""The roadmap (stages/roadmap.py): a path across the shelf's divider that python-fcl
+"""The roadmap (stages/_roadmap.py): a path across the shelf's divider that python-fcl
 accepts, the disk cache, and the interpolation helpers."""
 
 import numpy as np
 import pytest
 
 from cr_nlp.model import load_robot, q_to_z, tip_pose, z_to_q
-from cr_nlp.stages.explore import sobol_configurations
-from cr_nlp.stages.roadmap import (
+from cr_nlp.stages._explore import sobol_configurations
+from cr_nlp.stages._roadmap import (
     Roadmap,
     RoadmapConfig,
     interpolate_z,

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from cr_nlp.model import load_robot
-from cr_nlp.stages.banded_lm import (
+from cr_nlp.stages._banded_lm import (
     banded_to_dense,
     chain_cost,
     chain_jacobians,
@@ -25,8 +25,8 @@ from cr_nlp.tasks.trajectory import (
     trajectory_terms,
 )
 from cr_nlp.world import load_scene, scene_arrays
-from cr_nlp.world.broad_phase import part_balls
-from cr_nlp.world.clearance_groups import clearance_group_values, near_clearance_groups
+from cr_nlp.world._broad_phase import part_balls
+from cr_nlp.world._clearance_groups import clearance_group_values, near_clearance_groups
 
 from .conftest import MODELS
 
@@ -71,7 +71,7 @@ def test_window_terms_give_the_dense_residuals_cost_and_normal_equations(scene_n
 
 @pytest.mark.usefixtures("float64")
 def test_broad_phase_measures_the_nearest_parts():
-    """``near_clearance_groups`` with every part equals ``clearance_group_values`` (world.penalty's
+    """``near_clearance_groups`` with every part equals ``clearance_group_values`` (world._penalty's
     distances), float64, on 120 random configurations of tdcr3. With the 8 nearest
     bounding balls it is the same on random_27 (27 spheres: the ball is the part, exact by
     construction); in the shelf (57 convex parts) a sphere deep inside a board may find

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from cr_nlp.model._ops import NUMPY
 from cr_nlp.model.rotations import matrix_from_wxyz
 from cr_nlp.world import BoxPart, CapsulePart, ConvexPart, CylinderPart, SpherePart
-from cr_nlp.world import distances as dist
+from cr_nlp.world import _distances as dist
 from cr_nlp.world.check import fcl_distance, fcl_object
 
 FCL_TOL = 2e-5   # fcl's GJK/EPA answers to about 1e-6 m; leave room

@@ -14,13 +14,15 @@ from cr_nlp.world import (
     CylinderPart,
     Scene,
     SpherePart,
-    builders,
     check,
     coacd_cache_stats,
     lattice_scene,
     load_scene,
     random_spheres_scene,
     union_of_boxes,
+)
+from cr_nlp.world import (
+    _builders as builders,
 )
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -82,8 +82,8 @@ def test_bench_clearance_arguments() -> None:
 
 
 def test_bench_clearance_function_measures(tdcr3: Robot) -> None:
+    from cr_nlp.bench._common import environment
     from cr_nlp.bench.clearance import bench_clearance, format_table
-    from cr_nlp.bench.common import environment
 
     row = bench_clearance(str(MODELS / "robots" / "tdcr3.json"), "lattice", configs=2000,
                           dtype="float64", repeats=2)

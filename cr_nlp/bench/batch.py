@@ -59,7 +59,7 @@ from ..batch import (
 )
 from ..model import load_robot
 from ..tasks.ik import IKConfig, IKSolver
-from .common import Column, environment, environment_markdown, markdown_table, write_report
+from ._common import Column, environment, environment_markdown, markdown_table, write_report
 from .ik import free_case
 
 MODES = ("penalty", "exact")

@@ -22,7 +22,7 @@ import numpy as np
 
 from .._jax_setup import split_over_devices, use_host_devices
 from ..model import load_robot
-from .common import (
+from ._common import (
     Column,
     environment,
     environment_markdown,

@@ -22,7 +22,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..tasks.paths import load_path
-from .common import (
+from ._common import (
     Column,
     environment,
     environment_markdown,

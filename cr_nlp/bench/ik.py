@@ -21,7 +21,7 @@ Suites:
 
 Rows: cr_nlp with its default ``IKConfig`` ("beam search"), with one seed and no beam
 or retries ("single seed"), with the exact Ipopt polish, and two baselines from
-``bench.baselines`` (damped Newton–Raphson; a scipy derivative-free method on a subset).
+``bench._baselines`` (damped Newton–Raphson; a scipy derivative-free method on a subset).
 
 Every answer, whoever produced it, is judged the same way: ``IKSolver.verify`` (float64
 pose error, limits, python-fcl) and the library's success rule (pose error < 0.01, limits
@@ -49,13 +49,13 @@ from ..model.kinematics import model_q_to_z, model_segment_frames
 from ..model.rotations import wxyz_from_matrix
 from ..tasks.ik import IKConfig, IKSolver
 from ..world import Scene, check_many, load_scene
-from .baselines import (
+from ._baselines import (
     DampedNewtonConfig,
     ScipyConfig,
     damped_newton_ik,
     scipy_ik,
 )
-from .common import (
+from ._common import (
     Column,
     environment,
     environment_markdown,

@@ -8,7 +8,7 @@ apart (fixed seed; 100 pairs per scene by default, 3 with ``--quick``).
 
 Rows: ``TrajectoryPlanner`` with the roadmap initial guess ("roadmap+opt"), with the
 straight line and its perturbations only ("straight-line+opt"), with the exact Ipopt
-polish ("roadmap+opt+exact"), and the RRT-Connect baseline (``bench.baselines_plan``,
+polish ("roadmap+opt+exact"), and the RRT-Connect baseline (``bench._baselines_plan``,
 no shortcutting, resampled to the same waypoints and Δt). Every answer is judged by the
 same float64 verdict, ``tasks.trajectory.verify_trajectory`` (python-fcl along the
 interpolated motion, limits, tendon speed and acceleration over Δt).
@@ -39,8 +39,8 @@ from tqdm import tqdm
 from ..model import Robot, load_robot, q_to_z, tip_pose
 from ..tasks.trajectory import TrajectoryConfig, TrajectoryPlanner, verify_trajectory
 from ..world import Scene, check_many, clearance_z, load_scene, scene_arrays
-from .baselines_plan import RRTConnect, RRTConnectConfig
-from .common import (
+from ._baselines_plan import RRTConnect, RRTConnectConfig
+from ._common import (
     Column,
     environment,
     environment_markdown,
@@ -345,13 +345,13 @@ def search_scaling(scenes: Sequence[str] = ("shelf", "cabinet"),
                    counts: Sequence[int] = (1, 20, 1000), robot: str = "tdcr3",
                    out: str | Path | None = "bench_results/plan", seed: int = 0,
                    repeats: int = 5) -> list[dict[str, Any]]:
-    """Time the batched roadmap search alone (``stages.roadmap_search.shortest_paths``),
+    """Time the batched roadmap search alone (``stages._roadmap_search.shortest_paths``),
     scipy against the device's min-plus relaxation, for ``counts`` start/goal pairs on
     each scene's roadmap. The ends are the benchmark's problems attached to their
     ``neighbours`` nearest nodes without edge checks (the checks are the same for both
     backends). Medians of ``repeats`` calls, the two backends alternating, after a
     warm-up call each (compilation). Prints and writes search.md / search.csv."""
-    from ..stages.roadmap_search import neighbour_table, shortest_paths
+    from ..stages._roadmap_search import neighbour_table, shortest_paths
 
     robot_model = load_robot(robot)
     rows: list[dict[str, Any]] = []

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..model import load_robot
 from ..model.cosserat import StaticsConfig, solve_statics
-from .common import Column, environment, environment_markdown, fixed, markdown_table, write_report
+from ._common import Column, environment, environment_markdown, fixed, markdown_table, write_report
 
 SETS = ("tensions", "mixed")
 

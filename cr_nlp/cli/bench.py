@@ -2,7 +2,7 @@
 
 Every benchmark gets the same options from ``add_common_options`` (``--out`` folder,
 ``--repeats``, ``--robot``, ``--seed``, ``--devices``, ``--no-progress``, ``--markdown``) and
-writes its report through ``cr_nlp.bench.common.write_report`` (Markdown printed and saved,
+writes its report through ``cr_nlp.bench._common.write_report`` (Markdown printed and saved,
 CSV per table, ``environment.json``); ``--markdown FILE`` also puts it, with the command,
 versions, device and date, into its own section of FILE (docs/benchmarks.md).
 Adding a benchmark: one ``_add_<name>`` function here that calls ``add_common_options`` and
@@ -69,7 +69,7 @@ def _wrote(args: argparse.Namespace, name: str) -> None:
 def _publish(args: argparse.Namespace, name: str) -> None:
     """``--markdown FILE``: the report just written to ``--out`` becomes the section
     ``<name>`` (``<name>-<suite>`` for one suite) of FILE."""
-    from ..bench.common import publish_markdown
+    from ..bench._common import publish_markdown
 
     out = Path(args.out)
     env = json.loads((out / "environment.json").read_text())["environment"]

@@ -22,7 +22,7 @@ from ..model._ops import JAX
 from ..model.derivatives import kinematics_jacobians_z
 from ..model.kinematics import model_backbone, model_segment_frames
 from ..model.lie import rotation_log, so3_right_jacobian_inverse
-from ..world.clearance_groups import body_centres_from
+from ..world._clearance_groups import body_centres_from
 
 
 def waypoint_kinematics(robot: Robot, z: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:

@@ -1,5 +1,5 @@
 """The path follower's exact stage: when to polish the LM answer with Ipopt and which
-answer to keep (the polish itself is ``stages.polish_trajectory``)."""
+answer to keep (the polish itself is ``stages._polish_trajectory``)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import numpy as np
 from ..model import Robot
 from ..model.limits import clip_to_limits
 from ..model.rotations import matrix_from_wxyz
-from ..stages.accept import Polished, accept_first
-from ..stages.trajectory_exact import describe_polish
+from ..stages._accept import Polished, accept_first
+from ..stages._trajectory_exact import describe_polish
 from ..world.verdict import VIOLATION_TOLERANCE, Verdict
 from ._follow_result import FollowResult, tracking_cost
 from ._timing import StageTiming
@@ -43,10 +43,10 @@ def polish_follow(robot: Robot, polisher: Callable[[int], Any], lm: FollowResult
         progress: print a line to stderr before the polish.
     """
     try:
-        from ..stages import polish_trajectory  # noqa: F401 — only whether it is available
+        from ..stages import _polish_trajectory  # noqa: F401 — only whether it is available
     except ImportError:
         lm.stage = ("refine (polish failed: the Ipopt trajectory stage "
-                    "cr_nlp.stages.polish_trajectory is not available)")
+                    "cr_nlp.stages._polish_trajectory is not available)")
         return lm
     if lm.max_violation <= VIOLATION_TOLERANCE and lm.collision_free and \
             bool(np.all(lm.reached)):

@@ -228,7 +228,7 @@ def result_from_verdict(robot: Robot, path: ReferencePath, q: np.ndarray,
                         verdict: dict[str, Any], stage: str, why_untrackable: dict[int, str],
                         scene_name: str | None, safety_margin: float) -> FollowResult:
     """The result of the followed path ``q`` (T, 3n) (rad, rad, m) judged by ``verdict``
-    (``PathFollower.verify``'s dict: ``world.motion.verify_trajectory``'s plus the
+    (``PathFollower.verify``'s dict: ``world._motion.verify_trajectory``'s plus the
     tracking errors and ``reached``); ``why_untrackable``: waypoint index → why it cannot
     be tracked; ``safety_margin`` δ, m."""
     reached = np.asarray(verdict["reached"], bool)

@@ -1,5 +1,5 @@
 """The trajectory planner's exact mode: which LM answers to polish and how a polish's
-outcome replaces or annotates them (the polish itself is ``stages.trajectory_exact``)."""
+outcome replaces or annotates them (the polish itself is ``stages._trajectory_exact``)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..model import Robot
-from ..stages.trajectory_exact import polish_trajectories
+from ..stages._trajectory_exact import polish_trajectories
 from ..world.verdict import Verdict
 from ._trajectory_result import TrajectoryResult, result_from_verdict
 
@@ -32,8 +32,8 @@ def polish_results(robot: Robot, rows: list[int], candidates: list[list[tuple[np
         candidates: per problem, (q (waypoints, 3n) rad/m, stage name), best first.
         results: the LM results.
         dt: seconds between waypoints.
-        verify: q → ``world.motion.verify_trajectory``'s dict.
-        polisher, pool: as for ``stages.trajectory_exact.polish_trajectories``.
+        verify: q → ``world._motion.verify_trajectory``'s dict.
+        polisher, pool: as for ``stages._trajectory_exact.polish_trajectories``.
         attempts: most candidates polished per problem.
         polish_accepted: also polish problems whose LM answer the verification accepts.
         bar: a tqdm bar advanced per problem, or None.

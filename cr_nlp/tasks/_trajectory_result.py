@@ -240,7 +240,7 @@ def save_results(results: list[TrajectoryResult], path: str | Path,
 def result_from_verdict(robot: Robot, q: np.ndarray, dt: float, verdict: dict[str, Any], stage: str,
             cost: float, timing: StageTiming) -> TrajectoryResult:
     """The result of trajectory ``q`` (rad, rad, m; ``dt`` s) judged by ``verdict``
-    (``world.motion.verify_trajectory``'s dict)."""
+    (``world._motion.verify_trajectory``'s dict)."""
     return TrajectoryResult(
         robot, q, dt, bool(verdict["success"]), verdict["reason"], stage,
         path_length=verdict["path_length"], min_clearance=verdict["min_clearance"],

@@ -11,17 +11,17 @@ tendon lengths).
 
 Stages:
 
-1. explore (``stages.continuation``): IK on every ``ik_stride``-th waypoint in one batch
+1. explore (``stages._continuation``): IK on every ``ik_stride``-th waypoint in one batch
    (``IKSolver.candidates``: a refined beam of distinct answers per waypoint), each answer
    carried to the neighbouring IK waypoints by continuation (a few LM steps per waypoint
    on this module's ``follow_unary``), then the sequence with the smallest configuration
-   jumps (``stages.sequence.smoothest_choice``), its jumps bridged by continuation.
-2. refine: all waypoints jointly by the block-banded LM (``stages.banded_lm``): every
+   jumps (``stages._sequence.smoothest_choice``), its jumps bridged by continuation.
+2. refine: all waypoints jointly by the block-banded LM (``stages._banded_lm``): every
    residual depends on at most three consecutive waypoints (tracking and clearance: one;
    smoothness, tendon speed, clearance between waypoints: two; tendon acceleration:
    three), so each iteration costs O(T), not O(T³). Constraints are penalties here.
 3. polish (``exact=True``): Ipopt with the constraints as constraints, minimising the
-   tracking error, warm-started from stage 2 (``stages.polish_trajectory``); a polish
+   tracking error, warm-started from stage 2 (``stages._polish_trajectory``); a polish
    that fails, or that the independent check rejects, returns the stage-2 answer,
    marked in ``FollowResult.stage`` (``tasks._follow_polish``).
 
@@ -29,7 +29,7 @@ The per-waypoint tracking error with its closed-form Jacobians is in
 ``tasks._follow_kinematics``; the reference-path checks are ``tasks.paths.checked_path``.
 
 Every answer is judged in float64 independently of the optimisers:
-``world.motion.verify_trajectory`` (python-fcl along the interpolated motion, limits,
+``world._motion.verify_trajectory`` (python-fcl along the interpolated motion, limits,
 tendon finite differences) and the tip poses by the numpy backend of the model.
 
 Waypoints outside the robot's reach (farther from the base than its longest length)
@@ -55,18 +55,18 @@ from .._jax_setup import enable_compilation_cache
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz
-from ..stages.banded_lm import ChainResidual, banded_lm_solve
-from ..stages.continuation import BranchContinuation, ContinuationSettings
-from ..stages.lm import LMConfig
-from ..stages.tendon_penalty import tendon_accel_excess, tendon_speed_excess
+from ..stages._banded_lm import ChainResidual, banded_lm_solve
+from ..stages._continuation import BranchContinuation, ContinuationSettings
+from ..stages._lm import LMConfig
+from ..stages._tendon_penalty import tendon_accel_excess, tendon_speed_excess
 from ..world import Scene, load_scene, scene_arrays
-from ..world.clearance import SceneArrays, body_gap_tolerance
-from ..world.clearance_groups import (
+from ..world._clearance_groups import (
     clearance_groups,
     grouped_shortfalls,
     has_clearance,
 )
-from ..world.motion import verify_trajectory
+from ..world._motion import verify_trajectory
+from ..world.clearance import SceneArrays, body_gap_tolerance
 from ._follow_kinematics import tracking_error as tracking_error
 from ._follow_kinematics import tracking_from, tracking_jacobian, waypoint_jacobians
 from ._follow_kinematics import waypoint_kinematics as waypoint_kinematics
@@ -178,7 +178,7 @@ class FollowConfig:
 def waypoint_residual(robot: Robot, margin: float, z: jax.Array, target: Any,
                       arrays: SceneArrays | None) -> jax.Array:
     """``tracking_error`` (6,) then the grouped clearance shortfalls (G,) m of one waypoint
-    z (3n,) (``world.clearance_groups.grouped_shortfalls``), sharing one kinematics
+    z (3n,) (``world._clearance_groups.grouped_shortfalls``), sharing one kinematics
     Jacobian (the LM's per-waypoint term)."""
     rot, pos, centres = waypoint_kinematics(robot, z)
     out = [tracking_from(rot, pos, target)]
@@ -248,7 +248,7 @@ def follow_triple(robot: Robot, sqrt_tendon: float, limit_fraction: float, z_a: 
 
 
 def follow_terms(robot: Robot, margin: float, config: FollowConfig) -> ChainResidual:
-    """The path-following residual as window terms for ``stages.banded_lm``."""
+    """The path-following residual as window terms for ``stages._banded_lm``."""
     sqrt = math.sqrt
     track = config.tracking_weight
     unary = partial(follow_unary, robot, float(margin),
@@ -302,7 +302,7 @@ class PathFollower:
             self.dtype, ContinuationSettings(
                 config.continuation_iterations, config.continuation_rounds, config.max_jumps,
                 config.bridge_window, config.ik_stride, config.ik.success_tolerance))
-        """Stage 1 (``stages.continuation``): IK candidates, continuation, bridging."""
+        """Stage 1 (``stages._continuation``): IK candidates, continuation, bridging."""
         self._ik: IKSolver | None = None
         self._polishers: dict[int, Any] = {}
         self.last_timing = FollowTiming()
@@ -321,7 +321,7 @@ class PathFollower:
         chosen for the smallest jumps; untrackable waypoints are interpolated in z between
         their trackable neighbours (the nearest one's at the ends; straight if none).
 
-        The candidates and the sequence come from ``stages.continuation``: full IK on every
+        The candidates and the sequence come from ``stages._continuation``: full IK on every
         ``ik_stride``-th waypoint, continuation in between, the smoothest sequence, and
         each jump (a tendon would have to move faster than ``tendon_speed_max``) bridged by
         continuation from both sides (``continuation_rounds`` times)."""
@@ -340,7 +340,7 @@ class PathFollower:
                             dt: float) -> tuple[np.ndarray, np.ndarray]:
         """IK candidates for R trackable waypoints (positions (R, 3) m, wxyz (R, 4)):
         z (R, K, 3n) and penalised residual norms (R, K) (m/rad; inf: no candidate), as
-        ``stages.continuation.BranchContinuation.table`` builds them."""
+        ``stages._continuation.BranchContinuation.table`` builds them."""
         return self.continuation.table(positions, wxyz, self._shared(dt))
 
     def _shared(self, dt: float) -> tuple:
@@ -403,7 +403,7 @@ class PathFollower:
             path: a ``ReferencePath``, a bundled name ("square", "sine", "icra") or a
                 path file (``tasks.paths`` format).
             exact: polish with Ipopt, the constraints as constraints, minimising the
-                tracking error (``stages.polish_trajectory``); a failed or rejected
+                tracking error (``stages._polish_trajectory``); a failed or rejected
                 polish returns the LM answer with ``stage`` "refine (polish failed: …)".
             progress: print the polish stage's progress to stderr.
             dt: seconds between waypoints (default: the path's own ``dt``).
@@ -447,10 +447,10 @@ class PathFollower:
 
     def polisher(self, waypoints: int) -> Any:
         """Stage 3's Ipopt polisher for paths of this many waypoints (built on first use;
-        ``stages.polish_trajectory``, objective "tracking", clearance rows at the
+        ``stages._polish_trajectory``, objective "tracking", clearance rows at the
         verification's samples)."""
         if waypoints not in self._polishers:
-            from ..stages.polish_trajectory import TrajectoryPolishConfig, TrajectoryPolisher
+            from ..stages._polish_trajectory import TrajectoryPolishConfig, TrajectoryPolisher
             samples = self.config.verify_samples
             self._polishers[waypoints] = TrajectoryPolisher(
                 self.robot, self.scene, waypoints, safety_margin=self.margin,

@@ -8,12 +8,12 @@ of the optimiser by ``world.verdict`` (``IKSolver.verify``): pose error <
 ``IKConfig.success_tolerance`` re-evaluated in float64, every limit held, clearance ≥ δ
 to obstacles (python-fcl) and between segments at least two apart.
 
-Stages: explore, refine and the retries are ``stages.ik_search`` (a Sobol seed pool
+Stages: explore, refine and the retries are ``stages._ik_search`` (a Sobol seed pool
 held on the device, the pool entries nearest each target, the fused search program of
-``stages.search`` per chunk of targets, one retry program for the targets still
+``stages._search`` per chunk of targets, one retry program for the targets still
 failing, and without a scene the self-clearance repair of the few answers whose segments
-come closer than δ); polish (optional) is ``stages.polish`` under the one acceptance
-policy of ``stages.accept``. Large batches stream through in parts of
+come closer than δ); polish (optional) is ``stages._polish`` under the one acceptance
+policy of ``stages._accept``. Large batches stream through in parts of
 ``IKConfig.stream_size``.
 """
 
@@ -33,14 +33,14 @@ from ..model import Robot, load_robot, pose_error, tip_pose
 from ..model.derivatives import pose_residual
 from ..model.limits import limit_violation_q, project_z
 from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
-from ..stages.chunks import SMALLEST_CHUNK as SMALLEST_CHUNK
-from ..stages.chunks import chunk_plan as chunk_plan
-from ..stages.ik_search import IKSearch, SearchSettings
-from ..stages.lm import LMConfig
-from ..stages.search import RetryPlan, SearchPlan
+from ..stages._chunks import SMALLEST_CHUNK as SMALLEST_CHUNK
+from ..stages._chunks import chunk_plan as chunk_plan
+from ..stages._ik_search import IKSearch, SearchSettings
+from ..stages._lm import LMConfig
+from ..stages._search import RetryPlan, SearchPlan
 from ..world import Scene, check_many, load_scene, scene_arrays
+from ..world._penalty import sphere_clearances_z
 from ..world.clearance import body_gap_tolerance
-from ..world.penalty import sphere_clearances_z
 from ..world.verdict import judge_many
 from ._ik_result import COLUMNS as COLUMNS
 from ._ik_result import PER_TARGET, VERIFIED
@@ -78,7 +78,7 @@ class IKConfig:
     """Exact mode: polishes per target at most, from the refined answer, then from the
     other candidates of the search's own beam, until the verdict accepts one."""
     polish_workers: int = 1
-    """Exact mode: processes that polish targets in parallel (``stages.pool``); 1
+    """Exact mode: processes that polish targets in parallel (``stages._pool``); 1
     polishes in this process. The answers are the same either way."""
     success_tolerance: float = 1e-2
     """A target is reached when the pose error ‖log(T⁻¹T_target)‖ is below this."""
@@ -92,7 +92,7 @@ class IKConfig:
     """Penalty weight of a clearance shortfall (per metre) in the JAX stages."""
     chunk_size: int = 1024
     """Most targets per search program (each with its seeds); larger batches are split
-    into chunks (``stages.chunks.chunk_plan``)."""
+    into chunks (``stages._chunks.chunk_plan``)."""
     stream_size: int = 8192
     """Most targets solved at once: a larger batch is streamed through the stages in
     parts of this many targets, so the memory a solve holds stays bounded whatever the
@@ -125,7 +125,7 @@ def ik_residual(robot: Robot, margin: float, weight: float, z: jax.Array, target
     """Residuals of one IK problem: the 6-vector pose error (m, rad) and
     √weight·max(0, δ − d) for each body sphere's nearest obstacle part (with a scene) and
     each body sphere's nearest self-clearance partner (with or without a scene, unless
-    the robot has no self pairs; ``world.penalty.sphere_clearances_z``). The pose part
+    the robot has no self pairs; ``world._penalty.sphere_clearances_z``). The pose part
     differentiates by the model's closed-form Jacobian (``model.derivatives.pose_residual``).
     ``self_clearance`` False drops the self-clearance rows where there is no scene (the
     pose residual alone: the IK solver's fast first pass, ``IKSolver._solve_part``)."""
@@ -140,7 +140,7 @@ def ik_residual(robot: Robot, margin: float, weight: float, z: jax.Array, target
 
 @dataclass(frozen=True)
 class _Checked:
-    """``IKSolver.verify``'s verdict on one answer, as ``stages.accept`` reads it."""
+    """``IKSolver.verify``'s verdict on one answer, as ``stages._accept`` reads it."""
 
     success: bool
     reason: str
@@ -176,7 +176,7 @@ class IKSolver:
                      for own in (False, True)}
         # Without a scene the search solves the pose alone (the self-clearance rows made
         # a free tdcr3 solve ~8× slower) and repairs the few answers whose segments come
-        # too close (``stages.ik_search``).
+        # too close (``stages._ik_search``).
         self_repair = self.scene is None and robot.has_self_pairs
         free = np.ones(robot.dof)
         free[2::3] = ~robot.lengths_fixed()  # a fixed length is not a variable
@@ -206,7 +206,7 @@ class IKSolver:
         self.stream_parts: list[int] = []
         """Targets per part of the last ``solve``'s stream (``IKConfig.stream_size``)."""
 
-    # The search's counters of the last ``solve``/``candidates`` (``stages.ik_search``).
+    # The search's counters of the last ``solve``/``candidates`` (``stages._ik_search``).
     lm_calls = _counter("lm_calls", "Per round of a search program that iterated any row: "
                         "(rows iterated, rows of the chunk, budget, most iterations run).")
     retried = _counter("retried", "Targets retried in each retry round (0: did not run).")
@@ -355,20 +355,20 @@ class IKSolver:
 
     def _polish(self, result: IKResult, positions: np.ndarray, wxyz: np.ndarray,
                 idx: np.ndarray, beam: np.ndarray, timing: IKTiming, progress: bool) -> None:
-        """Exact stage (``stages.ik_exact``): polish every answer; where the polish fails
+        """Exact stage (``stages._ik_exact``): polish every answer; where the polish fails
         or the verdict rejects it, polish the other candidates of the search's own beam
         (``beam``: (T, width, 3n), best first) in turn, up to ``config.polish_attempts``
         polishes in all. An accepted polish replaces the answer; otherwise the refined
         answer stays with its own verdict (exact mode never succeeds less often than the
         penalty stages)."""
-        from ..stages.ik_exact import polish_answers
-        from ..stages.polish import IKPolisher, build_polisher
+        from ..stages._ik_exact import polish_answers
+        from ..stages._polish import IKPolisher, build_polisher
 
         t0 = time.perf_counter()
         if self._polisher is None:
             self._polisher = IKPolisher(self.robot, self.scene, safety_margin=self.margin)
         if self.config.polish_workers > 1 and self._polish_pool is None:
-            from ..stages.pool import PolishPool
+            from ..stages._pool import PolishPool
             self._polish_pool = PolishPool(build_polisher, (self.robot, self.scene, self.margin),
                                            self.config.polish_workers)
         todo = np.asarray(idx)

@@ -6,7 +6,7 @@ between strokes, which the tip still follows) and ``"name"``/``"description"``.
 
 The benchmark shapes (docs/design.md §4) lie in the plane x = 1.5 m in front of the robot,
 inside the regions the bundled ``follow_*`` scenes were built around
-(``world.builders.PATH_REGIONS``), with the tip pointing along +x, towards the plane:
+(``world._builders.PATH_REGIONS``), with the tip pointing along +x, towards the plane:
 a 1.0 m square with sharp corners, a sinusoid, and the letters "ICRA".
 """
 

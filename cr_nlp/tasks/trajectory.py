@@ -17,15 +17,15 @@ length's gradient is undefined where two waypoints coincide) and, by Cauchy–Sc
 and spreads the waypoints evenly at once. A small joint-space term Σ‖zₖ₊₁ − zₖ‖² fixes
 the body's shape where the tip alone leaves it free (three of six bending DOF for tdcr3).
 
-Stages: explore (the roadmap query, ``stages.roadmap``; initial guesses,
-``stages.trajectory_guesses``), refine (``stages.chain_batch``: the LM on all guesses of
-all problems at once, penalties for clearance (``world.clearance_groups``) and tendon
-limits; ``stages.trajectory_select``: two rounds of guesses, the best by the verdict),
-verify (``world.motion.verify_trajectory``: python-fcl along the densely interpolated
+Stages: explore (the roadmap query, ``stages._roadmap``; initial guesses,
+``stages._trajectory_guesses``), refine (``stages._chain_batch``: the LM on all guesses of
+all problems at once, penalties for clearance (``world._clearance_groups``) and tendon
+limits; ``stages._trajectory_select``: two rounds of guesses, the best by the verdict),
+verify (``world._motion.verify_trajectory``: python-fcl along the densely interpolated
 motion, float64 tendon finite differences, limits), optional polish
-(``stages.polish_trajectory``: Ipopt with the constraints as constraints;
+(``stages._polish_trajectory``: Ipopt with the constraints as constraints;
 ``tasks._trajectory_polish``). The result and its file forms are in
-``tasks._trajectory_result``; the start/goal checks are ``world.motion.check_ends``.
+``tasks._trajectory_result``; the start/goal checks are ``world._motion.check_ends``.
 """
 
 from __future__ import annotations
@@ -47,22 +47,22 @@ from ..model._ops import JAX
 from ..model.derivatives import tip_position_z
 from ..model.kinematics import model_tendon_lengths
 from ..model.limits import project_z
-from ..stages.banded_lm import ChainResidual
-from ..stages.chain_batch import ChainBatchLM
-from ..stages.tendon_penalty import tendon_accel_excess, tendon_speed_excess
-from ..stages.trajectory_exact import describe_polish as describe_polish
-from ..stages.trajectory_exact import trajectory_polisher
-from ..stages.trajectory_guesses import initial_guesses
-from ..stages.trajectory_select import select_guesses
+from ..stages._banded_lm import ChainResidual
+from ..stages._chain_batch import ChainBatchLM
+from ..stages._tendon_penalty import tendon_accel_excess, tendon_speed_excess
+from ..stages._trajectory_exact import describe_polish as describe_polish
+from ..stages._trajectory_exact import trajectory_polisher
+from ..stages._trajectory_guesses import initial_guesses
+from ..stages._trajectory_select import select_guesses
 from ..world import Scene, load_scene, scene_arrays
-from ..world.broad_phase import part_balls
+from ..world._broad_phase import part_balls
+from ..world._clearance_groups import clearance_groups, has_clearance, near_clearance_groups
+from ..world._motion import check_ends
+from ..world._motion import interpolate_trajectory as interpolate_trajectory
+from ..world._motion import tendon_series as tendon_series
+from ..world._motion import tip_positions as tip_positions
+from ..world._motion import verify_trajectory as verify_trajectory
 from ..world.clearance import SceneArrays, body_gap_tolerance
-from ..world.clearance_groups import clearance_groups, has_clearance, near_clearance_groups
-from ..world.motion import check_ends
-from ..world.motion import interpolate_trajectory as interpolate_trajectory
-from ..world.motion import tendon_series as tendon_series
-from ..world.motion import tip_positions as tip_positions
-from ..world.motion import verify_trajectory as verify_trajectory
 from ._timing import StageTiming
 from ._trajectory_polish import polish_results
 from ._trajectory_result import TrajectoryResult as TrajectoryResult
@@ -126,7 +126,7 @@ class TrajectoryConfig:
     accepts (Ipopt may then shorten their paths). False: such answers are kept as they
     are and only the rejected ones are polished."""
     polish_workers: int = 1
-    """Exact mode: processes that polish problems in parallel (``stages.pool``); 1 polishes
+    """Exact mode: processes that polish problems in parallel (``stages._pool``); 1 polishes
     in this process. The answers are the same either way."""
     chunk_size: int = 16
     """Most trajectories per compiled LM call; larger batches are split into chunks. Small
@@ -135,12 +135,12 @@ class TrajectoryConfig:
     """JAX dtype of the LM stage ("float64" needs jax_enable_x64)."""
     near_parts: int = 8
     """Banded LM: per body sphere, only the parts (of each kind) whose bounding balls are
-    this many nearest are measured for its clearance terms (``world.broad_phase``); 0
+    this many nearest are measured for its clearance terms (``world._broad_phase``); 0
     measures every part. The verification always checks every part."""
     lm_structure: str = "banded"
-    """How the LM stage solves its normal equations: "banded" (``stages.banded_lm``: the
+    """How the LM stage solves its normal equations: "banded" (``stages._banded_lm``: the
     residual as per-waypoint, pair and triple terms, a block-tridiagonal Cholesky; each
-    trajectory stops on its own once converged) or "dense" (``stages.lm``: one Jacobian
+    trajectory stops on its own once converged) or "dense" (``stages._lm``: one Jacobian
     of the whole trajectory, a dense (waypoints·3n)² Cholesky; kept as the reference the
     banded form is checked against)."""
 
@@ -149,7 +149,7 @@ class TrajectoryConfig:
     roadmap_cache: bool = True
     """Let ``Roadmap.build`` reuse a roadmap cached on disk."""
     roadmap_search: str = "auto"
-    """Shortest-path backend of the roadmap queries (``stages.roadmap_search``): "device"
+    """Shortest-path backend of the roadmap queries (``stages._roadmap_search``): "device"
     (batched min-plus relaxation in JAX), "scipy" (Dijkstra), or "auto" (scipy on a CPU
     backend, where it was measured faster at 1 to 1000 pairs, the device otherwise)."""
     problem_chunk: int = 256
@@ -255,7 +255,7 @@ def trajectory_triple(robot: Robot, sqrt_tendon: float, limit_fraction: float,
 
 def trajectory_terms(robot: Robot, margin: float, config: TrajectoryConfig,
                      scene: SceneArrays | None) -> ChainResidual:
-    """``trajectory_residual`` as window terms for the banded LM (``stages.banded_lm``):
+    """``trajectory_residual`` as window terms for the banded LM (``stages._banded_lm``):
     the same residuals (hence the same cost ½‖r‖²) grouped by the waypoints they touch.
     ``scene`` only decides whether clearance terms exist."""
     sqrt = math.sqrt
@@ -321,7 +321,7 @@ class TrajectoryPlanner:
                                    config.interpolation_checks, float(self.margin), weights,
                                    config.tendon_limit_fraction),
             dense_project=partial(_project_waypoints, self.robot, n), extra=balls)
-        """Stage 2 (``stages.chain_batch``): the LM over chunks of trajectories."""
+        """Stage 2 (``stages._chain_batch``): the LM over chunks of trajectories."""
         self.last_programs = 0
         """LM device programs launched by the last ``plan`` call (one per chunk)."""
         self._roadmap: Any = None
@@ -332,10 +332,10 @@ class TrajectoryPlanner:
     # ------------------------------------------------------------ pieces
     def roadmap(self) -> Any:
         """The scene's roadmap (built, or loaded from the cache, on first use); None if
-        ``cr_nlp.stages.roadmap`` is not available."""
+        ``cr_nlp.stages._roadmap`` is not available."""
         if self._roadmap is None:
             try:
-                from ..stages.roadmap import Roadmap, RoadmapConfig
+                from ..stages._roadmap import Roadmap, RoadmapConfig
             except ImportError:
                 return None
             self._roadmap = Roadmap.build(self.robot, self.scene, RoadmapConfig(),
@@ -377,7 +377,7 @@ class TrajectoryPlanner:
                 without fixed lengths; a list of rows of mixed lengths is allowed (a bad
                 row is a failed result, not an exception).
             goals: (P, 3n) goal configurations, same form.
-            exact: polish the trajectories with Ipopt (``stages.polish_trajectory``), the
+            exact: polish the trajectories with Ipopt (``stages._polish_trajectory``), the
                 constraints as constraints: tendon speed and acceleration limits, bending
                 limits, and clearance ≥ ``margin`` at every waypoint and at every sample
                 the verification checks. Only the problems whose LM answer the
@@ -419,7 +419,7 @@ class TrajectoryPlanner:
             for block in range(0, len(valid), cfg.problem_chunk):
                 part = valid[block:block + cfg.problem_chunk]
                 candidates = self._plan_valid(part, results, dt, init, timing)
-                if exact:   # the exact stage (``stages.trajectory_exact``)
+                if exact:   # the exact stage (``stages._trajectory_exact``)
                     t0 = time.perf_counter()
                     polish_results(self.robot, [i for i, _, _ in part], candidates, results,
                                    dt, lambda q: self.verify(q, dt), self.polisher,
@@ -482,9 +482,9 @@ class TrajectoryPlanner:
         return self._polisher
 
     def _pool(self) -> Any:
-        """The exact stage's worker pool (``stages.pool``), started on first use."""
+        """The exact stage's worker pool (``stages._pool``), started on first use."""
         if self._polish_pool is None:
-            from ..stages.pool import PolishPool
+            from ..stages._pool import PolishPool
             cfg = self.config
             self._polish_pool = PolishPool(trajectory_polisher, (
                 self.robot, self.scene, cfg.waypoints, self.margin, cfg.verify_samples),

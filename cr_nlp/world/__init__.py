@@ -8,10 +8,10 @@
 - ``builders``: the bundled scenes and furniture meshes, as code.
 """
 
-from .builders import lattice_scene as lattice_scene
-from .builders import path_scene as path_scene
-from .builders import random_spheres_scene as random_spheres_scene
-from .builders import union_of_boxes as union_of_boxes
+from ._builders import lattice_scene as lattice_scene
+from ._builders import path_scene as path_scene
+from ._builders import random_spheres_scene as random_spheres_scene
+from ._builders import union_of_boxes as union_of_boxes
 from .check import CheckManyResult as CheckManyResult
 from .check import CheckResult as CheckResult
 from .check import body_chain as body_chain

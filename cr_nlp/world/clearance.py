@@ -48,7 +48,7 @@ import numpy as np
 from ..model._ops import CASADI, JAX, NUMPY, Ops
 from ..model.kinematics import model_backbone, model_q_to_z, q_to_z
 from ..model.robot import Robot
-from . import distances as dist
+from . import _distances as dist
 from .scene import (
     BoxPart,
     CapsulePart,

@@ -7,7 +7,7 @@ from stage 2's answer. Constraints (docs/design.md §2):
 - ``‖uᵢ‖² ≤ θmaxᵢ²`` (smooth form of θᵢ ≤ θmaxᵢ);
 - clearance: one row ``d ≥ δ`` per (body sphere, obstacle part) pair and per self pair
   (body spheres on segments at least two apart) near the warm start, in the pair slots of
-  ``stages.slots``;
+  ``stages._slots``;
 - pose, mode ``"equality"``: ``log(T_tip⁻¹·T_target) = 0`` (6 rows), objective
   ``‖z − z_start‖²``; mode ``"minimize"``: objective ``½‖log(T_tip⁻¹·T_target)‖²``. A
   robot with fewer than six free variables skips ``"equality"`` (six equations would
@@ -15,7 +15,7 @@ from stage 2's answer. Constraints (docs/design.md §2):
 
 Derivatives: exact first derivatives everywhere; the Hessian holds the exact second
 derivatives of the objective, the pose rows and the bending disks, not the clearance
-rows' curvature (``stages.slots`` says why and what was measured).
+rows' curvature (``stages._slots`` says why and what was measured).
 
 Azimuth ranges (``phi_range``, rare) are not constraints of the polish; the re-evaluation
 still measures them, so a polish that leaves such a range fails.
@@ -44,9 +44,9 @@ from ..model.limits import limit_violation_q, project_bending
 from ..world.clearance import PairDistances, body_gap_tolerance, self_pairs
 from ..world.scene import Scene, load_scene
 from ..world.verdict import VIOLATION_TOLERANCE, describe_violations
-from .compiled import compiled
-from .ipopt import SUCCESS_STATUSES, WarmStart, build_solver, ipopt_options, run_solver
-from .slots import Selection, SlotRows, make_pools, select_slots
+from ._compiled import compiled
+from ._ipopt import SUCCESS_STATUSES, WarmStart, build_solver, ipopt_options, run_solver
+from ._slots import Selection, SlotRows, make_pools, select_slots
 
 MODES = ("equality", "minimize")
 
@@ -68,7 +68,7 @@ class PolishConfig:
     re-assign the slots and go on)."""
     face_smoothing: float = 0.002
     """Metres: smoothing μ of the max over a convex part's face planes, a conservative
-    lower bound at most ⌈log₂ F⌉·μ/2 below the unsmoothed one (``world/distances.py``)."""
+    lower bound at most ⌈log₂ F⌉·μ/2 below the unsmoothed one (``world/_distances.py``)."""
     max_pairs: int = 16
     """Constraint slots per pool (one pool per part kind in the scene, one for self
     pairs). When more pairs are near, the nearest ones get the slots."""
@@ -88,7 +88,7 @@ class PolishConfig:
     the optimum, where the curvature of the few active rows barely matters."""
     compile: bool = True
     """Compile the clearance rows' functions to machine code, cached on disk
-    (``stages.compiled``); False, or no C compiler: CasADi's virtual machine."""
+    (``stages._compiled``); False, or no C compiler: CasADi's virtual machine."""
     warm_start: bool = True
     """Start Ipopt's barrier parameter at 1e-6 with the warm start moved only 1e-9 inside
     its bounds, instead of 0.1 and 1e-2: stage 2's answer is next to the optimum
@@ -437,7 +437,7 @@ def polish_many(polisher: IKPolisher, q0s: Any, positions: Any, rotations: Any,
                 progress: bool = False, pool: Any = None) -> list[PolishResult]:
     """``polisher.solve`` for each row: q0s (B, 3n) rad/m, positions (B, 3) m, rotations
     (B, 3, 3); a tqdm progress bar with ``progress``. The warm starts' pair distances
-    come from one batched evaluation by ``polisher``; with a ``stages.pool.PolishPool``
+    come from one batched evaluation by ``polisher``; with a ``stages._pool.PolishPool``
     (whose workers build the same polisher) the solves are spread over its processes and
     come back in order, the same answers."""
     q0s = np.asarray(q0s, dtype=np.float64)
@@ -483,5 +483,5 @@ def _solve_near(polisher: IKPolisher, q0: np.ndarray, position: np.ndarray,
 
 def build_polisher(robot: Robot, scene: Scene | None, safety_margin: float,
                    config: PolishConfig = PolishConfig()) -> IKPolisher:
-    """An ``IKPolisher`` (a module-level builder, for ``stages.pool`` workers)."""
+    """An ``IKPolisher`` (a module-level builder, for ``stages._pool`` workers)."""
     return IKPolisher(robot, scene, safety_margin=safety_margin, config=config)

@@ -10,7 +10,7 @@ branch jumps (a tendon would have to move faster than it can). This stage:
    continuation chains (``continue_chains``: a few LM steps per waypoint, each from the
    previous waypoint's answer, so a chain stays on one branch);
 2. writes every chain's answers into a candidate table (R waypoints × K slots) and picks
-   the sequence with the smallest configuration jumps (``stages.sequence.smoothest_choice``)
+   the sequence with the smallest configuration jumps (``stages._sequence.smoothest_choice``)
    in one device program (``extend_and_choose``);
 3. finds the intervals where that sequence's tendon speed exceeds the robot's limit
    (the jumps) and bridges each: chains from the answers on both sides walk across the
@@ -37,8 +37,8 @@ from ..model import Robot, q_to_z_numpy
 from ..model.kinematics import tendon_lengths_z
 from ..model.limits import project_z
 from ..model.rotations import matrix_from_wxyz
-from .lm import LMConfig, lm_solve
-from .sequence import smoothest_choice
+from ._lm import LMConfig, lm_solve
+from ._sequence import smoothest_choice
 
 WaypointResidual = Callable[[jax.Array, Any, Any], jax.Array]
 """r(z, target, shared) of one waypoint: z (3n,), target = (position (3,) m, rotation (9,)
@@ -132,7 +132,7 @@ def extend_and_choose(robot: Robot, extra: int, table_z: jax.Array, table_err: j
                       active: jax.Array, column: jax.Array, tolerance: jax.Array,
                       seconds: jax.Array) -> tuple[jax.Array, ...]:
     """``extend_table``, then the smoothest sequence through it
-    (``stages.sequence.smoothest_choice``) and its tendon speeds, in one device program.
+    (``stages._sequence.smoothest_choice``) and its tendon speeds, in one device program.
 
     Returns the table (z, residual norms), the chosen (R, 3n) z and the largest tendon
     speed (R − 1,) m/s of every interval (Δℓ over ``seconds`` (R − 1,) s)."""

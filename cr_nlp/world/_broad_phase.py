@@ -1,7 +1,7 @@
 """Bounding balls of a scene's parts: the broad phase of the batched clearance terms.
 
 A body sphere's nearest obstacle is one of the few parts whose bounding ball is nearest
-to it; the optimisers' clearance terms (``world.clearance_groups``) evaluate the exact
+to it; the optimisers' clearance terms (``world._clearance_groups``) evaluate the exact
 sphere-to-part distance only for those ``near`` parts instead of for every part
 (57 convex parts of 16 face planes in the bundled shelf). The balls: a sphere is its
 own, a box's is centred with radius ‖half size‖, a capsule's and a cylinder's at the

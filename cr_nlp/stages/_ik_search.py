@@ -1,5 +1,5 @@
 """The batched IK search as the host drives it: seed pool, chunks of targets, the fused
-device programs of ``stages.search``, the retry rounds and the self-clearance repair.
+device programs of ``stages._search``, the retry rounds and the self-clearance repair.
 
 One part of a stream of targets is solved by
 
@@ -39,10 +39,10 @@ from .._jax_setup import split_over_devices
 from ..model import Robot, q_to_z_numpy, z_to_q_numpy
 from ..model.limits import clip_to_limits
 from ..world import check_many
-from .chunks import SMALLEST_CHUNK, chunk_plan
-from .explore import SeedPool, random_configurations_z, sobol_configurations
-from .lm import Projection, Residual
-from .search import RetryPlan, SearchPlan, retry_targets, search_targets
+from ._chunks import SMALLEST_CHUNK, chunk_plan
+from ._explore import SeedPool, random_configurations_z, sobol_configurations
+from ._lm import Projection, Residual
+from ._search import RetryPlan, SearchPlan, retry_targets, search_targets
 
 REPAIR_CHUNK = 16
 """Most targets per self-repair program (the larger of its two compiled chunk shapes)."""
@@ -89,12 +89,12 @@ def _chunk_rows(x: np.ndarray, start: int, stop: int, size: int) -> np.ndarray:
 
 
 class ChunkRunner:
-    """Runs one problem's fused search programs (``stages.search``) over chunks of
+    """Runs one problem's fused search programs (``stages._search``) over chunks of
     targets: one compiled program per program name and chunk shape, split over every
     JAX device.
 
     Args:
-        residual, project: the problem, as for ``stages.lm.lm_solve``.
+        residual, project: the problem, as for ``stages._lm.lm_solve``.
         shared: pytree given whole to every residual (scene arrays, or None).
         free: (n,) 1.0 for the variables LM may move.
         dtype: JAX dtype of the real inputs.

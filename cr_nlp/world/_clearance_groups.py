@@ -12,7 +12,7 @@ Derivatives: the body-sphere centres' closed-form Jacobian (``model.derivatives`
 each sphere's distance gradient (the gradient of a min is that of its argmin, so only
 the nearest part of each kind is differentiated), wrapped in ``jax.custom_jvp`` so that a
 forward-mode pass over every tangent direction costs one matrix product. With a broad
-phase (``world.broad_phase``) only the parts whose bounding balls are nearest to a
+phase (``world._broad_phase``) only the parts whose bounding balls are nearest to a
 sphere are measured. Distances in metres; configurations are bending vectors z
 (rad, rad, m).
 """
@@ -28,9 +28,9 @@ import numpy as np
 from ..model.derivatives import backbone_jacobian_z
 from ..model.kinematics import backbone_points_z
 from ..model.robot import Robot
-from .broad_phase import PartBalls
+from ._broad_phase import PartBalls
+from ._penalty import body_clearances_z
 from .clearance import SceneArrays, _kind_blocks, body_segments, self_pairs
-from .penalty import body_clearances_z
 
 
 def has_clearance(robot: Robot, arrays: SceneArrays | None) -> bool:
@@ -104,7 +104,7 @@ def _candidates(arrays: SceneArrays, balls: PartBalls, near: int, present: list[
                 centres: jax.Array) -> list[jax.Array]:
     """Broad phase: per present part kind, the indices (N, k) of the parts each body
     sphere (centres (N, 3) m) may be nearest to: the ``near`` parts whose bounding balls
-    (``world.broad_phase``) are nearest to it, or every part of a kind with at most
+    (``world._broad_phase``) are nearest to it, or every part of a kind with at most
     ``near`` parts."""
     out = []
     for kind in present:
@@ -230,7 +230,7 @@ def near_clearance_groups(robot: Robot, margin: float, near: int, arrays: SceneA
                           balls: PartBalls | None, z: jax.Array) -> jax.Array:
     """``clearance_group_values`` (G,) m of one configuration z (3n,) with the broad phase
     of ``_nearest_and_gradient``: only the ``near`` parts per kind whose bounding balls
-    (``balls``, ``world.broad_phase``) are nearest to a body sphere are measured (``near``
+    (``balls``, ``world._broad_phase``) are nearest to a body sphere are measured (``near``
     0 or ``balls`` None: every part). Its Jacobian comes from the primal alone."""
     return grouped_shortfalls(robot, margin, arrays, body_centres_z(robot, z), None, balls,
                               near)[0]

@@ -13,7 +13,7 @@ Rows and derivatives (``SlotRows``). One SX function gives the body-sphere centr
 ``c(z)`` (N × 3, metres) and their Jacobian ∂c/∂z (3N × 3n) of a configuration; a slot
 gathers its sphere's centre and 3 × 3n Jacobian block by its index parameter (an MX
 parametric gather), and a small SX function per part kind gives the distance d(c, part)
-(``world.distances``, the formulas of the clearance) and its row of the constraint
+(``world._distances``, the formulas of the clearance) and its row of the constraint
 Jacobian by the chain rule, ∇_c d · ∂c/∂z. The kinematics are differentiated once per
 configuration, not once per slot.
 
@@ -38,7 +38,7 @@ import numpy as np
 
 from ..model import CasadiModel, Robot
 from ..model._ops import CASADI
-from ..world import distances as dist
+from ..world import _distances as dist
 from ..world.clearance import SceneArrays, _body_centres, scene_arrays, self_pairs
 from ..world.scene import Scene
 
@@ -192,7 +192,7 @@ class SlotRows:
         model: the robot's ``CasadiModel``.
         pools: the slot pools (``make_pools``).
         face_smoothing: metres, smoothing μ of a convex part's face-plane max
-            (``world.distances.sphere_to_convex``: a lower bound of the distance).
+            (``world._distances.sphere_to_convex``: a lower bound of the distance).
     """
 
     def __init__(self, model: CasadiModel, pools: list[Pool], face_smoothing: float) -> None:
@@ -353,8 +353,8 @@ class SlotRows:
         """The rows of one configuration as functions ``(z, *slots) -> rows``,
         ``(z, *slots) -> (rows, jacobian)`` and ``(z, *slots, λ) -> Σ λ ∇²rows``, to map
         over many configurations (``kinematic``: see ``hessian``); with ``compile``,
-        compiled to machine code and cached on disk (``stages.compiled``)."""
-        from .compiled import compiled
+        compiled to machine code and cached on disk (``stages._compiled``)."""
+        from ._compiled import compiled
 
         key = (kinematic, compile)
         if key not in self._functions:

@@ -33,7 +33,7 @@ import numpy as np
 from ..model._ops import JAX
 from ..model.derivatives import backbone_jacobian_z
 from ..model.robot import Robot
-from . import distances as dist
+from . import _distances as dist
 from .clearance import SceneArrays, _centres, _kind_blocks, body_segments
 
 

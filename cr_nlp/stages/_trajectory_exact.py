@@ -1,8 +1,8 @@
 """The trajectory exact stage: each problem's LM candidates, best first, polished by Ipopt
-(``stages.polish_trajectory``) and accepted by the verdict (``stages.accept``).
+(``stages._polish_trajectory``) and accepted by the verdict (``stages._accept``).
 
 Attempt k polishes the k-th candidate of every problem not yet accepted, in this process
-or spread over a ``stages.pool.PolishPool``; a polish that Ipopt reports as failed is not
+or spread over a ``stages._pool.PolishPool``; a polish that Ipopt reports as failed is not
 judged. Trajectories are (waypoints, 3n) configurations θ, φ, L (rad, rad, m).
 """
 
@@ -17,7 +17,7 @@ import numpy as np
 from ..model.robot import Robot
 from ..world.scene import Scene
 from ..world.verdict import describe_violations
-from .accept import Acceptance, Judged, Polished, polish_and_accept
+from ._accept import Acceptance, Judged, Polished, polish_and_accept
 
 
 def trajectory_polisher(robot: Robot, scene: Scene | None, waypoints: int, margin: float,
@@ -25,7 +25,7 @@ def trajectory_polisher(robot: Robot, scene: Scene | None, waypoints: int, margi
     """A path-length ``TrajectoryPolisher`` with clearance rows at every waypoint and at
     the ``samples`` − 1 points inside every interval that the verification checks (δ =
     ``margin`` m on the sphere body); module level, so pool workers can build it."""
-    from .polish_trajectory import TrajectoryPolishConfig, TrajectoryPolisher
+    from ._polish_trajectory import TrajectoryPolishConfig, TrajectoryPolisher
 
     return TrajectoryPolisher(robot, scene, waypoints, safety_margin=margin,
                               config=TrajectoryPolishConfig(interpolation_checks=samples - 1,

@@ -3,7 +3,7 @@
 Problems over a chain of T waypoints z₀ … z_{T−1} (each z_t of size d) whose residuals
 each depend on at most three consecutive waypoints — path following, trajectory
 optimisation — have a block-banded Gauss–Newton matrix: JᵀJ is block pentadiagonal with
-d × d blocks. Treating it as dense (``stages.lm``) costs O((T·d)³) per iteration; here
+d × d blocks. Treating it as dense (``stages._lm``) costs O((T·d)³) per iteration; here
 
 - the residuals are given as window terms (``ChainResidual``): a unary term r(z_t), a
   pair term r(z_t, z_{t+1}) and a triple term r(z_t, z_{t+1}, z_{t+2}), each vmapped
@@ -15,7 +15,7 @@ d × d blocks. Treating it as dense (``stages.lm``) costs O((T·d)³) per iterat
   block *tridiagonal* with 2d × 2d blocks, and running a block Cholesky (block Thomas)
   forward and back in two ``jax.lax.scan`` passes: O(T·d³).
 
-The step rule is that of ``stages.lm``: Marquardt-scaled damping updated by Nielsen's
+The step rule is that of ``stages._lm``: Marquardt-scaled damping updated by Nielsen's
 trust-region rule, a projection onto the limits after every step (``project`` maps a
 (T, d) chain onto its feasible set, e.g. ``model.limits.project_z`` per waypoint), and
 ``free`` masks that keep fixed variables where they are.
@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg
 import numpy as np
 
-from .lm import LMConfig
+from ._lm import LMConfig
 
 UnaryResidual = Callable[[jax.Array, Any, Any], jax.Array]
 """r(z_t, params_t, shared) → (m₁,): depends on one waypoint z_t (d,)."""
@@ -263,7 +263,7 @@ def solve_banded(h: BandedMatrix, rhs: jax.Array) -> jax.Array:
 # ================================================================ the solver
 
 DEFAULT_CONFIG = LMConfig()
-"""``banded_lm_solve``'s default settings (those of ``stages.lm``)."""
+"""``banded_lm_solve``'s default settings (those of ``stages._lm``)."""
 
 
 def _damped(h: BandedMatrix, lam: jax.Array, scale: jax.Array) -> BandedMatrix:
@@ -286,7 +286,7 @@ def banded_lm_solve(terms: ChainResidual, project: Callable[[jax.Array], jax.Arr
         shared: pytree passed unbatched to every term.
         free: (d,) or (T, d): 1.0 for variables the solver may move, 0.0 for fixed ones.
         iterations: maximum iterations (a traced integer: no recompilation per budget).
-        config: damping and stopping rules (``stages.lm.LMConfig``; ``linear_solver`` is
+        config: damping and stopping rules (``stages._lm.LMConfig``; ``linear_solver`` is
             not used: the banded solve is always the block Cholesky).
 
     Returns:

@@ -1,4 +1,4 @@
-"""The bundled scenes and meshes, as code: run ``python -m cr_nlp.world.builders`` to
+"""The bundled scenes and meshes, as code: run ``python -m cr_nlp.world._builders`` to
 regenerate ``models/scenes/*.json`` and ``models/meshes/*.obj``.
 
 Sizes are for ``tdcr3`` (three 1.0 m segments growing up +z from the origin, backbone

@@ -4,10 +4,10 @@ A batch of B chains, each (waypoints, d) flattened to (waypoints·d,), is cut in
 of one size (one compiled program per size; the last chunk is padded with copies of its
 first row), and every chunk is solved by one device program:
 
-- "banded" (``stages.banded_lm``): one banded solve per chain, vmapped, so a chain that
+- "banded" (``stages._banded_lm``): one banded solve per chain, vmapped, so a chain that
   has converged keeps its iterate while the others go on (the loop's batched predicate
   masks it);
-- "dense" (``stages.lm``): one Jacobian of the whole chain and a dense Cholesky of its
+- "dense" (``stages._lm``): one Jacobian of the whole chain and a dense Cholesky of its
   (waypoints·d)² normal matrix; kept as the reference the banded form is checked
   against.
 
@@ -27,8 +27,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .banded_lm import ChainResidual, banded_lm_solve
-from .lm import LMConfig, lm_solve
+from ._banded_lm import ChainResidual, banded_lm_solve
+from ._lm import LMConfig, lm_solve
 
 
 class ChainBatchLM:

@@ -30,7 +30,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
-from .chunks import chunk_plan
+from ._chunks import chunk_plan
 
 SEARCH_BACKENDS = ("auto", "device", "scipy")
 SEARCH_CHOICE = "scipy on a CPU backend, device otherwise"

@@ -49,8 +49,8 @@ from .._jax_setup import cache_dir, split_over_devices
 from ..model import Robot, q_to_z, z_to_q
 from ..world import Scene, body_gap_tolerance, clearance_z, scene_arrays
 from ..world.clearance import SceneArrays
-from .explore import sobol_configurations
-from .roadmap_search import neighbour_table, shortest_paths
+from ._explore import sobol_configurations
+from ._roadmap_search import neighbour_table, shortest_paths
 
 CHECK_CHUNK = 4096
 """Configurations per clearance call (fixed, so the check compiles once per scene)."""

@@ -25,10 +25,10 @@ Constraints (docs/design.md §2):
   planner sets ``interpolation_checks = verify_samples − 1``, so the polish constrains
   every configuration the python-fcl verification checks: a motion that cuts an
   obstacle between two waypoints is a violated row of the NLP, not only a rejection
-  afterwards. The rows are the pair slots of ``stages.slots``, one configuration's rows
+  afterwards. The rows are the pair slots of ``stages._slots``, one configuration's rows
   one CasADi function mapped over all configurations.
 
-Derivatives (``stages.slots``): exact first derivatives; the Hessian of the Lagrangian
+Derivatives (``stages._slots``): exact first derivatives; the Hessian of the Lagrangian
 holds the objective's and the bending disks' exact second derivatives, assembled from
 per-waypoint and per-interval element Hessians into its block-tridiagonal band, and not
 the clearance rows' curvature (measured on the shelf: the same optima, the Hessian 20×
@@ -61,8 +61,8 @@ from ..model.limits import limit_violation_q, project_bending
 from ..world.clearance import PairDistances, body_gap_tolerance, self_pairs
 from ..world.scene import Scene, load_scene
 from ..world.verdict import VIOLATION_TOLERANCE
-from .ipopt import WarmStart, build_solver, ipopt_options, run_solver
-from .slots import SlotRows, make_pools, select_slots_batch
+from ._ipopt import WarmStart, build_solver, ipopt_options, run_solver
+from ._slots import SlotRows, make_pools, select_slots_batch
 
 OBJECTIVES = ("path", "tracking")
 
@@ -128,7 +128,7 @@ class TrajectoryPolishConfig:
     ``"none"``."""
     compile: bool = True
     """Compile the per-configuration clearance functions to machine code, cached on disk
-    (``stages.compiled``: about 3× faster evaluations; 5–20 s once per robot and scene
+    (``stages._compiled``: about 3× faster evaluations; 5–20 s once per robot and scene
     structure). False, or no C compiler: CasADi's virtual machine, the same numbers."""
     hessian: str = "exact"
     """Ipopt's ``hessian_approximation``: ``"exact"`` (the structured Hessian of the

@@ -22,7 +22,7 @@ from .._jax_setup import split_over_devices
 from ..model import Robot, q_to_z, q_to_z_numpy
 from ..model._ops import NUMPY
 from ..model.kinematics import model_q_to_z, model_segment_frames
-from .chunks import chunk_plan
+from ._chunks import chunk_plan
 
 # Orientation features are unit axes scaled by this length (metres per radian, roughly):
 # the pose error weighs one radian like one metre, so do the features.
