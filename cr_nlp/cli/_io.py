@@ -56,6 +56,17 @@ def parse_numbers(text: str, what: str) -> list[float]:
         raise UsageError(f"{what}: expected comma-separated numbers, got {text!r}") from None
 
 
+def parse_vector3(text: str | None, what: str) -> list[float] | None:
+    """'fx,fy,fz' → three floats (None when the option was not given), with an error that
+    names ``what``."""
+    if text is None:
+        return None
+    values = parse_numbers(text, what)
+    if len(values) != 3:
+        raise UsageError(f"{what}: expected 3 numbers, got {len(values)}")
+    return values
+
+
 def read_json(path: str | Path, what: str) -> Any:
     """The JSON content of ``path``; a missing or invalid file is a usage error."""
     try:

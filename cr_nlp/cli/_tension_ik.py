@@ -14,7 +14,7 @@ from ._io import (
     fmt,
     load_scene_arg,
     model_margin,
-    parse_numbers,
+    parse_vector3,
     resolve,
     write_result,
 )
@@ -29,15 +29,6 @@ def add_options(p: argparse.ArgumentParser) -> None:
                                        "world frame")
     p.add_argument("--tip-moment", help="--model cosserat: mx,my,mz moment on the tip, N·m")
     p.add_argument("--gravity", help="--model cosserat: gx,gy,gz gravity, m/s², world frame")
-
-
-def _vector(text: str | None, what: str) -> list[float] | None:
-    if text is None:
-        return None
-    values = parse_numbers(text, what)
-    if len(values) != 3:
-        raise UsageError(f"{what}: expected 3 numbers, got {len(values)}")
-    return values
 
 
 def run(args: argparse.Namespace, robot: object) -> int:
@@ -56,9 +47,9 @@ def run(args: argparse.Namespace, robot: object) -> int:
         positions, wxyz, problems = read_targets(resolve(args.targets, "targets", "--targets"))
     except ValueError as exc:
         raise UsageError(f"--targets: {exc}") from None
-    loads = {"tip_force": _vector(args.tip_force, "--tip-force"),
-             "tip_moment": _vector(args.tip_moment, "--tip-moment"),
-             "gravity": _vector(args.gravity, "--gravity")}
+    loads = {"tip_force": parse_vector3(args.tip_force, "--tip-force"),
+             "tip_moment": parse_vector3(args.tip_moment, "--tip-moment"),
+             "gravity": parse_vector3(args.gravity, "--gravity")}
     config = TensionIKConfig(seed=args.seed)
     config = replace(config, safety_margin=config.safety_margin
                      + model_margin(robot, args.model_margin))

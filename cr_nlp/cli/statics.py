@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from ._io import UsageError, load_robot_arg, parse_numbers, read_json, write_json
+from ._io import UsageError, load_robot_arg, parse_numbers, parse_vector3, read_json, write_json
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -22,15 +22,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                                    '[...], "tip_moment": [...]}, ...]}; prints a JSON list')
     p.add_argument("--json", action="store_true", help="print JSON (with the backbone)")
     p.set_defaults(run=run)
-
-
-def _vector(text: str | None, what: str) -> list[float] | None:
-    if text is None:
-        return None
-    values = parse_numbers(text, what)
-    if len(values) != 3:
-        raise UsageError(f"{what}: expected 3 numbers, got {len(values)}")
-    return values
 
 
 def _cases_from_file(path: str, n_tendons: int) -> tuple[list, list, list]:
@@ -68,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
                          "models/README.md)")
     if (args.cases is None) == (args.tensions is None):
         raise UsageError("give either --tensions or --cases")
-    gravity = _vector(args.gravity, "--gravity")
+    gravity = parse_vector3(args.gravity, "--gravity")
     if args.cases is not None:
         tensions, forces, moments = _cases_from_file(args.cases, robot.n_tendons)
     else:
@@ -76,8 +67,8 @@ def run(args: argparse.Namespace) -> int:
         if len(tensions[0]) != robot.n_tendons:
             raise UsageError(f"--tensions: {robot.name} has {robot.n_tendons} tendons, got "
                              f"{len(tensions[0])} numbers")
-        forces = [_vector(args.tip_force, "--tip-force") or [0.0, 0.0, 0.0]]
-        moments = [_vector(args.tip_moment, "--tip-moment") or [0.0, 0.0, 0.0]]
+        forces = [parse_vector3(args.tip_force, "--tip-force") or [0.0, 0.0, 0.0]]
+        moments = [parse_vector3(args.tip_moment, "--tip-moment") or [0.0, 0.0, 0.0]]
     try:
         result = solve_statics(robot, tensions, forces, moments, gravity)
     except ValueError as exc:
