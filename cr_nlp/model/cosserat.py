@@ -124,6 +124,7 @@ class _Layout(NamedTuple):
     moment_scale: float       # E I / L, N·m per radian of bending over the robot
 
 
+@functools.lru_cache(maxsize=64)
 def _layout(robot: Robot, config: StaticsConfig, coarse: bool = False) -> _Layout:
     """The integration grid. ``coarse``: half the steps, placed regardless of the disks
     (whose masses then fall inside steps): the grid of the shooting's Jacobian passes."""
@@ -621,7 +622,9 @@ def _base_moments(robot: Robot, config: StaticsConfig, cases: list[np.ndarray],
     return base, iterations
 
 
-def _as_cases(value: Any, batch: int, size: int, name: str) -> np.ndarray:
+def load_cases(value: Any, batch: int, size: int, name: str) -> np.ndarray:
+    """A load input as (batch, size) float64: None → zeros, one row → broadcast to every
+    case; a wrong shape or a non-finite entry is a ValueError naming ``name``."""
     if value is None:
         return np.zeros((batch, size))
     arr = np.asarray(value, dtype=float)
@@ -632,7 +635,7 @@ def _as_cases(value: Any, batch: int, size: int, name: str) -> np.ndarray:
                          f"{np.shape(value)}")
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name}: non-finite entries")
-    return arr
+    return np.array(arr)
 
 
 def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment: Any = None,
@@ -666,7 +669,7 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
     batch = t.shape[0]
     base_rot = matrix_from_wxyz(np.asarray(robot.base_wxyz))
     base_pos = np.asarray(robot.base_position)
-    loads = [_as_cases(v, batch, 3, n) @ base_rot for v, n in
+    loads = [load_cases(v, batch, 3, n) @ base_rot for v, n in
              ((tip_force, "tip_force"), (tip_moment, "tip_moment"), (gravity, "gravity"))]
     if config.dtype not in ("float64", "float32"):
         raise ValueError(f"dtype: 'float64' or 'float32', got {config.dtype!r}")

@@ -44,7 +44,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..model import Robot, load_robot
-from ..model.cosserat import StaticsConfig, StaticsResult, moment_scale, solve_statics
+from ..model.cosserat import (
+    StaticsConfig,
+    StaticsResult,
+    load_cases,
+    moment_scale,
+    solve_statics,
+)
 from ..model.cosserat import tip_equilibrium as _tip_equilibrium
 from ..model.rotations import matrix_from_wxyz
 from ..model.tendon_groups import (
@@ -156,19 +162,6 @@ class TensionIKSolver:
         self._project = (_identity if self._groups is not None
                          else partial(_project, self.robot.n_tendons))
 
-    # ------------------------------------------------------------ inputs
-
-    def _loads(self, value: Any, count: int, name: str) -> np.ndarray:
-        if value is None:
-            return np.zeros((count, 3))
-        arr = np.asarray(value, dtype=float)
-        if arr.ndim == 1:
-            arr = np.broadcast_to(arr, (count, arr.shape[0]))
-        if arr.shape != (count, 3) or not np.all(np.isfinite(arr)):
-            raise ValueError(f"{name}: expected 3 finite numbers or ({count}, 3), got shape "
-                             f"{np.shape(value)}")
-        return np.array(arr)
-
     # ------------------------------------------------------------ the seeds
 
     def pool(self, force: np.ndarray, moment: np.ndarray,
@@ -228,7 +221,7 @@ class TensionIKSolver:
             if np.any(np.abs(norms - 1.0) > 1e-6):
                 bad = np.flatnonzero(rows)[np.argmax(np.abs(norms - 1.0))]
                 raise ValueError(f"wxyz: target {bad} is not a unit quaternion")
-        loads = [self._loads(v, count, n) for v, n in ((tip_force, "tip_force"),
+        loads = [load_cases(v, count, 3, n) for v, n in ((tip_force, "tip_force"),
                                                         (tip_moment, "tip_moment"),
                                                         (gravity, "gravity"))]
         timing = StageTiming()
