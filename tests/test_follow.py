@@ -155,6 +155,32 @@ def test_stage_one_table_and_sequence_agree_with_numpy(follower) -> None:
     np.testing.assert_allclose(np.asarray(speed), expected, rtol=1e-4, atol=1e-6)
 
 
+def test_pose_only_chains_match_chains_on_the_whole_residual(follower) -> None:
+    # tdcr3's answers are isolated, so its chains track the pose alone and the clearance
+    # only scores them: where the clearance does not bind (the ball stays farther than
+    # the margin) they must give the table that chains on the whole residual give.
+    from cr_nlp.stages._continuation import BranchContinuation
+
+    stage = follower.continuation
+    assert stage.chain_residual is not None
+    whole = BranchContinuation(ROBOT, stage.residual, stage.candidates, stage.free,
+                               stage.dtype, stage.settings)
+    path = line_path()
+    shared = follower._shared(DT)
+    z, errors = stage.table(path.positions, path.wxyz, shared)
+    z_whole, errors_whole = whole.table(path.positions, path.wxyz, shared)
+    assert np.array_equal(np.isfinite(errors), np.isfinite(errors_whole))
+    found = np.isfinite(errors)
+    assert found.sum() > WAYPOINTS            # anchors and chains
+    np.testing.assert_allclose(z[found], z_whole[found], atol=2e-4)
+    np.testing.assert_allclose(errors[found], errors_whole[found], atol=1e-4)
+    # The scores are the whole residual's norms, as an independent float64 check gives.
+    rows, slots = np.nonzero(found)
+    pos, _ = tip_pose_z(ROBOT, jnp.asarray(z[rows, slots]))
+    gap = np.linalg.norm(np.asarray(pos, np.float64) - path.positions[rows], axis=1)
+    assert np.all(errors[found] >= gap - 1e-5) and np.all(errors[found] < 1e-3)
+
+
 def test_result_files(followed, tmp_path: Path) -> None:
     data = json.loads(followed.save(tmp_path / "r.json").read_text())
     assert data["kind"] == "follow" and data["schema_version"] == SCHEMA_VERSION
