@@ -8,7 +8,9 @@ branch jumps (a tendon would have to move faster than it can). This stage:
 1. runs the caller's batched IK (``candidates``) on every ``stride``-th waypoint (the
    anchors) and the last, and carries each anchor's answers to the neighbouring anchors by
    continuation chains (``continue_chains``: a few LM steps per waypoint, each from the
-   previous waypoint's answer, so a chain stays on one branch);
+   previous waypoint's answer plus the chain's last step, so a chain stays on one branch);
+   the chains may minimise a cheaper residual than the one that scores the table (the
+   pose alone, for a robot whose answers are isolated: ``tasks.follow``);
 2. writes every chain's answers into a candidate table (R waypoints × K slots) and picks
    the sequence with the smallest configuration jumps (``stages._sequence.smoothest_choice``)
    in one device program (``extend_and_choose``);
@@ -40,6 +42,9 @@ from ..model.rotations import matrix_from_wxyz
 from ._lm import LMConfig, lm_solve
 from ._sequence import smoothest_choice
 
+CHAIN_CONVERGED = 1e-5
+"""Residual norm (m, rad) at which a continuation chain's LM stops at a waypoint."""
+
 WaypointResidual = Callable[[jax.Array, Any, Any], jax.Array]
 """r(z, target, shared) of one waypoint: z (3n,), target = (position (3,) m, rotation (9,)
 row major, tracking switch ()), shared the caller's common data (scene arrays, Δt, …).
@@ -69,29 +74,48 @@ class ContinuationSettings:
     no better one (``smoothest_choice``)."""
 
 
-def continue_chains(residual: WaypointResidual, project: Callable[[jax.Array], jax.Array],
-                    iterations: int, z_start: jax.Array, index: jax.Array, active: jax.Array,
+def continue_chains(residual: WaypointResidual, score: WaypointResidual | None,
+                    project: Callable[[jax.Array], jax.Array], iterations: int,
+                    z_start: jax.Array, index: jax.Array, active: jax.Array,
                     positions: jax.Array, rotations: jax.Array, track: jax.Array, shared: Any,
                     free: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Numerical continuation of C answers along the path.
 
     Chain c starts at ``z_start[c]`` (3n,) and visits the waypoints ``index[c, 0]``,
-    ``index[c, 1]``, … (C, L) in turn, ``iterations`` LM steps per waypoint from the
-    previous waypoint's answer; where ``active[c, τ]`` (C, L) is False the chain holds
-    still. ``positions`` (R, 3) m, ``rotations`` (R, 9), ``track`` (R,) are the waypoint
-    targets. Returns z (C, L, 3n) and the residual norms (C, L) at every visited
-    waypoint."""
-    config = LMConfig(cost_tolerance=1e-14)
+    ``index[c, 1]``, … (C, L) in turn, ``iterations`` LM steps on ``residual`` per
+    waypoint from a secant prediction (the previous answer plus the chain's last step);
+    where ``active[c, τ]`` (C, L) is False the chain holds still. ``positions`` (R, 3) m,
+    ``rotations`` (R, 9), ``track`` (R,) are the waypoint targets. Returns z (C, L, 3n)
+    and the residual norms (C, L) at every visited waypoint: of ``score`` where given
+    (the chains may minimise a cheaper residual than the one the table is judged by),
+    else of ``residual``."""
+    # Converged at 1e-5 (m, rad) of residual norm: the answers only have to keep to
+    # their branch and rank the table; stage 2 refines the chosen sequence.
+    config = LMConfig(cost_tolerance=0.5 * CHAIN_CONVERGED ** 2)
+    each = jax.vmap(score, in_axes=(0, 0, None)) if score is not None else None
 
-    def step(z: jax.Array, tau: jax.Array) -> tuple[jax.Array, tuple]:
+    def step(carry: tuple, tau: jax.Array) -> tuple[tuple, tuple]:
+        z, velocity = carry
         at = index[:, tau]
+        moving = active[:, tau, None]
         target = (positions[at], rotations[at], track[at])
-        solved, cost, _ = lm_solve(residual, project, z, target, shared, free,
+        # Waypoints are close: the last step predicts the next answer on the same branch,
+        # so a few LM steps finish it. A chain that holds still tracks nothing (switch 0),
+        # so that it never keeps the batch's LM loop running.
+        held = (target[0], target[1], jnp.where(moving[:, 0], target[2], 0.0))
+        solved, cost, _ = lm_solve(residual, project, z + velocity, held, shared, free,
                                    jnp.int32(iterations), config=config)
-        z_out = jnp.where(active[:, tau, None], solved, z)
-        return z_out, (z_out, jnp.sqrt(2.0 * cost))
+        z_out = jnp.where(moving, solved, z)
+        velocity = jnp.where(moving, z_out - z, velocity)
+        if each is None:
+            err = jnp.sqrt(2.0 * cost)
+        else:
+            r = each(z_out, target, shared)
+            err = jnp.sqrt(jnp.sum(r * r, axis=-1))
+        return (z_out, velocity), (z_out, err)
 
-    _, (z, err) = jax.lax.scan(step, z_start, jnp.arange(index.shape[1]))
+    start = (z_start, jnp.zeros_like(z_start))
+    _, (z, err) = jax.lax.scan(step, start, jnp.arange(index.shape[1]))
     return jnp.swapaxes(z, 0, 1), jnp.swapaxes(err, 0, 1)
 
 
@@ -140,8 +164,10 @@ def extend_and_choose(robot: Robot, extra: int, table_z: jax.Array, table_err: j
                                       active, column)
     choice = smoothest_choice(table_z, table_err, tolerance)
     chosen = table_z[jnp.arange(table_z.shape[0]), choice]
-    lengths = tendon_lengths_z(robot, chosen).astype(chosen.dtype)
-    speed = jnp.max(jnp.abs(jnp.diff(lengths, axis=0)), axis=1) / seconds
+    # Tendon lengths are linear in z (no constant term): the change over an interval is
+    # the lengths of the change, without the cancellation of two ~1 m float32 lengths.
+    change = tendon_lengths_z(robot, jnp.diff(chosen, axis=0)).astype(chosen.dtype)
+    speed = jnp.max(jnp.abs(change), axis=1) / seconds
     return table_z, table_err, chosen, speed
 
 
@@ -152,18 +178,23 @@ class BranchContinuation:
 
     Args:
         robot: the robot.
-        residual: the waypoint residual the chains minimise (``WaypointResidual``); must be
-            hashable (a module-level function or a ``functools.partial`` of one).
+        residual: the waypoint residual that judges every candidate (``WaypointResidual``);
+            must be hashable (a module-level function or a ``functools.partial`` of one).
         candidates: the batched IK (``Candidates``).
         free: (3n,) 1.0 for the variables the chains may move, 0.0 for fixed lengths.
         dtype: JAX dtype of the device programs.
         settings: ``ContinuationSettings``.
+        chain_residual: the residual the chains minimise, when cheaper than ``residual``
+            (hashable too; None: ``residual`` itself). ``residual`` still scores their
+            answers.
     """
 
     def __init__(self, robot: Robot, residual: WaypointResidual, candidates: Candidates,
-                 free: Any, dtype: Any, settings: ContinuationSettings) -> None:
+                 free: Any, dtype: Any, settings: ContinuationSettings,
+                 chain_residual: WaypointResidual | None = None) -> None:
         self.robot = robot
         self.residual = residual
+        self.chain_residual = chain_residual
         self.candidates = candidates
         self.free = jnp.asarray(free, dtype)
         self.dtype = jnp.dtype(dtype)
@@ -171,6 +202,9 @@ class BranchContinuation:
         self._compiled: dict[Any, Any] = {}
         self._choose_program = jax.jit(partial(extend_and_choose, robot), static_argnums=0)
         self._extend = jax.jit(extend_table, static_argnums=0)
+        each = jax.vmap(residual, in_axes=(0, 0, None))
+        self._score = jax.jit(lambda z, target, shared: jnp.linalg.norm(
+            each(z, target, shared), axis=-1))
 
     def sequence(self, positions: np.ndarray, wxyz: np.ndarray, seconds: np.ndarray,
                  shared: Any) -> np.ndarray:
@@ -221,6 +255,11 @@ class BranchContinuation:
         anchors = np.unique(np.r_[np.arange(0, r, stride), r - 1])
         q, err = self.candidates(positions[anchors], wxyz[anchors])
         z_anchor = q_to_z_numpy(q)                                   # (A, B, 3n)
+        if self.chain_residual is not None:
+            # The candidates may come from a cheaper problem too (the pose alone): the
+            # table judges every answer by ``residual``.
+            err = np.where(np.isfinite(err), self.score(z_anchor, positions[anchors],
+                                                        wxyz[anchors], shared), np.inf)
         ends = (z_anchor[0], z_anchor[-1])
         width = z_anchor.shape[1]
         slots = width if len(anchors) == r else 3 * width
@@ -244,6 +283,17 @@ class BranchContinuation:
             starts, index, active, column = (x[:0] for x in (starts, index, active, column))
         return (z, errors), ends, self.chains(starts, index, active, column, positions, wxyz,
                                               shared)
+
+    def score(self, z: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
+              shared: Any) -> np.ndarray:
+        """Residual norms (A, B) of ``residual`` at candidates z (A, B, 3n) of A waypoints
+        (positions (A, 3) m, wxyz (A, 4)), float64."""
+        a, b, dof = z.shape
+        rotations = matrix_from_wxyz(wxyz).reshape(-1, 9)
+        target = (np.repeat(positions, b, 0).astype(self.dtype),
+                  np.repeat(rotations, b, 0).astype(self.dtype), np.ones(a * b, self.dtype))
+        norms = self._score(z.reshape(-1, dof).astype(self.dtype), target, shared)
+        return np.asarray(norms, np.float64).reshape(a, b)
 
     def chains(self, starts: np.ndarray, index: np.ndarray, active: np.ndarray,
                column: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
@@ -270,7 +320,11 @@ class BranchContinuation:
                 shared, self.free)
         key = (padded, length, rows)
         if key not in self._compiled:
-            fn = partial(continue_chains, self.residual, partial(project_z, self.robot),
+            if self.chain_residual is None:
+                solved, score = self.residual, None
+            else:
+                solved, score = self.chain_residual, self.residual
+            fn = partial(continue_chains, solved, score, partial(project_z, self.robot),
                          self.settings.iterations)
             # Chains are independent: split over the devices like the IK's LM (measured:
             # unsplit, the anchors' 96 chains ran on one core).
