@@ -4,6 +4,8 @@ Round 1 refines the first ``first_round`` guesses of every problem (``stages._ch
 and verifies them in cost order until one passes; round 2 refines the remaining guesses
 only for the problems that round 1 left unsolved. A problem's best answer is the first
 verified success in cost order, else the verified answer with the smallest violation.
+Both rounds are one LM stream (``ChainBatchLM.solve``'s ``more``): a problem's round 2
+starts as soon as its round 1 is verified, in the slots other trajectories free.
 """
 
 from __future__ import annotations

@@ -304,7 +304,8 @@ class TrajectoryPlanner:
 
     ``plan(starts, goals)`` takes (P, 3n) start and goal configurations θ, φ, L (rad,
     rad, m; fixed lengths may be omitted, see ``Robot.full_q``) and returns one
-    ``TrajectoryResult`` per problem. The LM program is compiled once per chunk shape.
+    ``TrajectoryResult`` per problem. The LM program is compiled once per slot count
+    (``TrajectoryConfig.chunk_size``).
     """
 
     def __init__(self, robot: Robot | str | dict, scene: Scene | str | None = None,
