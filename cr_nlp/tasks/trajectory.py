@@ -131,14 +131,16 @@ class TrajectoryConfig:
     chunk_size: int = 8
     """Most trajectories per compiled LM call: the slots of the continuous batching
     (``stages._chain_batch``), or the chunk size with ``lm_schedule="chunks"``. Measured
-    on 40 shelf trajectories (2-core CPU, float32): a slot-trip (one LM iteration of
-    one slot) cost the same at 2, 4 and 8 slots and almost twice as much at 16."""
+    on the 40 round-1 shelf trajectories (2-core CPU under a load of ~6, float32,
+    interleaved, best of 5): 2, 4 and 8 slots took 6.0, 6.1 and 6.2 s in 38, 35 and 22
+    device calls, 16 slots 14.3 s (more slots idle while the stream drains)."""
     lm_schedule: str = "slots"
     """How the banded LM runs a batch: "slots" (continuous batching: a finished
     trajectory's slot is refilled with a waiting one at once, and the second round of
     guesses joins the same stream) or "chunks" (fixed chunks, each running until its
     slowest trajectory stops; the former schedule, kept for comparison). The answers are
-    the same; measured on 40 shelf trajectories, the chunks made 2.8× the slot-trips."""
+    the same; measured on 20 problems per bundled scene, chunks of 16 made 1.8–2.3× the
+    slot-trips (LM iterations × slots) of 8 slots and the LM took 1.5–2.3× as long."""
     dtype: str = "float32"
     """JAX dtype of the LM stage ("float64" needs jax_enable_x64)."""
     near_parts: int = 8
@@ -336,7 +338,7 @@ class TrajectoryPlanner:
                                    config.tendon_limit_fraction),
             dense_project=partial(_project_waypoints, self.robot, n), extra=balls,
             schedule=config.lm_schedule)
-        """Stage 2 (``stages._chain_batch``): the LM over chunks of trajectories."""
+        """Stage 2 (``stages._chain_batch``): the LM over a stream of trajectories."""
         self.last_programs = 0
         """LM device programs launched by the last ``plan`` call (one per slot call or
         chunk)."""
