@@ -242,14 +242,14 @@ class ChainBatchLM:
 
     def _lower_slots(self, args: tuple) -> Any:
         """The slot program: load chains, then LM trips on the occupied slots until fewer
-        than ``wanted`` run or ``trips`` were made; returns the state and which slots run.
-        One device (see ``_lower_chunk``)."""
+        than ``wanted`` run or ``trips`` were made; returns the state, which slots still
+        run and the trips made. One device (see ``_lower_chunk``)."""
         n, config, extra = self.waypoints, self.config, self.extra
         terms, project = self.terms, self.project
 
         def advance(state: BandedLMState, z_new: jax.Array, load: jax.Array, step: jax.Array,
                     budget: jax.Array, arrays: Any, free: jax.Array, trips: jax.Array,
-                    wanted: jax.Array) -> tuple[BandedLMState, jax.Array]:
+                    wanted: jax.Array) -> tuple[BandedLMState, jax.Array, jax.Array]:
             def select(mask: jax.Array, a: Any, b: Any) -> Any:
                 return jax.tree_util.tree_map(
                     lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)),
