@@ -186,9 +186,11 @@ def test_chain_batch_solves_every_chain_as_its_own_banded_solve() -> None:
     z0 = rng.normal(size=(3, t * d))
     steps = np.array([0.5, -1.0, 2.0])
     free = jnp.ones(t * d, jnp.float64).at[:d].set(0.0)       # the first waypoint is fixed
-    batch = ChainBatchLM(terms, unprojected, t, free, jnp.float64, chunk_size=2)
-    z, cost, compiled = batch.solve(z0, steps, None, 25)
-    assert batch.programs == 2 and compiled > 0.0
+    batch = ChainBatchLM(terms, unprojected, t, free, jnp.float64, chunk_size=2,
+                         schedule="chunks")
+    solution = batch.solve(z0, steps, None, 25)
+    z, cost = solution.z, solution.cost
+    assert batch.programs == 2 and solution.compile > 0.0
     for k in range(3):
         zk, ck, _ = banded_lm_solve(terms, unprojected, jnp.asarray(z0[k].reshape(t, d)), None,
                                     (None, None, jnp.float64(steps[k])), free.reshape(t, d),
@@ -196,6 +198,53 @@ def test_chain_batch_solves_every_chain_as_its_own_banded_solve() -> None:
         np.testing.assert_allclose(z[k], np.asarray(zk).reshape(-1), atol=1e-12)
         assert cost[k] == pytest.approx(float(ck), rel=1e-12)
     np.testing.assert_array_equal(z[:, :d], z0[:, :d])
-    again, _, compiled_again = batch.solve(z0[:1], steps[:1], None, 25)
-    assert compiled_again == 0.0 and batch.programs == 3
-    np.testing.assert_allclose(again[0], z[0], atol=1e-12)
+    again = batch.solve(z0[:1], steps[:1], None, 25)
+    assert again.compile == 0.0 and batch.programs == 3
+    np.testing.assert_allclose(again.z[0], z[0], atol=1e-12)
+
+
+def test_slots_take_the_one_shot_iterates_whatever_the_schedule() -> None:
+    """Continuous batching (two slots, refilled as chains finish, the LM state carried
+    between device calls) gives every chain exactly its one-shot ``banded_lm_solve``:
+    the same z, cost and iteration count, for chains that stop after very different
+    numbers of iterations (some stall early, some use the whole budget), whether a call
+    runs one trip, three or until a slot frees up; chains added by ``more`` too."""
+    from cr_nlp.stages._chain_batch import ChainBatchLM
+
+    t, d, budget = 5, 3, 6
+    terms = ChainResidual(step_unary, pair, triple)
+    rng = np.random.default_rng(3)
+    scales = np.array([0.01, 0.1, 0.3, 1.0, 2.0, 3.0, 0.05, 1.5, 4.0])
+    z0 = rng.normal(size=(9, t * d)) * scales[:, None]
+    steps = rng.normal(size=9)
+    free = jnp.ones(t * d, jnp.float64).at[:d].set(0.0)
+    one_shot = [banded_lm_solve(terms, unprojected, jnp.asarray(z0[k].reshape(t, d)), None,
+                                (None, None, jnp.float64(steps[k])), free.reshape(t, d),
+                                jnp.int32(budget)) for k in range(9)]
+    expected_its = np.array([int(o[2]) for o in one_shot])
+    assert expected_its.min() == 3 and (expected_its == budget).sum() >= 3     # different
+    first = 6                                       # the rest are added while solving
+
+    reported: list[int] = []
+
+    def more(chains, z, cost):
+        reported.extend(chains)
+        if 0 in chains:                             # once chain 0 is done: the others
+            return z0[first:], steps[first:]
+        return None
+
+    batch = ChainBatchLM(terms, unprojected, t, free, jnp.float64, chunk_size=2)
+    for trips, refill in ((1, 1), (3, 2), (1 << 30, 1)):
+        reported.clear()
+        batch.trips, batch.refill, batch.slot_trips = trips, refill, 0   # run-time settings
+        solution = batch.solve(z0[:first], steps[:first], None, budget, more)
+        np.testing.assert_array_equal(solution.iterations, expected_its)
+        assert sorted(reported) == list(range(9))       # each chain reported once
+        for k in range(9):
+            np.testing.assert_allclose(solution.z[k], np.asarray(one_shot[k][0]).reshape(-1),
+                                       atol=1e-12)
+            assert solution.cost[k] == pytest.approx(float(one_shot[k][1]), rel=1e-12)
+        # Work: never more slot-trips than two slots running every call to its end, and
+        # at least the trips the chains needed (one more than their iterations).
+        assert batch.slot_trips >= (expected_its + 1).sum()
+    assert list(batch._slot_programs) == [2]            # one program for every schedule

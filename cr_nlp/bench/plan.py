@@ -14,7 +14,7 @@ same float64 verdict, ``tasks.trajectory.verify_trajectory`` (python-fcl along t
 interpolated motion, limits, tendon speed and acceleration over Δt).
 
 Times: the planner rows first run a warm-up on the first ``WARMUP_PAIRS`` problems
-(compilation of the one LM chunk shape, roadmap load, the exact row's Ipopt build), then
+(compilation of the LM slot program, roadmap load, the exact row's Ipopt build), then
 the whole batch is timed; "time/problem" is the batch wall time over its size (the
 planner is batched) and "median time" the median of the per-problem stage timings. RRT
 times are per problem (it plans one at a time), after one warm-up problem. The roadmap
@@ -67,7 +67,7 @@ FCL_CLEARANCE = 0.002
 
 
 WARMUP_PAIRS = 8
-"""Problems of a planner row's warm-up: 16 LM guesses, one whole chunk of the default
+"""Problems of a planner row's warm-up: 16 LM guesses, at least the slots of the default
 ``TrajectoryConfig.chunk_size``, so the timed run compiles nothing."""
 
 

@@ -271,33 +271,71 @@ def _damped(h: BandedMatrix, lam: jax.Array, scale: jax.Array) -> BandedMatrix:
     return h._replace(diag=h.diag + lam * scale[:, :, None] * jnp.eye(d, dtype=h.diag.dtype))
 
 
-@partial(jax.jit, static_argnames=("terms", "project", "config"))
-def banded_lm_solve(terms: ChainResidual, project: Callable[[jax.Array], jax.Array],
-                    z0: jax.Array, params: Any, shared: Any, free: jax.Array,
-                    iterations: jax.Array,
-                    config: LMConfig = DEFAULT_CONFIG) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Run projected LM on one chain.
+class BandedLMState(NamedTuple):
+    """The banded LM's loop state between two trips, for one chain (a batch of chains
+    adds a leading axis to every field). Carrying it whole lets a solve stop after any
+    trip and go on later with exactly the same iterates (``stages._chain_batch``'s slots)."""
 
-    Args:
-        terms: the window residual terms (``ChainResidual``).
-        project: feasibility projection of a (T, d) chain (hashable).
-        z0: (T, d) starting chain (projected first).
-        params: pytree of per-waypoint data, leaves with leading dimension T.
-        shared: pytree passed unbatched to every term.
-        free: (d,) or (T, d): 1.0 for variables the solver may move, 0.0 for fixed ones.
-        iterations: maximum iterations (a traced integer: no recompilation per budget).
-        config: damping and stopping rules (``stages._lm.LMConfig``; ``linear_solver`` is
-            not used: the banded solve is always the block Cholesky).
+    z: jax.Array
+    """(T, d): the accepted iterate."""
+    cost: jax.Array
+    """½‖r(z)‖² (inf before the first evaluation)."""
+    hessian: BandedMatrix
+    """JᵀJ at z, fixed variables masked out."""
+    gradient: jax.Array
+    """(T, d): Jᵀr at z, zero for fixed variables."""
+    damping: jax.Array
+    """λ, relative to the diagonal of JᵀJ (Marquardt scaling)."""
+    nu: jax.Array
+    """ν, the factor λ grows by after a rejected step (Nielsen's rule)."""
+    done: jax.Array
+    """Converged or stalled."""
+    iteration: jax.Array
+    """Steps judged so far (int32); −1 before the first evaluation."""
+    trial: jax.Array
+    """(T, d): the pending trial point, evaluated on the next trip (z0 on the first)."""
+    predicted: jax.Array
+    """The cost reduction the Gauss–Newton model predicts for ``trial``."""
 
-    Returns:
-        z (T, d), final cost ½‖r‖² (scalar), iterations used (scalar).
-    """
+
+def banded_lm_start(project: Callable[[jax.Array], jax.Array], z0: jax.Array,
+                    config: LMConfig = DEFAULT_CONFIG) -> BandedLMState:
+    """The state of a chain solve before its first trip: z0 (T, d) projected, nothing
+    evaluated yet (``iteration`` −1)."""
     dtype = z0.dtype
     t, d = z0.shape
-    free = jnp.broadcast_to(free.astype(dtype), (t, d))
-    eye = jnp.eye(d, dtype=dtype)
-    fixed_diag = (1.0 - free)[:, :, None] * eye
     z0 = project(z0)
+    eye = jnp.eye(d, dtype=dtype)
+    h_init = BandedMatrix(jnp.broadcast_to(eye, (t, d, d)),
+                          jnp.zeros((max(t - 1, 0), d, d), dtype),
+                          jnp.zeros((max(t - 2, 0), d, d), dtype))
+    return BandedLMState(z0, jnp.asarray(jnp.inf, dtype), h_init, jnp.zeros((t, d), dtype),
+                         jnp.asarray(config.initial_damping, dtype), jnp.asarray(2.0, dtype),
+                         jnp.asarray(False), jnp.int32(-1), z0, jnp.asarray(1.0, dtype))
+
+
+def banded_lm_running(state: BandedLMState, iterations: jax.Array,
+                      config: LMConfig = DEFAULT_CONFIG) -> jax.Array:
+    """Whether a chain solve takes another trip: fewer than ``iterations`` steps judged
+    and (with ``config.stop_when_converged``) neither converged nor stalled."""
+    more = (~state.done | (state.iteration < 0)) if config.stop_when_converged else True
+    return (state.iteration < iterations) & more
+
+
+def banded_lm_trip(terms: ChainResidual, project: Callable[[jax.Array], jax.Array],
+                   state: BandedLMState, params: Any, shared: Any, free: jax.Array,
+                   config: LMConfig = DEFAULT_CONFIG) -> BandedLMState:
+    """One trip of the LM loop: evaluate the normal equations at the pending trial point
+    (z0 on the first trip, which is always accepted), judge the step, update λ and ν,
+    and propose the next step. Arguments as for ``banded_lm_solve``.
+
+    One evaluation per trip, at the trial point: ``step_system`` is traced once, not once
+    before the loop and again inside it (its Jacobians dominate the compilation)."""
+    z, cost, h, g, lam, nu, done, it, z_trial, predicted = state
+    dtype = z.dtype
+    t, d = z.shape
+    free = jnp.broadcast_to(free.astype(dtype), (t, d))
+    fixed_diag = (1.0 - free)[:, :, None] * jnp.eye(d, dtype=dtype)
 
     def step_system(z: jax.Array) -> tuple[BandedMatrix, jax.Array, jax.Array]:
         blocks = chain_jacobians(terms, z, params, shared)
@@ -320,39 +358,48 @@ def banded_lm_solve(terms: ChainResidual, project: Callable[[jax.Array], jax.Arr
         predicted = -(jnp.sum(g * actual) + 0.5 * jnp.sum(actual * banded_matvec(h, actual)))
         return z_new, predicted
 
-    # One evaluation of the normal equations per loop trip, at the pending trial point
-    # (z0 on the first trip, which is always accepted): ``step_system`` is traced once,
-    # not once before the loop and again inside it (its Jacobians dominate the
-    # compilation). Trip k ≥ 1 judges the k-th step, then proposes the next one.
-    def body(state: tuple) -> tuple:
-        z, cost, h, g, lam, nu, done, it, z_trial, predicted = state
-        first = it < 0
-        h_new, g_new, cost_new = step_system(z_trial)
-        rho = (cost - cost_new) / jnp.maximum(predicted, 1e-30)
-        accept = first | ((cost_new < cost) & jnp.isfinite(cost_new))
-        stalled = ~first & accept & (cost - cost_new < config.stall_tolerance * cost)
-        done = done | stalled | (cost_new < config.cost_tolerance) | (lam > 1e10)
-        keep = partial(jnp.where, accept)
-        z, cost = keep(z_trial, z), keep(cost_new, cost)
-        h = jax.tree_util.tree_map(keep, h_new, h)
-        g = keep(g_new, g)
-        shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * jnp.clip(rho, 0.0, 1.0) - 1.0) ** 3)
-        lam = jnp.where(first, lam, jnp.clip(jnp.where(accept, lam * shrink, lam * nu),
-                                             1e-12, 1e12)).astype(dtype)
-        nu = jnp.where(first, nu, jnp.where(accept, 2.0, nu * 2.0)).astype(dtype)
-        z_trial, predicted = trial(z, h, g, lam)
-        return z, cost, h, g, lam, nu, done, it + 1, z_trial, predicted
+    first = it < 0
+    h_new, g_new, cost_new = step_system(z_trial)
+    rho = (cost - cost_new) / jnp.maximum(predicted, 1e-30)
+    accept = first | ((cost_new < cost) & jnp.isfinite(cost_new))
+    stalled = ~first & accept & (cost - cost_new < config.stall_tolerance * cost)
+    done = done | stalled | (cost_new < config.cost_tolerance) | (lam > 1e10)
+    keep = partial(jnp.where, accept)
+    z, cost = keep(z_trial, z), keep(cost_new, cost)
+    h = jax.tree_util.tree_map(keep, h_new, h)
+    g = keep(g_new, g)
+    shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * jnp.clip(rho, 0.0, 1.0) - 1.0) ** 3)
+    lam = jnp.where(first, lam, jnp.clip(jnp.where(accept, lam * shrink, lam * nu),
+                                         1e-12, 1e12)).astype(dtype)
+    nu = jnp.where(first, nu, jnp.where(accept, 2.0, nu * 2.0)).astype(dtype)
+    z_trial, predicted = trial(z, h, g, lam)
+    return BandedLMState(z, cost, h, g, lam, nu, done, it + 1, z_trial, predicted)
 
-    def running(state: tuple) -> jax.Array:
-        done, it = state[6], state[7]
-        more = (~done | (it < 0)) if config.stop_when_converged else True
-        return (it < iterations) & more
 
-    zeros = jnp.zeros((max(t - 1, 0), d, d), dtype)
-    h_init = BandedMatrix(jnp.broadcast_to(eye, (t, d, d)), zeros,
-                          jnp.zeros((max(t - 2, 0), d, d), dtype))
-    state = (z0, jnp.asarray(jnp.inf, dtype), h_init, jnp.zeros((t, d), dtype),
-             jnp.asarray(config.initial_damping, dtype), jnp.asarray(2.0, dtype),
-             jnp.asarray(False), jnp.int32(-1), z0, jnp.asarray(1.0, dtype))
-    z, cost, _, _, _, _, _, it, _, _ = jax.lax.while_loop(running, body, state)
-    return z, cost, it
+@partial(jax.jit, static_argnames=("terms", "project", "config"))
+def banded_lm_solve(terms: ChainResidual, project: Callable[[jax.Array], jax.Array],
+                    z0: jax.Array, params: Any, shared: Any, free: jax.Array,
+                    iterations: jax.Array,
+                    config: LMConfig = DEFAULT_CONFIG) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Run projected LM on one chain.
+
+    Args:
+        terms: the window residual terms (``ChainResidual``).
+        project: feasibility projection of a (T, d) chain (hashable).
+        z0: (T, d) starting chain (projected first).
+        params: pytree of per-waypoint data, leaves with leading dimension T.
+        shared: pytree passed unbatched to every term.
+        free: (d,) or (T, d): 1.0 for variables the solver may move, 0.0 for fixed ones.
+        iterations: maximum iterations (a traced integer: no recompilation per budget).
+        config: damping and stopping rules (``stages._lm.LMConfig``; ``linear_solver`` is
+            not used: the banded solve is always the block Cholesky).
+
+    Returns:
+        z (T, d), final cost ½‖r‖² (scalar), iterations used (scalar).
+    """
+    state = jax.lax.while_loop(
+        partial(banded_lm_running, iterations=iterations, config=config),
+        partial(banded_lm_trip, terms, project, params=params, shared=shared, free=free,
+                config=config),
+        banded_lm_start(project, z0, config))
+    return state.z, state.cost, state.iteration

@@ -4,6 +4,8 @@ Round 1 refines the first ``first_round`` guesses of every problem (``stages._ch
 and verifies them in cost order until one passes; round 2 refines the remaining guesses
 only for the problems that round 1 left unsolved. A problem's best answer is the first
 verified success in cost order, else the verified answer with the smallest violation.
+Both rounds are one LM stream (``ChainBatchLM.solve``'s ``more``): a problem's round 2
+starts as soon as its round 1 is verified, in the slots other trajectories free.
 """
 
 from __future__ import annotations
@@ -46,6 +48,11 @@ def select_guesses(lm: ChainBatchLM, guesses: np.ndarray, ends: list[tuple[np.nd
     """Refine the (P, G, waypoints, 3n) ``guesses`` (bending vectors z) in two rounds and
     pick each problem's best by ``verify``.
 
+    Both rounds run in one LM stream (``ChainBatchLM.solve`` with ``more``): a problem's
+    round-1 guesses are verified as soon as the last of them finishes, and if none
+    passes, its round-2 guesses join the stream at once, so round 2 does not wait for
+    every round-1 trajectory (nor round 1's slowest for round 2).
+
     Args:
         lm: the batched chain LM.
         guesses: initial trajectories in z (rad, rad, m).
@@ -63,48 +70,67 @@ def select_guesses(lm: ChainBatchLM, guesses: np.ndarray, ends: list[tuple[np.nd
     # Every refined guess: (not verified valid, max violation, cost, q, guess index).
     tried: list[list[tuple[bool, float, float, np.ndarray, int]]] = [[] for _ in range(p_count)]
     verify_seconds = np.zeros(p_count)
-    compile_total = refine_total = 0.0
-    programs = lm.programs
-    for rows, group in ((np.arange(p_count), np.arange(first)),
-                        (None, np.arange(first, g_count))):
-        if rows is None:
-            rows = np.array([r for r, b in enumerate(best)
-                             if b is None or not b[0]["success"]], dtype=int)
-        if len(rows) == 0 or len(group) == 0:
-            continue
-        z0 = guesses[rows][:, group].reshape(-1, n * dof)
-        t1 = time.perf_counter()
-        z, cost, compiled = lm.solve(z0, np.full(len(z0), dt), arrays, iterations)
-        compile_total += compiled
-        refine_total += time.perf_counter() - t1 - compiled
-        z = z.reshape(len(rows), len(group), n, dof)
-        cost = cost.reshape(len(rows), len(group))
-        for k, row in enumerate(rows):
-            q_start, q_goal = ends[row]
-            t2 = time.perf_counter()
-            # Best by the independent verdict, then by cost: the first success in cost order.
-            verified = set()
-            for g in np.argsort(cost[k], kind="stable"):
-                q = z_to_q_numpy(z[k, g])
+    # The stream's chains: chain k is guess owner[k][1] of problem owner[k][0].
+    owner = [(p, g) for p in range(p_count) for g in range(first)]
+    outstanding = np.full(p_count, first)         # chains of the problem's current round
+    second = np.zeros(p_count, dtype=bool)         # the problem is in round 2
+    finished: list[dict[int, tuple[np.ndarray, float]]] = [{} for _ in range(p_count)]
+
+    def judge(row: int) -> None:
+        """Verify the problem's finished round in cost order until one passes."""
+        q_start, q_goal = ends[row]
+        done = finished[row]
+        finished[row] = {}
+        t2 = time.perf_counter()
+        order = sorted(done, key=lambda g: (done[g][1], g))
+        verified = set()
+        for g in order:
+            z, cost = done[g]
+            q = z_to_q_numpy(z.reshape(n, dof))
+            q[0], q[-1] = q_start, q_goal
+            verdict = verify(q)
+            verified.add(g)
+            tried[row].append((not verdict["success"], verdict["max_violation"], cost, q, g))
+            b = best[row]
+            if b is None or (verdict["success"], -verdict["max_violation"]) > (
+                    b[0]["success"], -b[0]["max_violation"]):
+                best[row] = (verdict, g, q, cost)
+            if verdict["success"]:
+                break
+        for g in sorted(done):
+            if g not in verified:          # not verified: ranked after the verified
+                q = z_to_q_numpy(done[g][0].reshape(n, dof))
                 q[0], q[-1] = q_start, q_goal
-                verdict = verify(q)
-                verified.add(int(g))
-                tried[row].append((not verdict["success"], verdict["max_violation"],
-                                   float(cost[k, g]), q, int(group[g])))
-                b = best[row]
-                if b is None or (verdict["success"], -verdict["max_violation"]) > (
-                        b[0]["success"], -b[0]["max_violation"]):
-                    best[row] = (verdict, int(group[g]), q, float(cost[k, g]))
-                if verdict["success"]:
-                    break
-            for g in range(len(group)):
-                if g not in verified:      # not verified: ranked after the verified
-                    q = z_to_q_numpy(z[k, g])
-                    q[0], q[-1] = q_start, q_goal
-                    tried[row].append((True, math.inf, float(cost[k, g]), q, int(group[g])))
-            verify_seconds[row] += time.perf_counter() - t2
+                tried[row].append((True, math.inf, done[g][1], q, g))
+        verify_seconds[row] += time.perf_counter() - t2
+
+    def more(chains: np.ndarray, z: np.ndarray,
+             cost: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        added = []
+        for k, chain in enumerate(chains):
+            row, g = owner[chain]
+            finished[row][g] = (z[k], float(cost[k]))
+            outstanding[row] -= 1
+            if outstanding[row]:
+                continue
+            judge(row)
+            b = best[row]
+            if not second[row] and not (b is not None and b[0]["success"]) and first < g_count:
+                # Round 2 for this problem: its remaining guesses.
+                owner.extend((row, h) for h in range(first, g_count))
+                outstanding[row], second[row] = g_count - first, True
+                added.extend(guesses[row, first:].reshape(g_count - first, n * dof))
+        if not added:
+            return None
+        return np.stack(added), np.full(len(added), dt)
+
+    programs = lm.programs
+    z0 = guesses[:, :first].reshape(-1, n * dof)
+    t1 = time.perf_counter()
+    solution = lm.solve(z0, np.full(len(z0), dt), arrays, iterations, more)
+    refine = time.perf_counter() - t1 - solution.compile - solution.callback
     found = [b for b in best if b is not None]
     assert len(found) == p_count
     candidates = [[(q, g) for *_, q, g in sorted(t, key=lambda t: t[:3])] for t in tried]
-    return Selection(found, candidates, verify_seconds, compile_total, refine_total,
+    return Selection(found, candidates, verify_seconds, solution.compile, refine,
                      lm.programs - programs)
