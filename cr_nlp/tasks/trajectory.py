@@ -137,11 +137,11 @@ class TrajectoryConfig:
     """Banded LM: a body sphere's clearance terms measure only the parts listed for its
     cell in a table built once per scene (``world._broad_phase``: the parts that can be
     nearest below the margin), at most this many per part kind and cell (the bundled
-    scenes need at most 9); 0 measures every part. The verification always checks every
+    scenes need at most 11); 0 measures every part. The verification always checks every
     part."""
     cell_size: float | None = None
-    """Edge (m) of that table's cells; None: the larger of the body radius and 1/64 of
-    the robot's reach box (``world._broad_phase.part_cells``)."""
+    """Edge (m) of that table's cells; None: chosen from the body radius and the robot's
+    reach, within 16 MB (``world._broad_phase.part_cells``; 0.05 m for tdcr3)."""
     lm_structure: str = "banded"
     """How the LM stage solves its normal equations: "banded" (``stages._banded_lm``: the
     residual as per-waypoint, pair and triple terms, a block-tridiagonal Cholesky; each

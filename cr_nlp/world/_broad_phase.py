@@ -41,6 +41,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.spatial import HalfspaceIntersection
 
 from ..model._ops import NUMPY
 from ..model.robot import Robot
@@ -64,6 +65,9 @@ KIND_FIELDS: tuple[tuple[str, ...], ...] = (
     ("cylinder_center", "cylinder_rotation", "cylinder_radius", "cylinder_half_length"),
     ("convex_planes",))
 """Fields of ``SceneArrays`` per part kind, in ``PART_KINDS`` order."""
+
+TABLE_BYTES = 16 * 2**20
+"""The automatic cell size keeps a table within this many bytes."""
 
 SLACK = 1e-4
 """Metres added to the keep threshold: a float32 centre this close to a cell's border may
@@ -121,18 +125,28 @@ def reach_box(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
     return base - robot.total_length_max, base + robot.total_length_max
 
 
-def _part_box(part: Part) -> tuple[np.ndarray, np.ndarray]:
-    """An axis-aligned box (lower, upper corners, m) holding the part."""
+def _part_box(part: Part, grow: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """An axis-aligned box (lower, upper corners, m) holding every point whose signed
+    distance to the part (as ``world._distances`` measures it) is at most ``grow`` m. For
+    a convex part that distance is the largest face-plane value, whose sublevel set is the
+    part with every face pushed out by ``grow``: near a sharp vertex it reaches much
+    farther than ``grow`` from the part, so its corners are computed."""
     if isinstance(part, ConvexPart):
-        return part.vertices.min(axis=0), part.vertices.max(axis=0)
+        if grow <= 0.0:
+            return part.vertices.min(axis=0), part.vertices.max(axis=0)
+        grown = HalfspaceIntersection(np.c_[part.normals, -(part.offsets + grow)],
+                                      part.vertices.mean(axis=0)).intersections
+        return grown.min(axis=0), grown.max(axis=0)
     if isinstance(part, BoxPart):
         extent = np.abs(np.asarray(part.rotation, float)) @ np.asarray(part.half_size, float)
-        return part.center - extent, part.center + extent
-    if isinstance(part, (CapsulePart, CylinderPart)):
+        lo, hi = part.center - extent, part.center + extent
+    elif isinstance(part, (CapsulePart, CylinderPart)):
         a, b = np.asarray(part.a, float), np.asarray(part.b, float)
-        return np.minimum(a, b) - part.radius, np.maximum(a, b) + part.radius
-    centre, radius = bounding_sphere(part)
-    return np.asarray(centre, float) - radius, np.asarray(centre, float) + radius
+        lo, hi = np.minimum(a, b) - part.radius, np.maximum(a, b) + part.radius
+    else:
+        centre, radius = bounding_sphere(part)
+        lo, hi = np.asarray(centre, float) - radius, np.asarray(centre, float) + radius
+    return lo - grow, hi + grow
 
 
 def _box_gap(point: np.ndarray, centres: np.ndarray, half: float) -> np.ndarray:
@@ -178,14 +192,20 @@ def part_cells(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.nd
     at most ``near`` ≥ 1 parts per kind and cell. Arrays as JAX arrays of ``dtype``
     (default JAX's default float).
 
-    ``cell_size`` None: the larger of the body radius and 1/64 of the region's longest
-    edge (at most 64³ cells). Measured for tdcr3 (r = 0.1 m, cutoff 0.014 m): the widest
-    row (the device's work per sphere) was 8–9 convex parts in shelf and cabinet and 4
-    spheres in random_27 for cells of 0.025, 0.05 and 0.1 m, and 12–13 parts at 0.2 m;
-    the table took 5–21 MB at 0.025 m and 0.1–0.34 MB at 0.1 m, built in 0.05–0.1 s."""
+    ``cell_size`` None: the larger of half the body radius and 1/128 of the region's
+    longest edge, doubled while the table would take more than ``TABLE_BYTES``. Measured
+    for tdcr3 (r = 0.1 m, cutoff 0.014 m; cells of 0.025 / 0.05 / 0.1 / 0.2 m): the widest
+    row (the device's work per sphere) was 8 / 9 / 9 / 9 convex parts in shelf, 9 / 11 / 13
+    / 17 in cabinet, 4 spheres in random_27; the tables took 7.8–26 / 1.2–3.2 / 0.14–0.42
+    / ≤ 0.05 MB and were built in 0.35–1.1 / 0.12–0.13 / 0.03–0.07 / 0.03–0.06 s."""
     region_lo, region_hi = (np.asarray(x, dtype=float) for x in region)
     if cell_size is None:
-        cell_size = max(body_radius, float(np.max(region_hi - region_lo)) / 64)
+        size = max(0.5 * body_radius, float(np.max(region_hi - region_lo)) / 128)
+        while True:
+            cells = part_cells(scene, body_radius, region, cutoff, near, size, dtype)
+            if cells.table.nbytes <= TABLE_BYTES:
+                return cells
+            size *= 2.0
     if near < 1:
         raise ValueError(f"near must be at least 1, got {near}")
     if not cell_size > 0 or not math.isfinite(cutoff):
@@ -193,9 +213,9 @@ def part_cells(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.nd
                          f"{cutoff}")
     kinds = [[p for p in scene.parts if isinstance(p, kind)] for kind in PART_KINDS]
     pad = body_radius + cutoff + SLACK
-    boxes = [[_part_box(p) for p in parts] for parts in kinds]
+    boxes = [[_part_box(p, pad) for p in parts] for parts in kinds]
     flat = [b for kind in boxes for b in kind     # parts that can come within the cutoff
-            if np.all(b[0] - pad <= region_hi) and np.all(b[1] + pad >= region_lo)]
+            if np.all(b[0] <= region_hi) and np.all(b[1] >= region_lo)]
     if flat:
         lo = np.maximum(region_lo, np.min([b[0] for b in flat], axis=0) - pad)
         hi = np.minimum(region_hi, np.max([b[1] for b in flat], axis=0) + pad)
@@ -210,8 +230,8 @@ def part_cells(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.nd
     for kind, parts in enumerate(kinds):
         for index, part in enumerate(parts):
             part_lo, part_hi = boxes[kind][index]
-            first = np.floor((part_lo - pad - lo) / cell_size).astype(int)
-            last = np.floor((part_hi + pad - lo) / cell_size).astype(int)
+            first = np.floor((part_lo - lo) / cell_size).astype(int)
+            last = np.floor((part_hi - lo) / cell_size).astype(int)
             if np.any(last < 0) or np.any(first >= dims):
                 continue                                    # never within the cutoff
             first, last = np.clip(first, 0, dims - 1), np.clip(last, 0, dims - 1)

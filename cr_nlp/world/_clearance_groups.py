@@ -185,33 +185,54 @@ def grouped_shortfalls(robot: Robot, margin: float, arrays: SceneArrays | None,
     if cells is not None and cells.cutoff < margin:
         raise ValueError(f"the broad-phase table is exact below {cells.cutoff} m, less than "
                          f"the margin {margin} m")
-    values, rows = [], []
-    if arrays is not None and arrays.n_parts > 0:
+    obstacles = arrays is not None and arrays.n_parts > 0
+    values = []
+    if obstacles:
         d, grad = _nearest_and_gradient(robot, arrays, centres, cells)
         values.append(d)
-        if jac_centres is not None:
-            rows.append(jnp.einsum("nk,nkj->nj", grad, jac_centres))
     if robot.has_self_pairs:
         pairs = self_pairs(robot)
         diff = centres[pairs[:, 0]] - centres[pairs[:, 1]]
         norm = jnp.sqrt(jnp.maximum(jnp.sum(diff * diff, axis=-1), 1e-30))
         values.append(norm - 2.0 * robot.backbone_radius)
-        if jac_centres is not None:
-            unit = diff / norm[:, None]
-            rows.append(jnp.einsum("nk,nkj->nj", unit,
-                                   jac_centres[pairs[:, 0]] - jac_centres[pairs[:, 1]]))
-    d = jnp.concatenate(values)
-    shortfall = jnp.maximum(margin - d, 0.0)
-    jac_d = jnp.concatenate(rows) if jac_centres is not None else None
-    out, jac = [], []
+    shortfall = jnp.maximum(margin - jnp.concatenate(values), 0.0)
     eps = jnp.asarray(1e-9, centres.dtype)
-    for idx in group_indices(robot, arrays):
-        s = shortfall[idx]
-        root = jnp.sqrt(jnp.sum(s * s) + eps * eps)
-        out.append(root - eps)
-        if jac_d is not None:
-            jac.append(-(s / root) @ jac_d[idx])
-    return jnp.stack(out), (jnp.stack(jac) if jac_d is not None else None)
+    roots = jnp.stack([jnp.sqrt(jnp.sum(shortfall[idx] ** 2) + eps * eps)
+                       for idx in group_indices(robot, arrays)])
+    if jac_centres is None:
+        return roots - eps, None
+    # Group g's Jacobian is −Σ_rows (s_r/root_g)·∂d_r/∂z; every row is a direction at one
+    # or two body spheres times their centre Jacobians, so the sum is first collected per
+    # sphere, (G, N, 3), then contracted once with the centre Jacobians (N, 3, d): no
+    # per-row (or per-pair) copy of a centre Jacobian is made.
+    count, weights = centres.shape[0], []
+    if obstacles:
+        member = jnp.asarray(_segment_membership(robot), centres.dtype)      # (S, N)
+        pull = shortfall[:count, None] * grad                                # (N, 3)
+        scale = member / roots[:member.shape[0], None]
+        weights.append(-scale[:, :, None] * pull[None])
+    if robot.has_self_pairs:
+        incidence = jnp.asarray(_pair_incidence(robot), centres.dtype)       # (N, M)
+        pull = shortfall[-len(pairs):, None] * (diff / norm[:, None])        # (M, 3)
+        weights.append(-(incidence @ pull)[None] / roots[-1])
+    return roots - eps, jnp.einsum("gnk,nkj->gj", jnp.concatenate(weights), jac_centres)
+
+
+def _segment_membership(robot: Robot) -> np.ndarray:
+    """(n, N) 1 where body sphere j lies on segment i's chain (``body_segments``)."""
+    out = np.zeros((robot.n_segments, robot.n_points + 1))
+    for i, idx in enumerate(body_segments(robot)):
+        out[i, idx] = 1.0
+    return out
+
+
+def _pair_incidence(robot: Robot) -> np.ndarray:
+    """(N, M): +1 at (i, p) and −1 at (j, p) for self pair p = (i, j) (``self_pairs``)."""
+    pairs = self_pairs(robot)
+    out = np.zeros((robot.n_points + 1, len(pairs)))
+    out[pairs[:, 0], np.arange(len(pairs))] = 1.0
+    out[pairs[:, 1], np.arange(len(pairs))] = -1.0
+    return out
 
 
 def clearance_group_jacobian(robot: Robot, margin: float, arrays: SceneArrays | None,
