@@ -137,7 +137,7 @@ class TrajectoryConfig:
     """Banded LM: a body sphere's clearance terms measure only the parts listed for its
     cell in a table built once per scene (``world._broad_phase``: the parts that can be
     nearest below the margin), at most this many per part kind and cell (the bundled
-    scenes need at most 11); 0 measures every part. The verification always checks every
+    scenes need 9); 0 measures every part. The verification always checks every
     part."""
     cell_size: float | None = None
     """Edge (m) of that table's cells; None: chosen from the body radius and the robot's

@@ -195,9 +195,10 @@ def part_cells(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.nd
     ``cell_size`` None: the larger of half the body radius and 1/128 of the region's
     longest edge, doubled while the table would take more than ``TABLE_BYTES``. Measured
     for tdcr3 (r = 0.1 m, cutoff 0.014 m; cells of 0.025 / 0.05 / 0.1 / 0.2 m): the widest
-    row (the device's work per sphere) was 8 / 9 / 9 / 9 convex parts in shelf, 9 / 11 / 13
-    / 17 in cabinet, 4 spheres in random_27; the tables took 7.8–26 / 1.2–3.2 / 0.14–0.42
-    / ≤ 0.05 MB and were built in 0.35–1.1 / 0.12–0.13 / 0.03–0.07 / 0.03–0.06 s."""
+    row (the device's work per sphere) was 8 / 9 / 9 / 12 convex parts in shelf, 9 / 9 /
+    9 / 13 in cabinet (9–13 at 0.05–0.1 m when the grid was shifted by 0.1 m), 4 spheres
+    in random_27; the tables took 5.2–21 / 0.73–2.7 / 0.10–0.34 / ≤ 0.04 MB and were
+    built in 0.7–1.8 / 0.17–0.27 / 0.04–0.13 / 0.05–0.10 s (2 busy cores)."""
     region_lo, region_hi = (np.asarray(x, dtype=float) for x in region)
     if cell_size is None:
         size = max(0.5 * body_radius, float(np.max(region_hi - region_lo)) / 128)
@@ -217,8 +218,8 @@ def part_cells(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.nd
     flat = [b for kind in boxes for b in kind     # parts that can come within the cutoff
             if np.all(b[0] <= region_hi) and np.all(b[1] >= region_lo)]
     if flat:
-        lo = np.maximum(region_lo, np.min([b[0] for b in flat], axis=0) - pad)
-        hi = np.minimum(region_hi, np.max([b[1] for b in flat], axis=0) + pad)
+        lo = np.maximum(region_lo, np.min([b[0] for b in flat], axis=0))
+        hi = np.minimum(region_hi, np.max([b[1] for b in flat], axis=0))
     else:
         lo, hi = region_lo, region_lo
     dims = np.maximum(np.ceil((hi - lo) / cell_size), 1).astype(int)
@@ -265,10 +266,10 @@ def part_cells(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.nd
         ids, index, lower = ids[keep], index[keep], lower[keep]
         order = np.lexsort((lower, ids))
         ids, index = ids[order], index[order]
-        cells, start, count = np.unique(ids, return_index=True, return_counts=True)
+        listed, start, count = np.unique(ids, return_index=True, return_counts=True)
         rank = np.arange(ids.size) - np.repeat(start, count)
         width = int(min(near, count.max())) if count.size else 1
-        truncated[cells[count > near]] = True
+        truncated[listed[count > near]] = True
         table = np.zeros((n_cells, width), dtype=np.int64)
         use = rank < width
         table[ids[use], rank[use]] = index[use]
