@@ -313,8 +313,8 @@ class TrajectoryPlanner:
         weights = (config.path_weight, config.smoothness_weight, config.clearance_weight,
                    config.tendon_weight)
         self.cells = (part_cells(self.scene, self.robot.backbone_radius, reach_box(self.robot),
-                            self.margin, config.near_parts, config.cell_size, self.dtype)
-                 if self.scene is not None and config.near_parts > 0 else None)
+                                 self.margin, config.near_parts, config.cell_size, self.dtype)
+                      if self.scene is not None and config.near_parts > 0 else None)
         """The clearance terms' broad phase (``world._broad_phase``), or None."""
         free = np.ones((n, self.robot.dof))
         free[:, 2::3] = ~self.robot.lengths_fixed()
