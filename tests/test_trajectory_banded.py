@@ -25,7 +25,7 @@ from cr_nlp.tasks.trajectory import (
     trajectory_terms,
 )
 from cr_nlp.world import load_scene, scene_arrays
-from cr_nlp.world._broad_phase import part_balls
+from cr_nlp.world._broad_phase import part_cells, reach_box
 from cr_nlp.world._clearance_groups import clearance_group_values, near_clearance_groups
 
 from .conftest import MODELS
@@ -71,29 +71,30 @@ def test_window_terms_give_the_dense_residuals_cost_and_normal_equations(scene_n
 
 @pytest.mark.usefixtures("float64")
 def test_broad_phase_measures_the_nearest_parts():
-    """``near_clearance_groups`` with every part equals ``clearance_group_values`` (world._penalty's
-    distances), float64, on 120 random configurations of tdcr3. With the 8 nearest
-    bounding balls it is the same on random_27 (27 spheres: the ball is the part, exact by
-    construction); in the shelf (57 convex parts) a sphere deep inside a board may find
-    its face-plane minimum outside them: a smaller shortfall, never a larger one, and the
-    same value and Jacobian for ≥ 99 % of the groups."""
+    """``near_clearance_groups`` with every part equals ``clearance_group_values``
+    (world._penalty's distances), float64, on 120 random configurations of tdcr3; with the
+    broad-phase table (``world._broad_phase``, cutoff = the margin) it gives the same
+    values and Jacobians in the shelf (57 convex parts) and random_27 (27 spheres)."""
     z = jnp.asarray(random_trajectory(120, 3))
+    margin = 0.05
     for name in ("shelf", "random_27"):
         scene = load_scene(name)
         arrays = scene_arrays(scene, dtype=jnp.float64)
-        balls = part_balls(scene, jnp.float64)
-        reference = jax.jit(jax.vmap(partial(clearance_group_values, ROBOT, 0.05, arrays)))(z)
+        cells = part_cells(scene, ROBOT.backbone_radius, reach_box(ROBOT), margin,
+                           dtype=jnp.float64)
+        assert cells.truncated == 0
+        reference = jax.jit(jax.vmap(partial(clearance_group_values, ROBOT, margin, arrays)))(z)
         assert int(jnp.sum(reference > 0)) > 50                # many groups in contact
-        all_parts = partial(near_clearance_groups, ROBOT, 0.05, 0, arrays, None)
+        all_parts = partial(near_clearance_groups, ROBOT, margin, arrays, None)
         ref_jac = jax.jit(jax.vmap(jax.jacfwd(all_parts)))(z)
-        for near in (0, 8):
-            fn = partial(near_clearance_groups, ROBOT, 0.05, near, arrays, balls)
+        for table in (None, cells):
+            fn = partial(near_clearance_groups, ROBOT, margin, arrays, table)
             values = np.asarray(jax.jit(jax.vmap(fn))(z))
             jac = np.asarray(jax.jit(jax.vmap(jax.jacfwd(fn)))(z))
-            same = np.abs(values - reference) <= 1e-12
-            assert np.all(values <= reference + 1e-12)
-            assert same.mean() >= (1.0 if near == 0 or name == "random_27" else 0.99)
-            np.testing.assert_allclose(jac[same], np.asarray(ref_jac)[same], atol=1e-10)
+            np.testing.assert_allclose(values, reference, rtol=0, atol=1e-12)
+            np.testing.assert_allclose(jac, np.asarray(ref_jac), rtol=0, atol=1e-10)
+        with pytest.raises(ValueError, match="margin"):
+            near_clearance_groups(ROBOT, 2 * margin, arrays, cells, z[0])
 
 
 @pytest.mark.slow  # two planners' compilations: `pytest -m slow`

@@ -55,7 +55,7 @@ from ..stages._trajectory_exact import trajectory_polisher
 from ..stages._trajectory_guesses import initial_guesses
 from ..stages._trajectory_select import select_guesses
 from ..world import Scene, load_scene, scene_arrays
-from ..world._broad_phase import part_balls
+from ..world._broad_phase import part_cells, reach_box
 from ..world._clearance_groups import clearance_groups, has_clearance, near_clearance_groups
 from ..world._motion import check_ends
 from ..world._motion import interpolate_trajectory as interpolate_trajectory
@@ -143,10 +143,15 @@ class TrajectoryConfig:
     slot-trips (LM iterations × slots) of 8 slots and the LM took 1.5–2.3× as long."""
     dtype: str = "float32"
     """JAX dtype of the LM stage ("float64" needs jax_enable_x64)."""
-    near_parts: int = 8
-    """Banded LM: per body sphere, only the parts (of each kind) whose bounding balls are
-    this many nearest are measured for its clearance terms (``world._broad_phase``); 0
-    measures every part. The verification always checks every part."""
+    near_parts: int = 16
+    """Banded LM: a body sphere's clearance terms measure only the parts listed for its
+    cell in a table built once per scene (``world._broad_phase``: the parts that can be
+    nearest below the margin), at most this many per part kind and cell (the bundled
+    scenes need 9); 0 measures every part. The verification always checks every
+    part."""
+    cell_size: float | None = None
+    """Edge (m) of that table's cells; None: chosen from the body radius and the robot's
+    reach, within 16 MB (``world._broad_phase.part_cells``; 0.05 m for tdcr3)."""
     lm_structure: str = "banded"
     """How the LM stage solves its normal equations: "banded" (``stages._banded_lm``: the
     residual as per-waypoint, pair and triple terms, a block-tridiagonal Cholesky; each
@@ -229,16 +234,16 @@ def trajectory_residual(robot: Robot, waypoints: int, checks: int, margin: float
     return jnp.concatenate(out)
 
 
-def trajectory_unary(robot: Robot, margin: float, near: int, sqrt_clear: float, z: jax.Array,
+def trajectory_unary(robot: Robot, margin: float, sqrt_clear: float, z: jax.Array,
                      params: Any, shared: Any) -> jax.Array:
     """√w_clear · grouped clearance shortfalls (m) of one waypoint z (3n,)
-    (``near_clearance_groups``); ``shared`` = (scene arrays or None, part balls or None,
-    Δt s)."""
-    arrays, balls, _ = shared
-    return sqrt_clear * near_clearance_groups(robot, margin, near, arrays, balls, z)
+    (``near_clearance_groups``); ``shared`` = (scene arrays or None, broad-phase table
+    or None, Δt s)."""
+    arrays, cells, _ = shared
+    return sqrt_clear * near_clearance_groups(robot, margin, arrays, cells, z)
 
 
-def trajectory_pair(robot: Robot, margin: float, near: int, checks: int,
+def trajectory_pair(robot: Robot, margin: float, checks: int,
                     weights: tuple[float, float, float, float], limit_fraction: float,
                     z_a: jax.Array, z_b: jax.Array, params: Any, shared: Any) -> jax.Array:
     """Residuals of one interval z_a → z_b (each (3n,)): √w_path·(p(z_b) − p(z_a)) (m),
@@ -247,14 +252,14 @@ def trajectory_pair(robot: Robot, margin: float, near: int, checks: int,
     |Δℓ/Δt|/(f·v_max) − 1) per tendon. ``weights`` = (√w_path, √w_smooth, √w_clear,
     √w_tendon); f = ``limit_fraction``; ``shared`` as for ``trajectory_unary``."""
     sqrt_path, sqrt_smooth, sqrt_clear, sqrt_tendon = weights
-    arrays, balls, dt = shared
+    arrays, cells, dt = shared
     step = z_b - z_a
     out = [sqrt_path * (tip_position_z(robot, z_b) - tip_position_z(robot, z_a)),
            sqrt_smooth * step]
     if checks and has_clearance(robot, arrays):
         for c in range(1, checks + 1):
             out.append(sqrt_clear * near_clearance_groups(
-                robot, margin, near, arrays, balls, z_a + (c / (checks + 1)) * step))
+                robot, margin, arrays, cells, z_a + (c / (checks + 1)) * step))
     if math.isfinite(robot.tendon_speed_max):
         out.append(sqrt_tendon * tendon_speed_excess(robot, limit_fraction, z_a, z_b, dt))
     return jnp.concatenate(out)
@@ -275,10 +280,9 @@ def trajectory_terms(robot: Robot, margin: float, config: TrajectoryConfig,
     ``scene`` only decides whether clearance terms exist."""
     sqrt = math.sqrt
     clear = has_clearance(robot, scene)
-    near = config.near_parts
-    unary = (partial(trajectory_unary, robot, float(margin), near,
+    unary = (partial(trajectory_unary, robot, float(margin),
                      sqrt(config.clearance_weight)) if clear else None)
-    pair = partial(trajectory_pair, robot, float(margin), near,
+    pair = partial(trajectory_pair, robot, float(margin),
                    config.interpolation_checks if clear else 0,
                    (sqrt(config.path_weight), sqrt(config.smoothness_weight),
                     sqrt(config.clearance_weight), sqrt(config.tendon_weight)),
@@ -324,8 +328,10 @@ class TrajectoryPlanner:
         n = config.waypoints
         weights = (config.path_weight, config.smoothness_weight, config.clearance_weight,
                    config.tendon_weight)
-        balls = (part_balls(self.scene, self.dtype)
-                 if self.scene is not None and config.near_parts > 0 else None)
+        self.cells = (part_cells(self.scene, self.robot.backbone_radius, reach_box(self.robot),
+                                 self.margin, config.near_parts, config.cell_size, self.dtype)
+                      if self.scene is not None and config.near_parts > 0 else None)
+        """The clearance terms' broad phase (``world._broad_phase``), or None."""
         free = np.ones((n, self.robot.dof))
         free[:, 2::3] = ~self.robot.lengths_fixed()
         free[0] = free[-1] = 0.0                       # start and goal are fixed
@@ -336,7 +342,7 @@ class TrajectoryPlanner:
             dense_residual=partial(trajectory_residual, self.robot, n,
                                    config.interpolation_checks, float(self.margin), weights,
                                    config.tendon_limit_fraction),
-            dense_project=partial(_project_waypoints, self.robot, n), extra=balls,
+            dense_project=partial(_project_waypoints, self.robot, n), extra=self.cells,
             schedule=config.lm_schedule)
         """Stage 2 (``stages._chain_batch``): the LM over a stream of trajectories."""
         self.last_programs = 0

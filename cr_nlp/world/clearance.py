@@ -180,8 +180,17 @@ def _kind_blocks(robot: Robot, arrays: SceneArrays, centres: Any,
                  smoothing: float, ops: Ops = JAX) -> list[Any]:
     """Per part kind, the (…, N, count) distances of every body sphere to every part
     (``ops``: JAX, or NUMPY for float64 numpy arrays)."""
+    return kind_distances(robot.backbone_radius, arrays, centres, smoothing, ops)
+
+
+def kind_distances(radius: float, arrays: SceneArrays, centres: Any,
+                   smoothing: float = 0.0, ops: Ops = JAX) -> list[Any]:
+    """Per present part kind (``PART_KINDS`` order), the (…, N, count) signed distances (m)
+    of spheres of ``radius`` m centred at ``centres`` (…, N, 3) m to every part of that
+    kind (``ops``: JAX, or NUMPY for float64 numpy arrays); radius 0 gives the points'
+    signed distances to the parts."""
     c = tuple(centres[..., :, None, i] for i in range(3))
-    r = robot.backbone_radius
+    r = radius
     a = arrays
     blocks = []
     if a.sphere_radius.shape[0]:
