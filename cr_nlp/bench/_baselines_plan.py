@@ -93,7 +93,9 @@ class RRTConnect:
         self.config = config
         self.margin = float(config.margin if config.margin is not None
                             else body_gap_tolerance(robot) + 0.002)
-        self.checker = checker or ClearanceChecker(robot, scene)
+        if checker is None or checker.cutoff < self.margin:   # it must decide ≥ margin
+            checker = ClearanceChecker(robot, scene, self.margin)
+        self.checker = checker
         self.theta_max = np.array([s.theta_max for s in robot.segments])
         self.length_lo = np.array([s.length_min for s in robot.segments])
         self.length_hi = np.array([s.length_max for s in robot.segments])

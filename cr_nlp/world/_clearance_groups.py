@@ -29,7 +29,7 @@ from ..model.kinematics import backbone_points_z
 from ..model.robot import Robot
 from ._broad_phase import KIND_FIELDS, PartCells, cell_candidates
 from ._penalty import body_clearances_z
-from .clearance import SceneArrays, _kind_blocks, body_segments, self_pairs
+from .clearance import SceneArrays, _kind_blocks, body_segments, clearance_z, self_pairs
 
 
 def has_clearance(robot: Robot, arrays: SceneArrays | None) -> bool:
@@ -170,6 +170,33 @@ def _nearest_and_gradient(robot: Robot, arrays: SceneArrays, centres: jax.Array,
     kind = jnp.argmin(values, axis=0)
     grads = jnp.stack([g for _, g in nearest])                                # (K, N, 3)
     return jnp.min(values, axis=0), jnp.take_along_axis(grads, kind[None, :, None], 0)[0]
+
+
+def near_clearance_z(robot: Robot, arrays: SceneArrays, cells: PartCells | None,
+                     z: jax.Array) -> jax.Array:
+    """(…,) sphere-body clearance (m) of configurations z (…, 3n): the smallest signed
+    distance of a body sphere to an obstacle part or, for non-neighbouring segments, to
+    another body sphere. With ``cells`` (``world._broad_phase``) only the parts of each
+    sphere's cell are measured: equal to ``world.clearance.clearance_z`` wherever that is
+    below ``cells.cutoff``, at least ``cells.cutoff`` elsewhere, so ``≥ margin`` is decided
+    exactly for any margin ≤ the cutoff. None: every part (``clearance_z`` itself)."""
+    if cells is None:
+        return clearance_z(robot, arrays, z)
+
+    def one(zi: jax.Array) -> jax.Array:
+        centres = body_centres_z(robot, zi)
+        out = jnp.asarray(jnp.inf, centres.dtype)
+        if arrays.n_parts > 0:
+            out = jnp.min(_nearest_and_gradient(robot, arrays, centres, cells)[0])
+        if robot.has_self_pairs:
+            pairs = self_pairs(robot)
+            diff = centres[pairs[:, 0]] - centres[pairs[:, 1]]
+            gap = jnp.sqrt(jnp.sum(diff * diff, axis=-1)) - 2.0 * robot.backbone_radius
+            out = jnp.minimum(out, jnp.min(gap))
+        return out
+
+    flat = z.reshape(-1, z.shape[-1])
+    return jax.vmap(one)(flat).reshape(z.shape[:-1])
 
 
 def grouped_shortfalls(robot: Robot, margin: float, arrays: SceneArrays | None,
