@@ -29,7 +29,14 @@ from ..model.kinematics import backbone_points_z
 from ..model.robot import Robot
 from ._broad_phase import KIND_FIELDS, PartCells, cell_candidates
 from ._penalty import body_clearances_z
-from .clearance import SceneArrays, _kind_blocks, body_segments, clearance_z, self_pairs
+from .clearance import (
+    SceneArrays,
+    _kind_blocks,
+    _self_block,
+    body_segments,
+    clearance_z,
+    self_pairs,
+)
 
 
 def has_clearance(robot: Robot, arrays: SceneArrays | None) -> bool:
@@ -189,10 +196,7 @@ def near_clearance_z(robot: Robot, arrays: SceneArrays, cells: PartCells | None,
         if arrays.n_parts > 0:
             out = jnp.min(_nearest_and_gradient(robot, arrays, centres, cells)[0])
         if robot.has_self_pairs:
-            pairs = self_pairs(robot)
-            diff = centres[pairs[:, 0]] - centres[pairs[:, 1]]
-            gap = jnp.sqrt(jnp.sum(diff * diff, axis=-1)) - 2.0 * robot.backbone_radius
-            out = jnp.minimum(out, jnp.min(gap))
+            out = jnp.minimum(out, jnp.min(_self_block(robot, centres)))
         return out
 
     flat = z.reshape(-1, z.shape[-1])
