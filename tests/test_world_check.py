@@ -16,6 +16,7 @@ from cr_nlp.world.check import (
     capsule_sphere_distance,
     check,
     check_many,
+    check_motion,
     fcl_distance,
     fcl_object,
     point_segment_distance,
@@ -212,6 +213,38 @@ def test_chunking_and_empty_cases(robots, mixed_scene, monkeypatch) -> None:
                            "tendons": {**robot.to_dict()["tendons"], "offsets": [0, 0]}})
     lone = check(two, Scene("empty", ()), np.array([0.0, 0.0, 1.0] * 2))
     assert lone.min_distance == np.inf and lone.closest == "" and not lone.collision
+
+
+@pytest.mark.parametrize("robot_name,scene_name,chunk", [
+    ("tdcr3", "shelf", None), ("tdcr3", "cabinet", None), ("tdcr3", "mixed", None),
+    ("tdcr3", "lattice", None), ("tdcr4_ext", "mixed", 1 << 12), ("tdcr3", "shelf", 1),
+])
+def test_check_motion_gives_the_minima_and_collisions_of_check_many(
+        robots, mixed_scene, monkeypatch, robot_name, scene_name, chunk) -> None:
+    """The motion verdict measures fewer pairs but decides the same: the smallest obstacle
+    and self distances (the same fcl calls on the same capsules; where two pairs tie for
+    the minimum either may be measured, so to rounding) and every configuration's
+    collision, on motions that hit and miss the obstacles."""
+    robot = robots[robot_name]
+    scene = mixed_scene if scene_name == "mixed" else load_scene(scene_name)
+    if chunk is not None:
+        monkeypatch.setattr(check_module, "_BATCH_ELEMENTS", chunk)
+    ends = random_q(robot, 12, seed=len(scene_name))
+    for start, goal in zip(ends[::2], ends[1::2], strict=True):
+        qs = start + np.linspace(0.0, 1.0, 25)[:, None] * (goal - start)
+        want = check_many(robot, scene, qs)
+        got = check_motion(robot, scene, qs)
+        assert got.obstacle_distance == pytest.approx(want.obstacle_distance.min(), abs=1e-12)
+        assert got.self_distance == want.self_distance.min()
+        assert np.array_equal(got.collision, want.collision)
+        nearest = int(np.argmin(want.obstacle_distance))
+        if np.isfinite(got.obstacle_distance):
+            assert got.closest == check(robot, scene, qs[nearest]).closest or \
+                got.obstacle_distance < want.self_distance[nearest]
+    empty = check_motion(robot, Scene("empty", ()), ends)
+    assert empty.obstacle_distance == np.inf and empty.closest == ""
+    none = check_motion(robot, scene, np.zeros((0, robot.dof)))
+    assert none.collision.shape == (0,) and none.obstacle_distance == np.inf
 
 
 def test_lazy_capsules_are_capsule_objects() -> None:

@@ -19,7 +19,7 @@ from ..model import Robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import NUMPY
 from ..model.kinematics import model_segment_frames, model_tendon_lengths
 from ..model.limits import limit_violation_q
-from .check import check_many
+from .check import check_many, check_motion
 from .scene import Scene
 from .verdict import VIOLATION_TOLERANCE, judge
 
@@ -90,9 +90,9 @@ def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
     accel_max = float(np.max(np.abs(accel))) if accel.size else 0.0
     min_clearance, self_clearance, first_collision = math.inf, math.inf, -1
     if scene is not None or robot.has_self_pairs:
-        checked = check_many(robot, scene, dense)
-        min_clearance = float(np.min(checked.obstacle_distance))
-        self_clearance = float(np.min(checked.self_distance))
+        checked = check_motion(robot, scene, dense)
+        min_clearance = checked.obstacle_distance
+        self_clearance = checked.self_distance
         hits = np.flatnonzero(checked.collision)
         first_collision = int(hits[0]) if len(hits) else -1
     where = ""
