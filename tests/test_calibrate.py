@@ -1,5 +1,5 @@
-"""Calibration recovers a synthetic robot with known offsets, slack and base pose from noisy
-samples of its own model, and its held-out error falls to the noise level."""
+"""Calibration recovers a synthetic robot with known offsets, slack, axial compliance and base
+pose from noisy samples of its own model, and its held-out error falls to the noise level."""
 
 from __future__ import annotations
 
@@ -29,6 +29,7 @@ def _truth():
         tendon_angle_deltas=tuple(rng.uniform(-0.04, 0.04, 9)),
         segment_stiffness=(1.0, 0.8, 0.5),
         tendon_stiffness_ratio=(8.0, 5.0, 4.0),
+        axial_stiffness_ratio=(40.0, 15.0, 80.0),
         tip_marker=(0.0, 0.0, 0.008),
     )
     truth = dataclasses.replace(
@@ -59,11 +60,15 @@ def test_calibration_recovers_a_synthetic_robot() -> None:
     assert tip_errors(result.robot, exact).mean() < 0.5 * noise_mean
     fit, act, true_act = result.robot, result.robot.actuation, truth.actuation
     np.testing.assert_allclose(fit.base_position, truth.base_position, atol=1e-3)
-    assert abs(abs(np.dot(fit.base_wxyz, truth.base_wxyz)) - 1.0) < 1e-4   # ~1.6° or better
+    # ~2.3° or better (1.7° here: the axial compliance trades a little with the base tilt)
+    assert abs(abs(np.dot(fit.base_wxyz, truth.base_wxyz)) - 1.0) < 2e-4
     # Gains and radius enter as gain / radius: compare that, and the zero offsets of the
     # tendons the data pulled taut.
     np.testing.assert_allclose(np.array(act.gains) / fit.tendons.radius,
                                np.array(true_act.gains) / truth.tendons.radius, rtol=0.05)
     np.testing.assert_allclose(act.zero_offsets, true_act.zero_offsets, atol=2e-4)
     np.testing.assert_allclose(act.tip_marker, true_act.tip_marker, atol=2e-3)
+    # The axial stiffness ratios, from a starting guess of 30 for every segment.
+    np.testing.assert_allclose(act.axial_stiffness_ratio, true_act.axial_stiffness_ratio,
+                               rtol=0.2)
     assert fit.actuation.model_error_p95 == result.validation.p95
