@@ -371,10 +371,13 @@ def commands_for_configuration(robot: Robot, q: Any, slack: float = 0.0) -> np.n
     chosen segment by segment from the tip, each segment's remaining moment carried by
     the two of its tendons that bracket its direction (the least tension; the third
     tendon is left just taut, or ``slack`` m slack, so ``predict`` gives back q exactly).
-    Needs at least three tendons per segment spread around the backbone. With axial
-    compliance the commands also take up the compression those tensions cause; the
-    bending is then q's and each length L_i less that compression (which the commands
-    cannot choose).
+    Needs at least three tendons per segment spread around the backbone.
+
+    With axial compliance (``axial_stiffness_ratio``) the commands also take up the
+    compression those tensions cause, and the robot takes q's bending on segments
+    shortened by it, which no command can undo (``configuration_from_commands`` gives
+    back q's angles and the shorter lengths; the tip moves by at most the total
+    compression).
     """
     from .kinematics import q_to_z_numpy
 
@@ -390,10 +393,20 @@ def commands_for_configuration(robot: Robot, q: Any, slack: float = 0.0) -> np.n
         jp = {k: jnp.asarray(v, jnp.float64) for k, v in p.items()}
         b = np.asarray(_routing(_Topology.of(robot), jp))
         c = np.asarray(_stiffness(jp))
+    tension = _holding_tensions(robot, b, c, u)
     kappa = np.exp(p["log_kappa"])[_groups(robot)]
+    shortening = u @ b.T + _compression(robot, p, tension) @ tendon_segments(robot).T
+    pull = shortening + tension / kappa - np.where(tension > 0, 0.0, slack / p["radius"])
+    return p["zero_offsets"] + pull * p["radius"] / p["gains"]
+
+
+def _holding_tensions(robot: Robot, b: np.ndarray, c: np.ndarray,
+                      u: np.ndarray) -> np.ndarray:
+    """(N, n_tendons) the least tensions λ ≥ 0 (energy units per rad) that hold the
+    bending vectors u (N, 2n) rad: c·u = Bᵀλ, from the tip segment down."""
     n, m = robot.n_segments, robot.tendons.per_segment
     moment = c * u                                           # (N, 2n) = Bᵀ λ
-    tension = np.zeros((len(q), robot.n_tendons))
+    tension = np.zeros((len(u), robot.n_tendons))
     carried = np.zeros_like(moment)
     for k in reversed(range(n)):
         rows = slice(k * m, (k + 1) * m)
@@ -405,13 +418,15 @@ def commands_for_configuration(robot: Robot, q: Any, slack: float = 0.0) -> np.n
     if np.max(np.abs(carried - moment)) > 1e-9 * max(1.0, float(np.max(np.abs(moment)))):
         raise ValueError("the tendon directions cannot hold this shape (a segment's "
                          "tendons do not surround its backbone)")
-    shortening = u @ b.T                                     # (N, n_tendons), rad
-    if "log_axial" in p:                                     # a_i δ_i = Σ tensions through i
-        runs = tendon_segments(robot)                        # (n_tendons, n)
-        compression = (tension @ runs) / np.exp(p["log_axial"])
-        shortening = shortening + compression @ runs.T
-    pull = shortening + tension / kappa - np.where(tension > 0, 0.0, slack / p["radius"])
-    return p["zero_offsets"] + pull * p["radius"] / p["gains"]
+    return tension
+
+
+def _compression(robot: Robot, p: dict[str, np.ndarray], tension: np.ndarray) -> np.ndarray:
+    """(N, n) each segment's compression / r (rad-equivalent): a_i δ_i = Σ tensions through
+    segment i; zero for incompressible segments."""
+    if "log_axial" not in p:
+        return np.zeros((len(tension), robot.n_segments))
+    return (tension @ tendon_segments(robot)) / np.exp(p["log_axial"])
 
 
 def _bracketing_tensions(need: np.ndarray, dirs: np.ndarray) -> np.ndarray:
