@@ -71,8 +71,8 @@ class Actuation:
 
 
 _ACTUATION_KEYS = {"zero_offsets", "gains", "tendon_angle_deltas", "segment_stiffness",
-                   "tendon_stiffness_ratio", "axial_stiffness_ratio", "tip_marker", "model_error_mean",
-                   "model_error_p95", "description"}
+                   "tendon_stiffness_ratio", "axial_stiffness_ratio", "tip_marker",
+                   "model_error_mean", "model_error_p95", "description"}
 
 
 def parse_actuation(checker: Any, raw: Any, n_tendons: int, n_segments: int) -> Actuation:

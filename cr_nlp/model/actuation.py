@@ -24,10 +24,11 @@ equilibrium a_i δ_i is the sum of the tensions through segment i, so a segment 
 proportion to the tendon load it carries (pretension included); the shape is the same
 constant-curvature arc on the shorter length. Without the field, δ = 0 (today's model).
 
-E is convex and strictly so, so the shape is unique; the tension of tendon j is ∝ κ·max(0, s_j) ≥ 0: a
-slack tendon carries nothing, and releasing it further changes nothing. The minimiser is
-found by Newton steps with a line search on E (a few active-set changes), and
-differentiated at the solution (implicit function theorem, ``jax.lax.custom_root``).
+E is convex and strictly so, so the shape is unique; the tension of tendon j is
+∝ κ·max(0, s_j) ≥ 0: a slack tendon carries nothing, and releasing it further changes
+nothing. The minimiser is found by Newton steps with a line search on E (a few
+active-set changes), and differentiated at the solution (implicit function theorem,
+``jax.lax.custom_root``).
 
 The robot file's optional ``actuation`` block holds the calibrated parameters
 (models/README.md); without it the nominal values below are used.
