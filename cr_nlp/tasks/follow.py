@@ -381,7 +381,8 @@ class PathFollower:
         t = len(q0)
         if t not in self._compiled:
             config = LMConfig(cost_tolerance=0.0,
-                              stall_tolerance=self.config.refine_stall_tolerance)
+                              stall_tolerance=self.config.refine_stall_tolerance,
+                              prediction_tolerance=self.config.refine_stall_tolerance)
             solve = partial(banded_lm_solve, self._terms, self._project, config=config)
             self._compiled[t] = jax.jit(solve).lower(*args).compile()
         z, cost, iterations = jax.device_get(self._compiled[t](*args))
