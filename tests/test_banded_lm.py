@@ -19,7 +19,7 @@ from cr_nlp.stages._banded_lm import (
     solve_banded,
     solve_block_tridiagonal,
 )
-from cr_nlp.stages._lm import lm_solve
+from cr_nlp.stages._lm import LMConfig, lm_solve
 
 # Dense and banded algebra agree to 1e-9 or tighter: float64 JAX arrays, x64 on per test.
 pytestmark = pytest.mark.usefixtures("float64")
@@ -248,3 +248,22 @@ def test_slots_take_the_one_shot_iterates_whatever_the_schedule() -> None:
         # at least the trips the chains needed (one more than their iterations).
         assert batch.slot_trips >= (expected_its + 1).sum()
     assert list(batch._slot_programs) == [2]            # one program for every schedule
+
+
+def test_prediction_stop_ends_the_same_iterates_early() -> None:
+    z, p = problem(7)
+    free = jnp.ones(3)
+    plain = LMConfig(cost_tolerance=0.0, stall_tolerance=0.0)
+    stopping = LMConfig(cost_tolerance=0.0, stall_tolerance=0.0, prediction_tolerance=1e-8)
+    solve = jax.jit(banded_lm_solve, static_argnames=("terms", "project", "config"))
+    z_full, cost_full, used_full = solve(TERMS, unprojected, z, p, None, free, jnp.int32(60),
+                                         config=plain)
+    z_stop, cost_stop, used = solve(TERMS, unprojected, z, p, None, free, jnp.int32(60),
+                                    config=stopping)
+    assert int(used) < int(used_full)
+    # The rule only ends the loop: the plain solve with that budget has the same iterate.
+    z_same, cost_same, _ = solve(TERMS, unprojected, z, p, None, free, used, config=plain)
+    np.testing.assert_array_equal(np.asarray(z_stop), np.asarray(z_same))
+    assert float(cost_stop) == float(cost_same)
+    # ...and what the plain solve gains afterwards is within the tolerance's reach.
+    assert float(cost_full) <= float(cost_stop) <= float(cost_full) * (1.0 + 1e-6)
