@@ -248,3 +248,36 @@ def test_slots_take_the_one_shot_iterates_whatever_the_schedule() -> None:
         # at least the trips the chains needed (one more than their iterations).
         assert batch.slot_trips >= (expected_its + 1).sum()
     assert list(batch._slot_programs) == [2]            # one program for every schedule
+
+
+def test_chains_added_after_the_last_one_finished_are_solved_alike() -> None:
+    """``more`` runs while the next device call computes; chains it adds only once every
+    given chain has finished (no call left to overlap with) still get their one-shot
+    ``banded_lm_solve`` iterates, and every chain is reported exactly once."""
+    from cr_nlp.stages._chain_batch import ChainBatchLM
+
+    t, d, budget = 5, 3, 6
+    terms = ChainResidual(step_unary, pair, triple)
+    rng = np.random.default_rng(5)
+    z0 = rng.normal(size=(7, t * d)) * np.array([0.02, 0.5, 2.0, 0.1, 1.0, 3.0, 0.3])[:, None]
+    steps = rng.normal(size=7)
+    free = jnp.ones(t * d, jnp.float64).at[:d].set(0.0)
+    first = 4
+    reported: list[int] = []
+
+    def more(chains, z, cost):
+        reported.extend(chains)
+        if len(reported) == first:                  # the last given chain just finished
+            return z0[first:], steps[first:]
+        return None
+
+    batch = ChainBatchLM(terms, unprojected, t, free, jnp.float64, chunk_size=2)
+    solution = batch.solve(z0[:first], steps[:first], None, budget, more)
+    assert sorted(reported) == list(range(7))
+    for k in range(7):
+        zk, ck, its = banded_lm_solve(terms, unprojected, jnp.asarray(z0[k].reshape(t, d)),
+                                      None, (None, None, jnp.float64(steps[k])),
+                                      free.reshape(t, d), jnp.int32(budget))
+        np.testing.assert_allclose(solution.z[k], np.asarray(zk).reshape(-1), atol=1e-12)
+        assert solution.cost[k] == pytest.approx(float(ck), rel=1e-12)
+        assert solution.iterations[k] == int(its)

@@ -181,6 +181,21 @@ class ChainBatchLM:
         slot_step = np.zeros(slots)
         state: Any = self._idle_state(slots)
         compile_seconds = callback = 0.0
+        # Chains finished in the last call whose ``more`` has not run yet: it runs while
+        # the next call computes (the caller's verdict on the host, the LM on the device),
+        # so chains it adds join one call later. Each chain's iterates are unchanged.
+        pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+        def run_more(finished: tuple[np.ndarray, np.ndarray, np.ndarray]) -> float:
+            t0 = time.perf_counter()
+            added = more(*finished) if more is not None else None
+            if added is not None:
+                for z_add, step_add in zip(*added, strict=True):
+                    waiting.append(len(z_list))
+                    z_list.append(np.asarray(z_add, dtype=np.float64))
+                    step_list.append(float(step_add))
+            return time.perf_counter() - t0
+
         while True:
             load = np.zeros(slots, bool)
             z_new = np.zeros((slots, width))
@@ -190,17 +205,30 @@ class ChainBatchLM:
                 k = waiting.popleft()
                 chain[s], load[s], z_new[s] = k, True, z_list[k]
                 slot_step[s], budget[s] = step_list[k], iterations
-            if not (chain >= 0).any():
-                break
-            wanted = max(slots - min(self.refill, len(waiting)) + 1, 1) if waiting else 1
+            occupied = int(np.sum(chain >= 0))
+            if not occupied:
+                if pending is None:
+                    break
+                callback += run_more(pending)      # nothing to overlap with
+                pending = None
+                continue
+            if waiting:
+                wanted = max(slots - min(self.refill, len(waiting)) + 1, 1)
+            elif pending is not None:
+                wanted = occupied      # return at the first finish: more may add chains
+            else:
+                wanted = 1
             args = (state, z_new.astype(self.dtype), load, slot_step.astype(self.dtype),
                     budget, arrays, self.free, np.int32(self.trips), np.int32(wanted))
             if slots not in self._slot_programs:
                 t0 = time.perf_counter()
                 self._slot_programs[slots] = self._lower_slots(args).compile()
                 compile_seconds += time.perf_counter() - t0
-            state, running, count = self._slot_programs[slots](*args)
+            state, running, count = self._slot_programs[slots](*args)   # asynchronous
             self.programs += 1
+            if pending is not None:
+                callback += run_more(pending)
+                pending = None
             running = np.asarray(running)
             self.slot_trips += slots * int(count)
             finished = np.flatnonzero((chain >= 0) & ~running)
@@ -215,14 +243,7 @@ class ChainBatchLM:
                 out_it[chain[s]] = it_done[k]
                 chain[s], budget[s] = -1, -1
             if more is not None:
-                t0 = time.perf_counter()
-                added = more(indices, z_done, cost_done)
-                callback += time.perf_counter() - t0
-                if added is not None:
-                    for z_add, step_add in zip(*added, strict=True):
-                        waiting.append(len(z_list))
-                        z_list.append(np.asarray(z_add, dtype=np.float64))
-                        step_list.append(float(step_add))
+                pending = (indices, z_done, cost_done)
         order = range(len(z_list))
         return ChainSolution(np.array([out_z[k] for k in order]).reshape(len(z_list), width),
                              np.array([out_cost[k] for k in order]),
