@@ -10,10 +10,11 @@ two schedules:
   slots are still running or ``trips`` trips were made, and returns; the host then
   retires the finished chains, refills their slots and launches the next call before it
   runs the caller's ``more`` on the retired ones (asynchronous dispatch: the host's work
-  overlaps the device's). A draining stream moves to a program of fewer slots. The whole LM state (iterate,
-  cost, normal equations, λ, ν, iteration count, pending trial point) stays on the
-  device between calls, so a chain takes exactly the iterates it would take in one
-  uninterrupted solve, and no slot waits for the slowest chain of a chunk. A caller
+  overlaps the device's). A draining stream moves to a program of fewer slots. The
+  whole LM state (iterate, cost, normal equations, λ, ν, iteration count, pending trial
+  point) stays on the device between calls, so a chain takes exactly the iterates it
+  would take in one uninterrupted solve, and no slot waits for the slowest chain of a
+  chunk. A caller
   can also add chains while the solve runs (``more``): the trajectory planner's second
   round of guesses goes into the same stream.
 - "chunks": the batch is cut into chunks of one size (the last padded with copies of its
