@@ -108,6 +108,8 @@ class ChainBatchLM:
             first use), and back to more (up to ``chunk_size``) when chains are added. A
             trip's cost grows about linearly with its slots, idle ones included (tdcr3
             shelf trajectories, 2-core CPU: 1.5, 2.9, 5.2 ms for 1, 2, 4 slots).
+        overlap: slots: run ``more`` on a call's finished chains while the next call
+            computes (False: before it, the former order; kept for comparison).
     """
 
     def __init__(self, terms: ChainResidual, project: Callable[[jax.Array], jax.Array],
@@ -115,7 +117,7 @@ class ChainBatchLM:
                  structure: str = "banded", dense_residual: Callable | None = None,
                  dense_project: Callable | None = None, extra: Any = None,
                  schedule: str = "slots", trips: int = 1 << 30, refill: int = 1,
-                 resize: bool = True) -> None:
+                 resize: bool = True, overlap: bool = True) -> None:
         if structure not in ("banded", "dense"):
             raise ValueError(f"structure must be 'banded' or 'dense', got {structure!r}")
         if structure == "dense" and (dense_residual is None or dense_project is None):
@@ -131,7 +133,7 @@ class ChainBatchLM:
         self.dense_residual, self.dense_project, self.extra = (dense_residual, dense_project,
                                                                extra)
         self.schedule = "chunks" if structure == "dense" else schedule
-        self.trips, self.refill, self.resize = trips, refill, resize
+        self.trips, self.refill, self.resize, self.overlap = trips, refill, resize, overlap
         self.config = LMConfig(cost_tolerance=0.0)
         """The LM's stopping rules (no cost floor: a chain stops when it stalls)."""
         self._compiled: dict[int, Any] = {}
@@ -270,6 +272,9 @@ class ChainBatchLM:
                 chain[s], budget[s] = -1, -1
             if more is not None:
                 pending = (indices, z_done, cost_done)
+                if not self.overlap:
+                    callback += run_more(pending)
+                    pending = None
         order = range(len(z_list))
         return ChainSolution(np.array([out_z[k] for k in order]).reshape(len(z_list), width),
                              np.array([out_cost[k] for k in order]),
