@@ -14,9 +14,8 @@ two schedules:
   whole LM state (iterate, cost, normal equations, λ, ν, iteration count, pending trial
   point) stays on the device between calls, so a chain takes exactly the iterates it
   would take in one uninterrupted solve, and no slot waits for the slowest chain of a
-  chunk. A caller
-  can also add chains while the solve runs (``more``): the trajectory planner's second
-  round of guesses goes into the same stream.
+  chunk. A caller can also add chains while the solve runs (``more``): the trajectory
+  planner's second round of guesses goes into the same stream.
 - "chunks": the batch is cut into chunks of one size (the last padded with copies of its
   first row), one device program per chunk, each running until its slowest chain
   stops. The "dense" structure (``stages._lm``: one Jacobian of the whole chain and a
