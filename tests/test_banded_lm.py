@@ -267,3 +267,78 @@ def test_prediction_stop_ends_the_same_iterates_early() -> None:
     assert float(cost_stop) == float(cost_same)
     # ...and what the plain solve gains afterwards is within the tolerance's reach.
     assert float(cost_full) <= float(cost_stop) <= float(cost_full) * (1.0 + 1e-6)
+
+
+def test_chains_added_after_the_last_one_finished_are_solved_alike() -> None:
+    """``more`` runs while the next device call computes; chains it adds only once every
+    given chain has finished (no call left to overlap with) still get their one-shot
+    ``banded_lm_solve`` iterates, and every chain is reported exactly once."""
+    from cr_nlp.stages._chain_batch import ChainBatchLM
+
+    t, d, budget = 5, 3, 6
+    terms = ChainResidual(step_unary, pair, triple)
+    rng = np.random.default_rng(5)
+    z0 = rng.normal(size=(7, t * d)) * np.array([0.02, 0.5, 2.0, 0.1, 1.0, 3.0, 0.3])[:, None]
+    steps = rng.normal(size=7)
+    free = jnp.ones(t * d, jnp.float64).at[:d].set(0.0)
+    first = 4
+    reported: list[int] = []
+
+    def more(chains, z, cost):
+        reported.extend(chains)
+        if len(reported) == first:                  # the last given chain just finished
+            return z0[first:], steps[first:]
+        return None
+
+    batch = ChainBatchLM(terms, unprojected, t, free, jnp.float64, chunk_size=2)
+    solution = batch.solve(z0[:first], steps[:first], None, budget, more)
+    assert sorted(reported) == list(range(7))
+    for k in range(7):
+        zk, ck, its = banded_lm_solve(terms, unprojected, jnp.asarray(z0[k].reshape(t, d)),
+                                      None, (None, None, jnp.float64(steps[k])),
+                                      free.reshape(t, d), jnp.int32(budget))
+        np.testing.assert_allclose(solution.z[k], np.asarray(zk).reshape(-1), atol=1e-12)
+        assert solution.cost[k] == pytest.approx(float(ck), rel=1e-12)
+        assert solution.iterations[k] == int(its)
+
+
+def test_slots_shrink_and_grow_without_changing_the_iterates() -> None:
+    """With up to 8 slots, the draining stream moves to programs of 4 and 2 slots and
+    back to more when ``more`` adds chains late; every chain still takes its one-shot
+    ``banded_lm_solve`` iterates, and a program without resizing does the same with more
+    slot-trips."""
+    from cr_nlp.stages._chain_batch import ChainBatchLM
+
+    t, d, budget = 5, 3, 8
+    terms = ChainResidual(step_unary, pair, triple)
+    rng = np.random.default_rng(11)
+    count, first = 14, 9
+    z0 = rng.normal(size=(count, t * d)) * rng.uniform(0.01, 3.0, size=(count, 1))
+    steps = rng.normal(size=count)
+    free = jnp.ones(t * d, jnp.float64).at[:d].set(0.0)
+    one_shot = [banded_lm_solve(terms, unprojected, jnp.asarray(z0[k].reshape(t, d)), None,
+                                (None, None, jnp.float64(steps[k])), free.reshape(t, d),
+                                jnp.int32(budget)) for k in range(count)]
+    finished: list[int] = []
+
+    def more(chains, z, cost):
+        finished.extend(chains)
+        if len(finished) == first - 1:              # one chain of the first lot left
+            return z0[first:], steps[first:]
+        return None
+
+    work = {}
+    for resize in (True, False):
+        finished.clear()
+        batch = ChainBatchLM(terms, unprojected, t, free, jnp.float64, chunk_size=8,
+                             resize=resize)
+        solution = batch.solve(z0[:first], steps[:first], None, budget, more)
+        assert sorted(finished) == list(range(count))
+        for k in range(count):
+            np.testing.assert_allclose(solution.z[k], np.asarray(one_shot[k][0]).reshape(-1),
+                                       atol=1e-12)
+            assert solution.cost[k] == pytest.approx(float(one_shot[k][1]), rel=1e-12)
+            assert solution.iterations[k] == int(one_shot[k][2])
+        work[resize] = (batch.slot_trips, sorted(batch._slot_programs))
+    assert work[False][1] == [8] and work[True][1] == [2, 4, 8]
+    assert work[True][0] < work[False][0]
