@@ -19,7 +19,7 @@ from cr_nlp.stages._banded_lm import (
     solve_banded,
     solve_block_tridiagonal,
 )
-from cr_nlp.stages._lm import lm_solve
+from cr_nlp.stages._lm import LMConfig, lm_solve
 
 # Dense and banded algebra agree to 1e-9 or tighter: float64 JAX arrays, x64 on per test.
 pytestmark = pytest.mark.usefixtures("float64")
@@ -248,3 +248,97 @@ def test_slots_take_the_one_shot_iterates_whatever_the_schedule() -> None:
         # at least the trips the chains needed (one more than their iterations).
         assert batch.slot_trips >= (expected_its + 1).sum()
     assert list(batch._slot_programs) == [2]            # one program for every schedule
+
+
+def test_prediction_stop_ends_the_same_iterates_early() -> None:
+    z, p = problem(7)
+    free = jnp.ones(3)
+    plain = LMConfig(cost_tolerance=0.0, stall_tolerance=0.0)
+    stopping = LMConfig(cost_tolerance=0.0, stall_tolerance=0.0, prediction_tolerance=1e-8)
+    solve = jax.jit(banded_lm_solve, static_argnames=("terms", "project", "config"))
+    z_full, cost_full, used_full = solve(TERMS, unprojected, z, p, None, free, jnp.int32(60),
+                                         config=plain)
+    z_stop, cost_stop, used = solve(TERMS, unprojected, z, p, None, free, jnp.int32(60),
+                                    config=stopping)
+    assert int(used) < int(used_full)
+    # The rule only ends the loop: the plain solve with that budget has the same iterate.
+    z_same, cost_same, _ = solve(TERMS, unprojected, z, p, None, free, used, config=plain)
+    np.testing.assert_array_equal(np.asarray(z_stop), np.asarray(z_same))
+    assert float(cost_stop) == float(cost_same)
+    # ...and what the plain solve gains afterwards is within the tolerance's reach.
+    assert float(cost_full) <= float(cost_stop) <= float(cost_full) * (1.0 + 1e-6)
+
+
+def test_chains_added_after_the_last_one_finished_are_solved_alike() -> None:
+    """``more`` runs while the next device call computes; chains it adds only once every
+    given chain has finished (no call left to overlap with) still get their one-shot
+    ``banded_lm_solve`` iterates, and every chain is reported exactly once."""
+    from cr_nlp.stages._chain_batch import ChainBatchLM
+
+    t, d, budget = 5, 3, 6
+    terms = ChainResidual(step_unary, pair, triple)
+    rng = np.random.default_rng(5)
+    z0 = rng.normal(size=(7, t * d)) * np.array([0.02, 0.5, 2.0, 0.1, 1.0, 3.0, 0.3])[:, None]
+    steps = rng.normal(size=7)
+    free = jnp.ones(t * d, jnp.float64).at[:d].set(0.0)
+    first = 4
+    reported: list[int] = []
+
+    def more(chains, z, cost):
+        reported.extend(chains)
+        if len(reported) == first:                  # the last given chain just finished
+            return z0[first:], steps[first:]
+        return None
+
+    batch = ChainBatchLM(terms, unprojected, t, free, jnp.float64, chunk_size=2)
+    solution = batch.solve(z0[:first], steps[:first], None, budget, more)
+    assert sorted(reported) == list(range(7))
+    for k in range(7):
+        zk, ck, its = banded_lm_solve(terms, unprojected, jnp.asarray(z0[k].reshape(t, d)),
+                                      None, (None, None, jnp.float64(steps[k])),
+                                      free.reshape(t, d), jnp.int32(budget))
+        np.testing.assert_allclose(solution.z[k], np.asarray(zk).reshape(-1), atol=1e-12)
+        assert solution.cost[k] == pytest.approx(float(ck), rel=1e-12)
+        assert solution.iterations[k] == int(its)
+
+
+def test_slots_shrink_and_grow_without_changing_the_iterates() -> None:
+    """With up to 8 slots, the draining stream moves to programs of 4 and 2 slots and
+    back to more when ``more`` adds chains late; every chain still takes its one-shot
+    ``banded_lm_solve`` iterates, and a program without resizing does the same with more
+    slot-trips."""
+    from cr_nlp.stages._chain_batch import ChainBatchLM
+
+    t, d, budget = 5, 3, 8
+    terms = ChainResidual(step_unary, pair, triple)
+    rng = np.random.default_rng(11)
+    count, first = 14, 9
+    z0 = rng.normal(size=(count, t * d)) * rng.uniform(0.01, 3.0, size=(count, 1))
+    steps = rng.normal(size=count)
+    free = jnp.ones(t * d, jnp.float64).at[:d].set(0.0)
+    one_shot = [banded_lm_solve(terms, unprojected, jnp.asarray(z0[k].reshape(t, d)), None,
+                                (None, None, jnp.float64(steps[k])), free.reshape(t, d),
+                                jnp.int32(budget)) for k in range(count)]
+    finished: list[int] = []
+
+    def more(chains, z, cost):
+        finished.extend(chains)
+        if len(finished) == first - 1:              # one chain of the first lot left
+            return z0[first:], steps[first:]
+        return None
+
+    work = {}
+    for resize in (True, False):
+        finished.clear()
+        batch = ChainBatchLM(terms, unprojected, t, free, jnp.float64, chunk_size=8,
+                             resize=resize)
+        solution = batch.solve(z0[:first], steps[:first], None, budget, more)
+        assert sorted(finished) == list(range(count))
+        for k in range(count):
+            np.testing.assert_allclose(solution.z[k], np.asarray(one_shot[k][0]).reshape(-1),
+                                       atol=1e-12)
+            assert solution.cost[k] == pytest.approx(float(one_shot[k][1]), rel=1e-12)
+            assert solution.iterations[k] == int(one_shot[k][2])
+        work[resize] = (batch.slot_trips, sorted(batch._slot_programs))
+    assert work[False][1] == [8] and work[True][1] == [2, 4, 8]
+    assert work[True][0] < work[False][0]

@@ -4,7 +4,6 @@ files (naming file, column and row)."""
 from __future__ import annotations
 
 import csv
-import dataclasses
 import json
 from pathlib import Path
 
@@ -12,8 +11,8 @@ import numpy as np
 import pytest
 
 from cr_nlp.cli import main
-from cr_nlp.model import Robot, load_robot
-from cr_nlp.model.actuation import NOMINAL_AXIAL_STIFFNESS_RATIO, predict_tip
+from cr_nlp.model import load_robot
+from cr_nlp.model.actuation import predict_tip
 from cr_nlp.tasks.measurements import DataFileError, read_measurements
 
 HEADER = ["t"] + [f"tendon_{i}" for i in range(1, 10)] + ["tip_x", "tip_y", "tip_z"]
@@ -27,10 +26,10 @@ def _write(path: Path, rows: list[list], header: list[str] = HEADER) -> Path:
     return path
 
 
-def _rows(n: int, seed: int = 0, robot: Robot | None = None) -> list[list]:
+def _rows(n: int, seed: int = 0) -> list[list]:
     rng = np.random.default_rng(seed)
     cmd = rng.uniform(-3.0, 3.0, (n, 9))                         # mm
-    tip = 1e3 * predict_tip(robot or load_robot("ftdcr_v6"), cmd * 1e-3)  # mm
+    tip = 1e3 * predict_tip(load_robot("ftdcr_v6"), cmd * 1e-3)  # mm
     return [[k, *c, *p] for k, (c, p) in enumerate(zip(cmd, tip, strict=True))]
 
 
@@ -85,13 +84,8 @@ def test_predict_writes_the_model_tip_in_the_data_units(tmp_path, capsys) -> Non
 
 @pytest.mark.slow  # a second full fit (~15 s on a quiet 2-core CPU); test_calibrate has one
 def test_calibrate_writes_a_robot_file_every_command_accepts(tmp_path, capsys) -> None:
-    # Data from the model calibrate fits: ftdcr_v6 with compressible segments at the fit's
-    # starting axial stiffness.
-    nominal = load_robot("ftdcr_v6")
-    truth = dataclasses.replace(nominal, actuation=dataclasses.replace(
-        nominal.actuation, axial_stiffness_ratio=(NOMINAL_AXIAL_STIFFNESS_RATIO,) * 3))
-    train = _write(tmp_path / "train.csv", _rows(60, seed=5, robot=truth))
-    val = _write(tmp_path / "val.csv", _rows(20, seed=6, robot=truth))
+    train = _write(tmp_path / "train.csv", _rows(60, seed=5))
+    val = _write(tmp_path / "val.csv", _rows(20, seed=6))
     out, report = tmp_path / "cal.json", tmp_path / "report"
     assert main(["calibrate", "--robot", "ftdcr_v6", "--data", str(train), "--validate",
                  str(val), "--units", "mm", "--out", str(out), "--report", str(report)]) == 0

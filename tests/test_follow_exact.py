@@ -3,6 +3,8 @@ answer breaks, and the independent verdict agrees."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -30,9 +32,10 @@ def slow_robot_runs():
     pos, rot = tip_pose_z(robot, q_to_z(robot, jnp.asarray(LINE)))
     path = ReferencePath("line", np.asarray(pos), wxyz_from_matrix(np.asarray(rot)), dt,
                          np.ones(WAYPOINTS, bool))
-    # A weak tendon penalty aimed at the real limit: the penalty answer trades the limit
-    # for tracking, which is what a penalty may do.
+    # A weak tendon penalty aimed at the real limit, no stiff repair: the penalty answer
+    # trades the limit for tracking, which is what a penalty may do.
     config = FollowConfig(tendon_weight=1e-4, tendon_limit_fraction=1.0,
+                          tendon_repair_weight=None,
                           ik=IKConfig(pool_size=1024, seeds_per_target=4, refine_iterations=20))
     follower = PathFollower(robot, None, config)
     return robot, path, follower.follow(path), follower.follow(path, exact=True)
@@ -55,3 +58,19 @@ def test_exact_mode_keeps_the_bound_and_the_checker_agrees(slow_robot_runs) -> N
     assert verdict["max_violation"] <= 1e-6 and verdict["collision_free"], verdict["reason"]
     # Keeping the bound costs tracking accuracy somewhere: the path needs a faster motion.
     assert np.max(exact.position_error) > np.max(penalty.position_error)
+
+
+def test_stiff_repair_returns_the_stiff_answer_where_a_soft_penalty_broke_the_bound(
+        slow_robot_runs) -> None:
+    # A path that needs 1/0.7 of the speed limit, a penalty too soft to hold it: with no
+    # repair the answer breaks the limit; with it, the answer is the stiff penalty's
+    # own (the same refine from the same stage-1 sequence).
+    robot, path, _, _ = slow_robot_runs
+    ik = IKConfig(pool_size=1024, seeds_per_target=4, refine_iterations=20)
+    soft = FollowConfig(tendon_weight=1e-4, tendon_repair_weight=None, ik=ik)
+    broken = PathFollower(robot, None, soft).follow(path)
+    repaired = PathFollower(robot, None, replace(soft, tendon_repair_weight=10.0)).follow(path)
+    stiff = PathFollower(robot, None, replace(soft, tendon_weight=10.0)).follow(path)
+    assert broken.tendon_speed > robot.tendon_speed_max + 1e-3
+    np.testing.assert_allclose(repaired.q, stiff.q, atol=1e-6)
+    assert repaired.tendon_speed < broken.tendon_speed

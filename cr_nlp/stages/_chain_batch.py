@@ -8,12 +8,14 @@ two schedules:
   occupied ones (``stages._banded_lm``'s trip, vmapped; a slot whose chain converged,
   stalled or used its iteration budget is masked) until fewer than a wanted number of
   slots are still running or ``trips`` trips were made, and returns; the host then
-  retires the finished chains and refills their slots. The whole LM state (iterate,
-  cost, normal equations, λ, ν, iteration count, pending trial point) stays on the
-  device between calls, so a chain takes exactly the iterates it would take in one
-  uninterrupted solve, and no slot waits for the slowest chain of a chunk. A caller
-  can also add chains while the solve runs (``more``): the trajectory planner's second
-  round of guesses goes into the same stream.
+  retires the finished chains, refills their slots and launches the next call before it
+  runs the caller's ``more`` on the retired ones (asynchronous dispatch: the host's work
+  overlaps the device's). A draining stream moves to a program of fewer slots. The
+  whole LM state (iterate, cost, normal equations, λ, ν, iteration count, pending trial
+  point) stays on the device between calls, so a chain takes exactly the iterates it
+  would take in one uninterrupted solve, and no slot waits for the slowest chain of a
+  chunk. A caller can also add chains while the solve runs (``more``): the trajectory
+  planner's second round of guesses goes into the same stream.
 - "chunks": the batch is cut into chunks of one size (the last padded with copies of its
   first row), one device program per chunk, each running until its slowest chain
   stops. The "dense" structure (``stages._lm``: one Jacobian of the whole chain and a
@@ -70,7 +72,9 @@ class ChainSolution:
     compile: float
     """Seconds spent compiling programs for new slot counts or chunk sizes."""
     callback: float
-    """Seconds spent in the caller's ``more`` (counted neither as LM nor as compiling)."""
+    """Seconds spent in the caller's ``more`` (counted neither as LM nor as compiling;
+    with slots it runs while the next device call computes, so the LM's own time is the
+    rest of the wall time)."""
 
 
 class ChainBatchLM:
@@ -98,13 +102,21 @@ class ChainBatchLM:
             measured on 40 shelf trajectories, 8 slots: returning at the first free slot
             makes the least device work (1168 slot-trips in 30 calls; ``refill=4``: 1336
             in 9), and a call costs far less than a trip, so ``trips`` need not cap it.
+        resize: slots: once the running and waiting chains fit in half the slots, move
+            them to a program of fewer slots (powers of two, at least 2; each compiled on
+            first use), and back to more (up to ``chunk_size``) when chains are added. A
+            trip's cost grows about linearly with its slots, idle ones included (tdcr3
+            shelf trajectories, 2-core CPU: 1.5, 2.9, 5.2 ms for 1, 2, 4 slots).
+        overlap: slots: run ``more`` on a call's finished chains while the next call
+            computes (False: before it, the former order; kept for comparison).
     """
 
     def __init__(self, terms: ChainResidual, project: Callable[[jax.Array], jax.Array],
                  waypoints: int, free: jax.Array, dtype: Any, chunk_size: int,
                  structure: str = "banded", dense_residual: Callable | None = None,
                  dense_project: Callable | None = None, extra: Any = None,
-                 schedule: str = "slots", trips: int = 1 << 30, refill: int = 1) -> None:
+                 schedule: str = "slots", trips: int = 1 << 30, refill: int = 1,
+                 resize: bool = True, overlap: bool = True) -> None:
         if structure not in ("banded", "dense"):
             raise ValueError(f"structure must be 'banded' or 'dense', got {structure!r}")
         if structure == "dense" and (dense_residual is None or dense_project is None):
@@ -120,11 +132,12 @@ class ChainBatchLM:
         self.dense_residual, self.dense_project, self.extra = (dense_residual, dense_project,
                                                                extra)
         self.schedule = "chunks" if structure == "dense" else schedule
-        self.trips, self.refill = trips, refill
+        self.trips, self.refill, self.resize, self.overlap = trips, refill, resize, overlap
         self.config = LMConfig(cost_tolerance=0.0)
         """The LM's stopping rules (no cost floor: a chain stops when it stalls)."""
         self._compiled: dict[int, Any] = {}
         self._slot_programs: dict[int, Any] = {}
+        self._idle_shapes: dict[int, Any] = {}
         self.programs = 0
         """Device programs launched so far (one per chunk or slot call)."""
         self.slot_trips = 0
@@ -181,7 +194,36 @@ class ChainBatchLM:
         slot_step = np.zeros(slots)
         state: Any = self._idle_state(slots)
         compile_seconds = callback = 0.0
+        # Chains finished in the last call whose ``more`` has not run yet: it runs while
+        # the next call computes (the caller's verdict on the host, the LM on the device),
+        # so chains it adds join one call later. Each chain's iterates are unchanged.
+        pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+        def run_more(finished: tuple[np.ndarray, np.ndarray, np.ndarray]) -> float:
+            t0 = time.perf_counter()
+            added = more(*finished) if more is not None else None
+            if added is not None:
+                for z_add, step_add in zip(*added, strict=True):
+                    waiting.append(len(z_list))
+                    z_list.append(np.asarray(z_add, dtype=np.float64))
+                    step_list.append(float(step_add))
+            return time.perf_counter() - t0
+
         while True:
+            # Fewer chains than half the slots (the stream draining), or more than the
+            # slots while a larger program is allowed: move the running chains' states
+            # into a program of the fitting size (a trip's cost grows with its slots,
+            # idle ones included). The states move whole, so the iterates are unchanged.
+            need = int(np.sum(chain >= 0)) + len(waiting)
+            size = self._fitting(need) if self.resize else slots
+            if need and (size < slots and 2 * need <= slots or size > slots):
+                keep = np.flatnonzero(chain >= 0)
+                state = self._moved(state, keep, size)
+                chain, budget, slot_step = (np.concatenate([x[keep], np.full(size - len(keep),
+                                                                             fill, x.dtype)])
+                                            for x, fill in ((chain, -1), (budget, -1),
+                                                            (slot_step, 0.0)))
+                slots = size
             load = np.zeros(slots, bool)
             z_new = np.zeros((slots, width))
             for s in np.flatnonzero(chain < 0):
@@ -190,17 +232,30 @@ class ChainBatchLM:
                 k = waiting.popleft()
                 chain[s], load[s], z_new[s] = k, True, z_list[k]
                 slot_step[s], budget[s] = step_list[k], iterations
-            if not (chain >= 0).any():
-                break
-            wanted = max(slots - min(self.refill, len(waiting)) + 1, 1) if waiting else 1
+            occupied = int(np.sum(chain >= 0))
+            if not occupied:
+                if pending is None:
+                    break
+                callback += run_more(pending)      # nothing to overlap with
+                pending = None
+                continue
+            if waiting:
+                wanted = max(slots - min(self.refill, len(waiting)) + 1, 1)
+            elif pending is not None:
+                wanted = occupied      # return at the first finish: more may add chains
+            else:
+                wanted = 1
             args = (state, z_new.astype(self.dtype), load, slot_step.astype(self.dtype),
                     budget, arrays, self.free, np.int32(self.trips), np.int32(wanted))
             if slots not in self._slot_programs:
                 t0 = time.perf_counter()
                 self._slot_programs[slots] = self._lower_slots(args).compile()
                 compile_seconds += time.perf_counter() - t0
-            state, running, count = self._slot_programs[slots](*args)
+            state, running, count = self._slot_programs[slots](*args)   # asynchronous
             self.programs += 1
+            if pending is not None:
+                callback += run_more(pending)
+                pending = None
             running = np.asarray(running)
             self.slot_trips += slots * int(count)
             finished = np.flatnonzero((chain >= 0) & ~running)
@@ -215,29 +270,42 @@ class ChainBatchLM:
                 out_it[chain[s]] = it_done[k]
                 chain[s], budget[s] = -1, -1
             if more is not None:
-                t0 = time.perf_counter()
-                added = more(indices, z_done, cost_done)
-                callback += time.perf_counter() - t0
-                if added is not None:
-                    for z_add, step_add in zip(*added, strict=True):
-                        waiting.append(len(z_list))
-                        z_list.append(np.asarray(z_add, dtype=np.float64))
-                        step_list.append(float(step_add))
+                pending = (indices, z_done, cost_done)
+                if not self.overlap:
+                    callback += run_more(pending)
+                    pending = None
         order = range(len(z_list))
         return ChainSolution(np.array([out_z[k] for k in order]).reshape(len(z_list), width),
                              np.array([out_cost[k] for k in order]),
                              np.array([out_it[k] for k in order], dtype=int),
                              compile_seconds, callback)
 
+    def _fitting(self, count: int) -> int:
+        """Slots for ``count`` running or waiting chains: the smallest power of two (at
+        least 2) that holds them, at most ``chunk_size``."""
+        size = 2
+        while size < min(count, self.chunk_size):
+            size *= 2
+        return size
+
+    def _moved(self, state: BandedLMState, keep: np.ndarray, slots: int) -> BandedLMState:
+        """The LM states of the slots ``keep`` (in order) in the first rows of a state of
+        ``slots`` slots, the other rows idle (numpy)."""
+        idle = self._idle_state(slots)
+        return jax.tree_util.tree_map(
+            lambda x, y: np.concatenate([np.asarray(x)[keep], y[len(keep):]]), state, idle)
+
     def _idle_state(self, slots: int) -> BandedLMState:
         """The LM state of ``slots`` empty slots (numpy; every field zero, iteration −1):
         the program loads a chain into a slot before it runs."""
-        n = self.waypoints
-        d = int(np.size(self.free)) // n
-        shape = jax.eval_shape(
-            jax.vmap(partial(banded_lm_start, self.project, config=self.config)),
-            jax.ShapeDtypeStruct((slots, n, d), self.dtype))
-        state = jax.tree_util.tree_map(lambda x: np.zeros(x.shape, x.dtype), shape)
+        if slots not in self._idle_shapes:      # traced once per slot count
+            n = self.waypoints
+            d = int(np.size(self.free)) // n
+            self._idle_shapes[slots] = jax.eval_shape(
+                jax.vmap(partial(banded_lm_start, self.project, config=self.config)),
+                jax.ShapeDtypeStruct((slots, n, d), self.dtype))
+        state = jax.tree_util.tree_map(lambda x: np.zeros(x.shape, x.dtype),
+                                       self._idle_shapes[slots])
         return state._replace(iteration=np.full(slots, -1, np.int32))
 
     def _lower_slots(self, args: tuple) -> Any:

@@ -92,31 +92,33 @@ def continue_chains(residual: WaypointResidual, score: WaypointResidual | None,
     # Converged at 1e-5 (m, rad) of residual norm: the answers only have to keep to
     # their branch and rank the table; stage 2 refines the chosen sequence.
     config = LMConfig(cost_tolerance=0.5 * CHAIN_CONVERGED ** 2)
-    each = jax.vmap(score, in_axes=(0, 0, None)) if score is not None else None
 
     def step(carry: tuple, tau: jax.Array) -> tuple[tuple, tuple]:
         z, velocity = carry
         at = index[:, tau]
         moving = active[:, tau, None]
-        target = (positions[at], rotations[at], track[at])
         # Waypoints are close: the last step predicts the next answer on the same branch,
         # so a few LM steps finish it. A chain that holds still tracks nothing (switch 0),
         # so that it never keeps the batch's LM loop running.
-        held = (target[0], target[1], jnp.where(moving[:, 0], target[2], 0.0))
+        held = (positions[at], rotations[at], jnp.where(moving[:, 0], track[at], 0.0))
         solved, cost, _ = lm_solve(residual, project, z + velocity, held, shared, free,
                                    jnp.int32(iterations), config=config)
         z_out = jnp.where(moving, solved, z)
         velocity = jnp.where(moving, z_out - z, velocity)
-        if each is None:
-            err = jnp.sqrt(2.0 * cost)
-        else:
-            r = each(z_out, target, shared)
-            err = jnp.sqrt(jnp.sum(r * r, axis=-1))
-        return (z_out, velocity), (z_out, err)
+        return (z_out, velocity), (z_out, jnp.sqrt(2.0 * cost))
 
     start = (z_start, jnp.zeros_like(z_start))
     _, (z, err) = jax.lax.scan(step, start, jnp.arange(index.shape[1]))
-    return jnp.swapaxes(z, 0, 1), jnp.swapaxes(err, 0, 1)
+    z, err = jnp.swapaxes(z, 0, 1), jnp.swapaxes(err, 0, 1)
+    if score is not None:
+        # Scored once after the walk, all C·L answers in one batch (not one small batch
+        # per waypoint inside the scan): the scores never steer the chains.
+        flat = z.reshape(-1, z.shape[-1])
+        at = index.reshape(-1)
+        r = jax.vmap(score, in_axes=(0, 0, None))(flat, (positions[at], rotations[at],
+                                                         track[at]), shared)
+        err = jnp.sqrt(jnp.sum(r * r, axis=-1)).reshape(index.shape)
+    return z, err
 
 
 def pad_chains(starts: np.ndarray, index: np.ndarray, active: np.ndarray,

@@ -37,6 +37,10 @@ class LMConfig:
     """A problem counts as converged once ½‖r‖² is below this (units of r squared)."""
     stall_tolerance: float = 1e-4
     """...or once an accepted step lowers the cost by less than this fraction."""
+    prediction_tolerance: float = 0.0
+    """(``stages._banded_lm`` only) ...or once the next proposed step is predicted by the
+    Gauss–Newton model to lower the cost by less than this fraction: a run of rejected
+    steps at that size would end in the stall rule or the λ cap anyway. 0: off."""
     stop_when_converged: bool = True
     """End the loop early once every problem in the batch converged or stalled."""
     linear_solver: str = "unrolled"

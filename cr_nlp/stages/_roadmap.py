@@ -48,7 +48,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from .._jax_setup import cache_dir, split_over_devices
-from ..model import Robot, q_to_z, z_to_q
+from ..model import Robot, q_to_z, q_to_z_numpy, z_to_q_numpy
 from ..world import Scene, body_gap_tolerance, scene_arrays
 from ..world._broad_phase import PartCells, part_cells, reach_box
 from ..world._clearance_groups import near_clearance_z
@@ -195,6 +195,12 @@ class ClearanceChecker:
             self.calls += 1
         return out
 
+    def compile_all(self) -> None:
+        """Compile every chunk size now (one call each), so that later queries, whose
+        request sizes vary, never compile inside a timed call."""
+        for chunk in CHUNKS:
+            self(np.zeros((chunk, self.robot.dof)))
+
 
 def _edge_free(checker: ClearanceChecker, za: np.ndarray, zb: np.ndarray, counts: np.ndarray,
                margin: float) -> np.ndarray:
@@ -254,6 +260,7 @@ class Roadmap:
         self.loaded_from_cache = False
         self.tree = cKDTree(self.nodes_z)
         self._checker: ClearanceChecker | None = None
+        self._queried = False
         self._dense_ok: dict[tuple[int, int], bool] = {}
         self._neighbours: np.ndarray | None = None
         self._weights: np.ndarray | None = None
@@ -431,6 +438,9 @@ class Roadmap:
         z_goals = np.asarray(z_goals, dtype=float).reshape(-1, self.robot.dof)
         count, n = len(z_starts), len(self.nodes_z)
         out: list[np.ndarray | None] = [None] * count
+        if not self._queried:           # a query's check sizes vary: compile them all once
+            self.checker.compile_all()
+            self._queried = True
         direct = self.dense_free(z_starts, z_goals) if count else np.zeros(0, dtype=bool)
         for p in np.flatnonzero(direct):
             out[p] = np.stack([z_starts[p], z_goals[p]])
@@ -491,14 +501,14 @@ class Roadmap:
         ``query_many_z``: per pair (waypoints, 3n) configurations or None."""
         q_starts = np.asarray(q_starts, dtype=float).reshape(-1, self.robot.dof)
         q_goals = np.asarray(q_goals, dtype=float).reshape(-1, self.robot.dof)
-        corners = self.query_many_z(np.asarray(q_to_z(self.robot, q_starts)),
-                                    np.asarray(q_to_z(self.robot, q_goals)), search)
+        # numpy, not eager JAX: eager ops compile again for every new batch size.
+        corners = self.query_many_z(q_to_z_numpy(q_starts), q_to_z_numpy(q_goals), search)
         out: list[np.ndarray | None] = []
         for q_start, q_goal, points in zip(q_starts, q_goals, corners, strict=True):
             if points is None:
                 out.append(None)
                 continue
-            q = np.array(z_to_q(self.robot, resample_polyline(points, waypoints)), dtype=float)
+            q = z_to_q_numpy(resample_polyline(points, waypoints))
             # Keep the given end points bit for bit (the z round trip moves φ at θ = 0).
             q[0], q[-1] = q_start, q_goal
             out.append(q)

@@ -83,11 +83,13 @@ class CalibrationConfig:
     """Newton steps of the equilibrium solve."""
     robust_loss: str = "linear"
     """scipy ``loss`` of the outer fit ("linear", "soft_l1", "huber", …)."""
-    axial_compression: bool = True
-    """Fit the segments' axial compression under tendon load (``model.actuation``), from
-    the robot file's ``axial_stiffness_ratio`` or, without one, from
-    ``NOMINAL_AXIAL_STIFFNESS_RATIO``; False: incompressible segments unless the file
-    already gives them an axial stiffness."""
+    axial_compression: bool = False
+    """Also fit the segments' axial compression under tendon load (``model.actuation``),
+    from the robot file's ``axial_stiffness_ratio`` or, without one, from
+    ``NOMINAL_AXIAL_STIFFNESS_RATIO``. Off by default: plans keep fixed segment lengths, so
+    the commands of a plan for a compressible robot reproduce its tip only to about 1 mm
+    (FTDCR v6), about what the fit gains there (validation 10.2 → 9.5 mm mean). False:
+    incompressible segments unless the file already gives them an axial stiffness."""
 
 
 @dataclass
