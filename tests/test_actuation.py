@@ -15,17 +15,18 @@ from scipy.optimize import minimize
 from cr_nlp.model import ModelFileError, Robot, load_robot, tip_pose
 from cr_nlp.model.actuation import (
     Actuation,
-    bending_vectors,
     commands_for_configuration,
     configuration_from_commands,
+    equilibrium,
     measured_point,
     params_of,
     predict_tip,
 )
 
 
-def _calibrated_like(robot: Robot, seed: int = 0) -> Robot:
-    """A robot with non-trivial actuation parameters (offsets, gains, stiffness)."""
+def _calibrated_like(robot: Robot, seed: int = 0, axial: bool = False) -> Robot:
+    """A robot with non-trivial actuation parameters (offsets, gains, stiffness), with
+    compressible segments where ``axial``."""
     rng = np.random.default_rng(seed)
     t, n = robot.n_tendons, robot.n_segments
     act = Actuation(
@@ -34,6 +35,7 @@ def _calibrated_like(robot: Robot, seed: int = 0) -> Robot:
         tendon_angle_deltas=tuple(rng.uniform(-0.05, 0.05, t)),
         segment_stiffness=tuple(np.r_[1.0, rng.uniform(0.5, 2.0, n - 1)]),
         tendon_stiffness_ratio=tuple(rng.uniform(2.0, 10.0, n)),
+        axial_stiffness_ratio=tuple(rng.uniform(10.0, 60.0, n)) if axial else (),
         tip_marker=(0.001, -0.002, 0.008),
     )
     return dataclasses.replace(robot, actuation=act)
@@ -60,8 +62,45 @@ def test_one_tendon_bends_towards_itself_by_the_closed_form() -> None:
     assert q[1] == pytest.approx(0.3 + 2 * np.pi / 3, abs=1e-12)
 
 
-def test_equilibrium_minimises_the_energy_found_by_an_independent_solver() -> None:
-    robot = _calibrated_like(load_robot("ftdcr_v6"))
+def test_axial_compression_by_the_closed_forms() -> None:
+    # One segment (c = 1), tendon stiffness κ, axial stiffness a. One tendon pulled by w
+    # (rad-equivalent), the others slack: cθ = aδ = κs with s = w − θ − δ, so
+    # s = w / (1 + κ + κ/a), θ = κs, δ = κs/a; all three pulled alike: no bending and
+    # aδ = 3κ(w − δ), δ = 3κw / (a + 3κ). The segment is r·δ shorter.
+    r, length, kappa, a = 0.004, 0.1, 4.0, 25.0
+    robot = Robot.from_dict({"segments": [{"length": length, "theta_max": 3.14}],
+                             "backbone_radius": 0.005, "points_per_segment": 4,
+                             "tendons": {"per_segment": 3, "radius": r, "offsets": [0.3]},
+                             "actuation": {"tendon_stiffness_ratio": kappa,
+                                           "axial_stiffness_ratio": a}})
+    pull = 0.002
+    w = pull / r
+    q = configuration_from_commands(robot, [[-0.005, pull, -0.005], [pull] * 3])
+    s = w / (1.0 + kappa + kappa / a)
+    assert q[0, 0] == pytest.approx(kappa * s, rel=1e-12)
+    assert q[0, 1] == pytest.approx(0.3 + 2 * np.pi / 3, abs=1e-12)
+    assert q[0, 2] == pytest.approx(length - r * kappa * s / a, rel=1e-12)
+    assert q[1, 0] == pytest.approx(0.0, abs=1e-12)
+    assert q[1, 2] == pytest.approx(length - r * 3 * kappa * w / (a + 3 * kappa), rel=1e-12)
+    tip = predict_tip(robot, [[pull] * 3])[0]        # straight, shorter, no marker
+    np.testing.assert_allclose(tip, [0.0, 0.0, q[1, 2]], atol=1e-12)
+
+
+def test_incompressible_is_the_limit_of_axial_compression() -> None:
+    robot = _calibrated_like(load_robot("ftdcr_v6"), seed=2)
+    stiff = dataclasses.replace(robot, actuation=dataclasses.replace(
+        robot.actuation, axial_stiffness_ratio=(1e12,) * 3))
+    cmd = _commands(robot, 20)
+    np.testing.assert_allclose(predict_tip(stiff, cmd), predict_tip(robot, cmd), atol=1e-9)
+    soft = dataclasses.replace(stiff, actuation=dataclasses.replace(
+        robot.actuation, axial_stiffness_ratio=(20.0,) * 3))
+    assert np.max(np.linalg.norm(predict_tip(soft, cmd) - predict_tip(robot, cmd),
+                                 axis=1)) > 1e-4
+
+
+@pytest.mark.parametrize("axial", [False, True])
+def test_equilibrium_minimises_the_energy_found_by_an_independent_solver(axial: bool) -> None:
+    robot = _calibrated_like(load_robot("ftdcr_v6"), axial=axial)
     cmd = _commands(robot, 6)
     p = params_of(robot)
     act = robot.actuation
@@ -72,35 +111,44 @@ def test_equilibrium_minimises_the_energy_found_by_an_independent_solver() -> No
     runs = np.array([[1.0 if i <= j // 3 else 0.0 for i in range(3)] for j in range(9)])
     lengths = p["lengths"]
     c = np.array(act.segment_stiffness) * lengths.sum() / lengths
+    a = np.array(act.axial_stiffness_ratio) if axial else np.zeros(3)
     for row, q in zip(cmd, u, strict=True):
         w = np.array(act.gains) * (row - np.array(act.zero_offsets)) / r
 
         def energy(v: np.ndarray, w: np.ndarray = w) -> float:
-            v = v.reshape(3, 2)
-            short = (np.cos(alpha) * runs * v[None, :, 0]
-                     + np.sin(alpha) * runs * v[None, :, 1]).sum(axis=1)
-            stretch = np.maximum(w - short, 0.0)
+            bend = v[:6].reshape(3, 2)
+            squeeze = np.r_[v[6:], np.zeros(9 - len(v))]    # compression / r
+            short = (np.cos(alpha) * runs * bend[None, :, 0]
+                     + np.sin(alpha) * runs * bend[None, :, 1]).sum(axis=1)
+            stretch = np.maximum(w - short - runs @ squeeze, 0.0)
             kappa = np.repeat(act.tendon_stiffness_ratio, 3)
-            return 0.5 * float(np.sum(c[:, None] * v * v) + np.sum(kappa * stretch ** 2))
+            return 0.5 * float(np.sum(c[:, None] * bend * bend) + np.sum(kappa * stretch ** 2)
+                               + np.sum(a * squeeze ** 2))
 
-        best = minimize(energy, np.zeros(6), method="Powell",
-                        options={"xtol": 1e-12, "ftol": 1e-15, "maxfev": 40000}).x
-        ours = np.stack([q[0::3] * np.cos(q[1::3]), q[0::3] * np.sin(q[1::3])], -1).ravel()
+        size = 9 if axial else 6
+        best = minimize(energy, np.zeros(size), method="Powell",
+                        options={"xtol": 1e-12, "ftol": 1e-15, "maxfev": 80000}).x
+        ours = np.r_[np.stack([q[0::3] * np.cos(q[1::3]), q[0::3] * np.sin(q[1::3])],
+                              -1).ravel(), (lengths - q[2::3]) / r][:size]
         assert energy(ours) <= energy(best) + 1e-12
         np.testing.assert_allclose(ours, best, atol=1e-5)
 
 
-def test_a_released_tendon_never_pushes() -> None:
-    robot = _calibrated_like(load_robot("ftdcr_v6"))
+@pytest.mark.parametrize("axial", [False, True])
+def test_a_released_tendon_never_pushes(axial: bool) -> None:
+    robot = _calibrated_like(load_robot("ftdcr_v6"), axial=axial)
     cmd = _commands(robot, 40)
     base = predict_tip(robot, cmd)
     with jax.enable_x64(True):
         jp = {k: jnp.asarray(v) for k, v in params_of(robot).items()}
         pull = jp["gains"] * (cmd - jp["zero_offsets"]) / jp["radius"]
-        u = bending_vectors(robot, jp, jnp.asarray(cmd)).reshape(len(cmd), -1)
-        from cr_nlp.model.actuation import _routing, _Topology
+        u, lengths = equilibrium(robot, jp, jnp.asarray(cmd))
+        from cr_nlp.model.actuation import _routing, _Topology, tendon_segments
 
-        shortening = np.asarray(u @ _routing(_Topology.of(robot), jp).T)
+        shortening = np.asarray(u.reshape(len(cmd), -1) @ _routing(_Topology.of(robot), jp).T)
+        squeeze = (np.asarray(jp["lengths"]) - np.asarray(lengths)) / robot.tendons.radius
+        shortening = shortening + squeeze @ tendon_segments(robot).T
+    assert (squeeze > 1e-6).any() == axial
     slack = np.asarray(pull) < shortening - 1e-9
     assert slack.any() and (~slack).any()
     released = cmd - np.where(slack, 0.003, 0.0)       # slack tendons released by 3 mm
@@ -110,7 +158,7 @@ def test_a_released_tendon_never_pushes() -> None:
 
 
 def test_implicit_derivatives_match_finite_differences() -> None:
-    robot = _calibrated_like(load_robot("ftdcr_v6"))
+    robot = _calibrated_like(load_robot("ftdcr_v6"), axial=True)
     cmd = jnp.asarray(_commands(robot, 5))
     with jax.enable_x64(True):
         p0 = {k: jnp.asarray(v) for k, v in params_of(robot).items()}
@@ -118,17 +166,38 @@ def test_implicit_derivatives_match_finite_differences() -> None:
         @jax.jit
         def f(x: jax.Array) -> jax.Array:
             p = dict(p0, gains=p0["gains"] * (1 + x[0]), log_kappa=p0["log_kappa"] + x[1],
-                     lengths=p0["lengths"] * (1 + x[2]), radius=p0["radius"] * (1 + x[3]))
+                     lengths=p0["lengths"] * (1 + x[2]), radius=p0["radius"] * (1 + x[3]),
+                     log_axial=p0["log_axial"] + x[4])
             return measured_point(robot, p, cmd)
 
-        x = jnp.zeros(4)
+        x = jnp.zeros(5)
         jac = jax.jit(jax.jacfwd(f))(x)
         jac_rev = jax.jit(jax.jacrev(f))(x)
         h = 1e-6
-        fd = jnp.stack([(f(x.at[k].set(h)) - f(x.at[k].set(-h))) / (2 * h) for k in range(4)],
+        fd = jnp.stack([(f(x.at[k].set(h)) - f(x.at[k].set(-h))) / (2 * h) for k in range(5)],
                        axis=-1)
+    assert float(jnp.max(jnp.abs(jac[..., 4]))) > 1e-6   # the compression moves the tip
     np.testing.assert_allclose(jac, fd, atol=1e-7)
     np.testing.assert_allclose(jac_rev, jac, atol=1e-10)
+
+
+def test_commands_for_a_configuration_reproduce_its_bending_on_compressed_segments() -> None:
+    robot = _calibrated_like(load_robot("ftdcr_v6"), seed=3, axial=True)
+    rng = np.random.default_rng(5)
+    q = np.zeros((50, 9))
+    q[:, 0::3] = rng.uniform(0.0, 1.0, (50, 3))
+    q[:, 1::3] = rng.uniform(-np.pi, np.pi, (50, 3))
+    q[:, 2::3] = [s.length_min for s in robot.segments]
+    cmd = commands_for_configuration(robot, q)
+    back = configuration_from_commands(robot, cmd)
+    bend = lambda v: np.stack([v[:, 0::3] * np.cos(v[:, 1::3]),  # noqa: E731
+                               v[:, 0::3] * np.sin(v[:, 1::3])], -1)
+    np.testing.assert_allclose(bend(back), bend(q), atol=1e-10)
+    shorter = q[:, 2::3] - back[:, 2::3]
+    assert (shorter > 0).all()
+    # Arcs of the same angles, shorter: the tip moves by at most the total compression.
+    gap = np.linalg.norm(tip_pose(robot, back)[0] - tip_pose(robot, q)[0], axis=1)
+    assert (gap <= shorter.sum(axis=1) + 1e-12).all()
 
 
 def test_commands_for_a_configuration_reproduce_it() -> None:
@@ -155,9 +224,15 @@ def test_nominal_straight_and_predict_in_the_measurement_frame() -> None:
 
 
 def test_actuation_block_round_trips_and_is_validated(tmp_path) -> None:
-    robot = _calibrated_like(load_robot("ftdcr_v6"))
-    again = Robot.from_dict(json.loads(json.dumps(robot.to_dict())))
-    assert again == robot
+    for axial in (False, True):
+        robot = _calibrated_like(load_robot("ftdcr_v6"), axial=axial)
+        again = Robot.from_dict(json.loads(json.dumps(robot.to_dict())))
+        assert again == robot
+        assert ("axial_stiffness_ratio" in robot.to_dict()["actuation"]) == axial
+    bad = robot.to_dict()
+    bad["actuation"]["axial_stiffness_ratio"] = [10.0, 0.0, 2.0]
+    with pytest.raises(ModelFileError, match="axial_stiffness_ratio.*positive"):
+        Robot.from_dict(bad)
     bad = robot.to_dict()
     bad["actuation"]["gains"] = [1.0] * 8
     with pytest.raises(ModelFileError, match=r"actuation\.gains"):

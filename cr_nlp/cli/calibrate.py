@@ -19,18 +19,22 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--validate", help="VAL.csv: rows the fit never sees, for the errors")
     p.add_argument("--out", required=True, help="CALIBRATED.json: the fitted robot file")
     p.add_argument("--report", help="folder for report.json and the figures")
+    p.add_argument("--axial-compression", action="store_true",
+                   help="also fit how far the taut tendons shorten each segment (plans keep "
+                        "fixed lengths: their commands then reproduce the tip to ~1 mm)")
     add_data_options(p)
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Fit, write the calibrated robot file (and the report), print the errors."""
-    from ..tasks.calibrate import calibrate
+    from ..tasks.calibrate import CalibrationConfig, calibrate
 
     robot = load_robot_arg(args.robot)
     train = read_data_arg(robot, args.data, args)
     val = read_data_arg(robot, args.validate, args) if args.validate else None
-    result = calibrate(robot, train, val)
+    result = calibrate(robot, train, val,
+                       CalibrationConfig(axial_compression=args.axial_compression))
     calibrated = result.robot.to_dict()
     calibrated["description"] = (f"{robot.name} calibrated by cr-nlp calibrate on "
                                  f"{Path(train.source).name} ({len(train)} rows; "

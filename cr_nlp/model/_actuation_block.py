@@ -10,6 +10,10 @@ from typing import Any
 NOMINAL_TENDON_STIFFNESS_RATIO = 100.0
 """κ without a calibration: tendons 100× stiffer than the backbone in bending."""
 
+NOMINAL_AXIAL_STIFFNESS_RATIO = 30.0
+"""a where a calibration starts fitting axial compression (``calibrate``); a robot file
+without ``axial_stiffness_ratio`` has incompressible segments."""
+
 
 @dataclass(frozen=True)
 class Actuation:
@@ -29,6 +33,10 @@ class Actuation:
     tendon_stiffness_ratio: tuple[float, ...] = ()
     """κ = k_t·r²·L_total / EI_1 per segment (its tendons' axial stiffness against backbone
     bending; shared routing uses the last); empty: 100 for every segment."""
+    axial_stiffness_ratio: tuple[float, ...] = ()
+    """a_i = EA_i·r²·L_total / (L_i·EI_1) per segment: its axial stiffness against backbone
+    bending (dimensionless), so the tendons' tension shortens it; empty: incompressible
+    segments (each keeps its length)."""
     tip_marker: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Position of the measured point (e.g. a motion-capture marker) in the tip frame, m."""
     model_error_mean: float | None = None
@@ -53,6 +61,8 @@ class Actuation:
             "tendon_stiffness_ratio": list(self.tendon_stiffness_ratio),
             "tip_marker": list(self.tip_marker),
         }
+        if self.axial_stiffness_ratio:
+            out["axial_stiffness_ratio"] = list(self.axial_stiffness_ratio)
         if self.model_error_mean is not None:
             out["model_error_mean"] = self.model_error_mean
         if self.model_error_p95 is not None:
@@ -61,8 +71,8 @@ class Actuation:
 
 
 _ACTUATION_KEYS = {"zero_offsets", "gains", "tendon_angle_deltas", "segment_stiffness",
-                   "tendon_stiffness_ratio", "tip_marker", "model_error_mean",
-                   "model_error_p95", "description"}
+                   "tendon_stiffness_ratio", "axial_stiffness_ratio", "tip_marker",
+                   "model_error_mean", "model_error_p95", "description"}
 
 
 def parse_actuation(checker: Any, raw: Any, n_tendons: int, n_segments: int) -> Actuation:
@@ -83,6 +93,15 @@ def parse_actuation(checker: Any, raw: Any, n_tendons: int, n_segments: int) -> 
     if any(v <= 0 for v in kappa):
         raise checker.fail("actuation.tendon_stiffness_ratio",
                            f"must be positive, got {list(kappa)}")
+    axial: tuple[float, ...] = ()
+    if "axial_stiffness_ratio" in a:
+        raw_axial = a["axial_stiffness_ratio"]
+        if isinstance(raw_axial, (int, float)) and not isinstance(raw_axial, bool):
+            raw_axial = [raw_axial] * n_segments
+        axial = checker.vector(raw_axial, "actuation.axial_stiffness_ratio", n_segments)
+        if any(v <= 0 for v in axial):
+            raise checker.fail("actuation.axial_stiffness_ratio",
+                               f"must be positive, got {list(axial)}")
     errors = {}
     for key in ("model_error_mean", "model_error_p95"):
         errors[key] = (checker.number(a[key], f"actuation.{key}", nonnegative=True)
@@ -93,6 +112,7 @@ def parse_actuation(checker: Any, raw: Any, n_tendons: int, n_segments: int) -> 
         tendon_angle_deltas=vec("tendon_angle_deltas", n_tendons, 0.0),
         segment_stiffness=vec("segment_stiffness", n_segments, 1.0, positive=True),
         tendon_stiffness_ratio=kappa,
+        axial_stiffness_ratio=axial,
         tip_marker=vec("tip_marker", 3, 0.0),  # type: ignore[arg-type]
         **errors,
     )

@@ -14,11 +14,21 @@ when that is positive and slack otherwise. The backbone takes the shape of least
 
 with c_i = (EI_i / EI_1)·(L_total / L_i) the segments' bending stiffness and
 κ_j = k_j r² L_total / EI_1 the tendon stiffness ratio (both dimensionless; κ is given
-per group of tendons anchored at the same segment, since their lengths differ). E is convex and
-strictly so, so the shape is unique; the tension of tendon j is ∝ κ·max(0, s_j) ≥ 0: a
-slack tendon carries nothing, and releasing it further changes nothing. The minimiser is
-found by Newton steps with a line search on E (a few active-set changes), and
-differentiated at the solution (implicit function theorem, ``jax.lax.custom_root``).
+per group of tendons anchored at the same segment, since their lengths differ).
+
+With axial compliance (the ``actuation`` block's ``axial_stiffness_ratio`` a_i), the taut
+tendons also shorten the segments they run through: segment i is compressed by r·δ_i,
+every tendon through it is shortened by as much, ``s_j = p_j − r(B u)_j − r Σ_i δ_ij``
+(δ_ij = δ_i where tendon j runs through segment i), and E gains ½ Σ_i a_i δ_i². In
+equilibrium a_i δ_i is the sum of the tensions through segment i, so a segment shortens in
+proportion to the tendon load it carries (pretension included); the shape is the same
+constant-curvature arc on the shorter length. Without the field, δ = 0 (today's model).
+
+E is convex and strictly so, so the shape is unique; the tension of tendon j is
+∝ κ·max(0, s_j) ≥ 0: a slack tendon carries nothing, and releasing it further changes
+nothing. The minimiser is found by Newton steps with a line search on E (a few
+active-set changes), and differentiated at the solution (implicit function theorem,
+``jax.lax.custom_root``).
 
 The robot file's optional ``actuation`` block holds the calibrated parameters
 (models/README.md); without it the nominal values below are used.
@@ -34,6 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._actuation_block import NOMINAL_AXIAL_STIFFNESS_RATIO as NOMINAL_AXIAL_STIFFNESS_RATIO
 from ._actuation_block import NOMINAL_TENDON_STIFFNESS_RATIO as NOMINAL_TENDON_STIFFNESS_RATIO
 from ._actuation_block import Actuation as Actuation
 from ._actuation_block import parse_actuation as parse_actuation
@@ -89,11 +100,15 @@ def params_of(robot: Robot) -> dict[str, np.ndarray]:
     """The robot's model parameters as a dict of float64 arrays (the calibration's
     unknowns and the forward model's inputs): lengths (n) m, radius m, segment_offsets
     (n) rad, angle_deltas, zero_offsets (m), gains, log_stiffness (n), log_kappa,
-    marker (3) m, base_position (3) m, base_rotation (3×3)."""
+    marker (3) m, base_position (3) m, base_rotation (3×3); and log_axial (n), the log of
+    the axial stiffness ratio, only where the robot's segments are compressible."""
     from .rotations import matrix_from_wxyz
 
     act = actuation_of(robot)
-    return {
+    axial = (
+        {"log_axial": np.log(np.array(act.axial_stiffness_ratio, float))}
+        if act.axial_stiffness_ratio else {})
+    return axial | {
         "lengths": np.array([s.length_min for s in robot.segments], float),
         "radius": np.array(robot.tendons.radius, float),
         "segment_offsets": np.array(robot.tendons.offsets, float),
@@ -131,6 +146,9 @@ def robot_with_params(robot: Robot, params: dict[str, Any],
         segment_stiffness=tuple(float(v) for v in stiffness),
         tendon_stiffness_ratio=tuple(float(v) for v in
                                      np.exp(p["log_kappa"] - p["log_stiffness"][0])),
+        axial_stiffness_ratio=(
+            tuple(float(v) for v in np.exp(p["log_axial"] - p["log_stiffness"][0]))
+            if "log_axial" in p else ()),
         tip_marker=tuple(float(v) for v in p["marker"]),  # type: ignore[arg-type]
         model_error_mean=model_error[0],
         model_error_p95=model_error[1],
@@ -244,30 +262,47 @@ def _rotation(params: dict[str, Any]) -> jax.Array:
     return r @ (jnp.eye(3, dtype=w.dtype) + a * k + bb * (k @ k))
 
 
+def equilibrium(robot: Robot, params: dict[str, Any], commands: jax.Array,
+                iterations: int = 12) -> tuple[jax.Array, jax.Array]:
+    """Equilibrium bending vectors (…, n, 2) rad and segment lengths (…, n) m for
+    (…, n_tendons) commands (m), with the model parameters ``params`` (``params_of``;
+    traced values allowed). The lengths are ``params["lengths"]`` less the axial
+    compression where ``params`` has ``log_axial``, and those lengths otherwise."""
+    topo = _Topology.of(robot)
+    n = topo.n_segments
+    b = _routing(topo, params)
+    c = _stiffness(params)
+    if "log_axial" in params:
+        # δ_i (compression / r) as n more unknowns: tendons through segment i shorten by δ_i
+        b = jnp.concatenate([b, jnp.asarray(topo.runs_through, b.dtype)], axis=1)
+        c = jnp.concatenate([c, jnp.exp(params["log_axial"])])
+    kappa = jnp.exp(params["log_kappa"])[np.asarray(topo.group)]
+    pull = params["gains"] * (commands - params["zero_offsets"]) / params["radius"]
+    flat = pull.reshape(-1, pull.shape[-1])
+    x = jax.vmap(lambda row: bending_from_pull(row, c, b, kappa, iterations))(flat)
+    u = x[:, :2 * n].reshape(pull.shape[:-1] + (n, 2))
+    lengths = jnp.broadcast_to(params["lengths"], pull.shape[:-1] + (n,))
+    if "log_axial" in params:
+        lengths = lengths - params["radius"] * x[:, 2 * n:].reshape(pull.shape[:-1] + (n,))
+    return u, lengths
+
+
 def bending_vectors(robot: Robot, params: dict[str, Any], commands: jax.Array,
                     iterations: int = 12) -> jax.Array:
     """(…, n, 2) equilibrium bending vectors (rad) for (…, n_tendons) commands (m), with
     the model parameters ``params`` (``params_of``; traced values allowed)."""
-    topo = _Topology.of(robot)
-    b = _routing(topo, params)
-    c = _stiffness(params)
-    kappa = jnp.exp(params["log_kappa"])[np.asarray(topo.group)]
-    pull = params["gains"] * (commands - params["zero_offsets"]) / params["radius"]
-    flat = pull.reshape(-1, pull.shape[-1])
-    u = jax.vmap(lambda row: bending_from_pull(row, c, b, kappa, iterations))(flat)
-    return u.reshape(pull.shape[:-1] + (topo.n_segments, 2))
+    return equilibrium(robot, params, commands, iterations)[0]
 
 
 def _z_of(u: jax.Array, lengths: jax.Array) -> jax.Array:
-    lengths = jnp.broadcast_to(lengths, u.shape[:-1])
     return jnp.concatenate([u, lengths[..., None]], axis=-1).reshape(u.shape[:-2] + (-1,))
 
 
 def measured_point(robot: Robot, params: dict[str, Any], commands: jax.Array,
                    iterations: int = 12) -> jax.Array:
     """(…, 3) predicted measured point (tip marker) in the measurement frame, m."""
-    u = bending_vectors(robot, params, commands, iterations)
-    z = _z_of(u, params["lengths"])
+    u, lengths = equilibrium(robot, params, commands, iterations)
+    z = _z_of(u, lengths)
     local = replace(robot, base_position=(0.0, 0.0, 0.0), base_wxyz=(1.0, 0.0, 0.0, 0.0),
                     actuation=None)
     pos, rot = tip_pose_z(local, z)
@@ -277,9 +312,9 @@ def measured_point(robot: Robot, params: dict[str, Any], commands: jax.Array,
 
 @partial(jax.jit, static_argnums=(0, 3))
 def _predict_jit(robot: Robot, params: dict[str, Any], commands: jax.Array,
-                 iterations: int) -> tuple[jax.Array, jax.Array]:
-    u = bending_vectors(robot, params, commands, iterations)
-    return measured_point(robot, params, commands, iterations), u
+                 iterations: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+    u, lengths = equilibrium(robot, params, commands, iterations)
+    return measured_point(robot, params, commands, iterations), u, lengths
 
 
 def _jax_params(robot: Robot) -> dict[str, jax.Array]:
@@ -295,24 +330,25 @@ def predict_tip(robot: Robot, commands: Any, iterations: int = 12) -> np.ndarray
     """
     cmd = _commands(robot, commands)
     with jax.enable_x64(True):
-        pos, _ = _predict_jit(robot, _jax_params(robot), jnp.asarray(cmd, jnp.float64),
-                              iterations)
+        pos, _, _ = _predict_jit(robot, _jax_params(robot), jnp.asarray(cmd, jnp.float64),
+                                 iterations)
         return np.asarray(pos, dtype=np.float64)
 
 
 def configuration_from_commands(robot: Robot, commands: Any,
                                 iterations: int = 12) -> np.ndarray:
     """The configurations q (N, 3n) = [θ1, φ1, L1, …] (rad, rad, m) that commanded tendon
-    displacements (N, n_tendons) m produce: forward kinematics from motor commands."""
+    displacements (N, n_tendons) m produce: forward kinematics from motor commands. The
+    lengths L are the segments' own, less their axial compression where the robot's
+    ``actuation`` block gives ``axial_stiffness_ratio``."""
     from .kinematics import z_to_q_numpy
 
     cmd = _commands(robot, commands)
     with jax.enable_x64(True):
-        _, u = _predict_jit(robot, _jax_params(robot), jnp.asarray(cmd, jnp.float64),
-                            iterations)
-        u = np.asarray(u, np.float64)
-    lengths = np.array([s.length_min for s in robot.segments])
-    z = np.concatenate([u, np.broadcast_to(lengths, u.shape[:-1])[..., None]], axis=-1)
+        _, u, lengths = _predict_jit(robot, _jax_params(robot),
+                                     jnp.asarray(cmd, jnp.float64), iterations)
+        u, lengths = np.asarray(u, np.float64), np.asarray(lengths, np.float64)
+    z = np.concatenate([u, lengths[..., None]], axis=-1)
     return z_to_q_numpy(z.reshape(len(cmd), -1))
 
 
@@ -337,6 +373,12 @@ def commands_for_configuration(robot: Robot, q: Any, slack: float = 0.0) -> np.n
     the two of its tendons that bracket its direction (the least tension; the third
     tendon is left just taut, or ``slack`` m slack, so ``predict`` gives back q exactly).
     Needs at least three tendons per segment spread around the backbone.
+
+    With axial compliance (``axial_stiffness_ratio``) the commands also take up the
+    compression those tensions cause, and the robot takes q's bending on segments
+    shortened by it, which no command can undo (``configuration_from_commands`` gives
+    back q's angles and the shorter lengths; the tip moves by at most the total
+    compression).
     """
     from .kinematics import q_to_z_numpy
 
@@ -352,10 +394,20 @@ def commands_for_configuration(robot: Robot, q: Any, slack: float = 0.0) -> np.n
         jp = {k: jnp.asarray(v, jnp.float64) for k, v in p.items()}
         b = np.asarray(_routing(_Topology.of(robot), jp))
         c = np.asarray(_stiffness(jp))
+    tension = _holding_tensions(robot, b, c, u)
     kappa = np.exp(p["log_kappa"])[_groups(robot)]
+    shortening = u @ b.T + _compression(robot, p, tension) @ tendon_segments(robot).T
+    pull = shortening + tension / kappa - np.where(tension > 0, 0.0, slack / p["radius"])
+    return p["zero_offsets"] + pull * p["radius"] / p["gains"]
+
+
+def _holding_tensions(robot: Robot, b: np.ndarray, c: np.ndarray,
+                      u: np.ndarray) -> np.ndarray:
+    """(N, n_tendons) the least tensions λ ≥ 0 (energy units per rad) that hold the
+    bending vectors u (N, 2n) rad: c·u = Bᵀλ, from the tip segment down."""
     n, m = robot.n_segments, robot.tendons.per_segment
     moment = c * u                                           # (N, 2n) = Bᵀ λ
-    tension = np.zeros((len(q), robot.n_tendons))
+    tension = np.zeros((len(u), robot.n_tendons))
     carried = np.zeros_like(moment)
     for k in reversed(range(n)):
         rows = slice(k * m, (k + 1) * m)
@@ -367,9 +419,15 @@ def commands_for_configuration(robot: Robot, q: Any, slack: float = 0.0) -> np.n
     if np.max(np.abs(carried - moment)) > 1e-9 * max(1.0, float(np.max(np.abs(moment)))):
         raise ValueError("the tendon directions cannot hold this shape (a segment's "
                          "tendons do not surround its backbone)")
-    shortening = u @ b.T                                     # (N, n_tendons), rad
-    pull = shortening + tension / kappa - np.where(tension > 0, 0.0, slack / p["radius"])
-    return p["zero_offsets"] + pull * p["radius"] / p["gains"]
+    return tension
+
+
+def _compression(robot: Robot, p: dict[str, np.ndarray], tension: np.ndarray) -> np.ndarray:
+    """(N, n) each segment's compression / r (rad-equivalent): a_i δ_i = Σ tensions through
+    segment i; zero for incompressible segments."""
+    if "log_axial" not in p:
+        return np.zeros((len(tension), robot.n_segments))
+    return (tension @ tendon_segments(robot)) / np.exp(p["log_axial"])
 
 
 def _bracketing_tensions(need: np.ndarray, dirs: np.ndarray) -> np.ndarray:
