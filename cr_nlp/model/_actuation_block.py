@@ -86,22 +86,19 @@ def parse_actuation(checker: Any, raw: Any, n_tendons: int, n_segments: int) -> 
             raise checker.fail(f"actuation.{key}", f"must all be positive, got {list(values)}")
         return values
 
-    raw_kappa = a.get("tendon_stiffness_ratio", NOMINAL_TENDON_STIFFNESS_RATIO)
-    if isinstance(raw_kappa, (int, float)) and not isinstance(raw_kappa, bool):
-        raw_kappa = [raw_kappa] * n_segments
-    kappa = checker.vector(raw_kappa, "actuation.tendon_stiffness_ratio", n_segments)
-    if any(v <= 0 for v in kappa):
-        raise checker.fail("actuation.tendon_stiffness_ratio",
-                           f"must be positive, got {list(kappa)}")
-    axial: tuple[float, ...] = ()
-    if "axial_stiffness_ratio" in a:
-        raw_axial = a["axial_stiffness_ratio"]
-        if isinstance(raw_axial, (int, float)) and not isinstance(raw_axial, bool):
-            raw_axial = [raw_axial] * n_segments
-        axial = checker.vector(raw_axial, "actuation.axial_stiffness_ratio", n_segments)
-        if any(v <= 0 for v in axial):
-            raise checker.fail("actuation.axial_stiffness_ratio",
-                               f"must be positive, got {list(axial)}")
+    def per_segment_ratio(key: str, default: float) -> tuple[float, ...]:
+        # One number stands for every segment.
+        raw_ratio = a.get(key, default)
+        if isinstance(raw_ratio, (int, float)) and not isinstance(raw_ratio, bool):
+            raw_ratio = [raw_ratio] * n_segments
+        values = checker.vector(raw_ratio, f"actuation.{key}", n_segments)
+        if any(v <= 0 for v in values):
+            raise checker.fail(f"actuation.{key}", f"must be positive, got {list(values)}")
+        return values
+
+    kappa = per_segment_ratio("tendon_stiffness_ratio", NOMINAL_TENDON_STIFFNESS_RATIO)
+    axial = (per_segment_ratio("axial_stiffness_ratio", 0.0)
+             if "axial_stiffness_ratio" in a else ())
     errors = {}
     for key in ("model_error_mean", "model_error_p95"):
         errors[key] = (checker.number(a[key], f"actuation.{key}", nonnegative=True)
