@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -267,6 +269,32 @@ def test_prediction_stop_ends_the_same_iterates_early() -> None:
     assert float(cost_stop) == float(cost_same)
     # ...and what the plain solve gains afterwards is within the tolerance's reach.
     assert float(cost_full) <= float(cost_stop) <= float(cost_full) * (1.0 + 1e-6)
+
+
+def test_give_up_stops_only_chains_left_above_the_cost() -> None:
+    """A chain whose cost after ``give_up_iteration`` steps is still above ``give_up_cost``
+    stops there with the plain solve's iterate at that budget; one below it (or the rule
+    off) runs as before."""
+    z, p = problem(7)
+    free = jnp.ones(3)
+    plain = LMConfig(cost_tolerance=0.0, stall_tolerance=0.0)
+    solve = jax.jit(banded_lm_solve, static_argnames=("terms", "project", "config"))
+    z_full, cost_full, used_full = solve(TERMS, unprojected, z, p, None, free, jnp.int32(60),
+                                         config=plain)
+    _, cost_3, _ = solve(TERMS, unprojected, z, p, None, free, jnp.int32(3), config=plain)
+    assert int(used_full) > 3 and float(cost_3) > float(cost_full)
+    # Above the cost after 3 steps: stops at 3, the plain solve's iterate at that budget.
+    high = LMConfig(cost_tolerance=0.0, stall_tolerance=0.0, give_up_iteration=3,
+                    give_up_cost=0.5 * float(cost_3))
+    z_stop, cost_stop, used = solve(TERMS, unprojected, z, p, None, free, jnp.int32(60),
+                                    config=high)
+    assert int(used) == 3 and float(cost_stop) == float(cost_3)
+    # Below it: never triggers, the same iterates as the plain solve.
+    low = replace(high, give_up_cost=2.0 * float(cost_3))
+    z_low, cost_low, used_low = solve(TERMS, unprojected, z, p, None, free, jnp.int32(60),
+                                      config=low)
+    np.testing.assert_array_equal(np.asarray(z_low), np.asarray(z_full))
+    assert int(used_low) == int(used_full)
 
 
 def test_chains_added_after_the_last_one_finished_are_solved_alike() -> None:

@@ -109,6 +109,8 @@ class ChainBatchLM:
             shelf trajectories, 2-core CPU: 1.5, 2.9, 5.2 ms for 1, 2, 4 slots).
         overlap: slots: run ``more`` on a call's finished chains while the next call
             computes (False: before it, the former order; kept for comparison).
+        config: the banded LM's stopping rules (default: ``LMConfig(cost_tolerance=0)``,
+            no cost floor: a chain stops when it stalls).
     """
 
     def __init__(self, terms: ChainResidual, project: Callable[[jax.Array], jax.Array],
@@ -116,7 +118,8 @@ class ChainBatchLM:
                  structure: str = "banded", dense_residual: Callable | None = None,
                  dense_project: Callable | None = None, extra: Any = None,
                  schedule: str = "slots", trips: int = 1 << 30, refill: int = 1,
-                 resize: bool = True, overlap: bool = True) -> None:
+                 resize: bool = True, overlap: bool = True,
+                 config: LMConfig | None = None) -> None:
         if structure not in ("banded", "dense"):
             raise ValueError(f"structure must be 'banded' or 'dense', got {structure!r}")
         if structure == "dense" and (dense_residual is None or dense_project is None):
@@ -133,8 +136,8 @@ class ChainBatchLM:
                                                                extra)
         self.schedule = "chunks" if structure == "dense" else schedule
         self.trips, self.refill, self.resize, self.overlap = trips, refill, resize, overlap
-        self.config = LMConfig(cost_tolerance=0.0)
-        """The LM's stopping rules (no cost floor: a chain stops when it stalls)."""
+        self.config = LMConfig(cost_tolerance=0.0) if config is None else config
+        """The banded LM's stopping rules."""
         self._compiled: dict[int, Any] = {}
         self._slot_programs: dict[int, Any] = {}
         self._idle_shapes: dict[int, Any] = {}

@@ -41,6 +41,12 @@ class LMConfig:
     """(``stages._banded_lm`` only) ...or once the next proposed step is predicted by the
     Gauss–Newton model to lower the cost by less than this fraction: a run of rejected
     steps at that size would end in the stall rule or the λ cap anyway. 0: off."""
+    give_up_iteration: int = 0
+    """(``stages._banded_lm`` only) ...or once this many steps were judged while the cost is
+    still above ``give_up_cost``: a chain stuck deep in a penalty (e.g. a trajectory
+    through an obstacle) stops instead of creeping on to the iteration budget. 0: off."""
+    give_up_cost: float = float("inf")
+    """The cost ½‖r‖² (units of r squared) above which ``give_up_iteration`` stops."""
     stop_when_converged: bool = True
     """End the loop early once every problem in the batch converged or stalled."""
     linear_solver: str = "unrolled"
