@@ -375,8 +375,9 @@ def banded_lm_trip(terms: ChainResidual, project: Callable[[jax.Array], jax.Arra
                                          1e-12, 1e12)).astype(dtype)
     nu = jnp.where(first, nu, jnp.where(accept, 2.0, nu * 2.0)).astype(dtype)
     z_trial, predicted = trial(z, h, g, lam)
-    # Nothing left for the model to gain: later trips could only reject or stall.
-    done = done | (~first & (predicted < config.prediction_tolerance * cost))
+    if config.prediction_tolerance > 0.0:  # off: float32 can predict a tiny negative gain
+        # Nothing left for the model to gain: later trips could only reject or stall.
+        done = done | (~first & (predicted < config.prediction_tolerance * cost))
     return BandedLMState(z, cost, h, g, lam, nu, done, it + 1, z_trial, predicted)
 
 
