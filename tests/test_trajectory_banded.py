@@ -97,42 +97,38 @@ def test_broad_phase_measures_the_nearest_parts():
             near_clearance_groups(ROBOT, 2 * margin, arrays, cells, z[0])
 
 
+def _plan_alike(scene_name: str, count: int, other: TrajectoryConfig, least_successes: int,
+                rel: float) -> tuple[TrajectoryPlanner, TrajectoryPlanner]:
+    """Plan ``count`` problems of the benchmark protocol with the default config and with
+    ``other``; assert the same successes and path lengths within ``rel``."""
+    from cr_nlp.bench.plan import plan_problems
+
+    scene = load_scene(scene_name)
+    default = TrajectoryPlanner(ROBOT, scene, TrajectoryConfig())
+    changed = TrajectoryPlanner(ROBOT, scene, other)
+    starts, goals = plan_problems(ROBOT, scene, count, default.margin, seed=0)
+    a, b = default.plan(starts, goals), changed.plan(starts, goals)
+    assert [r.success for r in a] == [r.success for r in b]
+    assert sum(r.success for r in a) >= least_successes
+    for ra, rb in zip(a, b, strict=True):
+        if ra.success:
+            assert ra.path_length == pytest.approx(rb.path_length, rel=rel)
+    return default, changed
+
+
 @pytest.mark.slow  # two planners' compilations: `pytest -m slow`
 def test_banded_and_dense_lm_plan_alike_on_the_shelf():
     """Before/after: the banded LM (default) and the dense LM plan 6 shelf problems of the
     benchmark protocol with the same successes and path lengths within 2 %."""
-    from cr_nlp.bench.plan import plan_problems
-
-    scene = load_scene("shelf")
-    config = TrajectoryConfig()
-    banded = TrajectoryPlanner(ROBOT, scene, config)
-    dense = TrajectoryPlanner(ROBOT, scene, replace(config, lm_structure="dense"))
-    starts, goals = plan_problems(ROBOT, scene, 6, banded.margin, seed=0)
-    a, b = banded.plan(starts, goals), dense.plan(starts, goals)
-    assert [r.success for r in a] == [r.success for r in b]
-    assert sum(r.success for r in a) >= 5
-    for ra, rb in zip(a, b, strict=True):
-        if ra.success:
-            assert ra.path_length == pytest.approx(rb.path_length, rel=0.02)
+    _plan_alike("shelf", 6, replace(TrajectoryConfig(), lm_structure="dense"), 5, 0.02)
 
 
 @pytest.mark.slow  # two planners' compilations: `pytest -m slow`
 def test_give_up_stop_plans_the_cabinet_alike_in_fewer_trips():
     """Before/after: stopping guesses still deep in an obstacle after 20 iterations
     (default) and running every guess to its stall or cap plan 12 cabinet problems of the
-    benchmark protocol with the same successes and path lengths, in fewer LM trips."""
-    from cr_nlp.bench.plan import plan_problems
-
-    scene = load_scene("cabinet")
-    config = TrajectoryConfig()
-    new = TrajectoryPlanner(ROBOT, scene, config)
-    old = TrajectoryPlanner(ROBOT, scene, replace(config, give_up_iteration=0))
-    starts, goals = plan_problems(ROBOT, scene, 12, new.margin, seed=0)
-    a, b = new.plan(starts, goals), old.plan(starts, goals)
-    assert [r.success for r in a] == [r.success for r in b]
-    assert sum(r.success for r in a) >= 10
-    for ra, rb in zip(a, b, strict=True):
-        if ra.success:
-            # Same guess chosen; float32 programs of other slot counts round differently.
-            assert ra.path_length == pytest.approx(rb.path_length, rel=1e-3)
+    benchmark protocol with the same successes and path lengths (the same guess chosen;
+    float32 programs of other slot counts round differently), in fewer LM trips."""
+    new, old = _plan_alike("cabinet", 12, replace(TrajectoryConfig(), give_up_iteration=0),
+                           10, 1e-3)
     assert new.lm.slot_trips < old.lm.slot_trips
