@@ -301,7 +301,13 @@ def _z_of(u: jax.Array, lengths: jax.Array) -> jax.Array:
 def measured_point(robot: Robot, params: dict[str, Any], commands: jax.Array,
                    iterations: int = 12) -> jax.Array:
     """(…, 3) predicted measured point (tip marker) in the measurement frame, m."""
-    u, lengths = equilibrium(robot, params, commands, iterations)
+    return _marker_at(robot, params, *equilibrium(robot, params, commands, iterations))
+
+
+def _marker_at(robot: Robot, params: dict[str, Any], u: jax.Array,
+               lengths: jax.Array) -> jax.Array:
+    """(…, 3) the measured point, m, of the shape with bending vectors u (…, n, 2) rad and
+    segment lengths (…, n) m."""
     z = _z_of(u, lengths)
     local = replace(robot, base_position=(0.0, 0.0, 0.0), base_wxyz=(1.0, 0.0, 0.0, 0.0),
                     actuation=None)
@@ -313,8 +319,8 @@ def measured_point(robot: Robot, params: dict[str, Any], commands: jax.Array,
 @partial(jax.jit, static_argnums=(0, 3))
 def _predict_jit(robot: Robot, params: dict[str, Any], commands: jax.Array,
                  iterations: int) -> tuple[jax.Array, jax.Array, jax.Array]:
-    u, lengths = equilibrium(robot, params, commands, iterations)
-    return measured_point(robot, params, commands, iterations), u, lengths
+    u, lengths = equilibrium(robot, params, commands, iterations)   # solved once
+    return _marker_at(robot, params, u, lengths), u, lengths
 
 
 def _jax_params(robot: Robot) -> dict[str, jax.Array]:

@@ -151,10 +151,7 @@ class ChainBatchLM:
         """Slots or chunk size for ``count`` chains: the smallest power of two (≥ the device
         count) that holds them, at most ``chunk_size``, and no smaller than a size already
         compiled (one program serves every later batch)."""
-        size = max(2, len(jax.devices()))
-        while size < min(count, self.chunk_size):
-            size *= 2
-        return max(size, min(compiled, default=0))
+        return max(self._fitting(count, max(2, len(jax.devices()))), min(compiled, default=0))
 
     def solve(self, z0: np.ndarray, step: np.ndarray, arrays: Any, iterations: int,
               more: MoreChains | None = None) -> ChainSolution:
@@ -283,10 +280,10 @@ class ChainBatchLM:
                              np.array([out_it[k] for k in order], dtype=int),
                              compile_seconds, callback)
 
-    def _fitting(self, count: int) -> int:
+    def _fitting(self, count: int, least: int = 2) -> int:
         """Slots for ``count`` running or waiting chains: the smallest power of two (at
-        least 2) that holds them, at most ``chunk_size``."""
-        size = 2
+        least ``least``) that holds them, at most ``chunk_size``."""
+        size = least
         while size < min(count, self.chunk_size):
             size *= 2
         return size

@@ -385,6 +385,21 @@ class PathFollower:
         return (self._arrays, np.asarray(dt, self.dtype))
 
     # ------------------------------------------------------------ stage 2
+    def _refined_and_judged(self, q0: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
+                            trackable: np.ndarray, path: ReferencePath, dt: float,
+                            timing: StageTiming,
+                            repair: bool = False) -> tuple[np.ndarray, dict[str, Any]]:
+        """``refine`` then ``verify`` (Δt ``dt``, s), their seconds added to ``timing``."""
+        t1 = time.perf_counter()
+        with compile_seconds() as compiled:
+            q, _, _ = self.refine(q0, positions, wxyz, trackable, dt, repair=repair)
+        timing.compile += compiled[0]
+        timing.refine += time.perf_counter() - t1 - compiled[0]
+        t2 = time.perf_counter()
+        verdict = self.verify(q, path, dt)
+        timing.verify += time.perf_counter() - t2
+        return q, verdict
+
     def refine(self, q0: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
                trackable: np.ndarray, dt: float,
                repair: bool = False) -> tuple[np.ndarray, float, int]:
@@ -468,27 +483,14 @@ class PathFollower:
             q0 = self.initial_sequence(positions, wxyz, trackable, dt)
         timing.compile += compiled[0]
         timing.explore = time.perf_counter() - t0 - compiled[0]
-        t1 = time.perf_counter()
-        with compile_seconds() as compiled:
-            q, _, _ = self.refine(q0, positions, wxyz, trackable, dt)
-        timing.compile += compiled[0]
-        timing.refine = time.perf_counter() - t1 - compiled[0]
-        t2 = time.perf_counter()
-        verdict = self.verify(q, path, dt)
-        timing.verify = time.perf_counter() - t2
+        refine_args = (q0, positions, wxyz, trackable, path, dt, timing)
+        q, verdict = self._refined_and_judged(*refine_args)
         if self._repair_terms is not None and (
                 verdict["tendon_speed"] > self.robot.tendon_speed_max
                 or verdict["tendon_accel"] > self.robot.tendon_accel_max):
             # The soft tendon penalty left a limit broken: the stiff one from stage 1's
             # sequence (from the soft answer, measured, it may creep for 40 iterations).
-            t1 = time.perf_counter()
-            with compile_seconds() as compiled:
-                q, _, _ = self.refine(q0, positions, wxyz, trackable, dt, repair=True)
-            timing.compile += compiled[0]
-            timing.refine += time.perf_counter() - t1 - compiled[0]
-            t2 = time.perf_counter()
-            verdict = self.verify(q, path, dt)
-            timing.verify += time.perf_counter() - t2
+            q, verdict = self._refined_and_judged(*refine_args, repair=True)
         result = self._result(q, path, verdict, "refine", why)
         if exact:   # stage 3 (``tasks._follow_polish``)
             result = polish_follow(
