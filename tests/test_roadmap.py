@@ -116,3 +116,44 @@ def test_the_broad_phase_checker_decides_the_margin_like_every_part(robot, name)
     assert np.all(got[~below] >= margin - 2e-6)
     assert np.array_equal(got >= margin, every >= margin) or \
         np.abs(every[(got >= margin) != (every >= margin)] - margin).max() < 2e-6
+
+
+class ThinWall:
+    """A stand-in clearance checker in z: −1 m on a wall 1 cm thick across the first
+    coordinate (0.29 ≤ z₀ ≤ 0.30, |z₁| < 0.05), 1 m elsewhere. An edge from z₀ = 0 to
+    z₀ = 1 passes its 8 coarse samples (z₀ = 0.22, 0.33, …) and fails the dense ones."""
+
+    def __call__(self, z: np.ndarray) -> np.ndarray:
+        z = np.atleast_2d(z)
+        wall = (z[:, 0] >= 0.29) & (z[:, 0] <= 0.30) & (np.abs(z[:, 1]) < 0.05)
+        return np.where(wall, -1.0, 1.0)
+
+    def compile_all(self) -> None:
+        pass
+
+
+def test_an_attach_edge_only_the_dense_check_rejects_is_not_used(robot, shelf):
+    """Start S = (0, 0) attaches to N1 = (1, 0) (coarse samples pass, the wall is between
+    them) and N2 = (0, 1); the shortest path S–N1–G crosses the wall, so the query must
+    find the longer S–N2–N3–G, every edge of which keeps the margin densely."""
+    import scipy.sparse as sp
+
+    def point(x: float, y: float) -> np.ndarray:
+        z = np.zeros(robot.dof)
+        z[0], z[1], z[2::3] = x, y, 1.0
+        return z
+
+    nodes = np.stack([point(1, 0), point(0, 1), point(2, 1)])      # N1, N2, N3
+    hops = [(0, 2), (1, 2)]
+    rows, cols = zip(*(hops + [(b, a) for a, b in hops]), strict=True)
+    lengths = [float(np.linalg.norm(nodes[a] - nodes[b])) for a, b in zip(rows, cols,
+                                                                             strict=True)]
+    edges = sp.csr_matrix((lengths, (rows, cols)), shape=(3, 3))
+    roadmap = Roadmap(robot, shelf, RoadmapConfig(neighbours=2, edge_checks=8), nodes,
+                      edges, 0.0)
+    roadmap._checker = ThinWall()
+    start, goal = point(0, 0), point(2, 0)
+    path = roadmap.query_z(start, goal)
+    np.testing.assert_array_equal(path, np.stack([start, nodes[1], nodes[2], goal]))
+    assert roadmap.dense_free(path[:-1], path[1:]).all()
+    assert not roadmap.dense_free(start, nodes[0]).any()
