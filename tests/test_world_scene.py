@@ -218,3 +218,17 @@ def test_broken_scene_files_name_file_obstacle_and_problem(
 def test_missing_scene_file() -> None:
     with pytest.raises(ModelFileError, match="file not found"):
         load_scene("/nonexistent/scene.json")
+
+
+def test_rotation_z_to_turns_z_onto_the_direction():
+    """A proper rotation whose third column is the direction normalised (the capsules of
+    the verdict are built with it), including the half turn for −z."""
+    from cr_nlp.world.scene import rotation_z_to
+
+    rng = np.random.default_rng(4)
+    for d in [*rng.normal(size=(200, 3)), np.array([0.0, 0.0, 2.0]), np.array([0.0, 0.0, -3.0]),
+              np.array([1e-7, 0.0, -1.0])]:
+        r = rotation_z_to(d)
+        np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(r) == pytest.approx(1.0, abs=1e-12)
+        np.testing.assert_allclose(r[:, 2], d / np.linalg.norm(d), atol=1e-6)
