@@ -370,3 +370,28 @@ def test_slots_shrink_and_grow_without_changing_the_iterates() -> None:
         work[resize] = (batch.slot_trips, sorted(batch._slot_programs))
     assert work[False][1] == [8] and work[True][1] == [2, 4, 8]
     assert work[True][0] < work[False][0]
+
+
+def test_slots_and_chunks_never_exceed_a_chunk_size_that_is_not_a_power_of_two() -> None:
+    """chunk_size 6 (or 3): programs of at most 6 slots (3 rows), every chain still its
+    one-shot ``banded_lm_solve``."""
+    from cr_nlp.stages._chain_batch import ChainBatchLM
+
+    t, d, budget = 5, 3, 8
+    terms = ChainResidual(step_unary, pair, triple)
+    rng = np.random.default_rng(12)
+    count = 11
+    z0 = rng.normal(size=(count, t * d))
+    steps = rng.normal(size=count)
+    free = jnp.ones(t * d, jnp.float64).at[:d].set(0.0)
+    for chunk_size, schedule in ((6, "slots"), (3, "chunks")):
+        batch = ChainBatchLM(terms, unprojected, t, free, jnp.float64, chunk_size=chunk_size,
+                             schedule=schedule)
+        solution = batch.solve(z0, steps, None, budget)
+        sizes = batch._slot_programs if schedule == "slots" else batch._compiled
+        assert sizes and max(sizes) <= chunk_size
+        for k in range(count):
+            zk, _, _ = banded_lm_solve(terms, unprojected, jnp.asarray(z0[k].reshape(t, d)),
+                                       None, (None, None, jnp.float64(steps[k])),
+                                       free.reshape(t, d), jnp.int32(budget))
+            np.testing.assert_allclose(solution.z[k], np.asarray(zk).reshape(-1), atol=1e-12)

@@ -282,11 +282,12 @@ class ChainBatchLM:
 
     def _fitting(self, count: int, least: int = 2) -> int:
         """Slots for ``count`` running or waiting chains: the smallest power of two (at
-        least ``least``) that holds them, at most ``chunk_size``."""
+        least ``least``) that holds them, at most ``chunk_size`` (which need not be a power
+        of two)."""
         size = least
         while size < min(count, self.chunk_size):
             size *= 2
-        return size
+        return min(size, self.chunk_size)
 
     def _moved(self, state: BandedLMState, keep: np.ndarray, slots: int) -> BandedLMState:
         """The LM states of the slots ``keep`` (in order) in the first rows of a state of
