@@ -181,6 +181,36 @@ def test_pose_only_chains_match_chains_on_the_whole_residual(follower) -> None:
     assert np.all(errors[found] >= gap - 1e-5) and np.all(errors[found] < 1e-3)
 
 
+def test_quick_chains_keep_the_table_and_the_sequence(follower) -> None:
+    # The chains' small starting damping and give-up rule only end their LM loops sooner:
+    # against chains with a plain LM solve's damping (1e-2) and no give-up, the same
+    # candidates solve their waypoints, at the same answers (float32 noise), and the
+    # chosen sequence is the same.
+    from dataclasses import replace
+
+    from cr_nlp.stages._continuation import BranchContinuation
+
+    stage = follower.continuation
+    assert stage.settings.damping < 1e-2 and stage.settings.give_up_iterations > 0
+    plain = BranchContinuation(ROBOT, stage.residual, stage.candidates, stage.free,
+                               stage.dtype, replace(stage.settings, damping=1e-2,
+                                                    give_up_iterations=0),
+                               chain_residual=stage.chain_residual)
+    path = line_path()
+    shared = follower._shared(DT)
+    tolerance = stage.settings.tolerance
+    z, errors = stage.table(path.positions, path.wxyz, shared)
+    z_plain, errors_plain = plain.table(path.positions, path.wxyz, shared)
+    solved = errors < tolerance
+    np.testing.assert_array_equal(solved, errors_plain < tolerance)
+    assert solved.sum() > WAYPOINTS
+    np.testing.assert_allclose(z[solved], z_plain[solved], atol=2e-4)
+    seconds = np.full(WAYPOINTS - 1, DT)
+    np.testing.assert_allclose(
+        stage.sequence(path.positions, path.wxyz, seconds, shared),
+        plain.sequence(path.positions, path.wxyz, seconds, shared), atol=2e-4)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(("shape", "max_position_mm"), [("square", 0.1), ("sine", 0.1),
                                                         ("icra", 3.0)])
