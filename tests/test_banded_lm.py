@@ -109,6 +109,32 @@ def test_banded_lm_takes_the_dense_lm_steps() -> None:
     assert float(cb) < 0.5 * float(jnp.sum(dense_residual(z.reshape(-1), p, (t, d)) ** 2))
 
 
+def test_lm_give_up_ends_the_loop_but_not_the_other_problems_steps() -> None:
+    # Two problems x² = 2: one from 1.5 (converges in a few steps), one from 300 (far:
+    # LM crawls down from it). Giving up after 2 steps above cost 1 ends the loop once the
+    # near one converged; the near one takes exactly the steps it takes alone.
+    def square_root(z, p, shared):
+        return z * z - 2.0
+
+    z0 = jnp.asarray([[1.5], [300.0]])
+    free = jnp.ones(1)
+
+    def solve(z, config):
+        return lm_solve(square_root, lambda x: x, z, None, None, free, jnp.int32(100),
+                        config=config)
+
+    base = LMConfig(stall_tolerance=0.0)
+    _, _, it_off = solve(z0, base)
+    z_near, _, it_near = solve(z0[:1], base)
+    z, cost, it = solve(z0, replace(base, give_up_iteration=2, give_up_cost=1.0))
+    assert int(it) == max(int(it_near), 2) < int(it_off)
+    np.testing.assert_array_equal(np.asarray(z[0]), np.asarray(z_near[0]))
+    assert float(cost[1]) > 1.0
+    # A give-up cost above the far problem's start: the rule never fires.
+    _, _, it_high = solve(z0, replace(base, give_up_iteration=2, give_up_cost=1e12))
+    assert int(it_high) == int(it_off)
+
+
 def test_projection_is_applied_every_step() -> None:
     z, p = problem(6)
     box = lambda x: jnp.clip(x, -0.2, 0.2)  # noqa: E731

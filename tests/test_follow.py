@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+from functools import partial
 from pathlib import Path
 
 import jax
@@ -181,6 +182,36 @@ def test_pose_only_chains_match_chains_on_the_whole_residual(follower) -> None:
     assert np.all(errors[found] >= gap - 1e-5) and np.all(errors[found] < 1e-3)
 
 
+def test_quick_chains_keep_the_table_and_the_sequence(follower) -> None:
+    # The chains' small starting damping and give-up rule only end their LM loops sooner:
+    # against chains with a plain LM solve's damping (1e-2) and no give-up, the same
+    # candidates solve their waypoints, at the same answers (float32 noise), and the
+    # chosen sequence is the same.
+    from dataclasses import replace
+
+    from cr_nlp.stages._continuation import BranchContinuation
+
+    stage = follower.continuation
+    assert stage.settings.damping < 1e-2 and stage.settings.give_up_iterations > 0
+    plain = BranchContinuation(ROBOT, stage.residual, stage.candidates, stage.free,
+                               stage.dtype, replace(stage.settings, damping=1e-2,
+                                                    give_up_iterations=0),
+                               chain_residual=stage.chain_residual)
+    path = line_path()
+    shared = follower._shared(DT)
+    tolerance = stage.settings.tolerance
+    z, errors = stage.table(path.positions, path.wxyz, shared)
+    z_plain, errors_plain = plain.table(path.positions, path.wxyz, shared)
+    solved = errors < tolerance
+    np.testing.assert_array_equal(solved, errors_plain < tolerance)
+    assert solved.sum() > WAYPOINTS
+    np.testing.assert_allclose(z[solved], z_plain[solved], atol=2e-4)
+    seconds = np.full(WAYPOINTS - 1, DT)
+    np.testing.assert_allclose(
+        stage.sequence(path.positions, path.wxyz, seconds, shared),
+        plain.sequence(path.positions, path.wxyz, seconds, shared), atol=2e-4)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(("shape", "max_position_mm"), [("square", 0.1), ("sine", 0.1),
                                                         ("icra", 3.0)])
@@ -230,6 +261,40 @@ def test_result_files(followed, tmp_path: Path) -> None:
     # The result protocol: the same FollowResult back from its dict and from its file.
     assert_same_result(FollowResult.from_dict(followed.to_dict()), followed)
     assert_same_result(load_result(tmp_path / "r.json"), followed)
+
+
+@pytest.mark.parametrize(("centre", "near"), [([0.55, 0.6, 1.2], False),
+                                               ([3.0, 3.0, 3.0], False), (None, True)])
+def test_far_chains_take_the_same_jacobians_without_body_points(centre, near: bool) -> None:
+    # The banded LM takes a far chain's Jacobians from the tracking rows alone
+    # (``follow_unary_far``): against the whole residual's, on the line path beside the
+    # ball, far from it, and with the ball on the body (every row of ``follow_unary``).
+    from dataclasses import replace
+
+    from cr_nlp.stages._banded_lm import chain_jacobians
+
+    q_line = Q_A + np.linspace(0.0, 1.0, WAYPOINTS)[:, None] * (Q_B - Q_A)
+    if centre is None:   # on the body at the middle waypoint
+        from cr_nlp.world.check import body_chain
+        centre = body_chain(ROBOT, q_line[WAYPOINTS // 2])[2 * ROBOT.points_per_segment]
+    scene = load_scene({"name": "ball", "obstacles": [
+        {"type": "sphere", "name": "ball", "center": list(centre), "radius": 0.13}]})
+    follower = PathFollower(ROBOT, scene, CONFIG)
+    path = line_path()
+    z, params, shared, free, _ = follower._lm_args(q_line, path.positions, path.wxyz,
+                                                   np.ones(WAYPOINTS, bool), DT)
+    terms = follower._terms
+    whole = replace(terms, unary_far=None, near=None)
+    assert bool(jax.jit(terms.near)(z, params, shared)) is near
+    unary_whole = jax.jit(lambda z, p, s: jax.vmap(whole.unary, in_axes=(0, 0, None))(z, p, s))
+    clearance_rows = np.asarray(unary_whole(z, params, shared))[:, 6:]
+    assert clearance_rows.shape[1] > 0 and bool(np.any(clearance_rows > 0)) is near
+    blocks = jax.jit(partial(chain_jacobians, terms))(z, params, shared)
+    blocks_whole = jax.jit(partial(chain_jacobians, whole))(z, params, shared)
+    for (k, r, j), (k_whole, r_whole, j_whole) in zip(blocks, blocks_whole, strict=True):
+        assert k == k_whole
+        np.testing.assert_allclose(np.asarray(r), np.asarray(r_whole), atol=1e-7)
+        np.testing.assert_allclose(np.asarray(j), np.asarray(j_whole), atol=1e-6)
 
 
 @pytest.mark.usefixtures("float64")  # closed-form Jacobians against autodiff at 1e-12

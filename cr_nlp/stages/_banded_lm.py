@@ -57,6 +57,14 @@ class ChainResidual:
     unary: UnaryResidual | None = None
     pair: PairResidual | None = None
     triple: TripleResidual | None = None
+    unary_far: UnaryResidual | None = None
+    """A cheaper form of ``unary``: the same rows with the same derivatives wherever
+    ``near`` is False (e.g. the tracking rows alone and zeros for clearance penalties that
+    vanish with their derivatives far from every obstacle). None: always ``unary``."""
+    near: Callable[[jax.Array, Any, Any], jax.Array] | None = None
+    """(z (T, d), params, shared) → bool: whether ``unary`` may differ from ``unary_far``
+    anywhere on the chain z. Where False, the Jacobians come from ``unary_far`` (a
+    ``lax.cond`` over the whole chain: both run when the solve is vmapped over chains)."""
 
 
 class BandedMatrix(NamedTuple):
@@ -105,19 +113,28 @@ def chain_jacobians(terms: ChainResidual, z: jax.Array, params: Any,
     each term present, k its window size and W = T − k + 1 its window count; J[w, :, a]
     is the derivative with respect to waypoint w + a."""
     t, d = z.shape
-    out = []
-    for k, fn in ((1, terms.unary), (2, terms.pair), (3, terms.triple)):
-        if fn is None:
-            continue
 
-        def window_fn(zw: jax.Array, p: Any, sh: Any, fn: Callable = fn,
-                      k: int = k) -> tuple[jax.Array, jax.Array]:
+    def window_jacobians(fn: Callable, k: int) -> tuple[jax.Array, jax.Array]:
+        def window_fn(zw: jax.Array, p: Any, sh: Any) -> tuple[jax.Array, jax.Array]:
             r = fn(*[zw[a] for a in range(k)], p, sh)
             return r, r
 
         jac = jax.vmap(jax.jacfwd(window_fn, has_aux=True), in_axes=(0, 0, None))
         windows = jnp.stack([z[a: t - k + 1 + a] for a in range(k)], axis=1)   # (W, k, d)
         j, r = jac(windows, _slice(params, 0, t - k + 1), shared)
+        return r, j
+
+    out = []
+    for k, fn in ((1, terms.unary), (2, terms.pair), (3, terms.triple)):
+        if fn is None:
+            continue
+        if k == 1 and terms.unary_far is not None and terms.near is not None:
+            far = terms.unary_far
+            r, j = jax.lax.cond(terms.near(z, params, shared),
+                                lambda fn=fn: window_jacobians(fn, 1),
+                                lambda: window_jacobians(far, 1))
+        else:
+            r, j = window_jacobians(fn, k)
         out.append((k, r, j))
     return out
 

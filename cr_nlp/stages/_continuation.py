@@ -72,27 +72,38 @@ class ContinuationSettings:
     tolerance: float = 0.01
     """Candidates with a residual norm at or above this are used only where a waypoint has
     no better one (``smoothest_choice``)."""
+    damping: float = 1e-4
+    """Starting LM damping of the chains (``LMConfig.initial_damping``)."""
+    give_up_iterations: int = 2
+    """A chain still at or above ``tolerance`` after this many LM iterations at a
+    waypoint stops iterating there (``LMConfig.give_up_iteration``; 0: off)."""
+
+    def chain_config(self) -> LMConfig:
+        """The chains' LM settings: converged at ``CHAIN_CONVERGED``, ``damping``, the
+        give-up rule."""
+        return LMConfig(cost_tolerance=0.5 * CHAIN_CONVERGED ** 2,
+                        initial_damping=self.damping,
+                        give_up_iteration=self.give_up_iterations,
+                        give_up_cost=0.5 * self.tolerance ** 2)
 
 
 def continue_chains(residual: WaypointResidual, score: WaypointResidual | None,
                     project: Callable[[jax.Array], jax.Array], iterations: int,
-                    z_start: jax.Array, index: jax.Array, active: jax.Array,
+                    config: LMConfig, z_start: jax.Array, index: jax.Array, active: jax.Array,
                     positions: jax.Array, rotations: jax.Array, track: jax.Array, shared: Any,
                     free: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Numerical continuation of C answers along the path.
 
     Chain c starts at ``z_start[c]`` (3n,) and visits the waypoints ``index[c, 0]``,
-    ``index[c, 1]``, … (C, L) in turn, ``iterations`` LM steps on ``residual`` per
-    waypoint from a secant prediction (the previous answer plus the chain's last step);
+    ``index[c, 1]``, … (C, L) in turn, at most ``iterations`` LM steps (``config``) on
+    ``residual`` per waypoint from a secant prediction (the previous answer plus the
+    chain's last step), converged at ``CHAIN_CONVERGED``: the answers only have to keep
+    to their branch and rank the table, stage 2 refines the chosen sequence;
     where ``active[c, τ]`` (C, L) is False the chain holds still. ``positions`` (R, 3) m,
     ``rotations`` (R, 9), ``track`` (R,) are the waypoint targets. Returns z (C, L, 3n)
     and the residual norms (C, L) at every visited waypoint: of ``score`` where given
     (the chains may minimise a cheaper residual than the one the table is judged by),
     else of ``residual``."""
-    # Converged at 1e-5 (m, rad) of residual norm: the answers only have to keep to
-    # their branch and rank the table; stage 2 refines the chosen sequence.
-    config = LMConfig(cost_tolerance=0.5 * CHAIN_CONVERGED ** 2)
-
     def step(carry: tuple, tau: jax.Array) -> tuple[tuple, tuple]:
         z, velocity = carry
         at = index[:, tau]
@@ -320,14 +331,14 @@ class BranchContinuation:
         args = (starts.astype(dtype), index.astype(np.int32), active,
                 positions.astype(dtype), rotations.astype(dtype), np.ones(rows, dtype),
                 shared, self.free)
-        key = (padded, length, rows)
+        key = (padded, length, rows, self.settings)
         if key not in self._compiled:
             if self.chain_residual is None:
                 solved, score = self.residual, None
             else:
                 solved, score = self.chain_residual, self.residual
             fn = partial(continue_chains, solved, score, partial(project_z, self.robot),
-                         self.settings.iterations)
+                         self.settings.iterations, self.settings.chain_config())
             # Chains are independent: split over the devices like the IK's LM (measured:
             # unsplit, the anchors' 96 chains ran on one core).
             program = split_over_devices(fn, (True,) * 3 + (False,) * 5, padded, outputs=2)

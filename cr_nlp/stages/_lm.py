@@ -42,9 +42,10 @@ class LMConfig:
     Gauss–Newton model to lower the cost by less than this fraction: a run of rejected
     steps at that size would end in the stall rule or the λ cap anyway. 0: off."""
     give_up_iteration: int = 0
-    """(``stages._banded_lm`` only) ...or once this many steps were judged while the cost is
-    still above ``give_up_cost``: a chain stuck deep in a penalty (e.g. a trajectory
-    through an obstacle) stops instead of creeping on to the iteration budget. 0: off."""
+    """...or once this many steps were judged while the cost is still above
+    ``give_up_cost``: a problem stuck far from an answer (e.g. a trajectory through an
+    obstacle) stops instead of creeping on to the iteration budget, and no longer keeps
+    the batch's loop running. 0: off."""
     give_up_cost: float = float("inf")
     """The cost ½‖r‖² (units of r squared) above which ``give_up_iteration`` stops."""
     stop_when_converged: bool = True
@@ -190,6 +191,8 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
         done = done | stalled | (cost_new < config.cost_tolerance) | (lam > 1e10)
         z = jnp.where(accept[:, None], z_new, z)
         cost = jnp.where(accept, cost_new, cost)
+        if config.give_up_iteration > 0:
+            done = done | ((it + 1 >= config.give_up_iteration) & (cost > config.give_up_cost))
         shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * jnp.clip(rho, 0.0, 1.0) - 1.0) ** 3)
         lam = jnp.where(accept, lam * shrink, lam * nu)
         nu = jnp.where(accept, 2.0, nu * 2.0)
