@@ -51,6 +51,7 @@ of 33,000).
 from __future__ import annotations
 
 import functools
+import math
 import weakref
 from dataclasses import dataclass
 from typing import Any
@@ -144,14 +145,18 @@ def fcl_object(part: Part) -> fcl.CollisionObject:
 
 
 def capsule_object(a: np.ndarray, b: np.ndarray, radius: float) -> fcl.CollisionObject:
-    """An fcl capsule of ``radius`` (m) around the segment a–b (fcl's capsule lies along z)."""
-    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-    axis = b - a
-    length = float(np.linalg.norm(axis))
+    """An fcl capsule of ``radius`` (m) around the segment a–b (fcl's capsule lies along z).
+    Computed in Python floats: the verdict builds one for each piece it measures."""
+    ax, ay, az = np.asarray(a, dtype=float).tolist()
+    bx, by, bz = np.asarray(b, dtype=float).tolist()
+    dx, dy, dz = bx - ax, by - ay, bz - az
+    length = math.sqrt(dx * dx + dy * dy + dz * dz)
     if length < 1e-12:
-        return fcl.CollisionObject(fcl.Sphere(float(radius)), fcl.Transform(a))
+        return fcl.CollisionObject(fcl.Sphere(float(radius)),
+                                   fcl.Transform(np.array([ax, ay, az])))
+    centre = np.array([0.5 * (ax + bx), 0.5 * (ay + by), 0.5 * (az + bz)])
     return fcl.CollisionObject(fcl.Capsule(float(radius), length),
-                               fcl.Transform(rotation_z_to(axis), 0.5 * (a + b)))
+                               fcl.Transform(rotation_z_to((dx, dy, dz)), centre))
 
 
 class _FclScene:
