@@ -366,17 +366,19 @@ class Roadmap:
                                        / self.config.query_step).astype(np.int64))
         return _edge_free(self.checker, za, zb, counts, self.margin)
 
-    def _attach(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _attach(self, z: np.ndarray, dense: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Nearby nodes that each configuration z (M, 3n) may connect to without collision:
         (M, ``neighbours``) indices (−1 pads) and lengths (+inf pads), the nearest whose
-        edge keeps the margin at ``edge_checks`` evenly spaced samples. The ``neighbours``
-        nearest are tried first, then 4×, 16×, … as many for the rows where none passes
-        (configurations deep in a narrow space have few free straight lines); every row's
-        candidates are checked in one batched clearance call per round.
+        edge keeps the margin at ``edge_checks`` evenly spaced samples (with ``dense``,
+        also at every ``query_step``). The ``neighbours`` nearest are tried first, then
+        4×, 16×, … as many for the rows where none passes (configurations deep in a
+        narrow space have few free straight lines); every row's candidates are checked
+        in one batched clearance call per round.
 
-        The dense check (every ``query_step``) is left to the query, which makes it on the
+        Without ``dense`` the dense check is left to the query, which makes it on the
         attach edges of each path it finds and searches again without a failing one
-        (lazily, as for roadmap edges). Measured on 40 cabinet problems (80 ends): 770
+        (lazily, as for roadmap edges); an end whose every attach edge fails it is
+        attached again with ``dense``. Measured on 40 cabinet problems (80 ends): 770
         edges passed the coarse check, 760 of them the dense one, which took 61 633 of the
         attach's 68 033 samples."""
         width = self.config.neighbours
@@ -388,12 +390,19 @@ class Roadmap:
             dist, idx = self.tree.query(z[pending], k=k)
             dist = dist.reshape(len(pending), k)[:, done:]
             idx = idx.reshape(len(pending), k)[:, done:]
-            coarse = _edge_free(self.checker, np.repeat(z[pending], idx.shape[1], axis=0),
-                                self.nodes_z[idx.ravel()],
-                                np.full(idx.size, self.config.edge_checks),
-                                self.margin).reshape(idx.shape)
-            rank = np.cumsum(coarse, axis=1)
-            row, column = np.nonzero(coarse & (rank <= width))
+            ok = _edge_free(self.checker, np.repeat(z[pending], idx.shape[1], axis=0),
+                            self.nodes_z[idx.ravel()],
+                            np.full(idx.size, self.config.edge_checks),
+                            self.margin).reshape(idx.shape)
+            if dense:             # the dense check on the nearest coarse survivors
+                row, column = np.nonzero(ok & (np.cumsum(ok, axis=1) <= width))
+                steps = np.ceil(dist[row, column] / self.config.query_step).astype(np.int64)
+                ok[row, column] = _edge_free(self.checker, z[pending[row]],
+                                             self.nodes_z[idx[row, column]],
+                                             np.maximum(self.config.edge_checks, steps),
+                                             self.margin)
+            rank = np.cumsum(ok, axis=1)
+            row, column = np.nonzero(ok & (rank <= width))
             slot = rank[row, column] - 1
             nodes[pending[row], slot] = idx[row, column]
             out[pending[row], slot] = np.maximum(dist[row, column], 1e-12)
@@ -455,6 +464,7 @@ class Roadmap:
         start_len, goal_len = np.split(ends_len, 2)
         attached = np.isfinite(start_len).any(axis=1) & np.isfinite(goal_len).any(axis=1)
         rows = np.flatnonzero(attached)               # rows into the attach arrays
+        redone = np.zeros((len(start_len), 2), dtype=bool)   # ends attached again densely
         neighbours, weights = self._table()
         # Lazy PRM: path edges that fail the dense check are removed, then search again.
         for _ in range(self.config.max_query_rounds):
@@ -480,13 +490,16 @@ class Roadmap:
             self._dense_ok.update(zip(unknown, map(bool, verdicts), strict=False))
             self._drop(failed)
             ends_ok = verdicts[len(unknown):].reshape(-1, 2)
-            again = []
+            again, lost = [], []
             for k, (start_ok, goal_ok) in zip(found, ends_ok, strict=True):
                 row, path = rows[k], paths[k]
                 if not start_ok:
                     start_len[row, start_nodes[row] == path[0]] = np.inf
                 if not goal_ok:
                     goal_len[row, goal_nodes[row] == path[-1]] = np.inf
+                for end, lengths in ((0, start_len), (1, goal_len)):
+                    if not np.isfinite(lengths[row]).any() and not redone[row, end]:
+                        lost.append((row, end))     # every coarse attach edge failed
                 inner = all(self._dense_ok[(min(a, b), max(a, b))]
                             for a, b in zip(path[:-1], path[1:], strict=True))
                 if start_ok and goal_ok and inner:
@@ -494,6 +507,14 @@ class Roadmap:
                     out[p] = np.vstack([z_starts[p], self.nodes_z[path], z_goals[p]])
                 else:
                     again.append(row)
+            if lost:                   # attach those ends again, densely checked
+                ends = np.stack([(z_starts if end == 0 else z_goals)[active[row]]
+                                 for row, end in lost])
+                nodes_new, len_new = self._attach(ends, dense=True)
+                for (row, end), n_row, l_row in zip(lost, nodes_new, len_new, strict=True):
+                    (start_nodes, goal_nodes)[end][row] = n_row
+                    (start_len, goal_len)[end][row] = l_row
+                    redone[row, end] = True
             rows = np.array(again, dtype=np.int64)
         return out
 
