@@ -408,6 +408,7 @@ def _tighten(r: float, fscene: _FclScene, sa: np.ndarray, sb: np.ndarray, qi: np
     return low
 
 
+_RUN_PIECES = 5        # pieces per ball of ``_group_bounds`` (a divisor of the segment's)
 _SEED_CANDIDATES = 8   # pairs per configuration whose tight bound picks the first fcl query
 
 
@@ -489,8 +490,28 @@ def _fcl_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray,
         obstacle[k], part[k] = best, best_part
 
 
+def _group_bounds(r: float, fscene: _FclScene, a: Xyz, b: Xyz, group: int) -> np.ndarray:
+    """(B, m / group, parts) lower bounds on the distance between each run of ``group``
+    consecutive pieces a–b (coordinates (B, m) each) and each fcl part: a ball around the
+    run (centre: the mean of its mid points; radius: the farthest mid point plus its
+    half length, plus r) against the part's bounding sphere. A pair of piece and part
+    is worth a look only where its run's entry is."""
+    count = a[0].shape[0]
+    mid = tuple((0.5 * (p + q)).reshape(count, -1, group) for p, q in zip(a, b, strict=True))
+    u = _sub(b, a)
+    half = (0.5 * np.sqrt(_dot(u, u))).reshape(count, -1, group)
+    centre = tuple(c.mean(axis=2) for c in mid)
+    off = _sub(mid, tuple(c[:, :, None] for c in centre))
+    reach = (np.sqrt(_dot(off, off)) + half).max(axis=2) + r
+    gap = _sub(tuple(c[:, :, None] for c in centre),
+               tuple(fscene.other_centres[:, k] for k in range(3)))
+    # 1e-12 m below: rounding of the ball may not lift the bound above the distance.
+    return np.sqrt(_dot(gap, gap)) - reach[:, :, None] - fscene.other_radii - 1e-12
+
+
 def _fcl_motion_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray,
-                       obstacle: np.ndarray, part: np.ndarray, best: float) -> float:
+                       obstacle: np.ndarray, part: np.ndarray, best: float,
+                       group: int) -> float:
     """``_fcl_search`` for a motion, where only the smallest distance over the whole batch
     and which configurations penetrate matter: lower ``obstacle`` (B,) in place so that
     every configuration that penetrates a part gets a negative entry, and return the
@@ -499,13 +520,20 @@ def _fcl_motion_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray
     below it), and ``part`` names the part of each lowered entry.
 
     Pairs are visited over the whole batch in order of their lower bound, from a seed
-    pair (the smallest tight bound among each configuration's few smallest loose
-    bounds), until no pair can lower the minimum or make a configuration penetrate; the
-    distances measured are the ones ``_fcl_search`` measures, on capsules built alike."""
+    pair (the smallest tight bound among the pieces of each configuration's run of
+    ``group`` pieces nearest to a part by ``_group_bounds``), until no pair can lower the minimum or make a
+    configuration penetrate; only the pieces of runs whose ball can get below that are
+    bounded one by one. The distances measured are the ones ``_fcl_search`` measures, on
+    capsules built alike."""
     count, pieces = a.shape[:2]
-    parts = len(fscene.other_index)
     objects, part_of = fscene.objects, fscene.other_index
-    lower = _loose_bounds(r, fscene, a, b)
+    x0 = tuple(np.ascontiguousarray(a[..., k]) for k in range(3))
+    x1 = tuple(np.ascontiguousarray(b[..., k]) for k in range(3))
+    coarse = _group_bounds(r, fscene, x0, x1, group)
+    mid = tuple(0.5 * (p + q) for p, q in zip(x0, x1, strict=True))
+    u = _sub(x1, x0)
+    reach = 0.5 * np.sqrt(_dot(u, u)) + r
+    centres = tuple(fscene.other_centres[:, k] for k in range(3))
     best = min(best, float(obstacle.min(initial=np.inf)))
 
     def measure(k: int, capsule: fcl.CollisionObject, q: int) -> None:
@@ -515,28 +543,42 @@ def _fcl_motion_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray
             obstacle[k], part[k] = d, q
         best = min(best, d)
 
-    width = min(_SEED_CANDIDATES, pieces * parts)
-    near = np.argpartition(lower, width - 1, axis=1)[:, :width]
-    rep, flat = np.repeat(np.arange(count), width), near.ravel()
-    pi, qi = np.divmod(flat, parts)
-    tight = _tighten(r, fscene, a[rep, pi], b[rep, pi], qi, lower[rep, flat])
-    seed = int(np.argmin(tight))
-    if tight[seed] < max(best, 0.0):
-        k, i = int(rep[seed]), int(pi[seed])
-        measure(k, capsule_object(a[k, i], b[k, i], r), int(part_of[qi[seed]]))
-        lower[k, flat[seed]] = np.inf             # measured
-    bi, flat = np.nonzero(lower < max(best, 0.0))
-    if not len(bi):
+    def expand(bk: np.ndarray, bg: np.ndarray,
+               bq: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The pairs of the runs' pieces whose loose bound (the part's bounding sphere
+        against the piece's ball) is below the threshold, with their tight bounds."""
+        bi, qi = np.repeat(bk, group), np.repeat(bq, group)
+        pi = ((bg * group)[:, None] + np.arange(group)).ravel()
+        gap = _sub(tuple(c[bi, pi] for c in mid), tuple(c[qi] for c in centres))
+        loose = np.sqrt(_dot(gap, gap)) - reach[bi, pi] - fscene.other_radii[qi]
+        keep = np.flatnonzero(loose < max(best, 0.0))
+        bi, pi, qi = bi[keep], pi[keep], qi[keep]
+        return bi, pi, qi, _tighten(r, fscene, a[bi, pi], b[bi, pi], qi, loose[keep])
+
+    # Seed: the pair of smallest tight bound among the pieces of each configuration's
+    # nearest run, so that the candidates below are only those that can beat it.
+    seed = (-1, -1, -1)                                  # (configuration, piece, part)
+    flat = coarse.reshape(count, -1).argmin(axis=1)
+    near = np.flatnonzero(coarse.reshape(count, -1)[np.arange(count), flat] < max(best, 0.0))
+    if len(near):
+        bi, pi, qi, tight = expand(near, *np.divmod(flat[near], coarse.shape[2]))
+        if len(tight) and tight.min() < max(best, 0.0):
+            s = int(np.argmin(tight))
+            seed = int(bi[s]), int(pi[s]), int(qi[s])
+            measure(seed[0], capsule_object(a[seed[:2]], b[seed[:2]], r), int(part_of[seed[2]]))
+    bk, bg, bq = np.nonzero(coarse < max(best, 0.0))
+    if not len(bk):
         return best
-    pi, qi = np.divmod(flat, parts)
-    low = _tighten(r, fscene, a[bi, pi], b[bi, pi], qi, lower[bi, flat])
-    order = np.flatnonzero(low < max(best, 0.0))
+    bi, pi, qi, low = expand(bk, bg, bq)
+    open_ = (low < max(best, 0.0)) & ~((bi == seed[0]) & (pi == seed[1])
+                                       & (qi == seed[2]))           # the seed is measured
+    order = np.flatnonzero(open_)
     order = order[np.argsort(low[order], kind="stable")]
-    bi, pi, low = bi[order], pi[order], low[order]
+    bi, pi, qi, low = bi[order], pi[order], qi[order], low[order]
     unique, slot = np.unique(bi * pieces + pi, return_inverse=True)
     capsules = _Capsules(r, a.reshape(-1, 3)[unique], b.reshape(-1, 3)[unique])
     for k, s, bound, q in zip(bi.tolist(), slot.tolist(), low.tolist(),
-                              part_of[qi[order]].tolist(), strict=True):
+                              part_of[qi].tolist(), strict=True):
         if bound >= max(best, 0.0):
             break                        # no pair left can lower the minimum or penetrate
         if bound >= best and obstacle[k] < 0.0:
@@ -595,8 +637,10 @@ def _verdicts(robot: Robot, fscene: _FclScene, chains: np.ndarray, per_segment: 
         obstacle = d[np.arange(count), nearest]
         part = fscene.sphere_index[nearest % spheres]
     if len(fscene.other_index) and motion is not None:
+        run = max(g for g in range(1, min(per_segment, _RUN_PIECES) + 1)
+                  if per_segment % g == 0)
         best = _fcl_motion_search(r, fscene, chains[:, :-1], chains[:, 1:], obstacle, part,
-                                  best)
+                                  best, run)
     elif len(fscene.other_index):
         _fcl_search(r, fscene, chains[:, :-1], chains[:, 1:], obstacle, part)
     best = min(best, float(obstacle.min()))
