@@ -373,7 +373,18 @@ class _Capsules:
 
 # ================================================================ the verdict
 
-_BATCH_ELEMENTS = 1 << 17   # (configuration, piece, part) entries per vectorised chunk
+_BATCH_ELEMENTS = 1 << 18   # (configuration, piece, part) entries per vectorised chunk
+_CHUNK_CONFIGURATIONS = 192  # more make the far pairs' arrays outgrow the cache
+
+
+def _chunks(fscene: _FclScene, count: int, pieces: int, per_segment: int) -> list[slice]:
+    """Even chunks of ``count`` configurations for the vectorised verdict: at most
+    ``_BATCH_ELEMENTS`` over the largest array of one configuration ((piece, part) entries
+    or far pairs of pieces) and at most ``_CHUNK_CONFIGURATIONS`` each."""
+    width = max(pieces * len(fscene.objects), len(_far_pairs(pieces, per_segment)[0]), 1)
+    step = max(1, min(_BATCH_ELEMENTS // width, _CHUNK_CONFIGURATIONS))
+    step = -(-count // -(-count // step)) if count else step      # as even as they come
+    return [slice(s, s + step) for s in range(0, count, step)]
 
 
 @functools.lru_cache(maxsize=32)
@@ -683,10 +694,8 @@ def check_chains(robot: Robot, scene: Scene | None, chains: Any,
                          f"{chains.shape}")
     fscene = _fcl_scene(scene)
     pieces = chains.shape[1] - 1
-    width = max(len(fscene.objects), len(_far_pairs(pieces, pieces_per_segment)[0]), 1)
-    step = max(1, _BATCH_ELEMENTS // (pieces * width))
-    parts = [_verdicts(robot, fscene, chains[s:s + step], pieces_per_segment)[:3]
-             for s in range(0, len(chains), step)]
+    parts = [_verdicts(robot, fscene, chains[s], pieces_per_segment)[:3]
+             for s in _chunks(fscene, len(chains), pieces, pieces_per_segment)]
     obstacle, part, own = (np.concatenate([p[k] for p in parts]) if parts else
                            np.zeros(0, dtype=np.int64 if k == 1 else float) for k in range(3))
     min_distance = np.minimum(obstacle, own)
@@ -730,17 +739,15 @@ def check_motion(robot: Robot, scene: Scene | None, qs: Any) -> MotionCheck:
     per_segment = robot.points_per_segment
     fscene = _fcl_scene(scene)
     pieces = chains.shape[1] - 1
-    width = max(len(fscene.objects), len(_far_pairs(pieces, per_segment)[0]), 1)
-    step = max(1, _BATCH_ELEMENTS // (pieces * width))
     best, closest, own_min = np.inf, "", np.inf
     collision = np.zeros(len(qs), dtype=bool)
-    for s in range(0, len(qs), step):
-        obstacle, part, own, low = _verdicts(robot, fscene, chains[s:s + step], per_segment,
+    for s in _chunks(fscene, len(qs), pieces, per_segment):
+        obstacle, part, own, low = _verdicts(robot, fscene, chains[s], per_segment,
                                              motion=best)
         if low < best:
             nearest = int(np.argmin(obstacle))
             best, closest = low, fscene.names[part[nearest]] if part[nearest] >= 0 else ""
         own_min = min(own_min, float(own.min(initial=np.inf)))
-        collision[s:s + step] = np.minimum(obstacle, own) < 0.0
+        collision[s] = np.minimum(obstacle, own) < 0.0
     return MotionCheck(obstacle_distance=float(best), closest=closest,
                        self_distance=float(own_min), collision=collision)
