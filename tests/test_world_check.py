@@ -309,3 +309,29 @@ def test_pruned_motion_search_gives_the_minima_of_the_plain_one(robots) -> None:
         assert np.array_equal(got.collision, np.minimum(every, check_many(
             robot, scene, qs).self_distance) < 0.0)
     assert 0 < hits < 6                  # motions that hit boxes and motions that miss
+
+
+def test_tightened_bounds_are_below_fcl_and_a_threshold_only_skips_work(robots,
+                                                                         mixed_scene) -> None:
+    """``_tighten`` (axis-aligned box, bounding sphere, face planes, axis) stays below fcl's
+    distance for every kind of part, and with a threshold the pairs below it get the same
+    bounds while the others stay at or above it."""
+    robot = robots["tdcr3"]
+    r = robot.backbone_radius
+    chains = body_chain(robot, random_q(robot, 8, seed=11))
+    for scene in (mixed_scene, load_scene("cabinet")):
+        fscene = check_module._fcl_scene(scene)
+        parts = len(fscene.other_index)
+        a, b = chains[:, :-1].reshape(-1, 3), chains[:, 1:].reshape(-1, 3)
+        pi, qi = np.repeat(np.arange(len(a)), parts), np.tile(np.arange(parts), len(a))
+        loose = np.full(len(pi), -np.inf)
+        full = check_module._tighten(r, fscene, a[pi], b[pi], qi, loose.copy())
+        threshold = np.median(full)
+        cut = check_module._tighten(r, fscene, a[pi], b[pi], qi, loose.copy(), threshold)
+        below = full < threshold
+        assert np.array_equal(cut[below], full[below]) and np.all(cut[~below] >= threshold)
+        capsules = [capsule_object(a[i], b[i], r) for i in range(len(a))]
+        d = np.array([fcl_distance(capsules[i], fscene.objects[fscene.other_index[q]])
+                      for i, q in zip(pi, qi, strict=True)])
+        assert np.all(full <= d + 1e-5)                 # fcl's GJK: ~1e-5 m
+        assert np.mean(full > 0.5 * d) > 0.5            # and not a trivial bound

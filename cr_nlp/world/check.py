@@ -191,6 +191,10 @@ class _FclScene:
                 self.offsets[q] = np.concatenate([o, np.repeat(o[:1], width - len(o))])
         self.normals = tuple(np.ascontiguousarray(normals[..., k]) for k in range(3))
         self.other_centre_norm2 = np.einsum("ij,ij->i", self.other_centres, self.other_centres)
+        # Axis-aligned boxes around the parts, 1e-12 m wider than rounding could need.
+        boxes = [_axis_aligned_box(parts[i]) for i in other]
+        self.box_lower = np.array([lo for lo, _ in boxes], dtype=float).reshape(-1, 3) - 1e-12
+        self.box_upper = np.array([hi for _, hi in boxes], dtype=float).reshape(-1, 3) + 1e-12
         # Capsules and cylinders: the capsule around the axis contains the part.
         axis = [_axis(parts[i]) for i in other]
         self.axis_a = np.array([a for a, _, _ in axis], dtype=float).reshape(-1, 3)
@@ -211,6 +215,23 @@ def _face_planes(part: Part) -> tuple[np.ndarray, np.ndarray]:
     if isinstance(part, ConvexPart):
         return np.asarray(part.normals, dtype=float), np.asarray(part.offsets, dtype=float)
     return np.zeros((0, 3)), np.zeros(0)
+
+
+def _axis_aligned_box(part: Part) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper corners (3,) m of an axis-aligned box that contains the part."""
+    if isinstance(part, BoxPart):
+        extent = np.abs(np.asarray(part.rotation, dtype=float)) @ np.asarray(part.half_size,
+                                                                              dtype=float)
+        centre = np.asarray(part.center, dtype=float)
+        return centre - extent, centre + extent
+    if isinstance(part, (CapsulePart, CylinderPart)):    # in the capsule around the axis
+        a, b = np.asarray(part.a, dtype=float), np.asarray(part.b, dtype=float)
+        return np.minimum(a, b) - part.radius, np.maximum(a, b) + part.radius
+    if isinstance(part, ConvexPart):
+        vertices = np.asarray(part.vertices, dtype=float)
+        return vertices.min(axis=0), vertices.max(axis=0)
+    centre, radius = bounding_sphere(part)
+    return np.asarray(centre, dtype=float) - radius, np.asarray(centre, dtype=float) + radius
 
 
 def _axis(part: Part) -> tuple[np.ndarray, np.ndarray, float]:
@@ -373,18 +394,28 @@ class _Capsules:
 
 # ================================================================ the verdict
 
-_BATCH_ELEMENTS = 1 << 18   # (configuration, piece, part) entries per vectorised chunk
-_CHUNK_CONFIGURATIONS = 192  # more make the far pairs' arrays outgrow the cache
+_BATCH_ELEMENTS = 1 << 17   # (configuration, piece, part) entries per vectorised chunk
+_CHUNK_CONFIGURATIONS = 192  # configurations per chunk of a motion at most
 
 
-def _chunks(fscene: _FclScene, count: int, pieces: int, per_segment: int) -> list[slice]:
-    """Even chunks of ``count`` configurations for the vectorised verdict: at most
-    ``_BATCH_ELEMENTS`` over the largest array of one configuration ((piece, part) entries
-    or far pairs of pieces) and at most ``_CHUNK_CONFIGURATIONS`` each."""
-    width = max(pieces * len(fscene.objects), len(_far_pairs(pieces, per_segment)[0]), 1)
-    step = max(1, min(_BATCH_ELEMENTS // width, _CHUNK_CONFIGURATIONS))
+def _motion_chunks(fscene: _FclScene, count: int, pieces: int,
+                   per_segment: int) -> list[slice]:
+    """Even chunks of a motion's ``count`` configurations, each array of the motion
+    search within a quarter of ``_BATCH_ELEMENTS`` (it makes no (piece, part) array, so
+    the largest are (piece, sphere) entries, (run, part) entries and far pairs; bigger
+    ones outgrow the cache) and at most ``_CHUNK_CONFIGURATIONS`` configurations."""
+    runs = pieces // _run_length(per_segment)
+    width = max(pieces * len(fscene.sphere_index), runs * len(fscene.other_index),
+                len(_far_pairs(pieces, per_segment)[0]), 1)
+    step = max(1, min((_BATCH_ELEMENTS >> 2) // width, _CHUNK_CONFIGURATIONS))
     step = -(-count // -(-count // step)) if count else step      # as even as they come
     return [slice(s, s + step) for s in range(0, count, step)]
+
+
+def _run_length(per_segment: int) -> int:
+    """Pieces per run of ``_group_bounds``: the largest divisor of the segment's pieces
+    up to ``_RUN_PIECES``."""
+    return max(g for g in range(1, min(per_segment, _RUN_PIECES) + 1) if per_segment % g == 0)
 
 
 @functools.lru_cache(maxsize=32)
@@ -396,9 +427,27 @@ def _far_pairs(pieces: int, per_segment: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _tighten(r: float, fscene: _FclScene, sa: np.ndarray, sb: np.ndarray, qi: np.ndarray,
-             low: np.ndarray) -> np.ndarray:
+             low: np.ndarray, below: float | np.ndarray = np.inf) -> np.ndarray:
     """Tighter lower bounds than ``low`` (N,) on the signed distance between pieces sa–sb
-    (N, 3) and fcl parts qi (N,) (indices into the scene's non-sphere parts)."""
+    (N, 3) and fcl parts qi (N,) (indices into the scene's non-sphere parts). A pair whose
+    bound reaches ``below`` (scalar or (N,)) by the cheap axis-aligned box keeps that
+    bound, not tightened further: the callers drop it."""
+    # The part's axis-aligned box: the piece's coordinate ranges miss it by at least the
+    # largest gap along an axis.
+    gap = np.maximum(fscene.box_lower[qi] - np.maximum(sa, sb),
+                     np.minimum(sa, sb) - fscene.box_upper[qi]).max(axis=1)
+    low = np.maximum(low, gap - r)
+    open_ = np.flatnonzero(low < below)
+    if len(open_) < len(low):
+        low[open_] = _tighten_more(r, fscene, sa[open_], sb[open_], qi[open_], low[open_])
+        return low
+    return _tighten_more(r, fscene, sa, sb, qi, low)
+
+
+def _tighten_more(r: float, fscene: _FclScene, sa: np.ndarray, sb: np.ndarray,
+                  qi: np.ndarray, low: np.ndarray) -> np.ndarray:
+    """``_tighten``'s bounds past the axis-aligned box: the part's bounding sphere against
+    the piece's segment, face planes, the axis of capsules and cylinders."""
     sa_, sb_ = _xyz(sa), _xyz(sb)
     u = _sub(sb_, sa_)
     # The part's bounding sphere against the piece's segment.
@@ -474,7 +523,7 @@ def _fcl_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray,
     if not len(bi):
         return
     pi, qi = np.divmod(flat, parts)
-    low = _tighten(r, fscene, a[bi, pi], b[bi, pi], qi, lower[bi, flat])
+    low = _tighten(r, fscene, a[bi, pi], b[bi, pi], qi, lower[bi, flat], obstacle[bi])
     order = np.flatnonzero(low < obstacle[bi])
     if not len(order):
         return
@@ -564,7 +613,8 @@ def _fcl_motion_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray
         loose = np.sqrt(_dot(gap, gap)) - reach[bi, pi] - fscene.other_radii[qi]
         keep = np.flatnonzero(loose < max(best, 0.0))
         bi, pi, qi = bi[keep], pi[keep], qi[keep]
-        return bi, pi, qi, _tighten(r, fscene, a[bi, pi], b[bi, pi], qi, loose[keep])
+        return bi, pi, qi, _tighten(r, fscene, a[bi, pi], b[bi, pi], qi, loose[keep],
+                                    max(best, 0.0))
 
     # Seed: the pair of smallest tight bound among the pieces of each configuration's
     # nearest run, so that the candidates below are only those that can beat it.
@@ -648,10 +698,8 @@ def _verdicts(robot: Robot, fscene: _FclScene, chains: np.ndarray, per_segment: 
         obstacle = d[np.arange(count), nearest]
         part = fscene.sphere_index[nearest % spheres]
     if len(fscene.other_index) and motion is not None:
-        run = max(g for g in range(1, min(per_segment, _RUN_PIECES) + 1)
-                  if per_segment % g == 0)
         best = _fcl_motion_search(r, fscene, chains[:, :-1], chains[:, 1:], obstacle, part,
-                                  best, run)
+                                  best, _run_length(per_segment))
     elif len(fscene.other_index):
         _fcl_search(r, fscene, chains[:, :-1], chains[:, 1:], obstacle, part)
     best = min(best, float(obstacle.min()))
@@ -694,8 +742,10 @@ def check_chains(robot: Robot, scene: Scene | None, chains: Any,
                          f"{chains.shape}")
     fscene = _fcl_scene(scene)
     pieces = chains.shape[1] - 1
-    parts = [_verdicts(robot, fscene, chains[s], pieces_per_segment)[:3]
-             for s in _chunks(fscene, len(chains), pieces, pieces_per_segment)]
+    width = max(len(fscene.objects), len(_far_pairs(pieces, pieces_per_segment)[0]), 1)
+    step = max(1, _BATCH_ELEMENTS // (pieces * width))
+    parts = [_verdicts(robot, fscene, chains[s:s + step], pieces_per_segment)[:3]
+             for s in range(0, len(chains), step)]
     obstacle, part, own = (np.concatenate([p[k] for p in parts]) if parts else
                            np.zeros(0, dtype=np.int64 if k == 1 else float) for k in range(3))
     min_distance = np.minimum(obstacle, own)
@@ -741,7 +791,7 @@ def check_motion(robot: Robot, scene: Scene | None, qs: Any) -> MotionCheck:
     pieces = chains.shape[1] - 1
     best, closest, own_min = np.inf, "", np.inf
     collision = np.zeros(len(qs), dtype=bool)
-    for s in _chunks(fscene, len(qs), pieces, per_segment):
+    for s in _motion_chunks(fscene, len(qs), pieces, per_segment):
         obstacle, part, own, low = _verdicts(robot, fscene, chains[s], per_segment,
                                              motion=best)
         if low < best:
