@@ -260,7 +260,8 @@ def test_lazy_capsules_are_capsule_objects() -> None:
 @pytest.mark.parametrize("group", [1, 2, 5, 10])
 def test_run_balls_bound_every_piece_of_their_run(robots, mixed_scene, group) -> None:
     """``_group_bounds`` (the motion search's first cut) is a true lower bound: below the
-    ball bound of every piece of its run and below fcl's distance of each of them."""
+    bound of every piece's own ball in its run (against the part's bounding sphere and
+    axis-aligned box) and below fcl's distance of each of them."""
     robot = robots["tdcr3"]
     r = robot.backbone_radius
     chains = body_chain(robot, random_q(robot, 6, seed=group))
@@ -271,9 +272,11 @@ def test_run_balls_bound_every_piece_of_their_run(robots, mixed_scene, group) ->
                                             tuple(b[..., k] for k in range(3)), group)
         count, pieces = a.shape[:2]
         assert coarse.shape == (count, pieces // group, len(fscene.other_index))
-        piece_ball = (np.linalg.norm(0.5 * (a + b)[:, :, None] - fscene.other_centres, axis=-1)
-                      - 0.5 * np.linalg.norm(b - a, axis=-1)[:, :, None] - r
-                      - fscene.other_radii)
+        mid = 0.5 * (a + b)[:, :, None]                   # each piece's own ball
+        beyond_box = np.maximum(fscene.box_lower - mid, mid - fscene.box_upper).max(axis=-1)
+        piece_ball = (np.maximum(np.linalg.norm(mid - fscene.other_centres, axis=-1)
+                                 - fscene.other_radii, beyond_box)
+                      - 0.5 * np.linalg.norm(b - a, axis=-1)[:, :, None] - r)
         runs = np.repeat(coarse, group, axis=1)          # each piece's run entry
         assert np.all(runs <= piece_ball)
         for k in range(count):

@@ -554,8 +554,8 @@ def _group_bounds(r: float, fscene: _FclScene, a: Xyz, b: Xyz, group: int) -> np
     """(B, m / group, parts) lower bounds on the distance between each run of ``group``
     consecutive pieces a–b (coordinates (B, m) each) and each fcl part: a ball around the
     run (centre: the mean of its mid points; radius: the farthest mid point plus its
-    half length, plus r) against the part's bounding sphere. A pair of piece and part
-    is worth a look only where its run's entry is."""
+    half length, plus r) against the part's bounding sphere and its axis-aligned box. A
+    pair of piece and part is worth a look only where its run's entry is."""
     count = a[0].shape[0]
     mid = tuple((0.5 * (p + q)).reshape(count, -1, group) for p, q in zip(a, b, strict=True))
     u = _sub(b, a)
@@ -565,8 +565,13 @@ def _group_bounds(r: float, fscene: _FclScene, a: Xyz, b: Xyz, group: int) -> np
     reach = (np.sqrt(_dot(off, off)) + half).max(axis=2) + r
     gap = _sub(tuple(c[:, :, None] for c in centre),
                tuple(fscene.other_centres[:, k] for k in range(3)))
+    apart = np.sqrt(_dot(gap, gap)) - fscene.other_radii
+    # The part's axis-aligned box: the ball's centre lies beyond one of its faces.
+    for k in range(3):
+        apart = np.maximum(apart, np.maximum(fscene.box_lower[:, k] - centre[k][:, :, None],
+                                             centre[k][:, :, None] - fscene.box_upper[:, k]))
     # 1e-12 m below: rounding of the ball may not lift the bound above the distance.
-    return np.sqrt(_dot(gap, gap)) - reach[:, :, None] - fscene.other_radii - 1e-12
+    return apart - reach[:, :, None] - 1e-12
 
 
 def _fcl_motion_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray,
