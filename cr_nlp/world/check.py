@@ -28,7 +28,9 @@ What is computed how, for a whole batch of configurations at once:
 A motion (``check_motion``: the configurations of one trajectory or path) needs less:
 its smallest distance and which configurations collide. There the pairs of all its
 configurations are visited together in order of their bound, and a configuration is
-measured only as far as it can lower the motion's minimum or collide.
+measured only as far as it can lower the motion's minimum or collide; a ball around each
+run of pieces (against each part's bounding sphere and axis-aligned box) says which pieces
+need bounds of their own, and each pair's axis-aligned box bound which need the face planes.
 
 fcl stays for those parts because their closed forms (segment–box, segment–cylinder,
 segment–polytope) are not written here; the closed forms above agree with fcl's
@@ -586,10 +588,10 @@ def _fcl_motion_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray
 
     Pairs are visited over the whole batch in order of their lower bound, from a seed
     pair (the smallest tight bound among the pieces of each configuration's run of
-    ``group`` pieces nearest to a part by ``_group_bounds``), until no pair can lower the minimum or make a
-    configuration penetrate; only the pieces of runs whose ball can get below that are
-    bounded one by one. The distances measured are the ones ``_fcl_search`` measures, on
-    capsules built alike."""
+    ``group`` pieces nearest to a part by ``_group_bounds``), until no pair can lower the
+    minimum or make a configuration penetrate; only the pieces of runs whose ball can get
+    below that are bounded one by one. The distances measured are the ones ``_fcl_search``
+    measures, on capsules built alike."""
     count, pieces = a.shape[:2]
     objects, part_of = fscene.objects, fscene.other_index
     x0 = tuple(np.ascontiguousarray(a[..., k]) for k in range(3))
