@@ -255,3 +255,86 @@ def test_lazy_capsules_are_capsule_objects() -> None:
     assert built[1].getNodeType() == fcl.CollisionObject(fcl.Capsule(1.0, 1.0)).getNodeType()
     assert fcl_distance(built[0], ball) == pytest.approx(0.3, abs=1e-9)
     assert fcl_distance(built[1], ball) == pytest.approx(0.3, abs=1e-9)   # the −z turn
+
+
+@pytest.mark.parametrize("group", [1, 2, 5, 10])
+def test_run_balls_bound_every_piece_of_their_run(robots, mixed_scene, group) -> None:
+    """``_group_bounds`` (the motion search's first cut) is a true lower bound: below the
+    bound of every piece's own ball in its run (against the part's bounding sphere and
+    axis-aligned box) and below fcl's distance of each of them."""
+    robot = robots["tdcr3"]
+    r = robot.backbone_radius
+    chains = body_chain(robot, random_q(robot, 6, seed=group))
+    a, b = chains[:, :-1], chains[:, 1:]
+    for scene in (mixed_scene, load_scene("cabinet")):
+        fscene = check_module._fcl_scene(scene)
+        coarse = check_module._group_bounds(r, fscene, tuple(a[..., k] for k in range(3)),
+                                            tuple(b[..., k] for k in range(3)), group)
+        count, pieces = a.shape[:2]
+        assert coarse.shape == (count, pieces // group, len(fscene.other_index))
+        mid = 0.5 * (a + b)[:, :, None]                   # each piece's own ball
+        beyond_box = np.maximum(fscene.box_lower - mid, mid - fscene.box_upper).max(axis=-1)
+        piece_ball = (np.maximum(np.linalg.norm(mid - fscene.other_centres, axis=-1)
+                                 - fscene.other_radii, beyond_box)
+                      - 0.5 * np.linalg.norm(b - a, axis=-1)[:, :, None] - r)
+        runs = np.repeat(coarse, group, axis=1)          # each piece's run entry
+        assert np.all(runs <= piece_ball)
+        for k in range(count):
+            for i in range(0, pieces, 3):
+                capsule = capsule_object(a[k, i], b[k, i], r)
+                for q, whole in enumerate(fscene.other_index):
+                    d = fcl_distance(capsule, fscene.objects[whole])
+                    assert runs[k, i, q] <= d + 1e-5     # fcl's GJK: ~1e-5 m
+
+
+def test_pruned_motion_search_gives_the_minima_of_the_plain_one(robots) -> None:
+    """On random box scenes, the motion search (runs pruned by their balls) gives the
+    smallest distance and the collisions of every pair measured."""
+    robot = robots["tdcr3"]
+    rng = np.random.default_rng(7)
+    hits = 0
+    for trial in range(6):
+        centres = rng.uniform([-1.2, -1.2, 0.8], [1.2, 1.2, 2.4], (12, 3))
+        boxes = [{"type": "box", "name": f"box{j}", "center": centre.tolist(),
+                  "size": rng.uniform(0.1, 0.6, 3).tolist()} for j, centre in enumerate(centres)]
+        scene = Scene.from_dict({"obstacles": boxes})
+        start, goal = random_q(robot, 2, seed=trial)
+        qs = start + np.linspace(0.0, 1.0, 9)[:, None] * (goal - start)
+        got = check_motion(robot, scene, qs)
+        chains = body_chain(robot, qs)
+        capsules = [[capsule_object(c[i], c[i + 1], robot.backbone_radius)
+                     for i in range(len(c) - 1)] for c in chains]
+        every = np.array([[min(fcl_distance(p, obj) for obj in
+                               check_module._fcl_scene(scene).objects) for p in row]
+                          for row in capsules]).min(axis=1)
+        assert got.obstacle_distance == pytest.approx(every.min(), abs=1e-12)
+        hits += int(np.any(every < 0.0))
+        assert np.array_equal(got.collision, np.minimum(every, check_many(
+            robot, scene, qs).self_distance) < 0.0)
+    assert 0 < hits < 6                  # motions that hit boxes and motions that miss
+
+
+def test_tightened_bounds_are_below_fcl_and_a_threshold_only_skips_work(robots,
+                                                                         mixed_scene) -> None:
+    """``_tighten`` (axis-aligned box, bounding sphere, face planes, axis) stays below fcl's
+    distance for every kind of part, and with a threshold the pairs below it get the same
+    bounds while the others stay at or above it."""
+    robot = robots["tdcr3"]
+    r = robot.backbone_radius
+    chains = body_chain(robot, random_q(robot, 8, seed=11))
+    for scene in (mixed_scene, load_scene("cabinet")):
+        fscene = check_module._fcl_scene(scene)
+        parts = len(fscene.other_index)
+        a, b = chains[:, :-1].reshape(-1, 3), chains[:, 1:].reshape(-1, 3)
+        pi, qi = np.repeat(np.arange(len(a)), parts), np.tile(np.arange(parts), len(a))
+        loose = np.full(len(pi), -np.inf)
+        full = check_module._tighten(r, fscene, a[pi], b[pi], qi, loose.copy())
+        threshold = np.median(full)
+        cut = check_module._tighten(r, fscene, a[pi], b[pi], qi, loose.copy(), threshold)
+        below = full < threshold
+        assert np.array_equal(cut[below], full[below]) and np.all(cut[~below] >= threshold)
+        capsules = [capsule_object(a[i], b[i], r) for i in range(len(a))]
+        d = np.array([fcl_distance(capsules[i], fscene.objects[fscene.other_index[q]])
+                      for i, q in zip(pi, qi, strict=True)])
+        assert np.all(full <= d + 1e-5)                 # fcl's GJK: ~1e-5 m
+        assert np.mean(full > 0.5 * d) > 0.5            # and not a trivial bound

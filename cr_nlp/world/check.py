@@ -28,7 +28,9 @@ What is computed how, for a whole batch of configurations at once:
 A motion (``check_motion``: the configurations of one trajectory or path) needs less:
 its smallest distance and which configurations collide. There the pairs of all its
 configurations are visited together in order of their bound, and a configuration is
-measured only as far as it can lower the motion's minimum or collide.
+measured only as far as it can lower the motion's minimum or collide; a ball around each
+run of pieces (against each part's bounding sphere and axis-aligned box) says which pieces
+need bounds of their own, and each pair's axis-aligned box bound which need the face planes.
 
 fcl stays for those parts because their closed forms (segment–box, segment–cylinder,
 segment–polytope) are not written here; the closed forms above agree with fcl's
@@ -191,6 +193,10 @@ class _FclScene:
                 self.offsets[q] = np.concatenate([o, np.repeat(o[:1], width - len(o))])
         self.normals = tuple(np.ascontiguousarray(normals[..., k]) for k in range(3))
         self.other_centre_norm2 = np.einsum("ij,ij->i", self.other_centres, self.other_centres)
+        # Axis-aligned boxes around the parts, 1e-12 m wider than rounding could need.
+        boxes = [_axis_aligned_box(parts[i]) for i in other]
+        self.box_lower = np.array([lo for lo, _ in boxes], dtype=float).reshape(-1, 3) - 1e-12
+        self.box_upper = np.array([hi for _, hi in boxes], dtype=float).reshape(-1, 3) + 1e-12
         # Capsules and cylinders: the capsule around the axis contains the part.
         axis = [_axis(parts[i]) for i in other]
         self.axis_a = np.array([a for a, _, _ in axis], dtype=float).reshape(-1, 3)
@@ -211,6 +217,23 @@ def _face_planes(part: Part) -> tuple[np.ndarray, np.ndarray]:
     if isinstance(part, ConvexPart):
         return np.asarray(part.normals, dtype=float), np.asarray(part.offsets, dtype=float)
     return np.zeros((0, 3)), np.zeros(0)
+
+
+def _axis_aligned_box(part: Part) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper corners (3,) m of an axis-aligned box that contains the part."""
+    if isinstance(part, BoxPart):
+        extent = np.abs(np.asarray(part.rotation, dtype=float)) @ np.asarray(part.half_size,
+                                                                              dtype=float)
+        centre = np.asarray(part.center, dtype=float)
+        return centre - extent, centre + extent
+    if isinstance(part, (CapsulePart, CylinderPart)):    # in the capsule around the axis
+        a, b = np.asarray(part.a, dtype=float), np.asarray(part.b, dtype=float)
+        return np.minimum(a, b) - part.radius, np.maximum(a, b) + part.radius
+    if isinstance(part, ConvexPart):
+        vertices = np.asarray(part.vertices, dtype=float)
+        return vertices.min(axis=0), vertices.max(axis=0)
+    centre, radius = bounding_sphere(part)
+    return np.asarray(centre, dtype=float) - radius, np.asarray(centre, dtype=float) + radius
 
 
 def _axis(part: Part) -> tuple[np.ndarray, np.ndarray, float]:
@@ -374,6 +397,27 @@ class _Capsules:
 # ================================================================ the verdict
 
 _BATCH_ELEMENTS = 1 << 17   # (configuration, piece, part) entries per vectorised chunk
+_CHUNK_CONFIGURATIONS = 192  # configurations per chunk of a motion at most
+
+
+def _motion_chunks(fscene: _FclScene, count: int, pieces: int,
+                   per_segment: int) -> list[slice]:
+    """Even chunks of a motion's ``count`` configurations, each array of the motion
+    search within a quarter of ``_BATCH_ELEMENTS`` (it makes no (piece, part) array, so
+    the largest are (piece, sphere) entries, (run, part) entries and far pairs; bigger
+    ones outgrow the cache) and at most ``_CHUNK_CONFIGURATIONS`` configurations."""
+    runs = pieces // _run_length(per_segment)
+    width = max(pieces * len(fscene.sphere_index), runs * len(fscene.other_index),
+                len(_far_pairs(pieces, per_segment)[0]), 1)
+    step = max(1, min((_BATCH_ELEMENTS >> 2) // width, _CHUNK_CONFIGURATIONS))
+    step = -(-count // -(-count // step)) if count else step      # as even as they come
+    return [slice(s, s + step) for s in range(0, count, step)]
+
+
+def _run_length(per_segment: int) -> int:
+    """Pieces per run of ``_group_bounds``: the largest divisor of the segment's pieces
+    up to ``_RUN_PIECES``."""
+    return max(g for g in range(1, min(per_segment, _RUN_PIECES) + 1) if per_segment % g == 0)
 
 
 @functools.lru_cache(maxsize=32)
@@ -385,9 +429,27 @@ def _far_pairs(pieces: int, per_segment: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _tighten(r: float, fscene: _FclScene, sa: np.ndarray, sb: np.ndarray, qi: np.ndarray,
-             low: np.ndarray) -> np.ndarray:
+             low: np.ndarray, below: float | np.ndarray = np.inf) -> np.ndarray:
     """Tighter lower bounds than ``low`` (N,) on the signed distance between pieces sa–sb
-    (N, 3) and fcl parts qi (N,) (indices into the scene's non-sphere parts)."""
+    (N, 3) and fcl parts qi (N,) (indices into the scene's non-sphere parts). A pair whose
+    bound reaches ``below`` (scalar or (N,)) by the cheap axis-aligned box keeps that
+    bound, not tightened further: the callers drop it."""
+    # The part's axis-aligned box: the piece's coordinate ranges miss it by at least the
+    # largest gap along an axis.
+    gap = np.maximum(fscene.box_lower[qi] - np.maximum(sa, sb),
+                     np.minimum(sa, sb) - fscene.box_upper[qi]).max(axis=1)
+    low = np.maximum(low, gap - r)
+    open_ = np.flatnonzero(low < below)
+    if len(open_) < len(low):
+        low[open_] = _tighten_more(r, fscene, sa[open_], sb[open_], qi[open_], low[open_])
+        return low
+    return _tighten_more(r, fscene, sa, sb, qi, low)
+
+
+def _tighten_more(r: float, fscene: _FclScene, sa: np.ndarray, sb: np.ndarray,
+                  qi: np.ndarray, low: np.ndarray) -> np.ndarray:
+    """``_tighten``'s bounds past the axis-aligned box: the part's bounding sphere against
+    the piece's segment, face planes, the axis of capsules and cylinders."""
     sa_, sb_ = _xyz(sa), _xyz(sb)
     u = _sub(sb_, sa_)
     # The part's bounding sphere against the piece's segment.
@@ -408,6 +470,7 @@ def _tighten(r: float, fscene: _FclScene, sa: np.ndarray, sb: np.ndarray, qi: np
     return low
 
 
+_RUN_PIECES = 5        # pieces per ball of ``_group_bounds`` (a divisor of the segment's)
 _SEED_CANDIDATES = 8   # pairs per configuration whose tight bound picks the first fcl query
 
 
@@ -462,7 +525,7 @@ def _fcl_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray,
     if not len(bi):
         return
     pi, qi = np.divmod(flat, parts)
-    low = _tighten(r, fscene, a[bi, pi], b[bi, pi], qi, lower[bi, flat])
+    low = _tighten(r, fscene, a[bi, pi], b[bi, pi], qi, lower[bi, flat], obstacle[bi])
     order = np.flatnonzero(low < obstacle[bi])
     if not len(order):
         return
@@ -489,8 +552,33 @@ def _fcl_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray,
         obstacle[k], part[k] = best, best_part
 
 
+def _group_bounds(r: float, fscene: _FclScene, a: Xyz, b: Xyz, group: int) -> np.ndarray:
+    """(B, m / group, parts) lower bounds on the distance between each run of ``group``
+    consecutive pieces a–b (coordinates (B, m) each) and each fcl part: a ball around the
+    run (centre: the mean of its mid points; radius: the farthest mid point plus its
+    half length, plus r) against the part's bounding sphere and its axis-aligned box. A
+    pair of piece and part is worth a look only where its run's entry is."""
+    count = a[0].shape[0]
+    mid = tuple((0.5 * (p + q)).reshape(count, -1, group) for p, q in zip(a, b, strict=True))
+    u = _sub(b, a)
+    half = (0.5 * np.sqrt(_dot(u, u))).reshape(count, -1, group)
+    centre = tuple(c.mean(axis=2) for c in mid)
+    off = _sub(mid, tuple(c[:, :, None] for c in centre))
+    reach = (np.sqrt(_dot(off, off)) + half).max(axis=2) + r
+    gap = _sub(tuple(c[:, :, None] for c in centre),
+               tuple(fscene.other_centres[:, k] for k in range(3)))
+    apart = np.sqrt(_dot(gap, gap)) - fscene.other_radii
+    # The part's axis-aligned box: the ball's centre lies beyond one of its faces.
+    for k in range(3):
+        apart = np.maximum(apart, np.maximum(fscene.box_lower[:, k] - centre[k][:, :, None],
+                                             centre[k][:, :, None] - fscene.box_upper[:, k]))
+    # 1e-12 m below: rounding of the ball may not lift the bound above the distance.
+    return apart - reach[:, :, None] - 1e-12
+
+
 def _fcl_motion_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray,
-                       obstacle: np.ndarray, part: np.ndarray, best: float) -> float:
+                       obstacle: np.ndarray, part: np.ndarray, best: float,
+                       group: int) -> float:
     """``_fcl_search`` for a motion, where only the smallest distance over the whole batch
     and which configurations penetrate matter: lower ``obstacle`` (B,) in place so that
     every configuration that penetrates a part gets a negative entry, and return the
@@ -499,13 +587,20 @@ def _fcl_motion_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray
     below it), and ``part`` names the part of each lowered entry.
 
     Pairs are visited over the whole batch in order of their lower bound, from a seed
-    pair (the smallest tight bound among each configuration's few smallest loose
-    bounds), until no pair can lower the minimum or make a configuration penetrate; the
-    distances measured are the ones ``_fcl_search`` measures, on capsules built alike."""
+    pair (the smallest tight bound among the pieces of each configuration's run of
+    ``group`` pieces nearest to a part by ``_group_bounds``), until no pair can lower the
+    minimum or make a configuration penetrate; only the pieces of runs whose ball can get
+    below that are bounded one by one. The distances measured are the ones ``_fcl_search``
+    measures, on capsules built alike."""
     count, pieces = a.shape[:2]
-    parts = len(fscene.other_index)
     objects, part_of = fscene.objects, fscene.other_index
-    lower = _loose_bounds(r, fscene, a, b)
+    x0 = tuple(np.ascontiguousarray(a[..., k]) for k in range(3))
+    x1 = tuple(np.ascontiguousarray(b[..., k]) for k in range(3))
+    coarse = _group_bounds(r, fscene, x0, x1, group)
+    mid = tuple(0.5 * (p + q) for p, q in zip(x0, x1, strict=True))
+    u = _sub(x1, x0)
+    reach = 0.5 * np.sqrt(_dot(u, u)) + r
+    centres = tuple(fscene.other_centres[:, k] for k in range(3))
     best = min(best, float(obstacle.min(initial=np.inf)))
 
     def measure(k: int, capsule: fcl.CollisionObject, q: int) -> None:
@@ -515,28 +610,43 @@ def _fcl_motion_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray
             obstacle[k], part[k] = d, q
         best = min(best, d)
 
-    width = min(_SEED_CANDIDATES, pieces * parts)
-    near = np.argpartition(lower, width - 1, axis=1)[:, :width]
-    rep, flat = np.repeat(np.arange(count), width), near.ravel()
-    pi, qi = np.divmod(flat, parts)
-    tight = _tighten(r, fscene, a[rep, pi], b[rep, pi], qi, lower[rep, flat])
-    seed = int(np.argmin(tight))
-    if tight[seed] < max(best, 0.0):
-        k, i = int(rep[seed]), int(pi[seed])
-        measure(k, capsule_object(a[k, i], b[k, i], r), int(part_of[qi[seed]]))
-        lower[k, flat[seed]] = np.inf             # measured
-    bi, flat = np.nonzero(lower < max(best, 0.0))
-    if not len(bi):
+    def expand(bk: np.ndarray, bg: np.ndarray,
+               bq: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The pairs of the runs' pieces whose loose bound (the part's bounding sphere
+        against the piece's ball) is below the threshold, with their tight bounds."""
+        bi, qi = np.repeat(bk, group), np.repeat(bq, group)
+        pi = ((bg * group)[:, None] + np.arange(group)).ravel()
+        gap = _sub(tuple(c[bi, pi] for c in mid), tuple(c[qi] for c in centres))
+        loose = np.sqrt(_dot(gap, gap)) - reach[bi, pi] - fscene.other_radii[qi]
+        keep = np.flatnonzero(loose < max(best, 0.0))
+        bi, pi, qi = bi[keep], pi[keep], qi[keep]
+        return bi, pi, qi, _tighten(r, fscene, a[bi, pi], b[bi, pi], qi, loose[keep],
+                                    max(best, 0.0))
+
+    # Seed: the pair of smallest tight bound among the pieces of each configuration's
+    # nearest run, so that the candidates below are only those that can beat it.
+    seed = (-1, -1, -1)                                  # (configuration, piece, part)
+    flat = coarse.reshape(count, -1).argmin(axis=1)
+    near = np.flatnonzero(coarse.reshape(count, -1)[np.arange(count), flat] < max(best, 0.0))
+    if len(near):
+        bi, pi, qi, tight = expand(near, *np.divmod(flat[near], coarse.shape[2]))
+        if len(tight) and tight.min() < max(best, 0.0):
+            s = int(np.argmin(tight))
+            seed = int(bi[s]), int(pi[s]), int(qi[s])
+            measure(seed[0], capsule_object(a[seed[:2]], b[seed[:2]], r), int(part_of[seed[2]]))
+    bk, bg, bq = np.nonzero(coarse < max(best, 0.0))
+    if not len(bk):
         return best
-    pi, qi = np.divmod(flat, parts)
-    low = _tighten(r, fscene, a[bi, pi], b[bi, pi], qi, lower[bi, flat])
-    order = np.flatnonzero(low < max(best, 0.0))
+    bi, pi, qi, low = expand(bk, bg, bq)
+    open_ = (low < max(best, 0.0)) & ~((bi == seed[0]) & (pi == seed[1])
+                                       & (qi == seed[2]))           # the seed is measured
+    order = np.flatnonzero(open_)
     order = order[np.argsort(low[order], kind="stable")]
-    bi, pi, low = bi[order], pi[order], low[order]
+    bi, pi, qi, low = bi[order], pi[order], qi[order], low[order]
     unique, slot = np.unique(bi * pieces + pi, return_inverse=True)
     capsules = _Capsules(r, a.reshape(-1, 3)[unique], b.reshape(-1, 3)[unique])
     for k, s, bound, q in zip(bi.tolist(), slot.tolist(), low.tolist(),
-                              part_of[qi[order]].tolist(), strict=True):
+                              part_of[qi].tolist(), strict=True):
         if bound >= max(best, 0.0):
             break                        # no pair left can lower the minimum or penetrate
         if bound >= best and obstacle[k] < 0.0:
@@ -596,7 +706,7 @@ def _verdicts(robot: Robot, fscene: _FclScene, chains: np.ndarray, per_segment: 
         part = fscene.sphere_index[nearest % spheres]
     if len(fscene.other_index) and motion is not None:
         best = _fcl_motion_search(r, fscene, chains[:, :-1], chains[:, 1:], obstacle, part,
-                                  best)
+                                  best, _run_length(per_segment))
     elif len(fscene.other_index):
         _fcl_search(r, fscene, chains[:, :-1], chains[:, 1:], obstacle, part)
     best = min(best, float(obstacle.min()))
@@ -686,17 +796,15 @@ def check_motion(robot: Robot, scene: Scene | None, qs: Any) -> MotionCheck:
     per_segment = robot.points_per_segment
     fscene = _fcl_scene(scene)
     pieces = chains.shape[1] - 1
-    width = max(len(fscene.objects), len(_far_pairs(pieces, per_segment)[0]), 1)
-    step = max(1, _BATCH_ELEMENTS // (pieces * width))
     best, closest, own_min = np.inf, "", np.inf
     collision = np.zeros(len(qs), dtype=bool)
-    for s in range(0, len(qs), step):
-        obstacle, part, own, low = _verdicts(robot, fscene, chains[s:s + step], per_segment,
+    for s in _motion_chunks(fscene, len(qs), pieces, per_segment):
+        obstacle, part, own, low = _verdicts(robot, fscene, chains[s], per_segment,
                                              motion=best)
         if low < best:
             nearest = int(np.argmin(obstacle))
             best, closest = low, fscene.names[part[nearest]] if part[nearest] >= 0 else ""
         own_min = min(own_min, float(own.min(initial=np.inf)))
-        collision[s:s + step] = np.minimum(obstacle, own) < 0.0
+        collision[s] = np.minimum(obstacle, own) < 0.0
     return MotionCheck(obstacle_distance=float(best), closest=closest,
                        self_distance=float(own_min), collision=collision)
