@@ -132,27 +132,36 @@ class ThinWall:
         pass
 
 
-def test_an_attach_edge_only_the_dense_check_rejects_is_not_used(robot, shelf):
-    """Start S = (0, 0) attaches to N1 = (1, 0) (coarse samples pass, the wall is between
-    them) and N2 = (0, 1); the shortest path S–N1–G crosses the wall, so the query must
-    find the longer S–N2–N3–G, every edge of which keeps the margin densely."""
+def _point(robot, x: float, y: float) -> np.ndarray:
+    """A configuration z with z₀ = x, z₁ = y (the plane of ``ThinWall``), lengths 1 m."""
+    z = np.zeros(robot.dof)
+    z[0], z[1], z[2::3] = x, y, 1.0
+    return z
+
+
+def _thin_wall_roadmap(robot, shelf, n2_y: float, neighbours: int) -> tuple:
+    """Nodes N1 = (1, 0), N2 = (0, ``n2_y``), N3 = (2, 1), edges N1–N3 and N2–N3, checked
+    by ``ThinWall``; returns the roadmap and its nodes."""
     import scipy.sparse as sp
 
-    def point(x: float, y: float) -> np.ndarray:
-        z = np.zeros(robot.dof)
-        z[0], z[1], z[2::3] = x, y, 1.0
-        return z
-
-    nodes = np.stack([point(1, 0), point(0, 1), point(2, 1)])      # N1, N2, N3
+    nodes = np.stack([_point(robot, 1, 0), _point(robot, 0, n2_y), _point(robot, 2, 1)])
     hops = [(0, 2), (1, 2)]
     rows, cols = zip(*(hops + [(b, a) for a, b in hops]), strict=True)
     lengths = [float(np.linalg.norm(nodes[a] - nodes[b])) for a, b in zip(rows, cols,
                                                                              strict=True)]
     edges = sp.csr_matrix((lengths, (rows, cols)), shape=(3, 3))
-    roadmap = Roadmap(robot, shelf, RoadmapConfig(neighbours=2, edge_checks=8), nodes,
-                      edges, 0.0)
+    roadmap = Roadmap(robot, shelf, RoadmapConfig(neighbours=neighbours, edge_checks=8),
+                      nodes, edges, 0.0)
     roadmap._checker = ThinWall()
-    start, goal = point(0, 0), point(2, 0)
+    return roadmap, nodes
+
+
+def test_an_attach_edge_only_the_dense_check_rejects_is_not_used(robot, shelf):
+    """Start S = (0, 0) attaches to N1 = (1, 0) (coarse samples pass, the wall is between
+    them) and N2 = (0, 1); the shortest path S–N1–G crosses the wall, so the query must
+    find the longer S–N2–N3–G, every edge of which keeps the margin densely."""
+    roadmap, nodes = _thin_wall_roadmap(robot, shelf, 1.0, neighbours=2)
+    start, goal = _point(robot, 0, 0), _point(robot, 2, 0)
     path = roadmap.query_z(start, goal)
     np.testing.assert_array_equal(path, np.stack([start, nodes[1], nodes[2], goal]))
     assert roadmap.dense_free(path[:-1], path[1:]).all()
@@ -163,23 +172,8 @@ def test_an_end_whose_every_coarse_attach_edge_fails_is_attached_again_densely(r
     """With one neighbour, S = (0, 0) attaches to N1 = (1, 0) only (N2 = (0, 1.1) is
     farther), through the thin wall: the query must attach S again with the dense check
     (to N2) and still find a path, every edge of which keeps the margin densely."""
-    import scipy.sparse as sp
-
-    def point(x: float, y: float) -> np.ndarray:
-        z = np.zeros(robot.dof)
-        z[0], z[1], z[2::3] = x, y, 1.0
-        return z
-
-    nodes = np.stack([point(1, 0), point(0, 1.1), point(2, 1)])    # N1, N2, N3
-    hops = [(0, 2), (1, 2)]
-    rows, cols = zip(*(hops + [(b, a) for a, b in hops]), strict=True)
-    lengths = [float(np.linalg.norm(nodes[a] - nodes[b])) for a, b in zip(rows, cols,
-                                                                             strict=True)]
-    edges = sp.csr_matrix((lengths, (rows, cols)), shape=(3, 3))
-    roadmap = Roadmap(robot, shelf, RoadmapConfig(neighbours=1, edge_checks=8), nodes,
-                      edges, 0.0)
-    roadmap._checker = ThinWall()
-    start, goal = point(0, 0), point(2, 0)
+    roadmap, nodes = _thin_wall_roadmap(robot, shelf, 1.1, neighbours=1)
+    start, goal = _point(robot, 0, 0), _point(robot, 2, 0)
     path = roadmap.query_z(start, goal)
     assert path is not None
     np.testing.assert_array_equal(path[:2], np.stack([start, nodes[1]]))
