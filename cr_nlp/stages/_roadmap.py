@@ -17,8 +17,8 @@ attached to their nearest nodes by edges that pass the ``edge_checks`` samples
 all pairs are found in one batched search (``roadmap_search``: scipy's Dijkstra, or a
 min-plus relaxation in JAX on the device), and the edges of those paths, attach edges
 included, are checked densely (every ``query_step`` in the metric); an edge that fails
-is dropped and the pairs that used it search again (lazy PRM). Every check is one batched clearance call for all pairs. The
-path is resampled uniformly by arc length.
+is dropped and the pairs that used it search again (lazy PRM). Every check is one
+batched clearance call for all pairs. The path is resampled uniformly by arc length.
 
 Metric: the Euclidean distance in the bending-vector form z = [ux, uy, L]·n
 (radians for u = θ(cos φ, sin φ), metres for L). It has no azimuth wrap-around and no
