@@ -268,11 +268,12 @@ def test_run_balls_bound_every_piece_of_their_run(robots, mixed_scene, group) ->
     a, b = chains[:, :-1], chains[:, 1:]
     for scene in (mixed_scene, load_scene("cabinet")):
         fscene = check_module._fcl_scene(scene)
-        coarse = check_module._group_bounds(r, fscene, tuple(a[..., k] for k in range(3)),
-                                            tuple(b[..., k] for k in range(3)), group)
+        mid = 0.5 * (a + b)
+        coarse = check_module._group_bounds(r, fscene, tuple(mid[..., k] for k in range(3)),
+                                            0.5 * np.linalg.norm(b - a, axis=-1), group)
         count, pieces = a.shape[:2]
         assert coarse.shape == (count, pieces // group, len(fscene.other_index))
-        mid = 0.5 * (a + b)[:, :, None]                   # each piece's own ball
+        mid = mid[:, :, None]                             # each piece's own ball
         beyond_box = np.maximum(fscene.box_lower - mid, mid - fscene.box_upper).max(axis=-1)
         piece_ball = (np.maximum(np.linalg.norm(mid - fscene.other_centres, axis=-1)
                                  - fscene.other_radii, beyond_box)

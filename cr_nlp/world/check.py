@@ -552,16 +552,17 @@ def _fcl_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray,
         obstacle[k], part[k] = best, best_part
 
 
-def _group_bounds(r: float, fscene: _FclScene, a: Xyz, b: Xyz, group: int) -> np.ndarray:
+def _group_bounds(r: float, fscene: _FclScene, mid: Xyz, half: np.ndarray,
+                  group: int) -> np.ndarray:
     """(B, m / group, parts) lower bounds on the distance between each run of ``group``
-    consecutive pieces a–b (coordinates (B, m) each) and each fcl part: a ball around the
-    run (centre: the mean of its mid points; radius: the farthest mid point plus its
-    half length, plus r) against the part's bounding sphere and its axis-aligned box. A
-    pair of piece and part is worth a look only where its run's entry is."""
-    count = a[0].shape[0]
-    mid = tuple((0.5 * (p + q)).reshape(count, -1, group) for p, q in zip(a, b, strict=True))
-    u = _sub(b, a)
-    half = (0.5 * np.sqrt(_dot(u, u))).reshape(count, -1, group)
+    consecutive pieces (mid points ``mid``, coordinates (B, m) each; half lengths ``half``
+    (B, m)) and each fcl part: a ball around the run (centre: the mean of its mid points;
+    radius: the farthest mid point plus its half length, plus r) against the part's
+    bounding sphere and its axis-aligned box. A pair of piece and part is worth a look
+    only where its run's entry is."""
+    count = half.shape[0]
+    mid = tuple(c.reshape(count, -1, group) for c in mid)
+    half = half.reshape(count, -1, group)
     centre = tuple(c.mean(axis=2) for c in mid)
     off = _sub(mid, tuple(c[:, :, None] for c in centre))
     reach = (np.sqrt(_dot(off, off)) + half).max(axis=2) + r
@@ -596,10 +597,11 @@ def _fcl_motion_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray
     objects, part_of = fscene.objects, fscene.other_index
     x0 = tuple(np.ascontiguousarray(a[..., k]) for k in range(3))
     x1 = tuple(np.ascontiguousarray(b[..., k]) for k in range(3))
-    coarse = _group_bounds(r, fscene, x0, x1, group)
     mid = tuple(0.5 * (p + q) for p, q in zip(x0, x1, strict=True))
     u = _sub(x1, x0)
-    reach = 0.5 * np.sqrt(_dot(u, u)) + r
+    half = 0.5 * np.sqrt(_dot(u, u))
+    coarse = _group_bounds(r, fscene, mid, half, group)
+    reach = half + r
     centres = tuple(fscene.other_centres[:, k] for k in range(3))
     best = min(best, float(obstacle.min(initial=np.inf)))
 
