@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg
 import numpy as np
 
-from ._lm import LMConfig
+from ._lm import LMConfig, gave_up
 
 UnaryResidual = Callable[[jax.Array, Any, Any], jax.Array]
 """r(z_t, params_t, shared) → (m₁,): depends on one waypoint z_t (d,)."""
@@ -383,8 +383,7 @@ def banded_lm_trip(terms: ChainResidual, project: Callable[[jax.Array], jax.Arra
     done = done | stalled | (cost_new < config.cost_tolerance) | (lam > 1e10)
     keep = partial(jnp.where, accept)
     z, cost = keep(z_trial, z), keep(cost_new, cost)
-    if config.give_up_iteration > 0:      # still deep in a penalty after that many steps
-        done = done | ((it + 1 >= config.give_up_iteration) & (cost > config.give_up_cost))
+    done = done | gave_up(config, it + 1, cost)   # still deep in a penalty
     h = jax.tree_util.tree_map(keep, h_new, h)
     g = keep(g_new, g)
     shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * jnp.clip(rho, 0.0, 1.0) - 1.0) ** 3)

@@ -119,6 +119,14 @@ def _differences(residual: Residual, z: jax.Array, params: Any,
     return jnp.swapaxes(j, 1, 2), r[:, 0]
 
 
+def gave_up(config: LMConfig, judged: jax.Array, cost: jax.Array) -> jax.Array | bool:
+    """The give-up rule (``LMConfig.give_up_iteration``): ``judged`` steps made and the cost
+    still above ``give_up_cost``; False when the rule is off."""
+    if config.give_up_iteration <= 0:
+        return False
+    return (judged >= config.give_up_iteration) & (cost > config.give_up_cost)
+
+
 @partial(jax.jit, static_argnames=("residual", "project", "config"))
 def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any, shared: Any,
              free: jax.Array, iterations: jax.Array, config: LMConfig = LMConfig(),
@@ -191,8 +199,7 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
         done = done | stalled | (cost_new < config.cost_tolerance) | (lam > 1e10)
         z = jnp.where(accept[:, None], z_new, z)
         cost = jnp.where(accept, cost_new, cost)
-        if config.give_up_iteration > 0:
-            done = done | ((it + 1 >= config.give_up_iteration) & (cost > config.give_up_cost))
+        done = done | gave_up(config, it + 1, cost)
         shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * jnp.clip(rho, 0.0, 1.0) - 1.0) ** 3)
         lam = jnp.where(accept, lam * shrink, lam * nu)
         nu = jnp.where(accept, 2.0, nu * 2.0)
