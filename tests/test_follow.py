@@ -146,7 +146,8 @@ def test_stage_one_table_and_sequence_agree_with_numpy(follower) -> None:
     stage = follower.continuation
     no_chains = stage.chains(z[:0, 0], np.zeros((0, 1), int), np.zeros((0, 1), bool),
                              np.zeros(0, int), path.positions, path.wxyz, follower._shared(DT))
-    _, _, chosen, speed = stage.choose((z, errors), no_chains, 0, seconds)
+    _, _, chosen, speed, _ = stage.choose((z, errors), np.full(errors.shape + (2,), -1),
+                                          no_chains, 0, seconds)
     pick = numpy_viterbi(z, errors, follower.config.ik.success_tolerance)
     # Where the forward and backward chains meet on one answer (µm apart) the float32 sums
     # may pick either of the two: same sequence up to such near-ties.
@@ -154,6 +155,61 @@ def test_stage_one_table_and_sequence_agree_with_numpy(follower) -> None:
     lengths = tendon_series(ROBOT, z_to_q_numpy(z[np.arange(WAYPOINTS), pick]))
     expected = np.max(np.abs(np.diff(lengths, axis=0)), axis=1) / DT
     np.testing.assert_allclose(np.asarray(speed), expected, rtol=1e-4, atol=1e-6)
+
+
+def test_chain_links_enter_each_step_both_ways() -> None:
+    # Two chains by hand: one from cell (2, 0) forward over rows 3, 4 in column 3, one
+    # re-solving row 4 in column 5 and walking back to row 2 (its start row repeated).
+    from cr_nlp.stages._continuation import chain_links
+
+    links = chain_links(np.full((6, 6, 2), -1), np.array([[2, 3, 4, -9], [4, 4, 3, 2]]),
+                        np.array([[0, 3, 3, 3], [5, 5, 5, 5]]),
+                        np.array([[True, True, True, False], [True] * 4]))
+    expected = np.full((6, 6, 2), -1)
+    expected[2, 0, 1] = 3                       # forward: (2, 0) → (3, 3) → (4, 3)
+    expected[3, 3] = [0, 3]
+    expected[4, 3, 0] = 3
+    expected[4, 5, 0] = expected[3, 5, 0] = 5   # backward: (4, 5) → (3, 5) → (2, 5)
+    expected[3, 5, 1] = expected[2, 5, 1] = 5
+    np.testing.assert_array_equal(links, expected)
+
+
+def test_walked_speeds_are_the_chains_own_steps_across_the_sequence(follower) -> None:
+    # The device program's walked speeds against float64 tendon lengths of the table's
+    # chain steps from the chosen answers; a jump walked above the limit from both of
+    # its answers is not bridged, one with a step missing from the table is.
+    path = line_path()
+    stage = follower.continuation
+    shared = follower._shared(DT)
+    seconds = np.full(WAYPOINTS - 1, DT)
+    base, links, _, chains = stage.anchor_chains(path.positions, path.wxyz, shared)
+    table_z, table_err, chosen, _, walked = (np.asarray(x, np.float64) for x in stage.choose(
+        base, links, chains, 0, seconds))
+    rows = np.arange(WAYPOINTS)
+    choice = np.argmin(np.abs(table_z - chosen[:, None]).max(axis=2)
+                       + np.where(np.isfinite(table_err), 0.0, np.inf), axis=1)
+
+    def speed(z_a: np.ndarray, z_b: np.ndarray) -> np.ndarray:
+        lengths = tendon_series(ROBOT, z_to_q_numpy(np.stack([z_a, z_b])))
+        return np.max(np.abs(lengths[1] - lengths[0])) / DT
+
+    tolerance = stage.settings.tolerance
+    expected = []
+    for i in rows[:-1]:
+        ahead, behind = links[i, choice[i], 1], links[i + 1, choice[i + 1], 0]
+        if ahead < 0 or behind < 0:
+            expected.append(np.nan)
+            continue
+        steps = [(chosen[i], i + 1, ahead, table_z[i + 1, ahead]),
+                 (table_z[i, behind], i, behind, chosen[i + 1])]
+        expected.append(min(speed(a, b) if table_err[row, col] < tolerance else np.inf
+                            for a, row, col, b in steps))
+    assert np.isfinite(expected).sum() >= WAYPOINTS // 2   # most intervals walked
+    np.testing.assert_allclose(walked, expected, rtol=1e-3, atol=1e-6)
+    limit = ROBOT.tendon_speed_max
+    speeds = np.full(4, 2 * limit)
+    np.testing.assert_array_equal(
+        stage.jumps(speeds, np.array([2 * limit, np.inf, np.nan, 0.5 * limit])), [2, 3])
 
 
 def test_pose_only_chains_match_chains_on_the_whole_residual(follower) -> None:

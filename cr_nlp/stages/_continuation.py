@@ -17,7 +17,10 @@ branch jumps (a tendon would have to move faster than it can). This stage:
 3. finds the intervals where that sequence's tendon speed exceeds the robot's limit
    (the jumps) and bridges each: chains from the answers on both sides walk across the
    jump (at most ``bridge_window`` waypoints) and their answers join the table before the
-   sequence is chosen again (``rounds`` times).
+   sequence is chosen again (``rounds`` times). A jump that the table's own chains
+   already walked from both of its answers, each step unsolved or over the limit, is the
+   path's demand on those branches (ICRA's pen-up move): a bridge would walk the same
+   steps again, so it is not bridged (``walked_speeds``).
 
 The problem enters only as the residual of one waypoint (``WaypointResidual``); the task
 (``tasks.follow``) owns it. Configurations are bending vectors z (rad, rad, m).
@@ -164,15 +167,65 @@ def extend_table(extra: int, table_z: jax.Array, table_err: jax.Array, chain_z: 
             table_err.at[rows, columns].set(chain_err, mode="drop"))
 
 
+def chain_links(links: np.ndarray, rows: np.ndarray, columns: np.ndarray,
+                valid: np.ndarray) -> np.ndarray:
+    """``links`` (R, K, 2) int with the steps of C chains entered, in place: chain c's
+    table cells in the order it visited them are (``rows[c, s]``, ``columns[c, s]``)
+    where ``valid[c, s]`` (C, S), its start cell first where it started from one; a step
+    between adjacent rows links the two cells: ``links[r, k, 0]`` is the column of the
+    cell at row r − 1 and ``links[r, k, 1]`` the one at row r + 1 that a chain stepped
+    between with (r, k) (−1: none). Returns ``links``."""
+    step = valid[:, :-1] & valid[:, 1:]
+    here, there = rows[:, :-1][step], rows[:, 1:][step]
+    col_here, col_there = columns[:, :-1][step], columns[:, 1:][step]
+    for sign, side in ((1, 1), (-1, 0)):            # steps forward, then backward
+        along = there - here == sign
+        links[here[along], col_here[along], side] = col_there[along]
+        links[there[along], col_there[along], 1 - side] = col_here[along]
+    return links
+
+
+def walked_speeds(robot: Robot, table_z: jax.Array, table_err: jax.Array,
+                  links: jax.Array, choice: jax.Array, tolerance: jax.Array,
+                  seconds: jax.Array) -> jax.Array:
+    """Per interval i (R − 1,) m/s: the lower largest tendon speed of the table's two
+    chain steps across it from the chosen answers (``links``: forward from row i's,
+    backward from row i + 1's), a step whose far answer does not solve its waypoint
+    (residual norm at or above ``tolerance``) counting as inf; NaN where either step is
+    not in the table. Above the limit: a chain from either answer already crossed the
+    interval and could not do it within the limit."""
+    r = table_z.shape[0]
+    rows = jnp.arange(r - 1)
+    chosen = table_z[jnp.arange(r), choice]
+    forward = links[rows, choice[:-1], 1]
+    backward = links[rows + 1, choice[1:], 0]
+
+    def step_speed(z_a: jax.Array, z_b: jax.Array, far_err: jax.Array,
+                   column: jax.Array) -> jax.Array:
+        change = tendon_lengths_z(robot, z_b - z_a).astype(z_a.dtype)
+        speed = jnp.max(jnp.abs(change), axis=1) / seconds
+        speed = jnp.where(far_err < tolerance, speed, jnp.inf)
+        return jnp.where(column >= 0, speed, jnp.nan)
+
+    ahead = step_speed(chosen[:-1], table_z[rows + 1, forward], table_err[rows + 1, forward],
+                       forward)
+    behind = step_speed(table_z[rows, backward], chosen[1:], table_err[rows, backward],
+                        backward)
+    return jnp.minimum(ahead, behind)                 # NaN where either is NaN
+
+
 def extend_and_choose(robot: Robot, extra: int, table_z: jax.Array, table_err: jax.Array,
                       chain_z: jax.Array, chain_err: jax.Array, index: jax.Array,
-                      active: jax.Array, column: jax.Array, tolerance: jax.Array,
-                      seconds: jax.Array) -> tuple[jax.Array, ...]:
+                      active: jax.Array, column: jax.Array, links: jax.Array,
+                      tolerance: jax.Array, seconds: jax.Array) -> tuple[jax.Array, ...]:
     """``extend_table``, then the smoothest sequence through it
-    (``stages._sequence.smoothest_choice``) and its tendon speeds, in one device program.
+    (``stages._sequence.smoothest_choice``), its tendon speeds and the table's own steps
+    across its intervals (``walked_speeds``; ``links`` (R, K, 2) of the extended table),
+    in one device program.
 
-    Returns the table (z, residual norms), the chosen (R, 3n) z and the largest tendon
-    speed (R − 1,) m/s of every interval (Δℓ over ``seconds`` (R − 1,) s)."""
+    Returns the table (z, residual norms), the chosen (R, 3n) z, the largest tendon
+    speed (R − 1,) m/s of every interval (Δℓ over ``seconds`` (R − 1,) s) and the walked
+    speeds (R − 1,) m/s."""
     table_z, table_err = extend_table(extra, table_z, table_err, chain_z, chain_err, index,
                                       active, column)
     choice = smoothest_choice(table_z, table_err, tolerance)
@@ -181,7 +234,8 @@ def extend_and_choose(robot: Robot, extra: int, table_z: jax.Array, table_err: j
     # the lengths of the change, without the cancellation of two ~1 m float32 lengths.
     change = tendon_lengths_z(robot, jnp.diff(chosen, axis=0)).astype(chosen.dtype)
     speed = jnp.max(jnp.abs(change), axis=1) / seconds
-    return table_z, table_err, chosen, speed
+    walked = walked_speeds(robot, table_z, table_err, links, choice, tolerance, seconds)
+    return table_z, table_err, chosen, speed, walked
 
 
 class BranchContinuation:
@@ -225,27 +279,27 @@ class BranchContinuation:
         (positions (R, 3) m, wxyz (R, 4)); ``seconds`` (R − 1,) s between consecutive
         waypoints (tendon speeds); ``shared`` goes to the residual.
 
-        On the device each round is two programs (the chains; the table, the sequence and
-        its tendon speeds) and one read back (the chosen sequence and its speeds)."""
-        base, ends, chains = self.anchor_chains(positions, wxyz, shared)
-        table = self.choose(base, chains, 0, seconds)
-        chosen, speed = jax.device_get(table[2:])
+        On the device each round is two programs (the chains; the table, the sequence,
+        its tendon speeds and walked speeds) and one read back (the chosen sequence and
+        its speeds)."""
+        base, links, ends, chains = self.anchor_chains(positions, wxyz, shared)
+        table = self.choose(base, links, chains, 0, seconds)
+        chosen, speed, walked = jax.device_get(table[2:])
         bridged: set[int] = set()
         for _ in range(self.settings.rounds):
             # An interval bridged once is not bridged again: measured on icra, the one
             # jump that no branch crosses (waypoint 70) was bridged a second time from the
             # answers the first round's chains brought, with the same final answer (0.1 s;
             # 1.3 s per round with whole-path chains).
-            jumps = [i for i in self.jumps(speed) if i not in bridged]
+            jumps = [i for i in self.jumps(speed, walked) if i not in bridged]
             if not jumps:
                 break
             bridged |= set(jumps)
-            width = table[0].shape[1]
-            chains = self.bridge(chosen, np.array(jumps), positions, wxyz, shared, ends,
-                                 width)
+            chains, links = self.bridge(chosen, np.array(jumps), positions, wxyz, shared,
+                                        ends, links)
             ends = None   # the ends' own answers are carried once
-            table = self.choose(table[:2], chains, len(chains[2]), seconds)
-            chosen, speed = jax.device_get(table[2:])
+            table = self.choose(table[:2], links, chains, len(chains[2]), seconds)
+            chosen, speed, walked = jax.device_get(table[2:])
         return np.asarray(chosen)
 
     def table(self, positions: np.ndarray, wxyz: np.ndarray,
@@ -253,15 +307,16 @@ class BranchContinuation:
         """Candidates for R waypoints: z (R, K, 3n) and residual norms (R, K) (inf: no
         candidate), float64. Slots: [0, B) the anchors' own IK answers, [B, 2B) the
         forward chains, [2B, 3B) the backward chains (K = 3B; K = B with ``stride`` 1)."""
-        base, _, chains = self.anchor_chains(positions, wxyz, shared)
+        base, _, _, chains = self.anchor_chains(positions, wxyz, shared)
         z, errors = self._extend(0, *base, *chains)
         return np.asarray(z, np.float64), np.asarray(errors, np.float64)
 
     def anchor_chains(self, positions: np.ndarray, wxyz: np.ndarray,
-                      shared: Any) -> tuple[tuple, tuple, tuple]:
+                      shared: Any) -> tuple[tuple, np.ndarray, tuple, tuple]:
         """``table`` before it is filled in: the anchors' table (z (R, K, 3n), residual
-        norms (R, K), numpy, K = 3B), the first and last waypoints' own IK answers ((B, 3n)
-        each, numpy) and the chains (``chains``' output) from every anchor to its
+        norms (R, K), numpy, K = 3B), its chain steps (``chain_links``: (R, K, 2), each
+        chain from its anchor's answer on), the first and last waypoints' own IK answers
+        ((B, 3n) each, numpy) and the chains (``chains``' output) from every anchor to its
         neighbouring anchors."""
         r = len(positions)
         stride = max(int(self.settings.stride), 1)
@@ -294,8 +349,15 @@ class BranchContinuation:
                                  shape).reshape(-1)
         if len(anchors) == r:   # every waypoint has its own IK: nothing to continue
             starts, index, active, column = (x[:0] for x in (starts, index, active, column))
-        return (z, errors), ends, self.chains(starts, index, active, column, positions, wxyz,
-                                              shared)
+        start_row = np.broadcast_to(np.stack([lo, hi], axis=1)[:, None], shape).reshape(-1)
+        start_column = np.broadcast_to(np.arange(width)[:, None], shape).reshape(-1)
+        count = len(starts)
+        links = chain_links(
+            np.full((r, slots, 2), -1), np.c_[start_row[:count], index],
+            np.c_[start_column[:count], np.broadcast_to(column[:, None], index.shape)],
+            np.c_[np.ones(count, bool), active])
+        return (z, errors), links, ends, self.chains(starts, index, active, column, positions,
+                                                     wxyz, shared)
 
     def score(self, z: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
               shared: Any) -> np.ndarray:
@@ -346,33 +408,38 @@ class BranchContinuation:
         z, err = self._compiled[key](*args)
         return z, err, index, active, column
 
-    def choose(self, table: tuple, chains: tuple, extra: int,
+    def choose(self, table: tuple, links: np.ndarray, chains: tuple, extra: int,
                seconds: np.ndarray) -> tuple[Any, ...]:
         """``extend_and_choose`` on the device (not waited for): the table (z, residual
-        norms) with ``extra`` columns for the chains, the chosen (R, 3n) z and the tendon
-        speed (R − 1,) m/s of every interval."""
+        norms) with ``extra`` columns for the chains (``links``: the extended table's chain
+        steps), the chosen (R, 3n) z, the tendon speed (R − 1,) m/s of every interval and
+        its walked speed (``walked_speeds``)."""
         tolerance = np.asarray(self.settings.tolerance, self.dtype)
-        return self._choose_program(extra, *table, *chains, tolerance,
-                                    np.asarray(seconds, self.dtype))
+        return self._choose_program(extra, *table, *chains, links.astype(np.int32),
+                                    tolerance, np.asarray(seconds, self.dtype))
 
-    def jumps(self, speed: np.ndarray) -> np.ndarray:
+    def jumps(self, speed: np.ndarray, walked: np.ndarray) -> np.ndarray:
         """Intervals (indices i: between rows i and i+1) of a sequence whose tendon speed
         (R − 1,) m/s exceeds the robot's limit, the largest first (at most
-        ``max_jumps``)."""
+        ``max_jumps``), except those whose walked speed (``walked_speeds``, (R − 1,) m/s)
+        does too: the table's chains crossed them from both answers already."""
         speed = np.asarray(speed, np.float64)
-        bad = np.flatnonzero(speed > self.robot.tendon_speed_max)   # inf: never
+        limit = self.robot.tendon_speed_max
+        bad = np.flatnonzero((speed > limit) & ~(np.asarray(walked) > limit))   # inf: never
         return bad[np.argsort(-speed[bad], kind="stable")][: self.settings.max_jumps]
 
     def bridge(self, z: np.ndarray, jumps: np.ndarray, positions: np.ndarray,
                wxyz: np.ndarray, shared: Any, ends: tuple[np.ndarray, np.ndarray] | None,
-               width: int) -> tuple[Any, ...]:
-        """Continuation chains (``chains``' output) into new table columns from ``width``
-        on: from each jump's left answer (of the (R, 3n) sequence z) forward and its right
-        answer backward, and (``ends``: the (B, 3n) candidates of the first and last
-        waypoints) from every first candidate forward and every last one backward; each
-        chain walks at most ``bridge_window`` waypoints (one compiled shape whatever the
-        jump's place)."""
-        r = len(z)
+               links: np.ndarray) -> tuple[tuple[Any, ...], np.ndarray]:
+        """Continuation chains (``chains``' output) into new table columns after the
+        table's (``links`` (R, K, 2): its chain steps): from each jump's left answer (of
+        the (R, 3n) sequence z) forward and its right answer backward, and (``ends``: the
+        (B, 3n) candidates of the first and last waypoints) from every first candidate
+        forward and every last one backward; each chain walks at most ``bridge_window``
+        waypoints (one compiled shape whatever the jump's place). Returns the chains and
+        the links of the extended table (each chain's first answer re-solves the row it
+        starts at)."""
+        r, width = links.shape[:2]
         window = max(int(self.settings.bridge_window), 1)
         first_row = np.stack([jumps, jumps + 1], axis=1).reshape(-1)
         starts = z[first_row]
@@ -384,5 +451,9 @@ class BranchContinuation:
         tau = np.arange(window)
         index = np.where(forward[:, None], first_row[:, None] + tau, first_row[:, None] - tau)
         active = (index >= 0) & (index < r)
-        return self.chains(starts, np.clip(index, 0, r - 1), active,
-                           width + np.arange(len(starts)), positions, wxyz, shared)
+        chains = self.chains(starts, np.clip(index, 0, r - 1), active,
+                             width + np.arange(len(starts)), positions, wxyz, shared)
+        index, active, column = chains[2:]
+        links = np.concatenate([links, np.full((r, len(column), 2), -1)], axis=1)
+        return chains, chain_links(links, index, np.broadcast_to(column[:, None], index.shape),
+                                   active)
