@@ -151,10 +151,15 @@ def normal_equations(blocks: list[tuple[int, jax.Array, jax.Array]],
     grad = jnp.zeros((t, d), dtype)
     for k, r, j in blocks:
         w = t - k + 1
+        # One product per term over the whole window (kd × kd), its blocks read out after:
+        # one small batched product per block pair took XLA on a CPU twice as long.
+        j = j.reshape(w, j.shape[1], k * d)
+        grad_w = jnp.einsum("wmi,wm->wi", j, r).reshape(w, k, d)
+        gram = jnp.einsum("wmi,wmj->wij", j, j).reshape(w, k, d, k, d)
         for a in range(k):
-            grad = grad.at[a: a + w].add(jnp.einsum("wmi,wm->wi", j[:, :, a], r))
+            grad = grad.at[a: a + w].add(grad_w[:, a])
             for b in range(a, k):
-                block = jnp.einsum("wmi,wmj->wij", j[:, :, a], j[:, :, b])
+                block = gram[:, a, :, b]
                 if b == a:
                     diag = diag.at[a: a + w].add(block)
                 elif b == a + 1:
