@@ -12,17 +12,18 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cr_nlp.model import load_robot
+from cr_nlp.model import load_robot, q_to_z_numpy
 from cr_nlp.model._ops import NUMPY
 from cr_nlp.tasks.trajectory import TrajectoryConfig
 from cr_nlp.world import ConvexPart, Obstacle, Scene, load_scene, scene_arrays
 from cr_nlp.world._broad_phase import _part_box, cell_candidates, part_cells, reach_box
 from cr_nlp.world._clearance_groups import (
     body_centres_jacobian_z,
+    body_centres_z,
     clearance_group_values,
     grouped_shortfalls,
 )
-from cr_nlp.world.clearance import body_gap_tolerance, kind_distances
+from cr_nlp.world.clearance import body_gap_tolerance, kind_distances, self_pairs
 
 from .conftest import MODELS
 
@@ -184,3 +185,33 @@ def test_group_jacobians_equal_autodiff_of_the_penalty_distances(name, margin):
             ROBOT, margin, arrays, *body_centres_jacobian_z(ROBOT, x), t)))(z)
         np.testing.assert_allclose(got[0], values, rtol=0, atol=1e-12)
         np.testing.assert_allclose(got[1], auto, rtol=0, atol=1e-9)
+
+
+@pytest.mark.usefixtures("float64")
+@pytest.mark.parametrize("margin", [1.0, 0.3])
+def test_self_pair_blocks_give_the_group_jacobian_of_every_pair(margin):
+    """The self group of ``grouped_shortfalls`` (pairs taken block by block, each block's
+    pulls summed back onto its spheres) against forward-mode autodiff of a plain sum over
+    ``clearance.self_pairs`` (one gathered pair at a time), float64, on a 4-segment robot
+    whose self pairs form three blocks, with a margin of 1 m and of 0.3 m."""
+    robot = load_robot(MODELS / "robots" / "tdcr4_ext.json")
+    pairs = self_pairs(robot)
+    rng = np.random.default_rng(11)
+    lo, hi = robot.q_bounds()
+    z = jnp.asarray(q_to_z_numpy(rng.uniform(lo, hi, (30, robot.dof))))
+
+    def reference(x):
+        centres = body_centres_z(robot, x)
+        diff = centres[pairs[:, 0]] - centres[pairs[:, 1]]
+        short = jnp.maximum(margin + 2 * robot.backbone_radius
+                            - jnp.linalg.norm(diff, axis=-1), 0.0)
+        return jnp.sqrt(jnp.sum(short ** 2) + 1e-18)[None] - 1e-9
+
+    expected = jax.jit(jax.vmap(reference))(z)
+    expected_jac = jax.jit(jax.vmap(jax.jacfwd(reference)))(z)
+    values, jac = jax.jit(jax.vmap(lambda x: grouped_shortfalls(
+        robot, margin, None, *body_centres_jacobian_z(robot, x))))(z)
+    active = np.asarray(expected[:, 0]) > 0
+    assert active.sum() >= 5
+    np.testing.assert_allclose(values, expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(jac, expected_jac, rtol=0, atol=1e-9)

@@ -238,10 +238,14 @@ def model_kinematics_derivatives(
     for m in range(n):
         ux, uy, length = (ops.along(v) for v in z[3 * m : 3 * m + 3])
         local = segment_transform_derivatives(ops, ux * s, uy * s, length * s)
+        # Computed once per point: without the barrier XLA recomputed the slopes A′, B′
+        # inside each of the 9 entries of every point's Jacobian (3.0 → 0.9 ms for 376
+        # tdcr3 configurations, float32, CPU).
+        local_position, local_d_position = ops.materialize((local.position, local.d_position))
         rot, pos = frames[m]
         rot_a = tuple(ops.along(v) for v in rot)
         pos_a = tuple(ops.along(v) for v in pos)
-        x = vec_add(pos_a, rot_apply(rot_a, local.position))
+        x = vec_add(pos_a, rot_apply(rot_a, local_position))
         seg_points.append(x)
         d_x: list[Vec | None] = []
         for k in range(robot.dof):
@@ -255,7 +259,7 @@ def model_kinematics_derivatives(
                     end = tuple(ops.along(v) for v in ends[k])
                     d_x.append(vec_add(vec_cross(w, vec_sub(x, end)), moved))
             elif owner == m:  # the point's own arc: chain factor s of (s·ux, s·uy, s·L)
-                d_x.append(_scale(s, rot_apply(rot_a, local.d_position[k - 3 * m])))
+                d_x.append(_scale(s, rot_apply(rot_a, local_d_position[k - 3 * m])))
             else:
                 d_x.append(None)
         seg_d_points.append(d_x)

@@ -28,7 +28,7 @@ from ..model.derivatives import backbone_jacobian_z
 from ..model.kinematics import backbone_points_z
 from ..model.robot import Robot
 from ._broad_phase import KIND_FIELDS, PartCells, cell_candidates
-from ._penalty import body_clearances_z
+from ._penalty import body_clearances_z, self_pair_blocks
 from .clearance import (
     SceneArrays,
     _kind_blocks,
@@ -221,11 +221,12 @@ def grouped_shortfalls(robot: Robot, margin: float, arrays: SceneArrays | None,
     if obstacles:
         d, grad = _nearest_and_gradient(robot, arrays, centres, cells)
         values.append(d)
-    if robot.has_self_pairs:
-        pairs = self_pairs(robot)
-        diff = centres[pairs[:, 0]] - centres[pairs[:, 1]]
-        norm = jnp.sqrt(jnp.maximum(jnp.sum(diff * diff, axis=-1), 1e-30))
-        values.append(norm - 2.0 * robot.backbone_radius)
+    blocks = self_pair_blocks(robot) if robot.has_self_pairs else ()
+    # Self pairs block by block, static slices and broadcasting (no gather; see
+    # ``world._penalty``): each block's centre differences (R, C, 3) and distances (R, C).
+    diffs = [centres[r0:r1, None, :] - centres[None, c0:c1, :] for r0, r1, c0, c1 in blocks]
+    norms = [jnp.sqrt(jnp.maximum(jnp.sum(diff * diff, axis=-1), 1e-30)) for diff in diffs]
+    values += [(norm - 2.0 * robot.backbone_radius).reshape(-1) for norm in norms]
     shortfall = jnp.maximum(margin - jnp.concatenate(values), 0.0)
     eps = jnp.asarray(1e-9, centres.dtype)
     roots = jnp.stack([jnp.sqrt(jnp.sum(shortfall[idx] ** 2) + eps * eps)
@@ -242,10 +243,15 @@ def grouped_shortfalls(robot: Robot, margin: float, arrays: SceneArrays | None,
         pull = shortfall[:count, None] * grad                                # (N, 3)
         scale = member / roots[:member.shape[0], None]
         weights.append(-scale[:, :, None] * pull[None])
-    if robot.has_self_pairs:
-        incidence = jnp.asarray(_pair_incidence(robot), centres.dtype)       # (N, M)
-        pull = shortfall[-len(pairs):, None] * (diff / norm[:, None])        # (M, 3)
-        weights.append(-(incidence @ pull)[None] / roots[-1])
+    if blocks:
+        # Pair (i, j) pulls sphere i along +unit(cᵢ − cⱼ) and sphere j along −unit.
+        pull, start = jnp.zeros_like(centres), count if obstacles else 0
+        for (r0, r1, c0, c1), diff, norm in zip(blocks, diffs, norms, strict=True):
+            stop = start + norm.size
+            block = shortfall[start:stop].reshape(norm.shape)[..., None] * diff / norm[..., None]
+            pull = pull.at[r0:r1].add(jnp.sum(block, axis=1)).at[c0:c1].add(-jnp.sum(block, 0))
+            start = stop
+        weights.append(-pull[None] / roots[-1])
     return roots - eps, jnp.einsum("gnk,nkj->gj", jnp.concatenate(weights), jac_centres)
 
 
@@ -254,15 +260,6 @@ def _segment_membership(robot: Robot) -> np.ndarray:
     out = np.zeros((robot.n_segments, robot.n_points + 1))
     for i, idx in enumerate(body_segments(robot)):
         out[i, idx] = 1.0
-    return out
-
-
-def _pair_incidence(robot: Robot) -> np.ndarray:
-    """(N, M): +1 at (i, p) and −1 at (j, p) for self pair p = (i, j) (``self_pairs``)."""
-    pairs = self_pairs(robot)
-    out = np.zeros((robot.n_points + 1, len(pairs)))
-    out[pairs[:, 0], np.arange(len(pairs))] = 1.0
-    out[pairs[:, 1], np.arange(len(pairs))] = -1.0
     return out
 
 
