@@ -340,8 +340,8 @@ class BranchContinuation:
         z[anchors, :width], errors[anchors, :width] = z_anchor, err
         # Chain order: (interval between anchors, beam, forward/backward). Each chain walks
         # half the interval, rounded up, so the two meet on the middle waypoint(s):
-        # walking the whole interval both ways (as first written) took twice the LM steps
-        # for the same answers (measured on square, sine and icra, 150 waypoints).
+        # walking the whole interval both ways took twice the LM steps for the same
+        # answers (measured on square, sine and icra, 150 waypoints).
         lo, hi = anchors[:-1], anchors[1:]
         steps = -(-stride // 2)
         tau = np.arange(steps)
