@@ -141,7 +141,18 @@ def test_stage_one_table_and_sequence_agree_with_numpy(follower) -> None:
     assert np.isfinite(errors[anchors, :width]).all()
     between = np.setdiff1d(np.arange(WAYPOINTS), anchors)
     assert np.isinf(errors[between, :width]).all()
-    assert np.isfinite(errors[between, width:]).all()   # reached by both chains
+    # Every waypoint between anchors is reached by the chains of its nearer anchor, the
+    # middle one(s) by both.
+    forward, backward = np.zeros(WAYPOINTS, bool), np.zeros(WAYPOINTS, bool)
+    for lo, hi in zip(anchors[:-1], anchors[1:], strict=True):
+        half = -(-(hi - lo) // 2)
+        forward[lo + 1: lo + half + 1] = True
+        backward[hi - half: hi] = True
+    assert (forward | backward)[between].all()
+    np.testing.assert_array_equal(np.isfinite(errors[:, width:2 * width]),
+                                  np.repeat(forward[:, None], width, 1))
+    np.testing.assert_array_equal(np.isfinite(errors[:, 2 * width:]),
+                                  np.repeat(backward[:, None], width, 1))
     seconds = np.full(WAYPOINTS - 1, DT)
     stage = follower.continuation
     no_chains = stage.chains(z[:0, 0], np.zeros((0, 1), int), np.zeros((0, 1), bool),

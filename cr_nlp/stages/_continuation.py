@@ -6,9 +6,10 @@ different branch of the IK solutions at neighbouring waypoints; a sequence that 
 branch jumps (a tendon would have to move faster than it can). This stage:
 
 1. runs the caller's batched IK (``candidates``) on every ``stride``-th waypoint (the
-   anchors) and the last, and carries each anchor's answers to the neighbouring anchors by
-   continuation chains (``continue_chains``: a few LM steps per waypoint, each from the
-   previous waypoint's answer plus the chain's last step, so a chain stays on one branch);
+   anchors) and the last, and carries each anchor's answers halfway to the neighbouring
+   anchors by continuation chains (``continue_chains``: a few LM steps per waypoint, each
+   from the previous waypoint's answer plus the chain's last step, so a chain stays on
+   one branch); the chains from both sides meet in the middle;
    the chains may minimise a cheaper residual than the one that scores the table (the
    pose alone, for a robot whose answers are isolated: ``tasks.follow``);
 2. writes every chain's answers into a candidate table (R waypoints × K slots) and picks
@@ -306,7 +307,9 @@ class BranchContinuation:
               shared: Any) -> tuple[np.ndarray, np.ndarray]:
         """Candidates for R waypoints: z (R, K, 3n) and residual norms (R, K) (inf: no
         candidate), float64. Slots: [0, B) the anchors' own IK answers, [B, 2B) the
-        forward chains, [2B, 3B) the backward chains (K = 3B; K = B with ``stride`` 1)."""
+        forward chains (the first half of the way to the next anchor, rounded up), [2B, 3B)
+        the backward chains (the second half, rounded up) (K = 3B; K = B with ``stride``
+        1)."""
         base, _, _, chains = self.anchor_chains(positions, wxyz, shared)
         z, errors = self._extend(0, *base, *chains)
         return np.asarray(z, np.float64), np.asarray(errors, np.float64)
@@ -316,8 +319,8 @@ class BranchContinuation:
         """``table`` before it is filled in: the anchors' table (z (R, K, 3n), residual
         norms (R, K), numpy, K = 3B), its chain steps (``chain_links``: (R, K, 2), each
         chain from its anchor's answer on), the first and last waypoints' own IK answers
-        ((B, 3n) each, numpy) and the chains (``chains``' output) from every anchor to its
-        neighbouring anchors."""
+        ((B, 3n) each, numpy) and the chains (``chains``' output) from every anchor halfway
+        to its neighbouring anchors."""
         r = len(positions)
         stride = max(int(self.settings.stride), 1)
         anchors = np.unique(np.r_[np.arange(0, r, stride), r - 1])
@@ -335,15 +338,19 @@ class BranchContinuation:
         z = np.zeros((r, slots, dof))
         errors = np.full((r, slots), np.inf)
         z[anchors, :width], errors[anchors, :width] = z_anchor, err
-        # Chain order: (interval between anchors, beam, forward/backward).
+        # Chain order: (interval between anchors, beam, forward/backward). Each chain walks
+        # half the interval, rounded up, so the two meet on the middle waypoint(s):
+        # walking the whole interval both ways took twice the LM steps for the same
+        # answers (measured on square, sine and icra, 150 waypoints).
         lo, hi = anchors[:-1], anchors[1:]
-        tau = np.arange(stride)
-        visits = tau < (hi - lo)[:, None]                              # (A − 1, S)
+        steps = -(-stride // 2)
+        tau = np.arange(steps)
+        visits = tau < -(-(hi - lo) // 2)[:, None]                     # (A − 1, S)
         index = np.where(visits[:, None], np.stack([lo[:, None] + 1 + tau,
                                                     hi[:, None] - 1 - tau], axis=1), 0)
         shape = (len(lo), width, 2)
-        index = np.broadcast_to(index[:, None], shape + (stride,)).reshape(-1, stride)
-        active = np.broadcast_to(visits[:, None, None], shape + (stride,)).reshape(-1, stride)
+        index = np.broadcast_to(index[:, None], shape + (steps,)).reshape(-1, steps)
+        active = np.broadcast_to(visits[:, None, None], shape + (steps,)).reshape(-1, steps)
         starts = np.stack([z_anchor[:-1], z_anchor[1:]], axis=2).reshape(-1, dof)
         column = np.broadcast_to(width * np.arange(1, 3) + np.arange(width)[:, None],
                                  shape).reshape(-1)

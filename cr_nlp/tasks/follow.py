@@ -13,12 +13,13 @@ Stages:
 
 1. explore (``stages._continuation``): IK on every ``ik_stride``-th waypoint in one batch
    (``IKSolver.candidates``: a refined beam of distinct answers per waypoint), each answer
-   carried to the neighbouring IK waypoints by continuation (a few LM steps per waypoint
-   on this module's ``follow_unary``), then the sequence with the smallest configuration
-   jumps (``stages._sequence.smoothest_choice``), its jumps bridged by continuation. For
-   a robot with no more free variables than the 6 a pose fixes (tdcr3), the IK and the
-   chains solve the pose alone (``follow_tracking``: no body points, ~30× cheaper per LM
-   row) and ``follow_unary`` with its clearance rows scores every candidate.
+   carried halfway to the neighbouring IK waypoints by continuation (a few LM steps per
+   waypoint on this module's ``follow_unary``), then the sequence with the smallest
+   configuration jumps (``stages._sequence.smoothest_choice``), its jumps bridged by
+   continuation. For a robot with no more free variables than the 6 a pose fixes
+   (tdcr3), the IK and the chains solve the pose alone (``follow_tracking``: no body
+   points, ~30× cheaper per LM row) and ``follow_unary`` with its clearance rows scores
+   every candidate.
 2. refine: all waypoints jointly by the block-banded LM (``stages._banded_lm``): every
    residual depends on at most three consecutive waypoints (tracking and clearance: one;
    smoothness, tendon speed, clearance between waypoints: two; tendon acceleration:
@@ -173,8 +174,9 @@ class FollowConfig:
     and bridged nothing the windowed ones did not."""
     ik_stride: int = 10
     """Stage 1: the full IK runs on every ``ik_stride``-th trackable waypoint (and the
-    last); the waypoints between are reached by continuation from both neighbouring
-    anchors (``PathFollower.waypoint_candidates``). 1: IK on every waypoint."""
+    last); the waypoints between are reached by continuation from the nearer neighbouring
+    anchor (both in the middle; ``PathFollower.waypoint_candidates``). 1: IK on every
+    waypoint."""
     dtype: str = "float32"
     """JAX dtype of the batched stages ("float64" needs jax_enable_x64)."""
     seed: int = 0
