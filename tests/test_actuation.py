@@ -24,9 +24,11 @@ from cr_nlp.model.actuation import (
 )
 
 
-def _calibrated_like(robot: Robot, seed: int = 0, axial: bool = False) -> Robot:
+def _calibrated_like(robot: Robot, seed: int = 0, axial: bool = False,
+                     shortens: bool = True) -> Robot:
     """A robot with non-trivial actuation parameters (offsets, gains, stiffness), with
-    compressible segments where ``axial``."""
+    compressible segments where ``axial`` (the compression only taking up the tendons'
+    length where not ``shortens``)."""
     rng = np.random.default_rng(seed)
     t, n = robot.n_tendons, robot.n_segments
     act = Actuation(
@@ -36,6 +38,7 @@ def _calibrated_like(robot: Robot, seed: int = 0, axial: bool = False) -> Robot:
         segment_stiffness=tuple(np.r_[1.0, rng.uniform(0.5, 2.0, n - 1)]),
         tendon_stiffness_ratio=tuple(rng.uniform(2.0, 10.0, n)),
         axial_stiffness_ratio=tuple(rng.uniform(10.0, 60.0, n)) if axial else (),
+        axial_shortens_segments=shortens,
         tip_marker=(0.001, -0.002, 0.008),
     )
     return dataclasses.replace(robot, actuation=act)
@@ -84,6 +87,15 @@ def test_axial_compression_by_the_closed_forms() -> None:
     assert q[1, 2] == pytest.approx(length - r * 3 * kappa * w / (a + 3 * kappa), rel=1e-12)
     tip = predict_tip(robot, [[pull] * 3])[0]        # straight, shorter, no marker
     np.testing.assert_allclose(tip, [0.0, 0.0, q[1, 2]], atol=1e-12)
+    # Take-up only: the same bending (the same energy), the segment keeps its length.
+    data = robot.to_dict()
+    data["actuation"]["axial_shortens_segments"] = False
+    take_up = Robot.from_dict(data)
+    q2 = configuration_from_commands(take_up, [[-0.005, pull, -0.005], [pull] * 3])
+    np.testing.assert_allclose(q2[:, :2], q[:, :2], atol=1e-12)
+    np.testing.assert_allclose(q2[:, 2], [length, length], rtol=1e-15)
+    np.testing.assert_allclose(predict_tip(take_up, [[pull] * 3])[0], [0.0, 0.0, length],
+                               atol=1e-12)
 
 
 def test_incompressible_is_the_limit_of_axial_compression() -> None:
@@ -200,8 +212,10 @@ def test_commands_for_a_configuration_reproduce_its_bending_on_compressed_segmen
     assert (gap <= shorter.sum(axis=1) + 1e-12).all()
 
 
-def test_commands_for_a_configuration_reproduce_it() -> None:
-    robot = _calibrated_like(load_robot("ftdcr_v6"), seed=3)
+@pytest.mark.parametrize("axial", [False, True])
+def test_commands_for_a_configuration_reproduce_it(axial: bool) -> None:
+    # Incompressible, or compression that only takes up the tendons' length.
+    robot = _calibrated_like(load_robot("ftdcr_v6"), seed=3, axial=axial, shortens=False)
     rng = np.random.default_rng(4)
     q = np.zeros((50, 9))
     q[:, 0::3] = rng.uniform(0.0, 1.0, (50, 3))
@@ -213,6 +227,7 @@ def test_commands_for_a_configuration_reproduce_it() -> None:
         pos, _ = tip_pose(robot, q)
         pos_back, _ = tip_pose(robot, back)
         np.testing.assert_allclose(pos_back, pos, atol=1e-10)
+        np.testing.assert_allclose(back[:, 2::3], q[:, 2::3], rtol=1e-15)
 
 
 def test_nominal_straight_and_predict_in_the_measurement_frame() -> None:
@@ -224,11 +239,20 @@ def test_nominal_straight_and_predict_in_the_measurement_frame() -> None:
 
 
 def test_actuation_block_round_trips_and_is_validated(tmp_path) -> None:
-    for axial in (False, True):
-        robot = _calibrated_like(load_robot("ftdcr_v6"), axial=axial)
+    for axial, shortens in ((False, True), (True, True), (True, False)):
+        robot = _calibrated_like(load_robot("ftdcr_v6"), axial=axial, shortens=shortens)
         again = Robot.from_dict(json.loads(json.dumps(robot.to_dict())))
         assert again == robot
         assert ("axial_stiffness_ratio" in robot.to_dict()["actuation"]) == axial
+        assert ("axial_shortens_segments" in robot.to_dict()["actuation"]) != shortens
+    bad = robot.to_dict()
+    bad["actuation"]["axial_shortens_segments"] = "no"
+    with pytest.raises(ModelFileError, match="axial_shortens_segments.*true or false"):
+        Robot.from_dict(bad)
+    bad = _calibrated_like(load_robot("ftdcr_v6")).to_dict()
+    bad["actuation"]["axial_shortens_segments"] = False
+    with pytest.raises(ModelFileError, match="axial_shortens_segments.*axial_stiffness"):
+        Robot.from_dict(bad)
     bad = robot.to_dict()
     bad["actuation"]["axial_stiffness_ratio"] = [10.0, 0.0, 2.0]
     with pytest.raises(ModelFileError, match="axial_stiffness_ratio.*positive"):

@@ -98,3 +98,31 @@ def test_calibrate_writes_a_robot_file_every_command_accepts(tmp_path, capsys) -
     assert (report / "errors.png").stat().st_size > 0
     assert (report / "tip_paths.png").stat().st_size > 0
     assert main(["fk", "--robot", str(out), "--q", "0.1,0,0.1,0,0,0", "--json"]) == 0
+
+
+@pytest.mark.parametrize("option, fitted, shortens", [
+    ([], False, True),
+    (["--axial-compression"], True, True),
+    (["--axial-compression", "segments"], True, True),
+    (["--axial-compression", "tendons"], True, False),
+])
+def test_axial_compression_option_reaches_the_fit(tmp_path, monkeypatch, option, fitted,
+                                                  shortens) -> None:
+    import cr_nlp.tasks.calibrate as calibrate_module
+
+    class Stop(Exception):
+        pass
+
+    def fake_calibrate(robot, train, val, config):
+        raise Stop(config)
+
+    monkeypatch.setattr(calibrate_module, "calibrate", fake_calibrate)
+    train = _write(tmp_path / "train.csv", _rows(5))
+    with pytest.raises(Stop) as stop:
+        main(["calibrate", "--robot", "ftdcr_v6", "--data", str(train), "--units", "mm",
+              "--out", str(tmp_path / "cal.json"), *option])
+    config = stop.value.args[0]
+    assert (config.axial_compression, config.axial_shortens_segments) == (fitted, shortens)
+    with pytest.raises(SystemExit):
+        main(["calibrate", "--robot", "ftdcr_v6", "--data", str(train), "--units", "mm",
+              "--out", str(tmp_path / "cal.json"), "--axial-compression", "squash"])

@@ -19,9 +19,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--validate", help="VAL.csv: rows the fit never sees, for the errors")
     p.add_argument("--out", required=True, help="CALIBRATED.json: the fitted robot file")
     p.add_argument("--report", help="folder for report.json and the figures")
-    p.add_argument("--axial-compression", action="store_true",
-                   help="also fit how far the taut tendons shorten each segment (plans keep "
-                        "fixed lengths: their commands then reproduce the tip to ~1 mm)")
+    p.add_argument("--axial-compression", nargs="?", const="segments",
+                   choices=("segments", "tendons"),
+                   help="also fit the segments' axial compliance under the taut tendons: "
+                        "'segments' (the default when given without a value) shortens the "
+                        "segments, so plans' commands reproduce the tip only to ~1 mm; "
+                        "'tendons' keeps their lengths and fits the tendons' take-up alone")
     add_data_options(p)
     p.set_defaults(run=run)
 
@@ -34,7 +37,9 @@ def run(args: argparse.Namespace) -> int:
     train = read_data_arg(robot, args.data, args)
     val = read_data_arg(robot, args.validate, args) if args.validate else None
     result = calibrate(robot, train, val,
-                       CalibrationConfig(axial_compression=args.axial_compression))
+                       CalibrationConfig(
+                           axial_compression=args.axial_compression is not None,
+                           axial_shortens_segments=args.axial_compression != "tendons"))
     calibrated = result.robot.to_dict()
     calibrated["description"] = (f"{robot.name} calibrated by cr-nlp calibrate on "
                                  f"{Path(train.source).name} ({len(train)} rows; "

@@ -37,6 +37,11 @@ class Actuation:
     """a_i = EA_i·r²·L_total / (L_i·EI_1) per segment: its axial stiffness against backbone
     bending (dimensionless), so the tendons' tension shortens it; empty: incompressible
     segments (each keeps its length)."""
+    axial_shortens_segments: bool = True
+    """With ``axial_stiffness_ratio``: True, the compression shortens the segments' arcs as
+    well as taking up the length of the tendons through them; False, only the take-up (the
+    taut tendons through segment i give up r·δ_i of their pull together, the arcs keep
+    their lengths, so the commands of a plan reproduce its shape exactly)."""
     tip_marker: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Position of the measured point (e.g. a motion-capture marker) in the tip frame, m."""
     model_error_mean: float | None = None
@@ -63,6 +68,8 @@ class Actuation:
         }
         if self.axial_stiffness_ratio:
             out["axial_stiffness_ratio"] = list(self.axial_stiffness_ratio)
+            if not self.axial_shortens_segments:
+                out["axial_shortens_segments"] = False
         if self.model_error_mean is not None:
             out["model_error_mean"] = self.model_error_mean
         if self.model_error_p95 is not None:
@@ -71,7 +78,8 @@ class Actuation:
 
 
 _ACTUATION_KEYS = {"zero_offsets", "gains", "tendon_angle_deltas", "segment_stiffness",
-                   "tendon_stiffness_ratio", "axial_stiffness_ratio", "tip_marker",
+                   "tendon_stiffness_ratio", "axial_stiffness_ratio", "axial_shortens_segments",
+                   "tip_marker",
                    "model_error_mean", "model_error_p95", "description"}
 
 
@@ -99,6 +107,13 @@ def parse_actuation(checker: Any, raw: Any, n_tendons: int, n_segments: int) -> 
     kappa = per_segment_ratio("tendon_stiffness_ratio", NOMINAL_TENDON_STIFFNESS_RATIO)
     axial = (per_segment_ratio("axial_stiffness_ratio", 0.0)
              if "axial_stiffness_ratio" in a else ())
+    shortens = a.get("axial_shortens_segments", True)
+    if not isinstance(shortens, bool):
+        raise checker.fail("actuation.axial_shortens_segments",
+                           f"must be true or false, got {shortens!r}")
+    if not shortens and not axial:
+        raise checker.fail("actuation.axial_shortens_segments",
+                           "false needs actuation.axial_stiffness_ratio")
     errors = {}
     for key in ("model_error_mean", "model_error_p95"):
         errors[key] = (checker.number(a[key], f"actuation.{key}", nonnegative=True)
@@ -110,6 +125,7 @@ def parse_actuation(checker: Any, raw: Any, n_tendons: int, n_segments: int) -> 
         segment_stiffness=vec("segment_stiffness", n_segments, 1.0, positive=True),
         tendon_stiffness_ratio=kappa,
         axial_stiffness_ratio=axial,
+        axial_shortens_segments=shortens,
         tip_marker=vec("tip_marker", 3, 0.0),  # type: ignore[arg-type]
         **errors,
     )

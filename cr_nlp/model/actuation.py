@@ -23,6 +23,9 @@ every tendon through it is shortened by as much, ``s_j = p_j − r(B u)_j − r 
 equilibrium a_i δ_i is the sum of the tensions through segment i, so a segment shortens in
 proportion to the tendon load it carries (pretension included); the shape is the same
 constant-curvature arc on the shorter length. Without the field, δ = 0 (today's model).
+With ``axial_shortens_segments`` false the arcs keep their lengths and only the take-up
+stays (the tendons still lose r·δ_i together): on the FTDCR v6 recording that fits as well
+(docs/design.md §1b), and a plan's commands then reproduce its shape exactly.
 
 E is convex and strictly so, so the shape is unique; the tension of tendon j is
 ∝ κ·max(0, s_j) ≥ 0: a slack tendon carries nothing, and releasing it further changes
@@ -149,6 +152,8 @@ def robot_with_params(robot: Robot, params: dict[str, Any],
         axial_stiffness_ratio=(
             tuple(float(v) for v in np.exp(p["log_axial"] - p["log_stiffness"][0]))
             if "log_axial" in p else ()),
+        axial_shortens_segments=("log_axial" not in p
+                                 or actuation_of(robot).axial_shortens_segments),
         tip_marker=tuple(float(v) for v in p["marker"]),  # type: ignore[arg-type]
         model_error_mean=model_error[0],
         model_error_p95=model_error[1],
@@ -267,7 +272,8 @@ def equilibrium(robot: Robot, params: dict[str, Any], commands: jax.Array,
     """Equilibrium bending vectors (…, n, 2) rad and segment lengths (…, n) m for
     (…, n_tendons) commands (m), with the model parameters ``params`` (``params_of``;
     traced values allowed). The lengths are ``params["lengths"]`` less the axial
-    compression where ``params`` has ``log_axial``, and those lengths otherwise."""
+    compression where ``params`` has ``log_axial`` and the robot's compression shortens
+    its segments (``axial_shortens_segments``), and those lengths otherwise."""
     topo = _Topology.of(robot)
     n = topo.n_segments
     b = _routing(topo, params)
@@ -282,7 +288,7 @@ def equilibrium(robot: Robot, params: dict[str, Any], commands: jax.Array,
     x = jax.vmap(lambda row: bending_from_pull(row, c, b, kappa, iterations))(flat)
     u = x[:, :2 * n].reshape(pull.shape[:-1] + (n, 2))
     lengths = jnp.broadcast_to(params["lengths"], pull.shape[:-1] + (n,))
-    if "log_axial" in params:
+    if "log_axial" in params and actuation_of(robot).axial_shortens_segments:
         lengths = lengths - params["radius"] * x[:, 2 * n:].reshape(pull.shape[:-1] + (n,))
     return u, lengths
 
@@ -346,7 +352,8 @@ def configuration_from_commands(robot: Robot, commands: Any,
     """The configurations q (N, 3n) = [θ1, φ1, L1, …] (rad, rad, m) that commanded tendon
     displacements (N, n_tendons) m produce: forward kinematics from motor commands. The
     lengths L are the segments' own, less their axial compression where the robot's
-    ``actuation`` block gives ``axial_stiffness_ratio``."""
+    ``actuation`` block gives ``axial_stiffness_ratio`` (and does not set
+    ``axial_shortens_segments`` false)."""
     from .kinematics import z_to_q_numpy
 
     cmd = _commands(robot, commands)
@@ -381,10 +388,11 @@ def commands_for_configuration(robot: Robot, q: Any, slack: float = 0.0) -> np.n
     Needs at least three tendons per segment spread around the backbone.
 
     With axial compliance (``axial_stiffness_ratio``) the commands also take up the
-    compression those tensions cause, and the robot takes q's bending on segments
-    shortened by it, which no command can undo (``configuration_from_commands`` gives
-    back q's angles and the shorter lengths; the tip moves by at most the total
-    compression).
+    compression those tensions cause. Where the compression shortens the segments (the
+    default), the robot takes q's bending on segments shortened by it, which no command
+    can undo (``configuration_from_commands`` gives back q's angles and the shorter
+    lengths; the tip moves by at most the total compression); with
+    ``axial_shortens_segments`` false it gives back q itself.
     """
     from .kinematics import q_to_z_numpy
 

@@ -17,7 +17,7 @@ frame) is searched on a coarse grid, since a local fit cannot turn it by half a 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import jax
@@ -28,6 +28,7 @@ from scipy.optimize import least_squares
 from ..model import Robot
 from ..model.actuation import (
     NOMINAL_AXIAL_STIFFNESS_RATIO,
+    actuation_of,
     measured_point,
     params_of,
     predict_tip,
@@ -87,9 +88,15 @@ class CalibrationConfig:
     """Also fit the segments' axial compression under tendon load (``model.actuation``),
     from the robot file's ``axial_stiffness_ratio`` or, without one, from
     ``NOMINAL_AXIAL_STIFFNESS_RATIO``. Off by default: plans keep fixed segment lengths, so
-    the commands of a plan for a compressible robot reproduce its tip only to about 1 mm
-    (FTDCR v6), about what the fit gains there (validation 10.2 → 9.5 mm mean). False:
+    with shortening segments the commands of a plan reproduce its tip only to about 1 mm
+    (FTDCR v6), about what the fit gains there (validation 10.2 → 9.5 mm mean; the
+    take-up alone, ``axial_shortens_segments`` False, 9.6 mm and exact plans). False:
     incompressible segments unless the file already gives them an axial stiffness."""
+    axial_shortens_segments: bool = True
+    """With ``axial_compression``: True, the compression also shortens the segments' arcs;
+    False, it only takes up the tendons' length (``Actuation.axial_shortens_segments``),
+    so plans' commands reproduce their shapes exactly. On the FTDCR v6 training folds
+    (docs/design.md §1b) the take-up alone fits as well (8.15 mm against 8.34)."""
 
 
 @dataclass
@@ -215,6 +222,11 @@ def calibrate(robot: Robot, train: Measurements, validation: Measurements | None
     if train.tip is None:
         raise ValueError(f"{train.source}: calibration needs the measured tip columns")
     t0 = time.perf_counter()
+    nominal_robot = robot
+    act = actuation_of(robot)
+    if config.axial_compression and act.axial_shortens_segments != config.axial_shortens_segments:
+        robot = replace(robot, actuation=replace(
+            act, axial_shortens_segments=config.axial_shortens_segments))
     with jax.enable_x64(True):
         nominal = {k: np.asarray(v, np.float64) for k, v in params_of(robot).items()}
         nominal["base_rotvec"] = np.zeros(3)
@@ -269,7 +281,7 @@ def calibrate(robot: Robot, train: Measurements, validation: Measurements | None
                          "fitted": np.asarray(fitted[name]).tolist()}
                   for name, _, _ in pack.groups if name in fitted}
     return CalibrationResult(
-        robot=calibrated, nominal=robot, train=train_stats, validation=val_stats,
+        robot=calibrated, nominal=nominal_robot, train=train_stats, validation=val_stats,
         nominal_train=ErrorStats.of(nominal_errors, length), parameters=parameters,
         seconds=time.perf_counter() - t0, evaluations=int(solution.nfev),
         status=str(solution.message))
