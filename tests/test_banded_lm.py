@@ -126,12 +126,12 @@ def test_lm_give_up_ends_the_loop_but_not_the_other_problems_steps() -> None:
     base = LMConfig(stall_tolerance=0.0)
     _, _, it_off = solve(z0, base)
     z_near, _, it_near = solve(z0[:1], base)
-    z, cost, it = solve(z0, replace(base, give_up_iteration=2, give_up_cost=1.0))
+    z, cost, it = solve(z0, replace(base, give_up=((2, 1.0),)))
     assert int(it) == max(int(it_near), 2) < int(it_off)
     np.testing.assert_array_equal(np.asarray(z[0]), np.asarray(z_near[0]))
     assert float(cost[1]) > 1.0
     # A give-up cost above the far problem's start: the rule never fires.
-    _, _, it_high = solve(z0, replace(base, give_up_iteration=2, give_up_cost=1e12))
+    _, _, it_high = solve(z0, replace(base, give_up=((2, 1e12),)))
     assert int(it_high) == int(it_off)
 
 
@@ -298,9 +298,9 @@ def test_prediction_stop_ends_the_same_iterates_early() -> None:
 
 
 def test_give_up_stops_only_chains_left_above_the_cost() -> None:
-    """A chain whose cost after ``give_up_iteration`` steps is still above ``give_up_cost``
-    stops there with the plain solve's iterate at that budget; one below it (or the rule
-    off) runs as before."""
+    """A chain whose cost after a checkpoint's steps is still above its cost
+    (``LMConfig.give_up``) stops there with the plain solve's iterate at that budget; one
+    below it (or the rule off) runs as before."""
     z, p = problem(7)
     free = jnp.ones(3)
     plain = LMConfig(cost_tolerance=0.0, stall_tolerance=0.0)
@@ -310,17 +310,38 @@ def test_give_up_stops_only_chains_left_above_the_cost() -> None:
     _, cost_3, _ = solve(TERMS, unprojected, z, p, None, free, jnp.int32(3), config=plain)
     assert int(used_full) > 3 and float(cost_3) > float(cost_full)
     # Above the cost after 3 steps: stops at 3, the plain solve's iterate at that budget.
-    high = LMConfig(cost_tolerance=0.0, stall_tolerance=0.0, give_up_iteration=3,
-                    give_up_cost=0.5 * float(cost_3))
+    high = LMConfig(cost_tolerance=0.0, stall_tolerance=0.0,
+                    give_up=((3, 0.5 * float(cost_3)),))
     z_stop, cost_stop, used = solve(TERMS, unprojected, z, p, None, free, jnp.int32(60),
                                     config=high)
     assert int(used) == 3 and float(cost_stop) == float(cost_3)
     # Below it: never triggers, the same iterates as the plain solve.
-    low = replace(high, give_up_cost=2.0 * float(cost_3))
+    low = replace(high, give_up=((3, 2.0 * float(cost_3)),))
     z_low, cost_low, used_low = solve(TERMS, unprojected, z, p, None, free, jnp.int32(60),
                                       config=low)
     np.testing.assert_array_equal(np.asarray(z_low), np.asarray(z_full))
     assert int(used_low) == int(used_full)
+
+
+def test_give_up_checkpoints_each_stop_at_their_own_step() -> None:
+    """Two checkpoints (``LMConfig.give_up``): the earlier one stops a chain still above its
+    (higher) cost at its step, with the plain solve's iterate there; a chain below it there
+    goes on to the later checkpoint and stops at its step."""
+    z, p = problem(7)
+    free = jnp.ones(3)
+    plain = LMConfig(cost_tolerance=0.0, stall_tolerance=0.0)
+    solve = jax.jit(banded_lm_solve, static_argnames=("terms", "project", "config"))
+    costs = {k: solve(TERMS, unprojected, z, p, None, free, jnp.int32(k), config=plain)[1]
+             for k in (2, 5)}
+    assert float(costs[5]) < float(costs[2])
+    # Above the earlier checkpoint's cost after 2 steps: stops at 2.
+    early = replace(plain, give_up=((2, 0.5 * float(costs[2])), (5, 0.5 * float(costs[5]))))
+    _, cost, used = solve(TERMS, unprojected, z, p, None, free, jnp.int32(60), config=early)
+    assert int(used) == 2 and float(cost) == float(costs[2])
+    # Below it (a cost above the chain's there), still above the later one's: stops at 5.
+    later = replace(plain, give_up=((2, 2.0 * float(costs[2])), (5, 0.5 * float(costs[5]))))
+    _, cost, used = solve(TERMS, unprojected, z, p, None, free, jnp.int32(60), config=later)
+    assert int(used) == 5 and float(cost) == float(costs[5])
 
 
 def test_chains_added_after_the_last_one_finished_are_solved_alike() -> None:

@@ -125,11 +125,20 @@ def test_banded_and_dense_lm_plan_alike_on_the_shelf():
 
 @pytest.mark.slow  # two planners' compilations: `pytest -m slow`
 def test_give_up_stop_plans_the_cabinet_alike_in_fewer_trips():
-    """Before/after: stopping guesses still deep in an obstacle after 20 iterations
+    """Before/after: stopping guesses still deep in an obstacle after 12 and 20 iterations
     (default) and running every guess to its stall or cap plan 12 cabinet problems of the
     benchmark protocol with the same successes and path lengths (the same guess chosen;
     float32 programs of other slot counts round differently, which moved one problem's
     path by 0.3 % after 60 iterations), in fewer LM trips."""
-    new, old = _plan_alike("cabinet", 12, replace(TrajectoryConfig(), give_up_iteration=0),
+    new, old = _plan_alike("cabinet", 12, replace(TrajectoryConfig(), give_up=()), 10, 5e-3)
+    assert new.lm.slot_trips < old.lm.slot_trips
+
+
+@pytest.mark.slow  # two planners' compilations: `pytest -m slow`
+def test_early_give_up_checkpoint_plans_random_27_alike_in_fewer_trips():
+    """Before/after: the give-up checkpoint at 12 iterations (cost 8) added to the one at 20
+    (cost 5) plans 12 random_27 problems of the benchmark protocol with the same successes
+    and path lengths, in fewer LM trips."""
+    new, old = _plan_alike("random_27", 12, replace(TrajectoryConfig(), give_up=((20, 5.0),)),
                            10, 5e-3)
     assert new.lm.slot_trips < old.lm.slot_trips

@@ -80,15 +80,15 @@ class ContinuationSettings:
     """Starting LM damping of the chains (``LMConfig.initial_damping``)."""
     give_up_iterations: int = 2
     """A chain still at or above ``tolerance`` after this many LM iterations at a
-    waypoint stops iterating there (``LMConfig.give_up_iteration``; 0: off)."""
+    waypoint stops iterating there (``LMConfig.give_up``; 0: off)."""
 
     def chain_config(self) -> LMConfig:
         """The chains' LM settings: converged at ``CHAIN_CONVERGED``, ``damping``, the
         give-up rule."""
         return LMConfig(cost_tolerance=0.5 * CHAIN_CONVERGED ** 2,
                         initial_damping=self.damping,
-                        give_up_iteration=self.give_up_iterations,
-                        give_up_cost=0.5 * self.tolerance ** 2)
+                        give_up=(((self.give_up_iterations, 0.5 * self.tolerance ** 2),)
+                                 if self.give_up_iterations > 0 else ()))
 
 
 def continue_chains(residual: WaypointResidual, score: WaypointResidual | None,

@@ -41,13 +41,12 @@ class LMConfig:
     """(``stages._banded_lm`` only) ...or once the next proposed step is predicted by the
     Gauss–Newton model to lower the cost by less than this fraction: a run of rejected
     steps at that size would end in the stall rule or the λ cap anyway. 0: off."""
-    give_up_iteration: int = 0
-    """...or once this many steps were judged while the cost is still above
-    ``give_up_cost``: a problem stuck far from an answer (e.g. a trajectory through an
-    obstacle) stops instead of creeping on to the iteration budget, and no longer keeps
-    the batch's loop running. 0: off."""
-    give_up_cost: float = float("inf")
-    """The cost ½‖r‖² (units of r squared) above which ``give_up_iteration`` stops."""
+    give_up: tuple[tuple[int, float], ...] = ()
+    """...or once, at any checkpoint (steps judged, cost ½‖r‖² in units of r squared) of
+    this tuple, that many steps were judged while the cost is still above that cost: a
+    problem stuck far from an answer (e.g. a trajectory through an obstacle) stops instead
+    of creeping on to the iteration budget, and no longer keeps the batch's loop running.
+    (): off."""
     stop_when_converged: bool = True
     """End the loop early once every problem in the batch converged or stalled."""
     linear_solver: str = "unrolled"
@@ -120,11 +119,12 @@ def _differences(residual: Residual, z: jax.Array, params: Any,
 
 
 def gave_up(config: LMConfig, judged: jax.Array, cost: jax.Array) -> jax.Array | bool:
-    """The give-up rule (``LMConfig.give_up_iteration``): ``judged`` steps made and the cost
-    still above ``give_up_cost``; False when the rule is off."""
-    if config.give_up_iteration <= 0:
-        return False
-    return (judged >= config.give_up_iteration) & (cost > config.give_up_cost)
+    """The give-up rule (``LMConfig.give_up``): at some checkpoint, at least its steps
+    judged and the cost still above its cost; False when the rule is off."""
+    out: jax.Array | bool = False
+    for steps, limit in config.give_up:
+        out = out | ((judged >= steps) & (cost > limit))
+    return out
 
 
 @partial(jax.jit, static_argnames=("residual", "project", "config"))
