@@ -218,13 +218,15 @@ def test_chunking_and_empty_cases(robots, mixed_scene, monkeypatch) -> None:
 @pytest.mark.parametrize("robot_name,scene_name,chunk", [
     ("tdcr3", "shelf", None), ("tdcr3", "cabinet", None), ("tdcr3", "mixed", None),
     ("tdcr3", "lattice", None), ("tdcr4_ext", "mixed", 1 << 12), ("tdcr3", "shelf", 1),
+    ("tdcr3", "random_27", None), ("tdcr3", "random_27", 1 << 12), ("tdcr3", "lattice", 1),
 ])
 def test_check_motion_gives_the_minima_and_collisions_of_check_many(
         robots, mixed_scene, monkeypatch, robot_name, scene_name, chunk) -> None:
     """The motion verdict measures fewer pairs but decides the same: the smallest obstacle
     and self distances (the same fcl calls on the same capsules; where two pairs tie for
     the minimum either may be measured, so to rounding) and every configuration's
-    collision, on motions that hit and miss the obstacles."""
+    collision, on motions that hit and miss the obstacles. Small chunks (``chunk``) make
+    the spheres that cannot matter to a chunk (``_spheres_that_matter``) drop out."""
     robot = robots[robot_name]
     scene = mixed_scene if scene_name == "mixed" else load_scene(scene_name)
     if chunk is not None:

@@ -677,6 +677,28 @@ def _self_distance(r: float, a: Xyz, b: Xyz, i: np.ndarray, j: np.ndarray) -> np
     return own - 2.0 * r
 
 
+def _spheres_that_matter(r: float, fscene: _FclScene, chains: np.ndarray,
+                         best: float) -> np.ndarray:
+    """Indices of the sphere parts that can lower a motion's smallest distance below
+    ``best`` (m) or reach a configuration of ``chains`` (B, points, 3): those whose gap to
+    the box around every chain point is at most max(best, 0); best +inf (none yet) becomes
+    the distance of the first configuration's nearest point to any sphere, an upper bound
+    of the chunk's smallest distance. Every other sphere is farther from every
+    configuration than that: it changes neither the smallest distance nor any
+    configuration's sign."""
+    centres, radii = fscene.sphere_centres, fscene.sphere_radii
+    if not len(radii):
+        return np.zeros(0, dtype=np.int64)
+    lower, upper = chains.min(axis=(0, 1)), chains.max(axis=(0, 1))
+    outside = np.maximum(np.maximum(lower - centres, centres - upper), 0.0)
+    gap = np.sqrt(np.sum(outside * outside, axis=1)) - radii - r
+    if not np.isfinite(best):        # the motion's first chunk: no smallest distance yet
+        best = float((np.linalg.norm(chains[0][:, None] - centres[None], axis=2)
+                      - radii - r).min())
+    bound = max(best, 0.0)
+    return np.flatnonzero(gap <= bound)
+
+
 def _verdicts(robot: Robot, fscene: _FclScene, chains: np.ndarray, per_segment: int,
               motion: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Obstacle distance (B,), its part index (B,; −1: none), self distance (B,) and the
@@ -696,16 +718,17 @@ def _verdicts(robot: Robot, fscene: _FclScene, chains: np.ndarray, per_segment: 
         return obstacle, part, own, best
     x = tuple(np.ascontiguousarray(chains[..., k]) for k in range(3))
     a, b = tuple(c[:, :-1] for c in x), tuple(c[:, 1:] for c in x)
-    spheres = len(fscene.sphere_index)
-    if spheres:
+    spheres = (np.arange(len(fscene.sphere_index)) if motion is None else
+               _spheres_that_matter(r, fscene, chains, best))
+    if len(spheres):
         u = _sub(b, a)
-        centre = tuple(fscene.sphere_centres[:, k] for k in range(3))
+        centre = tuple(fscene.sphere_centres[spheres, k] for k in range(3))
         d = (_point_segment(centre, tuple(c[:, :, None] for c in a),
                             tuple(c[:, :, None] for c in u), _dot(u, u)[:, :, None])
-             - r - fscene.sphere_radii).reshape(count, -1)
+             - r - fscene.sphere_radii[spheres]).reshape(count, -1)
         nearest = np.argmin(d, axis=1)
         obstacle = d[np.arange(count), nearest]
-        part = fscene.sphere_index[nearest % spheres]
+        part = fscene.sphere_index[spheres[nearest % len(spheres)]]
     if len(fscene.other_index) and motion is not None:
         best = _fcl_motion_search(r, fscene, chains[:, :-1], chains[:, 1:], obstacle, part,
                                   best, _run_length(per_segment))
