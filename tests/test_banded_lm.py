@@ -231,6 +231,33 @@ def test_chain_batch_solves_every_chain_as_its_own_banded_solve() -> None:
     np.testing.assert_allclose(again.z[0], z[0], atol=1e-12)
 
 
+def test_lanes_split_the_chains_between_devices_with_the_one_shot_iterates() -> None:
+    """One lane per device (the tests run on two CPU host devices): every device gets a
+    program and chains, and every chain still takes its one-shot ``banded_lm_solve``
+    iterates; ``lanes=1`` keeps them all on the first device."""
+    from cr_nlp.stages._chain_batch import ChainBatchLM
+
+    t, d, budget, count = 5, 3, 7, 10
+    terms = ChainResidual(step_unary, pair, triple)
+    rng = np.random.default_rng(21)
+    z0 = rng.normal(size=(count, t * d))
+    steps = rng.normal(size=count)
+    free = jnp.ones(t * d, jnp.float64).at[:d].set(0.0)
+    one_shot = [banded_lm_solve(terms, unprojected, jnp.asarray(z0[k].reshape(t, d)), None,
+                                (None, None, jnp.float64(steps[k])), free.reshape(t, d),
+                                jnp.int32(budget))[0] for k in range(count)]
+    devices = jax.devices()
+    for lanes in (None, 1):
+        batch = ChainBatchLM(terms, unprojected, t, free, jnp.float64, chunk_size=4,
+                             lanes=lanes)
+        solution = batch.solve(z0, steps, None, budget)
+        used = sorted({device for device, _ in batch._slot_programs})
+        assert used == ([x.id for x in devices] if lanes is None else [devices[0].id])
+        for k in range(count):
+            np.testing.assert_allclose(solution.z[k], np.asarray(one_shot[k]).reshape(-1),
+                                       atol=1e-12)
+
+
 def test_slots_take_the_one_shot_iterates_whatever_the_schedule() -> None:
     """Continuous batching (two slots, refilled as chains finish, the LM state carried
     between device calls) gives every chain exactly its one-shot ``banded_lm_solve``:
@@ -275,7 +302,8 @@ def test_slots_take_the_one_shot_iterates_whatever_the_schedule() -> None:
         # Work: never more slot-trips than two slots running every call to its end, and
         # at least the trips the chains needed (one more than their iterations).
         assert batch.slot_trips >= (expected_its + 1).sum()
-    assert list(batch._slot_programs) == [2]            # one program for every schedule
+    # One program size for every schedule, one program per lane (device).
+    assert sorted(batch._slot_programs) == [(device.id, 2) for device in batch.devices]
 
 
 def test_prediction_stop_ends_the_same_iterates_early() -> None:
@@ -414,8 +442,10 @@ def test_slots_shrink_and_grow_without_changing_the_iterates() -> None:
                                        atol=1e-12)
             assert solution.cost[k] == pytest.approx(float(one_shot[k][1]), rel=1e-12)
             assert solution.iterations[k] == int(one_shot[k][2])
-        work[resize] = (batch.slot_trips, sorted(batch._slot_programs))
-    assert work[False][1] == [8] and work[True][1] == [2, 4, 8]
+        work[resize] = (batch.slot_trips, sorted({s for _, s in batch._slot_programs}))
+    lane = batch.lane_slots                         # 8 slots, split between the lanes
+    assert work[False][1] == [lane]
+    assert work[True][1] == [2 ** k for k in range(1, lane.bit_length())]
     assert work[True][0] < work[False][0]
 
 
@@ -435,7 +465,8 @@ def test_slots_and_chunks_never_exceed_a_chunk_size_that_is_not_a_power_of_two()
         batch = ChainBatchLM(terms, unprojected, t, free, jnp.float64, chunk_size=chunk_size,
                              schedule=schedule)
         solution = batch.solve(z0, steps, None, budget)
-        sizes = batch._slot_programs if schedule == "slots" else batch._compiled
+        sizes = ({s for _, s in batch._slot_programs} if schedule == "slots" else
+                 batch._compiled)
         assert sizes and max(sizes) <= chunk_size
         for k in range(count):
             zk, _, _ = banded_lm_solve(terms, unprojected, jnp.asarray(z0[k].reshape(t, d)),

@@ -15,7 +15,11 @@ two schedules:
   point) stays on the device between calls, so a chain takes exactly the iterates it
   would take in one uninterrupted solve, and no slot waits for the slowest chain of a
   chunk. A caller can also add chains while the solve runs (``more``): the trajectory
-  planner's second round of guesses goes into the same stream.
+  planner's second round of guesses goes into the same stream. With several JAX devices
+  (a CPU process's host devices, or GPUs) each device is a lane with its own slots and
+  programs, fed from the one queue of waiting chains; the host launches every idle
+  lane's call before it waits for the oldest, so the lanes compute side by side (a slot
+  program's small batch keeps one CPU core busy, not two).
 - "chunks": the batch is cut into chunks of one size (the last padded with copies of its
   first row), one device program per chunk, each running until its slowest chain
   stops. The "dense" structure (``stages._lm``: one Jacobian of the whole chain and a
@@ -109,6 +113,11 @@ class ChainBatchLM:
             shelf trajectories, 2-core CPU: 1.5, 2.9, 5.2 ms for 1, 2, 4 slots).
         overlap: slots: run ``more`` on a call's finished chains while the next call
             computes (False: before it, the former order; kept for comparison).
+        lanes: slots: most JAX devices that run slot programs side by side (None: every
+            device; a CPU process's host devices, ``use_host_devices``, or the GPUs), each
+            with its own slots (``chunk_size`` split between them, at least 2 each) fed
+            from one queue of waiting chains. A slot program runs its small batch on
+            one core, so on a 2-core CPU two lanes use both.
         config: the banded LM's stopping rules (default: ``LMConfig(cost_tolerance=0)``,
             no cost floor: a chain stops when it stalls).
     """
@@ -118,7 +127,7 @@ class ChainBatchLM:
                  structure: str = "banded", dense_residual: Callable | None = None,
                  dense_project: Callable | None = None, extra: Any = None,
                  schedule: str = "slots", trips: int = 1 << 30, refill: int = 1,
-                 resize: bool = True, overlap: bool = True,
+                 resize: bool = True, overlap: bool = True, lanes: int | None = None,
                  config: LMConfig | None = None) -> None:
         if structure not in ("banded", "dense"):
             raise ValueError(f"structure must be 'banded' or 'dense', got {structure!r}")
@@ -126,6 +135,8 @@ class ChainBatchLM:
             raise ValueError("the dense structure needs dense_residual and dense_project")
         if schedule not in ("slots", "chunks"):
             raise ValueError(f"schedule must be 'slots' or 'chunks', got {schedule!r}")
+        if lanes is not None and lanes < 1:
+            raise ValueError(f"lanes must be ≥ 1 or None, got {lanes}")
         if chunk_size < 1 or trips < 1 or refill < 1:
             raise ValueError(f"chunk_size, trips and refill must be ≥ 1, got {chunk_size}, "
                              f"{trips}, {refill}")
@@ -138,8 +149,12 @@ class ChainBatchLM:
         self.trips, self.refill, self.resize, self.overlap = trips, refill, resize, overlap
         self.config = LMConfig(cost_tolerance=0.0) if config is None else config
         """The banded LM's stopping rules."""
+        self.devices = jax.devices()[:lanes] if lanes else jax.devices()
+        """The devices of the slot schedule's lanes."""
+        self.lane_slots = max(2, chunk_size // len(self.devices))
+        """Most slots of one lane."""
         self._compiled: dict[int, Any] = {}
-        self._slot_programs: dict[int, Any] = {}
+        self._slot_programs: dict[tuple[int, int], Any] = {}
         self._idle_shapes: dict[int, Any] = {}
         self.programs = 0
         """Device programs launched so far (one per chunk or slot call)."""
@@ -148,10 +163,11 @@ class ChainBatchLM:
         idle slots included (a trip of one chain is one evaluation and one step)."""
 
     def _size(self, count: int, compiled: dict[int, Any]) -> int:
-        """Slots or chunk size for ``count`` chains: the smallest power of two (≥ the device
-        count) that holds them, at most ``chunk_size``, and no smaller than a size already
+        """Chunk size for ``count`` chains: the smallest power of two (≥ the device count)
+        that holds them, at most ``chunk_size``, and no smaller than a size already
         compiled (one program serves every later batch)."""
-        return max(self._fitting(count, max(2, len(jax.devices()))), min(compiled, default=0))
+        return max(self._fitting(count, max(2, len(jax.devices())), self.chunk_size),
+                   min(compiled, default=0))
 
     def solve(self, z0: np.ndarray, step: np.ndarray, arrays: Any, iterations: int,
               more: MoreChains | None = None) -> ChainSolution:
@@ -184,19 +200,22 @@ class ChainBatchLM:
     # ------------------------------------------------------------ slots
     def _solve_slots(self, z0: np.ndarray, step: np.ndarray, arrays: Any, iterations: int,
                      more: MoreChains | None) -> ChainSolution:
-        slots = self._size(len(z0), self._slot_programs)
         width = z0.shape[1]
         z_list, step_list = list(z0), list(step)
-        out_z, out_cost, out_it = {}, {}, {}
+        out_z: dict[int, np.ndarray] = {}
+        out_cost: dict[int, float] = {}
+        out_it: dict[int, int] = {}
         waiting = deque(range(len(z0)))
-        chain = np.full(slots, -1)                     # the chain in each slot, -1: none
-        budget = np.full(slots, -1, np.int32)          # -1: the slot does not run
-        slot_step = np.zeros(slots)
-        state: Any = self._idle_state(slots)
+        compiled = [slots for _, slots in self._slot_programs]
+        share = -(-len(z0) // len(self.devices))
+        lanes = [_Lane(device, max(self._fitting(share), min(compiled, default=0)), self,
+                       arrays) for device in self.devices]
+        in_flight: deque[_Lane] = deque()               # oldest call first
         compile_seconds = callback = 0.0
         # Chains finished in the last call whose ``more`` has not run yet: it runs while
-        # the next call computes (the caller's verdict on the host, the LM on the device),
-        # so chains it adds join one call later. Each chain's iterates are unchanged.
+        # the other calls compute (the caller's verdict on the host, the LM on the
+        # devices), so chains it adds join one call later. Each chain's iterates are
+        # unchanged.
         pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
         def run_more(finished: tuple[np.ndarray, np.ndarray, np.ndarray]) -> float:
@@ -210,67 +229,21 @@ class ChainBatchLM:
             return time.perf_counter() - t0
 
         while True:
-            # Fewer chains than half the slots (the stream draining), or more than the
-            # slots while a larger program is allowed: move the running chains' states
-            # into a program of the fitting size (a trip's cost grows with its slots,
-            # idle ones included). The states move whole, so the iterates are unchanged.
-            need = int(np.sum(chain >= 0)) + len(waiting)
-            size = self._fitting(need) if self.resize else slots
-            if need and (size < slots and 2 * need <= slots or size > slots):
-                keep = np.flatnonzero(chain >= 0)
-                state = self._moved(state, keep, size)
-                chain, budget, slot_step = (np.concatenate([x[keep], np.full(size - len(keep),
-                                                                             fill, x.dtype)])
-                                            for x, fill in ((chain, -1), (budget, -1),
-                                                            (slot_step, 0.0)))
-                slots = size
-            load = np.zeros(slots, bool)
-            z_new = np.zeros((slots, width))
-            for s in np.flatnonzero(chain < 0):
-                if not waiting:
-                    break
-                k = waiting.popleft()
-                chain[s], load[s], z_new[s] = k, True, z_list[k]
-                slot_step[s], budget[s] = step_list[k], iterations
-            occupied = int(np.sum(chain >= 0))
-            if not occupied:
-                if pending is None:
-                    break
-                callback += run_more(pending)      # nothing to overlap with
-                pending = None
-                continue
-            if waiting:
-                wanted = max(slots - min(self.refill, len(waiting)) + 1, 1)
-            elif pending is not None:
-                wanted = occupied      # return at the first finish: more may add chains
-            else:
-                wanted = 1
-            args = (state, z_new.astype(self.dtype), load, slot_step.astype(self.dtype),
-                    budget, arrays, self.free, np.int32(self.trips), np.int32(wanted))
-            if slots not in self._slot_programs:
-                t0 = time.perf_counter()
-                self._slot_programs[slots] = self._lower_slots(args).compile()
-                compile_seconds += time.perf_counter() - t0
-            state, running, count = self._slot_programs[slots](*args)   # asynchronous
-            self.programs += 1
+            for lane in lanes:
+                if lane.out is None:
+                    compile_seconds += self._launch(lane, waiting, z_list, step_list,
+                                                    iterations, pending is not None)
+                    if lane.out is not None:
+                        in_flight.append(lane)
             if pending is not None:
-                callback += run_more(pending)
+                callback += run_more(pending)      # overlaps the calls in flight, if any
                 pending = None
-            running = np.asarray(running)
-            self.slot_trips += slots * int(count)
-            finished = np.flatnonzero((chain >= 0) & ~running)
-            if not len(finished):
-                continue
-            z_done = np.asarray(state.z, dtype=np.float64)[finished].reshape(len(finished), -1)
-            cost_done = np.asarray(state.cost, dtype=np.float64)[finished]
-            it_done = np.asarray(state.iteration)[finished]
-            indices = chain[finished].copy()
-            for k, s in enumerate(finished):
-                out_z[chain[s]], out_cost[chain[s]] = z_done[k], cost_done[k]
-                out_it[chain[s]] = it_done[k]
-                chain[s], budget[s] = -1, -1
-            if more is not None:
-                pending = (indices, z_done, cost_done)
+                continue                           # idle lanes take the added chains
+            if not in_flight:
+                break
+            finished = self._retire(in_flight.popleft(), out_z, out_cost, out_it)
+            if more is not None and finished is not None:
+                pending = finished
                 if not self.overlap:
                     callback += run_more(pending)
                     pending = None
@@ -280,14 +253,86 @@ class ChainBatchLM:
                              np.array([out_it[k] for k in order], dtype=int),
                              compile_seconds, callback)
 
-    def _fitting(self, count: int, least: int = 2) -> int:
+    def _launch(self, lane: _Lane, waiting: deque, z_list: list, step_list: list,
+                iterations: int, more_pending: bool) -> float:
+        """Load waiting chains into the lane's free slots and start its next call
+        (asynchronous; ``lane.out``), unless no slot is occupied. Returns the seconds
+        spent compiling."""
+        # Fewer chains than half the slots (the stream draining), or more than the slots
+        # while a larger program is allowed: move the running chains' states into a
+        # program of the fitting size (a trip's cost grows with its slots, idle ones
+        # included). The states move whole, so the iterates are unchanged.
+        need = int(np.sum(lane.chain >= 0)) + len(waiting)
+        size = self._fitting(need) if self.resize else lane.slots
+        if need and (size < lane.slots and 2 * need <= lane.slots or size > lane.slots):
+            keep = np.flatnonzero(lane.chain >= 0)
+            lane.state = self._moved(lane.state, keep, size)
+            lane.chain, lane.budget, lane.slot_step = (
+                np.concatenate([x[keep], np.full(size - len(keep), fill, x.dtype)])
+                for x, fill in ((lane.chain, -1), (lane.budget, -1), (lane.slot_step, 0.0)))
+            lane.slots = size
+        load = np.zeros(lane.slots, bool)
+        z_new = np.zeros((lane.slots, len(z_list[0]) if z_list else 0))
+        for s in np.flatnonzero(lane.chain < 0):
+            if not waiting:
+                break
+            k = waiting.popleft()
+            lane.chain[s], load[s], z_new[s] = k, True, z_list[k]
+            lane.slot_step[s], lane.budget[s] = step_list[k], iterations
+        occupied = int(np.sum(lane.chain >= 0))
+        if not occupied:
+            return 0.0
+        if waiting:
+            wanted = max(lane.slots - min(self.refill, len(waiting)) + 1, 1)
+        elif more_pending:
+            wanted = occupied      # return at the first finish: more may add chains
+        else:
+            wanted = 1
+        args = jax.device_put((lane.state, z_new.astype(self.dtype), load,
+                               lane.slot_step.astype(self.dtype), lane.budget), lane.device)
+        args = (*args, lane.arrays, lane.free, np.int32(self.trips), np.int32(wanted))
+        key = (lane.device.id, lane.slots)
+        seconds = 0.0
+        if key not in self._slot_programs:
+            t0 = time.perf_counter()
+            self._slot_programs[key] = self._lower_slots(args).compile()
+            seconds = time.perf_counter() - t0
+        lane.out = self._slot_programs[key](*args)          # asynchronous
+        self.programs += 1
+        return seconds
+
+    def _retire(self, lane: _Lane, out_z: dict, out_cost: dict,
+                out_it: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """Wait for the lane's call, store its finished chains' answers and free their
+        slots; returns (chain indices, z, cost) of those chains, or None if none
+        finished."""
+        lane.state, running, count = lane.out
+        lane.out = None
+        running = np.asarray(running)
+        self.slot_trips += lane.slots * int(count)
+        finished = np.flatnonzero((lane.chain >= 0) & ~running)
+        if not len(finished):
+            return None
+        z_done = np.asarray(lane.state.z, dtype=np.float64)[finished].reshape(len(finished),
+                                                                              -1)
+        cost_done = np.asarray(lane.state.cost, dtype=np.float64)[finished]
+        it_done = np.asarray(lane.state.iteration)[finished]
+        indices = lane.chain[finished].copy()
+        for k, s in enumerate(finished):
+            out_z[lane.chain[s]], out_cost[lane.chain[s]] = z_done[k], cost_done[k]
+            out_it[lane.chain[s]] = it_done[k]
+            lane.chain[s], lane.budget[s] = -1, -1
+        return indices, z_done, cost_done
+
+    def _fitting(self, count: int, least: int = 2, most: int | None = None) -> int:
         """Slots for ``count`` running or waiting chains: the smallest power of two (at
-        least ``least``) that holds them, at most ``chunk_size`` (which need not be a power
-        of two)."""
+        least ``least``) that holds them, at most ``most`` (default: a lane's slots; need
+        not be a power of two)."""
+        most = self.lane_slots if most is None else most
         size = least
-        while size < min(count, self.chunk_size):
+        while size < min(count, most):
             size *= 2
-        return min(size, self.chunk_size)
+        return min(size, most)
 
     def _moved(self, state: BandedLMState, keep: np.ndarray, slots: int) -> BandedLMState:
         """The LM states of the slots ``keep`` (in order) in the first rows of a state of
@@ -403,3 +448,17 @@ class ChainBatchLM:
             return jax.vmap(single)(z0, step)
 
         return jax.jit(solve_chunk).lower(*args)
+
+
+class _Lane:
+    """One device's share of the slot schedule: its slots, their chains and LM state,
+    the scene arrays on that device, and the call in flight (``out``)."""
+
+    def __init__(self, device: Any, slots: int, lm: ChainBatchLM, arrays: Any) -> None:
+        self.device, self.slots = device, slots
+        self.chain = np.full(slots, -1)                 # the chain in each slot, -1: none
+        self.budget = np.full(slots, -1, np.int32)      # -1: the slot does not run
+        self.slot_step = np.zeros(slots)
+        self.state: Any = lm._idle_state(slots)
+        self.arrays, self.free = jax.device_put((arrays, lm.free), device)
+        self.out: Any = None
