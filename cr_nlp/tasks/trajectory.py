@@ -144,8 +144,8 @@ class TrajectoryConfig:
     in this process. The answers are the same either way."""
     chunk_size: int = 8
     """Most trajectories per compiled LM call: the slots of the continuous batching
-    (``stages._chain_batch``; split between its lanes, one per JAX device, at least 2
-    each), or the chunk size with ``lm_schedule="chunks"``. Measured
+    (``stages._chain_batch``; split between its lanes, one per JAX device, at most
+    chunk_size // 2 lanes), or the chunk size with ``lm_schedule="chunks"``. Measured
     on the 40 round-1 shelf trajectories (2-core CPU under a load of ~6, float32,
     interleaved, best of 5): 2, 4 and 8 slots took 6.0, 6.1 and 6.2 s in 38, 35 and 22
     device calls, 16 slots 14.3 s (more slots idle while the stream drains)."""
