@@ -21,6 +21,7 @@ from cr_nlp.model.actuation import (
     measured_point,
     params_of,
     predict_tip,
+    zero_sensitivity,
 )
 
 
@@ -191,6 +192,26 @@ def test_implicit_derivatives_match_finite_differences() -> None:
     assert float(jnp.max(jnp.abs(jac[..., 4]))) > 1e-6   # the compression moves the tip
     np.testing.assert_allclose(jac, fd, atol=1e-7)
     np.testing.assert_allclose(jac_rev, jac, atol=1e-10)
+
+
+def test_zero_sensitivity_is_the_tip_motion_per_zero_error_of_robot_files() -> None:
+    """Against central differences of ``predict_tip`` on robot files whose zero offsets are
+    shifted one tendon at a time: the largest singular value of that 3 × n Jacobian."""
+    robot = _calibrated_like(load_robot("ftdcr_v6"), axial=True, shortens=False)
+    cmd = _commands(robot, 4, seed=3)
+    h = 1e-7
+    zeros = np.array(robot.actuation.zero_offsets)
+    columns = []
+    for j in range(robot.n_tendons):
+        tips = [predict_tip(dataclasses.replace(robot, actuation=dataclasses.replace(
+                    robot.actuation, zero_offsets=tuple(zeros + sign * h * np.eye(9)[j]))), cmd)
+                for sign in (1, -1)]
+        columns.append((tips[0] - tips[1]) / (2 * h))
+    expected = np.linalg.norm(np.stack(columns, axis=-1), ord=2, axis=(1, 2))
+    got = zero_sensitivity(robot, cmd)
+    assert got.dtype == np.float64 and got.shape == (4,)
+    assert np.all(expected > 1.0)            # a zero error moves the tip more than itself
+    np.testing.assert_allclose(got, expected, rtol=1e-5)
 
 
 def test_commands_for_a_configuration_reproduce_its_bending_on_compressed_segments() -> None:

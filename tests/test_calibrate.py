@@ -11,7 +11,7 @@ import pytest
 from cr_nlp.model import load_robot
 from cr_nlp.model.actuation import Actuation, predict_tip
 from cr_nlp.model.rotations import wxyz_from_matrix
-from cr_nlp.tasks.calibrate import CalibrationConfig, calibrate, tip_errors
+from cr_nlp.tasks.calibrate import CalibrationConfig, Repeatability, calibrate, tip_errors
 from cr_nlp.tasks.measurements import Measurements
 
 NOISE = 2e-4  # m per coordinate
@@ -92,3 +92,24 @@ def test_calibration_recovers_a_synthetic_robot(axial: str) -> None:
     else:
         assert not act.axial_stiffness_ratio
     assert fit.actuation.model_error_p95 == result.validation.p95
+
+
+def test_repeatability_pairs_rows_with_the_same_commands_by_hand() -> None:
+    """Rows within the tolerance on every tendon pair up; their tip gaps are the
+    distances between the measured tips (computed here by hand)."""
+    base = np.linspace(-2e-3, 2e-3, 9)
+    step = np.eye(9)[4]
+    commands = np.array([base, base + 3e-5 * step, base + 9e-5 * step, base + 1e-3])
+    tips = np.array([[0.0, 0.0, 0.2], [0.004, 0.0, 0.2], [0.0, 0.010, 0.2], [0.1, 0.1, 0.1]])
+    data = Measurements(commands, tips, "hand")
+    one = Repeatability.of(data, 5e-5)            # rows 0-1 only (row 2 is 9e-5 away)
+    np.testing.assert_allclose(one.gaps, [0.004])
+    assert one.rows == 2
+    three = Repeatability.of(data, 1e-4)          # rows 0-1, 0-2, 1-2
+    np.testing.assert_allclose(np.sort(three.gaps),
+                               np.sort([0.004, 0.010, np.hypot(0.004, 0.010)]))
+    assert three.rows == 3
+    summary = three.to_dict()
+    assert summary["pairs"] == 3 and summary["tolerance_mm"] == pytest.approx(0.1)
+    assert summary["tip_gap_mm"]["max"] == pytest.approx(1e3 * np.hypot(0.004, 0.010))
+    assert Repeatability.of(data, 1e-6).to_dict()["tip_gap_mm"] is None

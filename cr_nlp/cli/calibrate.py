@@ -58,6 +58,16 @@ def run(args: argparse.Namespace) -> int:
         mm = "".join(f"{d['mm'][k]:9.2f}" for k in ("mean", "median", "p95", "max"))
         pct = " ".join(f"{d['percent_of_length'][k]:.1f}%" for k in ("mean", "p95"))
         print(f"{label:<16}{stats.rows:>6}{mm}   ({pct})")
+    sensitivity = report["zero_sensitivity_mm_per_mm"]["median"]
+    print(f"zero sensitivity: the tip moves {sensitivity:.1f} mm per mm of tendon zero error "
+          f"(median over the training rows)")
+    repeat = report["repeatability"]
+    if repeat["tip_gap_mm"]:
+        gap, tol = repeat["tip_gap_mm"], repeat["tolerance_mm"]
+        print(f"repeatability: {repeat['pairs']} pairs of rows whose commands agree within "
+              f"{tol:g} mm (≤ {tol * sensitivity:.1f} mm of tip) reach tips {gap['mean']:.1f} mm "
+              f"apart (mean; p95 {gap['p95']:.1f} mm): on one row of each pair any model of "
+              f"the commands alone errs by about half that")
     if args.report:
         from ..viz._calibration import write_report_figures
 

@@ -347,6 +347,23 @@ def predict_tip(robot: Robot, commands: Any, iterations: int = 12) -> np.ndarray
         return np.asarray(pos, dtype=np.float64)
 
 
+def zero_sensitivity(robot: Robot, commands: Any, iterations: int = 12) -> np.ndarray:
+    """(N,) how far the predicted tip moves per unit error of the tendon zero offsets, m/m,
+    at each row of commanded displacements (N, n_tendons) m: the largest singular value of
+    ∂tip/∂zero_offsets (the worst direction of an error shared among the tendons). A tip
+    error budget of e m needs the zeros known to about e / sensitivity m. Float64."""
+    cmd = _commands(robot, commands)
+    with jax.enable_x64(True):
+        params = _jax_params(robot)
+
+        def tips(zeros: jax.Array) -> jax.Array:
+            return measured_point(robot, params | {"zero_offsets": zeros},
+                                  jnp.asarray(cmd, jnp.float64), iterations)
+
+        jac = np.asarray(jax.jacfwd(tips)(params["zero_offsets"]), np.float64)
+    return np.linalg.norm(jac, ord=2, axis=(1, 2))
+
+
 def configuration_from_commands(robot: Robot, commands: Any,
                                 iterations: int = 12) -> np.ndarray:
     """The configurations q (N, 3n) = [θ1, φ1, L1, …] (rad, rad, m) that commanded tendon

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
 
 from ..model import Robot
 from ..model.actuation import (
@@ -33,6 +34,7 @@ from ..model.actuation import (
     params_of,
     predict_tip,
     robot_with_params,
+    zero_sensitivity,
 )
 from .measurements import Measurements
 
@@ -76,6 +78,9 @@ class CalibrationConfig:
     """Per parameter group: prior scale, bound and whether it is fitted."""
     noise: float = 1e-3
     """Expected tip error of a good fit, m: weighs the data against the priors."""
+    repeat_tolerance: float = 5e-5
+    """Rows whose commands agree within this on every tendon count as the same command
+    for ``Repeatability``, m."""
     yaw_grid: int = 12
     """Base rotations about the base axis tried before the fit (0: no search)."""
     max_evaluations: int = 60
@@ -125,6 +130,40 @@ class ErrorStats:
 
 
 @dataclass
+class Repeatability:
+    """Pairs of rows whose commands agree within ``tolerance`` on every tendon, and how far
+    apart their measured tips are. A prediction from the commands alone gives both rows of
+    such a pair about the same tip, so on one of them it errs by at least half their gap
+    (less the tip motion that ``tolerance`` allows, ``tolerance`` times the zero
+    sensitivity): hysteresis, drift and measurement noise set this floor under any model
+    without memory, whatever its parameters."""
+
+    tolerance: float
+    """Largest command difference per tendon within a pair, m."""
+    gaps: np.ndarray
+    """(pairs,) distances between the pairs' measured tips, m."""
+    rows: int
+    """Rows that belong to at least one pair."""
+
+    @classmethod
+    def of(cls, data: Measurements, tolerance: float) -> Repeatability:
+        if data.tip is None:
+            raise ValueError(f"{data.source}: repeatability needs the measured tip columns")
+        pairs = cKDTree(data.commands).query_pairs(tolerance, p=np.inf, output_type="ndarray")
+        gaps = np.linalg.norm(data.tip[pairs[:, 0]] - data.tip[pairs[:, 1]], axis=1)
+        return cls(float(tolerance), gaps, int(np.unique(pairs).size))
+
+    def to_dict(self) -> dict[str, Any]:
+        gap = None
+        if self.gaps.size:
+            mm = 1e3 * self.gaps
+            gap = {"mean": float(mm.mean()), "median": float(np.median(mm)),
+                   "p95": float(np.percentile(mm, 95)), "max": float(mm.max())}
+        return {"tolerance_mm": 1e3 * self.tolerance, "pairs": int(self.gaps.size),
+                "rows": self.rows, "tip_gap_mm": gap}
+
+
+@dataclass
 class CalibrationResult:
     """The calibrated robot with its errors on the training (and validation) rows."""
 
@@ -138,6 +177,12 @@ class CalibrationResult:
     """Errors of the starting robot (after the yaw search) on the training rows."""
     parameters: dict[str, Any]
     """Fitted values by group (JSON-ready), with their nominal values."""
+    repeatability: Repeatability
+    """Rows of the training and validation data with the same commands and their tips'
+    gaps: the floor under any model of the commands alone."""
+    zero_sensitivity: np.ndarray
+    """(training rows,) the calibrated tip's motion per unit tendon zero error, m/m
+    (``model.actuation.zero_sensitivity``)."""
     seconds: float
     evaluations: int
     status: str
@@ -150,6 +195,10 @@ class CalibrationResult:
             "validation": self.validation.to_dict() if self.validation else None,
             "nominal_train": self.nominal_train.to_dict(),
             "parameters": self.parameters,
+            "repeatability": self.repeatability.to_dict(),
+            "zero_sensitivity_mm_per_mm": {
+                "median": float(np.median(self.zero_sensitivity)),
+                "p90": float(np.percentile(self.zero_sensitivity, 90))},
             "seconds": self.seconds,
             "evaluations": self.evaluations,
             "status": self.status,
@@ -280,9 +329,14 @@ def calibrate(robot: Robot, train: Measurements, validation: Measurements | None
     parameters = {name: {"nominal": np.asarray(nominal[name]).tolist(),
                          "fitted": np.asarray(fitted[name]).tolist()}
                   for name, _, _ in pack.groups if name in fitted}
+    rows = train if validation is None or validation.tip is None else Measurements(
+        np.vstack([train.commands, validation.commands]),
+        np.vstack([train.tip, validation.tip]), train.source)
     return CalibrationResult(
         robot=calibrated, nominal=nominal_robot, train=train_stats, validation=val_stats,
         nominal_train=ErrorStats.of(nominal_errors, length), parameters=parameters,
+        repeatability=Repeatability.of(rows, config.repeat_tolerance),
+        zero_sensitivity=zero_sensitivity(calibrated, train.commands),
         seconds=time.perf_counter() - t0, evaluations=int(solution.nfev),
         status=str(solution.message))
 
