@@ -11,7 +11,13 @@ import pytest
 from cr_nlp.model import load_robot
 from cr_nlp.model.actuation import Actuation, predict_tip
 from cr_nlp.model.rotations import wxyz_from_matrix
-from cr_nlp.tasks.calibrate import CalibrationConfig, Repeatability, calibrate, tip_errors
+from cr_nlp.tasks.calibrate import (
+    CalibrationConfig,
+    ErrorStats,
+    Repeatability,
+    calibrate,
+    tip_errors,
+)
 from cr_nlp.tasks.measurements import Measurements
 
 NOISE = 2e-4  # m per coordinate
@@ -113,3 +119,18 @@ def test_repeatability_pairs_rows_with_the_same_commands_by_hand() -> None:
     assert summary["pairs"] == 3 and summary["tolerance_mm"] == pytest.approx(0.1)
     assert summary["tip_gap_mm"]["max"] == pytest.approx(1e3 * np.hypot(0.004, 0.010))
     assert Repeatability.of(data, 1e-6).to_dict()["tip_gap_mm"] is None
+
+
+def test_error_stats_by_hand() -> None:
+    """Mean, RMSE and the offset-aligned RMSE of hand-made residuals (closed forms)."""
+    residuals = np.array([[0.003, 0.004, 0.0], [0.0, 0.0, 0.0], [0.003, 0.0, 0.0],
+                          [0.003, -0.004, 0.0]])                       # norms 5, 0, 3, 5 mm
+    stats = ErrorStats.of(residuals, 0.2)
+    assert stats.rows == 4 and stats.mean == pytest.approx(0.00325)
+    assert stats.rmse == pytest.approx(np.sqrt((25 + 0 + 9 + 25) / 4) * 1e-3)
+    # the mean vector (2.25, 0, 0) mm removed: x residuals 0.75, -2.25, 0.75, 0.75 mm
+    aligned = np.sqrt((3 * 0.75 ** 2 + 2.25 ** 2 + 16 + 16) / 4) * 1e-3
+    assert stats.rmse_aligned == pytest.approx(aligned)
+    d = stats.to_dict()
+    assert d["mm"]["rmse_aligned"] == pytest.approx(1e3 * aligned)
+    assert d["percent_of_length"]["max"] == pytest.approx(100 * 0.005 / 0.2)

@@ -95,6 +95,7 @@ def test_calibrate_writes_a_robot_file_every_command_accepts(tmp_path, capsys) -
     assert "actuation" in calibrated and calibrated["actuation"]["model_error_p95"] < 1e-4
     summary = json.loads((report / "report.json").read_text())
     assert summary["validation"]["mm"]["mean"] < 0.1       # the data came from this model
+    assert summary["validation"]["mm"]["rmse_aligned"] <= summary["validation"]["mm"]["rmse"]
     assert summary["repeatability"]["tolerance_mm"] == pytest.approx(0.05)
     assert summary["zero_sensitivity_mm_per_mm"]["median"] > 1.0
     assert "zero sensitivity: the tip moves" in text

@@ -49,15 +49,19 @@ def run(args: argparse.Namespace) -> int:
     report["train_file"], report["validation_file"] = train.source, val.source if val else None
     print(f"calibrated {robot.name} on {len(train)} rows in {result.seconds:.1f} s "
           f"({result.evaluations} evaluations) → {args.out}")
-    print(f"{'rows':<16}{'n':>6}{'mean':>9}{'median':>9}{'p95':>9}{'max':>9}   (mm; % of length)")
+    print(f"{'rows':<16}{'n':>6}{'mean':>9}{'median':>9}{'p95':>9}{'max':>9}{'rmse':>9}"
+          f"{'aligned':>9}   (mm; % of length)")
     for label, stats in (("nominal (train)", result.nominal_train), ("train", result.train),
                          ("validation", result.validation)):
         if stats is None:
             continue
         d = stats.to_dict()
-        mm = "".join(f"{d['mm'][k]:9.2f}" for k in ("mean", "median", "p95", "max"))
+        mm = "".join(f"{d['mm'][k]:9.2f}"
+                     for k in ("mean", "median", "p95", "max", "rmse", "rmse_aligned"))
         pct = " ".join(f"{d['percent_of_length'][k]:.1f}%" for k in ("mean", "p95"))
         print(f"{label:<16}{stats.rows:>6}{mm}   ({pct})")
+    print("aligned: the RMSE after removing the rows' mean error vector (OpenCR-MuJoCo's "
+          "metric)")
     sensitivity = report["zero_sensitivity_mm_per_mm"]["median"]
     print(f"zero sensitivity: the tip moves {sensitivity:.1f} mm per mm of tendon zero error "
           f"(median over the training rows)")

@@ -114,17 +114,27 @@ class ErrorStats:
     p95: float
     max: float
     robot_length: float
+    rmse: float
+    """Root mean square of the tip errors, m."""
+    rmse_aligned: float
+    """The same after removing the rows' mean error vector (the metric that OpenCR-MuJoCo's
+    system identification reports), m."""
 
     @classmethod
-    def of(cls, errors: np.ndarray, robot_length: float) -> ErrorStats:
-        e = np.asarray(errors, float)
+    def of(cls, residuals: np.ndarray, robot_length: float) -> ErrorStats:
+        """From (N, 3) predicted − measured tip vectors, m."""
+        r = np.asarray(residuals, float)
+        e = np.linalg.norm(r, axis=1)
+        aligned = r - r.mean(axis=0)
         return cls(len(e), float(e.mean()), float(np.median(e)),
-                   float(np.percentile(e, 95)), float(e.max()), robot_length)
+                   float(np.percentile(e, 95)), float(e.max()), robot_length,
+                   float(np.sqrt(np.mean(e * e))),
+                   float(np.sqrt(np.mean(np.sum(aligned * aligned, axis=1)))))
 
     def to_dict(self) -> dict[str, Any]:
-        mm = {k: 1e3 * getattr(self, k) for k in ("mean", "median", "p95", "max")}
-        pct = {k: 100.0 * getattr(self, k) / self.robot_length
-               for k in ("mean", "median", "p95", "max")}
+        keys = ("mean", "median", "p95", "max", "rmse", "rmse_aligned")
+        mm = {k: 1e3 * getattr(self, k) for k in keys}
+        pct = {k: 100.0 * getattr(self, k) / self.robot_length for k in keys}
         return {"rows": self.rows, "mm": mm, "percent_of_length": pct,
                 "robot_length_m": self.robot_length}
 
@@ -205,11 +215,16 @@ class CalibrationResult:
         }
 
 
-def tip_errors(robot: Robot, data: Measurements) -> np.ndarray:
-    """(N,) distance between predicted and measured tip, m."""
+def tip_residuals(robot: Robot, data: Measurements) -> np.ndarray:
+    """(N, 3) predicted minus measured tip, m."""
     if data.tip is None:
         raise ValueError(f"{data.source}: no measured tip columns")
-    return np.linalg.norm(predict_tip(robot, data.commands) - data.tip, axis=1)
+    return predict_tip(robot, data.commands) - data.tip
+
+
+def tip_errors(robot: Robot, data: Measurements) -> np.ndarray:
+    """(N,) distance between predicted and measured tip, m."""
+    return np.linalg.norm(tip_residuals(robot, data), axis=1)
 
 
 def robot_length(robot: Robot) -> float:
@@ -303,8 +318,7 @@ def calibrate(robot: Robot, train: Measurements, validation: Measurements | None
 
         jacobian = jax.jit(jax.jacfwd(residuals))
         x0 = np.zeros(pack.size)
-        nominal_errors = np.linalg.norm(np.asarray(tips(pack.unpack(jnp.asarray(x0))))
-                                        - train.tip, axis=1)
+        nominal_residuals = np.asarray(tips(pack.unpack(jnp.asarray(x0)))) - train.tip
         evaluations = {"jac": 0}
 
         def jac(x: np.ndarray) -> np.ndarray:
@@ -321,8 +335,8 @@ def calibrate(robot: Robot, train: Measurements, validation: Measurements | None
         del fitted["base_rotvec"]
     length = robot_length(robot)
     calibrated = robot_with_params(robot, fitted)
-    train_stats = ErrorStats.of(tip_errors(calibrated, train), length)
-    val_stats = (ErrorStats.of(tip_errors(calibrated, validation), length)
+    train_stats = ErrorStats.of(tip_residuals(calibrated, train), length)
+    val_stats = (ErrorStats.of(tip_residuals(calibrated, validation), length)
                  if validation is not None else None)
     recorded = val_stats or train_stats
     calibrated = robot_with_params(robot, fitted, (recorded.mean, recorded.p95))
@@ -334,7 +348,7 @@ def calibrate(robot: Robot, train: Measurements, validation: Measurements | None
         np.vstack([train.tip, validation.tip]), train.source)
     return CalibrationResult(
         robot=calibrated, nominal=nominal_robot, train=train_stats, validation=val_stats,
-        nominal_train=ErrorStats.of(nominal_errors, length), parameters=parameters,
+        nominal_train=ErrorStats.of(nominal_residuals, length), parameters=parameters,
         repeatability=Repeatability.of(rows, config.repeat_tolerance),
         zero_sensitivity=zero_sensitivity(calibrated, train.commands),
         seconds=time.perf_counter() - t0, evaluations=int(solution.nfev),
