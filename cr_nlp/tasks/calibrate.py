@@ -343,7 +343,7 @@ def calibrate(robot: Robot, train: Measurements, validation: Measurements | None
     parameters = {name: {"nominal": np.asarray(nominal[name]).tolist(),
                          "fitted": np.asarray(fitted[name]).tolist()}
                   for name, _, _ in pack.groups if name in fitted}
-    rows = train if validation is None or validation.tip is None else Measurements(
+    rows = train if validation is None else Measurements(   # both files' tips were read above
         np.vstack([train.commands, validation.commands]),
         np.vstack([train.tip, validation.tip]), train.source)
     return CalibrationResult(
