@@ -2,54 +2,128 @@
 
 Batched JAX search and refinement, an exact CasADi/Ipopt polish, and independent
 verdicts (float64 re-evaluation, python-fcl). Units: metres, radians, seconds.
+
+The public names below are imported on first use: ``import cr_nlp`` loads neither JAX
+nor CasADi, trimesh, python-fcl, Dask or matplotlib, and a task imports only what it
+needs.
 """
 
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from ._jax_setup import full_precision_matmuls as _full_precision_matmuls
-from ._jax_setup import use_host_devices as use_host_devices
-from ._resources import bundled_file as bundled_file
-from ._resources import models_root as models_root
-from .batch import run_batch as run_batch
-from .model import CasadiModel as CasadiModel
-from .model import ModelFileError as ModelFileError
-from .model import Robot as Robot
-from .model import backbone_points as backbone_points
-from .model import load_robot as load_robot
-from .model import pose_error as pose_error
-from .model import tendon_lengths as tendon_lengths
-from .model import tip_pose as tip_pose
-from .model.cosserat import StaticsConfig as StaticsConfig
-from .model.cosserat import StaticsResult as StaticsResult
-from .model.cosserat import solve_statics as solve_statics
-from .model.rotations import matrix_from_wxyz as matrix_from_wxyz
-from .model.rotations import wxyz_from_matrix as wxyz_from_matrix
-from .tasks._result import SCHEMA_VERSION as SCHEMA_VERSION
-from .tasks._result import load_result as load_result
-from .tasks._result import load_results as load_results
-from .tasks.follow import FollowConfig as FollowConfig
-from .tasks.follow import FollowResult as FollowResult
-from .tasks.follow import PathFollower as PathFollower
-from .tasks.ik import IKConfig as IKConfig
-from .tasks.ik import IKResult as IKResult
-from .tasks.ik import IKSolver as IKSolver
-from .tasks.ik import solve_ik as solve_ik
-from .tasks.live_ik import LiveIKConfig as LiveIKConfig
-from .tasks.live_ik import LiveIKResult as LiveIKResult
-from .tasks.live_ik import LiveIKSolver as LiveIKSolver
-from .tasks.paths import ReferencePath as ReferencePath
-from .tasks.paths import load_path as load_path
-from .tasks.tension_ik import TensionIKConfig as TensionIKConfig
-from .tasks.tension_ik import TensionIKResult as TensionIKResult
-from .tasks.tension_ik import TensionIKSolver as TensionIKSolver
-from .tasks.trajectory import TrajectoryConfig as TrajectoryConfig
-from .tasks.trajectory import TrajectoryPlanner as TrajectoryPlanner
-from .tasks.trajectory import TrajectoryResult as TrajectoryResult
-from .tasks.trajectory import save_results as save_results
-from .world import Scene as Scene
-from .world import check as check
-from .world import check_many as check_many
-from .world import load_scene as load_scene
 
 __version__ = "0.1.0"
+
+_PUBLIC = {
+    "use_host_devices": "._jax_setup",
+    "bundled_file": "._resources",
+    "models_root": "._resources",
+    "run_batch": ".batch",
+    "CasadiModel": ".model",
+    "ModelFileError": ".model",
+    "Robot": ".model",
+    "backbone_points": ".model",
+    "load_robot": ".model",
+    "pose_error": ".model",
+    "tendon_lengths": ".model",
+    "tip_pose": ".model",
+    "StaticsConfig": ".model.cosserat",
+    "StaticsResult": ".model.cosserat",
+    "solve_statics": ".model.cosserat",
+    "matrix_from_wxyz": ".model.rotations",
+    "wxyz_from_matrix": ".model.rotations",
+    "SCHEMA_VERSION": ".tasks._result",
+    "load_result": ".tasks._result",
+    "load_results": ".tasks._result",
+    "FollowConfig": ".tasks.follow",
+    "FollowResult": ".tasks.follow",
+    "PathFollower": ".tasks.follow",
+    "IKConfig": ".tasks.ik",
+    "IKResult": ".tasks.ik",
+    "IKSolver": ".tasks.ik",
+    "solve_ik": ".tasks.ik",
+    "LiveIKConfig": ".tasks.live_ik",
+    "LiveIKResult": ".tasks.live_ik",
+    "LiveIKSolver": ".tasks.live_ik",
+    "ReferencePath": ".tasks.paths",
+    "load_path": ".tasks.paths",
+    "TensionIKConfig": ".tasks.tension_ik",
+    "TensionIKResult": ".tasks.tension_ik",
+    "TensionIKSolver": ".tasks.tension_ik",
+    "TrajectoryConfig": ".tasks.trajectory",
+    "TrajectoryPlanner": ".tasks.trajectory",
+    "TrajectoryResult": ".tasks.trajectory",
+    "save_results": ".tasks.trajectory",
+    "Scene": ".world",
+    "check": ".world",
+    "check_many": ".world",
+    "load_scene": ".world",
+}
+"""Each public name and the module it lives in."""
+
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name: str) -> Any:
+    module = _PUBLIC.get(name)
+    if module is None:
+        raise AttributeError(f"module 'cr_nlp' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module, __name__), name)
+    globals()[name] = value  # later lookups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_PUBLIC))
+
+
+if TYPE_CHECKING:  # the same names for type checkers and editors
+    from ._jax_setup import use_host_devices as use_host_devices
+    from ._resources import bundled_file as bundled_file
+    from ._resources import models_root as models_root
+    from .batch import run_batch as run_batch
+    from .model import CasadiModel as CasadiModel
+    from .model import ModelFileError as ModelFileError
+    from .model import Robot as Robot
+    from .model import backbone_points as backbone_points
+    from .model import load_robot as load_robot
+    from .model import pose_error as pose_error
+    from .model import tendon_lengths as tendon_lengths
+    from .model import tip_pose as tip_pose
+    from .model.cosserat import StaticsConfig as StaticsConfig
+    from .model.cosserat import StaticsResult as StaticsResult
+    from .model.cosserat import solve_statics as solve_statics
+    from .model.rotations import matrix_from_wxyz as matrix_from_wxyz
+    from .model.rotations import wxyz_from_matrix as wxyz_from_matrix
+    from .tasks._result import SCHEMA_VERSION as SCHEMA_VERSION
+    from .tasks._result import load_result as load_result
+    from .tasks._result import load_results as load_results
+    from .tasks.follow import FollowConfig as FollowConfig
+    from .tasks.follow import FollowResult as FollowResult
+    from .tasks.follow import PathFollower as PathFollower
+    from .tasks.ik import IKConfig as IKConfig
+    from .tasks.ik import IKResult as IKResult
+    from .tasks.ik import IKSolver as IKSolver
+    from .tasks.ik import solve_ik as solve_ik
+    from .tasks.live_ik import LiveIKConfig as LiveIKConfig
+    from .tasks.live_ik import LiveIKResult as LiveIKResult
+    from .tasks.live_ik import LiveIKSolver as LiveIKSolver
+    from .tasks.paths import ReferencePath as ReferencePath
+    from .tasks.paths import load_path as load_path
+    from .tasks.tension_ik import TensionIKConfig as TensionIKConfig
+    from .tasks.tension_ik import TensionIKResult as TensionIKResult
+    from .tasks.tension_ik import TensionIKSolver as TensionIKSolver
+    from .tasks.trajectory import TrajectoryConfig as TrajectoryConfig
+    from .tasks.trajectory import TrajectoryPlanner as TrajectoryPlanner
+    from .tasks.trajectory import TrajectoryResult as TrajectoryResult
+    from .tasks.trajectory import save_results as save_results
+    from .world import Scene as Scene
+    from .world import check as check
+    from .world import check_many as check_many
+    from .world import load_scene as load_scene
 
 # Same accuracy on a GPU as on a CPU: no TF32 products (see full_precision_matmuls).
 _full_precision_matmuls()

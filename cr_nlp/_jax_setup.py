@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-import jax
-import numpy as np
+# JAX is imported inside the functions that use it: ``import cr_nlp`` stays light.
 
 
 def cache_dir() -> Path:
@@ -22,6 +22,8 @@ def enable_compilation_cache() -> None:
 
     A second process then loads the solvers' compiled code instead of recompiling it.
     """
+    import jax
+
     if jax.config.jax_compilation_cache_dir:
         return
     path = Path(os.environ.get("CR_NLP_JAX_CACHE", cache_dir() / "jax"))
@@ -37,7 +39,17 @@ def full_precision_matmuls() -> bool:
     JAX's default on NVIDIA GPUs computes float32 products in TF32 (a 10-bit mantissa,
     ~1e-3 relative): tip positions of a 1 m robot would be off by millimetres on a GPU
     and exact on a CPU. Returns whether it changed the setting; no effect on CPUs.
+
+    Before JAX is imported this sets ``JAX_DEFAULT_MATMUL_PRECISION`` (which JAX reads
+    when it starts, as do the processes this one starts), so it costs no JAX import.
     """
+    if "jax" not in sys.modules:
+        if os.environ.get("JAX_DEFAULT_MATMUL_PRECISION"):
+            return False
+        os.environ["JAX_DEFAULT_MATMUL_PRECISION"] = "highest"
+        return True
+    import jax
+
     if jax.config.jax_default_matmul_precision is not None:
         return False
     jax.config.update("jax_default_matmul_precision", "highest")
@@ -49,6 +61,8 @@ def use_host_devices(count: int | None = None) -> bool:
     runs on every core. Must run before the first JAX operation; returns False (and
     changes nothing) if JAX has already started. Harmless on a GPU: the solvers shard
     over whatever ``jax.devices()`` returns."""
+    import jax
+
     count = int(count or len(os.sched_getaffinity(0)))
     try:
         jax.config.update("jax_num_cpu_devices", count)
@@ -77,6 +91,9 @@ def split_over_devices(fn: Callable[..., Any], batched: Sequence[bool], batch_si
     programs with ``cho_factor`` running at once on the two devices (measured: 16 shelf
     trajectories each; one after the other they took 22 s).
     """
+    import jax
+    import numpy as np
+
     devices = jax.devices()
     if len(devices) == 1 or batch_size % len(devices):
         return jax.jit(fn)

@@ -61,9 +61,9 @@ from ..model import load_robot
 from ..tasks.ik import IKConfig, IKSolver
 from ._common import Column, environment, environment_markdown, markdown_table, write_report
 from .ik import free_case
+from .suites import BATCH_MODES
 
-MODES = ("penalty", "exact")
-"""Penalty: the JAX stages only; exact: with the Ipopt polish of every answer."""
+MODES = BATCH_MODES
 
 COLUMNS = [
     Column("mode", "mode"),

@@ -30,9 +30,9 @@ from ._common import (
     markdown_table,
     write_report,
 )
+from .suites import FOLLOW_MODES, FOLLOW_SHAPES
 
-SHAPES = ("square", "sine", "icra")
-MODES = ("penalty", "exact")
+SHAPES, MODES = FOLLOW_SHAPES, FOLLOW_MODES
 
 
 def measure_follow(follower: Any, shape: str, exact: bool, repeats: int,

@@ -63,6 +63,7 @@ from ._common import (
     markdown_table,
     write_report,
 )
+from .suites import IK_FULL, IK_QUICK, IK_SUITES, IKBenchSizes
 
 NEWTON_CONFIG = DampedNewtonConfig()
 """The damped Newton–Raphson baseline's settings in the benchmark (its defaults)."""
@@ -78,7 +79,7 @@ SCIPY = f"scipy {SCIPY_CONFIG.method}"
 METHODS = (CR_BEAM, CR_SINGLE, CR_EXACT, NEWTON, SCIPY)
 """The rows of every table, in order."""
 
-SUITES = ("free", "lattice", "scaling", "polish", "throughput")
+SUITES = IK_SUITES
 ALL_SUITES = ("free", "lattice", "scaling", "polish")
 """The suites that ``suite="all"`` runs (the paper's tables)."""
 LATTICE_ROBOTS = ("tdcr3", "tdcr4_ext")
@@ -94,28 +95,7 @@ SINGLE_SEED = IKConfig(seeds_per_target=1, beam_width=1, retry_rounds=0)
 _START_SEED_OFFSET = 7919
 
 
-@dataclass(frozen=True)
-class IKBenchSizes:
-    """How big each suite is."""
-
-    free_targets: int = 1000
-    """Targets of the obstacle-free tdcr3 suite."""
-    lattice_targets: int = 100
-    """Targets per robot in the lattice scene."""
-    scaling_targets: int = 200
-    """Targets per robot of the scaling suite."""
-    scipy_targets: int = 50
-    """The scipy baseline solves only the first this-many targets of each case (it takes
-    0.1–0.6 s per target; with 100 the full run took 18 minutes on 2 busy cores)."""
-    repeats: int = 3
-    """Timed calls after the warm-up; the table reports their median."""
-    throughput_targets: tuple[int, ...] = (1000, 10_000, 100_000)
-    """Batch sizes of the throughput suite (tdcr3, no obstacles)."""
-
-
-FULL = IKBenchSizes()
-QUICK = IKBenchSizes(free_targets=50, lattice_targets=20, scaling_targets=20,
-                     scipy_targets=10, repeats=1, throughput_targets=(100, 1000))
+FULL, QUICK = IK_FULL, IK_QUICK
 
 
 # ================================================================ targets

@@ -29,7 +29,7 @@ import math
 import statistics
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -48,14 +48,22 @@ from ._common import (
     markdown_table,
     write_report,
 )
+from .suites import (
+    EXACT,
+    PLAN_FULL,
+    PLAN_METHODS,
+    PLAN_QUICK,
+    PLAN_SCENES,
+    ROADMAP_OPT,
+    RRT,
+    STRAIGHT_OPT,
+)
+from .suites import (
+    PlanBenchSizes as PlanBenchSizes,
+)
 
-SCENES = ("shelf", "cabinet", "random_27")
-ROADMAP_OPT = "roadmap+opt"
-STRAIGHT_OPT = "straight-line+opt"
-RRT = "RRT-Connect"
-EXACT = "roadmap+opt+exact"
-METHODS = (ROADMAP_OPT, STRAIGHT_OPT, RRT, EXACT)
-"""The rows of every table, in order."""
+SCENES = PLAN_SCENES
+METHODS = PLAN_METHODS
 DEFAULT_METHODS = METHODS
 
 RRT_CONFIG = RRTConnectConfig(time_limit=10.0)
@@ -71,19 +79,7 @@ WARMUP_PAIRS = 8
 ``TrajectoryConfig.chunk_size``, so the timed run compiles nothing."""
 
 
-@dataclass(frozen=True)
-class PlanBenchSizes:
-    """Problem counts of one benchmark run."""
-
-    pairs_per_scene: int
-    iteration_budgets: tuple[int, ...]
-    sweep_pairs: int
-    """Problems per scene of the iteration sweep (its first ones)."""
-
-
-FULL = PlanBenchSizes(pairs_per_scene=100, iteration_budgets=(0, 10, 25, 50, 100),
-                      sweep_pairs=20)
-QUICK = PlanBenchSizes(pairs_per_scene=3, iteration_budgets=(0, 25), sweep_pairs=3)
+FULL, QUICK = PLAN_FULL, PLAN_QUICK
 
 
 # ================================================================ problems

@@ -21,8 +21,9 @@ import numpy as np
 from ..model import load_robot
 from ..model.cosserat import StaticsConfig, solve_statics
 from ._common import Column, environment, environment_markdown, fixed, markdown_table, write_report
+from .suites import STATICS_SETS
 
-SETS = ("tensions", "mixed")
+SETS = STATICS_SETS
 
 
 @dataclass(frozen=True)

@@ -85,7 +85,9 @@ def _publish(args: argparse.Namespace, name: str) -> None:
 
 
 def _add_ik(group: argparse._SubParsersAction) -> None:
-    from ..bench.ik import FULL, QUICK, SUITES
+    from ..bench.suites import IK_FULL as FULL
+    from ..bench.suites import IK_QUICK as QUICK
+    from ..bench.suites import IK_SUITES as SUITES
 
     p = group.add_parser(
         "ik", help="IK benchmark: cr_nlp vs damped Newton–Raphson and scipy (docs/design.md §4)",
@@ -131,7 +133,12 @@ def _run_ik(args: argparse.Namespace) -> int:
 
 
 def _add_plan(group: argparse._SubParsersAction) -> None:
-    from ..bench.plan import DEFAULT_METHODS, FULL, METHODS, QUICK, SCENES
+    from ..bench.suites import PLAN_FULL as FULL
+    from ..bench.suites import PLAN_METHODS as METHODS
+    from ..bench.suites import PLAN_QUICK as QUICK
+    from ..bench.suites import PLAN_SCENES as SCENES
+
+    DEFAULT_METHODS = METHODS
 
     p = group.add_parser(
         "plan", help="trajectory benchmark: roadmap/straight-line + LM, exact, RRT-Connect",
@@ -177,7 +184,8 @@ def _run_plan(args: argparse.Namespace) -> int:
 
 
 def _add_follow(group: argparse._SubParsersAction) -> None:
-    from ..bench.follow import MODES, SHAPES
+    from ..bench.suites import FOLLOW_MODES as MODES
+    from ..bench.suites import FOLLOW_SHAPES as SHAPES
 
     p = group.add_parser(
         "follow", help="path-following benchmark: square, sine, ICRA; penalty and exact",
@@ -235,7 +243,7 @@ def _run_clearance(args: argparse.Namespace) -> int:
 
 
 def _add_statics(group: argparse._SubParsersAction) -> None:
-    from ..bench.statics import SETS
+    from ..bench.suites import STATICS_SETS as SETS
 
     p = group.add_parser("statics", help="Cosserat statics: solves per second and "
                                          "convergence for 10^2-10^5 cases")
@@ -272,7 +280,7 @@ def _run_statics(args: argparse.Namespace) -> int:
 
 
 def _add_batch(group: argparse._SubParsersAction) -> None:
-    from ..bench.batch import MODES
+    from ..bench.suites import BATCH_MODES as MODES
 
     p = group.add_parser(
         "batch", help="batch jobs on Dask: throughput per worker count vs in-process",
@@ -306,5 +314,36 @@ def _run_batch(args: argparse.Namespace) -> int:
     return 0
 
 
-BENCHMARKS = [_add_ik, _add_plan, _add_follow, _add_clearance, _add_batch, _add_statics]
+# ---------------------------------------------------------------- startup
+
+
+def _add_startup(group: argparse._SubParsersAction) -> None:
+    from ..bench.suites import STARTUP_ENTRIES
+
+    p = group.add_parser(
+        "startup", help="start-up: whole processes from an empty cache and a warm one",
+        description="Times each entry point as a new process, cold (empty cache) and warm "
+                    "(a second process): interpreter and imports, tracing, XLA, first and "
+                    "steady call. Writes startup.md, startup.csv and environment.json.")
+    p.add_argument("--entries", nargs="+", choices=STARTUP_ENTRIES,
+                   default=list(STARTUP_ENTRIES),
+                   help="entry points to time (default all)")
+    add_common_options(p, "startup", repeats=1,
+                       repeats_help="cold/warm pairs per entry (median reported; default 1)",
+                       robot=False)
+    p.set_defaults(run=_run_startup)
+
+
+def _run_startup(args: argparse.Namespace) -> int:
+    from ..bench.startup import run_startup_benchmark
+
+    _check_repeats(args)
+    run_startup_benchmark(entries=tuple(args.entries), repeats=args.repeats, out=args.out,
+                          progress=not args.no_progress)
+    _wrote(args, "startup")
+    return 0
+
+
+BENCHMARKS = [_add_ik, _add_plan, _add_follow, _add_clearance, _add_batch, _add_statics,
+              _add_startup]
 """The ``cr-nlp bench`` benchmarks, in ``--help`` order."""

@@ -12,7 +12,21 @@ import shlex
 import sys
 from collections.abc import Sequence
 
-from . import batch, bench, calibrate, demo, fk, follow, ik, plan, predict, show, statics, view
+from . import (
+    batch,
+    bench,
+    calibrate,
+    demo,
+    fk,
+    follow,
+    ik,
+    plan,
+    predict,
+    show,
+    statics,
+    view,
+    warmup,
+)
 
 SUBCOMMANDS = [
     fk,
@@ -27,6 +41,7 @@ SUBCOMMANDS = [
     view,
     bench,
     demo,
+    warmup,
 ]
 """The subcommand modules, in ``--help`` order; each has ``add_parser(subparsers)``."""
 
@@ -46,12 +61,13 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``cr-nlp`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status
     (2 with a one-line message for bad input)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)  # --help ends here, having imported no JAX
+
     from .._jax_setup import enable_compilation_cache, use_host_devices
     from ..model import ModelFileError
     from ._io import UsageError
 
-    argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(argv)
     args.command_line = shlex.join(["cr-nlp", *argv])  # what a report says it came from
     # Every core for the batched stages (before JAX starts); ``--devices`` where given.
     use_host_devices(getattr(args, "devices", None))

@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._jax_setup import split_over_devices
+from .._programs import CachedProgram
 from .kinematics import tendon_angles
 from .robot import Robot
 from .rotations import matrix_from_wxyz, wxyz_from_matrix
@@ -569,7 +569,8 @@ def _split(fn: Any, arguments: int) -> Any:
     def call(*args: Any) -> Any:
         size = args[0].shape[0]
         if size not in programs:
-            programs[size] = split_over_devices(fn, (True,) * arguments, size, outputs=1)
+            programs[size] = CachedProgram(fn, name="the Cosserat shooting",
+                                           batched=(True,) * arguments)
         return programs[size](*args)
 
     return call

@@ -44,6 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._programs import compile_program
 from ._banded_lm import (
     BandedLMState,
     ChainResidual,
@@ -298,7 +299,7 @@ class ChainBatchLM:
         seconds = 0.0
         if key not in self._slot_programs:
             t0 = time.perf_counter()
-            self._slot_programs[key] = self._lower_slots(args).compile()
+            self._slot_programs[key] = self._compile_slots(args)
             seconds = time.perf_counter() - t0
         lane.out = self._slot_programs[key](*args)          # asynchronous
         self.programs += 1
@@ -357,10 +358,10 @@ class ChainBatchLM:
                                        self._idle_shapes[slots])
         return state._replace(iteration=np.full(slots, -1, np.int32))
 
-    def _lower_slots(self, args: tuple) -> Any:
+    def _compile_slots(self, args: tuple) -> Any:
         """The slot program: load chains, then LM trips on the occupied slots until fewer
         than ``wanted`` run or ``trips`` were made; returns the state, which slots still
-        run and the trips made. One device (see ``_lower_chunk``)."""
+        run and the trips made. One device (see ``_compile_chunk``)."""
         n, config, extra = self.waypoints, self.config, self.extra
         terms, project = self.terms, self.project
 
@@ -393,7 +394,7 @@ class ChainBatchLM:
             state, count = jax.lax.while_loop(more, body, (state, jnp.int32(0)))
             return state, running(state, budget), count
 
-        return jax.jit(advance).lower(*args)
+        return compile_program(advance, args, name="the trajectory LM")
 
     # ------------------------------------------------------------ chunks
     def _solve_chunks(self, z0: np.ndarray, step: np.ndarray, arrays: Any,
@@ -415,7 +416,7 @@ class ChainBatchLM:
                     arrays, self.free, jnp.int32(iterations))
             if chunk not in self._compiled:
                 t0 = time.perf_counter()
-                self._compiled[chunk] = self._lower_chunk(args).compile()
+                self._compiled[chunk] = self._compile_chunk(args)
                 compile_seconds += time.perf_counter() - t0
             z, cost, its = self._compiled[chunk](*args)
             self.programs += 1
@@ -426,7 +427,7 @@ class ChainBatchLM:
         return (np.concatenate(z_out), np.concatenate(cost_out), np.concatenate(it_out),
                 compile_seconds)
 
-    def _lower_chunk(self, args: tuple) -> Any:
+    def _compile_chunk(self, args: tuple) -> Any:
         """The LM program for one chunk, on one device. Unlike IK it is not split with
         ``shard_map`` over host devices: measured with jax 0.10 on 2 CPU host devices,
         the sharded program of a 16-trajectory chunk never returned (every thread waiting
@@ -436,7 +437,8 @@ class ChainBatchLM:
             config = LMConfig(cost_tolerance=0.0, linear_solver="cholesky")
             solve = partial(lm_solve, self.dense_residual, self.dense_project, config=config)
             # The dense LM counts iterations per chunk (its loop stops for all at once).
-            return jax.jit(lambda *a: (*solve(*a)[:2], jnp.full(len(a[0]), -1))).lower(*args)
+            return compile_program(lambda *a: (*solve(*a)[:2], jnp.full(len(a[0]), -1)), args,
+                                   name="the trajectory LM (dense)")
         n = self.waypoints
         one = partial(banded_lm_solve, self.terms, self.project, config=self.config)
         extra = self.extra
@@ -450,7 +452,7 @@ class ChainBatchLM:
 
             return jax.vmap(single)(z0, step)
 
-        return jax.jit(solve_chunk).lower(*args)
+        return compile_program(solve_chunk, args, name="the trajectory LM")
 
 
 class _Lane:

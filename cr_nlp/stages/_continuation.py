@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._jax_setup import split_over_devices
+from .._programs import cached_jit, compile_program
 from ..model import Robot, q_to_z_numpy
 from ..model.kinematics import tendon_lengths_z
 from ..model.limits import project_z
@@ -268,11 +268,12 @@ class BranchContinuation:
         self.dtype = jnp.dtype(dtype)
         self.settings = settings
         self._compiled: dict[Any, Any] = {}
-        self._choose_program = jax.jit(partial(extend_and_choose, robot), static_argnums=0)
-        self._extend = jax.jit(extend_table, static_argnums=0)
-        each = jax.vmap(residual, in_axes=(0, 0, None))
-        self._score = jax.jit(lambda z, target, shared: jnp.linalg.norm(
-            each(z, target, shared), axis=-1))
+        self._choose_program = cached_jit(partial(extend_and_choose, robot),
+                                          static_argnums=(0,), name="the waypoint choice")
+        self._extend = cached_jit(extend_table, static_argnums=(0,))
+        self._score = cached_jit(lambda z, target, shared: jnp.linalg.norm(
+            jax.vmap(residual, in_axes=(0, 0, None))(z, target, shared), axis=-1),
+            name="the waypoint scores")
 
     def sequence(self, positions: np.ndarray, wxyz: np.ndarray, seconds: np.ndarray,
                  shared: Any) -> np.ndarray:
@@ -410,8 +411,8 @@ class BranchContinuation:
                          self.settings.iterations, self.settings.chain_config())
             # Chains are independent: split over the devices like the IK's LM (measured:
             # unsplit, the anchors' 96 chains ran on one core).
-            program = split_over_devices(fn, (True,) * 3 + (False,) * 5, padded, outputs=2)
-            self._compiled[key] = program.lower(*args).compile()
+            self._compiled[key] = compile_program(fn, args, name="the path continuation",
+                                                  batched=(True,) * 3 + (False,) * 5, outputs=2)
         z, err = self._compiled[key](*args)
         return z, err, index, active, column
 

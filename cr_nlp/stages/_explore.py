@@ -9,6 +9,7 @@ version is tested against.
 
 from __future__ import annotations
 
+import io
 import time
 from functools import lru_cache, partial
 from typing import Any
@@ -16,9 +17,9 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.stats import qmc
 
-from .._jax_setup import split_over_devices
+from .._jax_setup import cache_dir
+from .._programs import compile_program, write_atomic
 from ..model import Robot, q_to_z, q_to_z_numpy
 from ..model._ops import NUMPY
 from ..model.kinematics import model_q_to_z, model_segment_frames
@@ -41,8 +42,31 @@ def sobol_configurations(robot: Robot, count: int, seed: int = 0) -> np.ndarray:
     # The first ``count`` points of a power-of-two draw: the same points as
     # ``random(count)``, without scipy's warning about unbalanced sample sizes.
     power = int(np.ceil(np.log2(max(count, 1))))
-    sample = qmc.Sobol(d=robot.dof, scramble=True, seed=seed).random_base2(power)[:count]
-    return configurations_from_unit(robot, sample)
+    return configurations_from_unit(robot, sobol_unit(robot.dof, power, seed)[:count])
+
+
+def sobol_unit(dimension: int, power: int, seed: int) -> np.ndarray:
+    """(2**power, dimension) scrambled Sobol points in the unit cube (scipy's), kept in
+    ``cache_dir()/sobol``: importing ``scipy.stats`` costs a new process 0.7–1.5 s, more
+    than the draw."""
+    import scipy
+
+    path = cache_dir() / "sobol" / f"{dimension}-{power}-{seed}-scipy{scipy.__version__}.npy"
+    try:
+        return np.load(path)
+    except (OSError, ValueError):
+        pass
+    from scipy.stats import qmc
+
+    sample = qmc.Sobol(d=dimension, scramble=True, seed=seed).random_base2(power)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        buffer = io.BytesIO()
+        np.save(buffer, sample)
+        write_atomic(path, buffer.getvalue())
+    except OSError:
+        pass  # a read-only cache: draw again next time
+    return sample
 
 
 def configurations_from_unit(robot: Robot, sample: Any, xp: Any = np) -> Any:
@@ -194,9 +218,9 @@ class SeedPool:
             args = (self._device_features, self._device_valid, jnp.asarray(rows, self.dtype))
             if (chunk, k) not in self._programs:
                 t0 = time.perf_counter()
-                self._programs[chunk, k] = split_over_devices(
-                    partial(nearest_features, k=k), (False, False, True), chunk
-                ).lower(*args).compile()
+                self._programs[chunk, k] = compile_program(
+                    partial(nearest_features, k=k), args, name="the seed lookup",
+                    batched=(False, False, True))
                 self.compile_seconds += time.perf_counter() - t0
             parts.append((stop - start, self._programs[chunk, k](*args)))
             self.calls += 1

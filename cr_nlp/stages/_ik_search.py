@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._jax_setup import split_over_devices
+from .._programs import compile_program
 from ..model import Robot, q_to_z_numpy, z_to_q_numpy
 from ..model.limits import clip_to_limits
 from ..world import check_many
@@ -168,8 +168,8 @@ class ChunkRunner:
             if key not in self.compiled:
                 t1 = time.perf_counter()
                 batched = (True,) * (len(per_target) + 1) + (False,) * (2 + len(whole))
-                program = split_over_devices(search, batched, chunk, outputs=outputs)
-                self.compiled[key] = program.lower(*args).compile()
+                self.compiled[key] = compile_program(search, args, name=f"the IK {name[0]}",
+                                                     batched=batched, outputs=outputs)
                 timing.compile += time.perf_counter() - t1
             runs.append((stop - start, chunk, self.compiled[key](*args)))
             self.counters.device_calls += 1

@@ -47,7 +47,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from .._jax_setup import cache_dir, split_over_devices
+from .._jax_setup import cache_dir
+from .._programs import cached_jit
 from ..model import Robot, q_to_z, q_to_z_numpy, z_to_q_numpy
 from ..world import Scene, body_gap_tolerance, scene_arrays
 from ..world._broad_phase import PartCells, part_cells, reach_box
@@ -153,7 +154,8 @@ def _chunk_program(robot: Robot, chunk: int) -> Any:
     def f(arrays: SceneArrays, cells: PartCells | None, z: jax.Array) -> jax.Array:
         return near_clearance_z(robot, arrays, cells, z)
 
-    return jax.jit(f) if chunk < 512 else split_over_devices(f, (False, False, True), chunk)
+    return cached_jit(f, name="the roadmap clearance",
+                      batched=None if chunk < 512 else (False, False, True))
 
 
 class ClearanceChecker:

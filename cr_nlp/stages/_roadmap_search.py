@@ -30,6 +30,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
+from .._programs import cached_jit
 from ._chunks import chunk_plan
 
 SEARCH_BACKENDS = ("auto", "device", "scipy")
@@ -153,7 +154,7 @@ def _device_search(neighbours: np.ndarray, weights: np.ndarray, start_nodes: np.
 
 @lru_cache(maxsize=1)
 def _relaxation() -> Any:
-    return jax.jit(_relax)
+    return cached_jit(_relax, name="the roadmap search")
 
 
 def _relax(neighbours: jax.Array, weights: jax.Array, start_nodes: jax.Array,

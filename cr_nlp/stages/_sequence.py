@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._programs import cached_jit
 from ..model import Robot, q_to_z_numpy
 
 
@@ -62,7 +63,7 @@ def smoothest_choice(z: jax.Array, errors: jax.Array, tolerance: jax.Array | flo
     return jnp.concatenate([earlier, last[None]])
 
 
-_smoothest_choice = jax.jit(smoothest_choice)
+_smoothest_choice = cached_jit(smoothest_choice, name="the waypoint sequence")
 
 
 def smoothest_sequence(robot: Robot, candidates: np.ndarray, errors: np.ndarray,

@@ -58,6 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jax_setup import enable_compilation_cache
+from .._programs import compile_program
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz
@@ -469,7 +470,7 @@ class PathFollower:
                               prediction_tolerance=self.config.refine_stall_tolerance)
             terms = self._repair_terms if repair else self._terms
             solve = partial(banded_lm_solve, terms, self._project, config=config)
-            self._compiled[key] = jax.jit(solve).lower(*args).compile()
+            self._compiled[key] = compile_program(solve, args, name="the path LM")
         z, cost, iterations = jax.device_get(self._compiled[key](*args))
         q = z_to_q_numpy(z)
         return clip_to_limits(self.robot, q), float(cost), int(iterations)

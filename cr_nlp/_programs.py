@@ -1,0 +1,542 @@
+"""Compiled programs that a new process loads from disk instead of tracing them again.
+
+JAX's persistent compilation cache keeps XLA's compiled code only: a new process still
+traces and lowers every program before it can look that code up (measured on a 2-core
+CPU: 2–3 s per IK search program, 7–10 s of a warm 13 s one-shot IK). ``compile_program``
+traces a program once, serialises it with ``jax.export`` (StableHLO) into
+``cache_dir()/programs``, and compiles the deserialised program, so every later process
+(and every later solver of the same process) skips tracing and lowering; XLA's cache then
+skips the compilation too.
+
+An entry's key is everything that changes the program:
+
+- the function and everything it closes over (``fingerprint``: robots and scenes by
+  their numbers, frozen settings dataclasses field by field, functions by module,
+  qualified name, code and closure);
+- the arguments' pytree structure, shapes, dtypes and weak types;
+- how the batch is split over devices, and the device kind and count;
+- the cr_nlp source (a hash of the package's ``.py`` files), JAX's and jaxlib's versions,
+  and the JAX settings that change a trace (x64, matmul precision, PRNG).
+
+A function holding something ``fingerprint`` cannot key (an object it does not know) is
+traced and compiled as before, never stored under a key that might be wrong. An entry
+that cannot be read (truncated, corrupt, written by another JAX, or holding another
+program's key) is ignored with a warning and traced again; its checksum makes a damaged
+file fail before it is used.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import functools
+import hashlib
+import math
+import os
+import pickle
+import sys
+import tempfile
+import time
+import types
+import warnings
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from ._jax_setup import cache_dir
+
+FORMAT = b"cr_nlp-program-3\n"
+"""First bytes of an entry: the file format (a change of format is a change of key too)."""
+_MEMORY_SIZE = 128
+"""Compiled programs kept in memory for later solvers of the same process."""
+SECONDS_PER_OP = 0.004
+"""Rough XLA CPU compile seconds per StableHLO operation of a program, for the first-run
+message before any compile time was measured on this machine (measured on a 2-core CPU:
+the IK search program, ~4 000 operations, 15–20 s)."""
+
+_memory: OrderedDict[str, Any] = OrderedDict()
+
+
+@dataclasses.dataclass
+class ProgramStats:
+    """What ``compile_program`` did in this process (for the start-up benchmark and tests)."""
+
+    traced: int = 0
+    """Programs traced and lowered (no usable entry on disk), then stored."""
+    loaded: int = 0
+    """Programs read from disk (no tracing)."""
+    reused: int = 0
+    """Programs reused from memory (an earlier solver of this process compiled them)."""
+    unkeyed: int = 0
+    """Programs traced without the disk cache (their function holds something unkeyable)."""
+    unkeyable: list[str] = dataclasses.field(default_factory=list)
+    """Why, for each of them: the program's name and the object that could not be keyed."""
+    rejected: int = 0
+    """Entries on disk that could not be read (ignored, traced again)."""
+    trace_seconds: float = 0.0
+    """Seconds spent tracing, lowering and serialising."""
+    load_seconds: float = 0.0
+    """Seconds spent reading and deserialising entries."""
+    compile_seconds: float = 0.0
+    """Seconds spent in XLA (compiling, or loading compiled code from its cache)."""
+
+
+stats = ProgramStats()
+"""This process's counts (reset with ``stats.__init__()``)."""
+
+announce = True
+"""Print a line on stderr before tracing and compiling a program that no cache holds."""
+
+
+class Unkeyable(TypeError):
+    """``fingerprint`` met an object it cannot turn into a key."""
+
+
+# ================================================================ keys
+
+def fingerprint(obj: Any) -> str:
+    """A hex digest of everything in ``obj`` that can change a traced program.
+
+    Numbers, strings, numpy and JAX arrays (by content), tuples, lists, dicts, sets,
+    dataclasses (by type and every field that takes part in comparisons), enums, dtypes,
+    types, ``functools.partial`` and functions (module, qualified name, code, defaults,
+    closure) and bound methods. Raises ``Unkeyable`` for anything else."""
+    digest = hashlib.sha256()
+    _feed(obj, digest, set())
+    return digest.hexdigest()
+
+
+def _feed(obj: Any, digest: Any, active: set[int]) -> None:
+    def put(*parts: Any) -> None:
+        for part in parts:
+            digest.update(part if isinstance(part, bytes) else repr(part).encode())
+            digest.update(b"\x1f")
+
+    if obj is None or obj is Ellipsis or isinstance(obj, bool | int | str | bytes | complex):
+        put(type(obj).__name__, obj)
+        return
+    if type(obj) is object:  # a sentinel (jax.vmap's wrapper holds one): no value
+        put("sentinel")
+        return
+    if isinstance(obj, float):
+        put("float", obj.hex() if math.isfinite(obj) else repr(obj))
+        return
+    if isinstance(obj, np.dtype):
+        put("dtype", obj.str)
+        return
+    if isinstance(obj, np.ndarray | np.generic):
+        array = np.ascontiguousarray(obj)
+        put("ndarray", array.dtype.str, array.shape, array.tobytes())
+        return
+    if isinstance(obj, jax.core.Tracer):
+        raise Unkeyable("a traced value")
+    if isinstance(obj, jax.Array):
+        _feed(np.asarray(obj), digest, active)
+        put("weak", getattr(obj, "weak_type", False))
+        return
+    if isinstance(obj, type):
+        put("type", obj.__module__, obj.__qualname__)
+        return
+    if isinstance(obj, enum.Enum):
+        put("enum", type(obj).__qualname__, obj.name)
+        return
+    if id(obj) in active:
+        put("cycle")
+        return
+    active.add(id(obj))
+    try:
+        _feed_container(obj, digest, active, put)
+    finally:
+        active.discard(id(obj))
+
+
+def _feed_container(obj: Any, digest: Any, active: set[int], put: Callable) -> None:
+    if isinstance(obj, tuple | list):
+        put(type(obj).__name__, len(obj))
+        for item in obj:
+            _feed(item, digest, active)
+    elif isinstance(obj, dict):
+        put("dict", len(obj))
+        for key in sorted(obj, key=repr):
+            _feed(key, digest, active)
+            _feed(obj[key], digest, active)
+    elif isinstance(obj, set | frozenset):
+        put("set", sorted(fingerprint(item) for item in obj))
+    elif dataclasses.is_dataclass(obj):
+        put("dataclass", type(obj).__module__, type(obj).__qualname__)
+        for f in dataclasses.fields(obj):
+            if f.compare:  # compare=False: a label (a file name), not part of the value
+                put(f.name)
+                _feed(getattr(obj, f.name), digest, active)
+    elif isinstance(obj, functools.partial):
+        put("partial")
+        _feed(obj.func, digest, active)
+        _feed(obj.args, digest, active)
+        _feed(obj.keywords, digest, active)
+    elif isinstance(obj, types.MethodType):
+        put("method")
+        _feed(obj.__self__, digest, active)
+        _feed(obj.__func__, digest, active)
+    elif isinstance(obj, types.FunctionType):
+        code = obj.__code__
+        put("function", obj.__module__, obj.__qualname__, code.co_code, code.co_names)
+        _feed(tuple(c for c in code.co_consts if not isinstance(c, types.CodeType)),
+              digest, active)
+        _feed(obj.__defaults__, digest, active)
+        _feed(obj.__kwdefaults__, digest, active)
+        _feed(tuple(cell.cell_contents for cell in obj.__closure__ or ()), digest, active)
+    elif isinstance(obj, types.BuiltinFunctionType) or (
+            callable(obj) and getattr(obj, "__module__", "").split(".")[0] in ("jax", "numpy")
+            and hasattr(obj, "__qualname__")):
+        # jax.numpy, lax and numpy functions (jitted ones included): by name; the versions
+        # are part of every key.
+        put("library", obj.__module__, obj.__qualname__)
+    elif hasattr(obj, "__wrapped__"):  # functools.wraps, jax.jit of a cr_nlp function
+        put("wrapped", type(obj).__qualname__)
+        _feed(obj.__wrapped__, digest, active)
+    else:
+        raise Unkeyable(f"{type(obj).__module__}.{type(obj).__qualname__}")
+
+
+@functools.cache
+def source_hash() -> str:
+    """A hash of the installed cr_nlp package's source files (every ``.py`` under it): a
+    program traced by other code is never loaded."""
+    root = Path(__file__).resolve().parent
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def environment_key() -> tuple:
+    """What besides the program itself changes its compiled form: versions, device,
+    JAX settings that change a trace."""
+    import jaxlib
+
+    device = jax.devices()[0]
+    return (FORMAT, source_hash(), jax.__version__, jaxlib.__version__, device.platform,
+            device.device_kind, jax.device_count(), jax.config.jax_enable_x64,
+            str(jax.config.jax_default_matmul_precision), jax.config.jax_default_prng_impl)
+
+
+def _avals(args: Sequence[Any]) -> tuple:
+    """The arguments' pytree structure and each leaf's shape, dtype and weak type."""
+    leaves, tree = jax.tree.flatten(tuple(args))
+    out = []
+    for leaf in leaves:
+        aval = jax.typeof(leaf)
+        out.append((aval.shape, str(aval.dtype), bool(getattr(aval, "weak_type", False))))
+    return str(tree), tuple(out)
+
+
+def program_key(fn: Callable, args: Sequence[Any], split: tuple | None = None) -> str:
+    """The disk key of ``fn`` traced on ``args`` (raises ``Unkeyable``)."""
+    digest = hashlib.sha256()
+    for part in (fingerprint(fn), _avals(args), split, environment_key()):
+        digest.update(repr(part).encode())
+        digest.update(b"\x1e")
+    return digest.hexdigest()[:40]
+
+
+# ================================================================ compiling
+
+def _batch_size(batched: Sequence[bool] | None, args: Sequence[Any]) -> int | None:
+    """The batch size of a program split over the devices (``_jax_setup.split_over_devices``'s
+    rule: more than one device and a batch that divides evenly), or None: one device."""
+    if batched is None or jax.device_count() == 1:
+        return None
+    size = next(np.shape(jax.tree.leaves(a)[0])[0] for a, b in zip(args, batched, strict=True)
+                if b)
+    return size if size % jax.device_count() == 0 else None
+
+
+def compile_program(fn: Callable, args: Sequence[Any], *, name: str = "",
+                    batched: Sequence[bool] | None = None, outputs: int = 1) -> Any:
+    """``fn`` compiled for ``args`` (their shapes and dtypes): a callable that takes
+    arguments like ``args`` and returns ``fn``'s outputs.
+
+    ``batched``: as ``_jax_setup.split_over_devices`` (which arguments are split along
+    axis 0 over the devices; ``outputs`` results, all split), or None: one device (the one
+    the committed arguments live on). ``name``: what the first-run message calls it.
+
+    Loads the traced program from ``cache_dir()/programs`` when an entry with its key is
+    there, else traces, stores and compiles it; a program compiled earlier in this
+    process with the same key is reused. Turns on JAX's persistent compilation cache
+    (``_jax_setup.enable_compilation_cache``) unless the user configured one."""
+    from ._jax_setup import enable_compilation_cache, split_over_devices
+
+    enable_compilation_cache()  # XLA's half of the cache (a no-op once on, or user-set)
+    size = _batch_size(batched, args)
+    split = size is not None
+    placement = (tuple(batched), outputs) if split else None
+    try:
+        key = program_key(fn, args, placement)
+    except Unkeyable as exc:
+        key = None
+        stats.unkeyable.append(f"{name or _name(fn)}: {exc}")
+    leaves, in_tree = jax.tree.flatten(tuple(args))
+    devices = tuple(sorted({d.id for leaf in leaves if isinstance(leaf, jax.Array)
+                            for d in leaf.devices()}))
+    memory_key = f"{key}:{devices}" if key else None
+    if memory_key in _memory:
+        _memory.move_to_end(memory_key)
+        stats.reused += 1
+        return _memory[memory_key]
+
+    if key is None:
+        stats.unkeyed += 1
+        jitted = split_over_devices(fn, batched, size, outputs) if split else jax.jit(fn)
+        t0 = time.perf_counter()
+        compiled = jitted.lower(*args).compile()
+        stats.compile_seconds += time.perf_counter() - t0
+        return compiled
+
+    # The program is exported over the arguments' leaves (its pytrees, NamedTuples of
+    # cr_nlp's among them, need no serialisation of their own); the output structure is
+    # stored beside it.
+    if split:
+        mesh = _mesh()
+        leaf_batched = [b for arg, b in zip(args, batched, strict=True)
+                        for _ in jax.tree.leaves(arg)]
+        in_shardings = tuple(_sharding(mesh, b) for b in leaf_batched)
+        out_shardings = _sharding(mesh, True)
+    else:
+        in_shardings = out_shardings = None
+    entry = _load(key)
+    ops = 0
+    if entry is None:
+        t0 = time.perf_counter()
+        exported, out_tree = _export(fn, in_tree, leaves, batched if split else None)
+        _store(key, exported, out_tree)
+        stats.traced += 1
+        stats.trace_seconds += time.perf_counter() - t0
+        ops = _operations(exported)
+        if announce:
+            print(f"cr_nlp: compiling {name or _name(fn)} ({ops} operations; about "
+                  f"{max(1, round(ops * _seconds_per_op()))} s, once: later processes load "
+                  f"it from {cache_dir()})", file=sys.stderr, flush=True)
+    else:
+        exported, out_tree = entry
+    runner = (jax.jit(exported.call, in_shardings=in_shardings, out_shardings=out_shardings)
+              if split else jax.jit(exported.call))
+    t0 = time.perf_counter()
+    executable = runner.lower(*leaves).compile()
+    seconds = time.perf_counter() - t0
+    stats.compile_seconds += seconds
+    if ops:
+        _record_rate(seconds / ops)
+    compiled = _Flat(executable, out_tree)
+    _memory[memory_key] = compiled
+    while len(_memory) > _MEMORY_SIZE:
+        _memory.popitem(last=False)
+    return compiled
+
+
+class _Flat:
+    """A compiled program over its arguments' leaves, called with the arguments."""
+
+    def __init__(self, executable: Any, out_tree: Any) -> None:
+        self.executable, self.out_tree = executable, out_tree
+
+    def __call__(self, *args: Any) -> Any:
+        return jax.tree.unflatten(self.out_tree, self.executable(*jax.tree.leaves(args)))
+
+
+def _mesh() -> Any:
+    from jax.sharding import Mesh
+
+    return Mesh(np.array(jax.devices()), ("batch",))
+
+
+def _sharding(mesh: Any, batched: bool) -> Any:
+    from jax.sharding import NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    return NamedSharding(mesh, P("batch") if batched else P())
+
+
+def _export(fn: Callable, in_tree: Any, leaves: list, batched: Sequence[bool] | None
+            ) -> tuple[Any, Any]:
+    """Trace and lower ``fn`` over the leaves of its arguments (split over the devices by
+    ``batched``, as ``split_over_devices``): the exported program and its output
+    structure."""
+    inner = fn
+    if batched is not None:
+        from jax.sharding import PartitionSpec as P
+
+        specs = tuple(P("batch") if b else P() for b in batched)
+        inner = jax.shard_map(fn, mesh=_mesh(), in_specs=specs, out_specs=P("batch"))
+    out_trees = []
+
+    def flat(*leaves: Any) -> tuple:
+        out, out_tree = jax.tree.flatten(inner(*jax.tree.unflatten(in_tree, leaves)))
+        out_trees.append(out_tree)
+        return tuple(out)
+
+    exported = jax.export.export(jax.jit(flat))(*leaves)
+    return exported, out_trees[-1]
+
+
+def _name(fn: Callable) -> str:
+    while isinstance(fn, functools.partial):
+        fn = fn.func
+    return getattr(fn, "__name__", type(fn).__name__)
+
+
+def _operations(exported: Any) -> int:
+    """StableHLO operations in an exported program (lines of its text that assign)."""
+    text = exported.mlir_module()
+    return sum(1 for line in text.splitlines() if " = " in line)
+
+
+# ================================================================ the disk
+
+def programs_dir() -> Path:
+    """Where the traced programs are kept (``cache_dir()/programs``)."""
+    return cache_dir() / "programs"
+
+
+def _load(key: str) -> tuple[Any, Any] | None:
+    """The exported program stored under ``key`` and its output structure, or None
+    (absent, or unreadable: warned and counted in ``stats.rejected``)."""
+    path = programs_dir() / f"{key}.jaxexport"
+    t0 = time.perf_counter()
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    try:
+        head = len(FORMAT)
+        checksum, body = data[head:head + 32], data[head + 32:]
+        if data[:head] != FORMAT or hashlib.sha256(body).digest() != checksum:
+            raise ValueError("damaged: its checksum does not match")
+        if body[:len(key)] != key.encode():
+            raise ValueError("stale: it holds another program")
+        body = body[len(key):]
+        tree_size = int.from_bytes(body[:8], "little")
+        # The output structure (cr_nlp's own pytree types), pickled by this module into
+        # this user's cache, as trusted as the compiled code that JAX's cache loads.
+        out_tree = pickle.loads(body[8:8 + tree_size])
+        exported = jax.export.deserialize(bytearray(body[8 + tree_size:]))
+    except Exception as exc:  # any unreadable entry: trace again, never a wrong answer
+        warnings.warn(f"cr_nlp: ignoring the cached program {path} ({exc}); tracing it "
+                      "again", RuntimeWarning, stacklevel=3)
+        stats.rejected += 1
+        return None
+    stats.loaded += 1
+    stats.load_seconds += time.perf_counter() - t0
+    return exported, out_tree
+
+
+def _store(key: str, exported: Any, out_tree: Any) -> None:
+    """Write ``exported`` and its output structure under ``key`` atomically (a reader sees
+    a whole entry or none); a full or read-only disk only costs the next process a trace."""
+    tree = pickle.dumps(out_tree)
+    body = (key.encode() + len(tree).to_bytes(8, "little") + tree
+            + bytes(exported.serialize()))
+    folder = programs_dir()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        write_atomic(folder / f"{key}.jaxexport", FORMAT + hashlib.sha256(body).digest() + body)
+    except OSError as exc:
+        warnings.warn(f"cr_nlp: could not store a compiled program in {folder} ({exc})",
+                      RuntimeWarning, stacklevel=3)
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a file beside it, flushed to disk and renamed
+    over ``path``: a reader sees the old file or the new one, never part of one."""
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(handle, "wb") as out:
+            out.write(data)
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+
+
+def _rate_file() -> Path:
+    return programs_dir() / "seconds_per_op.txt"
+
+
+def _seconds_per_op() -> float:
+    """Compile seconds per operation measured on this machine last time (or the default)."""
+    try:
+        return float(_rate_file().read_text())
+    except (OSError, ValueError):
+        return SECONDS_PER_OP
+
+
+def _record_rate(rate: float) -> None:
+    try:
+        write_atomic(_rate_file(), f"{rate:.6g}".encode())
+    except OSError:
+        pass
+
+
+def clear_memory() -> None:
+    """Forget the programs compiled in this process (the disk entries stay)."""
+    _memory.clear()
+
+
+class CachedProgram:
+    """``jax.jit(fn)`` whose programs come from ``compile_program``: one per argument
+    shapes (and devices), loaded from disk in a new process instead of traced.
+
+    ``batched`` and ``outputs``: as ``compile_program`` (split over the devices when the
+    batch divides evenly). ``static_argnums``: arguments that are Python values fixed at
+    trace time (as ``jax.jit``'s), one program per value."""
+
+    def __init__(self, fn: Callable, *, name: str = "", batched: Sequence[bool] | None = None,
+                 outputs: int = 1, static_argnums: tuple[int, ...] = ()) -> None:
+        self.fn, self.name, self.batched, self.outputs = fn, name, batched, outputs
+        self.static_argnums = tuple(static_argnums)
+        self._compiled: dict[Any, Any] = {}
+
+    def __call__(self, *args: Any) -> Any:
+        fn, static = self.fn, ()
+        if self.static_argnums:
+            static = tuple(args[i] for i in self.static_argnums)
+            fn = functools.partial(_with_static, self.fn, self.static_argnums, static)
+            args = tuple(a for i, a in enumerate(args) if i not in self.static_argnums)
+        leaves, tree = jax.tree.flatten(args)
+        signature = (tree, tuple(
+            (np.shape(x), (x.dtype if hasattr(x, "dtype") else np.result_type(x)).str,
+             isinstance(x, float | int),
+             tuple(d.id for d in x.devices()) if isinstance(x, jax.Array) else ())
+            for x in leaves), static)
+        program = self._compiled.get(signature)
+        if program is None:
+            program = compile_program(fn, args, name=self.name, batched=self.batched,
+                                      outputs=self.outputs)
+            self._compiled[signature] = program
+        return program(*args)
+
+
+def _with_static(fn: Callable, positions: tuple[int, ...], values: tuple,
+                 *dynamic: Any) -> Any:
+    """``fn`` called with the static ``values`` put back at ``positions`` among ``dynamic``."""
+    args, rest = [], iter(dynamic)
+    for i in range(len(positions) + len(dynamic)):
+        args.append(values[positions.index(i)] if i in positions else next(rest))
+    return fn(*args)
+
+
+def cached_jit(fn: Callable | None = None, *, name: str = "",
+               batched: Sequence[bool] | None = None, outputs: int = 1,
+               static_argnums: tuple[int, ...] = ()) -> Any:
+    """``CachedProgram(fn)``; also a decorator (``@cached_jit`` or ``@cached_jit(name=…)``)."""
+    if fn is None:
+        return functools.partial(cached_jit, name=name, batched=batched, outputs=outputs,
+                                 static_argnums=static_argnums)
+    return CachedProgram(fn, name=name, batched=batched, outputs=outputs,
+                         static_argnums=static_argnums)

@@ -1,0 +1,178 @@
+"""``cr-nlp bench startup``: how long a user waits for a first answer, as whole processes.
+
+Each entry point runs as a new Python process that calls the ``cr-nlp`` command's own
+``main`` (what ``cr-nlp ik …`` runs) twice: the first call is what a user's one-shot
+command costs, the second (same process, programs compiled) the steady state. An entry
+runs ``cold`` (an empty cache folder: JAX's compiled code, cr_nlp's traced programs,
+roadmaps and seed pools all start empty, as for a robot or scene never seen) and then
+``warm`` (a second process on the cache the first one filled).
+
+Per process the table splits the wall time into: the interpreter start and imports;
+tracing and lowering (JAX's own trace and MLIR times plus cr_nlp's export of its
+programs); XLA (compiling, or loading compiled code from JAX's cache); the rest of the
+first call; and the steady call. ``import`` is ``import cr_nlp`` alone.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from ._common import Column, environment, environment_markdown, fixed, markdown_table, write_report
+from .suites import STARTUP_ENTRIES
+
+IK_TARGETS = 1000
+"""Targets of the ``ik`` entry (tdcr3, free; the README's one-shot IK)."""
+PLAN_PROBLEMS = 20
+"""Problems of the ``plan`` entry (tdcr3 in the shelf)."""
+STATICS_CASES = 64
+"""Tension cases of the ``statics`` entry (tdcr2_rao2021)."""
+
+def entry_argv(entry: str, inputs: Path, out: Path) -> list[str] | None:
+    """The ``cr-nlp`` arguments of an entry (None: ``import``) on the inputs in ``inputs``
+    (``write_inputs``), writing to ``out``."""
+    return {
+        "import": None,
+        "ik": ["ik", "--robot", "tdcr3", "--targets", str(inputs / "targets.json"),
+               "--out", str(out / "ik.json")],
+        "plan": ["plan", "--robot", "tdcr3", "--scene", "shelf", "--problems",
+                 str(inputs / "problems.json"), "--out", str(out / "plan.json")],
+        "follow": ["follow", "--robot", "tdcr3", "--scene", "follow_icra", "--path", "icra",
+                   "--out", str(out / "follow.json")],
+        "statics": ["statics", "--robot", "tdcr2_rao2021", "--cases",
+                    str(inputs / "statics.json")],
+        "calibrate": ["calibrate", "--robot", "ftdcr_v6", "--data", "ftdcr_v6_train",
+                      "--validate", "ftdcr_v6_val", "--out", str(out / "calibrated.json")],
+        "predict": ["predict", "--robot", "ftdcr_v6_calibrated", "--data", "ftdcr_v6_val",
+                    "--out", str(out / "predicted.csv")],
+        "demo": ["demo", "--out", str(out / "demo")],
+    }[entry]
+
+
+def write_inputs(folder: Path, seed: int = 0) -> None:
+    """The entries' input files: 1000 IK targets, 20 planning problems in the shelf, 64
+    statics cases (seeded: every run times the same work)."""
+    import numpy as np
+
+    from ..model import load_robot
+    from ..tasks.ik import IKConfig
+    from ..world import load_scene
+    from .ik import free_case
+    from .plan import plan_problems
+
+    folder.mkdir(parents=True, exist_ok=True)
+    robot = load_robot("tdcr3")
+    case = free_case(robot, IK_TARGETS, seed)
+    poses = [{"position": p.tolist(), "wxyz": w.tolist()}
+             for p, w in zip(case.positions, case.wxyz, strict=True)]
+    (folder / "targets.json").write_text(json.dumps({"poses": poses}))
+    starts, goals = plan_problems(robot, load_scene("shelf"), PLAN_PROBLEMS,
+                                  IKConfig.safety_margin, seed)
+    problems = [{"start": s.tolist(), "goal": g.tolist()}
+                for s, g in zip(starts, goals, strict=True)]
+    (folder / "problems.json").write_text(json.dumps({"problems": problems}))
+    rod = load_robot("tdcr2_rao2021")
+    rng = np.random.default_rng(seed)
+    cases = [{"tensions": rng.uniform(0.0, 2.0, rod.n_tendons).tolist()}
+             for _ in range(STATICS_CASES)]
+    (folder / "statics.json").write_text(json.dumps({"cases": cases}))
+
+
+# ---------------------------------------------------------------- the parent
+
+def _process(entry: str, inputs: Path, out: Path, cache: Path, devices: int | None
+             ) -> dict[str, Any]:
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("CR_NLP_JAX_CACHE", "JAX_COMPILATION_CACHE_DIR")}
+    env["CR_NLP_CACHE_DIR"] = str(cache)
+    env["CR_NLP_STARTUP_T0"] = repr(time.time())
+    command = [sys.executable, "-m", "cr_nlp.cli._startup_probe", entry, str(inputs),
+               str(out)]
+    t0 = time.perf_counter()
+    done = subprocess.run(command, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if done.returncode != 0:
+        raise RuntimeError(f"startup probe {entry} failed ({done.returncode}):\n"
+                           f"{done.stderr[-3000:]}")
+    row = json.loads(done.stdout.strip().splitlines()[-1])
+    row["wall"] = wall
+    return row
+
+
+def run_startup_benchmark(entries: Sequence[str] = STARTUP_ENTRIES, repeats: int = 1,
+                          out: str | Path | None = None, devices: int | None = None,
+                          progress: bool = True) -> list[dict[str, Any]]:
+    """Time every entry cold (empty cache) and warm (second process), ``repeats`` times
+    each (medians reported); print the table and write ``startup.md``/``startup.csv`` to
+    ``out``. Returns the rows."""
+    import numpy as np
+    from tqdm import tqdm
+
+    rows: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="cr_nlp_startup_") as work:
+        work = Path(work)
+        inputs = work / "inputs"
+        write_inputs(inputs)
+        runs = [(e, r) for e in entries for r in range(repeats)]
+        samples: dict[tuple[str, str], list[dict[str, Any]]] = {}
+        for entry, r in tqdm(runs, desc="startup", disable=not progress):
+            cache = work / f"cache-{entry}-{r}"
+            for state in ("cold", "warm"):
+                row = _process(entry, inputs, work / "out", cache, devices)
+                samples.setdefault((entry, state), []).append(row)
+        for (entry, state), found in samples.items():
+            keys = sorted({k for row in found for k in row if k != "status"})
+            row = {"entry": entry, "cache": state}
+            for k in keys:
+                values = [r[k] for r in found if isinstance(r.get(k), int | float)]
+                row[k] = float(np.median(values)) if values else None
+            if row.get("steady"):
+                row["first_over_steady"] = row["first"] / row["steady"]
+            rows.append(row)
+    env = environment()
+    report = format_report(rows, env, repeats)
+    write_report("startup", report, out, tables={"startup": rows}, env=env,
+                 settings={"entries": list(entries), "repeats": repeats})
+    return rows
+
+
+COLUMNS = [
+    Column("entry", "entry"), Column("cache", "cache"),
+    Column("first_answer", "to first answer (s)", fixed(1)),
+    Column("start", "interpreter (s)", fixed(2)),
+    Column("import", "import (s)", fixed(2)),
+    Column("trace", "trace + lower (s)", fixed(2)),
+    Column("xla", "XLA compile / load (s)", fixed(2)),
+    Column("first_solve", "first call, rest (s)", fixed(2)),
+    Column("steady", "steady call (s)", fixed(2)),
+    Column("first_over_steady", "first / steady", fixed(1)),
+]
+
+
+def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str], repeats: int) -> str:
+    """The Markdown report: the table and how it was measured."""
+    return "\n".join([
+        "## Start-up: whole processes, cold (empty cache) and warm (second process)",
+        "",
+        f"Median of {repeats} run(s) per row. Each process calls the `cr-nlp` command's "
+        "`main` twice: 'to first answer' is the wall time from spawning the process to the "
+        "end of the first call (a user's one-shot command), split into the interpreter "
+        "start, imports, tracing and lowering, XLA (compiling, or loading from JAX's "
+        "cache) and the rest of the first call; 'steady call' is the second call. ik: "
+        f"{IK_TARGETS} free tdcr3 targets; plan: {PLAN_PROBLEMS} problems in the shelf; "
+        "follow: ICRA; statics: "
+        f"{STATICS_CASES} tension cases on tdcr2_rao2021; calibrate: FTDCR v6 training "
+        "file; predict: its validation file; demo: the three demo tasks.",
+        "",
+        markdown_table(rows, COLUMNS),
+        "",
+        environment_markdown(env),
+    ])
+

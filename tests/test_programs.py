@@ -1,0 +1,256 @@
+"""Traced programs kept on disk (``cr_nlp._programs``): the key changes with everything that
+changes a program and with nothing else; a later process (here: a cleared memory) loads
+instead of tracing; a damaged or stale entry is ignored with a warning and traced again,
+with the same answers; ``import cr_nlp`` and ``cr-nlp --help`` import no heavy package."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+from functools import partial
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cr_nlp import _programs
+from cr_nlp._programs import (
+    Unkeyable,
+    cached_jit,
+    compile_program,
+    fingerprint,
+    program_key,
+    programs_dir,
+)
+from cr_nlp.model import load_robot
+from cr_nlp.stages._lm import LMConfig
+from cr_nlp.stages._search import SearchPlan
+
+HEAVY = ("casadi", "trimesh", "coacd", "fcl", "dask", "distributed", "matplotlib", "viser",
+         "scipy.stats", "scipy.optimize", "scipy.spatial")
+
+
+@pytest.fixture
+def cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """An empty program cache and no programs in memory; counts reset."""
+    monkeypatch.setenv("CR_NLP_CACHE_DIR", str(tmp_path))
+    _programs.clear_memory()
+    _programs.stats.__init__()
+    yield tmp_path
+    _programs.clear_memory()
+
+
+def _residual(robot, scale: float, z: jax.Array) -> jax.Array:
+    lengths = jnp.asarray([s.length_max for s in robot.segments], z.dtype)
+    return scale * jnp.sin(z) * jnp.sum(lengths)
+
+
+def _plan(**changes) -> SearchPlan:
+    base = SearchPlan(width=4, coarse_iterations=8, refine_iterations=20, refine_round=5,
+                      per_target=True, min_distance=0.1, block=64)
+    return dataclasses.replace(base, **changes)
+
+
+# ---------------------------------------------------------------- the key
+
+def test_the_key_changes_with_what_changes_a_program_and_nothing_else() -> None:
+    robot = load_robot("tdcr3")
+    args = (np.zeros((8, 9), np.float32),)
+
+    def key(fn=partial(_residual, robot, 1.0), arguments=args, split=None):
+        return program_key(fn, arguments, split)
+
+    same = key()
+    # Equal inputs built anew, and a label that is not part of the robot: the same key.
+    again = dataclasses.replace(load_robot("tdcr3"), source="elsewhere/tdcr3.json")
+    assert key(partial(_residual, again, 1.0)) == same
+    # The robot's structure or numbers.
+    longer = dataclasses.replace(robot, segments=(dataclasses.replace(
+        robot.segments[0], length_min=1.1, length_max=1.1), *robot.segments[1:]))
+    assert key(partial(_residual, longer, 1.0)) != same
+    assert key(partial(_residual, load_robot("tdcr4_ext"), 1.0)) != same
+    # A static setting (a closed-over number, a field of a settings dataclass).
+    assert key(partial(_residual, robot, 2.0)) != same
+    assert fingerprint(_plan()) != fingerprint(_plan(block=32))
+    assert fingerprint(_plan()) != fingerprint(_plan(lm=LMConfig(cost_tolerance=1e-9)))
+    assert fingerprint(_plan()) == fingerprint(_plan())
+    # Shapes (a scene with more parts, a bigger batch) and dtypes.
+    assert key(arguments=(np.zeros((16, 9), np.float32),)) != same
+    assert key(arguments=(np.zeros((8, 9), np.float16),)) != same
+    # How the batch is split over the devices.
+    assert key(split=((True,), 1)) != same
+
+
+def test_the_key_changes_with_float64(float64: None) -> None:
+    """The batched stages' dtype: float64 arrays (with JAX's x64 on) key other programs."""
+    fn = partial(_residual, load_robot("tdcr3"), 1.0)
+    assert program_key(fn, (np.zeros((8, 9), np.float64),)) != program_key(
+        fn, (np.zeros((8, 9), np.float32),))
+
+
+def test_the_key_changes_with_the_versions_and_the_source(monkeypatch) -> None:
+    fn, args = partial(_residual, load_robot("tdcr3"), 1.0), (np.zeros((4, 9), np.float32),)
+    same = program_key(fn, args)
+    monkeypatch.setattr(jax, "__version__", "0.0.1")
+    assert program_key(fn, args) != same
+    monkeypatch.undo()
+    monkeypatch.setattr(_programs, "source_hash", lambda: "another cr_nlp")
+    assert program_key(fn, args) != same
+
+
+def test_an_object_the_key_cannot_describe_is_refused() -> None:
+    class Opaque:
+        pass
+
+    with pytest.raises(Unkeyable):
+        fingerprint(partial(_residual, Opaque(), 1.0))
+
+
+def test_a_function_is_keyed_by_its_code_and_closure() -> None:
+    def make(c):
+        return lambda z: z * c
+
+    assert fingerprint(make(1.0)) == fingerprint(make(1.0))
+    assert fingerprint(make(1.0)) != fingerprint(make(2.0))
+    assert fingerprint(lambda z: z + 1) != fingerprint(lambda z: z - 1)
+
+
+# ---------------------------------------------------------------- the disk
+
+def _square_sum(offset: float, z: jax.Array, w: dict) -> tuple[jax.Array, dict]:
+    return jnp.sum((z - offset) ** 2, axis=1), {"scaled": z * w["scale"]}
+
+
+def _run(offset: float = 0.5):
+    z = np.arange(12, dtype=np.float32).reshape(4, 3)
+    args = (z, {"scale": np.float32(3.0)})
+    program = compile_program(partial(_square_sum, offset), args, name="a test program")
+    total, extra = program(*args)
+    return np.asarray(total), np.asarray(extra["scaled"])
+
+
+def _expected(offset: float = 0.5):
+    z = np.arange(12, dtype=np.float32).reshape(4, 3)
+    return np.sum((z - offset) ** 2, axis=1), z * 3.0
+
+
+def _same(answer: tuple, expected: tuple) -> None:
+    for a, b in zip(answer, expected, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-6)
+
+
+def test_a_new_process_loads_the_program_instead_of_tracing_it(cache: Path) -> None:
+    _same(_run(), _expected())
+    assert (_programs.stats.traced, _programs.stats.loaded) == (1, 0)
+    assert len(list(programs_dir().glob("*.jaxexport"))) == 1
+    _run()  # the same process: from memory
+    assert _programs.stats.reused == 1
+    _programs.clear_memory()  # as a new process finds it
+    _same(_run(), _expected())
+    assert (_programs.stats.traced, _programs.stats.loaded) == (1, 1)
+    # A changed key (another closed-over number) traces a program of its own.
+    _same(_run(1.5), _expected(1.5))
+    assert _programs.stats.traced == 2
+
+
+@pytest.mark.parametrize("damage", ["truncate", "flip", "garbage", "empty"])
+def test_a_damaged_entry_is_ignored_with_a_warning(cache: Path, damage: str) -> None:
+    _run()
+    (entry,) = programs_dir().glob("*.jaxexport")
+    data = entry.read_bytes()
+    entry.write_bytes({"truncate": data[: len(data) // 2],
+                       "flip": data[:-100] + bytes([data[-100] ^ 0xFF]) + data[-99:],
+                       "garbage": os.urandom(len(data)),
+                       "empty": b""}[damage])
+    _programs.clear_memory()
+    with pytest.warns(RuntimeWarning, match="ignoring the cached program"):
+        answer = _run()
+    _same(answer, _expected())
+    assert _programs.stats.rejected == 1 and _programs.stats.traced == 2
+    _programs.clear_memory()  # the entry was written again, whole
+    _same(_run(), _expected())
+    assert _programs.stats.loaded == 1
+
+
+def test_a_stale_entry_of_another_program_is_not_used(cache: Path) -> None:
+    """A file under this key that holds another program (copied or left over) is
+    rejected by the key it carries and traced again."""
+    _run(0.5)
+    (first,) = programs_dir().glob("*.jaxexport")
+    _programs.clear_memory()
+    z = np.arange(12, dtype=np.float32).reshape(4, 3)
+    args = (z, {"scale": np.float32(3.0)})
+    key = program_key(partial(_square_sum, 1.5), args)
+    (programs_dir() / f"{key}.jaxexport").write_bytes(first.read_bytes())
+    with pytest.warns(RuntimeWarning, match="stale"):
+        answer = _run(1.5)
+    _same(answer, _expected(1.5))
+    assert _programs.stats.rejected == 1
+
+
+def test_cached_jit_keeps_one_program_per_shape_and_static_value(cache: Path) -> None:
+    @partial(cached_jit, static_argnums=(0,))
+    def power(n: int, z: jax.Array) -> jax.Array:
+        return z ** n
+
+    z = np.arange(4, dtype=np.float32)
+    np.testing.assert_allclose(power(2, z), z ** 2)
+    np.testing.assert_allclose(power(3, z), z ** 3)
+    np.testing.assert_allclose(power(2, np.arange(6, dtype=np.float32)),
+                               np.arange(6) ** 2)
+    assert _programs.stats.traced == 3
+
+
+@pytest.mark.skipif(jax.device_count() < 2, reason="needs two JAX devices")
+def test_a_program_split_over_the_devices_round_trips(cache: Path) -> None:
+    def fn(z, w):
+        return jnp.sin(z) * w, jnp.sum(z, axis=1)
+
+    z, w = np.arange(16, dtype=np.float32).reshape(8, 2), np.float32(2.0)
+    first = compile_program(fn, (z, w), batched=(True, False), outputs=2)(z, w)
+    _programs.clear_memory()
+    second = compile_program(fn, (z, w), batched=(True, False), outputs=2)(z, w)
+    assert _programs.stats.loaded == 1
+    assert len(second[0].sharding.device_set) == jax.device_count()
+    for a, b in zip(first, second, strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_allclose(second[0], np.sin(z) * 2.0, rtol=1e-6)
+
+
+# ---------------------------------------------------------------- imports
+
+def _imported(code: str, env: dict | None = None) -> list[str]:
+    out = subprocess.run([sys.executable, "-c", code + "\nimport json, sys\n"
+                          "print(json.dumps(sorted(sys.modules)))"],
+                         capture_output=True, text=True, check=True, timeout=300,
+                         env={**os.environ, **(env or {})})
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_import_cr_nlp_imports_no_heavy_package() -> None:
+    modules = _imported("import cr_nlp")
+    assert not [m for m in modules if m in HEAVY or m == "jax"]
+
+
+def test_the_command_help_imports_no_heavy_package() -> None:
+    modules = _imported("from cr_nlp.cli.main import build_parser\n"
+                        "build_parser().format_help()")
+    assert not [m for m in modules if m in HEAVY or m == "jax"]
+
+
+def test_an_ik_solve_imports_no_plotting_meshing_or_cluster_package(tmp_path: Path) -> None:
+    """Nor, once its seed pool's Sobol points are cached, scipy.stats."""
+    code = ("import numpy as np\n"
+            "from cr_nlp import IKConfig, IKSolver, tip_pose, wxyz_from_matrix\n"
+            "solver = IKSolver('tdcr3', config=IKConfig(pool_size=256, retry_rounds=0))\n"
+            "p, r = tip_pose(solver.robot, np.array([[0.5, 0.1, 1.0] * 3]))\n"
+            "solver.solve(p, wxyz_from_matrix(r))")
+    _imported(code, {"CR_NLP_CACHE_DIR": str(tmp_path)})
+    modules = _imported(code, {"CR_NLP_CACHE_DIR": str(tmp_path)})
+    assert not [m for m in modules if m in ("trimesh", "coacd", "dask", "distributed",
+                                            "matplotlib", "viser", "scipy.stats")]
