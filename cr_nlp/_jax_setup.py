@@ -29,7 +29,9 @@ def enable_compilation_cache() -> None:
     path = Path(os.environ.get("CR_NLP_JAX_CACHE", cache_dir() / "jax"))
     path.mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+    # Every program, the small ones of eager operations too: a new process compiled ~30 of
+    # them (10–40 ms each) before a first IK answer; loading one takes milliseconds.
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 
 def full_precision_matmuls() -> bool:

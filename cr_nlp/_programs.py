@@ -51,8 +51,11 @@ from ._jax_setup import cache_dir
 
 FORMAT = b"cr_nlp-program-3\n"
 """First bytes of an entry: the file format (a change of format is a change of key too)."""
-_MEMORY_SIZE = 128
-"""Compiled programs kept in memory for later solvers of the same process."""
+_MEMORY_SIZE = 16
+"""Compiled programs kept in memory for later solvers of the same process. Few: XLA's CPU
+code of one big program holds ~1 000 memory mappings (the IK search: 4 programs, 4 000),
+and a process may hold 65 530 (Linux's vm.max_map_count); 128 programs exhausted them
+in the test suite ("LLVM ERROR: Unable to allocate section memory")."""
 SECONDS_PER_OP = 0.004
 """Rough XLA CPU compile seconds per StableHLO operation of a program, for the first-run
 message before any compile time was measured on this machine (measured on a 2-core CPU:

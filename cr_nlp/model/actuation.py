@@ -47,6 +47,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._programs import cached_jit
 from ._actuation_block import NOMINAL_AXIAL_STIFFNESS_RATIO as NOMINAL_AXIAL_STIFFNESS_RATIO
 from ._actuation_block import NOMINAL_TENDON_STIFFNESS_RATIO as NOMINAL_TENDON_STIFFNESS_RATIO
 from ._actuation_block import Actuation as Actuation
@@ -322,7 +323,7 @@ def _marker_at(robot: Robot, params: dict[str, Any], u: jax.Array,
     return marker @ _rotation(params).T + params["base_position"]
 
 
-@partial(jax.jit, static_argnums=(0, 3))
+@partial(cached_jit, static_argnums=(0, 3), name="the tip prediction")
 def _predict_jit(robot: Robot, params: dict[str, Any], commands: jax.Array,
                  iterations: int) -> tuple[jax.Array, jax.Array, jax.Array]:
     u, lengths = equilibrium(robot, params, commands, iterations)   # solved once
