@@ -254,3 +254,38 @@ def test_an_ik_solve_imports_no_plotting_meshing_or_cluster_package(tmp_path: Pa
     modules = _imported(code, {"CR_NLP_CACHE_DIR": str(tmp_path)})
     assert not [m for m in modules if m in ("trimesh", "coacd", "dask", "distributed",
                                             "matplotlib", "viser", "scipy.stats")]
+
+
+# ---------------------------------------------------------------- commands
+
+def test_bench_startup_times_whole_processes_cold_and_warm(tmp_path: Path) -> None:
+    from cr_nlp.bench.startup import run_startup_benchmark
+
+    rows = run_startup_benchmark(entries=("import", "predict"), out=tmp_path / "out",
+                                 progress=False)
+    by = {(r["entry"], r["cache"]): r for r in rows}
+    assert set(by) == {(e, c) for e in ("import", "predict") for c in ("cold", "warm")}
+    # The cold process traced the prediction program; the warm one loaded it.
+    assert by["predict", "cold"]["programs_traced"] >= 1
+    assert by["predict", "warm"]["programs_traced"] == 0
+    assert by["predict", "warm"]["programs_loaded"] >= 1
+    for row in rows:
+        assert 0 < row["first_answer"] <= row["wall"]
+    report = (tmp_path / "out" / "startup.md").read_text()
+    assert "| predict |" in report and "jax:" in report
+
+
+def test_warmup_fills_the_cache_a_later_process_loads(tmp_path: Path) -> None:
+    env = {**os.environ, "CR_NLP_CACHE_DIR": str(tmp_path)}
+    command = [sys.executable, "-m", "cr_nlp.cli", "warmup", "--robot", "tdcr2_rao2021",
+               "--tasks", "statics", "plan"]
+    first = subprocess.run(command, env=env, capture_output=True, text=True, check=True,
+                           timeout=600)
+    assert "skipped: planning needs a scene" in first.stdout
+    assert "compiling the Cosserat shooting" in first.stderr
+    assert list((tmp_path / "programs").glob("*.jaxexport"))
+    second = subprocess.run(command, env=env, capture_output=True, text=True, check=True,
+                            timeout=600)
+    statics = next(line for line in second.stdout.splitlines() if line.startswith("statics"))
+    assert statics.split()[2:4] == ["0", "1"], statics  # traced 0, loaded 1
+    assert "compiling" not in second.stderr

@@ -56,28 +56,47 @@ def entry_argv(entry: str, inputs: Path, out: Path) -> list[str] | None:
     }[entry]
 
 
-def write_inputs(folder: Path, seed: int = 0) -> None:
-    """The entries' input files: 1000 IK targets, 20 planning problems in the shelf, 64
-    statics cases (seeded: every run times the same work)."""
-    import numpy as np
-
+def write_inputs(folder: Path, entries: Sequence[str] = STARTUP_ENTRIES, seed: int = 0) -> None:
+    """The input files of ``entries``: 1000 IK targets, 20 planning problems in the
+    shelf, 64 statics cases (seeded: every run times the same work)."""
     from ..model import load_robot
-    from ..tasks.ik import IKConfig
-    from ..world import load_scene
-    from .ik import free_case
-    from .plan import plan_problems
 
     folder.mkdir(parents=True, exist_ok=True)
     robot = load_robot("tdcr3")
+    if "ik" in entries:
+        _write_targets(folder, robot, seed)
+    if "plan" in entries:
+        _write_problems(folder, robot, seed)
+    if "statics" in entries:
+        _write_statics(folder, seed)
+
+
+def _write_targets(folder: Path, robot: Any, seed: int) -> None:
+    from .ik import free_case
+
     case = free_case(robot, IK_TARGETS, seed)
     poses = [{"position": p.tolist(), "wxyz": w.tolist()}
              for p, w in zip(case.positions, case.wxyz, strict=True)]
     (folder / "targets.json").write_text(json.dumps({"poses": poses}))
+
+
+def _write_problems(folder: Path, robot: Any, seed: int) -> None:
+    from ..tasks.ik import IKConfig
+    from ..world import load_scene
+    from .plan import plan_problems
+
     starts, goals = plan_problems(robot, load_scene("shelf"), PLAN_PROBLEMS,
                                   IKConfig.safety_margin, seed)
     problems = [{"start": s.tolist(), "goal": g.tolist()}
                 for s, g in zip(starts, goals, strict=True)]
     (folder / "problems.json").write_text(json.dumps({"problems": problems}))
+
+
+def _write_statics(folder: Path, seed: int) -> None:
+    import numpy as np
+
+    from ..model import load_robot
+
     rod = load_robot("tdcr2_rao2021")
     rng = np.random.default_rng(seed)
     cases = [{"tensions": rng.uniform(0.0, 2.0, rod.n_tendons).tolist()}
@@ -119,7 +138,7 @@ def run_startup_benchmark(entries: Sequence[str] = STARTUP_ENTRIES, repeats: int
     with tempfile.TemporaryDirectory(prefix="cr_nlp_startup_") as work:
         work = Path(work)
         inputs = work / "inputs"
-        write_inputs(inputs)
+        write_inputs(inputs, entries)
         runs = [(e, r) for e in entries for r in range(repeats)]
         samples: dict[tuple[str, str], list[dict[str, Any]]] = {}
         for entry, r in tqdm(runs, desc="startup", disable=not progress):
@@ -156,9 +175,42 @@ COLUMNS = [
 ]
 
 
+SUMMARY = [
+    Column("entry", "entry point"),
+    Column("cold", "cold: to first answer (s)", fixed(1)),
+    Column("warm", "warm: to first answer (s)", fixed(1)),
+    Column("warm_parts", "warm: interpreter + import / trace / XLA / first call (s)"),
+    Column("steady", "steady call (s)", fixed(2)),
+]
+
+
+def summary_rows(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per entry: cold and warm time to the first answer, the warm split."""
+    out = []
+    for entry in dict.fromkeys(r["entry"] for r in rows):
+        cold = next((r for r in rows if r["entry"] == entry and r["cache"] == "cold"), {})
+        warm = next((r for r in rows if r["entry"] == entry and r["cache"] == "warm"), {})
+
+        def part(key: str, row: dict = warm) -> str:
+            value = row.get(key)
+            return "—" if value is None else f"{value:.1f}"
+
+        started = (warm.get("start") or 0.0) + (warm.get("import") or 0.0)
+        out.append({"entry": entry, "cold": cold.get("first_answer"),
+                    "warm": warm.get("first_answer"),
+                    "warm_parts": f"{started:.1f} / {part('trace')} / {part('xla')} / "
+                                  f"{part('first_solve')}",
+                    "steady": warm.get("steady")})
+    return out
+
+
 def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str], repeats: int) -> str:
-    """The Markdown report: the table and how it was measured."""
+    """The Markdown report: the summary, the full table and how it was measured."""
     return "\n".join([
+        "## Start-up summary",
+        "",
+        markdown_table(summary_rows(rows), SUMMARY),
+        "",
         "## Start-up: whole processes, cold (empty cache) and warm (second process)",
         "",
         f"Median of {repeats} run(s) per row. Each process calls the `cr-nlp` command's "
