@@ -62,7 +62,9 @@ def test_the_key_changes_with_what_changes_a_program_and_nothing_else() -> None:
     robot = load_robot("tdcr3")
     args = (np.zeros((8, 9), np.float32),)
 
-    def key(fn=partial(_residual, robot, 1.0), arguments=args, split=None):
+    default = partial(_residual, robot, 1.0)
+
+    def key(fn=default, arguments=args, split=None):
         return program_key(fn, arguments, split)
 
     same = key()
