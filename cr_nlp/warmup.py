@@ -23,10 +23,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 TASKS = ("ik", "plan", "follow", "statics")
-"""Tasks ``warmup`` can compile."""
+"""Tasks ``warmup`` can compile (the command's choices; this module imports nothing heavy)."""
 
 
 @dataclass
@@ -93,6 +91,8 @@ def _plan(robot: Any, scene: Any, exact: bool, waypoints: int) -> str:
 
 
 def _follow(robot: Any, scene: Any, exact: bool, waypoints: int) -> str:
+    import numpy as np
+
     from .model import tip_pose
     from .model.rotations import wxyz_from_matrix
     from .tasks.follow import PathFollower
@@ -111,6 +111,8 @@ def _follow(robot: Any, scene: Any, exact: bool, waypoints: int) -> str:
 def _statics(robot: Any, scene: Any, exact: bool, waypoints: int) -> str:
     if robot.mechanics is None:
         return "skipped: the robot file has no mechanics block"
+    import numpy as np
+
     from .model.cosserat import solve_statics
 
     solve_statics(robot, np.zeros((1, robot.n_tendons)))

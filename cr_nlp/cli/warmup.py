@@ -5,9 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from ..warmup import TASKS
 from ._io import load_robot_arg, load_scene_arg
-
-TASKS = ("ik", "plan", "follow", "statics")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
