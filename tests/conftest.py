@@ -35,6 +35,14 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 SESSION_X64 = bool(jax.config.jax_enable_x64)  # off, unless $JAX_ENABLE_X64 asks for it
 
 
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    """``-n auto`` (the default run): one worker per core this process may use, at most 4.
+
+    Each worker holds its own compiled solvers (a few GB with the larger tests); past 4
+    workers the shared disk caches and the longest test files set the run's length."""
+    return max(1, min(4, len(os.sched_getaffinity(0))))
+
+
 def pytest_configure(config: pytest.Config) -> None:
     """The default run (slow tests deselected, as in CI) compiles with XLA's LLVM
     optimisations off.
