@@ -36,11 +36,13 @@ import os
 import pickle
 import sys
 import tempfile
+import threading
 import time
 import types
 import warnings
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +64,11 @@ message before any compile time was measured on this machine (measured on a 2-co
 the IK search program, ~4 000 operations, 15–20 s)."""
 
 _memory: OrderedDict[str, Any] = OrderedDict()
+_pending: dict[str, Future] = {}
+"""Programs being compiled (``compile_ahead``), by the same key as ``_memory``."""
+_lock = threading.Lock()
+_tracing: dict[str, threading.Lock] = {}
+"""Per disk key: held while a thread loads or traces that program."""
 
 
 @dataclasses.dataclass
@@ -270,8 +277,28 @@ def compile_program(fn: Callable, args: Sequence[Any], *, name: str = "",
 
     Loads the traced program from ``cache_dir()/programs`` when an entry with its key is
     there, else traces, stores and compiles it; a program compiled earlier in this
-    process with the same key is reused. Turns on JAX's persistent compilation cache
+    process with the same key is reused, and one that ``compile_ahead`` is compiling is
+    waited for. Turns on JAX's persistent compilation cache
     (``_jax_setup.enable_compilation_cache``) unless the user configured one."""
+    return _request(fn, args, name, batched, outputs, ahead=False)
+
+
+def compile_ahead(fn: Callable, args: Sequence[Any], *, name: str = "",
+                  batched: Sequence[bool] | None = None, outputs: int = 1) -> None:
+    """Start ``compile_program(fn, args, …)`` on a background thread and return at once;
+    the ``compile_program`` call that later asks for the same program waits for it.
+
+    XLA compiles a program on one core, so a process that will need several programs
+    (one per device of a schedule's lanes, a repair program beside its search) gets them
+    side by side on a multi-core CPU. Nothing happens for a program already compiled or
+    under way in this process, or for an unkeyable function. The thread keeps running
+    until the program is compiled (a process exits after it), so ask only for programs
+    the process is likely to run; one that is not run is still stored for later ones."""
+    _request(fn, args, name, batched, outputs, ahead=True)
+
+
+def _request(fn: Callable, args: Sequence[Any], name: str, batched: Sequence[bool] | None,
+             outputs: int, ahead: bool) -> Any:
     from ._jax_setup import enable_compilation_cache, split_over_devices
 
     enable_compilation_cache()  # XLA's half of the cache (a no-op once on, or user-set)
@@ -281,29 +308,68 @@ def compile_program(fn: Callable, args: Sequence[Any], *, name: str = "",
     try:
         key = program_key(fn, args, placement)
     except Unkeyable as exc:
-        key = None
-        stats.unkeyable.append(f"{name or _name(fn)}: {exc}")
-    leaves, in_tree = jax.tree.flatten(tuple(args))
-    devices = tuple(sorted({d.id for leaf in leaves if isinstance(leaf, jax.Array)
-                            for d in leaf.devices()}))
-    memory_key = f"{key}:{devices}" if key else None
-    if memory_key in _memory:
-        _memory.move_to_end(memory_key)
-        stats.reused += 1
-        return _memory[memory_key]
-
-    if key is None:
+        if ahead:
+            return None
         stats.unkeyed += 1
+        stats.unkeyable.append(f"{name or _name(fn)}: {exc}")
         jitted = split_over_devices(fn, batched, size, outputs) if split else jax.jit(fn)
         t0 = time.perf_counter()
         compiled = jitted.lower(*args).compile()
         stats.compile_seconds += time.perf_counter() - t0
         return compiled
+    leaves = jax.tree.leaves(tuple(args))
+    devices = tuple(sorted({d.id for leaf in leaves if isinstance(leaf, jax.Array)
+                            for d in leaf.devices()}))
+    memory_key = f"{key}:{devices}"
+    with _lock:
+        if memory_key in _memory:
+            if not ahead:
+                _memory.move_to_end(memory_key)
+                stats.reused += 1
+            return _memory[memory_key]
+        future = _pending.get(memory_key)
+        owner = future is None
+        if owner:
+            future = _pending[memory_key] = Future()
+    if owner:
+        build = functools.partial(_build, future, fn, args, key, memory_key, name,
+                                  batched if split else None, outputs)
+        if ahead:
+            _background().submit(build)
+        else:
+            build()
+    return None if ahead else future.result()
 
+
+def _build(future: Future, fn: Callable, args: Sequence[Any], key: str, memory_key: str,
+           name: str, batched: Sequence[bool] | None, outputs: int) -> None:
+    """Load or trace, then compile, the program under ``key``; its result (or error) goes
+    to ``future``, the program into the memory."""
+    try:
+        compiled = _compiled(fn, args, key, name, batched, outputs)
+    except BaseException as exc:
+        with _lock:
+            del _pending[memory_key]
+        future.set_exception(exc)
+        if not isinstance(exc, Exception):
+            raise
+        return
+    with _lock:
+        _memory[memory_key] = compiled
+        while len(_memory) > _MEMORY_SIZE:
+            _memory.popitem(last=False)
+        del _pending[memory_key]
+    future.set_result(compiled)
+
+
+def _compiled(fn: Callable, args: Sequence[Any], key: str, name: str,
+              batched: Sequence[bool] | None, outputs: int) -> Any:
+    """The program under ``key``: loaded from disk, else traced and stored; compiled."""
+    leaves, in_tree = jax.tree.flatten(tuple(args))
     # The program is exported over the arguments' leaves (its pytrees, NamedTuples of
     # cr_nlp's among them, need no serialisation of their own); the output structure is
     # stored beside it.
-    if split:
+    if batched is not None:
         mesh = _mesh()
         leaf_batched = [b for arg, b in zip(args, batched, strict=True)
                         for _ in jax.tree.leaves(arg)]
@@ -311,34 +377,40 @@ def compile_program(fn: Callable, args: Sequence[Any], *, name: str = "",
         out_shardings = _sharding(mesh, True)
     else:
         in_shardings = out_shardings = None
-    entry = _load(key)
-    ops = 0
-    if entry is None:
-        t0 = time.perf_counter()
-        exported, out_tree = _export(fn, in_tree, leaves, batched if split else None)
-        _store(key, exported, out_tree)
-        stats.traced += 1
-        stats.trace_seconds += time.perf_counter() - t0
-        ops = _operations(exported)
-        if announce:
-            print(f"cr_nlp: compiling {name or _name(fn)} ({ops} operations; about "
-                  f"{max(1, round(ops * _seconds_per_op()))} s, once: later processes load "
-                  f"it from {cache_dir()})", file=sys.stderr, flush=True)
-    else:
-        exported, out_tree = entry
-    runner = (jax.jit(exported.call, in_shardings=in_shardings, out_shardings=out_shardings)
-              if split else jax.jit(exported.call))
+    with _lock:
+        tracing = _tracing.setdefault(key, threading.Lock())
+    with tracing:  # one thread traces a program; one compiling it for another device waits
+        entry = _load(key)
+        ops = 0
+        if entry is None:
+            t0 = time.perf_counter()
+            exported, out_tree = _export(fn, in_tree, leaves, batched)
+            _store(key, exported, out_tree)
+            stats.traced += 1
+            stats.trace_seconds += time.perf_counter() - t0
+            ops = _operations(exported)
+            if announce:
+                print(f"cr_nlp: compiling {name or _name(fn)} ({ops} operations; about "
+                      f"{max(1, round(ops * _seconds_per_op()))} s, once: later processes "
+                      f"load it from {cache_dir()})", file=sys.stderr, flush=True)
+        else:
+            exported, out_tree = entry
+    runner = jax.jit(exported.call, in_shardings=in_shardings, out_shardings=out_shardings)
     t0 = time.perf_counter()
     executable = runner.lower(*leaves).compile()
     seconds = time.perf_counter() - t0
     stats.compile_seconds += seconds
     if ops:
         _record_rate(seconds / ops)
-    compiled = _Flat(executable, out_tree)
-    _memory[memory_key] = compiled
-    while len(_memory) > _MEMORY_SIZE:
-        _memory.popitem(last=False)
-    return compiled
+    return _Flat(executable, out_tree)
+
+
+@functools.cache
+def _background() -> ThreadPoolExecutor:
+    """The threads of ``compile_ahead``: one per core this process may use, less the one
+    that goes on solving (at least one)."""
+    return ThreadPoolExecutor(max(1, len(os.sched_getaffinity(0)) - 1),
+                              thread_name_prefix="cr_nlp-compile")
 
 
 class _Flat:
@@ -488,7 +560,8 @@ def _record_rate(rate: float) -> None:
 
 def clear_memory() -> None:
     """Forget the programs compiled in this process (the disk entries stay)."""
-    _memory.clear()
+    with _lock:
+        _memory.clear()
 
 
 class CachedProgram:

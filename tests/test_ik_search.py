@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from cr_nlp.bench.ik import free_case
-from cr_nlp.stages._ik_search import ChunkRunner
+from cr_nlp.stages._ik_search import REPAIR_CHUNK, ChunkRunner
 from cr_nlp.tasks.ik import IKSolver
 
 from .test_ik import TDCR3
@@ -16,8 +16,8 @@ def test_self_colliding_free_answers_are_repaired_in_a_small_chunk() -> None:
     """Targets 41 and 418 of the free benchmark (reachable without self-collision: they
     are forward kinematics of configurations that keep δ) got first answers whose
     segments overlap by ~5 cm (measured on a CPU); targets 0 and 1 did not. The repair
-    searches only the answers that need it, in the smallest repair chunk, and the
-    answers pass python-fcl's self-distance."""
+    searches only the answers that need it, in a repair chunk (its padding targets never
+    iterate), and the answers pass python-fcl's self-distance."""
     case = free_case(TDCR3, 1000, seed=0)
     rows = [0, 41, 1, 418]
     solver = IKSolver(TDCR3)
@@ -29,10 +29,10 @@ def test_self_colliding_free_answers_are_repaired_in_a_small_chunk() -> None:
     assert np.all(own >= solver.config.safety_margin - 1e-6), own
     # Lookup, search, one repair program from the answers' own beams (their answer and
     # its three beam candidates: 4 seeds), no retry program: 3 device calls; the repair's
-    # coarse round iterated 4 rows per repaired target in a 4-target chunk, not 32 seeds
-    # per target in a 128-target chunk.
+    # coarse round iterated 4 rows per repaired target in a REPAIR_CHUNK-target chunk,
+    # not 32 seeds per target in a 128-target chunk.
     assert solver.device_calls == 3
-    repair = [call for call in solver.lm_calls if call[1] == 4 * 4]
+    repair = [call for call in solver.lm_calls if call[1] == REPAIR_CHUNK * 4]
     assert repair and repair[0][0] == repaired * 4, solver.lm_calls
     # The verdict reused the repair's self-clearance: it equals world.check's own.
     checked = solver.verify(result.q, case.positions[rows], case.wxyz[rows])

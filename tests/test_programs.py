@@ -22,6 +22,7 @@ from cr_nlp import _programs
 from cr_nlp._programs import (
     Unkeyable,
     cached_jit,
+    compile_ahead,
     compile_program,
     fingerprint,
     program_key,
@@ -222,6 +223,52 @@ def test_a_program_split_over_the_devices_round_trips(cache: Path) -> None:
     for a, b in zip(first, second, strict=True):
         np.testing.assert_array_equal(a, b)
     np.testing.assert_allclose(second[0], np.sin(z) * 2.0, rtol=1e-6)
+
+
+# ---------------------------------------------------------------- compiling ahead
+
+def test_a_program_compiled_ahead_is_waited_for_not_compiled_again(cache: Path) -> None:
+    z = np.arange(12, dtype=np.float32).reshape(4, 3)
+    args = (z, {"scale": np.float32(3.0)})
+    fn = partial(_square_sum, 0.5)
+    assert compile_ahead(fn, args, name="the test program") is None  # returns at once
+    total, extra = compile_program(fn, args)(*args)
+    _same((total, extra["scaled"]), _expected())
+    assert (_programs.stats.traced, _programs.stats.reused) == (1, 0)
+    # Asking again, ahead or not, for a program compiled already starts nothing.
+    compile_ahead(fn, args)
+    compile_program(fn, args)
+    assert (_programs.stats.traced, _programs.stats.reused) == (1, 1)
+    assert not _programs._pending
+
+
+def test_an_error_compiling_ahead_is_raised_where_the_program_is_asked_for(
+        cache: Path) -> None:
+    def broken(z: jax.Array) -> jax.Array:
+        return z @ jnp.ones((5, 2), z.dtype)  # (4, 3) @ (5, 2): shapes that do not fit
+
+    args = (np.zeros((4, 3), np.float32),)
+    compile_ahead(broken, args)  # no error here: nobody asked for the program yet
+    with pytest.raises(TypeError, match="dot_general"):
+        compile_program(broken, args)
+    assert not _programs._pending
+
+
+@pytest.mark.skipif(jax.device_count() < 2, reason="needs two JAX devices")
+def test_copies_for_two_devices_compile_side_by_side_from_one_trace(cache: Path) -> None:
+    """As the trajectory LM's lanes: one program per device, traced once."""
+    fn = partial(_square_sum, 0.5)
+    copies = []
+    for device in jax.devices()[:2]:
+        z = jax.device_put(np.arange(12, dtype=np.float32).reshape(4, 3), device)
+        copies.append((z, {"scale": jax.device_put(np.float32(3.0), device)}))
+    for args in copies:
+        compile_ahead(fn, args)
+    for device, args in zip(jax.devices()[:2], copies, strict=True):
+        total, extra = compile_program(fn, args)(*args)
+        assert total.devices() == {device}
+        _same((total, extra["scaled"]), _expected())
+    assert (_programs.stats.traced, _programs.stats.loaded) == (1, 1)
 
 
 # ---------------------------------------------------------------- imports

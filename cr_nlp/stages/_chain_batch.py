@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._programs import compile_program
+from .._programs import compile_ahead, compile_program
 from ._banded_lm import (
     BandedLMState,
     ChainResidual,
@@ -299,6 +299,12 @@ class ChainBatchLM:
         seconds = 0.0
         if key not in self._slot_programs:
             t0 = time.perf_counter()
+            # XLA's CPU programs are bound to a device, so each lane has its own copy of
+            # a slot program: the other lanes' copies compile side by side with this one.
+            for device in self.devices:
+                if (device.id, lane.slots) not in self._slot_programs and device != lane.device:
+                    self._compile_slots((*jax.device_put(args[:7], device), *args[7:]),
+                                        ahead=True)
             self._slot_programs[key] = self._compile_slots(args)
             seconds = time.perf_counter() - t0
         lane.out = self._slot_programs[key](*args)          # asynchronous
@@ -358,10 +364,11 @@ class ChainBatchLM:
                                        self._idle_shapes[slots])
         return state._replace(iteration=np.full(slots, -1, np.int32))
 
-    def _compile_slots(self, args: tuple) -> Any:
+    def _compile_slots(self, args: tuple, ahead: bool = False) -> Any:
         """The slot program: load chains, then LM trips on the occupied slots until fewer
         than ``wanted`` run or ``trips`` were made; returns the state, which slots still
-        run and the trips made. One device (see ``_compile_chunk``)."""
+        run and the trips made. One device (see ``_compile_chunk``). ``ahead``: start
+        compiling it in the background (``_programs.compile_ahead``), return None."""
         n, config, extra = self.waypoints, self.config, self.extra
         terms, project = self.terms, self.project
 
@@ -394,7 +401,8 @@ class ChainBatchLM:
             state, count = jax.lax.while_loop(more, body, (state, jnp.int32(0)))
             return state, running(state, budget), count
 
-        return compile_program(advance, args, name="the trajectory LM")
+        return (compile_ahead if ahead else compile_program)(advance, args,
+                                                             name="the trajectory LM")
 
     # ------------------------------------------------------------ chunks
     def _solve_chunks(self, z0: np.ndarray, step: np.ndarray, arrays: Any,

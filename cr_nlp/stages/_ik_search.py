@@ -18,9 +18,12 @@ One part of a stream of targets is solved by
 
 Chunks come from ``chunks.chunk_plan`` (two compiled shapes per program); padding
 targets are masked out of every LM round. The self-repair runs on the few rows that need
-it in chunks of at most ``REPAIR_CHUNK`` targets, so a solve whose answers all keep δ
-launches nothing for it, and one with two such answers does not pay for a 128-target
-chunk.
+it in chunks of ``REPAIR_CHUNK`` targets (one compiled shape; padding targets cost no
+LM work), so a solve whose answers all keep δ launches nothing for it, and one with two
+such answers does not pay for a 128-target chunk. The repair program is twice the main
+search's size (its residual has the self-clearance rows) and few targets need it (3 of
+1000 free tdcr3 targets), so a part of at least ``REPAIR_AHEAD`` targets starts compiling
+it beside the main search (``_programs.compile_ahead``) rather than after it.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._programs import compile_program
+from .._programs import compile_ahead, compile_program
 from ..model import Robot, q_to_z_numpy, z_to_q_numpy
 from ..model.limits import clip_to_limits
 from ..world import check_many
@@ -45,9 +48,12 @@ from ._lm import Projection, Residual
 from ._search import RetryPlan, SearchPlan, retry_targets, search_targets
 
 REPAIR_CHUNK = 16
-"""Most targets per self-repair program (the larger of its two compiled chunk shapes)."""
-REPAIR_SMALLEST = 4
-"""Fewest targets per self-repair program (its smaller compiled shape)."""
+"""Targets per self-repair program."""
+REPAIR_AHEAD = 256
+"""Targets in a part from which the self-repair program is compiled beside the main search
+(on a 2-core CPU, tdcr3, empty caches: the two one after the other took 9.6 + 14.0 s;
+measured 0.3 % of free targets need the repair, so a part this large needs it with
+probability ≈ 1 − 0.997²⁵⁶ ≈ 0.5, and the compile runs on a core the main one leaves idle)."""
 REPAIR_BLOCK = 32
 """LM rows per block of the self-repair programs on a CPU (a repair iterates tens of
 rows, not the main search's thousands)."""
@@ -143,6 +149,33 @@ class ChunkRunner:
                                 zip(counters.retried, np.asarray(retried).sum(0), strict=True)]
         return z, cost
 
+    def search_ahead(self, plan: SearchPlan, seeds: int, chunk: int) -> None:
+        """Start compiling the ``search`` program of ``chunk`` targets with ``seeds`` seeds
+        each in the background (``_programs.compile_ahead``), unless compiled already."""
+        key = ("search", seeds, plan, chunk)
+        if key in self.compiled:
+            return
+        n = len(self.free)
+        per_target = (np.zeros((chunk, seeds, n)), (np.zeros((chunk, 3)), np.zeros((chunk, 9))))
+        compile_ahead(partial(search_targets, self.residual, self.project, plan),
+                      self._chunk_args(per_target, 0, chunk, chunk, ()),
+                      name="the IK search", batched=self._batched(per_target, ()), outputs=4)
+
+    def _chunk_args(self, per_target: tuple, start: int, stop: int, chunk: int,
+                    whole: tuple) -> tuple:
+        """A program's arguments for targets ``start:stop`` padded to ``chunk`` (see
+        ``_run``)."""
+        padded = partial(_chunk_rows, start=start, stop=stop, size=chunk)
+        rows = jax.tree.map(lambda x: jnp.asarray(
+            padded(x), self.dtype if x.dtype.kind == "f" else None), per_target)
+        return (*rows, jnp.asarray(np.arange(chunk) < stop - start), self.shared, self.free,
+                *whole)
+
+    @staticmethod
+    def _batched(per_target: tuple, whole: tuple) -> tuple[bool, ...]:
+        """Which of ``_chunk_args``'s arguments are split over the devices."""
+        return (True,) * (len(per_target) + 1) + (False,) * (2 + len(whole))
+
     def _run(self, name: tuple, search: Any, per_target: tuple, outputs: int,
              timing: Booking, *whole: Any) -> tuple[np.ndarray, np.ndarray,
                                                      list[tuple[int, Any]]]:
@@ -159,17 +192,13 @@ class ChunkRunner:
         start = 0
         for chunk in chunk_plan(count, *self.chunk):
             stop = min(start + chunk, count)
-            padded = partial(_chunk_rows, start=start, stop=stop, size=chunk)
-            rows = jax.tree.map(lambda x, padded=padded: jnp.asarray(
-                padded(x), self.dtype if x.dtype.kind == "f" else None), per_target)
-            args = (*rows, jnp.asarray(np.arange(chunk) < stop - start), self.shared,
-                    self.free, *whole)
+            args = self._chunk_args(per_target, start, stop, chunk, whole)
             key = (*name, chunk)
             if key not in self.compiled:
                 t1 = time.perf_counter()
-                batched = (True,) * (len(per_target) + 1) + (False,) * (2 + len(whole))
                 self.compiled[key] = compile_program(search, args, name=f"the IK {name[0]}",
-                                                     batched=batched, outputs=outputs)
+                                                     batched=self._batched(per_target, whole),
+                                                     outputs=outputs)
                 timing.compile += time.perf_counter() - t1
             runs.append((stop - start, chunk, self.compiled[key](*args)))
             self.counters.device_calls += 1
@@ -248,7 +277,7 @@ class IKSearch:
         self.main = ChunkRunner(residuals[0], project, shared, free, self.dtype,
                                 self.counters, (settings.chunk_size, SMALLEST_CHUNK))
         self.repair = ChunkRunner(residuals[1], project, shared, free, self.dtype,
-                                  self.counters, (REPAIR_CHUNK, REPAIR_SMALLEST))
+                                  self.counters, (REPAIR_CHUNK, REPAIR_CHUNK))
         self.pool: SeedPool | None = None
         self.sample = partial(random_configurations_z, robot, count=settings.retry.seeds,
                               dtype=self.dtype)
@@ -332,6 +361,9 @@ class IKSearch:
             without: not measured here).
         """
         s = self.settings
+        if self.self_repair and len(positions) >= REPAIR_AHEAD:
+            width = min(s.plan.width, s.seeds_per_target)
+            self.repair.search_ahead(self._repair_plan(), width + 1, REPAIR_CHUNK)
         z_beam, c_beam = self.beam(positions, rotations, True, timing)
         z_best, cost = z_beam[:, 0].copy(), c_beam[:, 0].copy()
         todo = np.flatnonzero(~(cost < s.retry.success_cost))
@@ -369,7 +401,7 @@ class IKSearch:
         timing.verify += time.perf_counter() - t0
         # The answer itself first, then its beam: all near the target in pose.
         seeds = np.concatenate([q_to_z_numpy(q[bad])[:, None], z_beam[bad]], axis=1)
-        plan = replace(s.plan, block=self._repair_block())
+        plan = self._repair_plan()
         z, cost = self.repair.search(plan, seeds, positions[bad], rotations[bad], timing)
         candidates = self._to_q(z[np.arange(len(bad)), np.argmin(cost, axis=1)])
         left = self._take(q, own, bad, candidates, before, accepts, timing)
@@ -402,11 +434,12 @@ class IKSearch:
         return replace(self.settings.retry,
                        first_rank=min(self.settings.seeds_per_target, len(pool)))
 
-    def _repair_block(self) -> int:
-        """LM rows per block of the repair programs: a small block on a CPU, the whole
-        chunk on an accelerator (as the main search)."""
+    def _repair_plan(self) -> SearchPlan:
+        """The search plan of the repair programs: LM blocks of a few rows on a CPU, the
+        whole chunk on an accelerator (as the main search)."""
         block = self.settings.plan.block
-        return min(REPAIR_BLOCK, block) if jax.default_backend() == "cpu" else block
+        return replace(self.settings.plan, block=min(REPAIR_BLOCK, block)
+                       if jax.default_backend() == "cpu" else block)
 
     def _to_q(self, z: np.ndarray) -> np.ndarray:
         return clip_to_limits(self.robot, z_to_q_numpy(z))
