@@ -132,7 +132,7 @@ def chain_jacobians(terms: ChainResidual, z: jax.Array, params: Any,
             far = terms.unary_far
             r, j = jax.lax.cond(terms.near(z, params, shared),
                                 lambda fn=fn: window_jacobians(fn, 1),
-                                lambda: window_jacobians(far, 1))
+                                lambda far=far: window_jacobians(far, 1))
         else:
             r, j = window_jacobians(fn, k)
         out.append((k, r, j))
