@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
@@ -58,7 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jax_setup import enable_compilation_cache
-from .._programs import compile_program
+from .._programs import compile_ahead, compile_program
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz
@@ -465,15 +466,20 @@ class PathFollower:
         args = self._lm_args(q0, positions, wxyz, trackable, dt)
         key = (len(q0), repair)
         if key not in self._compiled:
-            config = LMConfig(cost_tolerance=0.0,
-                              stall_tolerance=self.config.refine_stall_tolerance,
-                              prediction_tolerance=self.config.refine_stall_tolerance)
-            terms = self._repair_terms if repair else self._terms
-            solve = partial(banded_lm_solve, terms, self._project, config=config)
-            self._compiled[key] = compile_program(solve, args, name="the path LM")
+            self._compiled[key] = compile_program(self._path_lm(repair), args,
+                                                  name="the path LM")
         z, cost, iterations = jax.device_get(self._compiled[key](*args))
         q = z_to_q_numpy(z)
         return clip_to_limits(self.robot, q), float(cost), int(iterations)
+
+    def _path_lm(self, repair: bool) -> Callable:
+        """Stage 2's LM (``banded_lm_solve`` on the path's terms; ``repair``: the stiff
+        tendon terms), as ``compile_program`` takes it."""
+        config = LMConfig(cost_tolerance=0.0,
+                          stall_tolerance=self.config.refine_stall_tolerance,
+                          prediction_tolerance=self.config.refine_stall_tolerance)
+        terms = self._repair_terms if repair else self._terms
+        return partial(banded_lm_solve, terms, self._project, config=config)
 
     def _lm_args(self, q0: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
                  trackable: np.ndarray, dt: float) -> tuple:
@@ -534,6 +540,12 @@ class PathFollower:
 
         timing = FollowTiming()
         self.last_timing = timing
+        if (len(positions), False) not in self._compiled:
+            # Stage 2's program (the largest) compiles or loads on another core while
+            # stage 1 runs; ``refine`` then waits for it.
+            compile_ahead(self._path_lm(False), self._lm_args(
+                np.zeros((len(positions), self.robot.dof)), positions, wxyz, trackable, dt),
+                name="the path LM")
         t0 = time.perf_counter()
         with compile_seconds() as compiled:
             q0 = self.initial_sequence(positions, wxyz, trackable, dt)
