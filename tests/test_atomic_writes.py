@@ -106,6 +106,27 @@ def test_a_writer_that_fails_half_way_leaves_the_old_file(tmp_path: Path) -> Non
     assert _names(tmp_path) == ["tendons.csv"]
 
 
+def test_figures_and_npz_files_keep_the_names_their_libraries_give(tmp_path: Path) -> None:
+    """``write_figure`` names a file as ``savefig`` does (no suffix: the default format's
+    suffix added) and ``save_npz`` as ``np.savez`` does (".npz" added)."""
+    from matplotlib.figure import Figure
+
+    from cr_nlp.model import load_robot
+    from cr_nlp.tasks.trajectory import TrajectoryResult
+    from cr_nlp.viz._figures import write_figure
+
+    figure = Figure()
+    figure.add_subplot().plot([0, 1], [1, 0])
+    assert write_figure(figure, tmp_path / "plot.PNG").read_bytes()[:4] == b"\x89PNG"
+    assert write_figure(figure, tmp_path / "plot").name == "plot.png"
+    assert write_figure(figure, tmp_path / "plot.svg").read_text().lstrip().startswith("<?xml")
+    rejected = TrajectoryResult(load_robot("tdcr3"), None, 0.5, False, "bad start", "rejected")
+    rejected.save_npz(tmp_path / "plan")
+    with np.load(tmp_path / "plan.npz") as data:
+        assert str(data["reason"]) == "bad start"
+    assert _names(tmp_path) == ["plan.npz", "plot.PNG", "plot.png", "plot.svg"]
+
+
 # ================================================================ killed writers
 
 PAYLOAD = '''
