@@ -35,7 +35,6 @@ import math
 import os
 import pickle
 import sys
-import tempfile
 import threading
 import time
 import types
@@ -49,6 +48,7 @@ from typing import Any
 import jax
 import numpy as np
 
+from ._files import write_atomic
 from ._jax_setup import cache_dir
 
 FORMAT = b"cr_nlp-program-3\n"
@@ -522,21 +522,6 @@ def _store(key: str, exported: Any, out_tree: Any) -> None:
     except OSError as exc:
         warnings.warn(f"cr_nlp: could not store a compiled program in {folder} ({exc})",
                       RuntimeWarning, stacklevel=3)
-
-
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a file beside it, flushed to disk and renamed
-    over ``path``: a reader sees the old file or the new one, never part of one."""
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(handle, "wb") as out:
-            out.write(data)
-            out.flush()
-            os.fsync(out.fileno())
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
 
 
 def _rate_file() -> Path:

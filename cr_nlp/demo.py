@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._files import atomic_open
 from ._resources import bundled_file
 
 
@@ -69,6 +70,7 @@ def _ik(out: Path, exact: bool) -> DemoRow:
 def _plan(out: Path, exact: bool) -> DemoRow:
     from .tasks.trajectory import TrajectoryPlanner, tendon_names
     from .viz import trajectory_figure
+    from .viz._figures import write_figure
 
     (problem,) = json.loads(bundled_file("problems", "tdcr3_shelf_demo").read_text())["problems"]
     planner = TrajectoryPlanner("tdcr3", "shelf")
@@ -79,9 +81,10 @@ def _plan(out: Path, exact: bool) -> DemoRow:
     files = ["plan_result.json"]
     if result.q is not None:
         result.save_csv(out / "plan_tendons.csv")
-        trajectory_figure(result, planner.scene, tendon_names(planner.robot),
-                          title=f"shelf: {result.stage}, {result.path_length:.2f} m tip path"
-                          ).savefig(out / "plan.png", dpi=120)
+        figure = trajectory_figure(
+            result, planner.scene, tendon_names(planner.robot),
+            title=f"shelf: {result.stage}, {result.path_length:.2f} m tip path")
+        write_figure(figure, out / "plan.png", dpi=120)
         files += ["plan_tendons.csv", "plan.png"]
     return DemoRow("plan", "shelf, compartment to compartment", "yes" if result.success else
                    f"no ({result.reason})", f"tip path {result.path_length:.2f} m",
@@ -92,6 +95,7 @@ def _follow(out: Path, exact: bool) -> DemoRow:
     from .tasks.follow import PathFollower
     from .tasks.trajectory import tendon_names
     from .viz import follow_figure
+    from .viz._figures import write_figure
 
     follower = PathFollower("tdcr3", "follow_icra")
     start = time.perf_counter()
@@ -99,8 +103,9 @@ def _follow(out: Path, exact: bool) -> DemoRow:
     seconds = time.perf_counter() - start
     result.save(out / "follow_result.json")
     result.save_csv(out / "follow_tendons.csv")
-    follow_figure(result, follower.scene, tendon_names(follower.robot),
-                  title=f"{result.path.name}: {result.stage}").savefig(out / "follow.png", dpi=120)
+    figure = follow_figure(result, follower.scene, tendon_names(follower.robot),
+                           title=f"{result.path.name}: {result.stage}")
+    write_figure(figure, out / "follow.png", dpi=120)
     err = 1e3 * result.position_error
     return DemoRow("follow", f"'{result.path.name}', {len(err)} waypoints",
                    "yes" if result.success else f"no ({result.reason})",
@@ -134,5 +139,6 @@ def run_demo(out: str | Path = "demo_output", exact: bool = True,
     for name in bar:
         bar.set_postfix_str(name)
         rows.append(TASKS[name](out, exact))
-    (out / "summary.md").write_text(format_table(rows) + "\n")
+    with atomic_open(out / "summary.md") as handle:
+        handle.write(format_table(rows) + "\n")
     return rows

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .._files import atomic_open
+
 # ================================================================ the environment
 
 
@@ -151,7 +153,7 @@ def write_csv(rows: Sequence[dict[str, Any]], path: str | Path,
         keys = list(dict.fromkeys(k for row in rows for k in row))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as f:
+    with atomic_open(path, newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(keys), extrasaction="ignore")
         writer.writeheader()
         for row in rows:
@@ -177,7 +179,8 @@ def write_text(text: str, path: str | Path) -> Path:
     """Write ``text`` (ending with one newline) to ``path``, creating folders."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text.rstrip("\n") + "\n")
+    with atomic_open(path) as handle:
+        handle.write(text.rstrip("\n") + "\n")
     return path
 
 

@@ -115,12 +115,13 @@ def run_follow_benchmark(shapes: Sequence[str] = SHAPES, modes: Sequence[str] = 
         if out is not None:
             from ..tasks.trajectory import tendon_names
             from ..viz import follow_figure
+            from ..viz._figures import write_figure
 
             figure = follow_figure(result, followers[shape].scene,
                                    tendon_names(followers[shape].robot),
                                    title=f"{row['shape']} ({mode}): {result.stage}")
             Path(out).mkdir(parents=True, exist_ok=True)
-            figure.savefig(Path(out) / f"{row['shape']}_{mode}.png", dpi=110)
+            write_figure(figure, Path(out) / f"{row['shape']}_{mode}.png", dpi=110)
     env = environment()
     write_report("follow", format_report(rows, env, robot, repeats, dt), out, {"follow": rows}, env)
     return rows

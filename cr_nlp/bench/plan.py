@@ -401,6 +401,8 @@ def plot_iterations(sweep: Sequence[dict[str, Any]], path: str | Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from ..viz._figures import write_figure
+
     fig, (left, right) = plt.subplots(1, 2, figsize=(9, 3.5))
     for scene in dict.fromkeys(r["scene"] for r in sweep):
         mine = [r for r in sweep if r["scene"] == scene]
@@ -414,7 +416,7 @@ def plot_iterations(sweep: Sequence[dict[str, Any]], path: str | Path) -> Path:
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    write_figure(fig, path, dpi=120)
     plt.close(fig)
     return path
 

@@ -25,6 +25,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from .._files import write_atomic
 from ._common import Column, environment, environment_markdown, fixed, markdown_table, write_report
 from .suites import STARTUP_ENTRIES
 
@@ -77,7 +78,7 @@ def _write_targets(folder: Path, robot: Any, seed: int) -> None:
     case = free_case(robot, IK_TARGETS, seed)
     poses = [{"position": p.tolist(), "wxyz": w.tolist()}
              for p, w in zip(case.positions, case.wxyz, strict=True)]
-    (folder / "targets.json").write_text(json.dumps({"poses": poses}))
+    write_atomic(folder / "targets.json", json.dumps({"poses": poses}).encode())
 
 
 def _write_problems(folder: Path, robot: Any, seed: int) -> None:
@@ -89,7 +90,7 @@ def _write_problems(folder: Path, robot: Any, seed: int) -> None:
                                   IKConfig.safety_margin, seed)
     problems = [{"start": s.tolist(), "goal": g.tolist()}
                 for s, g in zip(starts, goals, strict=True)]
-    (folder / "problems.json").write_text(json.dumps({"problems": problems}))
+    write_atomic(folder / "problems.json", json.dumps({"problems": problems}).encode())
 
 
 def _write_statics(folder: Path, seed: int) -> None:
@@ -101,7 +102,7 @@ def _write_statics(folder: Path, seed: int) -> None:
     rng = np.random.default_rng(seed)
     cases = [{"tensions": rng.uniform(0.0, 2.0, rod.n_tendons).tolist()}
              for _ in range(STATICS_CASES)]
-    (folder / "statics.json").write_text(json.dumps({"cases": cases}))
+    write_atomic(folder / "statics.json", json.dumps({"cases": cases}).encode())
 
 
 # ---------------------------------------------------------------- the parent

@@ -8,6 +8,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from .._files import atomic_open
 from .._resources import resolve_file
 
 if TYPE_CHECKING:
@@ -103,7 +104,8 @@ def write_json(data: Any, path: str | None) -> None:
         print(text)
     else:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
-        Path(path).write_text(text + "\n")
+        with atomic_open(path) as handle:
+            handle.write(text + "\n")
 
 
 def write_result(result: Any, path: str) -> None:

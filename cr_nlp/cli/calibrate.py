@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+from .._files import atomic_open
 from ._io import add_data_options, load_robot_arg, read_data_arg
 
 
@@ -44,7 +45,8 @@ def run(args: argparse.Namespace) -> int:
     calibrated["description"] = (f"{robot.name} calibrated by cr-nlp calibrate on "
                                  f"{Path(train.source).name} ({len(train)} rows; "
                                  f"validation error in actuation.model_error_*)")
-    Path(args.out).write_text(json.dumps(calibrated, indent=2) + "\n")
+    with atomic_open(args.out) as handle:
+        handle.write(json.dumps(calibrated, indent=2) + "\n")
     report = result.report()
     report["train_file"], report["validation_file"] = train.source, val.source if val else None
     print(f"calibrated {robot.name} on {len(train)} rows in {result.seconds:.1f} s "
@@ -77,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
 
         folder = Path(args.report)
         folder.mkdir(parents=True, exist_ok=True)
-        (folder / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+        with atomic_open(folder / "report.json") as handle:
+            handle.write(json.dumps(report, indent=2) + "\n")
         written = write_report_figures(result.robot, train, val, folder)
         print(f"report → {folder / 'report.json'}, " + ", ".join(p.name for p in written))
     return 0

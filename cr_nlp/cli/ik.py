@@ -78,12 +78,13 @@ def _write_commands(path: str, robot: object, displacements: object) -> None:
     """One row per target: ``target`` then the tendon displacements (m) by tendon name."""
     import csv
 
+    from .._files import atomic_open
     from ..tasks.trajectory import tendon_names
 
     if displacements is None:
         raise UsageError(f"--csv: {robot.name} has no actuation block (no calibrated zero); "
                          f"calibrate it with cr-nlp calibrate")
-    with open(path, "w", newline="") as handle:
+    with atomic_open(path, newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(["target", *tendon_names(robot)])
         for i, row in enumerate(displacements):

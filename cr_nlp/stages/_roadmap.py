@@ -33,8 +33,6 @@ import hashlib
 import io
 import json
 import math
-import os
-import tempfile
 import time
 from dataclasses import asdict, dataclass
 from functools import lru_cache
@@ -47,6 +45,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from .._files import write_atomic
 from .._jax_setup import cache_dir
 from .._programs import cached_jit
 from ..model import Robot, q_to_z, q_to_z_numpy, z_to_q_numpy
@@ -311,10 +310,7 @@ class Roadmap:
             np.savez(buffer, nodes_z=roadmap.nodes_z, data=e.data, indices=e.indices,
                      indptr=e.indptr, build_seconds=roadmap.build_seconds)
             # Write then rename, so a concurrent reader never sees half a file.
-            fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-            with os.fdopen(fd, "wb") as f:
-                f.write(buffer.getvalue())
-            os.replace(tmp, path)
+            write_atomic(path, buffer.getvalue())
         return roadmap
 
     @classmethod

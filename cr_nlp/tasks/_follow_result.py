@@ -10,6 +10,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from .._files import atomic_open
 from ..model import Robot
 from ..model.kinematics import pose_error, tip_pose
 from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
@@ -201,14 +202,15 @@ class FollowResult(ResultIO):
         if path.suffix != ".npz":
             return super().save(path, indent)
         path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(path, q=self.q, times=self.times, dt=self.dt,
-                 position=self.position, wxyz=self.wxyz,
-                 target_positions=self.path.positions, target_wxyz=self.path.wxyz,
-                 pose_error=self.pose_error, position_error=self.position_error,
-                 rotation_error=self.rotation_error, reached=self.reached,
-                 tendon_lengths=self.tendon_lengths, collision_free=self.collision_free,
-                 min_clearance=self.min_clearance, max_violation=self.max_violation,
-                 success=self.success, stage=self.stage, reason=self.reason)
+        with atomic_open(path, "wb") as handle:
+            np.savez(handle, q=self.q, times=self.times, dt=self.dt,
+                     position=self.position, wxyz=self.wxyz,
+                     target_positions=self.path.positions, target_wxyz=self.path.wxyz,
+                     pose_error=self.pose_error, position_error=self.position_error,
+                     rotation_error=self.rotation_error, reached=self.reached,
+                     tendon_lengths=self.tendon_lengths, collision_free=self.collision_free,
+                     min_clearance=self.min_clearance, max_violation=self.max_violation,
+                     success=self.success, stage=self.stage, reason=self.reason)
         return path
 
     def save_csv(self, path: str | Path) -> Path:

@@ -9,6 +9,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from .._files import atomic_open
 from ..model import Robot
 from ._result import ResultIO, array, nums, row_lists
 from ._timing import StageTiming
@@ -165,7 +166,7 @@ class IKResult(ResultIO):
                                      self.rotation_error, self.min_clearance,
                                      self.max_violation)]
         q = row_lists(self.q, [True] * len(self))
-        with path.open("w", newline="") as handle:
+        with atomic_open(path, newline="") as handle:
             writer = csv.writer(handle)
             writer.writerow(["target", "success", "pose_error", "position_error_m",
                              "rotation_error_rad", "min_clearance_m", "max_violation",

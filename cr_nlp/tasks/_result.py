@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
+from .._files import atomic_open
 from ..model.actuation import planned_displacements
 
 if TYPE_CHECKING:
@@ -92,10 +93,12 @@ def array(values: Any, width: int | None = None, name: str = "array") -> np.ndar
 
 
 def write_json(data: dict[str, Any], path: str | Path, indent: int | None = 2) -> Path:
-    """Write ``data`` as JSON to ``path`` (its folder made); returns the path."""
+    """Write ``data`` as JSON to ``path`` (its folder made; atomically: a reader sees the
+    old file or the whole new one); returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=indent) + "\n")
+    with atomic_open(path) as handle:
+        handle.write(json.dumps(data, indent=indent) + "\n")
     return path
 
 
@@ -105,7 +108,7 @@ def write_series_csv(path: str | Path, times: np.ndarray, names: list[str],
     (``values`` (T, len(names)), e.g. tendon lengths in m); returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as handle:
+    with atomic_open(path, newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(["time_s", *names])
         for t, row in zip(times, values, strict=True):

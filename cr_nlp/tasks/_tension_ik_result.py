@@ -9,6 +9,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from .._files import atomic_open
 from ..model import Robot
 from ._result import ResultIO, array, nums, row_lists
 from ._timing import StageTiming
@@ -102,7 +103,7 @@ class TensionIKResult(ResultIO):
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         n = self.robot.n_tendons
-        with path.open("w", newline="") as handle:
+        with atomic_open(path, newline="") as handle:
             writer = csv.writer(handle)
             writer.writerow(["target_x", "target_y", "target_z",
                              *(f"tension_{i + 1}_N" for i in range(n)),

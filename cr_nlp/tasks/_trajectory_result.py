@@ -10,6 +10,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from .._files import atomic_open
 from ..model import Robot
 from ._result import (
     SCHEMA_VERSION,
@@ -148,12 +149,16 @@ class TrajectoryResult(ResultIO):
     def save_npz(self, path: str | Path) -> None:
         """q, times, dt, tendon lengths and the scalar verdicts as a numpy .npz file."""
         n_t = self.robot.n_tendons
-        np.savez(path, q=self.q if self.q is not None else np.zeros((0, self.robot.dof)),
-                 times=self.times, dt=self.dt, success=self.success,
-                 tendon_lengths=(self.tendon_lengths if self.tendon_lengths is not None
-                                 else np.zeros((0, n_t))),
-                 path_length=self.path_length, min_clearance=self.min_clearance,
-                 max_violation=self.max_violation, reason=self.reason, stage=self.stage)
+        path = Path(path)
+        if not path.name.endswith(".npz"):  # as np.savez names a file
+            path = path.with_name(path.name + ".npz")
+        with atomic_open(path, "wb") as handle:
+            np.savez(handle, q=self.q if self.q is not None else np.zeros((0, self.robot.dof)),
+                     times=self.times, dt=self.dt, success=self.success,
+                     tendon_lengths=(self.tendon_lengths if self.tendon_lengths is not None
+                                     else np.zeros((0, n_t))),
+                     path_length=self.path_length, min_clearance=self.min_clearance,
+                     max_violation=self.max_violation, reason=self.reason, stage=self.stage)
 
 
 def controller_columns(robot: Robot, lengths: np.ndarray,
@@ -232,7 +237,8 @@ def save_results(results: list[TrajectoryResult], path: str | Path,
         if r.q is not None:
             arrays[f"q_{i}"] = r.q
             arrays[f"tendon_lengths_{i}"] = r.tendon_lengths
-    np.savez(path, **arrays)
+    with atomic_open(path, "wb") as handle:
+        np.savez(handle, **arrays)
     return path
 
 

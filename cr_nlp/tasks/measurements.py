@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .._files import atomic_open
+
 UNITS = {"m": 1.0, "mm": 1e-3}
 """Length units a data file may use, with their size in metres."""
 
@@ -127,7 +129,7 @@ def write_tip_csv(path: str | Path, tip: np.ndarray, units: str = "m",
     preceded by the ``extra`` columns (name → (N,) values, written as they are)."""
     scale = 1.0 / UNITS[units]
     extra = extra or {}
-    with open(path, "w", newline="") as handle:
+    with atomic_open(path, newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(list(extra) + list(columns))
         cols = [np.asarray(v) for v in extra.values()]

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from .._files import atomic_open
 from .._resources import models_root, resolve_file
 from ..model.robot import ModelFileError, _Checker, read_model_file
 
@@ -51,7 +52,8 @@ class ReferencePath:
 
     def save(self, path: str | Path) -> Path:
         path = Path(path)
-        path.write_text(json.dumps(self.to_dict(), indent=1) + "\n")
+        with atomic_open(path) as handle:
+            handle.write(json.dumps(self.to_dict(), indent=1) + "\n")
         return path
 
     @classmethod

@@ -21,6 +21,8 @@ def write_report_figures(robot: Robot, train: Measurements, validation: Measurem
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from ._figures import write_figure
+
     sets = [("train", train)] + ([("validation", validation)] if validation else [])
     predicted = {name: predict_tip(robot, d.commands) for name, d in sets}
     errors = {name: 1e3 * np.linalg.norm(predicted[name] - d.tip, axis=1) for name, d in sets}
@@ -37,7 +39,7 @@ def write_report_figures(robot: Robot, train: Measurements, validation: Measurem
     ax.legend()
     fig.tight_layout()
     paths = [folder / "errors.png"]
-    fig.savefig(paths[0], dpi=110)
+    write_figure(fig, paths[0], dpi=110)
     plt.close(fig)
 
     fig, axes = plt.subplots(3, len(sets), figsize=(6 * len(sets), 6), sharex="col",
@@ -53,6 +55,6 @@ def write_report_figures(robot: Robot, train: Measurements, validation: Measurem
     axes[0, 0].legend(loc="best")
     fig.tight_layout()
     paths.append(folder / "tip_paths.png")
-    fig.savefig(paths[1], dpi=110)
+    write_figure(fig, paths[1], dpi=110)
     plt.close(fig)
     return paths

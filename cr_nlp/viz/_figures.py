@@ -5,6 +5,7 @@ your own 3-D ``ax`` to draw into an interactive figure instead. Lengths in metre
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -15,6 +16,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
+from .._files import atomic_open
 from ..model.robot import Robot
 from ..world.scene import (
     BoxPart,
@@ -227,7 +229,23 @@ def save_figure(
     ax = draw(robot, q, scene, trajectory, targets, **options)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    ax.figure.savefig(path, dpi=dpi, bbox_inches="tight")
+    return write_figure(ax.figure, path, dpi=dpi, bbox_inches="tight")
+
+
+def write_figure(figure: Figure, path: str | Path, **options: Any) -> Path:
+    """``figure.savefig(path, **options)``, written atomically (a reader sees the old file
+    or the whole new one): the format by the suffix as ``savefig`` picks it (no suffix:
+    matplotlib's default format, its suffix added to the name). Returns the written path."""
+    import matplotlib
+
+    path = Path(path)
+    _, suffix = os.path.splitext(path.name)
+    file_format = suffix[1:].lower()
+    if not file_format:
+        file_format = matplotlib.rcParams["savefig.format"]
+        path = path.with_name(path.name.rstrip(".") + "." + file_format)
+    with atomic_open(path, "wb") as handle:
+        figure.savefig(handle, format=file_format, **options)
     return path
 
 

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from .._files import write_atomic
 from .._resources import models_root
 
 Box = tuple[tuple[float, float, float], tuple[float, float, float]]
@@ -221,14 +222,15 @@ def write_bundled(models_dir: str | Path | None = None) -> list[Path]:
     written = []
     for name, boxes in (("shelf", shelf_boards()), ("cabinet", cabinet_boards())):
         path = root / "meshes" / f"{name}.obj"
-        union_of_boxes(boxes).export(path, file_type="obj", include_normals=False)
+        text = union_of_boxes(boxes).export(file_type="obj", include_normals=False)
+        write_atomic(path, text.encode("utf-8"))  # as trimesh writes it to a path
         written.append(path)
     scenes = {"lattice": lattice_scene(), "random_27": random_spheres_scene(seed=0),
               "shelf": furniture_scene("shelf"), "cabinet": furniture_scene("cabinet"),
               **{f"follow_{s}": path_scene(s) for s in PATH_SPHERES}}
     for name, data in scenes.items():
         path = root / "scenes" / f"{name}.json"
-        path.write_text(_dump(data), encoding="utf-8")
+        write_atomic(path, _dump(data).encode("utf-8"))
         written.append(path)
     return written
 

@@ -19,14 +19,13 @@ import hashlib
 import io
 import json
 import math
-import os
-import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from .._files import write_atomic
 from .._jax_setup import cache_dir
 from .._resources import bundled_file, resolve_file
 from ..model.robot import ModelFileError, _Checker, read_model_file
@@ -304,10 +303,7 @@ def decompose_mesh(vertices: np.ndarray, faces: np.ndarray, content: bytes,
     buffer = io.BytesIO()
     np.savez(buffer, points=np.concatenate(parts), counts=np.array([len(p) for p in parts]))
     # Write then rename, so a concurrent reader never sees half a file.
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    with os.fdopen(fd, "wb") as f:
-        f.write(buffer.getvalue())
-    os.replace(tmp, path)
+    write_atomic(path, buffer.getvalue())
     return parts
 
 
