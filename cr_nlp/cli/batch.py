@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 
 from ._io import UsageError, fmt, load_robot_arg, load_scene_arg, read_problems, resolve
 
@@ -75,6 +76,11 @@ def _common(p: argparse.ArgumentParser) -> None:
     )
     where.add_argument("--scheduler", help="address of a running Dask scheduler (tcp://host:8786)")
     p.add_argument(
+        "--host",
+        help="address the LocalCluster listens on (default 127.0.0.1: this machine only; "
+        "another address makes it reachable from the network, with a warning)",
+    )
+    p.add_argument(
         "--chunk",
         type=int,
         help="problems per chunk, one Dask task each (default: about four "
@@ -90,12 +96,17 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the job, write DIR/results.json and print a one-line summary on stderr."""
-    from ..batch import BatchError, run_batch
+    from ..batch import BatchError, ExposedClusterWarning, exposure_warning, run_batch
 
     if args.workers is not None and args.workers < 1:
         raise UsageError(f"--workers must be at least 1, got {args.workers}")
     if args.chunk is not None and args.chunk < 1:
         raise UsageError(f"--chunk must be at least 1, got {args.chunk}")
+    if args.host is not None and args.scheduler is not None:
+        raise UsageError("--host is where a cluster started here listens: not with --scheduler")
+    exposed = exposure_warning(args.host) if args.host is not None else None
+    if exposed is not None:
+        print(f"cr-nlp batch: warning: {exposed}", file=sys.stderr)
     robot = load_robot_arg(args.robot)
     scene = load_scene_arg(args.scene)
     options = dict(
@@ -104,11 +115,14 @@ def run(args: argparse.Namespace) -> int:
         exact=args.exact,
         workers=args.workers,
         scheduler=args.scheduler,
+        host=args.host,
         chunk=args.chunk,
         resume=args.resume,
         progress=not args.no_progress,
     )
     try:
+        # The warning is printed above as one line, not again by start_local_cluster.
+        warnings.filterwarnings("ignore", category=ExposedClusterWarning)
         if args.kind == "ik":
             from ..tasks.ik import IKConfig, read_targets
 
