@@ -377,7 +377,15 @@ def test_the_page_shows_a_plan_result_in_headless_chromium() -> None:
         urllib.request.urlopen(view.url, timeout=5)
 
 
-def test_cli_view_prints_the_address_and_serves_the_page(tmp_path) -> None:
+def _ignore_sigint() -> None:
+    """What a shell does to a background job (``cr-nlp view &`` in a script)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_cli_view_prints_the_address_and_serves_the_page(stop, tmp_path) -> None:
+    """``cr-nlp view`` serves the page and stops within seconds on SIGINT or SIGTERM,
+    also when started with SIGINT ignored (before, it never stopped: a background job)."""
     _viewer_module()
     port = _free_port()
     env = dict(
@@ -408,6 +416,7 @@ def test_cli_view_prints_the_address_and_serves_the_page(tmp_path) -> None:
         stderr=subprocess.STDOUT,
         text=True,
         env=env,
+        preexec_fn=_ignore_sigint,
     )
     try:
         line = ""
@@ -418,9 +427,17 @@ def test_cli_view_prints_the_address_and_serves_the_page(tmp_path) -> None:
         assert f"http://127.0.0.1:{port}" in line, line
         with urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=30) as page:
             assert page.status == 200
+        process.send_signal(stop)
+        t0 = time.monotonic()
+        assert process.wait(timeout=15) == 0
+        seconds = time.monotonic() - t0
+        assert seconds < 10, f"stopped after {seconds:.1f} s"
+        with pytest.raises(OSError):  # the server is gone
+            urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=5)
     finally:
-        process.send_signal(signal.SIGINT)
-        assert process.wait(timeout=60) == 0
+        if process.poll() is None:
+            process.kill()
+            process.wait()
 
 
 def test_cli_view_rejects_a_result_for_another_robot(tmp_path, capsys) -> None:
