@@ -790,25 +790,31 @@ def _run_chunks(
     bar.set_postfix_str(f"chunks 0/{len(missing)}")
     failed: list[str] = []
     t0 = time.perf_counter()
-    for future in as_completed(list(futures)):
-        i = futures[future]
-        start, stop = ranges[i]
-        try:
-            record = future.result()
-        except Exception as exc:  # after Dask's retries (or a worker killed repeatedly)
-            failed.append(f"chunk {i}: {type(exc).__name__}: {exc}")
-            run["failed"].append(i)
-        else:
-            record.update(start=start, stop=stop, run=run_id)
-            write_chunk(chunk_file(out, i), record)
-            run["solved"].append(i)
-            done += 1
-        future.release()
-        run["seconds"] = time.perf_counter() - t0
-        # The run log only (resume reads the chunk files): atomic, not flushed to disk.
+    try:
+        for future in as_completed(list(futures)):
+            i = futures[future]
+            start, stop = ranges[i]
+            try:
+                record = future.result()
+            except Exception as exc:  # after Dask's retries (or a worker killed repeatedly)
+                failed.append(f"chunk {i}: {type(exc).__name__}: {exc}")
+                run["failed"].append(i)
+            else:
+                record.update(start=start, stop=stop, run=run_id)
+                write_chunk(chunk_file(out, i), record)
+                run["solved"].append(i)
+                done += 1
+            future.release()
+            run["seconds"] = time.perf_counter() - t0
+            # The run log only (resume reads the chunk files): atomic, not flushed to disk.
+            _write_atomic(out / MANIFEST, manifest, sync=False)
+            bar.update(stop - start)
+            bar.set_postfix_str(f"chunks {done}/{len(missing)}")
+    except KeyboardInterrupt:  # a stop (Ctrl-C, SIGTERM): the chunk files stay for resume
+        run["stopped"] = True
         _write_atomic(out / MANIFEST, manifest, sync=False)
-        bar.update(stop - start)
-        bar.set_postfix_str(f"chunks {done}/{len(missing)}")
+        bar.close()
+        raise
     bar.close()
     if failed:
         raise BatchError(

@@ -8,8 +8,12 @@ needs Linux but no extra package."""
 from __future__ import annotations
 
 import ipaddress
+import json
 import os
+import signal
+import subprocess
 import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -144,3 +148,84 @@ def test_starting_on_a_public_host_warns(monkeypatch) -> None:
         with pytest.raises(Started, match="0.0.0.0"):
             start_local_cluster(1, quiet=True, host="0.0.0.0")
     assert any(issubclass(w.category, ExposedClusterWarning) for w in caught)
+
+
+# ================================================================ stopping cr-nlp batch
+
+STOP_TARGETS = 60
+
+
+def _ignore_sigint() -> None:
+    """What a shell does to a background job (``cr-nlp batch … &`` in a script)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_a_stopped_batch_closes_its_cluster_and_resumes(tmp_path) -> None:
+    """SIGTERM to ``cr-nlp batch`` (started with SIGINT ignored, one local worker): it
+    exits with 143 and one line on how to resume, its worker processes are gone, the
+    chunks written stay; ``--resume`` then solves only the others."""
+    from cr_nlp.bench.ik import forward_kinematics
+    from cr_nlp.model import load_robot
+
+    from .conftest import ROOT, random_q
+
+    robot = load_robot("tdcr3")
+    positions, wxyz = forward_kinematics(robot, random_q(robot, STOP_TARGETS, seed=5))
+    targets = tmp_path / "targets.json"
+    targets.write_text(json.dumps({"poses": [
+        {"position": p.tolist(), "wxyz": w.tolist()} for p, w in zip(positions, wxyz, strict=True)
+    ]}))
+    out = tmp_path / "job"
+    command = [sys.executable, "-m", "cr_nlp.cli", "batch", "ik", "--robot", "tdcr3",
+               "--targets", str(targets), "--out", str(out), "--chunk", "1",
+               "--workers", "1", "--no-progress"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "MPLBACKEND": "Agg"}
+    proc = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, preexec_fn=_ignore_sigint)
+    try:
+        deadline = time.monotonic() + 300
+        while (not list(out.glob("chunk_*.npz")) and proc.poll() is None
+               and time.monotonic() < deadline):
+            time.sleep(0.005)
+        workers = [pid for pid in _descendants(proc.pid) if pid != proc.pid]
+        proc.send_signal(signal.SIGTERM)
+        t0 = time.monotonic()
+        _, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    seconds = time.monotonic() - t0
+    assert proc.returncode == 128 + signal.SIGTERM, stderr[-3000:]
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("cr-nlp batch: stopped by SIGTERM;") and "--resume" in last, last
+    assert f"of {STOP_TARGETS} chunks are written in {out}" in last, last
+    assert workers, "no worker process was seen"
+    deadline = time.monotonic() + 10
+    while any(_alive(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(pid) for pid in workers), "a worker outlived the stopped batch"
+    written = {p.name: p.stat().st_mtime_ns for p in out.glob("chunk_*.npz")}
+    assert 1 <= len(written) < STOP_TARGETS
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["runs"][-1].get("stopped") is True
+    assert not (out / "results.json").exists()
+    print(f"stopped {seconds:.1f} s after SIGTERM with {len(written)} chunks written")
+
+    done = subprocess.run([*command, "--resume"], env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    results = json.loads((out / "results.json").read_text())["results"]
+    assert len(results) == STOP_TARGETS
+    after = {p.name: p.stat().st_mtime_ns for p in out.glob("chunk_*.npz")}
+    assert {name: after[name] for name in written} == written  # not solved again
+    runs = json.loads((out / "manifest.json").read_text())["runs"]
+    assert len(runs[-1]["solved"]) == STOP_TARGETS - len(written)
