@@ -60,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"cr-nlp view: {viewer.url}  (Ctrl-C stops)", flush=True)
             viewer.wait()  # returns on the signal, the server stopped
         except KeyboardInterrupt:  # before wait() took over, or a second signal in it
+            # (a live-IK compile still in progress is then joined at exit)
             viewer.stop()
     return 0
 
