@@ -155,11 +155,6 @@ def test_starting_on_a_public_host_warns(monkeypatch) -> None:
 STOP_TARGETS = 60
 
 
-def _ignore_sigint() -> None:
-    """What a shell does to a background job (``cr-nlp batch … &`` in a script)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
 def _alive(pid: int) -> bool:
     try:
         state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
@@ -175,7 +170,7 @@ def test_a_stopped_batch_closes_its_cluster_and_resumes(tmp_path) -> None:
     from cr_nlp.bench.ik import forward_kinematics
     from cr_nlp.model import load_robot
 
-    from .conftest import ROOT, random_q
+    from .conftest import ROOT, random_q, sigint_ignored
 
     robot = load_robot("tdcr3")
     positions, wxyz = forward_kinematics(robot, random_q(robot, STOP_TARGETS, seed=5))
@@ -188,8 +183,9 @@ def test_a_stopped_batch_closes_its_cluster_and_resumes(tmp_path) -> None:
                "--targets", str(targets), "--out", str(out), "--chunk", "1",
                "--workers", "1", "--no-progress"]
     env = {**os.environ, "PYTHONPATH": str(ROOT), "MPLBACKEND": "Agg"}
-    proc = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True, preexec_fn=_ignore_sigint)
+    with sigint_ignored():  # as a shell starts a background job
+        proc = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 300
         while (not list(out.glob("chunk_*.npz")) and proc.poll() is None

@@ -39,6 +39,8 @@ from cr_nlp.model._ops import NUMPY
 from cr_nlp.model.kinematics import model_q_to_z, model_segment_frames
 from cr_nlp.model.rotations import matrix_from_wxyz, wxyz_from_matrix
 
+from .conftest import sigint_ignored
+
 DATA = Path(__file__).parent / "data"
 PLAN = DATA / "plan_shelf_result.json"
 FOLLOW = DATA / "follow_icra_result.json"
@@ -377,11 +379,6 @@ def test_the_page_shows_a_plan_result_in_headless_chromium() -> None:
         urllib.request.urlopen(view.url, timeout=5)
 
 
-def _ignore_sigint() -> None:
-    """What a shell does to a background job (``cr-nlp view &`` in a script)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
 @pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_cli_view_prints_the_address_and_serves_the_page(stop, tmp_path) -> None:
     """``cr-nlp view`` serves the page and stops within seconds on SIGINT or SIGTERM,
@@ -394,30 +391,30 @@ def test_cli_view_prints_the_address_and_serves_the_page(stop, tmp_path) -> None
             [str(Path(__file__).resolve().parent.parent), os.environ.get("PYTHONPATH", "")]
         ),
     )
-    process = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "cr_nlp.cli",
-            "view",
-            "--robot",
-            "tdcr3",
-            "--scene",
-            "lattice",
-            "--result",
-            str(PLAN.with_name("ik_lattice_result.json")),
-            "--targets",
-            "tdcr3_lattice",
-            "--port",
-            str(port),
-            "--no-live-ik",
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=env,
-        preexec_fn=_ignore_sigint,
-    )
+    with sigint_ignored():  # as a shell starts a background job
+        process = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "cr_nlp.cli",
+                "view",
+                "--robot",
+                "tdcr3",
+                "--scene",
+                "lattice",
+                "--result",
+                str(PLAN.with_name("ik_lattice_result.json")),
+                "--targets",
+                "tdcr3_lattice",
+                "--port",
+                str(port),
+                "--no-live-ik",
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=env,
+        )
     try:
         line = ""
         deadline = time.monotonic() + 180
