@@ -48,6 +48,7 @@ import pickle
 import sys
 import threading
 import time
+import warnings
 import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -82,9 +83,17 @@ DEVICES_ENV = "CR_NLP_BATCH_DEVICES"
 ``start_local_cluster``: the cores divided among the workers)."""
 
 
+LOCAL_HOST = "127.0.0.1"
+"""Where ``start_local_cluster`` listens by default: this machine only."""
+
+
 class BatchError(ValueError):
     """A job that cannot run as asked: a directory holding another job, a resume that
     does not match, chunks that failed after Dask's retries."""
+
+
+class ExposedClusterWarning(UserWarning):
+    """A local cluster asked to listen on an address other machines can reach."""
 
 
 # ================================================================ the job
@@ -444,11 +453,48 @@ def worker_env(workers: int) -> dict[str, str]:
     return {DEVICES_ENV: str(devices), "XLA_FLAGS": " ".join(flags)}
 
 
-def start_local_cluster(workers: int | None = None, quiet: bool = False) -> Any:
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` (an address or a name) is reachable from this machine only: a
+    loopback address, or a name that resolves to loopback addresses only ("localhost")."""
+    import ipaddress
+    import socket
+
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        pass
+    if not host:  # "" is every interface
+        return False
+    try:
+        found = {info[4][0] for info in socket.getaddrinfo(host, None)}
+    except OSError:
+        return False
+    return bool(found) and all(ipaddress.ip_address(a.split("%")[0]).is_loopback for a in found)
+
+
+def exposure_warning(host: str) -> str | None:
+    """The warning for a local cluster listening on ``host``, None for a loopback host."""
+    if is_loopback(host):
+        return None
+    where = host or "every interface"
+    return (
+        f"the Dask cluster listens on {where}: its scheduler, workers and dashboard are "
+        f"reachable from the network, and a Dask scheduler runs whatever code a client "
+        f"sends it (use --host 127.0.0.1 unless other machines must connect)"
+    )
+
+
+def start_local_cluster(
+    workers: int | None = None, quiet: bool = False, host: str = LOCAL_HOST
+) -> Any:
     """A ``distributed.Client`` on a new ``LocalCluster`` of ``workers`` worker processes
     (default one per usable core), one thread each; each worker's JAX gets the cores
     divided among the workers as host devices. Prints the dashboard address on stderr
     unless ``quiet``. Close both with ``close_cluster(client)``.
+
+    The scheduler, its dashboard, the nannies and the workers listen on ``host`` (default
+    127.0.0.1: this machine only; Dask's own default puts the dashboard on every
+    interface). Another host issues an ``ExposedClusterWarning`` (``exposure_warning``).
 
     The workers start without Dask's default ``MALLOC_TRIM_THRESHOLD_=65536``: setting it
     turns off glibc's adaptive mmap threshold, so every array over 128 KiB is mapped
@@ -457,19 +503,28 @@ def start_local_cluster(workers: int | None = None, quiet: bool = False) -> Any:
     scheduler and workers also run with ``QUIET_WORKERS``' lighter diagnostics (no
     statistical profiler; the dashboard's other pages remain)."""
     import dask
-    from distributed import Client, LocalCluster
+    import distributed
+    from distributed import Client
 
     cores = len(os.sched_getaffinity(0))
     workers = int(workers or cores)
     if workers < 1:
         raise BatchError(f"workers must be at least 1, got {workers}")
+    message = exposure_warning(host)
+    if message is not None:
+        warnings.warn(message, ExposedClusterWarning, stacklevel=2)
+    # Dask wants an IPv6 host in brackets, and splits a dashboard "HOST:PORT" at every
+    # colon (an IPv6 dashboard address as a pair, without them).
+    address = host.strip("[]")
+    ipv6 = ":" in address
     # Read when the scheduler and the nannies are made (here).
     with dask.config.set({f"{PRE_SPAWN}.MALLOC_TRIM_THRESHOLD_": None, **QUIET_WORKERS}):
-        cluster = LocalCluster(
+        cluster = distributed.LocalCluster(
             n_workers=workers,
             threads_per_worker=1,
             processes=True,
-            dashboard_address=":0",
+            host=f"[{address}]" if ipv6 else address,
+            dashboard_address=(address, 0) if ipv6 else f"{address}:0",
             env=worker_env(workers),
             # The nanny sets this config in every worker process it starts, also when it
             # restarts a dead one after this block has restored the defaults (without it,
@@ -524,6 +579,7 @@ def run_batch(
     client: Any = None,
     workers: int | None = None,
     scheduler: str | None = None,
+    host: str | None = None,
     chunk: int | None = None,
     resume: bool = False,
     progress: bool = True,
@@ -547,6 +603,8 @@ def run_batch(
         client: a ``distributed.Client`` to run on. Else ``scheduler`` (the address of a
             running Dask scheduler), else a new ``LocalCluster`` of ``workers`` processes
             (default one per core), closed at the end.
+        host: where that new ``LocalCluster`` listens (default 127.0.0.1, this machine
+            only; another address warns that the cluster is reachable from the network).
         chunk: problems per chunk (one Dask task); default ``default_chunk``, or the
             manifest's on resume.
         resume: solve only the chunks missing from ``out_dir`` (the same job: refused
@@ -571,6 +629,8 @@ def run_batch(
         raise BatchError(f"kind must be one of {KINDS}, got {kind!r}")
     if sum(x is not None for x in (client, workers, scheduler)) > 1:
         raise BatchError("give at most one of client, workers and scheduler")
+    if host is not None and (client is not None or scheduler is not None):
+        raise BatchError("host is where a new local cluster listens: not with client or scheduler")
     jobs = _ADAPTERS[kind]
     robot = load_robot(robot)
     scene = load_scene(scene) if isinstance(scene, (str, Path, dict)) else scene
@@ -617,7 +677,9 @@ def run_batch(
 
                 client = own_client = Client(scheduler)
             else:
-                client = own_client = start_local_cluster(workers, quiet=not progress)
+                client = own_client = start_local_cluster(
+                    workers, quiet=not progress, host=host or LOCAL_HOST
+                )
         if not manifest:
             slots = max(sum(client.nthreads().values()), 1)
             size = int(chunk or default_chunk(kind, count, slots, exact))
@@ -719,25 +781,31 @@ def _run_chunks(
     bar.set_postfix_str(f"chunks 0/{len(missing)}")
     failed: list[str] = []
     t0 = time.perf_counter()
-    for future in as_completed(list(futures)):
-        i = futures[future]
-        start, stop = ranges[i]
-        try:
-            record = future.result()
-        except Exception as exc:  # after Dask's retries (or a worker killed repeatedly)
-            failed.append(f"chunk {i}: {type(exc).__name__}: {exc}")
-            run["failed"].append(i)
-        else:
-            record.update(start=start, stop=stop, run=run_id)
-            write_chunk(chunk_file(out, i), record)
-            run["solved"].append(i)
-            done += 1
-        future.release()
-        run["seconds"] = time.perf_counter() - t0
-        # The run log only (resume reads the chunk files): atomic, not flushed to disk.
+    try:
+        for future in as_completed(list(futures)):
+            i = futures[future]
+            start, stop = ranges[i]
+            try:
+                record = future.result()
+            except Exception as exc:  # after Dask's retries (or a worker killed repeatedly)
+                failed.append(f"chunk {i}: {type(exc).__name__}: {exc}")
+                run["failed"].append(i)
+            else:
+                record.update(start=start, stop=stop, run=run_id)
+                write_chunk(chunk_file(out, i), record)
+                run["solved"].append(i)
+                done += 1
+            future.release()
+            run["seconds"] = time.perf_counter() - t0
+            # The run log only (resume reads the chunk files): atomic, not flushed to disk.
+            _write_atomic(out / MANIFEST, manifest, sync=False)
+            bar.update(stop - start)
+            bar.set_postfix_str(f"chunks {done}/{len(missing)}")
+    except KeyboardInterrupt:  # a stop (Ctrl-C, SIGTERM): the chunk files stay for resume
+        run["stopped"] = True
         _write_atomic(out / MANIFEST, manifest, sync=False)
-        bar.update(stop - start)
-        bar.set_postfix_str(f"chunks {done}/{len(missing)}")
+        bar.close()
+        raise
     bar.close()
     if failed:
         raise BatchError(

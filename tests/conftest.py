@@ -9,8 +9,10 @@ turns x64 on for that test only."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import signal
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -109,3 +111,15 @@ def random_q(robot: Robot, count: int, seed: int) -> np.ndarray:
     """``count`` configurations drawn uniformly inside the robot's limits (rad, rad, m)."""
     lo, hi = robot.q_bounds()
     return np.random.default_rng(seed).uniform(lo, hi, (count, robot.dof))
+
+
+@contextlib.contextmanager
+def sigint_ignored() -> Iterator[None]:
+    """SIGINT ignored in this process while the block starts a subprocess, which inherits
+    it, as a shell's background job does. (Not ``preexec_fn``: forking a multithreaded
+    process to run Python in the child can deadlock.)"""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)

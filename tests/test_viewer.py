@@ -39,6 +39,8 @@ from cr_nlp.model._ops import NUMPY
 from cr_nlp.model.kinematics import model_q_to_z, model_segment_frames
 from cr_nlp.model.rotations import matrix_from_wxyz, wxyz_from_matrix
 
+from .conftest import sigint_ignored
+
 DATA = Path(__file__).parent / "data"
 PLAN = DATA / "plan_shelf_result.json"
 FOLLOW = DATA / "follow_icra_result.json"
@@ -377,7 +379,10 @@ def test_the_page_shows_a_plan_result_in_headless_chromium() -> None:
         urllib.request.urlopen(view.url, timeout=5)
 
 
-def test_cli_view_prints_the_address_and_serves_the_page(tmp_path) -> None:
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_cli_view_prints_the_address_and_serves_the_page(stop, tmp_path) -> None:
+    """``cr-nlp view`` serves the page and stops within seconds on SIGINT or SIGTERM,
+    also when started with SIGINT ignored (before, it never stopped: a background job)."""
     _viewer_module()
     port = _free_port()
     env = dict(
@@ -386,29 +391,30 @@ def test_cli_view_prints_the_address_and_serves_the_page(tmp_path) -> None:
             [str(Path(__file__).resolve().parent.parent), os.environ.get("PYTHONPATH", "")]
         ),
     )
-    process = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "cr_nlp.cli",
-            "view",
-            "--robot",
-            "tdcr3",
-            "--scene",
-            "lattice",
-            "--result",
-            str(PLAN.with_name("ik_lattice_result.json")),
-            "--targets",
-            "tdcr3_lattice",
-            "--port",
-            str(port),
-            "--no-live-ik",
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=env,
-    )
+    with sigint_ignored():  # as a shell starts a background job
+        process = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "cr_nlp.cli",
+                "view",
+                "--robot",
+                "tdcr3",
+                "--scene",
+                "lattice",
+                "--result",
+                str(PLAN.with_name("ik_lattice_result.json")),
+                "--targets",
+                "tdcr3_lattice",
+                "--port",
+                str(port),
+                "--no-live-ik",
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=env,
+        )
     try:
         line = ""
         deadline = time.monotonic() + 180
@@ -418,9 +424,17 @@ def test_cli_view_prints_the_address_and_serves_the_page(tmp_path) -> None:
         assert f"http://127.0.0.1:{port}" in line, line
         with urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=30) as page:
             assert page.status == 200
+        process.send_signal(stop)
+        t0 = time.monotonic()
+        assert process.wait(timeout=15) == 0
+        seconds = time.monotonic() - t0
+        assert seconds < 10, f"stopped after {seconds:.1f} s"
+        with pytest.raises(OSError):  # the server is gone
+            urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=5)
     finally:
-        process.send_signal(signal.SIGINT)
-        assert process.wait(timeout=60) == 0
+        if process.poll() is None:
+            process.kill()
+            process.wait()
 
 
 def test_cli_view_rejects_a_result_for_another_robot(tmp_path, capsys) -> None:

@@ -1,10 +1,14 @@
 """What the subcommands share: the usage error, number and JSON input/output, the resolver
-of file-or-bundled-name arguments. Imports no subcommand (and nothing heavy: JAX starts
-only when a subcommand runs)."""
+of file-or-bundled-name arguments, the stop on SIGINT and SIGTERM. Imports no subcommand
+(and nothing heavy: JAX starts only when a subcommand runs)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
+import signal
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -21,6 +25,41 @@ if TYPE_CHECKING:
 
 class UsageError(Exception):
     """Bad command-line input: printed as one line, exit status 2."""
+
+
+class Stopped(KeyboardInterrupt):
+    """SIGINT or SIGTERM arrived while a command ran under ``stop_on_signals``. A
+    ``KeyboardInterrupt``, so that every ``finally`` and ``except KeyboardInterrupt`` on
+    the way out runs (the viewer stops its server, a batch closes its cluster)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+        """The signal's number: the command exits with 128 + signum when it fails."""
+        self.name = signal.Signals(signum).name
+        """"SIGINT" or "SIGTERM"."""
+
+
+@contextlib.contextmanager
+def stop_on_signals() -> Iterator[None]:
+    """Raise ``Stopped`` in the main thread on SIGINT and SIGTERM while the block runs,
+    whatever this process inherited: a shell starts a background job with SIGINT
+    ignored (Python then leaves it ignored), and SIGTERM's default ends the process
+    without running any cleanup. The previous handlers are restored afterwards; outside
+    the main thread (where Python cannot set handlers) this does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum: int, frame: Any) -> None:
+        raise Stopped(signum)
+
+    previous = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)
 
 
 def resolve(value: str, kind: str, option: str) -> Path:

@@ -8,9 +8,21 @@ The input files are those of ``cr-nlp ik`` (``--targets``) and ``cr-nlp plan``
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+import warnings
+from pathlib import Path
 
-from ._io import UsageError, fmt, load_robot_arg, load_scene_arg, read_problems, resolve
+from ._io import (
+    Stopped,
+    UsageError,
+    fmt,
+    load_robot_arg,
+    load_scene_arg,
+    read_problems,
+    resolve,
+    stop_on_signals,
+)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -75,6 +87,11 @@ def _common(p: argparse.ArgumentParser) -> None:
     )
     where.add_argument("--scheduler", help="address of a running Dask scheduler (tcp://host:8786)")
     p.add_argument(
+        "--host",
+        help="address the LocalCluster listens on (default 127.0.0.1: this machine only; "
+        "another address makes it reachable from the network, with a warning)",
+    )
+    p.add_argument(
         "--chunk",
         type=int,
         help="problems per chunk, one Dask task each (default: about four "
@@ -89,13 +106,50 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the job, write DIR/results.json and print a one-line summary on stderr."""
-    from ..batch import BatchError, run_batch
+    """Run the job, write DIR/results.json and print a one-line summary on stderr.
+
+    SIGINT and SIGTERM (also when the shell started this with SIGINT ignored) close the
+    cluster, keep the chunks written so far and exit with 128 + the signal's number,
+    saying how to resume."""
+    from ..batch import ExposedClusterWarning, exposure_warning
 
     if args.workers is not None and args.workers < 1:
         raise UsageError(f"--workers must be at least 1, got {args.workers}")
     if args.chunk is not None and args.chunk < 1:
         raise UsageError(f"--chunk must be at least 1, got {args.chunk}")
+    if args.host is not None and args.scheduler is not None:
+        raise UsageError("--host is where a cluster started here listens: not with --scheduler")
+    exposed = exposure_warning(args.host) if args.host is not None else None
+    if exposed is not None:
+        print(f"cr-nlp batch: warning: {exposed}", file=sys.stderr)
+    with stop_on_signals(), warnings.catch_warnings():
+        # Printed above as one line, not again by start_local_cluster.
+        warnings.simplefilter("ignore", ExposedClusterWarning)
+        try:
+            return _solve(args)
+        except Stopped as stopped:
+            print(f"cr-nlp batch: stopped by {stopped.name}; {_left(Path(args.out))}",
+                  file=sys.stderr)
+            return 128 + stopped.signum
+
+
+def _left(out: Path) -> str:
+    """What a stopped job left in ``out`` and how to finish it."""
+    from ..batch import MANIFEST
+
+    written = len(list(out.glob("chunk_*.npz")))
+    try:
+        total = f" of {json.loads((out / MANIFEST).read_text())['chunks']}"
+    except (OSError, ValueError, KeyError, TypeError):
+        total = ""
+    return (f"{written}{total} chunks are written in {out}; rerun the same command with "
+            f"--resume to solve the rest")
+
+
+def _solve(args: argparse.Namespace) -> int:
+    """The job of ``run``: its exit status."""
+    from ..batch import BatchError, run_batch
+
     robot = load_robot_arg(args.robot)
     scene = load_scene_arg(args.scene)
     options = dict(
@@ -104,6 +158,7 @@ def run(args: argparse.Namespace) -> int:
         exact=args.exact,
         workers=args.workers,
         scheduler=args.scheduler,
+        host=args.host,
         chunk=args.chunk,
         resume=args.resume,
         progress=not args.no_progress,

@@ -4,9 +4,14 @@ and a result of ``cr-nlp ik``, ``plan`` or ``follow``; live IK by dragging a tar
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from ._io import UsageError, load_robot_arg, load_scene_arg, resolve
+from ._io import Stopped, UsageError, load_robot_arg, load_scene_arg, resolve, stop_on_signals
+
+if TYPE_CHECKING:
+    from ..viz.viewer import Viewer
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -43,7 +48,25 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Serve the viewer, print its address and wait for Ctrl-C."""
+    """Serve the viewer, print its address and wait for SIGINT (Ctrl-C) or SIGTERM, also
+    when the shell started this with SIGINT ignored; then stop the server and exit 0."""
+    with stop_on_signals():
+        try:
+            viewer = _start(args)
+        except Stopped as stopped:
+            print(f"cr-nlp view: stopped by {stopped.name} while starting", file=sys.stderr)
+            return 128 + stopped.signum
+        try:
+            print(f"cr-nlp view: {viewer.url}  (Ctrl-C stops)", flush=True)
+            viewer.wait()  # returns on the signal, the server stopped
+        except KeyboardInterrupt:  # before wait() took over, or a second signal in it
+            # (a live-IK compile still in progress is then joined at exit)
+            viewer.stop()
+    return 0
+
+
+def _start(args: argparse.Namespace) -> Viewer:
+    """The ``Viewer`` of ``args``, serving."""
     try:
         from ..viz.viewer import Viewer, targets_of
     except ImportError as exc:
@@ -60,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UsageError(f"--targets: {exc}") from None
     try:
-        viewer = Viewer(
+        return Viewer(
             robot,
             scene,
             args.result,
@@ -74,9 +97,3 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--result: {exc}") from None
     except OSError as exc:
         raise UsageError(f"--port: cannot listen on {args.host}:{args.port}: {exc}") from None
-    try:
-        print(f"cr-nlp view: {viewer.url}  (Ctrl-C stops)", flush=True)
-        viewer.wait()
-    except KeyboardInterrupt:  # Ctrl-C before wait() took over
-        viewer.stop()
-    return 0
