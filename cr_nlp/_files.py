@@ -8,12 +8,17 @@ the old complete file or the new complete one, never part of one; a writer kille
 moment leaves the old file (or none) in place, at worst beside a hidden temporary file.
 A writer that raises removes its temporary file. Standard library only: ``import cr_nlp``
 stays light.
+
+``read_json_file`` is the one reader of the JSON input files (robots, scenes, paths,
+targets, problems, statics cases, results): UTF-8 text, parsed, with one ``ValueError``
+saying what is wrong, which each loader words with the file's name and its error type.
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -96,3 +101,30 @@ def _sync_folder(folder: Path) -> None:
         pass
     finally:
         os.close(fd)
+
+
+class UnreadableJSON(ValueError):
+    """A file that is not UTF-8 JSON text; the message says what is wrong, not which file
+    (the loader that reads it names the file)."""
+
+
+def read_json_file(path: str | os.PathLike) -> Any:
+    """The parsed content of a JSON file (UTF-8 text).
+
+    Raises:
+        OSError: the file cannot be read (``FileNotFoundError`` for a missing one).
+        UnreadableJSON: "not UTF-8 text: …" or "not valid JSON: …" (with the line and
+            column), never a raw ``UnicodeDecodeError`` or ``JSONDecodeError``.
+    """
+    data = Path(path).read_bytes()
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise UnreadableJSON(f"not UTF-8 text: byte 0x{data[exc.start]:02x} at position "
+                             f"{exc.start}") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise UnreadableJSON(f"not valid JSON: {exc}") from None
+    except RecursionError:
+        raise UnreadableJSON("not valid JSON: nested too deeply") from None

@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import signal
 import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .._files import atomic_open
+from .._files import UnreadableJSON, atomic_open, read_json_file
 from .._resources import resolve_file
 
 if TYPE_CHECKING:
@@ -110,30 +111,69 @@ def parse_vector3(text: str | None, what: str) -> list[float] | None:
 def read_json(path: str | Path, what: str) -> Any:
     """The JSON content of ``path``; a missing or invalid file is a usage error."""
     try:
-        return json.loads(Path(path).read_text())
+        return read_json_file(path)
     except FileNotFoundError:
         raise UsageError(f"{what}: file not found: {path}") from None
-    except json.JSONDecodeError as exc:
-        raise UsageError(f"{what}: {path} is not valid JSON: {exc}") from None
+    except OSError as exc:
+        raise UsageError(f"{what}: {path}: cannot read: {exc}") from None
+    except UnreadableJSON as exc:
+        raise UsageError(f"{what}: {path} is {exc}") from None
 
 
 def read_problems(path: str | Path) -> tuple[list[Any], list[Any], int | None, float | None]:
-    """Starts, goals (raw rows, validated later per problem), horizon and dt."""
+    """Starts, goals (raw rows, validated later per problem), horizon and dt.
+
+    Raises:
+        UsageError: naming the file and the field: not of the problems file's shape, an
+            unknown key, or a horizon (an integer 2…``MAX_HORIZON``) or dt (seconds,
+            positive and finite) out of range.
+    """
     data = read_json(path, "--problems")
     if not isinstance(data, dict) or not isinstance(data.get("problems"), list):
         raise UsageError(f'--problems: {path} must hold {{"problems": [{{"start": [...], '
                          f'"goal": [...]}}, ...]}}')
+    unknown = sorted(set(data) - _PROBLEMS_KEYS)
+    if unknown:
+        raise UsageError(f"--problems: {path}: field {unknown[0]!r}: unknown key (allowed: "
+                         f"{', '.join(sorted(_PROBLEMS_KEYS))})")
     horizon, dt = data.get("horizon"), data.get("dt")
-    if horizon is not None and (not isinstance(horizon, int) or horizon < 2):
-        raise UsageError(f"--problems: horizon must be an integer ≥ 2, got {horizon!r}")
-    if dt is not None and (not isinstance(dt, (int, float)) or not dt > 0):
-        raise UsageError(f"--problems: dt must be a positive number of seconds, got {dt!r}")
+    if horizon is not None and (isinstance(horizon, bool) or not isinstance(horizon, int)
+                                or not 2 <= horizon <= MAX_HORIZON):
+        raise UsageError(f"--problems: {path}: field 'horizon': must be an integer from 2 "
+                         f"to {MAX_HORIZON}, got {_short(horizon)}")
+    seconds = (_as_float(dt) if isinstance(dt, (int, float)) and not isinstance(dt, bool)
+               else math.nan)
+    if dt is not None and not 0 < seconds < math.inf:
+        raise UsageError(f"--problems: {path}: field 'dt': must be a positive, finite number "
+                         f"of seconds, got {_short(dt)}")
     starts, goals = [], []
-    for entry in data["problems"]:
+    for i, entry in enumerate(data["problems"]):
         ok = isinstance(entry, dict)
+        unknown = sorted(set(entry) - {"start", "goal"}) if ok else []
+        if unknown:
+            raise UsageError(f"--problems: {path}: field 'problems[{i}].{unknown[0]}': "
+                             f"unknown key (allowed: goal, start)")
         starts.append(entry.get("start") if ok else None)
         goals.append(entry.get("goal") if ok else None)
-    return starts, goals, horizon, (float(dt) if dt is not None else None)
+    return starts, goals, horizon, (seconds if dt is not None else None)
+
+
+def _as_float(value: int | float) -> float:
+    try:
+        return float(value)
+    except OverflowError:  # an integer past float's range
+        return math.inf
+
+
+def _short(value: Any) -> str:
+    """``repr`` of a file's value, cut to 40 characters."""
+    text = repr(value)
+    return text if len(text) <= 40 else f"{text[:37]}..."
+
+
+MAX_HORIZON = 10_000
+"""Most trajectory steps a problems file may ask for (the default plan has 23)."""
+_PROBLEMS_KEYS = {"problems", "horizon", "dt", "description", "robot", "scene", "name"}
 
 
 def write_json(data: Any, path: str | None) -> None:

@@ -52,7 +52,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Follow the path, write RESULT and print a one-line summary on stderr."""
-    import json
     import math
 
     from ..tasks.follow import FollowConfig, PathFollower
@@ -60,10 +59,7 @@ def run(args: argparse.Namespace) -> int:
 
     robot = load_robot_arg(args.robot)
     scene = load_scene_arg(args.scene)
-    try:
-        path = load_path(resolve(args.path, "paths", "--path"))
-    except json.JSONDecodeError as exc:
-        raise UsageError(f"--path: {args.path} is not valid JSON: {exc}") from None
+    path = load_path(resolve(args.path, "paths", "--path"))
     if args.dt is not None and not (math.isfinite(args.dt) and args.dt > 0):
         raise UsageError(f"--dt must be a positive number of seconds, got {args.dt}")
     follower = PathFollower(robot, scene, FollowConfig(

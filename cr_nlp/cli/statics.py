@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 from typing import Any
 
 from ._io import UsageError, load_robot_arg, parse_numbers, parse_vector3, read_json, write_json
@@ -39,13 +40,32 @@ def _cases_from_file(path: str, n_tendons: int) -> tuple[list, list, list]:
         t = case["tensions"]
         if not isinstance(t, list) or len(t) != n_tendons:
             raise UsageError(f"{path}: cases[{i}].tensions: expected {n_tendons} numbers")
-        tensions.append(t)
+        tensions.append(_numbers(path, f"cases[{i}].tensions", t, nonnegative=True))
         for key, out in (("tip_force", forces), ("tip_moment", moments)):
             value = case.get(key, [0.0, 0.0, 0.0])
             if not isinstance(value, list) or len(value) != 3:
                 raise UsageError(f"{path}: cases[{i}].{key}: expected 3 numbers")
-            out.append(value)
+            out.append(_numbers(path, f"cases[{i}].{key}", value))
     return tensions, forces, moments
+
+
+def _numbers(path: str, field: str, values: list, nonnegative: bool = False) -> list[float]:
+    """Finite floats (≥ 0 with ``nonnegative``: tensions pull) of a cases file's list."""
+    out = []
+    for j, value in enumerate(values):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise UsageError(f"{path}: {field}[{j}]: expected a number, got {value!r:.40}")
+        try:
+            x = float(value)
+        except OverflowError:  # an integer past float's range
+            x = math.inf
+        if not math.isfinite(x):
+            raise UsageError(f"{path}: {field}[{j}]: must be finite, got {value!r:.40}")
+        if nonnegative and x < 0:
+            raise UsageError(f"{path}: {field}[{j}]: a tension must not be negative (a "
+                             f"tendon pulls), got {value!r}")
+        out.append(x)
+    return out
 
 
 def run(args: argparse.Namespace) -> int:

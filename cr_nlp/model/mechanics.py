@@ -15,6 +15,8 @@ from typing import Any
 _MECHANICS_KEYS = {"youngs_modulus", "poisson_ratio", "backbone_outer_radius",
                    "backbone_inner_radius", "linear_density", "disks_per_segment",
                    "disk_mass", "tension_max"}
+MAX_DISKS_PER_SEGMENT = 1000
+"""Most spacer disks per segment a ``mechanics`` block may list (each is a point load)."""
 _REQUIRED = {"youngs_modulus", "poisson_ratio", "backbone_outer_radius"}
 
 
@@ -108,7 +110,7 @@ def parse_mechanics(c: Any, raw: Any, n_segments: int) -> Mechanics:
         raise c.fail("mechanics.disks_per_segment",
                      f"expected a list of {n_segments} integers (one per segment), "
                      f"got {raw_disks!r}")
-    disks = tuple(c.integer(v, f"mechanics.disks_per_segment[{i}]", 1)
+    disks = tuple(c.integer(v, f"mechanics.disks_per_segment[{i}]", 1, MAX_DISKS_PER_SEGMENT)
                   for i, v in enumerate(raw_disks))
     disk_mass = c.number(d.get("disk_mass", 0.0), "mechanics.disk_mass", nonnegative=True)
     tension_max = (c.number(d["tension_max"], "mechanics.tension_max", positive=True)

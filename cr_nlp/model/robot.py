@@ -7,7 +7,6 @@ what is wrong, before anything reaches JAX or CasADi.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,6 +14,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
+from .._files import UnreadableJSON, read_json_file
 from .._resources import resolve_file
 from ._actuation_block import parse_actuation
 from .mechanics import Mechanics, parse_mechanics
@@ -145,7 +145,11 @@ class Robot:
         segment's length; θ must lie in [0, θmax], L in its range (radians, metres).
         Raises ``ValueError`` naming the offending entry.
         """
-        v = np.asarray(values, dtype=float).reshape(-1)
+        try:
+            v = np.asarray(values, dtype=float).reshape(-1)
+        except OverflowError:  # an integer past float's range
+            raise ValueError(f"{self.name}: configuration has non-finite entries "
+                             f"(a number too large for a float)") from None
         fixed = self.lengths_fixed()
         short = 3 * self.n_segments - int(fixed.sum())
         if v.size == self.dof:
@@ -235,15 +239,13 @@ def read_model_file(path: str | Path) -> Any:
     ``ModelFileError`` naming it."""
     source = str(path)
     try:
-        text = Path(path).read_text()
+        return read_json_file(path)
     except FileNotFoundError:
         raise ModelFileError(source, "<file>", "file not found") from None
     except OSError as exc:
         raise ModelFileError(source, "<file>", f"cannot read: {exc}") from None
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise ModelFileError(source, "<file>", f"not valid JSON: {exc}") from None
+    except UnreadableJSON as exc:
+        raise ModelFileError(source, "<file>", str(exc)) from None
 
 
 def load_robot(robot: str | Path | Robot | dict) -> Robot:
@@ -264,12 +266,24 @@ def load_robot(robot: str | Path | Robot | dict) -> Robot:
 
 # ---------------------------------------------------------------- validation helpers
 
+MAX_POINTS_PER_SEGMENT = 1000
+"""Most backbone points per segment a robot file may ask for (the bundled robots use 10);
+past it the collision model's arrays, not the file, would be the error."""
+MAX_TENDONS_PER_SEGMENT = 64
+"""Most tendons per segment a robot file may ask for (the bundled robots have 3)."""
+
 _TOP_KEYS = {"name", "description", "segments", "backbone_radius", "points_per_segment",
              "tendons", "base", "tendon_speed_max", "tendon_accel_max", "actuation",
              "self_collision", "mechanics"}
 _SEGMENT_KEYS = {"length", "theta_max", "phi_range", "name"}
 _TENDON_KEYS = {"per_segment", "radius", "offsets", "routing"}
 _BASE_KEYS = {"position", "wxyz"}
+
+
+def _short(value: Any) -> str:
+    """``repr`` of a file's value, cut to 40 characters (a 400-digit integer stays readable)."""
+    text = repr(value)
+    return text if len(text) <= 40 else f"{text[:37]}..."
 
 
 class _Checker:
@@ -296,25 +310,30 @@ class _Checker:
                nonnegative: bool = False) -> float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise self.fail(path, f"expected a number, got {type(value).__name__} {value!r}")
-        x = float(value)
+        try:
+            x = float(value)
+        except OverflowError:  # an integer past float's range (JSON allows any length)
+            x = math.inf
         if not math.isfinite(x):
-            raise self.fail(path, f"must be finite, got {value!r}")
+            raise self.fail(path, f"must be finite, got {_short(value)}")
         if positive and x <= 0:
             raise self.fail(path, f"must be positive, got {value!r}")
         if nonnegative and x < 0:
             raise self.fail(path, f"must not be negative, got {value!r}")
         return x
 
-    def integer(self, value: Any, path: str, minimum: int) -> int:
+    def integer(self, value: Any, path: str, minimum: int, maximum: int) -> int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise self.fail(path, f"expected an integer, got {type(value).__name__} {value!r}")
         if value < minimum:
-            raise self.fail(path, f"must be at least {minimum}, got {value}")
+            raise self.fail(path, f"must be at least {minimum}, got {_short(value)}")
+        if value > maximum:
+            raise self.fail(path, f"must be at most {maximum}, got {_short(value)}")
         return value
 
     def vector(self, value: Any, path: str, size: int) -> tuple[float, ...]:
         if not isinstance(value, (list, tuple)) or len(value) != size:
-            raise self.fail(path, f"expected a list of {size} numbers, got {value!r}")
+            raise self.fail(path, f"expected a list of {size} numbers, got {_short(value)}")
         return tuple(self.number(v, f"{path}[{i}]") for i, v in enumerate(value))
 
 
@@ -335,10 +354,12 @@ def _parse_robot(data: Any, source: str) -> Robot:
     n = len(segments)
 
     backbone_radius = c.number(d["backbone_radius"], "backbone_radius", positive=True)
-    points = c.integer(d["points_per_segment"], "points_per_segment", 1)
+    points = c.integer(d["points_per_segment"], "points_per_segment", 1,
+                       MAX_POINTS_PER_SEGMENT)
 
     t = c.obj(d["tendons"], "tendons", _TENDON_KEYS, {"per_segment", "radius"})
-    per_segment = c.integer(t["per_segment"], "tendons.per_segment", 1)
+    per_segment = c.integer(t["per_segment"], "tendons.per_segment", 1,
+                            MAX_TENDONS_PER_SEGMENT)
     radius = c.number(t["radius"], "tendons.radius", positive=True)
     offsets = c.vector(t.get("offsets", [0.0] * n), "tendons.offsets", n)
     routing = t.get("routing", "per_segment")

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from .._files import atomic_open
+from .._files import UnreadableJSON, atomic_open, read_json_file
 from ..model.actuation import planned_displacements
 
 if TYPE_CHECKING:
@@ -165,7 +165,8 @@ class ResultIO:
         robot = result_robot(data, robot, where)
         try:
             return cls._from_fields(data, robot)
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, OverflowError, IndexError,
+                AttributeError) as exc:  # a field of the wrong shape or type
             if isinstance(exc, ResultFileError):
                 raise ResultFileError(f"{where}: {exc}") from None
             field = f"field {exc}" if isinstance(exc, KeyError) else str(exc)
@@ -228,9 +229,13 @@ def result_robot(data: dict[str, Any], robot: Robot | str | None, where: str) ->
 def read_json(path: str | Path) -> Any:
     """The JSON content of a result file."""
     try:
-        return json.loads(Path(path).read_text())
-    except json.JSONDecodeError as exc:
-        raise ResultFileError(f"{path}: not valid JSON ({exc})") from None
+        return read_json_file(path)
+    except FileNotFoundError:
+        raise ResultFileError(f"{path}: file not found") from None
+    except OSError as exc:
+        raise ResultFileError(f"{path}: cannot read: {exc}") from None
+    except UnreadableJSON as exc:
+        raise ResultFileError(f"{path}: {exc}") from None
 
 
 def result_class(kind: str) -> type:

@@ -176,15 +176,20 @@ def read_result(
         source: the file's name, for error messages.
 
     Raises:
-        ValueError: not a result (no or an unknown ``kind``), or for another robot.
+        ResultFileError: (a ``ValueError``) naming ``source``: not a result (no or an
+            unknown ``kind``), for another robot, or without what the viewer shows.
     """
-    from ..tasks._result import check_header, results_from_dict
+    from ..tasks._result import ResultFileError, check_header, results_from_dict
 
-    kind = check_header(data, source or "the result")
+    where = source or "the result"
+    kind = check_header(data, where)
     if kind not in _READERS:
-        raise ValueError(f"{source or 'the result'}: the viewer cannot show a {kind!r} result")
+        raise ResultFileError(f"{where}: the viewer cannot show a {kind!r} result")
     results = results_from_dict(data, robot, source=source)
-    return _READERS[kind](robot, results, targets=targets, path=path)
+    try:
+        return _READERS[kind](robot, results, targets=targets, path=path)
+    except ValueError as exc:  # what the viewer needs of the result: name the file too
+        raise ResultFileError(f"{where}: {exc}") from None
 
 
 def _ik_answers(robot: Robot, results: list[Any], targets: Any = None, **_: Any) -> Answers:
