@@ -173,14 +173,15 @@ class FollowResult(ResultIO):
         count = len(path)
         return cls(
             robot, path, array(data["q"], robot.dof, "q"), array(data["position"], 3, "position"),
-            array(data["wxyz"], 4, "wxyz"), *(array(data[k]) for k in (
+            array(data["wxyz"], 4, "wxyz"), *(array(data[k], name=k) for k in (
                 "pose_error", "position_error", "rotation_error")),
             np.array(data["reached"], dtype=bool),
             array(data["tendon_lengths"], robot.n_tendons, "tendon_lengths"),
-            as_float(data["tendon_speed"]), as_float(data["tendon_accel"]),
-            bool(data["collision_free"]), as_float(data["min_clearance"]),
-            as_float(data["max_violation"]),
-            {k: as_float(v) for k, v in data["violations"].items()},
+            as_float(data["tendon_speed"], "tendon_speed"),
+            as_float(data["tendon_accel"], "tendon_accel"),
+            bool(data["collision_free"]), as_float(data["min_clearance"], "min_clearance"),
+            as_float(data["max_violation"], "max_violation"),
+            {k: as_float(v, f"violations.{k}") for k, v in data["violations"].items()},
             success=bool(data["success"]), reason=data["reason"] or "", stage=data["stage"],
             timing=StageTiming.from_dict(data["timing"]), scene_name=data["scene"],
             safety_margin=float(data["safety_margin"]),

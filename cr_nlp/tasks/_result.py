@@ -73,22 +73,37 @@ def row_lists(values: Any, keep: list[bool] | None = None) -> list[list[float] |
     return [row if k else None for row, k in zip(values.tolist(), keep, strict=True)]
 
 
-def as_float(value: Any) -> float:
-    """A JSON number back to a float: None → NaN."""
-    return math.nan if value is None else float(value)
+def as_float(value: Any, name: str = "value") -> float:
+    """A JSON number back to a float: None → NaN. Raises ``ResultFileError`` naming
+    ``name`` for anything else."""
+    if value is None:
+        return math.nan
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise ResultFileError(f"{name}: expected a number or null, got {value!r:.40}") from None
+    except OverflowError:  # an integer past float's range
+        raise ResultFileError(f"{name}: {value!r:.40} is too large for a float") from None
 
 
 def array(values: Any, width: int | None = None, name: str = "array") -> np.ndarray:
     """A JSON list (1-D, or rows of ``width`` with None for a missing row or entry) back
-    to a float64 array with NaN for None."""
+    to a float64 array with NaN for None. Raises ``ResultFileError`` naming ``name``, the
+    row and the entry."""
+    if isinstance(values, (str, bytes, dict)) or not hasattr(values, "__len__"):
+        raise ResultFileError(f"{name}: expected a list, got {type(values).__name__}")
     if width is None:
-        return np.array([as_float(v) for v in values], dtype=float)
+        return np.array([as_float(v, f"{name}[{i}]") for i, v in enumerate(values)],
+                        dtype=float)
     out = np.full((len(values), width), np.nan)
     for i, row in enumerate(values):
         if row is not None:
+            if isinstance(row, (str, bytes, dict)) or not hasattr(row, "__len__"):
+                raise ResultFileError(f"{name}[{i}]: expected a list of {width} numbers, "
+                                      f"got {type(row).__name__}")
             if len(row) != width:
                 raise ResultFileError(f"{name}[{i}] has {len(row)} entries, expected {width}")
-            out[i] = [as_float(v) for v in row]
+            out[i] = [as_float(v, f"{name}[{i}][{j}]") for j, v in enumerate(row)]
     return out
 
 

@@ -110,14 +110,14 @@ class TrajectoryResult(ResultIO):
         return cls(
             robot, None if q is None else np.asarray(q, dtype=float).reshape(-1, robot.dof),
             float(entry["dt"]), bool(entry["success"]), entry["reason"] or "", entry["stage"],
-            path_length=as_float(entry["path_length"]),
-            min_clearance=as_float(entry["min_clearance"]),
-            max_violation=as_float(entry["max_violation"]),
-            violations={k: as_float(v) for k, v in entry["violations"].items()},
+            path_length=as_float(entry["path_length"], "path_length"),
+            min_clearance=as_float(entry["min_clearance"], "min_clearance"),
+            max_violation=as_float(entry["max_violation"], "max_violation"),
+            violations={k: as_float(v, f"violations.{k}") for k, v in entry["violations"].items()},
             tendon_lengths=None if tendons is None else np.asarray(tendons, dtype=float),
-            tendon_speed=as_float(entry["tendon_speed"]),
-            tendon_accel=as_float(entry["tendon_accel"]),
-            cost=as_float(entry.get("cost")),
+            tendon_speed=as_float(entry["tendon_speed"], "tendon_speed"),
+            tendon_accel=as_float(entry["tendon_accel"], "tendon_accel"),
+            cost=as_float(entry.get("cost"), "cost"),
             timing=StageTiming.from_dict(entry["timing"]))
 
     def _fields_dict(self) -> dict[str, Any]:
