@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, event, example, given, settings
+from hypothesis import HealthCheck, currently_in_test_context, event, example, given, settings
 from hypothesis import strategies as st
 
 from cr_nlp.cli import main as cli_main
@@ -163,15 +163,21 @@ def _load(load: Callable[[Path], Any], data: bytes, file: Path,
     file.write_bytes(data)
     try:
         value = load(file)
-        event("read")
+        _event("read")
         return value, None
     except errors as exc:
-        event("rejected")
+        _event("rejected")
         assert not isinstance(exc, LEAKED), f"raw {type(exc).__name__} leaked: {exc}"
         message = str(exc)
         assert str(file) in message, f"the error does not name the file: {message}"
         assert "\n" not in message.strip(), f"not one line: {message!r}"
         return None, exc
+
+
+def _event(name: str) -> None:
+    """Count what the loaders did (``pytest --hypothesis-show-statistics``)."""
+    if currently_in_test_context():
+        event(name)
 
 
 def _assert_finite_json(value: Any) -> None:
@@ -452,6 +458,20 @@ def _read_for_viewer(file: Path) -> Any:
 @example(mutation=_with(RESULT_DOCS["follow"], ["q"], [[0.1] * 9]))
 def test_result_files(workdir: Path, mutation: tuple[bytes, str, list[Any]]) -> None:
     _load(_read_for_viewer, mutation[0], workdir / "result.json", (ResultFileError, ValueError))
+
+
+@pytest.mark.parametrize(("kind", "path", "value", "field"), [
+    ("ik", ["results", 1, "pose_error"], "text", "pose_error[1]"),
+    ("ik", ["results", 0, "q", 4], 10 ** 400, "q[0][4]"),
+    ("follow", ["position_error", 2], {}, "position_error[2]"),
+    ("follow", ["tendon_speed"], [], "tendon_speed"),
+    ("trajectory", ["results", 0, "min_clearance"], "far", "min_clearance"),
+])
+def test_result_errors_name_the_field(workdir: Path, kind: str, path: list[Any], value: Any,
+                                      field: str) -> None:
+    _, exc = _load(_read_for_viewer, _with(RESULT_DOCS[kind], path, value)[0],
+                   workdir / "result_field.json", (ResultFileError,))
+    assert exc is not None and field in str(exc), str(exc)
 
 
 # ---------------------------------------------------------------- the CLI
