@@ -566,7 +566,7 @@ def test_cli_follow_rejects_bad_paths(workdir: Path,
                          file, out, error)
 
 
-@settings(CLI, max_examples=6)
+@settings(CLI, max_examples=15)
 @given(mutated_csv(CSV_TEXT))
 def test_cli_calibrate_rejects_bad_data(workdir: Path,
                                         mutation: tuple[bytes, str, int | None]) -> None:
