@@ -529,7 +529,8 @@ class PathFollower:
                 path file (``tasks.paths`` format).
             exact: polish with Ipopt, the constraints as constraints, minimising the
                 tracking error (``stages._polish_trajectory``); a failed or rejected
-                polish returns the LM answer with ``stage`` "refine (polish failed: …)".
+                polish returns the LM answer with ``stage`` "refine (polish failed: …)"
+                (or "refine (polish out of time: …)", ``config.polish_time_limit``).
             progress: print the polish stage's progress to stderr.
             dt: seconds between waypoints (default: the path's own ``dt``).
 

@@ -308,7 +308,8 @@ class IKSolver:
         Args:
             positions: (T, 3) target tip positions, metres.
             wxyz: (T, 4) target tip orientations, unit quaternions (w, x, y, z).
-            exact: polish every answer with Ipopt, constraints as constraints.
+            exact: polish every answer with Ipopt, constraints as constraints (each
+                target within ``config.polish_time_limit``, if set).
             progress: show a progress bar for the exact stage.
         """
         timing = IKTiming()

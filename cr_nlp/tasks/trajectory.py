@@ -433,7 +433,8 @@ class TrajectoryPlanner:
                 polished answer replaces the LM answer only when the verification
                 accepts it (``stage == "polish"``); a failed polish is retried from the
                 next LM candidate (``polish_attempts``), and if none passes, the LM answer
-                stays with its own verdict, its ``stage`` noting why each polish failed.
+                stays with its own verdict, its ``stage`` noting why each polish failed
+                (or that ``config.polish_time_limit`` ran out).
             init: "roadmap" (roadmap path, straight line, perturbed) or "straight"
                 (straight line and perturbed ones only).
             progress: show a progress bar for the exact stage.
