@@ -39,8 +39,7 @@ def describe_polish(out: Any) -> str:
     and the violations it left."""
     broken = describe_violations(out.violations)
     head = (f"Ipopt stopped at the time limit ({out.iterations} iterations, "
-            f"{out.seconds:.3g} s)" if out.out_of_time
-            else f"Ipopt {out.status}")
+            f"{out.seconds:.3g} s)" if _out_of_time(out) else f"Ipopt {out.status}")
     return head + (f", {broken}" if broken else "")
 
 
@@ -52,8 +51,14 @@ def polish_one(polisher: Any, q0: np.ndarray, dt: float,
     t0 = time.perf_counter()
     out = polisher.solve(q0, dt, time_limit=time_limit)
     if not out.success:
-        return None, describe_polish(out), time.perf_counter() - t0, out.out_of_time
-    return out.q, "", time.perf_counter() - t0, out.out_of_time
+        return None, describe_polish(out), time.perf_counter() - t0, _out_of_time(out)
+    return out.q, "", time.perf_counter() - t0, _out_of_time(out)
+
+
+def _out_of_time(out: Any) -> bool:
+    """A polish result's ``out_of_time``; a result without one (a stand-in polisher's)
+    did not run out of time."""
+    return bool(getattr(out, "out_of_time", False))
 
 
 def polish_trajectories(options: Sequence[Sequence[tuple[np.ndarray, str]]],
