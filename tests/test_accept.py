@@ -21,7 +21,8 @@ def toy_judge(answers: list[float], rows: np.ndarray) -> list[Verdict]:
                   pose_tolerance=0.1) for x, i in zip(answers, rows.tolist(), strict=True)]
 
 
-def halfway(starts: list[float], rows: np.ndarray, attempt: int) -> list[Polished[float]]:
+def halfway(starts: list[float], rows: np.ndarray, attempt: int,
+            budgets: np.ndarray) -> list[Polished[float]]:
     return [Polished(0.5 * (x + GOALS[i])) for x, i in zip(starts, rows.tolist(), strict=True)]
 
 
@@ -63,7 +64,9 @@ def test_a_polish_that_gives_up_is_not_judged_and_its_words_are_kept() -> None:
         judged.extend(rows.tolist())
         return toy_judge(answers, rows)
 
-    def polish(starts: list[float], rows: np.ndarray, attempt: int) -> list[Polished[float]]:
+    def polish(starts: list[float], rows: np.ndarray, attempt: int,
+               budgets: np.ndarray) -> list[Polished[float]]:
+        assert np.all(budgets == np.inf)  # no time limit
         return [Polished(None, "Ipopt: Infeasible_Problem_Detected") if i == 0
                 else Polished(GOALS[i]) for i in rows.tolist()]
 
@@ -89,7 +92,7 @@ def test_accept_first_on_one_problem_and_bad_input() -> None:
     with pytest.raises(ValueError, match="max_attempts"):
         polish_and_accept([0.0], [verdict], lambda a, r: [0.0], halfway, toy_judge, 0)
     with pytest.raises(ValueError, match="polish returned 0 entries for 1"):
-        polish_and_accept([0.0], [verdict], lambda a, r: [0.0], lambda s, r, a: [],
+        polish_and_accept([0.0], [verdict], lambda a, r: [0.0], lambda s, r, a, b: [],
                           toy_judge, 1)
 
 

@@ -248,6 +248,32 @@ def model_margin(robot: Robot, value: str | None) -> float:
     return margin
 
 
+def add_time_limit_option(p: Any) -> None:
+    """``--time-limit SECONDS``: exact mode's time budget per problem."""
+    p.add_argument("--time-limit", metavar="SECONDS",
+                   help="with --exact: seconds of Ipopt polishing per problem (an IK target, "
+                        "a trajectory, a path), all its attempts together; out of time, a "
+                        "problem keeps its best verified answer so far and its stage says "
+                        "'polish out of time'")
+
+
+def time_limit_arg(args: Any) -> float | None:
+    """The seconds of a ``--time-limit`` value (None without one): a positive finite
+    number, and only with ``--exact`` (nothing else is limited), else a usage error."""
+    value = args.time_limit
+    if value is None:
+        return None
+    try:
+        seconds = float(value)
+    except ValueError:
+        raise UsageError(f"--time-limit: expected seconds, got {value!r}") from None
+    if not (math.isfinite(seconds) and seconds > 0):
+        raise UsageError(f"--time-limit must be a positive number of seconds, got {value}")
+    if not args.exact:
+        raise UsageError("--time-limit bounds the exact stage (Ipopt): give it with --exact")
+    return seconds
+
+
 def add_data_options(p: Any) -> None:
     """``--tendon-columns``, ``--tip-columns`` and ``--units``."""
     p.add_argument("--tendon-columns",

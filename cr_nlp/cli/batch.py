@@ -16,12 +16,14 @@ from pathlib import Path
 from ._io import (
     Stopped,
     UsageError,
+    add_time_limit_option,
     fmt,
     load_robot_arg,
     load_scene_arg,
     read_problems,
     resolve,
     stop_on_signals,
+    time_limit_arg,
 )
 
 
@@ -75,6 +77,7 @@ def _common(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="polish every answer with Ipopt, constraints as hard constraints",
     )
+    add_time_limit_option(p)
     p.add_argument("--seed", type=int, default=0, help="seed of the search (default 0)")
     p.add_argument(
         "--out", required=True, help="DIR for manifest.json, chunk_<id>.npz files and results.json"
@@ -113,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
     saying how to resume."""
     from ..batch import ExposedClusterWarning, exposure_warning
 
+    time_limit_arg(args)  # a bad value fails here, before a cluster starts
     if args.workers is not None and args.workers < 1:
         raise UsageError(f"--workers must be at least 1, got {args.workers}")
     if args.chunk is not None and args.chunk < 1:
@@ -150,6 +154,7 @@ def _solve(args: argparse.Namespace) -> int:
     """The job of ``run``: its exit status."""
     from ..batch import BatchError, run_batch
 
+    time_limit = time_limit_arg(args)
     robot = load_robot_arg(args.robot)
     scene = load_scene_arg(args.scene)
     options = dict(
@@ -177,7 +182,7 @@ def _solve(args: argparse.Namespace) -> int:
                 "ik",
                 robot,
                 (positions, wxyz),
-                config=IKConfig(seed=args.seed),
+                config=IKConfig(seed=args.seed, polish_time_limit=time_limit),
                 problems=problems,
                 **options,
             )
@@ -194,7 +199,9 @@ def _solve(args: argparse.Namespace) -> int:
 
         starts, goals, horizon, dt = read_problems(resolve(args.problems, "problems", "--problems"))
         config = with_horizon(
-            TrajectoryConfig(seed=args.seed), None if horizon is None else horizon + 1, dt
+            TrajectoryConfig(seed=args.seed, polish_time_limit=time_limit),
+            None if horizon is None else horizon + 1,
+            dt,
         )
         # None entries (a problem without "start"/"goal") fail validation with a reason.
         starts = [s if s is not None else [] for s in starts]

@@ -19,10 +19,12 @@ from pathlib import Path
 from ._io import (
     UsageError,
     add_model_margin_option,
+    add_time_limit_option,
     load_robot_arg,
     load_scene_arg,
     model_margin,
     resolve,
+    time_limit_arg,
     write_result,
 )
 
@@ -38,6 +40,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--exact", action="store_true",
                    help="polish with Ipopt, the constraints as constraints (falls back to "
                         "the LM answer, marked in 'stage', if the polish fails)")
+    add_time_limit_option(p)
     p.add_argument("--dt", type=float, help="seconds between waypoints (default: the file's)")
     p.add_argument("--seed", type=int, default=0, help="seed of the IK stage (default 0)")
     p.add_argument("--out", required=True,
@@ -57,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
     from ..tasks.follow import FollowConfig, PathFollower
     from ..tasks.paths import load_path
 
+    time_limit = time_limit_arg(args)
     robot = load_robot_arg(args.robot)
     scene = load_scene_arg(args.scene)
     path = load_path(resolve(args.path, "paths", "--path"))
@@ -64,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--dt must be a positive number of seconds, got {args.dt}")
     follower = PathFollower(robot, scene, FollowConfig(
         seed=args.seed, safety_margin=FollowConfig.safety_margin
-        + model_margin(robot, args.model_margin)))
+        + model_margin(robot, args.model_margin), polish_time_limit=time_limit))
     try:
         result = follower.follow(path, exact=args.exact, progress=sys.stderr.isatty(),
                                  dt=args.dt)

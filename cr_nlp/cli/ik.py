@@ -10,11 +10,13 @@ from . import _tension_ik as tension_ik
 from ._io import (
     UsageError,
     add_model_margin_option,
+    add_time_limit_option,
     fmt,
     load_robot_arg,
     load_scene_arg,
     model_margin,
     resolve,
+    time_limit_arg,
     write_result,
 )
 
@@ -29,6 +31,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", help="scene JSON file or bundled name (obstacles)")
     p.add_argument("--exact", action="store_true",
                    help="polish every answer with Ipopt, constraints as hard constraints")
+    add_time_limit_option(p)
     p.add_argument("--seed", type=int, default=0, help="seed of the search (default 0)")
     p.add_argument("--out", required=True, help="RESULT.json to write ('-' for stdout)")
     p.add_argument("--csv", help="also write the motor commands (a robot file with an "
@@ -46,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
     """Solve, write RESULT.json and print a one-line summary on stderr."""
     from ..tasks.ik import IKConfig, IKSolver, read_targets
 
+    time_limit = time_limit_arg(args)
     robot = load_robot_arg(args.robot)
     if args.model == "cosserat":
         return tension_ik.run(args, robot)
@@ -54,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
         positions, wxyz, problems = read_targets(resolve(args.targets, "targets", "--targets"))
     except ValueError as exc:
         raise UsageError(f"--targets: {exc}") from None
-    config = IKConfig(seed=args.seed)
+    config = IKConfig(seed=args.seed, polish_time_limit=time_limit)
     config = replace(config, safety_margin=config.safety_margin
                      + model_margin(robot, args.model_margin))
     solver = IKSolver(robot, scene, config)

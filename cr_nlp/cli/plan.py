@@ -20,11 +20,13 @@ from pathlib import Path
 
 from ._io import (
     add_model_margin_option,
+    add_time_limit_option,
     load_robot_arg,
     load_scene_arg,
     model_margin,
     read_problems,
     resolve,
+    time_limit_arg,
 )
 
 
@@ -41,6 +43,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="polish every trajectory with Ipopt, tendon limits and clearance "
                         "as hard constraints (stage 'polish'; the LM answer is kept, "
                         "marked, where the polish fails)")
+    add_time_limit_option(p)
     p.add_argument("--init", choices=("roadmap", "straight"), default="roadmap",
                    help="initial trajectories: roadmap path + straight + perturbed (default), "
                         "or straight + perturbed")
@@ -62,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
         trajectories_to_dict,
     )
 
+    time_limit = time_limit_arg(args)
     robot = load_robot_arg(args.robot)
     scene = load_scene_arg(args.scene)
     starts, goals, horizon, dt = read_problems(resolve(args.problems, "problems", "--problems"))
@@ -73,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     config = replace(config, safety_margin=config.safety_margin
-                     + model_margin(robot, args.model_margin))
+                     + model_margin(robot, args.model_margin), polish_time_limit=time_limit)
     planner = TrajectoryPlanner(robot, scene, config)
     # None entries (a problem without "start"/"goal") fail validation with a reason.
     starts = [s if s is not None else [] for s in starts]

@@ -14,14 +14,22 @@ polish a batch in parallel (a worker pool) and judge it in one vectorised call:
 
 - ``candidate(attempt, rows)``: the ``attempt``-th candidate of each problem in ``rows``
   (None where a problem has no more);
-- ``polish(starts, rows, attempt)``: a ``Polished`` per start: the polished answer worth
-  judging, or None with the reason the polish gave up;
+- ``polish(starts, rows, attempt, budgets)``: a ``Polished`` per start: the polished
+  answer worth judging, or None with the reason the polish gave up; ``budgets`` are the
+  seconds each problem has left of its time limit (+inf without one);
 - ``judge(answers, rows)``: one verdict per answer, any object with ``success`` (bool)
   and ``reason`` (str): ``world.verdict.Verdict`` or a task's row of checked numbers.
+
+A time limit (exact mode's ``polish_time_limit``) covers a problem's whole exact stage:
+the seconds its polishes report are summed, each polish gets what is left, and a problem
+stops once a polish ran out of time or nothing is left for its next candidate. It keeps
+the best answer the verdict accepted so far, else its penalty answer, and its outcome
+says it ran out of time (``Outcome.out_of_time``). The verdict itself is never cut short.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -52,6 +60,11 @@ class Polished(Generic[A]):
     """The polished answer to judge, or None: the polish produced nothing worth judging."""
     note: str = ""
     """Why the polish gave up (``answer`` None), in words; "" otherwise."""
+    seconds: float = 0.0
+    """Wall time of this polish, counted against its problem's time limit."""
+    out_of_time: bool = False
+    """The polish stopped at its time budget (``answer`` is then its last iterate, if
+    worth judging)."""
 
 
 @dataclass(frozen=True)
@@ -69,6 +82,9 @@ class Outcome(Generic[A, V]):
     """Polishes run for this problem."""
     failures: tuple[str, ...]
     """Why each polish that was not accepted failed, in attempt order."""
+    out_of_time: bool = False
+    """The time limit stopped this problem's exact stage: a polish ran out of time, or
+    none was left for its next candidate."""
 
     @property
     def accepted(self) -> bool:
@@ -95,6 +111,7 @@ def polish_and_accept(
     polish: Callable[[list[A], np.ndarray, int], Sequence[Polished[A]]],
     judge: Callable[[list[A], np.ndarray], Sequence[V]],
     max_attempts: int,
+    time_limit: float | None = None,
 ) -> Acceptance[A, V]:
     """Polish each problem's candidates in order and keep the first one the verdict
     accepts, else the penalty answer with its own verdict.
@@ -105,9 +122,12 @@ def polish_and_accept(
         candidate: ``(attempt, rows) → starts``: per problem index in ``rows`` (int
             array), its candidate number ``attempt`` (0 first), or None when it has no
             more (that problem stops). Called once per attempt with the open problems.
-        polish: ``(starts, rows, attempt) → Polished`` per start (same order).
+        polish: ``(starts, rows, attempt, budgets) → Polished`` per start (same order);
+            ``budgets`` (len(rows),) seconds left to each problem (+inf: no limit).
         judge: ``(answers, rows) → verdicts`` per answer (same order).
         max_attempts: polishes per problem at most (≥ 1).
+        time_limit: seconds of polishing per problem, all its attempts together (the
+            ``Polished.seconds`` are summed); None: no limit.
 
     Returns:
         ``Acceptance``: an ``Outcome`` per problem and the seconds spent polishing and
@@ -115,7 +135,8 @@ def polish_and_accept(
 
     Raises:
         ValueError: ``fallback`` and ``fallback_verdicts`` differ in length, a callable
-            returns a list of the wrong length, or ``max_attempts`` < 1.
+            returns a list of the wrong length, ``max_attempts`` < 1, or ``time_limit``
+            is not a positive finite number or None.
     """
     count = len(fallback)
     if len(fallback_verdicts) != count:
@@ -123,6 +144,10 @@ def polish_and_accept(
                          f"{count} answers and {len(fallback_verdicts)} verdicts")
     if max_attempts < 1:
         raise ValueError(f"max_attempts must be at least 1, got {max_attempts}")
+    check_time_limit(time_limit, "time_limit")
+    limit = math.inf if time_limit is None else float(time_limit)
+    spent = np.zeros(count)
+    out_of_time = np.zeros(count, dtype=bool)
     answers: list[A] = list(fallback)
     verdicts: list[V] = list(fallback_verdicts)
     won: list[int | None] = [None] * count
@@ -136,14 +161,22 @@ def polish_and_accept(
         t0 = time.perf_counter()
         starts = _sized(candidate(attempt, todo), len(todo), "candidate")
         has = np.array([s is not None for s in starts], dtype=bool)
-        todo, starts = todo[has], [s for s in starts if s is not None]
+        # A problem with a next candidate but no time left for it stops here.
+        late = has & (spent[todo] >= limit)
+        out_of_time[todo[late]] = True
+        keep = has & ~late
+        todo, starts = todo[keep], [s for s, k in zip(starts, keep, strict=True) if k]
         if not len(todo):
             polish_seconds += time.perf_counter() - t0
             break
-        polished = _sized(polish(starts, todo, attempt), len(todo), "polish")
+        polished = _sized(polish(starts, todo, attempt, limit - spent[todo]), len(todo),
+                          "polish")
         polish_seconds += time.perf_counter() - t0
-        for i in todo.tolist():
+        for i, p in zip(todo.tolist(), polished, strict=True):
             tries[i] += 1
+            spent[i] += p.seconds
+            if p.out_of_time:
+                out_of_time[i] = True
         made = np.array([p.answer is not None for p in polished], dtype=bool)
         for i, p in zip(todo[~made].tolist(), (p for p in polished if p.answer is None),
                         strict=True):
@@ -162,8 +195,10 @@ def polish_and_accept(
                     accepted[np.flatnonzero(made)[k]] = True
                 else:
                     failures[i].append(f"rejected by the verdict: {verdict.reason}")
-        todo = todo[~accepted]
-    outcomes = tuple(Outcome(answers[i], verdicts[i], won[i], tries[i], tuple(failures[i]))
+        # A problem whose polish ran out of time has no time for another candidate.
+        todo = todo[~accepted & ~out_of_time[todo]]
+    outcomes = tuple(Outcome(answers[i], verdicts[i], won[i], tries[i], tuple(failures[i]),
+                             bool(out_of_time[i]))
                      for i in range(count))
     return Acceptance(outcomes, polish_seconds, judge_seconds)
 
@@ -176,10 +211,28 @@ def accept_first(candidates: Sequence[A], fallback: A, fallback_verdict: V,
     out = polish_and_accept(
         [fallback], [fallback_verdict],
         lambda attempt, rows: [candidates[attempt] if attempt < len(candidates) else None],
-        lambda starts, rows, attempt: [polish(starts[0])],
+        lambda starts, rows, attempt, budgets: [polish(starts[0])],
         lambda answers, rows: [judge(answers[0])],
         max(len(candidates), 1))
     return out.outcomes[0]
+
+
+def check_time_limit(value: float | None, name: str) -> None:
+    """Raise ValueError unless ``value`` (seconds) is None or a positive finite number."""
+    if value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, float)) \
+            or not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a positive number of seconds or None, got {value!r}")
+
+
+def polish_note(outcome: Outcome, failures: Sequence[str] | None = None) -> str:
+    """How a task's ``stage`` says why no polish was accepted: "polish failed: …" or,
+    when the time limit stopped the exact stage, "polish out of time: …", then the
+    failures (``outcome.failures`` unless given) joined by "; "."""
+    why = "; ".join(outcome.failures if failures is None else failures)
+    head = "polish out of time" if outcome.out_of_time else "polish failed"
+    return f"{head}: {why}" if why else head
 
 
 def _sized(values: Sequence, count: int, name: str) -> list:

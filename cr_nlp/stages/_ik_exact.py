@@ -4,8 +4,9 @@ own beam, polished by Ipopt (``stages._polish``) and accepted by the verdict
 
 A polish counts as worth judging when Ipopt succeeded, or when it keeps every
 constraint and comes nearer the target than the answer it started from (it may miss the
-polish's own 1e-6 pose tolerance and still pass the task's). Candidates of one beam that
-refined to the same answer are polished once.
+polish's own 1e-6 pose tolerance and still pass the task's): so is the last iterate of a
+polish that ran out of time. Candidates of one beam that refined to the same answer are
+polished once.
 """
 
 from __future__ import annotations
@@ -36,7 +37,8 @@ def polish_answers(polisher: IKPolisher, answers: np.ndarray, beams: np.ndarray,
                    pose_errors: np.ndarray, positions: np.ndarray, rotations: np.ndarray,
                    verdicts: Sequence[Judged],
                    judge: Callable[[np.ndarray, np.ndarray], Sequence[Judged]],
-                   attempts: int, progress: bool = False, pool: Any = None) -> Acceptance:
+                   attempts: int, progress: bool = False, pool: Any = None,
+                   time_limit: float | None = None) -> Acceptance:
     """Polish T answers and accept the first polish of each that the verdict accepts.
 
     Args:
@@ -51,6 +53,8 @@ def polish_answers(polisher: IKPolisher, answers: np.ndarray, beams: np.ndarray,
         attempts: polishes per target at most.
         progress: a progress bar for the first attempt.
         pool: a ``stages._pool.PolishPool`` spreading the polishes over processes, or None.
+        time_limit: seconds of polishing per target, all its attempts together (None: no
+            limit); a target out of time keeps its best accepted answer so far.
 
     Returns:
         ``stages._accept.Acceptance`` with one outcome per target (answer q (3n,)).
@@ -64,16 +68,22 @@ def polish_answers(polisher: IKPolisher, answers: np.ndarray, beams: np.ndarray,
         return [alternatives[i][attempt - 1] if attempt <= len(alternatives[i]) else None
                 for i in rows.tolist()]
 
-    def polish(starts: list[np.ndarray], rows: np.ndarray,
-               attempt: int) -> list[Polished[np.ndarray]]:
+    def polish(starts: list[np.ndarray], rows: np.ndarray, attempt: int,
+               budgets: np.ndarray) -> list[Polished[np.ndarray]]:
         outs = polish_many(polisher, np.stack(starts), positions[rows], rotations[rows],
                            progress=progress and attempt == 0,
-                           pool=pool if len(rows) > 1 else None)
-        return [Polished(o.q) if o.success or (
-            o.max_violation <= cfg.violation_tolerance and np.isfinite(o.pose_error)
-            and o.pose_error < pose_errors[i])
-            else Polished(None, o.failure(cfg.pose_tolerance, cfg.violation_tolerance))
-            for i, o in zip(rows.tolist(), outs, strict=True)]
+                           pool=pool if len(rows) > 1 else None,
+                           time_limits=None if time_limit is None else budgets)
+        out = []
+        for i, o in zip(rows.tolist(), outs, strict=True):
+            worth = o.success or (o.max_violation <= cfg.violation_tolerance
+                                  and np.isfinite(o.pose_error) and o.pose_error < pose_errors[i])
+            out.append(Polished(o.q if worth else None,
+                                "" if worth else o.failure(cfg.pose_tolerance,
+                                                           cfg.violation_tolerance),
+                                o.seconds, o.out_of_time))
+        return out
 
     return polish_and_accept(list(answers), list(verdicts), candidate, polish,
-                             lambda q, rows: judge(np.stack(q), rows), max(attempts, 1))
+                             lambda q, rows: judge(np.stack(q), rows), max(attempts, 1),
+                             time_limit)

@@ -12,12 +12,16 @@ same in every task:
 - a warm start (the penalty stage's answer is next to the optimum) keeps the start point
   where it is (``warm_start_init_point``, a bound push of ``push`` instead of 1e-2) and
   may start the barrier parameter small (``mu_init``);
-- a solve never raises: a numerical failure is an ``IpoptRun`` with ``success`` False.
+- a solve never raises: a numerical failure is an ``IpoptRun`` with ``success`` False;
+- a solver built with a ``Deadline`` stops when it passes (status ``TIME_LIMIT_STATUS``):
+  Ipopt's own ``max_wall_time`` is fixed when a solver is built, a deadline is set before
+  each solve, so one built solver serves every remaining budget (exact mode's time limit).
 """
 
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,6 +30,62 @@ import numpy as np
 
 SUCCESS_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 """Ipopt return statuses of a converged solve."""
+
+TIME_LIMIT_STATUS = "Maximum_WallTime_Exceeded"
+"""The status of a solve stopped by its ``Deadline`` (Ipopt's own name for a stop at
+``max_wall_time``)."""
+
+
+class Deadline:
+    """When the solves of the solvers built with it (``build_solver(..., deadline=)``)
+    stop: Ipopt asks at every iteration (an ``iteration_callback``) and stops once
+    ``time.perf_counter()`` has passed ``at``. One deadline may serve several solvers
+    (a polisher's modes and slot capacities)."""
+
+    def __init__(self) -> None:
+        self.at = math.inf
+        """``time.perf_counter()`` seconds at which solves stop; +inf: never."""
+        self._callbacks: list[ca.Callback] = []   # CasADi keeps no Python reference
+
+    def start(self, seconds: float | None) -> None:
+        """Solves from now on stop ``seconds`` from now (None: never)."""
+        self.at = math.inf if seconds is None else time.perf_counter() + float(seconds)
+
+    def left(self) -> float:
+        """Seconds until the deadline (negative once passed, +inf without one)."""
+        return self.at - time.perf_counter()
+
+    def passed(self) -> bool:
+        """The deadline has passed."""
+        return time.perf_counter() >= self.at
+
+
+class _StopAtDeadline(ca.Callback):
+    """Ipopt's ``iteration_callback``: returns 1 (stop) once the deadline has passed. Its
+    inputs are the NLP's outputs (x, f, g, lam_x, lam_g, lam_p), unread."""
+
+    def __init__(self, name: str, sizes: dict[str, int], deadline: Deadline) -> None:
+        ca.Callback.__init__(self)
+        self._sizes, self._deadline = sizes, deadline
+        self.construct(name, {})
+
+    def get_n_in(self) -> int:
+        return ca.nlpsol_n_out()
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_name_in(self, i: int) -> str:
+        return ca.nlpsol_out(i)
+
+    def get_name_out(self, i: int) -> str:
+        return "stop"
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(self._sizes[ca.nlpsol_out(i)], 1)
+
+    def eval(self, arg: list[Any]) -> list[Any]:
+        return [1 if time.perf_counter() >= self._deadline.at else 0]
 
 
 @dataclass(frozen=True)
@@ -86,9 +146,18 @@ def ipopt_options(*, tol: float, constr_viol_tol: float, max_iter: int, print_le
     return options
 
 
-def build_solver(name: str, nlp: dict[str, Any], options: dict[str, Any]) -> ca.Function:
+def build_solver(name: str, nlp: dict[str, Any], options: dict[str, Any],
+                 deadline: Deadline | None = None) -> ca.Function:
     """An Ipopt ``nlpsol`` for ``nlp`` (``x``, ``p``, ``f``, ``g``) with ``options``
-    (``ipopt_options``); built once, re-solved with new parameters and bounds."""
+    (``ipopt_options``); built once, re-solved with new parameters and bounds. With a
+    ``deadline``, each solve stops once it has passed (``run_solver``)."""
+    if deadline is not None:
+        nx, ng = nlp["x"].numel(), nlp["g"].numel()
+        np_ = nlp["p"].numel() if "p" in nlp else 0
+        sizes = {"x": nx, "f": 1, "g": ng, "lam_x": nx, "lam_g": ng, "lam_p": np_}
+        stop = _StopAtDeadline(f"{name}_deadline", sizes, deadline)
+        deadline._callbacks.append(stop)
+        options = {**options, "iteration_callback": stop}
     return ca.nlpsol(name, "ipopt", nlp, options)
 
 
@@ -110,17 +179,27 @@ class IpoptRun:
     raised: bool = False
     """The solve raised (a numerical failure inside CasADi or Ipopt)."""
 
+    @property
+    def out_of_time(self) -> bool:
+        """The solve stopped at its deadline (status ``TIME_LIMIT_STATUS``)."""
+        return self.status == TIME_LIMIT_STATUS
 
-def run_solver(solver: ca.Function, x0: np.ndarray, **arguments: Any) -> IpoptRun:
+
+def run_solver(solver: ca.Function, x0: np.ndarray, deadline: Deadline | None = None,
+               **arguments: Any) -> IpoptRun:
     """Solve once from ``x0`` with ``arguments`` (``p``, ``lbx``, ``ubx``, ``lbg``,
     ``ubg``) and read Ipopt's statistics; a numerical failure is a result, not an
-    exception."""
+    exception. ``deadline``: the one the solver was built with; a solve it stopped has
+    status ``TIME_LIMIT_STATUS`` (Ipopt reports the callback's stop as a user's)."""
     x0 = np.asarray(x0, dtype=np.float64)
     try:
         solution = solver(x0=x0.reshape(-1), **arguments)
         stats = solver.stats()
     except RuntimeError as exc:
         return IpoptRun(x0.reshape(-1).copy(), math.nan, f"error: {exc}", False, 0, True)
+    status = str(stats.get("return_status", "unknown"))
+    if status == "User_Requested_Stop" and deadline is not None and deadline.passed():
+        status = TIME_LIMIT_STATUS
     return IpoptRun(np.asarray(solution["x"], dtype=np.float64).reshape(-1),
-                    float(solution["f"]), str(stats.get("return_status", "unknown")),
+                    float(solution["f"]), status,
                     bool(stats.get("success", False)), int(stats.get("iter_count", 0)))

@@ -20,6 +20,10 @@ rows' curvature (``stages._slots`` says why and what was measured).
 Azimuth ranges (``phi_range``, rare) are not constraints of the polish; the re-evaluation
 still measures them, so a polish that leaves such a range fails.
 
+A solve may be given a time limit (``solve(..., time_limit=)``): every Ipopt run of it stops
+at the deadline (``stages._ipopt.Deadline``), the modes not yet run are skipped, and the
+result is the best attempt so far with ``out_of_time`` set.
+
 Every answer is projected onto the simple limits (θ ≤ θmax and L in range, which Ipopt's
 bound relaxation leaves up to ~1e-8 outside) and re-evaluated in float64 independently of
 Ipopt, before it is called a success: the pose error by the model's CasADi function, the
@@ -45,7 +49,15 @@ from ..world.clearance import PairDistances, body_gap_tolerance, self_pairs
 from ..world.scene import Scene, load_scene
 from ..world.verdict import VIOLATION_TOLERANCE, describe_violations
 from ._compiled import compiled
-from ._ipopt import SUCCESS_STATUSES, WarmStart, build_solver, ipopt_options, run_solver
+from ._ipopt import (
+    SUCCESS_STATUSES,
+    TIME_LIMIT_STATUS,
+    Deadline,
+    WarmStart,
+    build_solver,
+    ipopt_options,
+    run_solver,
+)
 from ._slots import Selection, SlotRows, make_pools, select_slots
 
 MODES = ("equality", "minimize")
@@ -133,6 +145,9 @@ class PolishResult:
     violations: dict[str, float] = field(default_factory=dict)
     """Re-evaluated at ``q`` in float64: ``limits`` (rad or m) and ``clearance`` (m below
     the safety margin δ, over every pair of the scene)."""
+    out_of_time: bool = False
+    """The solve's time limit stopped it: an Ipopt run stopped at the deadline, or a mode
+    was not run (``status`` is then ``TIME_LIMIT_STATUS`` when no run finished)."""
 
     def failure(self, pose_tolerance: float = 1e-6,
                 violation_tolerance: float = VIOLATION_TOLERANCE) -> str:
@@ -141,6 +156,9 @@ class PolishResult:
         how much."""
         if self.success:
             return ""
+        if self.status == TIME_LIMIT_STATUS:
+            return (f"Ipopt stopped at the time limit ({self.iterations} iterations, "
+                    f"{self.seconds:.3g} s)")
         if self.status not in SUCCESS_STATUSES:
             return f"Ipopt: {self.status}"
         if self.max_violation > violation_tolerance:
@@ -192,6 +210,7 @@ class IKPolisher:
                                    else safety_margin)
         self.builds = 0
         """How many ``nlpsol`` solvers this polisher constructed."""
+        self._deadline = Deadline()
 
         self._theta_max = np.array([s.theta_max for s in robot.segments])
         self._lbx = np.ravel([[-s.theta_max, -s.theta_max, s.length_min] for s in robot.segments])
@@ -285,7 +304,7 @@ class IKPolisher:
             callbacks={"grad_f": grad_f, "jac_g": jac_g, "hess_lag": hess_lag})
         self.builds += 1
         return build_solver(f"polish_{robot.name}_{mode}", {"x": z, "p": p, "f": f, "g": g},
-                            options)
+                            options, self._deadline)
 
     # ------------------------------------------------------------ per solve
 
@@ -344,8 +363,8 @@ class IKPolisher:
             upper.insert(0, np.zeros(6))
         parameters = np.concatenate([target_position, target_rotation.ravel(order="F"), z_start,
                                      *[p.ravel(order="F") for p in selection.parameters]])
-        run = run_solver(self._solvers[mode], x0, p=parameters, lbx=self._lbx, ubx=self._ubx,
-                         lbg=np.concatenate(lower), ubg=np.concatenate(upper))
+        run = run_solver(self._solvers[mode], x0, self._deadline, p=parameters, lbx=self._lbx,
+                         ubx=self._ubx, lbg=np.concatenate(lower), ubg=np.concatenate(upper))
         z, status, ipopt_success, iterations = run.x, run.status, run.success, run.iterations
         if not np.all(np.isfinite(z)):
             z, ipopt_success = x0.copy(), False
@@ -358,7 +377,8 @@ class IKPolisher:
         return (attempt.ipopt_success and attempt.max_violation <= cfg.violation_tolerance
                 and attempt.pose_error <= cfg.pose_tolerance)
 
-    def solve(self, q0: Any, target_position: Any, target_rotation: Any) -> PolishResult:
+    def solve(self, q0: Any, target_position: Any, target_rotation: Any,
+              time_limit: float | None = None) -> PolishResult:
         """Polish one IK answer.
 
         Args:
@@ -366,6 +386,8 @@ class IKPolisher:
                 violate the limits or the clearance.
             target_position: (3,) metres, world frame.
             target_rotation: (3, 3) rotation matrix, world frame.
+            time_limit: seconds this solve may take (None: no limit); past it Ipopt stops
+                and the best attempt so far is returned with ``out_of_time``.
 
         Returns a ``PolishResult``; a numerical failure is ``success=False`` with the best
         configuration Ipopt reached (or ``q0``), never an exception.
@@ -373,12 +395,21 @@ class IKPolisher:
         q0 = np.asarray(q0, dtype=np.float64).reshape(-1)
         near = (self._distances(q_to_z_numpy(q0)) if np.all(np.isfinite(q0))
                 and q0.shape == (self.robot.dof,) else None)
-        return self._solve(q0, target_position, target_rotation, near)
+        return self._solve(q0, target_position, target_rotation, near, time_limit)
 
     def _solve(self, q0: np.ndarray, target_position: Any, target_rotation: Any,
-               near: np.ndarray | None) -> PolishResult:
+               near: np.ndarray | None, time_limit: float | None = None) -> PolishResult:
         """``solve`` with the warm start's pair distances ``near`` already computed."""
         start = time.perf_counter()
+        self._deadline.start(time_limit)
+        try:
+            return self._solve_until(q0, target_position, target_rotation, near, start)
+        finally:
+            self._deadline.start(None)
+
+    def _solve_until(self, q0: np.ndarray, target_position: Any, target_rotation: Any,
+                     near: np.ndarray | None, start: float) -> PolishResult:
+        """``_solve`` with its deadline set."""
         robot = self.robot
         target_position = np.asarray(target_position, dtype=np.float64).reshape(-1)
         target_rotation = np.asarray(target_rotation, dtype=np.float64)
@@ -397,12 +428,17 @@ class IKPolisher:
         switched_on = np.zeros(near.shape, dtype=bool)
         switched_on[selection.chosen] = True
         attempts: list[_Attempt] = []
+        out_of_time = False
         for mode in self.modes:
+            if self._deadline.passed():
+                out_of_time = True
+                break
             attempt = self._run(mode, z_start, z_start, selection, target_position,
                                 target_rotation)
+            out_of_time = attempt.status == TIME_LIMIT_STATUS
             violated = attempt.distances < (self.safety_margin
                                             - self.config.violation_tolerance)
-            if self._pools and np.any(violated & ~switched_on):
+            if self._pools and np.any(violated & ~switched_on) and not out_of_time:
                 # A pair without a slot (far at the warm start, or beyond the capacity) came
                 # too close: give the pairs near either point the slots and go on from there.
                 refreshed = self._select(np.minimum(near, attempt.distances))
@@ -410,9 +446,13 @@ class IKPolisher:
                                   target_rotation)
                 again.iterations += attempt.iterations
                 attempt = again
+                out_of_time = attempt.status == TIME_LIMIT_STATUS
             attempts.append(attempt)
-            if self._succeeded(attempt):
+            if self._succeeded(attempt) or out_of_time:
                 break
+        if not attempts:
+            return PolishResult(q0, False, TIME_LIMIT_STATUS, math.inf, math.inf, 0,
+                                time.perf_counter() - start, self.modes[0], out_of_time=True)
 
         def rank(a: _Attempt) -> tuple[bool, bool, float, float]:
             feasible = a.max_violation <= self.config.violation_tolerance
@@ -430,16 +470,19 @@ class IKPolisher:
             seconds=time.perf_counter() - start,
             mode=best.mode,
             violations=dict(best.violations),
+            out_of_time=out_of_time and not self._succeeded(best),
         )
 
 
 def polish_many(polisher: IKPolisher, q0s: Any, positions: Any, rotations: Any,
-                progress: bool = False, pool: Any = None) -> list[PolishResult]:
+                progress: bool = False, pool: Any = None,
+                time_limits: Any = None) -> list[PolishResult]:
     """``polisher.solve`` for each row: q0s (B, 3n) rad/m, positions (B, 3) m, rotations
-    (B, 3, 3); a tqdm progress bar with ``progress``. The warm starts' pair distances
-    come from one batched evaluation by ``polisher``; with a ``stages._pool.PolishPool``
-    (whose workers build the same polisher) the solves are spread over its processes and
-    come back in order, the same answers."""
+    (B, 3, 3), ``time_limits`` (B,) seconds per solve (None: no limit); a tqdm progress
+    bar with ``progress``. The warm starts' pair distances come from one batched
+    evaluation by ``polisher``; with a ``stages._pool.PolishPool`` (whose workers build
+    the same polisher) the solves are spread over its processes and come back in order,
+    the same answers (each solve's limit counts from its own start)."""
     q0s = np.asarray(q0s, dtype=np.float64)
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     rotations = np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)
@@ -448,13 +491,16 @@ def polish_many(polisher: IKPolisher, q0s: Any, positions: Any, rotations: Any,
                          f"{len(positions)} positions and {len(rotations)} rotations")
     bar = tqdm(total=len(q0s), desc="polish (Ipopt)", unit="target") if progress else None
     near = _near_distances(polisher, q0s)
+    limits = ([None] * len(q0s) if time_limits is None
+              else [float(t) if np.isfinite(t) else None for t in np.ravel(time_limits)])
     if pool is not None:
-        out = pool.map(_solve_near, list(zip(q0s, positions, rotations, near, strict=True)),
-                       bar)
+        out = pool.map(_solve_near, list(zip(q0s, positions, rotations, near, limits,
+                                             strict=True)), bar)
     else:
         out = []
         for i in range(len(q0s)):
-            out.append(polisher._solve(q0s[i], positions[i], rotations[i], near[i]))
+            out.append(polisher._solve(q0s[i], positions[i], rotations[i], near[i],
+                                       limits[i]))
             if bar is not None:
                 bar.update(1)
     if bar is not None:
@@ -477,8 +523,9 @@ def _near_distances(polisher: IKPolisher, q0s: np.ndarray) -> list[np.ndarray | 
 
 
 def _solve_near(polisher: IKPolisher, q0: np.ndarray, position: np.ndarray,
-                rotation: np.ndarray, near: np.ndarray | None) -> PolishResult:
-    return polisher._solve(q0, position, rotation, near)
+                rotation: np.ndarray, near: np.ndarray | None,
+                time_limit: float | None = None) -> PolishResult:
+    return polisher._solve(q0, position, rotation, near, time_limit)
 
 
 def build_polisher(robot: Robot, scene: Scene | None, safety_margin: float,

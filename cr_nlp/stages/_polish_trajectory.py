@@ -41,6 +41,10 @@ Ipopt's KKT system), and re-solved with new parameters (1/Δt, targets, slots) a
 bounds. Every answer is projected onto the simple limits and re-evaluated in float64
 independently of Ipopt (the world's distances over all pairs at every waypoint and check
 point, numpy limits and tendon finite differences) before it is called a success.
+
+A solve may be given a time limit (``solve(..., time_limit=)``): its Ipopt runs stop at the
+deadline (``stages._ipopt.Deadline``), no re-selection round starts after it, and the
+result is the best round so far with ``out_of_time`` set.
 """
 
 from __future__ import annotations
@@ -61,7 +65,14 @@ from ..model.limits import limit_violation_q, project_bending
 from ..world.clearance import PairDistances, body_gap_tolerance, self_pairs
 from ..world.scene import Scene, load_scene
 from ..world.verdict import VIOLATION_TOLERANCE
-from ._ipopt import WarmStart, build_solver, ipopt_options, run_solver
+from ._ipopt import (
+    TIME_LIMIT_STATUS,
+    Deadline,
+    WarmStart,
+    build_solver,
+    ipopt_options,
+    run_solver,
+)
 from ._slots import SlotRows, make_pools, select_slots_batch
 
 OBJECTIVES = ("path", "tracking")
@@ -186,6 +197,9 @@ class TrajectoryPolishResult:
     warm_start_violations: dict[str, float] = field(default_factory=dict)
     """``violations`` of the warm start, as the NLP's constraints see it (the same
     families, the same configurations)."""
+    out_of_time: bool = False
+    """The solve's time limit stopped it (an Ipopt run stopped at the deadline, or no
+    time was left for the next round); the answer is the best round so far."""
 
 
 def _tendon_lengths(robot: Robot, z: np.ndarray) -> np.ndarray:
@@ -250,6 +264,7 @@ class TrajectoryPolisher:
                                    else safety_margin)
         self.builds = 0
         """How many ``nlpsol`` solvers this polisher constructed."""
+        self._deadline = Deadline()
 
         self._n_configs = w + config.interpolation_checks * (w - 1)
         self._samples = np.arange(1, config.verify_samples) / config.verify_samples
@@ -467,7 +482,8 @@ class TrajectoryPolisher:
         self.builds += 1
         name = "_".join(["polish_trajectory", robot.name, self.objective, str(w),
                          *map(str, capacities)])
-        return build_solver(name, {"x": x, "p": p, "f": objective, "g": g}, options), keep_all
+        return (build_solver(name, {"x": x, "p": p, "f": objective, "g": g}, options,
+                             self._deadline), keep_all)
 
     # ------------------------------------------------------------ per solve
 
@@ -587,7 +603,8 @@ class TrajectoryPolisher:
         return q0, float(dt), positions, rotations
 
     def solve(self, q0: Any, dt: float, target_positions: Any = None,
-              target_rotations: Any = None) -> TrajectoryPolishResult:
+              target_rotations: Any = None,
+              time_limit: float | None = None) -> TrajectoryPolishResult:
         """Polish one trajectory.
 
         Args:
@@ -597,6 +614,9 @@ class TrajectoryPolisher:
             dt: seconds between waypoints (> 0).
             target_positions: ``"tracking"`` only: (W, 3) tip positions, metres.
             target_rotations: ``"tracking"`` only: (W, 3, 3) tip rotation matrices.
+            time_limit: seconds this solve may take (None: no limit); past it Ipopt stops,
+                no further round starts, and the best round so far is returned with
+                ``out_of_time``.
 
         Returns a ``TrajectoryPolishResult``; a numerical failure is ``success=False`` with
         Ipopt's last iterate (or ``q0``), never an exception. Bad shapes raise ValueError.
@@ -604,6 +624,15 @@ class TrajectoryPolisher:
         start = time.perf_counter()
         q0, dt, positions, rotations = self._check_inputs(q0, dt, target_positions,
                                                           target_rotations)
+        self._deadline.at = math.inf if time_limit is None else start + float(time_limit)
+        try:
+            return self._solve(q0, dt, positions, rotations, start)
+        finally:
+            self._deadline.start(None)
+
+    def _solve(self, q0: np.ndarray, dt: float, positions: np.ndarray | None,
+               rotations: np.ndarray | None, start: float) -> TrajectoryPolishResult:
+        """``solve`` with checked inputs and its deadline set."""
         finite = np.all(np.isfinite(q0)) and (
             positions is None or (np.all(np.isfinite(positions))
                                   and np.all(np.isfinite(rotations))))
@@ -635,7 +664,11 @@ class TrajectoryPolisher:
         warm_violations, near = self._evaluate(z0, dt)
         violations = warm_violations
         best: tuple[float, np.ndarray, dict[str, float], str, float] | None = None
+        out_of_time = False
         for round_ in range(cfg.reselections + 1):
+            if self._deadline.passed():
+                out_of_time, status = True, TIME_LIMIT_STATUS
+                break
             step = np.inf if free else self._step(z, near)
             low, high = np.maximum(lbx, z - step), np.minimum(ubx, z + step)
             fractions, rows = self._place(near)
@@ -647,7 +680,7 @@ class TrajectoryPolisher:
             parameters = np.concatenate([*fixed, *[s.ravel(order="F") for s in slots],
                                          fractions.ravel(order="F")])
             run = run_solver(
-                solver, z, p=parameters, lbx=low.reshape(-1), ubx=high.reshape(-1),
+                solver, z, self._deadline, p=parameters, lbx=low.reshape(-1), ubx=high.reshape(-1),
                 lbg=np.concatenate([*lower, clearance_lower]),
                 ubg=np.concatenate([*upper, np.full(clearance_lower.size, np.inf)]))
             answer, status = run.x.reshape(w, dof), run.status
@@ -663,6 +696,9 @@ class TrajectoryPolisher:
             worst = max(violations.values())
             if best is None or worst < best[0] or worst <= cfg.violation_tolerance:
                 best = (worst, z, violations, status, objective)
+            if run.out_of_time:
+                out_of_time = True
+                break
             if not self._pools:
                 break
             switched_on = np.zeros(distances.shape, dtype=bool)
@@ -705,6 +741,7 @@ class TrajectoryPolisher:
             seconds=time.perf_counter() - start,
             pose_errors=errors,
             warm_start_violations=warm_violations,
+            out_of_time=out_of_time and max_violation > cfg.violation_tolerance,
         )
 
     # ------------------------------------------------------------ checks

@@ -13,7 +13,7 @@ import numpy as np
 from ..model import Robot
 from ..model.limits import clip_to_limits
 from ..model.rotations import matrix_from_wxyz
-from ..stages._accept import Polished, accept_first
+from ..stages._accept import Polished, accept_first, polish_note
 from ..stages._trajectory_exact import describe_polish
 from ..world.verdict import VIOLATION_TOLERANCE, Verdict
 from ._follow_result import FollowResult, tracking_cost
@@ -25,7 +25,8 @@ def polish_follow(robot: Robot, polisher: Callable[[int], Any], lm: FollowResult
                   path: ReferencePath, trackable: np.ndarray,
                   verify: Callable[[np.ndarray], dict[str, Any]],
                   make_result: Callable[[np.ndarray, dict[str, Any]], FollowResult],
-                  timing: StageTiming, progress: bool) -> FollowResult:
+                  timing: StageTiming, progress: bool,
+                  time_limit: float | None = None) -> FollowResult:
     """Stage 3: Ipopt from the LM answer ``lm``; keep the polish only if the independent
     verdict agrees (collision-free, every violation ≤ 1e-6) and, where the LM answer is
     feasible too, only if it tracks the path better. Otherwise ``lm`` is returned with its
@@ -41,6 +42,8 @@ def polish_follow(robot: Robot, polisher: Callable[[int], Any], lm: FollowResult
         make_result: (q, verdict) → the polished ``FollowResult``.
         timing: its ``polish`` and ``verify`` seconds are increased.
         progress: print a line to stderr before the polish.
+        time_limit: seconds the polish may take (None: no limit); out of time, ``lm``
+            stays with ``stage`` "refine (polish out of time: …)".
     """
     try:
         from ..stages import _polish_trajectory  # noqa: F401 — only whether it is available
@@ -68,14 +71,15 @@ def polish_follow(robot: Robot, polisher: Callable[[int], Any], lm: FollowResult
     def polish(q0: np.ndarray) -> Polished[np.ndarray]:
         t0 = time.perf_counter()
         try:
-            out = solver.solve(q0, path.dt, positions, rotations)
+            out = solver.solve(q0, path.dt, positions, rotations, time_limit=time_limit)
         except Exception as exc:  # noqa: BLE001 — a crashed polish must not lose the answer
             return Polished(None, f"{type(exc).__name__}: {exc}")
         finally:
             timing.polish += time.perf_counter() - t0
         if not out.success:
-            return Polished(None, describe_polish(out))
-        return Polished(clip_to_limits(robot, np.asarray(out.q, dtype=np.float64)))
+            return Polished(None, describe_polish(out), out.seconds, out.out_of_time)
+        return Polished(clip_to_limits(robot, np.asarray(out.q, dtype=np.float64)),
+                        seconds=out.seconds, out_of_time=out.out_of_time)
 
     def judge(q: np.ndarray) -> Verdict:
         t1 = time.perf_counter()
@@ -85,7 +89,7 @@ def polish_follow(robot: Robot, polisher: Callable[[int], Any], lm: FollowResult
 
     outcome = accept_first([lm.q], lm.q, lm, polish, judge)
     if not outcome.accepted:
-        lm.stage = f"refine (polish failed: {'; '.join(outcome.failures)})"
+        lm.stage = f"refine ({polish_note(outcome)})"
         return lm
     polished = make_result(outcome.answer, reports[-1])
     if lm.max_violation <= VIOLATION_TOLERANCE and lm.collision_free and \

@@ -96,7 +96,8 @@ class FollowResult(ResultIO):
     reason: str
     """"" on success, else why not (unreached waypoints, collision, limits)."""
     stage: str
-    """What produced ``q``: "refine", "polish", "refine (polish failed: <why>)", or in
+    """What produced ``q``: "refine", "polish", "refine (polish failed: <why>)", "refine
+    (polish out of time: <why>)" (``FollowConfig.polish_time_limit``), or in
     exact mode "refine (feasible: polish not needed)" / "refine (feasible; the polished
     answer tracked worse)" when the LM answer already keeps every constraint (max
     violation ≤ 1e-6 by the independent checks)."""

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..model import Robot
+from ..stages._accept import polish_note
 from ..stages._trajectory_exact import polish_trajectories
 from ..world.verdict import Verdict
 from ._trajectory_result import TrajectoryResult, result_from_verdict
@@ -19,11 +20,11 @@ def polish_results(robot: Robot, rows: list[int], candidates: list[list[tuple[np
                    results: list[TrajectoryResult | None], dt: float,
                    verify: Callable[[np.ndarray], dict[str, Any]], polisher: Callable[[], Any],
                    pool: Callable[[], Any] | None, attempts: int, polish_accepted: bool,
-                   bar: Any) -> None:
+                   bar: Any, time_limit: float | None = None) -> None:
     """Polish each problem's LM candidates in order (best first, at most ``attempts``) and
     keep the first polished answer the verification accepts; if none is, the LM answer
     stays with its own verdict, its ``stage`` noting why each polish failed (exact mode
-    never succeeds less often than the LM stage).
+    never succeeds less often than the LM stage), or that its time limit ran out.
 
     Args:
         robot: the robot.
@@ -37,6 +38,8 @@ def polish_results(robot: Robot, rows: list[int], candidates: list[list[tuple[np
         attempts: most candidates polished per problem.
         polish_accepted: also polish problems whose LM answer the verification accepts.
         bar: a tqdm bar advanced per problem, or None.
+        time_limit: seconds of polishing per problem, all its candidates together (None:
+            no limit).
     """
     # A penalty answer the independent verdict accepts needs no polish to be valid.
     todo = []
@@ -57,7 +60,8 @@ def polish_results(robot: Robot, rows: list[int], candidates: list[list[tuple[np
         return reports[r]["verdict"]
 
     acceptance, seconds = polish_trajectories(
-        options, [results[rows[row]] for row in todo], dt, judge, polisher, pool, bar)
+        options, [results[rows[row]] for row in todo], dt, judge, polisher, pool, bar,
+        time_limit)
     for r, (row, outcome) in enumerate(zip(todo, acceptance.outcomes, strict=True)):
         i = rows[row]
         previous = results[i]
@@ -68,7 +72,7 @@ def polish_results(robot: Robot, rows: list[int], candidates: list[list[tuple[np
         else:
             failures = [f"from {options[r][k][1]}: {why}"
                         for k, why in enumerate(outcome.failures)]
-            previous.stage = f"{previous.stage} (polish failed: {'; '.join(failures)})"
+            previous.stage = f"{previous.stage} ({polish_note(outcome, failures)})"
         result = results[i]
         assert result is not None
         result.timing = replace(previous.timing, polish=float(seconds[r]))

@@ -48,7 +48,8 @@ class TrajectoryResult(ResultIO):
     """"" on success, else why it failed."""
     stage: str
     """What produced ``q``: "refine (roadmap)", "refine (straight)", "refine (perturbed)",
-    "polish", or a refine stage with the polish's failure noted; "rejected" for bad
+    "polish", or a refine stage with the polish's failure noted ("… (polish failed: …)",
+    or "… (polish out of time: …)" under ``polish_time_limit``); "rejected" for bad
     input."""
     path_length: float = math.nan
     """Tip path length along the interpolated motion, m."""

@@ -63,6 +63,7 @@ from .._programs import compile_ahead, compile_program
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz
+from ..stages._accept import check_time_limit
 from ..stages._banded_lm import ChainResidual, banded_lm_solve
 from ..stages._continuation import BranchContinuation, ContinuationSettings
 from ..stages._lm import LMConfig
@@ -183,6 +184,11 @@ class FollowConfig:
     """JAX dtype of the batched stages ("float64" needs jax_enable_x64)."""
     seed: int = 0
     """Seed of the IK seed pool."""
+    polish_time_limit: float | None = None
+    """Exact mode: seconds the polish of a path may take, its re-selection rounds
+    together (None: no limit). Out of time, the LM answer stays (unless the polish's
+    last round already passes the verification), with ``stage`` "refine (polish out of
+    time: …)". Stages 1 and 2 and the verification are not limited."""
 
     def __post_init__(self) -> None:
         if self.iterations < 0 or self.verify_samples < 1 or self.interpolation_checks < 0:
@@ -194,6 +200,7 @@ class FollowConfig:
                    self.smoothness_weight, self.clearance_weight, self.tendon_weight)
         if min(weights) < 0 or (self.tendon_repair_weight or 0.0) < 0:
             raise ValueError("weights must not be negative")
+        check_time_limit(self.polish_time_limit, "polish_time_limit")
 
     def ik_config(self) -> IKConfig:
         """The stage-1 ``IKConfig``: ``ik`` with this config's margin, dtype and seed."""
@@ -522,7 +529,8 @@ class PathFollower:
                 path file (``tasks.paths`` format).
             exact: polish with Ipopt, the constraints as constraints, minimising the
                 tracking error (``stages._polish_trajectory``); a failed or rejected
-                polish returns the LM answer with ``stage`` "refine (polish failed: …)".
+                polish returns the LM answer with ``stage`` "refine (polish failed: …)"
+                (or "refine (polish out of time: …)", ``config.polish_time_limit``).
             progress: print the polish stage's progress to stderr.
             dt: seconds between waypoints (default: the path's own ``dt``).
 
@@ -565,7 +573,7 @@ class PathFollower:
                 self.robot, self.polisher, result, path, trackable,
                 lambda q: self.verify(q, path, path.dt),
                 lambda q, verdict: self._result(q, path, verdict, "polish", why), timing,
-                progress)
+                progress, self.config.polish_time_limit)
         result.timing = timing
         return result
 

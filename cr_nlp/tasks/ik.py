@@ -33,6 +33,7 @@ from ..model import Robot, load_robot, pose_error, tip_pose
 from ..model.derivatives import pose_residual
 from ..model.limits import limit_violation_q, project_z
 from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
+from ..stages._accept import check_time_limit, polish_note
 from ..stages._chunks import SMALLEST_CHUNK as SMALLEST_CHUNK
 from ..stages._chunks import chunk_plan as chunk_plan
 from ..stages._ik_search import IKSearch, SearchSettings
@@ -80,6 +81,11 @@ class IKConfig:
     polish_workers: int = 1
     """Exact mode: processes that polish targets in parallel (``stages._pool``); 1
     polishes in this process. The answers are the same either way."""
+    polish_time_limit: float | None = None
+    """Exact mode: seconds of polishing per target, all its attempts together (None: no
+    limit). A target out of time keeps the best answer the verdict accepted so far (its
+    refined answer when no polish was accepted), with ``stage`` "refine (polish out of
+    time: …)". The search before it and the verdict are not limited."""
     success_tolerance: float = 1e-2
     """A target is reached when the pose error ‖log(T⁻¹T_target)‖ is below this."""
     converged_error: float = 1e-6
@@ -113,6 +119,7 @@ class IKConfig:
         for name in ("chunk_size", "stream_size"):
             if getattr(self, name) < 1:
                 raise ValueError(f"IKConfig.{name} must be at least 1, got {getattr(self, name)}")
+        check_time_limit(self.polish_time_limit, "IKConfig.polish_time_limit")
 
 
 IKTiming = StageTiming
@@ -301,7 +308,8 @@ class IKSolver:
         Args:
             positions: (T, 3) target tip positions, metres.
             wxyz: (T, 4) target tip orientations, unit quaternions (w, x, y, z).
-            exact: polish every answer with Ipopt, constraints as constraints.
+            exact: polish every answer with Ipopt, constraints as constraints (each
+                target within ``config.polish_time_limit``, if set).
             progress: show a progress bar for the exact stage.
         """
         timing = IKTiming()
@@ -360,7 +368,7 @@ class IKSolver:
         (``beam``: (T, width, 3n), best first) in turn, up to ``config.polish_attempts``
         polishes in all. An accepted polish replaces the answer; otherwise the refined
         answer stays with its own verdict (exact mode never succeeds less often than the
-        penalty stages)."""
+        penalty stages). ``config.polish_time_limit`` bounds each target's polishes."""
         from ..stages._ik_exact import polish_answers
         from ..stages._polish import IKPolisher, build_polisher
 
@@ -382,14 +390,15 @@ class IKSolver:
             self._polisher, result.q[todo], beam[todo], result.pose_error[todo],
             positions[todo], matrix_from_wxyz(wxyz[todo]),
             [_Checked(bool(result.success[i]), result.reason[i], None) for i in todo], judge,
-            self.config.polish_attempts, progress, self._polish_pool)
+            self.config.polish_attempts, progress, self._polish_pool,
+            self.config.polish_time_limit)
         for i, outcome in zip(todo.tolist(), accepted.outcomes, strict=True):
             if outcome.accepted:
                 result.q[i] = outcome.answer
                 self._store(result, i, outcome.verdict.row)
                 result.stage[i] = "polish"
             else:
-                result.stage[i] = f"refine (polish failed: {'; '.join(outcome.failures)})"
+                result.stage[i] = f"refine ({polish_note(outcome)})"
         timing.verify += accepted.judge_seconds
         timing.polish += time.perf_counter() - t0 - accepted.judge_seconds
 

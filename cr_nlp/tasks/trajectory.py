@@ -47,6 +47,7 @@ from ..model._ops import JAX
 from ..model.derivatives import tip_position_z
 from ..model.kinematics import model_tendon_lengths
 from ..model.limits import project_z
+from ..stages._accept import check_time_limit
 from ..stages._banded_lm import ChainResidual
 from ..stages._chain_batch import ChainBatchLM
 from ..stages._lm import LMConfig
@@ -142,6 +143,12 @@ class TrajectoryConfig:
     polish_workers: int = 1
     """Exact mode: processes that polish problems in parallel (``stages._pool``); 1 polishes
     in this process. The answers are the same either way."""
+    polish_time_limit: float | None = None
+    """Exact mode: seconds of polishing per problem, all its candidates and re-selection
+    rounds together (None: no limit). A problem out of time keeps the best answer the
+    verification accepted so far (its LM answer when no polish was accepted), its
+    ``stage`` ending "(polish out of time: …)". Planning and verification are not
+    limited."""
     chunk_size: int = 8
     """Most trajectories per compiled LM call: the slots of the continuous batching
     (``stages._chain_batch``; split between its lanes, one per JAX device, at most
@@ -206,6 +213,7 @@ class TrajectoryConfig:
             raise ValueError(f"chunk_size must be ≥ 1, got {self.chunk_size}")
         if self.problem_chunk < 1:
             raise ValueError(f"problem_chunk must be ≥ 1, got {self.problem_chunk}")
+        check_time_limit(self.polish_time_limit, "polish_time_limit")
 
 
 # ================================================================ residuals
@@ -425,7 +433,8 @@ class TrajectoryPlanner:
                 polished answer replaces the LM answer only when the verification
                 accepts it (``stage == "polish"``); a failed polish is retried from the
                 next LM candidate (``polish_attempts``), and if none passes, the LM answer
-                stays with its own verdict, its ``stage`` noting why each polish failed.
+                stays with its own verdict, its ``stage`` noting why each polish failed
+                (or that ``config.polish_time_limit`` ran out).
             init: "roadmap" (roadmap path, straight line, perturbed) or "straight"
                 (straight line and perturbed ones only).
             progress: show a progress bar for the exact stage.
@@ -464,7 +473,8 @@ class TrajectoryPlanner:
                     polish_results(self.robot, [i for i, _, _ in part], candidates, results,
                                    dt, lambda q: self.verify(q, dt), self.polisher,
                                    self._pool if cfg.polish_workers > 1 else None,
-                                   cfg.polish_attempts, cfg.polish_accepted, bar)
+                                   cfg.polish_attempts, cfg.polish_accepted, bar,
+                                   cfg.polish_time_limit)
                     timing.polish += time.perf_counter() - t0
         finally:
             if bar is not None:
