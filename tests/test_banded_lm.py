@@ -410,7 +410,8 @@ def test_slots_shrink_and_grow_without_changing_the_iterates() -> None:
     """With up to 8 slots, the draining stream moves to programs of 4 and 2 slots and
     back to more when ``more`` adds chains late; every chain still takes its one-shot
     ``banded_lm_solve`` iterates, and a program without resizing does the same with more
-    slot-trips."""
+    slot-trips. The first stream moves down only to programs compiled already (none: a
+    one-shot process does not compile them for its tail); the second compiles them."""
     from cr_nlp.stages._chain_batch import ChainBatchLM
 
     t, d, budget = 5, 3, 8
@@ -433,21 +434,25 @@ def test_slots_shrink_and_grow_without_changing_the_iterates() -> None:
 
     work = {}
     for resize in (True, False):
-        finished.clear()
         batch = ChainBatchLM(terms, unprojected, t, free, jnp.float64, chunk_size=8,
                              resize=resize)
-        solution = batch.solve(z0[:first], steps[:first], None, budget, more)
-        assert sorted(finished) == list(range(count))
-        for k in range(count):
-            np.testing.assert_allclose(solution.z[k], np.asarray(one_shot[k][0]).reshape(-1),
-                                       atol=1e-12)
-            assert solution.cost[k] == pytest.approx(float(one_shot[k][1]), rel=1e-12)
-            assert solution.iterations[k] == int(one_shot[k][2])
-        work[resize] = (batch.slot_trips, sorted({s for _, s in batch._slot_programs}))
+        for stream in (1, 2):
+            finished.clear()
+            batch.slot_trips = 0
+            solution = batch.solve(z0[:first], steps[:first], None, budget, more)
+            assert sorted(finished) == list(range(count))
+            for k in range(count):
+                np.testing.assert_allclose(solution.z[k],
+                                           np.asarray(one_shot[k][0]).reshape(-1), atol=1e-12)
+                assert solution.cost[k] == pytest.approx(float(one_shot[k][1]), rel=1e-12)
+                assert solution.iterations[k] == int(one_shot[k][2])
+            work[resize, stream] = (batch.slot_trips,
+                                    sorted({s for _, s in batch._slot_programs}))
     lane = batch.lane_slots                         # 8 slots, split between the lanes
-    assert work[False][1] == [lane]
-    assert work[True][1] == [2 ** k for k in range(1, lane.bit_length())]
-    assert work[True][0] < work[False][0]
+    assert work[False, 2][1] == [lane]
+    assert work[True, 1] == work[False, 1]
+    assert work[True, 2][1] == [2 ** k for k in range(1, lane.bit_length())]
+    assert work[True, 2][0] < work[False, 2][0]
 
 
 def test_slots_and_chunks_never_exceed_a_chunk_size_that_is_not_a_power_of_two() -> None:

@@ -111,7 +111,12 @@ class ChainBatchLM:
             them to a program of fewer slots (powers of two, at least 2; each compiled on
             first use), and back to more (up to ``chunk_size``) when chains are added. A
             trip's cost grows about linearly with its slots, idle ones included (tdcr3
-            shelf trajectories, 2-core CPU: 1.5, 2.9, 5.2 ms for 1, 2, 4 slots).
+            shelf trajectories, 2-core CPU: 1.5, 2.9, 5.2 ms for 1, 2, 4 slots). The
+            first stream of this object moves down only to programs it has already: the
+            tail of a one-shot ``cr-nlp plan`` (20 shelf problems) saved 0.16 s of 0.86
+            by fewer slots and cost ~25 s to compile them (two lanes, empty cache; ~1 s
+            to load them from a warm one). From its second stream on (a process that
+            plans again), it compiles them when the stream drains.
         overlap: slots: run ``more`` on a call's finished chains while the next call
             computes (False: before it, the former order; kept for comparison).
         lanes: slots: most JAX devices that run slot programs side by side (None: as
@@ -162,6 +167,8 @@ class ChainBatchLM:
         self._idle_shapes: dict[int, Any] = {}
         self.programs = 0
         """Device programs launched so far (one per chunk or slot call)."""
+        self.streams = 0
+        """Streams solved so far with the slot schedule (``resize``)."""
         self.slot_trips = 0
         """LM trips made so far times the slots (chunk rows) they ran on: the device work,
         idle slots included (a trip of one chain is one evaluation and one step)."""
@@ -204,6 +211,7 @@ class ChainBatchLM:
     # ------------------------------------------------------------ slots
     def _solve_slots(self, z0: np.ndarray, step: np.ndarray, arrays: Any, iterations: int,
                      more: MoreChains | None) -> ChainSolution:
+        self.streams += 1
         width = z0.shape[1]
         z_list, step_list = list(z0), list(step)
         out_z: dict[int, np.ndarray] = {}
@@ -268,7 +276,9 @@ class ChainBatchLM:
         # included). The states move whole, so the iterates are unchanged.
         need = int(np.sum(lane.chain >= 0)) + len(waiting)
         size = self._fitting(need) if self.resize else lane.slots
-        if need and (size < lane.slots and 2 * need <= lane.slots or size > lane.slots):
+        shrink = size < lane.slots and 2 * need <= lane.slots and (
+            self.streams > 1 or (lane.device.id, size) in self._slot_programs)
+        if need and (shrink or size > lane.slots):
             keep = np.flatnonzero(lane.chain >= 0)
             lane.state = self._moved(lane.state, keep, size)
             lane.chain, lane.budget, lane.slot_step = (
