@@ -18,18 +18,14 @@ from cr_nlp.model import (
 )
 from cr_nlp.model._ops import CASADI, JAX, NUMPY
 from cr_nlp.model.derivatives import (
-    SLOPE_SERIES_BELOW,
     backbone_jacobian_z,
     pose_error_jacobian,
     pose_residual,
     segment_transform_derivatives,
-    sinc_of_square_slope,
-    sine_deficit_of_square,
     tip_jacobian_z,
-    versine_of_square_slope,
 )
 from cr_nlp.model.kinematics import model_segment_transform
-from cr_nlp.model.lie import sinc_of_square, versine_of_square
+from cr_nlp.model.lie import BEND_SERIES_BELOW, bend_coefficients
 
 from .conftest import MODELS
 
@@ -49,7 +45,7 @@ def configurations(robot: Robot, count: int, seed: int) -> np.ndarray:
     q[0, 0::3] = 0.0  # every segment straight: θ = 0 exactly
     q[1, 0::3] = hi[0::3]  # every segment at θmax
     q[2, 0::3] = [0.0, hi[3], 1e-9, 0.0][: robot.n_segments]  # mixed
-    q[3, 0::3] = np.sqrt(SLOPE_SERIES_BELOW)  # on the series/closed-form switch
+    q[3, 0::3] = np.sqrt(BEND_SERIES_BELOW)  # on the series/closed-form switch
     return q_to_z_numpy(q)
 
 
@@ -62,29 +58,32 @@ def vee_of_rate(d_rot: jax.Array, rot: jax.Array) -> jax.Array:
 # ------------------------------------------------------------------ scalar slopes
 
 
-def test_slopes_match_autodiff_and_their_series_at_zero() -> None:
+def test_bend_coefficients_match_closed_forms_autodiff_and_their_series_at_zero() -> None:
     t = jnp.asarray(
         np.concatenate(
             [
                 [0.0, 1e-12, 1e-6],
                 np.linspace(0.01, np.pi**2, 400),
-                [SLOPE_SERIES_BELOW * (1 - 1e-12), SLOPE_SERIES_BELOW * (1 + 1e-12)],
+                [BEND_SERIES_BELOW * (1 - 1e-12), BEND_SERIES_BELOW * (1 + 1e-12)],
             ]
         )
     )
-    da = jax.vmap(jax.grad(lambda x: sinc_of_square(JAX, x)))(t)
-    db = jax.vmap(jax.grad(lambda x: versine_of_square(JAX, x)))(t)
-    np.testing.assert_allclose(sinc_of_square_slope(JAX, t), da, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(versine_of_square_slope(JAX, t), db, rtol=0, atol=1e-12)
+    bend = bend_coefficients(JAX, t, slopes=True)
+    # The slopes against autodiff of the values (through the series/closed-form switch).
+    da = jax.vmap(jax.grad(lambda x: bend_coefficients(JAX, x).a))(t)
+    db = jax.vmap(jax.grad(lambda x: bend_coefficients(JAX, x).b))(t)
+    np.testing.assert_allclose(bend.da, da, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(bend.db, db, rtol=0, atol=1e-12)
+    # Everything against the textbook forms in θ, away from their cancellation at 0.
     theta = np.sqrt(np.asarray(t)[3:])
-    np.testing.assert_allclose(
-        np.asarray(sine_deficit_of_square(JAX, t))[3:],
-        (theta - np.sin(theta)) / theta**3,
-        rtol=1e-9,
-    )
-    assert float(sinc_of_square_slope(NUMPY, np.float64(0.0))) == -1.0 / 6.0
-    assert float(versine_of_square_slope(NUMPY, np.float64(0.0))) == -1.0 / 24.0
-    assert float(sine_deficit_of_square(NUMPY, np.float64(0.0))) == 1.0 / 6.0
+    a = np.sin(theta) / theta
+    b = (1.0 - np.cos(theta)) / theta**2
+    for ours, exact in [(bend.a, a), (bend.b, b), (bend.c, (theta - np.sin(theta)) / theta**3),
+                        (bend.da, (np.cos(theta) - a) / (2.0 * theta**2)),
+                        (bend.db, (a - 2.0 * b) / (2.0 * theta**2))]:
+        np.testing.assert_allclose(np.asarray(ours)[3:], exact, rtol=1e-9)
+    at_zero = bend_coefficients(NUMPY, np.float64(0.0), slopes=True)
+    assert tuple(float(v) for v in at_zero) == (1.0, 0.5, 1.0 / 6.0, -1.0 / 6.0, -1.0 / 24.0)
 
 
 # ------------------------------------------------------------------ one segment

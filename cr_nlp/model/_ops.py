@@ -46,6 +46,11 @@ class Ops:
     """Give an entry one trailing axis so it broadcasts against per-point entries."""
     fractions: Callable[[np.ndarray], Any]
     """A constant vector of arc fractions, laid out for per-point entries."""
+    per_point: Callable[[Any, Any], Any]
+    """An entry with a segment axis (``stack``) times the arc fractions: one entry per
+    (segment, point) (JAX: ``x[..., None] * s``; CasADi: the n × k outer product)."""
+    points_of: Callable[[Any, int], Any]
+    """Segment m's points of a ``per_point`` entry, laid out as ``along`` entries."""
     stack_points: Callable[[list[tuple[Any, Any, Any]]], Any]
     """Stack per-point (x, y, z) entries of each segment into an (N, 3) array."""
     materialize: Callable[[Any], Any]
@@ -81,6 +86,8 @@ JAX = Ops(
     stack=lambda xs: jnp.stack(jnp.broadcast_arrays(*xs), axis=-1),
     along=lambda x: jnp.asarray(x)[..., None],
     fractions=lambda s: jnp.asarray(s),
+    per_point=lambda x, s: x[..., None] * s,
+    points_of=lambda x, m: x[..., m, :],
     stack_points=_jax_stack_points,
     materialize=_jax_materialize,
 )
@@ -98,6 +105,8 @@ CASADI = Ops(
     stack=lambda xs: ca.vertcat(*xs),
     along=lambda x: x,
     fractions=lambda s: ca.DM(np.asarray(s, dtype=float)),
+    per_point=lambda x, s: ca.mtimes(x, s.T),
+    points_of=lambda x, m: x[m, :].T,
     stack_points=_casadi_stack_points,
     materialize=lambda x: x,
 )
@@ -134,6 +143,8 @@ NUMPY = Ops(
     stack=lambda xs: np.stack(np.broadcast_arrays(*xs), axis=-1),
     along=lambda x: np.asarray(x)[..., None],
     fractions=lambda s: np.asarray(s, dtype=float),
+    per_point=lambda x, s: np.asarray(x)[..., None] * s,
+    points_of=lambda x, m: x[..., m, :],
     stack_points=_numpy_stack_points,
     materialize=lambda x: x,
 )

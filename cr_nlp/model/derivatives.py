@@ -7,7 +7,7 @@ path-following solvers take their Jacobians from here.
 The segment transform (``kinematics.model_segment_transform``) is
 ``R = I + A(t)·K + B(t)·K²``, ``d = L·(B·ux, B·uy, A)`` with t = ux² + uy² = θ²,
 A = sin θ/θ, B = (1 − cos θ)/θ². Its derivatives need A′(t) and B′(t), written here with
-Taylor branches below ``SLOPE_SERIES_BELOW`` so that values and derivatives are finite
+Taylor branches (``lie.bend_coefficients``) so that values and derivatives are finite
 and exact at θ = 0. R is the rotation exp([w]×) about w = (−uy, ux, 0), so its spatial
 rate ∂R·Rᵀ = [J_l(w)·∂w]× with the SO(3) left Jacobian J_l = I + B·K + C·K²,
 C = (θ − sin θ)/θ³ = (1 − A)/t.
@@ -26,90 +26,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._ops import JAX, Ops, safe_where
+from ._ops import JAX, Ops
 from .kinematics import model_base, model_pose_error, model_segment_frames
 from .lie import (
     Rot,
     Transform,
     Vec,
+    bend_coefficients,
     rot_apply,
     rot_transpose,
     se3_left_jacobian_inverse,
-    sinc_of_square,
     transform_compose,
     vec_add,
     vec_cross,
     vec_sub,
-    versine_of_square,
 )
 from .robot import Robot
-
-SLOPE_SERIES_BELOW = 0.1
-"""Below this t = θ² (rad²) the slopes A′, B′ and the coefficient C use their Taylor
-series (truncation error < 1e-17 there); above it the closed forms lose at most
-~3e-14 relative to cancellation in float64."""
-
-
-# ---------------------------------------------------------------- smooth scalars of t = θ²
-
-
-def sinc_of_square_slope(ops: Ops, t: Any) -> Any:
-    """A′(t) = d/dt (sin θ/θ) = (cos θ − A)/(2t), t = θ² (rad²); −1/6 at t = 0."""
-
-    def series(t: Any) -> Any:  # Σₖ k(−1)ᵏ tᵏ⁻¹/(2k+1)!, k = 1…6
-        return -1.0 / 6.0 + t * (
-            2.0 / 120.0
-            + t
-            * (
-                -3.0 / 5040.0
-                + t * (4.0 / 362880.0 + t * (-5.0 / 39916800.0 + t * (6.0 / 6227020800.0)))
-            )
-        )
-
-    def exact(t: Any) -> Any:
-        theta = ops.sqrt(t)
-        return (ops.cos(theta) - ops.sin(theta) / theta) / (2.0 * t)
-
-    return safe_where(ops, t < SLOPE_SERIES_BELOW, series, exact, t, 1.0)
-
-
-def versine_of_square_slope(ops: Ops, t: Any) -> Any:
-    """B′(t) = d/dt ((1 − cos θ)/θ²) = (A − 2B)/(2t), t = θ² (rad²); −1/24 at t = 0."""
-
-    def series(t: Any) -> Any:  # Σₖ k(−1)ᵏ tᵏ⁻¹/(2k+2)!, k = 1…6
-        return -1.0 / 24.0 + t * (
-            2.0 / 720.0
-            + t
-            * (
-                -3.0 / 40320.0
-                + t * (4.0 / 3628800.0 + t * (-5.0 / 479001600.0 + t * (6.0 / 87178291200.0)))
-            )
-        )
-
-    def exact(t: Any) -> Any:
-        return (sinc_of_square(ops, t) - 2.0 * versine_of_square(ops, t)) / (2.0 * t)
-
-    return safe_where(ops, t < SLOPE_SERIES_BELOW, series, exact, t, 1.0)
-
-
-def sine_deficit_of_square(ops: Ops, t: Any) -> Any:
-    """C(t) = (θ − sin θ)/θ³ = (1 − A)/t, t = θ² (rad²); 1/6 at t = 0."""
-
-    def series(t: Any) -> Any:  # Σₖ (−t)ᵏ/(2k+3)!, k = 0…5
-        return 1.0 / 6.0 + t * (
-            -1.0 / 120.0
-            + t
-            * (
-                1.0 / 5040.0
-                + t * (-1.0 / 362880.0 + t * (1.0 / 39916800.0 + t * (-1.0 / 6227020800.0)))
-            )
-        )
-
-    def exact(t: Any) -> Any:
-        return (1.0 - sinc_of_square(ops, t)) / t
-
-    return safe_where(ops, t < SLOPE_SERIES_BELOW, series, exact, t, 1.0)
-
 
 # ---------------------------------------------------------------- one segment
 
@@ -132,9 +64,7 @@ def segment_transform_derivatives(ops: Ops, ux: Any, uy: Any, length: Any) -> Se
     """The segment transform (frame i−1 → i) of bending vector (ux, uy) rad and length m,
     with its closed-form derivatives; finite and exact at θ = 0."""
     t = ux * ux + uy * uy
-    a, b = sinc_of_square(ops, t), versine_of_square(ops, t)
-    da, db = sinc_of_square_slope(ops, t), versine_of_square_slope(ops, t)
-    c = sine_deficit_of_square(ops, t)
+    a, b, c, da, db = bend_coefficients(ops, t, slopes=True)
     rotation = (
         1.0 - b * ux * ux,
         -b * ux * uy,
@@ -182,91 +112,7 @@ def segment_transform_derivatives(ops: Ops, ux: Any, uy: Any, length: Any) -> Se
     )
 
 
-def _scale(s: Any, a: Vec) -> Vec:
-    return (s * a[0], s * a[1], s * a[2])
-
-
-# ---------------------------------------------------------------- the chain
-
-
-class KinematicsDerivatives(NamedTuple):
-    """The kinematics of one configuration with derivatives by every entry of z."""
-
-    frames: list[Transform]
-    """World frames at the base (index 0) and at the end of every segment."""
-    d_position: list[Vec]
-    """Per variable k of z: ∂p_tip/∂z_k, world frame (m per rad, or per m for a length)."""
-    rates: list[Vec | None]
-    """Per variable k: the world rate ω_k with ∂R_tip/∂z_k = [ω_k]×·R_tip (None for a
-    length, whose rate is zero)."""
-    points: list[Vec] | None
-    """Per segment: its backbone points (entries along the trailing point axis)."""
-    d_points: list[list[Vec | None]] | None
-    """[segment][k]: ∂point/∂z_k, world frame; None for the variables of later segments."""
-
-
-def model_kinematics_derivatives(
-    ops: Ops, robot: Robot, z: list[Any], points: bool = True
-) -> KinematicsDerivatives:
-    """Tip pose, backbone points (with ``points``) and their closed-form derivatives with
-    respect to every entry of z (``[ux1, uy1, L1, …]``), on the backend ``ops``."""
-    n = robot.n_segments
-    frames = [model_base(robot)]
-    rates: list[Vec | None] = []
-    moves: list[Vec] = []  # R_{m−1}·∂d/∂z_k, world
-    ends: list[Vec] = []  # p_m of the segment owning variable k
-    for m in range(n):
-        ux, uy, length = z[3 * m], z[3 * m + 1], z[3 * m + 2]
-        seg = segment_transform_derivatives(ops, ux, uy, length)
-        base_rot = frames[-1][0]
-        frame = ops.materialize(transform_compose(frames[-1], (seg.rotation, seg.position)))
-        frames.append(frame)
-        rates += [ops.materialize(rot_apply(base_rot, w)) for w in seg.rates] + [None]
-        moves += [ops.materialize(rot_apply(base_rot, d)) for d in seg.d_position]
-        ends += [frame[1]] * 3
-    tip = frames[-1][1]
-    d_position = [
-        moves[k] if w is None else vec_add(vec_cross(w, vec_sub(tip, ends[k])), moves[k])
-        for k, w in enumerate(rates)
-    ]
-    if not points:
-        return KinematicsDerivatives(frames, d_position, rates, None, None)
-
-    count = robot.points_per_segment
-    s = ops.fractions(np.arange(1, count + 1) / count)
-    seg_points, seg_d_points = [], []
-    for m in range(n):
-        ux, uy, length = (ops.along(v) for v in z[3 * m : 3 * m + 3])
-        local = segment_transform_derivatives(ops, ux * s, uy * s, length * s)
-        # Computed once per point: without the barrier XLA recomputed the slopes A′, B′
-        # inside each of the 9 entries of every point's Jacobian (3.0 → 0.9 ms for 376
-        # tdcr3 configurations, float32, CPU).
-        local_position, local_d_position = ops.materialize((local.position, local.d_position))
-        rot, pos = frames[m]
-        rot_a = tuple(ops.along(v) for v in rot)
-        pos_a = tuple(ops.along(v) for v in pos)
-        x = vec_add(pos_a, rot_apply(rot_a, local_position))
-        seg_points.append(x)
-        d_x: list[Vec | None] = []
-        for k in range(robot.dof):
-            owner = k // 3
-            if owner < m:  # an earlier segment's variable turns this segment rigidly
-                moved = tuple(ops.along(v) for v in moves[k])
-                if rates[k] is None:
-                    d_x.append(moved)
-                else:
-                    w = tuple(ops.along(v) for v in rates[k])
-                    end = tuple(ops.along(v) for v in ends[k])
-                    d_x.append(vec_add(vec_cross(w, vec_sub(x, end)), moved))
-            elif owner == m:  # the point's own arc: chain factor s of (s·ux, s·uy, s·L)
-                d_x.append(_scale(s, rot_apply(rot_a, local_d_position[k - 3 * m])))
-            else:
-                d_x.append(None)
-        seg_d_points.append(d_x)
-    return KinematicsDerivatives(frames, d_position, rates, seg_points, seg_d_points)
-
-
-# ---------------------------------------------------------------- JAX front end (arrays)
+# ---------------------------------------------------------------- the chain (JAX arrays)
 
 
 def _stack(entries: Any, dtype: Any, shape: tuple[int, ...]) -> jax.Array:
@@ -289,37 +135,91 @@ class KinematicsJacobians(NamedTuple):
     """(…, n·k, 3, 3n) their Jacobian, or None."""
 
 
+def _along(per_segment: list[Any]) -> jax.Array:
+    """One entry per segment → one entry with a trailing segment axis."""
+    return jnp.stack(jnp.broadcast_arrays(*per_segment), axis=-1)
+
+
+def _by_variable(per_segment: list[Any], n: int) -> jax.Array:
+    """Entries (…, n) of each segment's 3 variables (None: zero) → one entry (…, 3n) in
+    z's order."""
+    like = next(e for e in per_segment if e is not None)
+    zero = jnp.zeros_like(like)
+    stacked = jnp.stack([zero if e is None else e for e in per_segment], axis=-1)
+    return stacked.reshape(stacked.shape[:-2] + (3 * n,))
+
+
 def kinematics_jacobians_z(robot: Robot, z: jax.Array, points: bool = True) -> KinematicsJacobians:
     """Tip pose, backbone points (with ``points``) and their closed-form Jacobians with
-    respect to bending-vector configurations z (…, 3n) (rad, rad, m), in z's dtype."""
+    respect to bending-vector configurations z (…, 3n) (rad, rad, m), in z's dtype.
+
+    Every variable of segment m turns everything beyond segment m rigidly: a point x
+    beyond it moves by ω × (x − p_m) + R_{m−1}·∂d (module docstring). The segments, the
+    points along them and the variables live on trailing array axes of each entry (one
+    entry per coordinate): the compiled program barely grows with the number of segments
+    and points, and stays elementwise (no tiny matrix products)."""
     z = jnp.asarray(z)
-    shape, dtype = z.shape[:-1], z.dtype
-    d = model_kinematics_derivatives(
-        JAX, robot, [z[..., i] for i in range(robot.dof)], points=points
-    )
-    rot, pos = d.frames[-1]
-    zero = (0.0, 0.0, 0.0)
-    columns = [
-        _stack(tuple(dp) + tuple(zero if w is None else w), dtype, shape)
-        for dp, w in zip(d.d_position, d.rates, strict=True)
-    ]
-    rotation = _stack(rot, dtype, shape).reshape(shape + (3, 3))
+    shape, dtype, n = z.shape[:-1], z.dtype, robot.n_segments
+    ux, uy, length = z[..., 0::3], z[..., 1::3], z[..., 2::3]
+    seg = JAX.materialize(segment_transform_derivatives(JAX, ux, uy, length))  # (…, n)
+    frames = [model_base(robot)]
+    for m in range(n):  # the chain: n small products of entries
+        local = jax.tree.map(lambda e, m=m: e[..., m], (seg.rotation, seg.position))
+        frames.append(JAX.materialize(transform_compose(frames[-1], local)))
+    tip_rot, tip = frames[-1]
+    base_rot = tuple(_along([f[0][i] for f in frames[:-1]]) for i in range(9))  # (…, n)
+    base_pos = tuple(_along([f[1][i] for f in frames[:-1]]) for i in range(3))
+    end_pos = tuple(_along([f[1][i] for f in frames[1:]]) for i in range(3))
+    rates = [rot_apply(base_rot, w) for w in seg.rates]
+    moves = [rot_apply(base_rot, d) for d in seg.d_position]
+    # Per variable of z (…, 3n): world rate ω (zero for a length), move, segment end.
+    omega = tuple(_by_variable([rates[0][c], rates[1][c], None], n) for c in range(3))
+    move = tuple(_by_variable([moves[v][c] for v in range(3)], n) for c in range(3))
+    end = tuple(jnp.repeat(jnp.broadcast_to(e, shape + (n,)), 3, axis=-1) for e in end_pos)
+    tip_v = tuple(e[..., None] for e in tip)
+    d_tip = vec_add(vec_cross(omega, vec_sub(tip_v, end)), move)
+    jacobian = jnp.stack(jnp.broadcast_arrays(*d_tip, *omega), axis=-2).astype(dtype)
     out = KinematicsJacobians(
-        _stack(pos, dtype, shape), rotation, jnp.stack(columns, -1), None, None
+        _stack(tip, dtype, shape), _stack(tip_rot, dtype, shape).reshape(shape + (3, 3)),
+        jacobian, None, None,
     )
     if not points:
         return out
+
     k = robot.points_per_segment
-    values, jac = [], []
-    for m in range(robot.n_segments):
-        values.append(_stack(d.points[m], dtype, shape + (k,)))
-        cols = [
-            jnp.zeros(shape + (k, 3), dtype) if dx is None else _stack(dx, dtype, shape + (k,))
-            for dx in d.d_points[m]
-        ]
-        jac.append(jnp.stack(cols, axis=-1))
+    s = jnp.asarray(np.arange(1, k + 1) / k, dtype)
+    local = segment_transform_derivatives(
+        JAX, ux[..., None] * s, uy[..., None] * s, length[..., None] * s)  # (…, n, k)
+    # Computed once per point: without the barrier XLA recomputed the slopes A′, B′
+    # inside each entry of every point's Jacobian (3.0 → 0.9 ms for 376 tdcr3
+    # configurations, float32, CPU).
+    local_position, local_d_position = JAX.materialize((local.position, local.d_position))
+    rot_p = tuple(e[..., None] for e in base_rot)  # (…, n, 1)
+    x = vec_add(tuple(e[..., None] for e in base_pos), rot_apply(rot_p, local_position))
+    # Own arc: the chain factor s of (s·ux, s·uy, s·L), tiled over every segment's
+    # variables and kept where the variable is the point's own segment's.
+    own_v = [rot_apply(rot_p, d) for d in local_d_position]
+    own = tuple(jnp.tile(jnp.stack([s * own_v[v][c] for v in range(3)], -1), n)
+                for c in range(3))
+    # Earlier segments' variables turn the point rigidly.
+    x_v = tuple(e[..., None] for e in x)  # (…, n, k, 1)
+
+    def per_variable(e: jax.Array) -> jax.Array:
+        return e[..., None, None, :]  # (…, 1, 1, 3n)
+
+    rigid = vec_add(
+        vec_cross(tuple(map(per_variable, omega)), vec_sub(x_v, tuple(map(per_variable, end)))),
+        tuple(map(per_variable, move)),
+    )
+    owner = np.arange(3 * n) // 3
+    earlier = (owner[None, :] < np.arange(n)[:, None])[:, None, :]  # (n, 1, 3n)
+    mine = (owner[None, :] == np.arange(n)[:, None])[:, None, :]
+    d_points = [jnp.where(earlier, r, jnp.where(mine, o, 0.0))
+                for r, o in zip(rigid, own, strict=True)]
     return out._replace(
-        points=jnp.concatenate(values, axis=-2), d_points=jnp.concatenate(jac, axis=-3)
+        points=_stack(x, dtype, shape + (n, k)).reshape(shape + (n * k, 3)),
+        d_points=jnp.stack(jnp.broadcast_arrays(*d_points), axis=-2)
+        .astype(dtype).reshape(shape + (n * k, 3, 3 * n)),
     )
 
 
@@ -347,8 +247,9 @@ def pose_error_jacobian(
     (R_tipᵀ ∂p_tip/∂z_k, R_tipᵀ ω_k), T_tip⁻¹·T_target moves by exp(−δ_k^) on the left,
     so ∂e/∂z_k = −J_l⁻¹(e)·δ_k (``lie.se3_left_jacobian_inverse``)."""
     dtype = z.dtype
-    d = model_kinematics_derivatives(JAX, robot, [z[i] for i in range(robot.dof)], points=False)
-    rot, pos = d.frames[-1]
+    kin = kinematics_jacobians_z(robot, z, points=False)
+    rot = tuple(kin.rotation[i, j] for i in range(3) for j in range(3))
+    pos = tuple(kin.position[i] for i in range(3))
     goal = (
         tuple(target_rotation[i] for i in range(9)),
         tuple(target_position[i] for i in range(3)),
@@ -356,12 +257,8 @@ def pose_error_jacobian(
     value = jnp.stack(jnp.broadcast_arrays(*model_pose_error(JAX, (rot, pos), goal)))
     value = value.astype(dtype)
     rot_t = rot_transpose(rot)
-    zero = (0.0, 0.0, 0.0)
-    body = [
-        tuple(rot_apply(rot_t, dp)) + tuple(rot_apply(rot_t, zero if w is None else w))
-        for dp, w in zip(d.d_position, d.rates, strict=True)
-    ]
-    twists = jnp.stack([jnp.stack(jnp.broadcast_arrays(*col)) for col in body], axis=-1)
+    rows = tuple(kin.jacobian[i] for i in range(6))  # (3n,) each
+    twists = jnp.stack(rot_apply(rot_t, rows[:3]) + rot_apply(rot_t, rows[3:]))
     return value, -se3_left_jacobian_inverse(value) @ twists.astype(dtype)
 
 

@@ -33,13 +33,12 @@ import numpy as np
 from ._ops import CASADI, JAX, NUMPY, Ops
 from .lie import (
     Transform,
+    bend_coefficients,
     rot_from_quat,
     se3_log,
-    sinc_of_square,
     transform_apply,
     transform_between,
     transform_compose,
-    versine_of_square,
 )
 from .robot import Robot
 
@@ -57,8 +56,7 @@ def model_q_to_z(ops: Ops, robot: Robot, q: Any) -> list[Any]:
 def model_segment_transform(ops: Ops, ux: Any, uy: Any, length: Any) -> Transform:
     """Frame i−1 → frame i of one segment with bending vector (ux, uy) rad and length m."""
     t = ux * ux + uy * uy
-    a = sinc_of_square(ops, t)
-    b = versine_of_square(ops, t)
+    a, b, _, _, _ = bend_coefficients(ops, t)
     rot = (
         1.0 - b * ux * ux, -b * ux * uy, a * ux,
         -b * ux * uy, 1.0 - b * uy * uy, a * uy,
@@ -71,12 +69,19 @@ def model_base(robot: Robot) -> Transform:
     return rot_from_quat(robot.base_wxyz), robot.base_position
 
 
+def _segment_axis(ops: Ops, z: list[Any]) -> tuple[Any, Any, Any]:
+    """(ux, uy, L) of every segment, each one entry with a trailing segment axis: the
+    segment formulas run once for all segments (a compiled program that does not grow
+    with the number of segments)."""
+    return ops.stack(z[0::3]), ops.stack(z[1::3]), ops.stack(z[2::3])
+
+
 def model_segment_frames(ops: Ops, robot: Robot, z: list[Any]) -> list[Transform]:
     """World frames at the base (index 0) and at the end of every segment."""
+    rot, pos = ops.materialize(model_segment_transform(ops, *_segment_axis(ops, z)))
     frames = [model_base(robot)]
     for i in range(robot.n_segments):
-        ux, uy, length = z[3 * i], z[3 * i + 1], z[3 * i + 2]
-        local = ops.materialize(model_segment_transform(ops, ux, uy, length))
+        local = (tuple(ops.entry(e, i) for e in rot), tuple(ops.entry(e, i) for e in pos))
         frames.append(ops.materialize(transform_compose(frames[-1], local)))
     return frames
 
@@ -91,13 +96,13 @@ def model_backbone(ops: Ops, robot: Robot, z: list[Any],
     frames = model_segment_frames(ops, robot, z) if frames is None else frames
     k = robot.points_per_segment
     s = ops.fractions(np.arange(1, k + 1) / k)
+    _, local = model_segment_transform(
+        ops, *(ops.per_point(v, s) for v in _segment_axis(ops, z)))
     per_segment = []
     for i in range(robot.n_segments):
-        ux, uy, length = (ops.along(v) for v in z[3 * i: 3 * i + 3])
-        _, local = model_segment_transform(ops, ux * s, uy * s, length * s)
         rot, pos = frames[i]
         base = (tuple(ops.along(v) for v in rot), tuple(ops.along(v) for v in pos))
-        per_segment.append(transform_apply(base, local))
+        per_segment.append(transform_apply(base, tuple(ops.points_of(e, i) for e in local)))
     return ops.stack_points(per_segment)
 
 
