@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg
 import numpy as np
 
-from ._lm import LMConfig, gave_up
+from ._lm import LMConfig, judge_step
 
 UnaryResidual = Callable[[jax.Array, Any, Any], jax.Array]
 """r(z_t, params_t, shared) → (m₁,): depends on one waypoint z_t (d,)."""
@@ -385,19 +385,10 @@ def banded_lm_trip(terms: ChainResidual, project: Callable[[jax.Array], jax.Arra
 
     first = it < 0
     h_new, g_new, cost_new = step_system(z_trial)
-    rho = (cost - cost_new) / jnp.maximum(predicted, 1e-30)
-    accept = first | ((cost_new < cost) & jnp.isfinite(cost_new))
-    stalled = ~first & accept & (cost - cost_new < config.stall_tolerance * cost)
-    done = done | stalled | (cost_new < config.cost_tolerance) | (lam > 1e10)
-    keep = partial(jnp.where, accept)
-    z, cost = keep(z_trial, z), keep(cost_new, cost)
-    done = done | gave_up(config, it + 1, cost)   # still deep in a penalty
-    h = jax.tree_util.tree_map(keep, h_new, h)
-    g = keep(g_new, g)
-    shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * jnp.clip(rho, 0.0, 1.0) - 1.0) ** 3)
-    lam = jnp.where(first, lam, jnp.clip(jnp.where(accept, lam * shrink, lam * nu),
-                                         1e-12, 1e12)).astype(dtype)
-    nu = jnp.where(first, nu, jnp.where(accept, 2.0, nu * 2.0)).astype(dtype)
+    verdict = judge_step(config, cost, cost_new, predicted, lam, nu, done, it + 1, first)
+    keep = partial(jnp.where, verdict.accept)
+    z, h, g = keep(z_trial, z), jax.tree_util.tree_map(keep, h_new, h), keep(g_new, g)
+    cost, done, lam, nu = verdict.cost, verdict.done, verdict.damping, verdict.growth
     z_trial, predicted = trial(z, h, g, lam)
     if config.prediction_tolerance > 0.0:  # off: float32 can predict a tiny negative gain
         # Nothing left for the model to gain: later trips could only reject or stall.

@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -127,6 +127,47 @@ def gave_up(config: LMConfig, judged: jax.Array, cost: jax.Array) -> jax.Array |
     return out
 
 
+class Judgement(NamedTuple):
+    """``judge_step``'s verdict on one trial step (per problem)."""
+
+    accept: jax.Array
+    """Whether the trial point replaces the iterate."""
+    cost: jax.Array
+    """The cost after the verdict (the trial's where accepted)."""
+    done: jax.Array
+    """Converged, stalled, out of damping or given up."""
+    damping: jax.Array
+    """λ for the next step."""
+    growth: jax.Array
+    """ν, the factor λ grows by after the next rejection."""
+
+
+def judge_step(config: LMConfig, cost: jax.Array, cost_new: jax.Array, predicted: jax.Array,
+               damping: jax.Array, growth: jax.Array, done: jax.Array, judged: jax.Array,
+               first: jax.Array | bool = False) -> Judgement:
+    """The one step rule of both LMs (this dense one and ``stages._banded_lm``).
+
+    A trial step is accepted when it lowers the cost ½‖r‖² (and is finite); the problem
+    is done once it converged (cost below ``cost_tolerance``), stalled (an accepted step
+    gained less than ``stall_tolerance`` of the cost), ran out of damping (λ > 1e10) or
+    gave up (``gave_up`` after ``judged`` steps). λ follows Nielsen's rule: on
+    acceptance λ·max(⅓, 1 − (2ρ − 1)³) with ρ the actual over the predicted reduction and
+    ν = 2; on rejection λ·ν and ν doubles; λ stays in [1e-12, 1e12]. ``first`` marks a
+    trip that only evaluates the starting point: accepted, λ and ν kept."""
+    first = jnp.asarray(first)
+    rho = (cost - cost_new) / jnp.maximum(predicted, 1e-30)
+    accept = first | ((cost_new < cost) & jnp.isfinite(cost_new))
+    stalled = ~first & accept & (cost - cost_new < config.stall_tolerance * cost)
+    done = done | stalled | (cost_new < config.cost_tolerance) | (damping > 1e10)
+    cost = jnp.where(accept, cost_new, cost)
+    done = done | gave_up(config, judged, cost)  # still deep in a penalty
+    shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * jnp.clip(rho, 0.0, 1.0) - 1.0) ** 3)
+    stepped = jnp.clip(jnp.where(accept, damping * shrink, damping * growth), 1e-12, 1e12)
+    dtype = damping.dtype
+    return Judgement(accept, cost, done, jnp.where(first, damping, stepped).astype(dtype),
+                     jnp.where(first, growth, jnp.where(accept, 2.0, growth * 2.0)).astype(dtype))
+
+
 @partial(jax.jit, static_argnames=("residual", "project", "config"))
 def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any, shared: Any,
              free: jax.Array, iterations: jax.Array, config: LMConfig = LMConfig(),
@@ -193,17 +234,9 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
         actual = z_new - z
         predicted = -(jnp.sum(g * actual, -1)
                       + 0.5 * jnp.einsum("bi,bij,bj->b", actual, h, actual))
-        rho = (cost - cost_new) / jnp.maximum(predicted, 1e-30)
-        accept = (cost_new < cost) & jnp.isfinite(cost_new)
-        stalled = accept & (cost - cost_new < config.stall_tolerance * cost)
-        done = done | stalled | (cost_new < config.cost_tolerance) | (lam > 1e10)
-        z = jnp.where(accept[:, None], z_new, z)
-        cost = jnp.where(accept, cost_new, cost)
-        done = done | gave_up(config, it + 1, cost)
-        shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * jnp.clip(rho, 0.0, 1.0) - 1.0) ** 3)
-        lam = jnp.where(accept, lam * shrink, lam * nu)
-        nu = jnp.where(accept, 2.0, nu * 2.0)
-        lam = jnp.clip(lam, 1e-12, 1e12)
+        verdict = judge_step(config, cost, cost_new, predicted, lam, nu, done, it + 1)
+        z = jnp.where(verdict.accept[:, None], z_new, z)
+        cost, done, lam, nu = verdict.cost, verdict.done, verdict.damping, verdict.growth
         return z, cost, lam.astype(dtype), nu.astype(dtype), done, it + 1
 
     def running(state: tuple) -> jax.Array:

@@ -1,0 +1,54 @@
+"""The one LM step rule (``stages._lm.judge_step``) that the dense and banded LMs share,
+against Nielsen's rule worked by hand."""
+
+import jax.numpy as jnp
+import numpy as np
+
+from cr_nlp.stages._lm import LMConfig, judge_step
+
+CONFIG = LMConfig(give_up=((5, 1.0),))
+
+
+def judge(cost, cost_new, predicted, damping=0.1, growth=2.0, judged=1, first=False):
+    out = judge_step(CONFIG, jnp.asarray(cost), jnp.asarray(cost_new), jnp.asarray(predicted),
+                     jnp.asarray(damping), jnp.asarray(growth), jnp.asarray(False),
+                     jnp.asarray(judged), first)
+    return tuple(np.asarray(v).item() for v in out)
+
+
+def test_a_step_that_gains_what_the_model_predicted_shrinks_the_damping_threefold() -> None:
+    accept, cost, done, damping, growth = judge(0.5, 0.25, 0.25)  # ρ = 1
+    assert accept and cost == 0.25 and not done
+    np.testing.assert_allclose(damping, 0.1 / 3.0)
+    assert growth == 2.0
+
+
+def test_a_half_gain_keeps_the_damping_and_a_small_gain_grows_it_by_nielsen() -> None:
+    _, _, _, damping, _ = judge(0.5, 0.375, 0.25)  # ρ = ½: factor 1 − 0³ = 1
+    np.testing.assert_allclose(damping, 0.1)
+    _, _, _, damping, _ = judge(0.5, 0.45, 0.25)  # ρ = 0.2: factor 1 − (−0.6)³ = 1.216
+    np.testing.assert_allclose(damping, 0.1 * 1.216, rtol=1e-6)  # float32
+
+
+def test_a_rejected_step_keeps_the_cost_and_multiplies_the_damping_by_nu() -> None:
+    accept, cost, done, damping, growth = judge(0.5, 0.6, 0.25, damping=0.1, growth=4.0)
+    assert not accept and cost == 0.5 and not done
+    np.testing.assert_allclose(damping, 0.4)
+    assert growth == 8.0
+    assert not judge(0.5, float("nan"), 0.25)[0]
+
+
+def test_stall_convergence_damping_cap_and_give_up_end_the_problem() -> None:
+    assert judge(0.5, 0.5 * (1 - 1e-5), 0.25)[2]  # accepted, gained < 1e-4 of the cost
+    assert judge(0.5, 1e-13, 0.5)[2]  # below the cost tolerance
+    assert judge(0.5, 0.6, 0.25, damping=2e10)[2]  # out of damping
+    assert judge(5.0, 4.0, 2.0, judged=5)[2]  # 5 steps judged, cost still above 1.0
+    assert not judge(5.0, 4.0, 2.0, judged=4)[2]
+
+
+def test_a_first_trip_is_accepted_and_keeps_damping_and_growth() -> None:
+    accept, cost, done, damping, growth = judge(np.inf, 3.0, 0.0, damping=0.1, growth=2.0,
+                                                first=True)
+    assert accept and cost == 3.0 and not done
+    np.testing.assert_allclose(damping, 0.1)
+    assert growth == 2.0
