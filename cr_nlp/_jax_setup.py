@@ -24,6 +24,7 @@ def enable_compilation_cache() -> None:
     """
     import jax
 
+    _one_cache_entry_per_program()
     if jax.config.jax_compilation_cache_dir:
         return
     path = Path(os.environ.get("CR_NLP_JAX_CACHE", cache_dir() / "jax"))
@@ -32,6 +33,30 @@ def enable_compilation_cache() -> None:
     # Every program, the small ones of eager operations too: a new process compiled ~30 of
     # them (10–40 ms each) before a first IK answer; loading one takes milliseconds.
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+
+
+def _one_cache_entry_per_program() -> None:
+    """Key XLA's disk cache without the device assignment on every platform, as JAX does
+    on GPUs: a program compiled for one host device is then loaded for another (JAX
+    deserialises it with the caller's assignment) instead of compiled again. Each lane of
+    the trajectory LM (one per host device) had compiled its own copy: a warm process
+    found only the copies a cold one had compiled, and 13 s of XLA per missing copy.
+
+    JAX has no setting for this: its private hash function is wrapped (once); a JAX
+    without it keeps its own keys (one compile per device, as before)."""
+    try:
+        from jax._src import cache_key
+    except ImportError:
+        return
+    original = getattr(cache_key, "_hash_serialized_compile_options", None)
+    if original is None or getattr(original, "cr_nlp_strips", False):
+        return
+
+    def hashed(hash_obj: Any, options: Any, strip_device_assignment: bool = False) -> Any:
+        return original(hash_obj, options, strip_device_assignment=True)
+
+    hashed.cr_nlp_strips = True  # type: ignore[attr-defined]
+    cache_key._hash_serialized_compile_options = hashed
 
 
 def full_precision_matmuls() -> bool:

@@ -31,6 +31,7 @@ import dataclasses
 import enum
 import functools
 import hashlib
+import io
 import math
 import os
 import pickle
@@ -81,6 +82,9 @@ class ProgramStats:
     """Programs read from disk (no tracing)."""
     reused: int = 0
     """Programs reused from memory (an earlier solver of this process compiled them)."""
+    moved: int = 0
+    """Programs compiled for one device and moved to another (``_moved``), not compiled
+    again."""
     unkeyed: int = 0
     """Programs traced without the disk cache (their function holds something unkeyable)."""
     unkeyable: list[str] = dataclasses.field(default_factory=list)
@@ -330,10 +334,16 @@ def _request(fn: Callable, args: Sequence[Any], name: str, batched: Sequence[boo
         future = _pending.get(memory_key)
         owner = future is None
         if owner:
+            # The same program for another single device, done or under way: moved, not
+            # compiled again (requested earlier, so never queued behind this one). Not
+            # where it is on disk already: then XLA's cache likely has its code, which
+            # each device loads at once (side by side) and which cannot be moved.
+            siblings = [] if split or len(devices) != 1 or _stored(key) else [
+                k for k in (*_memory, *_pending) if k.startswith(f"{key}:(")]
             future = _pending[memory_key] = Future()
     if owner:
         build = functools.partial(_build, future, fn, args, key, memory_key, name,
-                                  batched if split else None, outputs)
+                                  batched if split else None, outputs, siblings)
         if ahead:
             _background().submit(build)
         else:
@@ -342,11 +352,15 @@ def _request(fn: Callable, args: Sequence[Any], name: str, batched: Sequence[boo
 
 
 def _build(future: Future, fn: Callable, args: Sequence[Any], key: str, memory_key: str,
-           name: str, batched: Sequence[bool] | None, outputs: int) -> None:
-    """Load or trace, then compile, the program under ``key``; its result (or error) goes
-    to ``future``, the program into the memory."""
+           name: str, batched: Sequence[bool] | None, outputs: int,
+           siblings: Sequence[str] = ()) -> None:
+    """Load or trace, then compile, the program under ``key`` (or move a sibling's copy
+    of it to this device); its result (or error) goes to ``future``, the program into
+    the memory."""
     try:
-        compiled = _compiled(fn, args, key, name, batched, outputs)
+        compiled = _from_sibling(siblings, args) if siblings else None
+        if compiled is None:
+            compiled = _compiled(fn, args, key, name, batched, outputs)
     except BaseException as exc:
         with _lock:
             del _pending[memory_key]
@@ -396,13 +410,95 @@ def _compiled(fn: Callable, args: Sequence[Any], key: str, name: str,
         else:
             exported, out_tree = entry
     runner = jax.jit(exported.call, in_shardings=in_shardings, out_shardings=out_shardings)
+    _watch_xla_cache()
+    hits = getattr(_xla_cache, "hits", 0)
     t0 = time.perf_counter()
     executable = runner.lower(*leaves).compile()
     seconds = time.perf_counter() - t0
     stats.compile_seconds += seconds
     if ops:
         _record_rate(seconds / ops)
-    return _Flat(executable, out_tree)
+    return _Flat(executable, out_tree, movable=getattr(_xla_cache, "hits", 0) == hits)
+
+
+_xla_cache = threading.local()
+"""Per thread: ``hits``, how many programs XLA loaded from its disk cache."""
+
+
+@functools.cache
+def _watch_xla_cache() -> None:
+    """Count XLA's disk-cache hits per thread (JAX reports them in the compiling thread):
+    a program loaded from the cache cannot be moved to another device (``_moved``)."""
+
+    def heard(event: str, **_: Any) -> None:
+        if event == "/jax/compilation_cache/cache_hits":
+            _xla_cache.hits = getattr(_xla_cache, "hits", 0) + 1
+
+    jax.monitoring.register_event_listener(heard)
+
+
+def _from_sibling(siblings: Sequence[str], args: Sequence[Any]) -> _Flat | None:
+    """The first movable program in memory (or under way) under one of ``siblings``,
+    moved to the one device of ``args``; None where there is none or moving failed (then
+    the caller compiles, or loads from XLA's cache)."""
+    program = None
+    for sibling in siblings:
+        with _lock:
+            program, future = _memory.get(sibling), _pending.get(sibling)
+        if program is None and future is not None:
+            try:
+                program = future.result()
+            except Exception:
+                program = None
+        if program is not None and program.movable:
+            break
+    else:
+        return None
+    device = next(iter(next(leaf for leaf in jax.tree.leaves(tuple(args))
+                            if isinstance(leaf, jax.Array)).devices()))
+    try:
+        moved = _moved(program, device)
+    except Exception as exc:  # a JAX whose executables no longer move: compile instead
+        warnings.warn(f"cr_nlp: could not move a compiled program to {device} ({exc}); "
+                      "compiling it for that device", RuntimeWarning, stacklevel=2)
+        return None
+    stats.moved += 1
+    return moved
+
+
+def _moved(program: _Flat, device: Any) -> _Flat:
+    """``program`` (compiled for one device) bound to ``device`` of the same client.
+
+    XLA's CPU executables carry their device, so each lane of a schedule used to compile
+    its own copy (the trajectory LM: 13 s alone, 20–28 s each when two compile side by
+    side on 2 cores, and one cache load per copy warm). The compiled code is the same:
+    it is serialised and loaded again with the other device's assignment (~2 ms), as
+    JAX's own compilation cache does for GPUs. Only a program XLA compiled in this
+    process moves: one loaded from XLA's disk cache (or moved already) serialises without
+    its code and fails when run ("Function … not found"); in a warm process each lane
+    loads the one cache entry instead (``_jax_setup._one_cache_entry_per_program``)."""
+    from jax._src.lib import xla_client as xc
+    from jax.experimental import serialize_executable as se
+
+    blob, in_tree, out_tree = se.serialize(program.executable)
+
+    class _OnDevice(se._JaxPjrtUnpickler):
+        def persistent_load(self, pid: Any) -> Any:
+            if pid[0] == "device":
+                return device
+            if pid[0] == "exec":
+                options = xc.CompileOptions()
+                options.device_assignment = xc.DeviceAssignment.create(
+                    np.array([[device.id]]))
+                return self.backend.deserialize_executable(pid[1], self.execution_devices,
+                                                           options)
+            return super().persistent_load(pid)
+
+    unloaded, args_info, no_kwargs = _OnDevice(io.BytesIO(blob), device.client,
+                                               [device]).load()
+    executable = jax.stages.Compiled(unloaded.load(), [], in_tree.unflatten(args_info),
+                                     out_tree, no_kwargs=no_kwargs)
+    return _Flat(executable, program.out_tree, movable=False)
 
 
 @functools.cache
@@ -414,10 +510,11 @@ def _background() -> ThreadPoolExecutor:
 
 
 class _Flat:
-    """A compiled program over its arguments' leaves, called with the arguments."""
+    """A compiled program over its arguments' leaves, called with the arguments.
+    ``movable``: XLA compiled it in this process (``_moved`` can move it)."""
 
-    def __init__(self, executable: Any, out_tree: Any) -> None:
-        self.executable, self.out_tree = executable, out_tree
+    def __init__(self, executable: Any, out_tree: Any, movable: bool = False) -> None:
+        self.executable, self.out_tree, self.movable = executable, out_tree, movable
 
     def __call__(self, *args: Any) -> Any:
         return jax.tree.unflatten(self.out_tree, self.executable(*jax.tree.leaves(args)))
@@ -475,6 +572,11 @@ def _operations(exported: Any) -> int:
 def programs_dir() -> Path:
     """Where the traced programs are kept (``cache_dir()/programs``)."""
     return cache_dir() / "programs"
+
+
+def _stored(key: str) -> bool:
+    """Whether a program is stored under ``key`` (readable or not)."""
+    return (programs_dir() / f"{key}.jaxexport").exists()
 
 
 def _load(key: str) -> tuple[Any, Any] | None:
