@@ -574,15 +574,20 @@ def programs_dir() -> Path:
     return cache_dir() / "programs"
 
 
+def _entry(key: str) -> Path:
+    """The file of the program stored under ``key``."""
+    return programs_dir() / f"{key}.jaxexport"
+
+
 def _stored(key: str) -> bool:
     """Whether a program is stored under ``key`` (readable or not)."""
-    return (programs_dir() / f"{key}.jaxexport").exists()
+    return _entry(key).exists()
 
 
 def _load(key: str) -> tuple[Any, Any] | None:
     """The exported program stored under ``key`` and its output structure, or None
     (absent, or unreadable: warned and counted in ``stats.rejected``)."""
-    path = programs_dir() / f"{key}.jaxexport"
+    path = _entry(key)
     t0 = time.perf_counter()
     try:
         data = path.read_bytes()
@@ -620,7 +625,7 @@ def _store(key: str, exported: Any, out_tree: Any) -> None:
     folder = programs_dir()
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        write_atomic(folder / f"{key}.jaxexport", FORMAT + hashlib.sha256(body).digest() + body)
+        write_atomic(_entry(key), FORMAT + hashlib.sha256(body).digest() + body)
     except OSError as exc:
         warnings.warn(f"cr_nlp: could not store a compiled program in {folder} ({exc})",
                       RuntimeWarning, stacklevel=3)

@@ -135,11 +135,6 @@ class KinematicsJacobians(NamedTuple):
     """(…, n·k, 3, 3n) their Jacobian, or None."""
 
 
-def _along(per_segment: list[Any]) -> jax.Array:
-    """One entry per segment → one entry with a trailing segment axis."""
-    return jnp.stack(jnp.broadcast_arrays(*per_segment), axis=-1)
-
-
 def _by_variable(per_segment: list[Any], n: int) -> jax.Array:
     """Entries (…, n) of each segment's 3 variables (None: zero) → one entry (…, 3n) in
     z's order."""
@@ -167,9 +162,10 @@ def kinematics_jacobians_z(robot: Robot, z: jax.Array, points: bool = True) -> K
         local = jax.tree.map(lambda e, m=m: e[..., m], (seg.rotation, seg.position))
         frames.append(JAX.materialize(transform_compose(frames[-1], local)))
     tip_rot, tip = frames[-1]
-    base_rot = tuple(_along([f[0][i] for f in frames[:-1]]) for i in range(9))  # (…, n)
-    base_pos = tuple(_along([f[1][i] for f in frames[:-1]]) for i in range(3))
-    end_pos = tuple(_along([f[1][i] for f in frames[1:]]) for i in range(3))
+    # One entry per segment → one entry with a trailing segment axis (…, n).
+    base_rot = tuple(JAX.stack([f[0][i] for f in frames[:-1]]) for i in range(9))
+    base_pos = tuple(JAX.stack([f[1][i] for f in frames[:-1]]) for i in range(3))
+    end_pos = tuple(JAX.stack([f[1][i] for f in frames[1:]]) for i in range(3))
     rates = [rot_apply(base_rot, w) for w in seg.rates]
     moves = [rot_apply(base_rot, d) for d in seg.d_position]
     # Per variable of z (…, 3n): world rate ω (zero for a length), move, segment end.
