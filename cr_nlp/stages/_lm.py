@@ -100,11 +100,6 @@ def solve_spd_cholesky(a: jax.Array, b: jax.Array) -> jax.Array:
     return jax.scipy.linalg.cho_solve(factor, b[..., None])[..., 0]
 
 
-def _cost(residual: Residual, z: jax.Array, params: Any, shared: Any) -> jax.Array:
-    r = jax.vmap(residual, in_axes=(0, 0, None))(z, params, shared)
-    return 0.5 * jnp.sum(r * r, axis=-1)
-
-
 def _differences(residual: Residual, z: jax.Array, params: Any,
                  shared: Any) -> tuple[jax.Array, jax.Array]:
     """(J (B, m, n), r (B, m)) by forward differences, all n + 1 points in one call."""
@@ -198,6 +193,8 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
     fixed_diag = jnp.diag(1.0 - free)
     mask = free[:, None] * free[None, :]
     z0 = project(z0)
+    solve = solve_spd_cholesky if config.linear_solver == "cholesky" else solve_spd
+
     def with_value(z: jax.Array, p: Any, sh: Any) -> tuple[jax.Array, jax.Array]:
         r = residual(z, p, sh)
         return r, r
@@ -207,48 +204,61 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
     if config.jacobian == "differences":
         jac_and_residual = partial(_differences, residual)
 
-    def body(state: tuple) -> tuple:
-        z, cost, lam, nu, done, it = state
+    def normal_equations(z: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """JᵀJ (B, n, n), Jᵀr (B, n) over the free variables, and the cost ½‖r‖² (B,)."""
         j, r = jac_and_residual(z, params, shared)
+        j = j * free
+        return (jnp.einsum("bmi,bmj->bij", j, j), jnp.einsum("bmi,bm->bi", j, r),
+                0.5 * jnp.sum(r * r, axis=-1))
+
+    def trial(z: jax.Array, h: jax.Array, g: jax.Array,
+              lam: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """The damped step's trial point and the reduction the model predicts for it."""
         if bounds is None:
-            j = j * free
-            g = jnp.einsum("bmi,bm->bi", j, r)
-            h = jnp.einsum("bmi,bmj->bij", j, j) * mask + fixed_diag
+            h = h * mask + fixed_diag
         else:
-            g = jnp.einsum("bmi,bm->bi", j, r)
             tight = 1e-12 * (1.0 + jnp.abs(z))
             held = (((z <= bounds[0] + tight) & (g > 0))
                     | ((z >= bounds[1] - tight) & (g < 0)))
             moving = free * (1.0 - held.astype(dtype))                      # (B, n)
-            j = j * moving[:, None, :]
             g = g * moving
-            h = (jnp.einsum("bmi,bmj->bij", j, j)
+            h = (h * moving[:, :, None] * moving[:, None, :]
                  + jax.vmap(jnp.diag)(1.0 - moving))
         diag = jnp.diagonal(h, axis1=-2, axis2=-1)
         # Marquardt scaling with a floor so a vanishing column still gets damped.
         scale = jnp.maximum(diag, 1e-9 * jnp.max(diag, axis=-1, keepdims=True) + 1e-12)
-        solve = solve_spd_cholesky if config.linear_solver == "cholesky" else solve_spd
-        step = solve(h + lam[:, None, None] * jax.vmap(jnp.diag)(scale), -g)
-        z_new = project(z + step)
-        cost_new = _cost(residual, z_new, params, shared)
+        z_new = project(z + solve(h + lam[:, None, None] * jax.vmap(jnp.diag)(scale), -g))
         actual = z_new - z
         predicted = -(jnp.sum(g * actual, -1)
                       + 0.5 * jnp.einsum("bi,bij,bj->b", actual, h, actual))
-        verdict = judge_step(config, cost, cost_new, predicted, lam, nu, done, it + 1)
-        z = jnp.where(verdict.accept[:, None], z_new, z)
+        return z_new, predicted
+
+    def body(state: tuple) -> tuple:
+        # One evaluation per trip, at the trial point (z0 on the first trip, which is
+        # always accepted): the residual and its Jacobian are traced once, and a
+        # rejected step costs no new Jacobian at the point it came from.
+        z, h, g, cost, z_trial, predicted, lam, nu, done, it = state
+        first = it < 0
+        h_new, g_new, cost_new = normal_equations(z_trial)
+        verdict = judge_step(config, cost, cost_new, predicted, lam, nu, done, it + 1, first)
+        accept = verdict.accept
+        z = jnp.where(accept[:, None], z_trial, z)
+        h = jnp.where(accept[:, None, None], h_new, h)
+        g = jnp.where(accept[:, None], g_new, g)
         cost, done, lam, nu = verdict.cost, verdict.done, verdict.damping, verdict.growth
-        return z, cost, lam.astype(dtype), nu.astype(dtype), done, it + 1
+        z_trial, predicted = trial(z, h, g, lam)
+        return z, h, g, cost, z_trial, predicted, lam, nu, done, it + 1
 
     def running(state: tuple) -> jax.Array:
         *_, done, it = state
-        more = ~jnp.all(done) if config.stop_when_converged else True
+        more = (~jnp.all(done) | (it < 0)) if config.stop_when_converged else True
         return (it < iterations) & more
 
-    cost0 = _cost(residual, z0, params, shared)
-    # Derived from cost0 (not jnp.full) so that under shard_map they vary per shard too.
-    lam0 = jnp.zeros_like(cost0) + jnp.asarray(config.initial_damping, dtype)
-    nu0 = jnp.zeros_like(cost0) + jnp.asarray(2.0, dtype)
-    done0 = cost0 < config.cost_tolerance
-    state = (z0, cost0, lam0, nu0, done0, jnp.int32(0))
-    z, cost, _, _, _, it = jax.lax.while_loop(running, body, state)
+    # Derived from z0 (not jnp.full) so that under shard_map they vary per shard too.
+    zero = jnp.zeros_like(z0[:, 0])
+    lam0 = zero + jnp.asarray(config.initial_damping, dtype)
+    nu0 = zero + jnp.asarray(2.0, dtype)
+    state = (z0, jnp.zeros_like(z0[:, :, None] * z0[:, None, :]), jnp.zeros_like(z0),
+             zero + jnp.inf, z0, zero, lam0, nu0, zero > 0, jnp.int32(-1))
+    z, _, _, cost, *_, it = jax.lax.while_loop(running, body, state)
     return z, cost, it
