@@ -127,7 +127,9 @@ def test_the_nlp_is_built_once_and_reused(tdcr3, monkeypatch):
         return real_nlpsol(*args, **kwargs)
 
     monkeypatch.setattr(polish_module.ca, "nlpsol", counting_nlpsol)
-    polisher = IKPolisher(tdcr3)
+    # CasADi's virtual machine: no switch to compiled functions mid-test (that switch is
+    # tested in test_compiled_functions.py).
+    polisher = IKPolisher(tdcr3, config=PolishConfig(compile=False))
     assert polisher.builds == len(polisher.config.modes) == len(constructions)
     rng = np.random.default_rng(2)
     q_true = [random_q(tdcr3, rng) for _ in range(4)]

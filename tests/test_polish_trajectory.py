@@ -76,7 +76,9 @@ def test_the_nlp_is_built_once_over_solves_with_new_dt_and_warm_starts(tdcr3, mo
         return real_nlpsol(*args, **kwargs)
 
     monkeypatch.setattr(module.ca, "nlpsol", counting_nlpsol)
-    polisher = TrajectoryPolisher(tdcr3, None, 5)
+    # CasADi's virtual machine: no switch to compiled functions mid-test (that switch is
+    # tested in test_compiled_functions.py).
+    polisher = TrajectoryPolisher(tdcr3, None, 5, config=TrajectoryPolishConfig(compile=False))
     assert polisher.builds == 0 == len(constructions)          # built on first use
     rng = np.random.default_rng(0)
     dts = (1.0, 0.5, 0.25)

@@ -8,6 +8,14 @@ among 27 spheres, and costs 4–12 s of compilation once. The shared library is 
 ``cache_dir()/casadi`` under the hash of its source, so later processes, and the pool's
 workers, load it in milliseconds (as JAX's persistent cache does for the JAX stages).
 
+The compiler runs in the background: until the library is built, ``compiled`` hands back
+the functions as they are (CasADi's virtual machine, the same numbers) and ``pending``
+says so; a polisher asks ``pending`` before each solve and rebuilds its solvers on the
+compiled library once it is there. A small job (the demo's 20 IK targets polish in
+0.1 s) no longer waits 10 s for gcc, and a long one switches within seconds. A build
+another process started (a lock file says so) is not started again. The interpreter
+waits at exit for the builds it started, so that the next process finds the library.
+
 Without a C compiler (``$CC``, ``cc`` or ``gcc``), or if compiling fails, the functions
 run in the virtual machine: the same numbers, slower; a warning says so once.
 """
@@ -18,7 +26,9 @@ import hashlib
 import os
 import shutil
 import subprocess
+import sys
 import tempfile
+import threading
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -33,6 +43,11 @@ FLAGS = ("-O1",)
 
 _warned = False
 
+_lock = threading.Lock()
+_pending: dict[Path, threading.Thread | None] = {}
+"""Libraries asked for and not built yet: this process's build thread, or None where
+another process holds the build's lock."""
+
 
 def _compiler() -> str | None:
     for name in (os.environ.get("CC"), "cc", "gcc"):
@@ -41,47 +56,125 @@ def _compiler() -> str | None:
     return None
 
 
-def compiled(functions: Sequence[ca.Function], enabled: bool = True) -> list[ca.Function]:
+def compiled(functions: Sequence[ca.Function], enabled: bool = True,
+             wait: bool = False) -> tuple[list[ca.Function], bool]:
     """``functions`` as compiled ``ca.external`` functions from one cached shared library
     (same names, inputs and outputs), or unchanged when ``enabled`` is False or no
-    compiler works."""
-    global _warned
+    compiler works; and whether they came back unchanged because the library is being
+    built (in the background; ``wait``: here, before returning): ask again once
+    ``pending()`` is False."""
     functions = list(functions)
     compiler = _compiler() if enabled else None
     if compiler is None:
-        if enabled and not _warned:
-            warnings.warn("no C compiler found (set $CC): cr_nlp's exact stage runs its "
-                          "CasADi functions in the virtual machine, about 3× slower",
-                          RuntimeWarning, stacklevel=2)
-            _warned = True
-        return functions
+        if enabled:
+            _warn_once("no C compiler found (set $CC): cr_nlp's exact stage runs its "
+                       "CasADi functions in the virtual machine, about 3× slower")
+        return functions, False
     generator = ca.CodeGenerator("cr_nlp_functions.c", {"with_header": False})
     for function in functions:
         generator.add(function)
     source = generator.dump()
     key = hashlib.sha256("\n".join([ca.__version__, *FLAGS, source]).encode()).hexdigest()[:24]
-    folder = cache_dir() / "casadi"
-    library = folder / f"{key}.so"
+    library = cache_dir() / "casadi" / f"{key}.so"
     if not library.exists():
-        try:
-            _build(compiler, source, library)
-        except (OSError, subprocess.CalledProcessError) as exc:
-            if not _warned:
-                warnings.warn(f"compiling the exact stage's CasADi functions failed ({exc}); "
-                              "they run in the virtual machine, about 3× slower",
-                              RuntimeWarning, stacklevel=2)
-                _warned = True
-            return functions
-    return [ca.external(f.name(), str(library)) for f in functions]
+        if wait:
+            if not _build(compiler, source, library):
+                return functions, False
+        else:
+            _start(compiler, source, library)
+            return functions, True
+    return [ca.external(f.name(), str(library)) for f in functions], False
 
 
-def _build(compiler: str, source: str, library: Path) -> None:
+def pending() -> bool:
+    """Whether a library ``compiled`` was asked for is still being built (by this
+    process or by another); a failed build is not pending."""
+    with _lock:
+        for library, thread in list(_pending.items()):
+            if library.exists() or (thread is not None and not thread.is_alive()) or (
+                    thread is None and not _locked(library)):
+                del _pending[library]
+        return bool(_pending)
+
+
+def wait_for_builds(timeout: float | None = None) -> bool:
+    """Wait for the builds this process started; True when none is left pending."""
+    with _lock:
+        threads = [t for t in _pending.values() if t is not None]
+    for thread in threads:
+        thread.join(timeout)
+    return not pending()
+
+
+def _start(compiler: str, source: str, library: Path) -> None:
+    """Build ``library`` in a background thread, unless this process or another is
+    building it already."""
+    with _lock:
+        if library in _pending:
+            return
+        if _locked(library):
+            _pending[library] = None
+            return
+        print(f"cr_nlp: compiling the exact stage's CasADi functions in the background "
+              f"(5–20 s, once: later processes load them from {cache_dir()}); until then "
+              "they run in CasADi's virtual machine", file=sys.stderr, flush=True)
+        # Not a daemon: the interpreter waits for it at exit, so the library is kept.
+        thread = threading.Thread(target=_build, args=(compiler, source, library),
+                                  name=f"cr_nlp gcc {library.stem}")
+        _pending[library] = thread
+        thread.start()
+
+
+def _lock_path(library: Path) -> Path:
+    return library.with_suffix(".lock")
+
+
+def _locked(library: Path) -> bool:
+    """Whether another process holds ``library``'s build lock."""
+    try:
+        import fcntl
+    except ImportError:  # no advisory locks here: every process builds its own
+        return False
+    try:
+        with open(_lock_path(library), "a+") as handle:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(handle, fcntl.LOCK_UN)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    return False
+
+
+def _build(compiler: str, source: str, library: Path) -> bool:
     """Compile ``source`` into ``library`` atomically (a library is complete or absent,
-    also when several processes compile it at once)."""
-    library.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=library.parent) as work:
-        c_file, out = Path(work) / "functions.c", Path(work) / "functions.so"
-        c_file.write_text(source)
-        subprocess.run([compiler, *FLAGS, "-shared", "-fPIC", "-o", str(out), str(c_file),
-                        "-lm"], check=True, capture_output=True)
-        os.replace(out, library)
+    also when several processes compile it at once), holding its lock file; False (and
+    a warning, once) when compiling failed."""
+    try:
+        library.parent.mkdir(parents=True, exist_ok=True)
+        with open(_lock_path(library), "a+") as lock:
+            try:
+                import fcntl
+                fcntl.flock(lock, fcntl.LOCK_EX)
+            except ImportError:
+                pass
+            if library.exists():  # another process built it while this one waited
+                return True
+            with tempfile.TemporaryDirectory(dir=library.parent) as work:
+                c_file, out = Path(work) / "functions.c", Path(work) / "functions.so"
+                c_file.write_text(source)
+                subprocess.run([compiler, *FLAGS, "-shared", "-fPIC", "-o", str(out),
+                                str(c_file), "-lm"], check=True, capture_output=True)
+                os.replace(out, library)
+        return True
+    except (OSError, subprocess.CalledProcessError) as exc:
+        _warn_once(f"compiling the exact stage's CasADi functions failed ({exc}); they run "
+                   "in the virtual machine, about 3× slower")
+        return False
+
+
+def _warn_once(message: str) -> None:
+    global _warned
+    if not _warned:
+        _warned = True
+        warnings.warn(message, RuntimeWarning, stacklevel=3)

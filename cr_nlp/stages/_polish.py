@@ -48,7 +48,7 @@ from ..model.limits import limit_violation_q, project_bending
 from ..world.clearance import PairDistances, body_gap_tolerance, self_pairs
 from ..world.scene import Scene, load_scene
 from ..world.verdict import VIOLATION_TOLERANCE, describe_violations
-from ._compiled import compiled
+from ._compiled import compiled, pending
 from ._ipopt import (
     SUCCESS_STATUSES,
     TIME_LIMIT_STATUS,
@@ -226,9 +226,19 @@ class IKPolisher:
         # Six pose equations over-determine a robot with fewer free variables.
         self.modes = tuple(m for m in config.modes if m != "equality" or free >= 6) or ("minimize",)
         """The modes this robot uses, in order."""
-        self._solvers = {mode: self._build(mode) for mode in self.modes}
+        self._interpreted = False
+        """Built on CasADi's virtual machine while the compiled functions are being built
+        (``stages._compiled``): rebuilt on them before the first solve after that."""
+        self._solvers = self._build_all()
 
     # ------------------------------------------------------------ building
+
+    def _build_all(self) -> dict[str, ca.Function]:
+        """The solver of every mode (``_interpreted`` set while built uncompiled)."""
+        self._interpreted = False
+        solvers = {mode: self._build(mode) for mode in self.modes}
+        self._interpreted |= self._rows.interpreted
+        return solvers
 
     def _build(self, mode: str) -> ca.Function:
         """The Ipopt solver of one mode. Parameters: target position (3), target rotation
@@ -268,8 +278,9 @@ class IKPolisher:
                                          [smooth, ca.jacobian(smooth, zs)])
         hessian_fn = ca.Function("smooth_hessian", [*inputs, lam_f, lam_s],
                                  [ca.triu(ca.hessian(lagrangian, zs)[0])])
-        objective_fn, smooth_fn, smooth_jacobian_fn, hessian_fn = compiled(
+        (objective_fn, smooth_fn, smooth_jacobian_fn, hessian_fn), waiting = compiled(
             [objective_fn, smooth_fn, smooth_jacobian_fn, hessian_fn], cfg.compile)
+        self._interpreted |= waiting
 
         data = (z, target_position, target_rotation, z_start)
         f, gradient = objective_fn(*data)
@@ -401,6 +412,8 @@ class IKPolisher:
                near: np.ndarray | None, time_limit: float | None = None) -> PolishResult:
         """``solve`` with the warm start's pair distances ``near`` already computed."""
         start = time.perf_counter()
+        if self._interpreted and not pending():
+            self._solvers = self._build_all()
         self._deadline.start(time_limit)
         try:
             return self._solve_until(q0, target_position, target_rotation, near, start)

@@ -65,6 +65,7 @@ from ..model.limits import limit_violation_q, project_bending
 from ..world.clearance import PairDistances, body_gap_tolerance, self_pairs
 from ..world.scene import Scene, load_scene
 from ..world.verdict import VIOLATION_TOLERANCE
+from ._compiled import pending
 from ._ipopt import (
     TIME_LIMIT_STATUS,
     Deadline,
@@ -288,6 +289,9 @@ class TrajectoryPolisher:
         self._accel = math.isfinite(robot.tendon_accel_max) and w >= 3
         self._pose_errors = self._model.functions_z["pose_error"].map(w)
         self._solvers: dict[tuple[int, ...], tuple[ca.Function, np.ndarray]] = {}
+        self._interpreted = False
+        """Some solver was built on CasADi's virtual machine while the compiled functions
+        were being built (``stages._compiled``): all are rebuilt once they are there."""
 
     # ------------------------------------------------------------ building
 
@@ -343,8 +347,12 @@ class TrajectoryPolisher:
         """The Ipopt solver with ``capacities[i]`` clearance rows per configuration for
         pool i (built on first use, then reused), and the indices of those rows among one
         configuration's rows of all pools (``_select``'s layout)."""
+        if self._interpreted and not pending():
+            self._interpreted = False
+            self._solvers.clear()
         if capacities not in self._solvers:
             self._solvers[capacities] = self._build(capacities)
+            self._interpreted |= any(rows.interpreted for rows in self._slot_rows.values())
         return self._solvers[capacities]
 
     def _capacities(self, lower: np.ndarray) -> tuple[int, ...]:

@@ -216,6 +216,7 @@ class SlotRows:
         self._slot_curvature = [self._curvature_function(pool, face_smoothing)
                                 for pool in pools]
         self._functions: dict[tuple[bool, bool], tuple[ca.Function, ...]] = {}
+        self._interpreted: set[tuple[bool, bool]] = set()
 
     def centres(self, z: Any) -> np.ndarray:
         """(N, 3) body-sphere centres (m) of one configuration z (3n), float64, by the SX
@@ -353,11 +354,12 @@ class SlotRows:
         """The rows of one configuration as functions ``(z, *slots) -> rows``,
         ``(z, *slots) -> (rows, jacobian)`` and ``(z, *slots, λ) -> Σ λ ∇²rows``, to map
         over many configurations (``kinematic``: see ``hessian``); with ``compile``,
-        compiled to machine code and cached on disk (``stages._compiled``)."""
-        from ._compiled import compiled
+        compiled to machine code and cached on disk (``stages._compiled``; while that is
+        being built, the functions as they are, asked for again once it is there)."""
+        from ._compiled import compiled, pending
 
         key = (kinematic, compile)
-        if key not in self._functions:
+        if key not in self._functions or (key in self._interpreted and not pending()):
             z = ca.MX.sym("z", self.robot.dof)
             slots = [ca.MX.sym(f"slots_{p.kind}", p.capacity, p.width) for p in self.pools]
             lam = ca.MX.sym("lam", self.count)
@@ -367,8 +369,17 @@ class SlotRows:
                             [*self.with_jacobian(z, slots)]),
                 ca.Function("slot_rows_hessian", [z, *slots, lam],
                             [self.hessian(z, slots, lam, kinematic)])]
-            self._functions[key] = tuple(compiled(functions, compile))
+            done, waiting = compiled(functions, compile)
+            self._functions[key] = tuple(done)
+            self._interpreted.discard(key)
+            if waiting:
+                self._interpreted.add(key)
         return self._functions[key]
+
+    @property
+    def interpreted(self) -> bool:
+        """Some functions were handed out uncompiled while their library is being built."""
+        return bool(self._interpreted)
 
 
 def _entries(x: Any, start: int, stop: int) -> tuple[Any, ...]:
