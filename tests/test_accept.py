@@ -1,5 +1,5 @@
-"""The polish-and-accept stage (``stages._accept``): toy problems with known answers, then
-through IK's exact mode; and the one Ipopt set-up (``stages._ipopt``) on a closed form."""
+"""The polish-and-accept stage (``stages.polish._accept``): toy problems with known answers, then
+through IK's exact mode; and the one Ipopt set-up (``stages.polish._ipopt``) on a closed form."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from cr_nlp.stages._accept import Polished, accept_first, polish_and_accept
-from cr_nlp.stages._ipopt import WarmStart, build_solver, ipopt_options, run_solver
+from cr_nlp.stages.polish._accept import Polished, accept_first, polish_and_accept
+from cr_nlp.stages.polish._ipopt import WarmStart, build_solver, ipopt_options, run_solver
 from cr_nlp.world.verdict import Verdict, judge
 
 # Toy problem: an answer is a number x, "success" means |x − goal| < 0.1 and x ≥ 0 (a
@@ -121,7 +121,7 @@ def test_ik_exact_retries_from_the_search_beam_without_searching_again(monkeypat
 
     from cr_nlp.bench.ik import forward_kinematics
     from cr_nlp.model import load_robot
-    from cr_nlp.stages import _ik_exact as ik_exact
+    from cr_nlp.stages.polish import _ik_exact as ik_exact
     from cr_nlp.tasks.ik import IKSolver
     from cr_nlp.world import check_many
 

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cr_nlp.stages._banded_lm import (
+from cr_nlp.stages.refine._banded_lm import (
     BandedMatrix,
     ChainResidual,
     banded_lm_solve,
@@ -21,7 +21,7 @@ from cr_nlp.stages._banded_lm import (
     solve_banded,
     solve_block_tridiagonal,
 )
-from cr_nlp.stages._lm import LMConfig, lm_solve
+from cr_nlp.stages.refine._lm import LMConfig, lm_solve
 
 # Dense and banded algebra agree to 1e-9 or tighter: float64 JAX arrays, x64 on per test.
 pytestmark = pytest.mark.usefixtures("float64")
@@ -206,7 +206,7 @@ def unprojected(z):
 def test_chain_batch_solves_every_chain_as_its_own_banded_solve() -> None:
     """Three chains in chunks of two (the last padded): each answer equals the single
     banded solve with that chain's scalar; one program per chunk, compiled once."""
-    from cr_nlp.stages._chain_batch import ChainBatchLM
+    from cr_nlp.stages.refine._chain_stream import ChainBatchLM
 
     t, d = 5, 3
     terms = ChainResidual(step_unary, pair, None)
@@ -236,7 +236,7 @@ def test_lanes_split_the_chains_between_devices_with_the_one_shot_iterates() -> 
     devices): every lane's device gets a program and chains, and every chain still takes
     its one-shot ``banded_lm_solve`` iterates; ``lanes=1`` keeps them all on the first
     device."""
-    from cr_nlp.stages._chain_batch import ChainBatchLM
+    from cr_nlp.stages.refine._chain_stream import ChainBatchLM
 
     t, d, budget, count = 5, 3, 7, 10
     terms = ChainResidual(step_unary, pair, triple)
@@ -265,7 +265,7 @@ def test_slots_take_the_one_shot_iterates_whatever_the_schedule() -> None:
     the same z, cost and iteration count, for chains that stop after very different
     numbers of iterations (some stall early, some use the whole budget), whether a call
     runs one trip, three or until a slot frees up; chains added by ``more`` too."""
-    from cr_nlp.stages._chain_batch import ChainBatchLM
+    from cr_nlp.stages.refine._chain_stream import ChainBatchLM
 
     t, d, budget = 5, 3, 6
     terms = ChainResidual(step_unary, pair, triple)
@@ -377,7 +377,7 @@ def test_chains_added_after_the_last_one_finished_are_solved_alike() -> None:
     """``more`` runs while the next device call computes; chains it adds only once every
     given chain has finished (no call left to overlap with) still get their one-shot
     ``banded_lm_solve`` iterates, and every chain is reported exactly once."""
-    from cr_nlp.stages._chain_batch import ChainBatchLM
+    from cr_nlp.stages.refine._chain_stream import ChainBatchLM
 
     t, d, budget = 5, 3, 6
     terms = ChainResidual(step_unary, pair, triple)
@@ -412,7 +412,7 @@ def test_slots_shrink_and_grow_without_changing_the_iterates() -> None:
     ``banded_lm_solve`` iterates, and a program without resizing does the same with more
     slot-trips. The first stream moves down only to programs compiled already (none: a
     one-shot process does not compile them for its tail); the second compiles them."""
-    from cr_nlp.stages._chain_batch import ChainBatchLM
+    from cr_nlp.stages.refine._chain_stream import ChainBatchLM
 
     t, d, budget = 5, 3, 8
     terms = ChainResidual(step_unary, pair, triple)
@@ -458,7 +458,7 @@ def test_slots_shrink_and_grow_without_changing_the_iterates() -> None:
 def test_slots_and_chunks_never_exceed_a_chunk_size_that_is_not_a_power_of_two() -> None:
     """chunk_size 6 (or 3): programs of at most 6 slots (3 rows), every chain still its
     one-shot ``banded_lm_solve``."""
-    from cr_nlp.stages._chain_batch import ChainBatchLM
+    from cr_nlp.stages.refine._chain_stream import ChainBatchLM
 
     t, d, budget = 5, 3, 8
     terms = ChainResidual(step_unary, pair, triple)

@@ -5,7 +5,7 @@ import pytest
 
 from cr_nlp.bench._baselines_plan import RRTConnect, RRTConnectConfig
 from cr_nlp.model import load_robot, q_to_z, z_to_q
-from cr_nlp.stages._roadmap import interpolate_z
+from cr_nlp.stages.explore._roadmap import interpolate_z
 from cr_nlp.world import body_gap_tolerance, check_many, clearance_z, load_scene, scene_arrays
 
 from .conftest import MODELS

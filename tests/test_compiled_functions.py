@@ -1,4 +1,5 @@
-"""The exact stage's CasADi functions are compiled in the background (``stages._compiled``):
+"""The exact stage's CasADi functions are compiled in the background
+(``stages.polish._compiled_functions``):
 a polisher solves in CasADi's virtual machine until the library is built, then switches to
 it with the same answers; a build another process holds is not started twice; a process
 waits for its builds at exit, so the next one finds the library."""
@@ -16,12 +17,12 @@ import numpy as np
 import pytest
 
 from cr_nlp.model import load_robot, tip_pose
-from cr_nlp.stages import _compiled
-from cr_nlp.stages._polish import IKPolisher, PolishConfig
+from cr_nlp.stages.polish import _compiled_functions as compiled_functions
+from cr_nlp.stages.polish._ik_nlp import IKPolisher, PolishConfig
 
 from .conftest import MODELS
 
-pytestmark = pytest.mark.skipif(_compiled._compiler() is None, reason="needs a C compiler")
+pytestmark = pytest.mark.skipif(compiled_functions._compiler() is None, reason="needs a C compiler")
 
 
 def _square() -> list[ca.Function]:
@@ -40,7 +41,7 @@ def test_a_polisher_switches_to_the_compiled_library_once_it_is_built(
 
     polisher = IKPolisher(robot)
     assert polisher._interpreted                 # no library yet: the virtual machine
-    assert _compiled.wait_for_builds(timeout=300)
+    assert compiled_functions.wait_for_builds(timeout=300)
     assert list((tmp_path / "casadi").glob("*.so"))
     builds = polisher.builds
     switched = polisher.solve(q0, position, rotation)
@@ -60,28 +61,28 @@ def test_a_build_that_another_process_holds_is_not_started_again(
     functions = _square()
     (tmp_path / "casadi").mkdir()
     # Find the library's lock by a first call that waits for its build, then remove it.
-    done, waiting = _compiled.compiled(functions, wait=True)
+    done, waiting = compiled_functions.compiled(functions, wait=True)
     assert not waiting and done[0](3.0) == 10.0
     (library,) = (tmp_path / "casadi").glob("*.so")
     library.unlink()
     with open(library.with_suffix(".lock"), "a+") as held:
         fcntl.flock(held, fcntl.LOCK_EX)          # "another process" is building it
-        out, waiting = _compiled.compiled(functions)
-        assert waiting and _compiled.pending() and out[0](3.0) == 10.0
-        assert _compiled._pending[library] is None   # no thread of ours
+        out, waiting = compiled_functions.compiled(functions)
+        assert waiting and compiled_functions.pending() and out[0](3.0) == 10.0
+        assert compiled_functions._pending[library] is None   # no thread of ours
         fcntl.flock(held, fcntl.LOCK_UN)
     # That process went away without the library: nothing is pending any more, and the
     # next call builds it here.
-    assert not _compiled.pending()
-    out, waiting = _compiled.compiled(functions)
-    assert waiting and _compiled.wait_for_builds(timeout=120) and library.exists()
-    out, waiting = _compiled.compiled(functions)
+    assert not compiled_functions.pending()
+    out, waiting = compiled_functions.compiled(functions)
+    assert waiting and compiled_functions.wait_for_builds(timeout=120) and library.exists()
+    out, waiting = compiled_functions.compiled(functions)
     assert not waiting and out[0](3.0) == 10.0
 
 
 def test_a_process_waits_for_its_builds_at_exit(tmp_path: Path) -> None:
     script = ("import casadi as ca\n"
-              "from cr_nlp.stages._compiled import compiled\n"
+              "from cr_nlp.stages.polish._compiled_functions import compiled\n"
               "x = ca.SX.sym('x')\n"
               "out, waiting = compiled([ca.Function('cube', [x], [x ** 3])])\n"
               "assert waiting and float(out[0](2.0)) == 8.0\n")

@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 
 from cr_nlp.bench.ik import free_case
 from cr_nlp.model import Robot, tip_pose
-from cr_nlp.stages._explore import (
+from cr_nlp.stages.explore._seed_pool import (
     SeedPool,
     pose_features,
     select_beam,

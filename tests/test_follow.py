@@ -171,7 +171,7 @@ def test_stage_one_table_and_sequence_agree_with_numpy(follower) -> None:
 def test_chain_links_enter_each_step_both_ways() -> None:
     # Two chains by hand: one from cell (2, 0) forward over rows 3, 4 in column 3, one
     # re-solving row 4 in column 5 and walking back to row 2 (its start row repeated).
-    from cr_nlp.stages._continuation import chain_links
+    from cr_nlp.stages.refine._path_continuation import chain_links
 
     links = chain_links(np.full((6, 6, 2), -1), np.array([[2, 3, 4, -9], [4, 4, 3, 2]]),
                         np.array([[0, 3, 3, 3], [5, 5, 5, 5]]),
@@ -227,7 +227,7 @@ def test_pose_only_chains_match_chains_on_the_whole_residual(follower) -> None:
     # tdcr3's answers are isolated, so its chains track the pose alone and the clearance
     # only scores them: where the clearance does not bind (the ball stays farther than
     # the margin) they must give the table that chains on the whole residual give.
-    from cr_nlp.stages._continuation import BranchContinuation
+    from cr_nlp.stages.refine._path_continuation import BranchContinuation
 
     stage = follower.continuation
     assert stage.chain_residual is not None
@@ -256,7 +256,7 @@ def test_quick_chains_keep_the_table_and_the_sequence(follower) -> None:
     # chosen sequence is the same.
     from dataclasses import replace
 
-    from cr_nlp.stages._continuation import BranchContinuation
+    from cr_nlp.stages.refine._path_continuation import BranchContinuation
 
     stage = follower.continuation
     assert stage.settings.damping < 1e-2 and stage.settings.give_up_iterations > 0
@@ -338,7 +338,7 @@ def test_far_chains_take_the_same_jacobians_without_body_points(centre, near: bo
     # ball, far from it, and with the ball on the body (every row of ``follow_unary``).
     from dataclasses import replace
 
-    from cr_nlp.stages._banded_lm import chain_jacobians
+    from cr_nlp.stages.refine._banded_lm import chain_jacobians
 
     q_line = Q_A + np.linspace(0.0, 1.0, WAYPOINTS)[:, None] * (Q_B - Q_A)
     if centre is None:   # on the body at the middle waypoint

@@ -1,5 +1,5 @@
-"""The fused search (``stages._search``: coarse LM, beam and refinement rounds as one
-device program per chunk, driven by ``stages._ik_search``) against closed forms and an
+"""The fused search (``stages.refine._ik_program``: coarse LM, beam and refinement rounds as one
+device program per chunk, driven by ``stages.refine._ik_driver``) against closed forms and an
 independent forward kinematics."""
 
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from cr_nlp.model.limits import limit_violation_q
-from cr_nlp.stages._lm import LMConfig
-from cr_nlp.stages._search import SearchPlan, search_targets
+from cr_nlp.stages.refine._ik_program import SearchPlan, search_targets
+from cr_nlp.stages.refine._lm import LMConfig
 from cr_nlp.tasks.ik import IKConfig, IKSolver
 
 from .test_ik import LATTICE, TDCR3, TDCR4, free_configurations, targets_from

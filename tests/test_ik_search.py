@@ -1,11 +1,11 @@
-"""The host side of the IK search (``stages._ik_search``): the self-clearance repair runs
+"""The host side of the IK search (``stages.refine._ik_driver``): the self-clearance repair runs
 only on the answers that need it, in a small chunk, from their own beam first."""
 
 import numpy as np
 import pytest
 
 from cr_nlp.bench.ik import free_case
-from cr_nlp.stages._ik_search import REPAIR_CHUNK, ChunkRunner
+from cr_nlp.stages.refine._ik_driver import REPAIR_CHUNK, ChunkRunner
 from cr_nlp.tasks.ik import IKSolver
 
 from .test_ik import TDCR3

@@ -193,6 +193,58 @@ def test_no_lower_layer_imports_a_higher_one(graph: dict[str, set[str]]) -> None
     assert not found, "imports against the layers:\n" + "\n".join(found)
 
 
+STAGE_PACKAGES = {"explore": 0, "refine": 1, "polish": 2}
+"""The stage packages, lowest first: refine starts from explore's seeds, polish from
+anything; a module at ``stages/`` itself (``_chunks``) sits below all three."""
+
+
+def stage_package(name: str) -> int | None:
+    """The rank of ``name``'s stage package (-1: a module of ``stages/`` itself; None:
+    not a stage module)."""
+    parts = name.split(".")
+    if len(parts) < 3 or parts[1] != "stages":
+        return None
+    return STAGE_PACKAGES.get(parts[2], -1) if len(parts) > 3 else (
+        None if parts[2] in STAGE_PACKAGES else -1)
+
+
+def stage_imports_against_the_order(graph: dict[str, set[str]]) -> list[str]:
+    """'a imports b' for each stage module importing one of a higher stage package."""
+    found = []
+    for a in sorted(graph):
+        rank = stage_package(a)
+        if rank is None:
+            continue
+        for b in sorted(graph[a]):
+            other = stage_package(b)
+            if other is not None and other > rank:
+                found.append(f"{a} imports {b}")
+    return found
+
+
+def test_the_checker_finds_a_stage_importing_a_later_stage(tmp_path: Path) -> None:
+    graph = {"cr_nlp.stages.explore._roadmap": {"cr_nlp.stages.refine._lm",
+                                                  "cr_nlp.stages._chunks"},
+             "cr_nlp.stages.refine._lm": {"cr_nlp.stages.explore._seed_pool"},
+             "cr_nlp.stages._chunks": {"cr_nlp.stages.polish._ipopt"}}
+    assert stage_imports_against_the_order(graph) == [
+        "cr_nlp.stages._chunks imports cr_nlp.stages.polish._ipopt",
+        "cr_nlp.stages.explore._roadmap imports cr_nlp.stages.refine._lm"]
+
+
+def test_stages_are_three_packages_that_import_only_downward(
+        graph: dict[str, set[str]]) -> None:
+    stages = ROOT / "stages"
+    loose = sorted(p.name for p in stages.glob("*.py") if p.name not in ("__init__.py",
+                                                                        "_chunks.py"))
+    assert not loose, f"modules of stages/ outside explore/, refine/, polish/: {loose}"
+    assert sorted(p.name for p in stages.iterdir() if p.is_dir()
+                  and p.name != "__pycache__") == sorted(STAGE_PACKAGES)
+    found = stage_imports_against_the_order(graph)
+    assert not found, ("stage packages importing a later one (order: explore → refine → "
+                       "polish):\n" + "\n".join(found))
+
+
 def test_every_cli_module_is_a_registered_subcommand(graph: dict[str, set[str]]) -> None:
     from cr_nlp.cli.main import SUBCOMMANDS
 

@@ -1,10 +1,10 @@
-"""The one LM step rule (``stages._lm.judge_step``) that the dense and banded LMs share,
+"""The one LM step rule (``stages.refine._lm.judge_step``) that the dense and banded LMs share,
 against Nielsen's rule worked by hand."""
 
 import jax.numpy as jnp
 import numpy as np
 
-from cr_nlp.stages._lm import LMConfig, judge_step
+from cr_nlp.stages.refine._lm import LMConfig, judge_step
 
 CONFIG = LMConfig(give_up=((5, 1.0),))
 

@@ -6,8 +6,8 @@ import pytest
 
 from cr_nlp.model import load_robot, tip_pose
 from cr_nlp.model.limits import limit_violation_q
-from cr_nlp.stages import _polish as polish_module
-from cr_nlp.stages._polish import (
+from cr_nlp.stages.polish import _ik_nlp as polish_module
+from cr_nlp.stages.polish._ik_nlp import (
     IKPolisher,
     PolishConfig,
     PolishResult,
@@ -229,7 +229,7 @@ def test_slot_rows_equal_the_world_pair_distances(tdcr3, lattice):
     blob = ConvexPart.from_points(rng.normal(size=(30, 3)) * 0.25 + [0.3, 0.5, 2.0])
     scene = Scene("mixed", primitives.obstacles + (Obstacle("blob", "mesh", (blob,), {}),))
     polisher = IKPolisher(tdcr3, scene, config=PolishConfig(max_pairs=16))
-    kinds = [pool.kind for pool in polisher._pools]
+    kinds = [group.kind for group in polisher._groups]
     assert kinds == ["sphere", "box", "capsule", "cylinder", "convex", "self"]
     compared = 0
     for _ in range(4):

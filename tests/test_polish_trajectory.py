@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from cr_nlp.model import CasadiModel, load_robot
-from cr_nlp.stages import _polish_trajectory as module
-from cr_nlp.stages._polish_trajectory import TrajectoryPolishConfig, TrajectoryPolisher
+from cr_nlp.stages.polish import _trajectory_nlp as module
+from cr_nlp.stages.polish._trajectory_nlp import TrajectoryPolishConfig, TrajectoryPolisher
 from cr_nlp.tasks.trajectory import tendon_series, verify_trajectory
 from cr_nlp.world import load_scene
 
@@ -98,7 +98,7 @@ def test_the_nlp_is_built_once_over_solves_with_new_dt_and_warm_starts(tdcr3, mo
 def test_clearance_rows_agree_with_the_world_distances(tdcr3, scene_name):
     polisher = TrajectoryPolisher(tdcr3, load_scene(scene_name), 3,
                                   config=TrajectoryPolishConfig(max_pairs=12))
-    kinds = {pool.kind for pool in polisher._pools}
+    kinds = {group.kind for group in polisher._groups}
     assert "self" in kinds and len(kinds) == 2
     rng = np.random.default_rng(3)
     q_near = straight(np.array([2.0, 0.5, 1.0, 2.5, 2.0, 1.0, 1.5, -1.0, 1.0]),

@@ -29,8 +29,8 @@ from cr_nlp._programs import (
     programs_dir,
 )
 from cr_nlp.model import load_robot
-from cr_nlp.stages._lm import LMConfig
-from cr_nlp.stages._search import SearchPlan
+from cr_nlp.stages.refine._ik_program import SearchPlan
+from cr_nlp.stages.refine._lm import LMConfig
 
 HEAVY = ("casadi", "trimesh", "coacd", "fcl", "dask", "distributed", "matplotlib", "viser",
          "scipy.stats", "scipy.optimize", "scipy.spatial")

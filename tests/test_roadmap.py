@@ -1,12 +1,11 @@
-"""The roadmap (stages/_roadmap.py): a path across the shelf's divider that python-fcl
+"""The roadmap (stages/explore/_roadmap.py): a path across the shelf's divider that python-fcl
 accepts, the disk cache, and the interpolation helpers."""
 
 import numpy as np
 import pytest
 
 from cr_nlp.model import load_robot, q_to_z, tip_pose, z_to_q
-from cr_nlp.stages._explore import sobol_configurations
-from cr_nlp.stages._roadmap import (
+from cr_nlp.stages.explore._roadmap import (
     Roadmap,
     RoadmapConfig,
     interpolate_z,
@@ -14,6 +13,7 @@ from cr_nlp.stages._roadmap import (
     resample_polyline,
     roadmap_cache_stats,
 )
+from cr_nlp.stages.explore._seed_pool import sobol_configurations
 from cr_nlp.world import check_many, clearance, load_scene, scene_arrays
 
 from .conftest import MODELS
@@ -99,7 +99,7 @@ def test_the_broad_phase_checker_decides_the_margin_like_every_part(robot, name)
     below the margin its clearance equals the every-part clearance (``clearance``), and a
     configuration it passes has every-part clearance ≥ the margin; Sobol samples over the
     whole configuration space, half of them in collision."""
-    from cr_nlp.stages._roadmap import ClearanceChecker, resolved_margin
+    from cr_nlp.stages.explore._roadmap import ClearanceChecker, resolved_margin
 
     scene = load_scene(name)
     margin = resolved_margin(robot, RoadmapConfig())

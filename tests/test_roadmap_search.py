@@ -1,4 +1,4 @@
-"""Batched roadmap search (stages/_roadmap_search.py, Roadmap.query_many_z) against scipy's
+"""Batched roadmap search (stages/explore/_roadmap_search.py, Roadmap.query_many_z) against scipy's
 Dijkstra run one pair at a time, the lazy re-check of many pairs against one-by-one
 queries, and many planning problems in one call (streamed in blocks)."""
 
@@ -9,8 +9,8 @@ from scipy.sparse.csgraph import dijkstra
 
 from cr_nlp.bench.plan import plan_problems
 from cr_nlp.model import load_robot, q_to_z_numpy
-from cr_nlp.stages._roadmap import Roadmap, RoadmapConfig, polyline_length, resolved_margin
-from cr_nlp.stages._roadmap_search import neighbour_table, shortest_paths
+from cr_nlp.stages.explore._roadmap import Roadmap, RoadmapConfig, polyline_length, resolved_margin
+from cr_nlp.stages.explore._roadmap_search import neighbour_table, shortest_paths
 from cr_nlp.tasks.trajectory import TrajectoryConfig, TrajectoryPlanner
 from cr_nlp.world import load_scene
 

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cr_nlp.model import load_robot, tendon_lengths, z_to_q_numpy
-from cr_nlp.stages._tendon_penalty import tendon_accel_excess, tendon_speed_excess
+from cr_nlp.stages.refine._tendon_penalty import tendon_accel_excess, tendon_speed_excess
 
 
 def test_penalties_are_the_relative_overshoot_of_the_finite_differences() -> None:

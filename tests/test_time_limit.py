@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from cr_nlp.cli import main
-from cr_nlp.stages._accept import Polished, check_time_limit, polish_and_accept, polish_note
-from cr_nlp.stages._ipopt import (
+from cr_nlp.stages.polish._accept import Polished, check_time_limit, polish_and_accept, polish_note
+from cr_nlp.stages.polish._ipopt import (
     TIME_LIMIT_STATUS,
     Deadline,
     build_solver,
@@ -156,8 +156,8 @@ def test_exact_ik_out_of_time_keeps_the_verified_penalty_answer(ik_case) -> None
 
 def test_a_trajectory_polish_out_of_time_keeps_the_lm_answer_marked() -> None:
     from cr_nlp.model import load_robot
-    from cr_nlp.stages._polish_trajectory import TrajectoryPolisher
-    from cr_nlp.stages._trajectory_exact import polish_trajectories
+    from cr_nlp.stages.polish._trajectory_exact import polish_trajectories
+    from cr_nlp.stages.polish._trajectory_nlp import TrajectoryPolisher
     from cr_nlp.tasks.trajectory import verify_trajectory
 
     from .test_exact_verdict import cut_between_waypoints
@@ -186,7 +186,7 @@ def test_a_trajectory_polish_out_of_time_keeps_the_lm_answer_marked() -> None:
 
 
 def test_a_path_polish_out_of_time_keeps_the_lm_answer_marked() -> None:
-    from cr_nlp.stages._polish_trajectory import TrajectoryPolishResult
+    from cr_nlp.stages.polish._trajectory_nlp import TrajectoryPolishResult
     from cr_nlp.tasks._follow_polish import polish_follow
     from cr_nlp.tasks._timing import StageTiming
 

@@ -206,7 +206,7 @@ def test_one_verdict_a_margin_violation_is_a_failure_in_both_modes(shelf_planner
     # A failed polish returns the LM answer with its own verdict. An answer 1 mm closer
     # to the shelf than δ (still collision-free) fails that verdict in both modes, and
     # the reason says which check failed by how much.
-    from cr_nlp.stages._polish_trajectory import TrajectoryPolisher
+    from cr_nlp.stages.polish._trajectory_nlp import TrajectoryPolisher
     from cr_nlp.tasks import trajectory as T
     from cr_nlp.world.verdict import failure_reason
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from cr_nlp.model import load_robot
-from cr_nlp.stages._banded_lm import (
+from cr_nlp.stages.refine._banded_lm import (
     banded_to_dense,
     chain_cost,
     chain_jacobians,

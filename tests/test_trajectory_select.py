@@ -1,12 +1,12 @@
-"""The two-round guess selection of the trajectory planner (``stages._trajectory_select``):
+"""The two-round guess selection of the trajectory planner (``stages.refine._trajectory_select``):
 each distinct guess is refined once, round 2 only where round 1 found no valid answer."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from cr_nlp.stages._chain_batch import ChainSolution
-from cr_nlp.stages._trajectory_select import distinct_guesses, select_guesses
+from cr_nlp.stages.refine._chain_stream import ChainSolution
+from cr_nlp.stages.refine._trajectory_select import distinct_guesses, select_guesses
 
 
 class RecordingLM:

@@ -39,7 +39,7 @@ from ..model._ops import JAX
 from ..model.kinematics import model_pose_error, model_segment_frames
 from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz
-from ..stages._lm import solve_spd
+from ..stages.refine._lm import solve_spd
 
 
 class BaselineSolve(NamedTuple):

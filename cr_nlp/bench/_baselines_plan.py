@@ -1,7 +1,7 @@
 """The trajectory-planning baseline: RRT-Connect in configuration space.
 
 Two trees, one from the start and one from the goal, grow towards random configurations
-in the bending-vector form z (the roadmap's metric, ``stages._roadmap``). An extension
+in the bending-vector form z (the roadmap's metric, ``stages.explore._roadmap``). An extension
 moves at most ``step`` towards its target; "connect" repeats extensions towards the
 other tree's newest node. Every extension is checked as one batch: all of its
 configurations at ``check_step`` spacing go through the same float32 sphere-model
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..model import Robot, q_to_z, z_to_q
-from ..stages._roadmap import ClearanceChecker, interpolate_z, resample_polyline
+from ..stages.explore._roadmap import ClearanceChecker, interpolate_z, resample_polyline
 from ..world import Scene, body_gap_tolerance
 
 

@@ -341,13 +341,13 @@ def search_scaling(scenes: Sequence[str] = ("shelf", "cabinet"),
                    counts: Sequence[int] = (1, 20, 1000), robot: str = "tdcr3",
                    out: str | Path | None = "bench_results/plan", seed: int = 0,
                    repeats: int = 5) -> list[dict[str, Any]]:
-    """Time the batched roadmap search alone (``stages._roadmap_search.shortest_paths``),
+    """Time the batched roadmap search alone (``stages.explore._roadmap_search.shortest_paths``),
     scipy against the device's min-plus relaxation, for ``counts`` start/goal pairs on
     each scene's roadmap. The ends are the benchmark's problems attached to their
     ``neighbours`` nearest nodes without edge checks (the checks are the same for both
     backends). Medians of ``repeats`` calls, the two backends alternating, after a
     warm-up call each (compilation). Prints and writes search.md / search.csv."""
-    from ..stages._roadmap_search import neighbour_table, shortest_paths
+    from ..stages.explore._roadmap_search import neighbour_table, shortest_paths
 
     robot_model = load_robot(robot)
     rows: list[dict[str, Any]] = []

@@ -1,5 +1,5 @@
 """The path follower's exact stage: when to polish the LM answer with Ipopt and which
-answer to keep (the polish itself is ``stages._polish_trajectory``)."""
+answer to keep (the polish itself is ``stages.polish._trajectory_nlp``)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import numpy as np
 from ..model import Robot
 from ..model.limits import clip_to_limits
 from ..model.rotations import matrix_from_wxyz
-from ..stages._accept import Polished, accept_first, polish_note
-from ..stages._trajectory_exact import describe_polish
+from ..stages.polish._accept import Polished, accept_first, polish_note
+from ..stages.polish._trajectory_exact import describe_polish
 from ..world.verdict import VIOLATION_TOLERANCE, Verdict
 from ._follow_result import FollowResult, tracking_cost
 from ._timing import StageTiming
@@ -46,10 +46,10 @@ def polish_follow(robot: Robot, polisher: Callable[[int], Any], lm: FollowResult
             stays with ``stage`` "refine (polish out of time: …)".
     """
     try:
-        from ..stages import _polish_trajectory  # noqa: F401 — only whether it is available
+        from ..stages.polish import _trajectory_nlp  # noqa: F401 — only whether it is available
     except ImportError:
         lm.stage = ("refine (polish failed: the Ipopt trajectory stage "
-                    "cr_nlp.stages._polish_trajectory is not available)")
+                    "cr_nlp.stages.polish._trajectory_nlp is not available)")
         return lm
     if lm.max_violation <= VIOLATION_TOLERANCE and lm.collision_free and \
             bool(np.all(lm.reached)):

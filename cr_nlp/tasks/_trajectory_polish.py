@@ -1,5 +1,5 @@
 """The trajectory planner's exact mode: which LM answers to polish and how a polish's
-outcome replaces or annotates them (the polish itself is ``stages._trajectory_exact``)."""
+outcome replaces or annotates them (the polish itself is ``stages.polish._trajectory_exact``)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 
 from ..model import Robot
-from ..stages._accept import polish_note
-from ..stages._trajectory_exact import polish_trajectories
+from ..stages.polish._accept import polish_note
+from ..stages.polish._trajectory_exact import polish_trajectories
 from ..world.verdict import Verdict
 from ._trajectory_result import TrajectoryResult, result_from_verdict
 
@@ -34,7 +34,7 @@ def polish_results(robot: Robot, rows: list[int], candidates: list[list[tuple[np
         results: the LM results.
         dt: seconds between waypoints.
         verify: q → ``world._motion.verify_trajectory``'s dict.
-        polisher, pool: as for ``stages._trajectory_exact.polish_trajectories``.
+        polisher, pool: as for ``stages.polish._trajectory_exact.polish_trajectories``.
         attempts: most candidates polished per problem.
         polish_accepted: also polish problems whose LM answer the verification accepts.
         bar: a tqdm bar advanced per problem, or None.

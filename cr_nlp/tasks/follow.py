@@ -11,23 +11,24 @@ tendon lengths).
 
 Stages:
 
-1. explore (``stages._continuation``): IK on every ``ik_stride``-th waypoint in one batch
+1. explore (``stages.refine._path_continuation``): IK on every ``ik_stride``-th waypoint in one
+   batch
    (``IKSolver.candidates``: a refined beam of distinct answers per waypoint), each answer
    carried halfway to the neighbouring IK waypoints by continuation (a few LM steps per
    waypoint on this module's ``follow_unary``), then the sequence with the smallest
-   configuration jumps (``stages._sequence.smoothest_choice``), its jumps bridged by
+   configuration jumps (``stages.explore._sequence.smoothest_choice``), its jumps bridged by
    continuation. For a robot with no more free variables than the 6 a pose fixes
    (tdcr3), the IK and the chains solve the pose alone (``follow_tracking``: no body
    points, ~30× cheaper per LM row) and ``follow_unary`` with its clearance rows scores
    every candidate.
-2. refine: all waypoints jointly by the block-banded LM (``stages._banded_lm``): every
+2. refine: all waypoints jointly by the block-banded LM (``stages.refine._banded_lm``): every
    residual depends on at most three consecutive waypoints (tracking and clearance: one;
    smoothness, tendon speed, clearance between waypoints: two; tendon acceleration:
    three), so each iteration costs O(T), not O(T³). Constraints are penalties here. While
    no body sphere of the chain comes near the margin (``follow_near``), the clearance
    rows are zero with zero derivatives and the Jacobians skip the body points.
 3. polish (``exact=True``): Ipopt with the constraints as constraints, minimising the
-   tracking error, warm-started from stage 2 (``stages._polish_trajectory``); a polish
+   tracking error, warm-started from stage 2 (``stages.polish._trajectory_nlp``); a polish
    that fails, or that the independent check rejects, returns the stage-2 answer,
    marked in ``FollowResult.stage`` (``tasks._follow_polish``).
 
@@ -63,11 +64,11 @@ from .._programs import compile_ahead, compile_program
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz
-from ..stages._accept import check_time_limit
-from ..stages._banded_lm import ChainResidual, banded_lm_solve
-from ..stages._continuation import BranchContinuation, ContinuationSettings
-from ..stages._lm import LMConfig
-from ..stages._tendon_penalty import tendon_accel_excess, tendon_speed_excess
+from ..stages.polish._accept import check_time_limit
+from ..stages.refine._banded_lm import ChainResidual, banded_lm_solve
+from ..stages.refine._lm import LMConfig
+from ..stages.refine._path_continuation import BranchContinuation, ContinuationSettings
+from ..stages.refine._tendon_penalty import tendon_accel_excess, tendon_speed_excess
 from ..world import Scene, load_scene, scene_arrays
 from ..world._clearance_groups import (
     clearance_groups,
@@ -331,7 +332,7 @@ def follow_triple(robot: Robot, sqrt_tendon: float, limit_fraction: float, z_a: 
 
 
 def follow_terms(robot: Robot, margin: float, config: FollowConfig) -> ChainResidual:
-    """The path-following residual as window terms for ``stages._banded_lm``; a chain with
+    """The path-following residual as window terms for ``stages.refine._banded_lm``; a chain with
     no body sphere near the margin (``follow_near``) takes its Jacobians from the tracking
     rows alone (``follow_unary_far``)."""
     sqrt = math.sqrt
@@ -402,7 +403,7 @@ class PathFollower:
                 config.continuation_damping, config.continuation_give_up),
             chain_residual=(partial(follow_tracking, self.robot, (1.0, 1.0))
                             if isolated else None))
-        """Stage 1 (``stages._continuation``): IK candidates, continuation, bridging."""
+        """Stage 1 (``stages.refine._path_continuation``): IK candidates, continuation, bridging."""
         self._ik: IKSolver | None = None
         self._polishers: dict[int, Any] = {}
         self.last_timing = FollowTiming()
@@ -422,7 +423,8 @@ class PathFollower:
         chosen for the smallest jumps; untrackable waypoints are interpolated in z between
         their trackable neighbours (the nearest one's at the ends; straight if none).
 
-        The candidates and the sequence come from ``stages._continuation``: full IK on every
+        The candidates and the sequence come from ``stages.refine._path_continuation``: full IK on
+        every
         ``ik_stride``-th waypoint, continuation in between, the smoothest sequence, and
         each jump (a tendon would have to move faster than ``tendon_speed_max``) bridged by
         continuation from both sides (``continuation_rounds`` times)."""
@@ -441,7 +443,7 @@ class PathFollower:
                             dt: float) -> tuple[np.ndarray, np.ndarray]:
         """IK candidates for R trackable waypoints (positions (R, 3) m, wxyz (R, 4)):
         z (R, K, 3n) and penalised residual norms (R, K) (m/rad; inf: no candidate), as
-        ``stages._continuation.BranchContinuation.table`` builds them."""
+        ``stages.refine._path_continuation.BranchContinuation.table`` builds them."""
         return self.continuation.table(positions, wxyz, self._shared(dt))
 
     def _shared(self, dt: float) -> tuple:
@@ -528,7 +530,7 @@ class PathFollower:
             path: a ``ReferencePath``, a bundled name ("square", "sine", "icra") or a
                 path file (``tasks.paths`` format).
             exact: polish with Ipopt, the constraints as constraints, minimising the
-                tracking error (``stages._polish_trajectory``); a failed or rejected
+                tracking error (``stages.polish._trajectory_nlp``); a failed or rejected
                 polish returns the LM answer with ``stage`` "refine (polish failed: …)"
                 (or "refine (polish out of time: …)", ``config.polish_time_limit``).
             progress: print the polish stage's progress to stderr.
@@ -579,10 +581,10 @@ class PathFollower:
 
     def polisher(self, waypoints: int) -> Any:
         """Stage 3's Ipopt polisher for paths of this many waypoints (built on first use;
-        ``stages._polish_trajectory``, objective "tracking", clearance rows at the
+        ``stages.polish._trajectory_nlp``, objective "tracking", clearance rows at the
         verification's samples)."""
         if waypoints not in self._polishers:
-            from ..stages._polish_trajectory import TrajectoryPolishConfig, TrajectoryPolisher
+            from ..stages.polish._trajectory_nlp import TrajectoryPolishConfig, TrajectoryPolisher
             samples = self.config.verify_samples
             self._polishers[waypoints] = TrajectoryPolisher(
                 self.robot, self.scene, waypoints, safety_margin=self.margin,

@@ -8,12 +8,12 @@ of the optimiser by ``world.verdict`` (``IKSolver.verify``): pose error <
 ``IKConfig.success_tolerance`` re-evaluated in float64, every limit held, clearance ≥ δ
 to obstacles (python-fcl) and between segments at least two apart.
 
-Stages: explore, refine and the retries are ``stages._ik_search`` (a Sobol seed pool
+Stages: explore, refine and the retries are ``stages.refine._ik_driver`` (a Sobol seed pool
 held on the device, the pool entries nearest each target, the fused search program of
-``stages._search`` per chunk of targets, one retry program for the targets still
+``stages.refine._ik_program`` per chunk of targets, one retry program for the targets still
 failing, and without a scene the self-clearance repair of the few answers whose segments
-come closer than δ); polish (optional) is ``stages._polish`` under the one acceptance
-policy of ``stages._accept``. Large batches stream through in parts of
+come closer than δ); polish (optional) is ``stages.polish._ik_nlp`` under the one acceptance
+policy of ``stages.polish._accept``. Large batches stream through in parts of
 ``IKConfig.stream_size``.
 """
 
@@ -33,12 +33,12 @@ from ..model import Robot, load_robot, pose_error, tip_pose
 from ..model.derivatives import pose_residual
 from ..model.limits import limit_violation_q, project_z
 from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
-from ..stages._accept import check_time_limit, polish_note
 from ..stages._chunks import SMALLEST_CHUNK as SMALLEST_CHUNK
 from ..stages._chunks import chunk_plan as chunk_plan
-from ..stages._ik_search import IKSearch, SearchSettings
-from ..stages._lm import LMConfig
-from ..stages._search import RetryPlan, SearchPlan
+from ..stages.polish._accept import check_time_limit, polish_note
+from ..stages.refine._ik_driver import IKSearch, SearchSettings
+from ..stages.refine._ik_program import RetryPlan, SearchPlan
+from ..stages.refine._lm import LMConfig
 from ..world import Scene, check_many, load_scene, scene_arrays
 from ..world._penalty import sphere_clearances_z
 from ..world.clearance import body_gap_tolerance
@@ -79,7 +79,7 @@ class IKConfig:
     """Exact mode: polishes per target at most, from the refined answer, then from the
     other candidates of the search's own beam, until the verdict accepts one."""
     polish_workers: int = 1
-    """Exact mode: processes that polish targets in parallel (``stages._pool``); 1
+    """Exact mode: processes that polish targets in parallel (``stages.polish._process_pool``); 1
     polishes in this process. The answers are the same either way."""
     polish_time_limit: float | None = None
     """Exact mode: seconds of polishing per target, all its attempts together (None: no
@@ -147,7 +147,7 @@ def ik_residual(robot: Robot, margin: float, weight: float, z: jax.Array, target
 
 @dataclass(frozen=True)
 class _Checked:
-    """``IKSolver.verify``'s verdict on one answer, as ``stages._accept`` reads it."""
+    """``IKSolver.verify``'s verdict on one answer, as ``stages.polish._accept`` reads it."""
 
     success: bool
     reason: str
@@ -183,7 +183,7 @@ class IKSolver:
                      for own in (False, True)}
         # Without a scene the search solves the pose alone (the self-clearance rows made
         # a free tdcr3 solve ~8× slower) and repairs the few answers whose segments come
-        # too close (``stages._ik_search``).
+        # too close (``stages.refine._ik_driver``).
         self_repair = self.scene is None and robot.has_self_pairs
         free = np.ones(robot.dof)
         free[2::3] = ~robot.lengths_fixed()  # a fixed length is not a variable
@@ -213,7 +213,7 @@ class IKSolver:
         self.stream_parts: list[int] = []
         """Targets per part of the last ``solve``'s stream (``IKConfig.stream_size``)."""
 
-    # The search's counters of the last ``solve``/``candidates`` (``stages._ik_search``).
+    # The search's counters of the last ``solve``/``candidates`` (``stages.refine._ik_driver``).
     lm_calls = _counter("lm_calls", "Per round of a search program that iterated any row: "
                         "(rows iterated, rows of the chunk, budget, most iterations run).")
     retried = _counter("retried", "Targets retried in each retry round (0: did not run).")
@@ -363,20 +363,20 @@ class IKSolver:
 
     def _polish(self, result: IKResult, positions: np.ndarray, wxyz: np.ndarray,
                 idx: np.ndarray, beam: np.ndarray, timing: IKTiming, progress: bool) -> None:
-        """Exact stage (``stages._ik_exact``): polish every answer; where the polish fails
+        """Exact stage (``stages.polish._ik_exact``): polish every answer; where the polish fails
         or the verdict rejects it, polish the other candidates of the search's own beam
         (``beam``: (T, width, 3n), best first) in turn, up to ``config.polish_attempts``
         polishes in all. An accepted polish replaces the answer; otherwise the refined
         answer stays with its own verdict (exact mode never succeeds less often than the
         penalty stages). ``config.polish_time_limit`` bounds each target's polishes."""
-        from ..stages._ik_exact import polish_answers
-        from ..stages._polish import IKPolisher, build_polisher
+        from ..stages.polish._ik_exact import polish_answers
+        from ..stages.polish._ik_nlp import IKPolisher, build_polisher
 
         t0 = time.perf_counter()
         if self._polisher is None:
             self._polisher = IKPolisher(self.robot, self.scene, safety_margin=self.margin)
         if self.config.polish_workers > 1 and self._polish_pool is None:
-            from ..stages._pool import PolishPool
+            from ..stages.polish._process_pool import PolishPool
             self._polish_pool = PolishPool(build_polisher, (self.robot, self.scene, self.margin),
                                            self.config.polish_workers)
         todo = np.asarray(idx)

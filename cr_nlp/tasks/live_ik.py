@@ -24,8 +24,8 @@ from .._jax_setup import enable_compilation_cache
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz
-from ..stages._accept import Polished, accept_first
-from ..stages._lm import LMConfig, lm_solve
+from ..stages.polish._accept import Polished, accept_first
+from ..stages.refine._lm import LMConfig, lm_solve
 from ..world import Scene, load_scene, scene_arrays
 from .ik import IKConfig, IKSolver, ik_residual, validate_targets
 
@@ -166,7 +166,7 @@ class LiveIKSolver:
             position: (3,) target tip position, metres.
             wxyz: (4,) target tip orientation, unit quaternion (w, x, y, z).
             exact: polish the answer with Ipopt (constraints as constraints;
-                ``stages._accept``): the polished answer replaces it where the verdict
+                ``stages.polish._accept``): the polished answer replaces it where the verdict
                 accepts the polished one, else the answer stays with its own verdict.
             search: run the batched search when the warm start misses (seconds on a CPU);
                 None: ``config.fallback_search``. The viewer searches only when a drag
@@ -204,7 +204,7 @@ class LiveIKSolver:
         if exact:
             t0 = time.perf_counter()
             if self._polisher is None:
-                from ..stages._polish import IKPolisher
+                from ..stages.polish._ik_nlp import IKPolisher
 
                 self._polisher = IKPolisher(self.robot, self.scene, safety_margin=self.ik.margin)
 
@@ -248,7 +248,7 @@ class LiveIKSolver:
 
 @dataclass(frozen=True)
 class _Row:
-    """One verified answer as ``stages._accept`` reads it."""
+    """One verified answer as ``stages.polish._accept`` reads it."""
 
     success: bool
     reason: str

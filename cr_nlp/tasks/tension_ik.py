@@ -58,7 +58,7 @@ from ..model.tendon_groups import (
     tendon_groups,
     tensions_from_moments,
 )
-from ..stages._lm import LMConfig, lm_solve
+from ..stages.refine._lm import LMConfig, lm_solve
 from ..world.check import check_chains
 from ..world.scene import Scene, load_scene
 from ..world.verdict import judge_many

@@ -17,13 +17,14 @@ length's gradient is undefined where two waypoints coincide) and, by Cauchy–Sc
 and spreads the waypoints evenly at once. A small joint-space term Σ‖zₖ₊₁ − zₖ‖² fixes
 the body's shape where the tip alone leaves it free (three of six bending DOF for tdcr3).
 
-Stages: explore (the roadmap query, ``stages._roadmap``; initial guesses,
-``stages._trajectory_guesses``), refine (``stages._chain_batch``: the LM on all guesses of
+Stages: explore (the roadmap query, ``stages.explore._roadmap``; initial guesses,
+``stages.explore._trajectory_guesses``), refine (``stages.refine._chain_stream``: the LM on all
+guesses of
 all problems at once, penalties for clearance (``world._clearance_groups``) and tendon
-limits; ``stages._trajectory_select``: two rounds of guesses, the best by the verdict),
+limits; ``stages.refine._trajectory_select``: two rounds of guesses, the best by the verdict),
 verify (``world._motion.verify_trajectory``: python-fcl along the densely interpolated
 motion, float64 tendon finite differences, limits), optional polish
-(``stages._polish_trajectory``: Ipopt with the constraints as constraints;
+(``stages.polish._trajectory_nlp``: Ipopt with the constraints as constraints;
 ``tasks._trajectory_polish``). The result and its file forms are in
 ``tasks._trajectory_result``; the start/goal checks are ``world._motion.check_ends``.
 """
@@ -47,15 +48,15 @@ from ..model._ops import JAX
 from ..model.derivatives import tip_position_z
 from ..model.kinematics import model_tendon_lengths
 from ..model.limits import project_z
-from ..stages._accept import check_time_limit
-from ..stages._banded_lm import ChainResidual
-from ..stages._chain_batch import ChainBatchLM
-from ..stages._lm import LMConfig
-from ..stages._tendon_penalty import tendon_accel_excess, tendon_speed_excess
-from ..stages._trajectory_exact import describe_polish as describe_polish
-from ..stages._trajectory_exact import trajectory_polisher
-from ..stages._trajectory_guesses import initial_guesses
-from ..stages._trajectory_select import select_guesses
+from ..stages.explore._trajectory_guesses import initial_guesses
+from ..stages.polish._accept import check_time_limit
+from ..stages.polish._trajectory_exact import describe_polish as describe_polish
+from ..stages.polish._trajectory_exact import trajectory_polisher
+from ..stages.refine._banded_lm import ChainResidual
+from ..stages.refine._chain_stream import ChainBatchLM
+from ..stages.refine._lm import LMConfig
+from ..stages.refine._tendon_penalty import tendon_accel_excess, tendon_speed_excess
+from ..stages.refine._trajectory_select import select_guesses
 from ..world import Scene, load_scene, scene_arrays
 from ..world._broad_phase import part_cells, reach_box
 from ..world._clearance_groups import clearance_groups, has_clearance, near_clearance_groups
@@ -141,7 +142,8 @@ class TrajectoryConfig:
     accepts (Ipopt may then shorten their paths). False: such answers are kept as they
     are and only the rejected ones are polished."""
     polish_workers: int = 1
-    """Exact mode: processes that polish problems in parallel (``stages._pool``); 1 polishes
+    """Exact mode: processes that polish problems in parallel (``stages.polish._process_pool``); 1
+    polishes
     in this process. The answers are the same either way."""
     polish_time_limit: float | None = None
     """Exact mode: seconds of polishing per problem, all its candidates and re-selection
@@ -151,7 +153,7 @@ class TrajectoryConfig:
     limited."""
     chunk_size: int = 8
     """Most trajectories per compiled LM call: the slots of the continuous batching
-    (``stages._chain_batch``; split between its lanes, one per JAX device, at most
+    (``stages.refine._chain_stream``; split between its lanes, one per JAX device, at most
     chunk_size // 2 lanes), or the chunk size with ``lm_schedule="chunks"``. Measured
     on the 40 round-1 shelf trajectories (2-core CPU under a load of ~6, float32,
     interleaved, best of 5): 2, 4 and 8 slots took 6.0, 6.1 and 6.2 s in 38, 35 and 22
@@ -175,9 +177,9 @@ class TrajectoryConfig:
     """Edge (m) of that table's cells; None: chosen from the body radius and the robot's
     reach, within 16 MB (``world._broad_phase.part_cells``; 0.05 m for tdcr3)."""
     lm_structure: str = "banded"
-    """How the LM stage solves its normal equations: "banded" (``stages._banded_lm``: the
+    """How the LM stage solves its normal equations: "banded" (``stages.refine._banded_lm``: the
     residual as per-waypoint, pair and triple terms, a block-tridiagonal Cholesky; each
-    trajectory stops on its own once converged) or "dense" (``stages._lm``: one Jacobian
+    trajectory stops on its own once converged) or "dense" (``stages.refine._lm``: one Jacobian
     of the whole trajectory, a dense (waypoints·3n)² Cholesky; kept as the reference the
     banded form is checked against)."""
 
@@ -186,7 +188,7 @@ class TrajectoryConfig:
     roadmap_cache: bool = True
     """Let ``Roadmap.build`` reuse a roadmap cached on disk."""
     roadmap_search: str = "auto"
-    """Shortest-path backend of the roadmap queries (``stages._roadmap_search``): "device"
+    """Shortest-path backend of the roadmap queries (``stages.explore._roadmap_search``): "device"
     (batched min-plus relaxation in JAX), "scipy" (Dijkstra), or "auto" (scipy on a CPU
     backend, where it was measured faster at 1 to 1000 pairs, the device otherwise)."""
     problem_chunk: int = 256
@@ -298,7 +300,7 @@ def trajectory_triple(robot: Robot, sqrt_tendon: float, limit_fraction: float,
 
 def trajectory_terms(robot: Robot, margin: float, config: TrajectoryConfig,
                      scene: SceneArrays | None) -> ChainResidual:
-    """``trajectory_residual`` as window terms for the banded LM (``stages._banded_lm``):
+    """``trajectory_residual`` as window terms for the banded LM (``stages.refine._banded_lm``):
     the same residuals (hence the same cost ½‖r‖²) grouped by the waypoints they touch.
     ``scene`` only decides whether clearance terms exist."""
     sqrt = math.sqrt
@@ -368,7 +370,7 @@ class TrajectoryPlanner:
             dense_project=partial(_project_waypoints, self.robot, n), extra=self.cells,
             schedule=config.lm_schedule,
             config=LMConfig(cost_tolerance=0.0, give_up=config.give_up))
-        """Stage 2 (``stages._chain_batch``): the LM over a stream of trajectories."""
+        """Stage 2 (``stages.refine._chain_stream``): the LM over a stream of trajectories."""
         self.last_programs = 0
         """LM device programs launched by the last ``plan`` call (one per slot call or
         chunk)."""
@@ -380,10 +382,10 @@ class TrajectoryPlanner:
     # ------------------------------------------------------------ pieces
     def roadmap(self) -> Any:
         """The scene's roadmap (built, or loaded from the cache, on first use); None if
-        ``cr_nlp.stages._roadmap`` is not available."""
+        ``cr_nlp.stages.explore._roadmap`` is not available."""
         if self._roadmap is None:
             try:
-                from ..stages._roadmap import Roadmap, RoadmapConfig
+                from ..stages.explore._roadmap import Roadmap, RoadmapConfig
             except ImportError:
                 return None
             self._roadmap = Roadmap.build(self.robot, self.scene, RoadmapConfig(),
@@ -425,7 +427,7 @@ class TrajectoryPlanner:
                 without fixed lengths; a list of rows of mixed lengths is allowed (a bad
                 row is a failed result, not an exception).
             goals: (P, 3n) goal configurations, same form.
-            exact: polish the trajectories with Ipopt (``stages._polish_trajectory``), the
+            exact: polish the trajectories with Ipopt (``stages.polish._trajectory_nlp``), the
                 constraints as constraints: tendon speed and acceleration limits, bending
                 limits, and clearance ≥ ``margin`` at every waypoint and at every sample
                 the verification checks. Only the problems whose LM answer the
@@ -468,7 +470,7 @@ class TrajectoryPlanner:
             for block in range(0, len(valid), cfg.problem_chunk):
                 part = valid[block:block + cfg.problem_chunk]
                 candidates = self._plan_valid(part, results, dt, init, timing)
-                if exact:   # the exact stage (``stages._trajectory_exact``)
+                if exact:   # the exact stage (``stages.polish._trajectory_exact``)
                     t0 = time.perf_counter()
                     polish_results(self.robot, [i for i, _, _ in part], candidates, results,
                                    dt, lambda q: self.verify(q, dt), self.polisher,
@@ -532,9 +534,9 @@ class TrajectoryPlanner:
         return self._polisher
 
     def _pool(self) -> Any:
-        """The exact stage's worker pool (``stages._pool``), started on first use."""
+        """The exact stage's worker pool (``stages.polish._process_pool``), started on first use."""
         if self._polish_pool is None:
-            from ..stages._pool import PolishPool
+            from ..stages.polish._process_pool import PolishPool
             cfg = self.config
             self._polish_pool = PolishPool(trajectory_polisher, (
                 self.robot, self.scene, cfg.waypoints, self.margin, cfg.verify_samples),

@@ -7,7 +7,7 @@ from stage 2's answer. Constraints (docs/design.md §2):
 - ``‖uᵢ‖² ≤ θmaxᵢ²`` (smooth form of θᵢ ≤ θmaxᵢ);
 - clearance: one row ``d ≥ δ`` per (body sphere, obstacle part) pair and per self pair
   (body spheres on segments at least two apart) near the warm start, in the pair slots of
-  ``stages._slots``;
+  ``stages.polish._clearance_rows``;
 - pose, mode ``"equality"``: ``log(T_tip⁻¹·T_target) = 0`` (6 rows), objective
   ``‖z − z_start‖²``; mode ``"minimize"``: objective ``½‖log(T_tip⁻¹·T_target)‖²``. A
   robot with fewer than six free variables skips ``"equality"`` (six equations would
@@ -15,13 +15,13 @@ from stage 2's answer. Constraints (docs/design.md §2):
 
 Derivatives: exact first derivatives everywhere; the Hessian holds the exact second
 derivatives of the objective, the pose rows and the bending disks, not the clearance
-rows' curvature (``stages._slots`` says why and what was measured).
+rows' curvature (``stages.polish._clearance_rows`` says why and what was measured).
 
 Azimuth ranges (``phi_range``, rare) are not constraints of the polish; the re-evaluation
 still measures them, so a polish that leaves such a range fails.
 
 A solve may be given a time limit (``solve(..., time_limit=)``): every Ipopt run of it stops
-at the deadline (``stages._ipopt.Deadline``), the modes not yet run are skipped, and the
+at the deadline (``stages.polish._ipopt.Deadline``), the modes not yet run are skipped, and the
 result is the best attempt so far with ``out_of_time`` set.
 
 Every answer is projected onto the simple limits (θ ≤ θmax and L in range, which Ipopt's
@@ -43,12 +43,13 @@ import casadi as ca
 import numpy as np
 from tqdm.auto import tqdm
 
-from ..model import CasadiModel, Robot, load_robot, q_to_z_numpy, z_to_q_numpy
-from ..model.limits import limit_violation_q, project_bending
-from ..world.clearance import PairDistances, body_gap_tolerance, self_pairs
-from ..world.scene import Scene, load_scene
-from ..world.verdict import VIOLATION_TOLERANCE, describe_violations
-from ._compiled import compiled, pending
+from ...model import CasadiModel, Robot, load_robot, q_to_z_numpy, z_to_q_numpy
+from ...model.limits import limit_violation_q, project_bending
+from ...world.clearance import PairDistances, body_gap_tolerance, self_pairs
+from ...world.scene import Scene, load_scene
+from ...world.verdict import VIOLATION_TOLERANCE, describe_violations
+from ._clearance_rows import Selection, SlotRows, make_slot_groups, select_slots
+from ._compiled_functions import compiled, pending
 from ._ipopt import (
     SUCCESS_STATUSES,
     TIME_LIMIT_STATUS,
@@ -58,7 +59,6 @@ from ._ipopt import (
     ipopt_options,
     run_solver,
 )
-from ._slots import Selection, SlotRows, make_pools, select_slots
 
 MODES = ("equality", "minimize")
 
@@ -82,7 +82,7 @@ class PolishConfig:
     """Metres: smoothing μ of the max over a convex part's face planes, a conservative
     lower bound at most ⌈log₂ F⌉·μ/2 below the unsmoothed one (``world/_distances.py``)."""
     max_pairs: int = 16
-    """Constraint slots per pool (one pool per part kind in the scene, one for self
+    """Constraint slots per group (one group per part kind in the scene, one for self
     pairs). When more pairs are near, the nearest ones get the slots."""
     modes: tuple[str, ...] = ("equality", "minimize")
     """Attempts in order; the next one runs only if the previous failed. ``"equality"``:
@@ -100,7 +100,7 @@ class PolishConfig:
     the optimum, where the curvature of the few active rows barely matters."""
     compile: bool = True
     """Compile the clearance rows' functions to machine code, cached on disk
-    (``stages._compiled``); False, or no C compiler: CasADi's virtual machine."""
+    (``stages.polish._compiled_functions``); False, or no C compiler: CasADi's virtual machine."""
     warm_start: bool = True
     """Start Ipopt's barrier parameter at 1e-6 with the warm start moved only 1e-9 inside
     its bounds, instead of 0.1 and 1e-2: stage 2's answer is next to the optimum
@@ -218,17 +218,18 @@ class IKPolisher:
         self._n_bodies = robot.n_points + 1
         self._self_pairs = (self_pairs(robot) if robot.has_self_pairs
                             else np.zeros((0, 2), dtype=np.int64))
-        self._pools, _ = make_pools(robot, self.scene, config.max_pairs, include_self=True)
+        self._groups, _ = make_slot_groups(robot, self.scene, config.max_pairs, include_self=True)
         self._pairs = PairDistances(robot, self.scene)
         self._model = CasadiModel(robot)
-        self._rows = SlotRows(self._model, self._pools, config.face_smoothing)
+        self._rows = SlotRows(self._model, self._groups, config.face_smoothing)
         free = int(np.count_nonzero(self._ubx > self._lbx))
         # Six pose equations over-determine a robot with fewer free variables.
         self.modes = tuple(m for m in config.modes if m != "equality" or free >= 6) or ("minimize",)
         """The modes this robot uses, in order."""
         self._interpreted = False
         """Built on CasADi's virtual machine while the compiled functions are being built
-        (``stages._compiled``): rebuilt on them before the first solve after that."""
+        (``stages.polish._compiled_functions``): rebuilt on them before the first solve after
+        that."""
         self._solvers = self._build_all()
 
     # ------------------------------------------------------------ building
@@ -242,7 +243,7 @@ class IKPolisher:
 
     def _build(self, mode: str) -> ca.Function:
         """The Ipopt solver of one mode. Parameters: target position (3), target rotation
-        (3×3, column-major), z_start (3n), then each pool's (capacity × width) slots.
+        (3×3, column-major), z_start (3n), then each group's (capacity × width) slots.
         The constraint Jacobian and the Hessian are given as functions: the clearance rows'
         Jacobian by the chain rule (``SlotRows.with_jacobian``), the Hessian without the
         clearance rows' curvature."""
@@ -251,8 +252,8 @@ class IKPolisher:
         target_position = ca.MX.sym("target_position", 3)
         target_rotation = ca.MX.sym("target_rotation", 3, 3)
         z_start = ca.MX.sym("z_start", dof)
-        slots = [ca.MX.sym(f"slots_{pool.kind}", pool.capacity, pool.width)
-                 for pool in self._pools]
+        slots = [ca.MX.sym(f"slots_{group.kind}", group.capacity, group.width)
+                 for group in self._groups]
         p = ca.vertcat(target_position, ca.vec(target_rotation), z_start,
                        *[ca.vec(s) for s in slots])
 
@@ -288,7 +289,7 @@ class IKPolisher:
         g_smooth_again, j_smooth = smooth_jacobian_fn(*data)
         values, with_jacobian, curvature = self._rows.functions(
             cfg.clearance_curvature == "full", cfg.compile)
-        if self._pools:
+        if self._groups:
             rows, rows_jacobian = with_jacobian(z, *slots)
             g = ca.vertcat(g_smooth, values(z, *slots))
         else:
@@ -301,7 +302,7 @@ class IKPolisher:
         lam_obj, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", g.size1())
         hessian = hessian_fn(z, target_position, target_rotation, z_start, lam_obj,
                              lam_g[:g_smooth.size1()])
-        if self._pools and cfg.clearance_curvature != "none":
+        if self._groups and cfg.clearance_curvature != "none":
             hessian += ca.triu(curvature(z, *slots, lam_g[g_smooth.size1():]))
         hess_lag = ca.Function("hess_lag", [z, p, lam_obj, lam_g], [hessian],
                                ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
@@ -324,7 +325,7 @@ class IKPolisher:
 
         ``distances``: (N·P + M,) obstacle pair distances (body-major) then self distances.
         """
-        return select_slots(self._pools, self._n_bodies, self._self_pairs,
+        return select_slots(self._groups, self._n_bodies, self._self_pairs,
                             self.config.near_margin, self.safety_margin, distances)
 
     def _distances(self, z: np.ndarray) -> np.ndarray:
@@ -339,7 +340,7 @@ class IKPolisher:
         """The clearance rows switched on for the warm start ``q_near``, evaluated at ``q``
         (3n, rad/m) as the NLP sees them, and the world's float64 distances of the same
         pairs (m, convex parts with ``face_smoothing``): the two must agree."""
-        from ..world.clearance import all_pair_distances_numpy
+        from ...world.clearance import all_pair_distances_numpy
 
         z_near, z = (q_to_z_numpy(np.reshape(x, -1)) for x in (q_near, q))
         selection = self._select(self._distances(z_near))
@@ -451,7 +452,7 @@ class IKPolisher:
             out_of_time = attempt.status == TIME_LIMIT_STATUS
             violated = attempt.distances < (self.safety_margin
                                             - self.config.violation_tolerance)
-            if self._pools and np.any(violated & ~switched_on) and not out_of_time:
+            if self._groups and np.any(violated & ~switched_on) and not out_of_time:
                 # A pair without a slot (far at the warm start, or beyond the capacity) came
                 # too close: give the pairs near either point the slots and go on from there.
                 refreshed = self._select(np.minimum(near, attempt.distances))
@@ -493,7 +494,8 @@ def polish_many(polisher: IKPolisher, q0s: Any, positions: Any, rotations: Any,
     """``polisher.solve`` for each row: q0s (B, 3n) rad/m, positions (B, 3) m, rotations
     (B, 3, 3), ``time_limits`` (B,) seconds per solve (None: no limit); a tqdm progress
     bar with ``progress``. The warm starts' pair distances come from one batched
-    evaluation by ``polisher``; with a ``stages._pool.PolishPool`` (whose workers build
+    evaluation by ``polisher``; with a ``stages.polish._process_pool.PolishPool`` (whose workers
+    build
     the same polisher) the solves are spread over its processes and come back in order,
     the same answers (each solve's limit counts from its own start)."""
     q0s = np.asarray(q0s, dtype=np.float64)
@@ -543,5 +545,5 @@ def _solve_near(polisher: IKPolisher, q0: np.ndarray, position: np.ndarray,
 
 def build_polisher(robot: Robot, scene: Scene | None, safety_margin: float,
                    config: PolishConfig = PolishConfig()) -> IKPolisher:
-    """An ``IKPolisher`` (a module-level builder, for ``stages._pool`` workers)."""
+    """An ``IKPolisher`` (a module-level builder, for ``stages.polish._process_pool`` workers)."""
     return IKPolisher(robot, scene, safety_margin=safety_margin, config=config)

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from ..model import Robot, q_to_z_numpy
+from ...model import Robot, q_to_z_numpy
 
 
 def initial_guesses(robot: Robot, z_start: np.ndarray, z_goal: np.ndarray,

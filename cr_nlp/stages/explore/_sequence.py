@@ -18,8 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._programs import cached_jit
-from ..model import Robot, q_to_z_numpy
+from ..._programs import cached_jit
+from ...model import Robot, q_to_z_numpy
 
 
 def smoothest_choice(z: jax.Array, errors: jax.Array, tolerance: jax.Array | float) -> jax.Array:

@@ -38,7 +38,7 @@ class LMConfig:
     stall_tolerance: float = 1e-4
     """...or once an accepted step lowers the cost by less than this fraction."""
     prediction_tolerance: float = 0.0
-    """(``stages._banded_lm`` only) ...or once the next proposed step is predicted by the
+    """(``stages.refine._banded_lm`` only) ...or once the next proposed step is predicted by the
     Gauss–Newton model to lower the cost by less than this fraction: a run of rejected
     steps at that size would end in the stall rule or the λ cap anyway. 0: off."""
     give_up: tuple[tuple[int, float], ...] = ()
@@ -140,7 +140,7 @@ class Judgement(NamedTuple):
 def judge_step(config: LMConfig, cost: jax.Array, cost_new: jax.Array, predicted: jax.Array,
                damping: jax.Array, growth: jax.Array, done: jax.Array, judged: jax.Array,
                first: jax.Array | bool = False) -> Judgement:
-    """The one step rule of both LMs (this dense one and ``stages._banded_lm``).
+    """The one step rule of both LMs (this dense one and ``stages.refine._banded_lm``).
 
     A trial step is accepted when it lowers the cost ½‖r‖² (and is finite); the problem
     is done once it converged (cost below ``cost_tolerance``), stalled (an accepted step

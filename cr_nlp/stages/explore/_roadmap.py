@@ -45,16 +45,16 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from .._files import write_atomic
-from .._jax_setup import cache_dir
-from .._programs import cached_jit
-from ..model import Robot, q_to_z, q_to_z_numpy, z_to_q_numpy
-from ..world import Scene, body_gap_tolerance, scene_arrays
-from ..world._broad_phase import PartCells, part_cells, reach_box
-from ..world._clearance_groups import near_clearance_z
-from ..world.clearance import SceneArrays
-from ._explore import sobol_configurations
+from ..._files import write_atomic
+from ..._jax_setup import cache_dir
+from ..._programs import cached_jit
+from ...model import Robot, q_to_z, q_to_z_numpy, z_to_q_numpy
+from ...world import Scene, body_gap_tolerance, scene_arrays
+from ...world._broad_phase import PartCells, part_cells, reach_box
+from ...world._clearance_groups import near_clearance_z
+from ...world.clearance import SceneArrays
 from ._roadmap_search import neighbour_table, shortest_paths
+from ._seed_pool import sobol_configurations
 
 CHECK_CHUNK = 1024
 """Configurations per clearance call (fixed, so the check compiles once per scene).

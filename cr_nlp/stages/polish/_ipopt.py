@@ -1,6 +1,6 @@
 """The one Ipopt set-up of the exact stage: options, solver construction, one solve.
 
-Both polishers (``stages._polish`` for IK answers, ``stages._polish_trajectory`` for
+Both polishers (``stages.polish._ik_nlp`` for IK answers, ``stages.polish._trajectory_nlp`` for
 trajectories and paths) build their NLPs here and read Ipopt's outcome here, so the
 linear solver, the tolerances, the warm start and the reading of Ipopt's status are the
 same in every task:

@@ -18,13 +18,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._files import write_atomic
-from .._jax_setup import cache_dir
-from .._programs import compile_program
-from ..model import Robot, q_to_z, q_to_z_numpy
-from ..model._ops import NUMPY
-from ..model.kinematics import model_q_to_z, model_segment_frames
-from ._chunks import chunk_plan
+from ..._files import write_atomic
+from ..._jax_setup import cache_dir
+from ..._programs import compile_program
+from ...model import Robot, q_to_z, q_to_z_numpy
+from ...model._ops import NUMPY
+from ...model.kinematics import model_q_to_z, model_segment_frames
+from .._chunks import chunk_plan
 
 # Orientation features are unit axes scaled by this length (metres per radian, roughly):
 # the pose error weighs one radian like one metre, so do the features.

@@ -1,7 +1,7 @@
 """CasADi functions compiled to machine code with the system C compiler, cached on disk.
 
 The exact stage evaluates a few small per-configuration functions (the clearance rows,
-their Jacobian, their curvature: ``stages._slots``) hundreds of times per Ipopt
+their Jacobian, their curvature: ``stages.polish._clearance_rows``) hundreds of times per Ipopt
 iteration. CasADi's virtual machine runs them; its generated C code, compiled with
 ``gcc -O1``, was measured 2.7× (rows and Jacobian) to 3.9× (curvature) faster on tdcr3
 among 27 spheres, and costs 4–12 s of compilation once. The shared library is kept in
@@ -35,7 +35,7 @@ from pathlib import Path
 
 import casadi as ca
 
-from .._jax_setup import cache_dir
+from ..._jax_setup import cache_dir
 
 FLAGS = ("-O1",)
 """Optimisation flags: -O2 measured 2× faster on the curvature function than -O1 but

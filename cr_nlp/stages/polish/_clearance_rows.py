@@ -3,7 +3,7 @@
 A clearance constraint of the exact stage is one row ``d ≥ δ`` per (body sphere, nearby
 obstacle part) pair and per nearby self pair (docs/design.md §2). Every NLP is built once per
 robot and scene and re-solved with new parameters, so the rows cannot be chosen when the
-NLP is built. Instead each part kind of the scene (and the robot itself) owns a pool of
+NLP is built. Instead each part kind of the scene (and the robot itself) owns a group of
 ``capacity`` rows, "slots", per configuration: a slot's body sphere is a parameter (its
 index) and so is its part (one parameter row per part), and each solve assigns the
 pairs nearer than a margin at the warm start to the slots, nearest first
@@ -36,18 +36,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..model import CasadiModel, Robot
-from ..model._ops import CASADI
-from ..world import _distances as dist
-from ..world.clearance import SceneArrays, _body_centres, scene_arrays, self_pairs
-from ..world.scene import Scene
+from ...model import CasadiModel, Robot
+from ...model._ops import CASADI
+from ...world import _distances as dist
+from ...world.clearance import SceneArrays, _body_centres, scene_arrays, self_pairs
+from ...world.scene import Scene
 
 KINDS = ("sphere", "box", "capsule", "cylinder", "convex")
 """The part kinds in ``SceneArrays`` order (the order of ``scene.parts``)."""
 
 
 @dataclass(frozen=True)
-class Pool:
+class SlotGroup:
     """Constraint slots for one part kind, or for self pairs (``kind == "self"``).
 
     ``table`` holds one parameter row per part of the kind (``part_table``); ``first`` is
@@ -81,13 +81,13 @@ def part_table(kind: str, a: SceneArrays) -> np.ndarray:
     return planes.transpose(0, 2, 1).reshape(planes.shape[0], -1)
 
 
-def make_pools(robot: Robot, scene: Scene | None, capacity: int,
-               include_self: bool) -> tuple[list[Pool], SceneArrays | None]:
-    """The slot pools of ``robot`` in ``scene``: one per part kind present (in ``KINDS``
+def make_slot_groups(robot: Robot, scene: Scene | None, capacity: int,
+               include_self: bool) -> tuple[list[SlotGroup], SceneArrays | None]:
+    """The slot groups of ``robot`` in ``scene``: one per part kind present (in ``KINDS``
     order), then, with ``include_self`` and n ≥ 3 segments, one for self pairs; each holds
     at most ``capacity`` rows. Also the scene's float64 JAX arrays (None without a scene)."""
     n_bodies = robot.n_points + 1
-    pools: list[Pool] = []
+    groups: list[SlotGroup] = []
     arrays: SceneArrays | None = None
     if scene is not None:
         numeric = scene_arrays(scene, as_numpy=True)
@@ -97,15 +97,15 @@ def make_pools(robot: Robot, scene: Scene | None, capacity: int,
         first = 0
         for kind, count in zip(KINDS, counts, strict=True):
             if count:
-                pools.append(Pool(kind, min(capacity, count * n_bodies), first,
+                groups.append(SlotGroup(kind, min(capacity, count * n_bodies), first,
                                   part_table(kind, numeric), numeric.convex_planes.shape[1]))
             first += count
         with jax.enable_x64(True):
             arrays = scene_arrays(scene, dtype=jnp.float64)
     n_self = len(self_pairs(robot)) if robot.has_self_pairs else 0
     if include_self and n_self:
-        pools.append(Pool("self", min(capacity, n_self), 0, np.zeros((0, 0))))
-    return pools, arrays
+        groups.append(SlotGroup("self", min(capacity, n_self), 0, np.zeros((0, 0))))
+    return groups, arrays
 
 
 @dataclass
@@ -113,7 +113,7 @@ class Selection:
     """The slot parameters and clearance bounds of one configuration in one solve."""
 
     parameters: list[np.ndarray]
-    """Per pool, the (capacity, width) slot parameters."""
+    """Per group, the (capacity, width) slot parameters."""
     lower: np.ndarray
     """lbg of all slot rows: the margin where a pair is switched on, −∞ elsewhere."""
     chosen: np.ndarray
@@ -121,7 +121,7 @@ class Selection:
     (obstacle pairs body-major, N·P of them, then the self pairs)."""
 
 
-def select_slots(pools: list[Pool], n_bodies: int, self_pair_table: np.ndarray,
+def select_slots(groups: list[SlotGroup], n_bodies: int, self_pair_table: np.ndarray,
                  near_margin: float, margin: float, distances: np.ndarray) -> Selection:
     """Assign the pairs nearer than ``near_margin`` (m) at one configuration to the slots:
     first each part's locally nearest body spheres (local minima of the distance along the
@@ -131,30 +131,30 @@ def select_slots(pools: list[Pool], n_bodies: int, self_pair_table: np.ndarray,
     ``distances``: (N·P + M,) obstacle pair distances (body-major) then the M self
     distances (``self_pair_table`` rows), metres.
     """
-    parameters, lower, chosen = select_slots_batch(pools, n_bodies, self_pair_table,
+    parameters, lower, chosen = select_slots_batch(groups, n_bodies, self_pair_table,
                                                    near_margin, margin, distances[None])
     return Selection([p[0] for p in parameters], lower[0], chosen[0])
 
 
-def select_slots_batch(pools: list[Pool], n_bodies: int, self_pair_table: np.ndarray,
+def select_slots_batch(groups: list[SlotGroup], n_bodies: int, self_pair_table: np.ndarray,
                        near_margin: float, margin: float, distances: np.ndarray
                        ) -> tuple[list[np.ndarray], np.ndarray, list[np.ndarray]]:
     """``select_slots`` for K configurations at once: ``distances`` (K, N·P + M).
 
-    Returns per pool the (K, capacity, width) slot parameters, the (K, Σ capacity) lower
-    bounds (pool after pool) and per configuration the switched-on pair indices in row
+    Returns per group the (K, capacity, width) slot parameters, the (K, Σ capacity) lower
+    bounds (group after group) and per configuration the switched-on pair indices in row
     order."""
     k_configs = len(distances)
     n_self = len(self_pair_table)
     n_parts = (distances.shape[1] - n_self) // n_bodies
     parameters, lower, picked = [], [], []
-    for pool in pools:
-        if pool.kind == "self":
+    for group in groups:
+        if group.kind == "self":
             flat = n_bodies * n_parts + np.arange(n_self)
             later = np.zeros((k_configs, n_self), dtype=bool)
         else:
             body = np.arange(n_bodies)[:, None]
-            part = np.arange(pool.first, pool.first + len(pool.table))[None, :]
+            part = np.arange(group.first, group.first + len(group.table))[None, :]
             flat = (body * n_parts + part).reshape(-1)
             # A part's nearest spheres along the backbone (local minima of the distance)
             # first, then the others: every near part gets a slot before a second sphere
@@ -165,20 +165,20 @@ def select_slots_batch(pools: list[Pool], n_bodies: int, self_pair_table: np.nda
         d = distances[:, flat]
         # Near pairs ordered by (later, distance), ties in pair order; the rest last.
         key = np.where(d < near_margin, d + 1e6 * later, np.inf)
-        order = np.argsort(key, axis=1, kind="stable")[:, : pool.capacity]
+        order = np.argsort(key, axis=1, kind="stable")[:, : group.capacity]
         used = np.isfinite(np.take_along_axis(key, order, axis=1))
         pairs = np.where(used, flat[order], -1)
-        rows = np.zeros((k_configs, pool.capacity, pool.width))
-        if pool.kind == "self":
+        rows = np.zeros((k_configs, group.capacity, group.width))
+        if group.kind == "self":
             table = self_pair_table[np.where(used, pairs - n_bodies * n_parts, 0)]
             rows[:] = np.where(used[..., None], table, self_pair_table[0])   # filler: harmless
         else:
             rows[:, :, 0] = np.where(used, pairs // n_parts, 0)
-            rows[:, :, 1:] = pool.table[np.where(used, pairs % n_parts - pool.first, 0)]
+            rows[:, :, 1:] = group.table[np.where(used, pairs % n_parts - group.first, 0)]
         parameters.append(rows)
         lower.append(np.where(used, margin, -np.inf))
         picked.append(pairs)
-    if not pools:
+    if not groups:
         return [], np.zeros((k_configs, 0)), [np.zeros(0, dtype=np.int64)] * k_configs
     all_pairs = np.concatenate(picked, axis=1)
     chosen = [row[row >= 0] for row in all_pairs]
@@ -190,16 +190,16 @@ class SlotRows:
 
     Args:
         model: the robot's ``CasadiModel``.
-        pools: the slot pools (``make_pools``).
+        groups: the slot groups (``make_slot_groups``).
         face_smoothing: metres, smoothing μ of a convex part's face-plane max
             (``world._distances.sphere_to_convex``: a lower bound of the distance).
     """
 
-    def __init__(self, model: CasadiModel, pools: list[Pool], face_smoothing: float) -> None:
+    def __init__(self, model: CasadiModel, groups: list[SlotGroup], face_smoothing: float) -> None:
         robot = model.robot
-        self.robot, self.pools = robot, pools
+        self.robot, self.groups = robot, groups
         self.n_bodies = robot.n_points + 1
-        self.count = sum(pool.capacity for pool in pools)
+        self.count = sum(group.capacity for group in groups)
         """Rows per configuration."""
         z = ca.SX.sym("z", robot.dof)
         centres = _body_centres(CASADI, robot, [z[i] for i in range(robot.dof)])   # N × 3
@@ -207,14 +207,14 @@ class SlotRows:
         self._centres_jacobian = ca.Function(
             "body_centres_jacobian", [z],
             [centres, ca.densify(ca.jacobian(ca.vec(centres), z))])         # 3N × 3n
-        self._slot = [self._slot_functions(pool, face_smoothing) for pool in pools]
+        self._slot = [self._slot_functions(group, face_smoothing) for group in groups]
         # Second-order part through the kinematics: ∇²_z Σ_b W_b · c_b(z) for weights W.
         weights = ca.SX.sym("weights", self.n_bodies, 3)
         self._centres_curvature = ca.Function(
             "body_centres_curvature", [z, weights],
             [ca.hessian(ca.sum1(ca.sum2(weights * centres)), z)[0]])
-        self._slot_curvature = [self._curvature_function(pool, face_smoothing)
-                                for pool in pools]
+        self._slot_curvature = [self._curvature_function(group, face_smoothing)
+                                for group in groups]
         self._functions: dict[tuple[bool, bool], tuple[ca.Function, ...]] = {}
         self._interpreted: set[tuple[bool, bool]] = set()
 
@@ -224,55 +224,56 @@ class SlotRows:
         costs about a millisecond of Python)."""
         return np.asarray(self._centres(z), dtype=np.float64)
 
-    def _slot_functions(self, pool: Pool, smoothing: float) -> tuple[ca.Function, ca.Function]:
+    def _slot_functions(self, group: SlotGroup,
+                        smoothing: float) -> tuple[ca.Function, ca.Function]:
         """SX functions of one slot: (centres…, part) → d (m), and (centres…, centre
         Jacobians…, part) → (d, its row ∇_c d · ∂c/∂z)."""
         r, dof = self.robot.backbone_radius, self.robot.dof
-        spheres = 2 if pool.kind == "self" else 1
+        spheres = 2 if group.kind == "self" else 1
         centre = [ca.SX.sym(f"centre_{k}", 3) for k in range(spheres)]
         jacobian = [ca.SX.sym(f"centre_jacobian_{k}", 3, dof) for k in range(spheres)]
-        part = ca.SX.sym("part", pool.width - spheres)
+        part = ca.SX.sym("part", group.width - spheres)
         c = tuple(centre[0][i] for i in range(3))
-        if pool.kind == "self":
+        if group.kind == "self":
             d = dist.sphere_to_sphere(CASADI, c, r, tuple(centre[1][i] for i in range(3)), r)
-        elif pool.kind == "sphere":
+        elif group.kind == "sphere":
             d = dist.sphere_to_sphere(CASADI, c, r, _entries(part, 0, 3), part[3])
-        elif pool.kind == "box":
+        elif group.kind == "box":
             d = dist.sphere_to_box(CASADI, c, r, _entries(part, 0, 3), _entries(part, 3, 12),
                                    _entries(part, 12, 15))
-        elif pool.kind == "capsule":
+        elif group.kind == "capsule":
             d = dist.sphere_to_capsule(CASADI, c, r, _entries(part, 0, 3), _entries(part, 3, 6),
                                        part[6])
-        elif pool.kind == "cylinder":
+        elif group.kind == "cylinder":
             d = dist.sphere_to_cylinder(CASADI, c, r, _entries(part, 0, 3),
                                         _entries(part, 3, 12), part[12], part[13])
         else:
-            f = pool.faces
+            f = group.faces
             planes = tuple(part[k * f:(k + 1) * f] for k in range(4))
             d = dist.sphere_to_convex(CASADI, c, r, planes, f, smoothing)
         row = sum(ca.mtimes(ca.gradient(d, x).T, j) for x, j in zip(centre, jacobian,
                                                                        strict=True))
-        value = ca.Function(f"slot_{pool.kind}", [*centre, part], [d])
-        derivative = ca.Function(f"slot_{pool.kind}_row", [*centre, *jacobian, part], [d, row])
+        value = ca.Function(f"slot_{group.kind}", [*centre, part], [d])
+        derivative = ca.Function(f"slot_{group.kind}_row", [*centre, *jacobian, part], [d, row])
         return value, derivative
 
-    def _curvature_function(self, pool: Pool, smoothing: float) -> ca.Function:
+    def _curvature_function(self, group: SlotGroup, smoothing: float) -> ca.Function:
         """SX function of one slot: (centres…, centre Jacobians…, part, λ) → (λ·Jᵀ∇²_c d·J
         flattened (3n·3n), λ·∇_c d per sphere): the slot's curvature through its sphere
         centres, and the weights its centres' own curvature gets."""
-        value, _ = self._slot[self.pools.index(pool)]
+        value, _ = self._slot[self.groups.index(group)]
         dof = self.robot.dof
-        spheres = 2 if pool.kind == "self" else 1
+        spheres = 2 if group.kind == "self" else 1
         centre = [ca.SX.sym(f"centre_{k}", 3) for k in range(spheres)]
         jacobian = [ca.SX.sym(f"centre_jacobian_{k}", 3, dof) for k in range(spheres)]
-        part = ca.SX.sym("part", pool.width - spheres)
+        part = ca.SX.sym("part", group.width - spheres)
         lam = ca.SX.sym("lam")
         c, j = ca.vertcat(*centre), ca.vertcat(*jacobian)
         d = value(*centre, part)
         hessian, gradient = ca.hessian(d, c)
         outer = lam * ca.mtimes([j.T, hessian, j])
         weights = [lam * gradient[3 * k: 3 * k + 3] for k in range(spheres)]
-        return ca.Function(f"slot_{pool.kind}_curvature", [*centre, *jacobian, part, lam],
+        return ca.Function(f"slot_{group.kind}_curvature", [*centre, *jacobian, part, lam],
                            [ca.vec(outer), *weights])
 
     def _gather_centres(self, centres: Any, index: Any) -> Any:
@@ -289,32 +290,32 @@ class SlotRows:
         return ca.vec(jacobian)[spread + offsets]
 
     def values(self, z: Any, slots: list[Any]) -> Any:
-        """The (count,) rows at configuration z (3n, MX): signed distances (m), pool after
-        pool, slot after slot. ``slots``: per pool the (capacity × width) parameters."""
-        if not self.pools:
+        """The (count,) rows at configuration z (3n, MX): signed distances (m), group after
+        group, slot after slot. ``slots``: per group the (capacity × width) parameters."""
+        if not self.groups:
             return ca.MX(0, 1)
         centres = self._centres(z)
         rows = []
-        for pool, slot, (value, _) in zip(self.pools, slots, self._slot, strict=True):
-            spheres = 2 if pool.kind == "self" else 1
+        for group, slot, (value, _) in zip(self.groups, slots, self._slot, strict=True):
+            spheres = 2 if group.kind == "self" else 1
             gathered = [self._gather_centres(centres, slot[:, k]) for k in range(spheres)]
-            rows.append(value.map(pool.capacity)(*gathered, slot[:, spheres:].T).T)
+            rows.append(value.map(group.capacity)(*gathered, slot[:, spheres:].T).T)
         return ca.vertcat(*rows)
 
     def with_jacobian(self, z: Any, slots: list[Any]) -> tuple[Any, Any]:
         """``values`` and their (count × 3n) Jacobian with respect to z (MX)."""
         dof = self.robot.dof
-        if not self.pools:
+        if not self.groups:
             return ca.MX(0, 1), ca.MX(0, dof)
         centres, jacobian = self._centres_jacobian(z)
         rows, rows_jacobian = [], []
-        for pool, slot, (_, derivative) in zip(self.pools, slots, self._slot, strict=True):
-            spheres = 2 if pool.kind == "self" else 1
+        for group, slot, (_, derivative) in zip(self.groups, slots, self._slot, strict=True):
+            spheres = 2 if group.kind == "self" else 1
             gathered = [self._gather_centres(centres, slot[:, k]) for k in range(spheres)]
             blocks = [self._gather_jacobians(jacobian, slot[:, k]) for k in range(spheres)]
-            d, row = derivative.map(pool.capacity)(*gathered, *blocks, slot[:, spheres:].T)
+            d, row = derivative.map(group.capacity)(*gathered, *blocks, slot[:, spheres:].T)
             rows.append(d.T)
-            rows_jacobian.append(ca.reshape(row, dof, pool.capacity).T)
+            rows_jacobian.append(ca.reshape(row, dof, group.capacity).T)
         return ca.vertcat(*rows), ca.vertcat(*rows_jacobian)
 
     def hessian(self, z: Any, slots: list[Any], lam: Any, kinematic: bool = True) -> Any:
@@ -325,26 +326,26 @@ class SlotRows:
         ``lam``: the (count,) multipliers of ``values``' rows. Without ``kinematic`` only
         the first part (the parts' own curvature)."""
         dof = self.robot.dof
-        if not self.pools:
+        if not self.groups:
             return ca.MX(dof, dof)
         centres, jacobian = self._centres_jacobian(z)
         total = ca.MX(dof * dof, 1)
         weights = ca.MX(self.n_bodies, 3)
         bodies = ca.DM(np.arange(self.n_bodies)).T
         start = 0
-        for pool, slot, curvature in zip(self.pools, slots, self._slot_curvature, strict=True):
-            spheres = 2 if pool.kind == "self" else 1
-            lam_pool = lam[start: start + pool.capacity]
-            start += pool.capacity
+        for group, slot, curvature in zip(self.groups, slots, self._slot_curvature, strict=True):
+            spheres = 2 if group.kind == "self" else 1
+            lam_pool = lam[start: start + group.capacity]
+            start += group.capacity
             gathered = [self._gather_centres(centres, slot[:, k]) for k in range(spheres)]
             blocks = [self._gather_jacobians(jacobian, slot[:, k]) for k in range(spheres)]
-            outer, *grads = curvature.map(pool.capacity)(*gathered, *blocks,
+            outer, *grads = curvature.map(group.capacity)(*gathered, *blocks,
                                                          slot[:, spheres:].T, lam_pool.T)
             total += ca.sum2(outer)
             for k, grad in enumerate(grads if kinematic else []):
                 # One-hot rows of the slots' spheres scatter λ·∇_c d onto the bodies.
                 one_hot = ca.repmat(slot[:, k], 1, self.n_bodies) == ca.repmat(
-                    bodies, pool.capacity, 1)
+                    bodies, group.capacity, 1)
                 weights += ca.mtimes(one_hot.T, grad.T)
         total = ca.reshape(total, dof, dof)
         return total + self._centres_curvature(z, weights) if kinematic else total
@@ -354,14 +355,15 @@ class SlotRows:
         """The rows of one configuration as functions ``(z, *slots) -> rows``,
         ``(z, *slots) -> (rows, jacobian)`` and ``(z, *slots, λ) -> Σ λ ∇²rows``, to map
         over many configurations (``kinematic``: see ``hessian``); with ``compile``,
-        compiled to machine code and cached on disk (``stages._compiled``; while that is
+        compiled to machine code and cached on disk (``stages.polish._compiled_functions``; while
+        that is
         being built, the functions as they are, asked for again once it is there)."""
-        from ._compiled import compiled, pending
+        from ._compiled_functions import compiled, pending
 
         key = (kinematic, compile)
         if key not in self._functions or (key in self._interpreted and not pending()):
             z = ca.MX.sym("z", self.robot.dof)
-            slots = [ca.MX.sym(f"slots_{p.kind}", p.capacity, p.width) for p in self.pools]
+            slots = [ca.MX.sym(f"slots_{p.kind}", p.capacity, p.width) for p in self.groups]
             lam = ca.MX.sym("lam", self.count)
             functions = [
                 ca.Function("slot_rows", [z, *slots], [self.values(z, slots)]),

@@ -30,8 +30,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
-from .._programs import cached_jit
-from ._chunks import chunk_plan
+from ..._programs import cached_jit
+from .._chunks import chunk_plan
 
 SEARCH_BACKENDS = ("auto", "device", "scipy")
 SEARCH_CHOICE = "scipy on a CPU backend, device otherwise"

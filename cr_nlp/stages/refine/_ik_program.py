@@ -4,7 +4,7 @@ refinement rounds, for one chunk of targets.
 Instead of launching the coarse LM, the beam selection and each refinement round as
 separate programs and repacking the unfinished problems on the host between rounds (the
 form this search replaced: 25 device calls per 1000-target solve instead of 2), the
-whole search is one jitted program (driven by ``stages._ik_search``): every row (target
+whole search is one jitted program (driven by ``stages.refine._ik_driver``): every row (target
 × seed) stays in one array, a boolean mask says which rows iterate, and
 ``lax.while_loop`` runs the rounds. So that finished rows cost
 nothing on a CPU either, each round gathers its active rows to the front (a stable
@@ -24,7 +24,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from ._explore import nearest_features, select_beam_device
+from ..explore._seed_pool import nearest_features, select_beam_device
 from ._lm import LMConfig, Projection, Residual, lm_solve
 
 Sampler = Callable[[jax.Array], jax.Array]
@@ -110,7 +110,7 @@ def search_targets(residual: Residual, project: Projection, plan: SearchPlan,
     """Coarse LM on (T, K) seeds, a diverse beam of ``plan.width``, refinement rounds.
 
     Args:
-        residual, project: the problem, as for ``stages._lm.lm_solve``.
+        residual, project: the problem, as for ``stages.refine._lm.lm_solve``.
         plan: static settings.
         z_seeds: (T, K, n) starting points (bending-vector units, rad and m).
         params: pytree of per-target leaves with leading dimension T.
@@ -223,7 +223,7 @@ def retry_targets(residual: Residual, project: Projection, sample: Sampler,
     round's answer only if it is better; the rounds stop when every target succeeded.
 
     Args:
-        residual, project: the problem, as for ``stages._lm.lm_solve``.
+        residual, project: the problem, as for ``stages.refine._lm.lm_solve``.
         sample: (key) → (retry.seeds, n) random bending vectors within the limits.
         plan, retry: static settings.
         z_best: (T, n) best answers so far (bending-vector units); c_best: (T,) their

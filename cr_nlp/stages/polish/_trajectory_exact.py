@@ -1,10 +1,11 @@
 """The trajectory exact stage: each problem's LM candidates, best first, polished by Ipopt
-(``stages._polish_trajectory``) and accepted by the verdict (``stages._accept``).
+(``stages.polish._trajectory_nlp``) and accepted by the verdict (``stages.polish._accept``).
 
 Attempt k polishes the k-th candidate of every problem not yet accepted, in this process
-or spread over a ``stages._pool.PolishPool``; a polish that Ipopt reports as failed is not
+or spread over a ``stages.polish._process_pool.PolishPool``; a polish that Ipopt reports as failed
+is not
 judged. Trajectories are (waypoints, 3n) configurations θ, φ, L (rad, rad, m). A time
-limit covers each problem's polishes together (``stages._accept``): each polish gets what
+limit covers each problem's polishes together (``stages.polish._accept``): each polish gets what
 its problem has left.
 """
 
@@ -16,9 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from ..model.robot import Robot
-from ..world.scene import Scene
-from ..world.verdict import describe_violations
+from ...model.robot import Robot
+from ...world.scene import Scene
+from ...world.verdict import describe_violations
 from ._accept import Acceptance, Judged, Polished, polish_and_accept
 
 
@@ -27,7 +28,7 @@ def trajectory_polisher(robot: Robot, scene: Scene | None, waypoints: int, margi
     """A path-length ``TrajectoryPolisher`` with clearance rows at every waypoint and at
     the ``samples`` − 1 points inside every interval that the verification checks (δ =
     ``margin`` m on the sphere body); module level, so pool workers can build it."""
-    from ._polish_trajectory import TrajectoryPolishConfig, TrajectoryPolisher
+    from ._trajectory_nlp import TrajectoryPolishConfig, TrajectoryPolisher
 
     return TrajectoryPolisher(robot, scene, waypoints, safety_margin=margin,
                               config=TrajectoryPolishConfig(interpolation_checks=samples - 1,

@@ -1,6 +1,6 @@
 """Refine-and-verify selection of the trajectory LM's guesses, in two rounds.
 
-Round 1 refines the first ``first_round`` guesses of every problem (``stages._chain_batch``)
+Round 1 refines the first ``first_round`` guesses of every problem (``stages.refine._chain_stream``)
 and verifies them in cost order until one passes; round 2 refines the remaining guesses
 only for the problems that round 1 left unsolved. A problem's best answer is the first
 verified success in cost order, else the verified answer with the smallest violation.
@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from ..model import z_to_q_numpy
-from ._chain_batch import ChainBatchLM
+from ...model import z_to_q_numpy
+from ._chain_stream import ChainBatchLM
 
 
 @dataclass

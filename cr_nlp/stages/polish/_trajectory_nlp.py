@@ -25,10 +25,12 @@ Constraints (docs/design.md §2):
   planner sets ``interpolation_checks = verify_samples − 1``, so the polish constrains
   every configuration the python-fcl verification checks: a motion that cuts an
   obstacle between two waypoints is a violated row of the NLP, not only a rejection
-  afterwards. The rows are the pair slots of ``stages._slots``, one configuration's rows
+  afterwards. The rows are the pair slots of ``stages.polish._clearance_rows``, one configuration's
+  rows
   one CasADi function mapped over all configurations.
 
-Derivatives (``stages._slots``): exact first derivatives; the Hessian of the Lagrangian
+Derivatives (``stages.polish._clearance_rows``): exact first derivatives; the Hessian of the
+Lagrangian
 holds the objective's and the bending disks' exact second derivatives, assembled from
 per-waypoint and per-interval element Hessians into its block-tridiagonal band, and not
 the clearance rows' curvature (measured on the shelf: the same optima, the Hessian 20×
@@ -36,14 +38,14 @@ cheaper; the stage-wise structure is then cheap enough that the general sparse M
 factorisation of the band is not the bottleneck).
 
 The NLP is built once per polisher (robot, scene, waypoints, objective, checks) and set of
-clearance-row capacities (the rows of a pool that no near pair needs are left out of
+clearance-row capacities (the rows of a group that no near pair needs are left out of
 Ipopt's KKT system), and re-solved with new parameters (1/Δt, targets, slots) and
 bounds. Every answer is projected onto the simple limits and re-evaluated in float64
 independently of Ipopt (the world's distances over all pairs at every waypoint and check
 point, numpy limits and tendon finite differences) before it is called a success.
 
 A solve may be given a time limit (``solve(..., time_limit=)``): its Ipopt runs stop at the
-deadline (``stages._ipopt.Deadline``), no re-selection round starts after it, and the
+deadline (``stages.polish._ipopt.Deadline``), no re-selection round starts after it, and the
 result is the best round so far with ``out_of_time`` set.
 """
 
@@ -58,14 +60,15 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from ..model import CasadiModel, Robot, load_robot, q_to_z_numpy, z_to_q_numpy
-from ..model._ops import NUMPY
-from ..model.kinematics import model_tendon_lengths
-from ..model.limits import limit_violation_q, project_bending
-from ..world.clearance import PairDistances, body_gap_tolerance, self_pairs
-from ..world.scene import Scene, load_scene
-from ..world.verdict import VIOLATION_TOLERANCE
-from ._compiled import pending
+from ...model import CasadiModel, Robot, load_robot, q_to_z_numpy, z_to_q_numpy
+from ...model._ops import NUMPY
+from ...model.kinematics import model_tendon_lengths
+from ...model.limits import limit_violation_q, project_bending
+from ...world.clearance import PairDistances, body_gap_tolerance, self_pairs
+from ...world.scene import Scene, load_scene
+from ...world.verdict import VIOLATION_TOLERANCE
+from ._clearance_rows import SlotRows, make_slot_groups, select_slots_batch
+from ._compiled_functions import pending
 from ._ipopt import (
     TIME_LIMIT_STATUS,
     Deadline,
@@ -74,7 +77,6 @@ from ._ipopt import (
     ipopt_options,
     run_solver,
 )
-from ._slots import SlotRows, make_pools, select_slots_batch
 
 OBJECTIVES = ("path", "tracking")
 
@@ -94,7 +96,7 @@ class TrajectoryPolishConfig:
     """Metres: pairs farther apart than this at the warm start get no slot in that solve
     (a pair that comes closer during the solve triggers a re-selection)."""
     max_pairs: int = 8
-    """Constraint slots per pool and per configuration (one pool per part kind of the
+    """Constraint slots per group and per configuration (one group per part kind of the
     scene, one for self pairs); when more pairs are near, the nearest get the slots."""
     reselections: int = 4
     """How many times a solve may go on from its answer with re-placed check points and
@@ -140,7 +142,8 @@ class TrajectoryPolishConfig:
     ``"none"``."""
     compile: bool = True
     """Compile the per-configuration clearance functions to machine code, cached on disk
-    (``stages._compiled``: about 3× faster evaluations; 5–20 s once per robot and scene
+    (``stages.polish._compiled_functions``: about 3× faster evaluations; 5–20 s once per robot and
+    scene
     structure). False, or no C compiler: CasADi's virtual machine, the same numbers."""
     hessian: str = "exact"
     """Ipopt's ``hessian_approximation``: ``"exact"`` (the structured Hessian of the
@@ -233,7 +236,7 @@ class TrajectoryPolisher:
     """Ipopt polish of whole trajectories for one robot, scene and number of waypoints.
 
     The NLP is built on first use, once per set of clearance-row capacities (a power of
-    two per pool, fitted to the pairs that are near), and re-solved by ``solve`` with new
+    two per group, fitted to the pairs that are near), and re-solved by ``solve`` with new
     parameters; ``builds`` counts ``nlpsol`` constructions.
 
     Args:
@@ -272,14 +275,14 @@ class TrajectoryPolisher:
         self._n_bodies = robot.n_points + 1
         self._self_pairs = (self_pairs(robot) if robot.has_self_pairs
                             else np.zeros((0, 2), dtype=np.int64))
-        self._pools, _ = make_pools(robot, self.scene, config.max_pairs, include_self=True)
+        self._groups, _ = make_slot_groups(robot, self.scene, config.max_pairs, include_self=True)
         self._pairs = PairDistances(robot, self.scene)
         self._theta_max = np.array([s.theta_max for s in robot.segments])
         self._lbx = np.ravel([[-s.theta_max, -s.theta_max, s.length_min] for s in robot.segments])
         self._ubx = np.ravel([[s.theta_max, s.theta_max, s.length_max] for s in robot.segments])
         self._model = CasadiModel(robot)
-        self._rows = SlotRows(self._model, self._pools, config.face_smoothing)
-        self._slot_rows = {(True,) * len(self._pools): self._rows}
+        self._rows = SlotRows(self._model, self._groups, config.face_smoothing)
+        self._slot_rows = {(True,) * len(self._groups): self._rows}
         # ℓ = A·z + b exactly (linear), A from the model's own CasADi tendon function.
         self._tendon_matrix = np.asarray(ca.Function(
             "tendon_jacobian", [self._model.z],
@@ -291,7 +294,8 @@ class TrajectoryPolisher:
         self._solvers: dict[tuple[int, ...], tuple[ca.Function, np.ndarray]] = {}
         self._interpreted = False
         """Some solver was built on CasADi's virtual machine while the compiled functions
-        were being built (``stages._compiled``): all are rebuilt once they are there."""
+        were being built (``stages.polish._compiled_functions``): all are rebuilt once they are
+        there."""
 
     # ------------------------------------------------------------ building
 
@@ -345,8 +349,8 @@ class TrajectoryPolisher:
 
     def _solver(self, capacities: tuple[int, ...]) -> tuple[ca.Function, np.ndarray]:
         """The Ipopt solver with ``capacities[i]`` clearance rows per configuration for
-        pool i (built on first use, then reused), and the indices of those rows among one
-        configuration's rows of all pools (``_select``'s layout)."""
+        group i (built on first use, then reused), and the indices of those rows among one
+        configuration's rows of all groups (``_select``'s layout)."""
         if self._interpreted and not pending():
             self._interpreted = False
             self._solvers.clear()
@@ -356,25 +360,25 @@ class TrajectoryPolisher:
         return self._solvers[capacities]
 
     def _capacities(self, lower: np.ndarray) -> tuple[int, ...]:
-        """Rows per configuration and pool that hold every switched-on slot of the
+        """Rows per configuration and group that hold every switched-on slot of the
         config-major ``lower`` (``_select``): the largest count over the configurations,
         rounded up to a power of two (a few solver variants, not one per solve). Slots
-        are filled from the first, so the first rows of each pool suffice. Every row,
+        are filled from the first, so the first rows of each group suffice. Every row,
         switched on or not, is a row of Ipopt's KKT system: measured on a 150-waypoint
-        path, the unused self-pair pool's rows doubled the time per iteration."""
+        path, the unused self-pair group's rows doubled the time per iteration."""
         switched = np.isfinite(lower.reshape(self._n_configs, self._rows.count))
         out, start = [], 0
-        for pool in self._pools:
-            needed = int(np.max(np.sum(switched[:, start:start + pool.capacity], axis=1),
+        for group in self._groups:
+            needed = int(np.max(np.sum(switched[:, start:start + group.capacity], axis=1),
                                 initial=0))
-            start += pool.capacity
-            out.append(0 if needed == 0 else min(pool.capacity, 1 << (needed - 1).bit_length()))
+            start += group.capacity
+            out.append(0 if needed == 0 else min(group.capacity, 1 << (needed - 1).bit_length()))
         return tuple(out)
 
     def _build(self, capacities: tuple[int, ...]) -> tuple[ca.Function, np.ndarray]:
         """The Ipopt solver and its kept rows (``_solver``). Parameters: 1/Δt (1/s), then
         for ``"tracking"`` the target positions (3 × W) and rotations (3 × 3W), then each
-        pool's slots (capacity × width·C), configuration after configuration
+        group's slots (capacity × width·C), configuration after configuration
         (``interpolated``), then the check points' fractions (checks × (W − 1)).
 
         The constraint Jacobian is given as a function: the linear rows' constant
@@ -385,17 +389,17 @@ class TrajectoryPolisher:
         configuration per colour (measured 5 s per solve for 150 waypoints)."""
         robot, cfg, w = self.robot, self.config, self.waypoints
         dof, n, checks = robot.dof, robot.n_segments, cfg.interpolation_checks
-        # A pool without rows is left out of the functions too (its slots cost as much
-        # to evaluate as the rows in use); within a pool, the first rows are kept.
+        # A group without rows is left out of the functions too (its slots cost as much
+        # to evaluate as the rows in use); within a group, the first rows are kept.
         on = tuple(c > 0 for c in capacities)
-        pools = [pool for pool, used in zip(self._pools, on, strict=True) if used]
+        groups = [group for group, used in zip(self._groups, on, strict=True) if used]
         if on not in self._slot_rows:
-            self._slot_rows[on] = SlotRows(self._model, pools, cfg.face_smoothing)
+            self._slot_rows[on] = SlotRows(self._model, groups, cfg.face_smoothing)
         slot_rows = self._slot_rows[on]
-        full_starts = np.cumsum([0] + [pool.capacity for pool in self._pools])
+        full_starts = np.cumsum([0] + [group.capacity for group in self._groups])
         keep_all = np.concatenate([np.arange(c) + start for c, start in
                                    zip(capacities, full_starts, strict=False)] + [[]])
-        starts = np.cumsum([0] + [pool.capacity for pool in pools])
+        starts = np.cumsum([0] + [group.capacity for group in groups])
         keep = np.concatenate([np.arange(c) + start for c, start in
                                zip([c for c in capacities if c], starts, strict=False)] + [[]])
         keep, keep_all = keep.astype(np.int64), keep_all.astype(np.int64)
@@ -403,7 +407,7 @@ class TrajectoryPolisher:
 
         x = ca.MX.sym("x", dof * w)
         n_p = 1 + (12 * w if self.objective == "tracking" else 0) + sum(
-            p.capacity * p.width * self._n_configs for p in pools) + checks * (w - 1)
+            p.capacity * p.width * self._n_configs for p in groups) + checks * (w - 1)
         p = ca.MX.sym("p", n_p)
         way = ca.reshape(x, dof, w)                             # column k: waypoint k
         inv_dt = p[0]
@@ -414,10 +418,10 @@ class TrajectoryPolisher:
                        ca.reshape(p[offset + 3 * w:offset + 12 * w], 3, 3 * w)]
             offset += 12 * w
         slots = []
-        for pool in pools:
-            size = pool.capacity * pool.width * self._n_configs
-            slots.append(ca.reshape(p[offset:offset + size], pool.capacity,
-                                    pool.width * self._n_configs))
+        for group in groups:
+            size = group.capacity * group.width * self._n_configs
+            slots.append(ca.reshape(p[offset:offset + size], group.capacity,
+                                    group.width * self._n_configs))
             offset += size
         fractions = ca.reshape(p[offset:offset + checks * (w - 1)], checks, w - 1)
 
@@ -552,11 +556,11 @@ class TrajectoryPolisher:
 
     def _select(self, distances: np.ndarray, fixed_ends: bool = True
                 ) -> tuple[list[np.ndarray], np.ndarray, list[np.ndarray]]:
-        """Slot parameters per pool (capacity × width·C), the clearance lbg (config-major)
+        """Slot parameters per group (capacity × width·C), the clearance lbg (config-major)
         and, per configuration, the switched-on pair indices in row order. With
         ``fixed_ends`` the rows of a ``"path"`` problem's fixed start and goal are off."""
         batch, lower, chosen = select_slots_batch(
-            self._pools, self._n_bodies, self._self_pairs, self.config.near_margin,
+            self._groups, self._n_bodies, self._self_pairs, self.config.near_margin,
             self.safety_margin, distances)
         # (C, capacity, width) → (capacity, width·C), configuration after configuration.
         parameters = [np.transpose(b, (1, 0, 2)).reshape(b.shape[1], -1) for b in batch]
@@ -653,7 +657,7 @@ class TrajectoryPolisher:
         if self.objective == "path":
             lbx[0] = ubx[0] = z0[0]
             lbx[-1] = ubx[-1] = z0[-1]
-        free = not self._pools
+        free = not self._groups
         fixed = [np.array([1.0 / dt])]
         if positions is not None:
             fixed += [positions.T.ravel(order="F"),
@@ -707,7 +711,7 @@ class TrajectoryPolisher:
             if run.out_of_time:
                 out_of_time = True
                 break
-            if not self._pools:
+            if not self._groups:
                 break
             switched_on = np.zeros(distances.shape, dtype=bool)
             for row, flat in zip(rows, chosen, strict=True):
@@ -759,7 +763,7 @@ class TrajectoryPolisher:
         at ``q`` (W, 3n) by the NLP's own mapped CasADi function at the same check points,
         and the world's float64 distances of the same pairs (m, convex parts with
         ``face_smoothing``): the two must agree."""
-        from ..world.clearance import all_pair_distances_numpy
+        from ...world.clearance import all_pair_distances_numpy
 
         z_near, z = (q_to_z_numpy(x) for x in (q_near, q))
         near = self._all_distances(z_near)

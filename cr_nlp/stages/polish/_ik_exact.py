@@ -1,6 +1,6 @@
 """The IK exact stage: each target's answer, then the other candidates of the search's
-own beam, polished by Ipopt (``stages._polish``) and accepted by the verdict
-(``stages._accept``).
+own beam, polished by Ipopt (``stages.polish._ik_nlp``) and accepted by the verdict
+(``stages.polish._accept``).
 
 A polish counts as worth judging when Ipopt succeeded, or when it keeps every
 constraint and comes nearer the target than the answer it started from (it may miss the
@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from ._accept import Acceptance, Judged, Polished, polish_and_accept
-from ._polish import IKPolisher, polish_many
+from ._ik_nlp import IKPolisher, polish_many
 
 
 def other_candidates(beam: np.ndarray, answer: np.ndarray,
@@ -52,12 +52,13 @@ def polish_answers(polisher: IKPolisher, answers: np.ndarray, beams: np.ndarray,
         judge: ``(q (B, 3n), rows (B,)) → verdicts``, rows indexing the T targets.
         attempts: polishes per target at most.
         progress: a progress bar for the first attempt.
-        pool: a ``stages._pool.PolishPool`` spreading the polishes over processes, or None.
+        pool: a ``stages.polish._process_pool.PolishPool`` spreading the polishes over processes,
+        or None.
         time_limit: seconds of polishing per target, all its attempts together (None: no
             limit); a target out of time keeps its best accepted answer so far.
 
     Returns:
-        ``stages._accept.Acceptance`` with one outcome per target (answer q (3n,)).
+        ``stages.polish._accept.Acceptance`` with one outcome per target (answer q (3n,)).
     """
     cfg = polisher.config
     alternatives = [other_candidates(beams[i], answers[i]) for i in range(len(answers))]

@@ -11,8 +11,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ..model import Robot
-from ..model.kinematics import tendon_lengths_z
+from ...model import Robot
+from ...model.kinematics import tendon_lengths_z
 
 
 def _lengths(robot: Robot, z: jax.Array) -> jax.Array:

@@ -1,5 +1,5 @@
 """The batched IK search as the host drives it: seed pool, chunks of targets, the fused
-device programs of ``stages._search``, the retry rounds and the self-clearance repair.
+device programs of ``stages.refine._ik_program``, the retry rounds and the self-clearance repair.
 
 One part of a stream of targets is solved by
 
@@ -38,14 +38,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._programs import compile_ahead, compile_program
-from ..model import Robot, q_to_z_numpy, z_to_q_numpy
-from ..model.limits import clip_to_limits
-from ..world import check_many
-from ._chunks import SMALLEST_CHUNK, chunk_plan
-from ._explore import SeedPool, random_configurations_z, sobol_configurations
+from ..._programs import compile_ahead, compile_program
+from ...model import Robot, q_to_z_numpy, z_to_q_numpy
+from ...model.limits import clip_to_limits
+from ...world import check_many
+from .._chunks import SMALLEST_CHUNK, chunk_plan
+from ..explore._seed_pool import SeedPool, random_configurations_z, sobol_configurations
+from ._ik_program import RetryPlan, SearchPlan, retry_targets, search_targets
 from ._lm import Projection, Residual
-from ._search import RetryPlan, SearchPlan, retry_targets, search_targets
 
 REPAIR_CHUNK = 16
 """Targets per self-repair program."""
@@ -95,12 +95,12 @@ def _chunk_rows(x: np.ndarray, start: int, stop: int, size: int) -> np.ndarray:
 
 
 class ChunkRunner:
-    """Runs one problem's fused search programs (``stages._search``) over chunks of
+    """Runs one problem's fused search programs (``stages.refine._ik_program``) over chunks of
     targets: one compiled program per program name and chunk shape, split over every
     JAX device.
 
     Args:
-        residual, project: the problem, as for ``stages._lm.lm_solve``.
+        residual, project: the problem, as for ``stages.refine._lm.lm_solve``.
         shared: pytree given whole to every residual (scene arrays, or None).
         free: (n,) 1.0 for the variables LM may move.
         dtype: JAX dtype of the real inputs.
@@ -306,7 +306,7 @@ class IKSearch:
     def _collision_free(self, q: np.ndarray) -> np.ndarray:
         """Which configurations keep clearance ≥ δ (obstacles and self) by the
         differentiable clearance (fast)."""
-        from ..world import clearance, self_distances
+        from ...world import clearance, self_distances
 
         x = jnp.asarray(q, self.dtype)
         if self.scene is None:

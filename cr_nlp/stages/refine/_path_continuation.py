@@ -13,7 +13,8 @@ branch jumps (a tendon would have to move faster than it can). This stage:
    the chains may minimise a cheaper residual than the one that scores the table (the
    pose alone, for a robot whose answers are isolated: ``tasks.follow``);
 2. writes every chain's answers into a candidate table (R waypoints × K slots) and picks
-   the sequence with the smallest configuration jumps (``stages._sequence.smoothest_choice``)
+   the sequence with the smallest configuration jumps
+   (``stages.explore._sequence.smoothest_choice``)
    in one device program (``extend_and_choose``);
 3. finds the intervals where that sequence's tendon speed exceeds the robot's limit
    (the jumps) and bridges each: chains from the answers on both sides walk across the
@@ -38,13 +39,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._programs import cached_jit, compile_program
-from ..model import Robot, q_to_z_numpy
-from ..model.kinematics import tendon_lengths_z
-from ..model.limits import project_z
-from ..model.rotations import matrix_from_wxyz
+from ..._programs import cached_jit, compile_program
+from ...model import Robot, q_to_z_numpy
+from ...model.kinematics import tendon_lengths_z
+from ...model.limits import project_z
+from ...model.rotations import matrix_from_wxyz
+from ..explore._sequence import smoothest_choice
 from ._lm import LMConfig, lm_solve
-from ._sequence import smoothest_choice
 
 CHAIN_CONVERGED = 1e-5
 """Residual norm (m, rad) at which a continuation chain's LM stops at a waypoint."""
@@ -220,7 +221,7 @@ def extend_and_choose(robot: Robot, extra: int, table_z: jax.Array, table_err: j
                       active: jax.Array, column: jax.Array, links: jax.Array,
                       tolerance: jax.Array, seconds: jax.Array) -> tuple[jax.Array, ...]:
     """``extend_table``, then the smoothest sequence through it
-    (``stages._sequence.smoothest_choice``), its tendon speeds and the table's own steps
+    (``stages.explore._sequence.smoothest_choice``), its tendon speeds and the table's own steps
     across its intervals (``walked_speeds``; ``links`` (R, K, 2) of the extended table),
     in one device program.
 

@@ -5,7 +5,8 @@ The exact stage is CPU work (Ipopt, MUMPS, CasADi) of milliseconds to seconds pe
 problem and the problems are independent, so ``PolishPool`` spreads them over worker
 processes (``spawn``: no JAX or CasADi state is forked). Each worker builds the polisher
 it is given the recipe for once, on its first task, and keeps it (the compiled CasADi
-functions come from the disk cache of ``stages._compiled``). Work goes out in contiguous
+functions come from the disk cache of ``stages.polish._compiled_functions``). Work goes out in
+contiguous
 chunks and comes back in input order, so a parallel run returns exactly what a serial
 run returns: the same polisher settings on the same inputs.
 """

@@ -3,7 +3,7 @@
 Problems over a chain of T waypoints z₀ … z_{T−1} (each z_t of size d) whose residuals
 each depend on at most three consecutive waypoints — path following, trajectory
 optimisation — have a block-banded Gauss–Newton matrix: JᵀJ is block pentadiagonal with
-d × d blocks. Treating it as dense (``stages._lm``) costs O((T·d)³) per iteration; here
+d × d blocks. Treating it as dense (``stages.refine._lm``) costs O((T·d)³) per iteration; here
 
 - the residuals are given as window terms (``ChainResidual``): a unary term r(z_t), a
   pair term r(z_t, z_{t+1}) and a triple term r(z_t, z_{t+1}, z_{t+2}), each vmapped
@@ -15,7 +15,7 @@ d × d blocks. Treating it as dense (``stages._lm``) costs O((T·d)³) per itera
   block *tridiagonal* with 2d × 2d blocks, and running a block Cholesky (block Thomas)
   forward and back in two ``jax.lax.scan`` passes: O(T·d³).
 
-The step rule is that of ``stages._lm``: Marquardt-scaled damping updated by Nielsen's
+The step rule is that of ``stages.refine._lm``: Marquardt-scaled damping updated by Nielsen's
 trust-region rule, a projection onto the limits after every step (``project`` maps a
 (T, d) chain onto its feasible set, e.g. ``model.limits.project_z`` per waypoint), and
 ``free`` masks that keep fixed variables where they are.
@@ -288,7 +288,7 @@ def solve_banded(h: BandedMatrix, rhs: jax.Array) -> jax.Array:
 # ================================================================ the solver
 
 DEFAULT_CONFIG = LMConfig()
-"""``banded_lm_solve``'s default settings (those of ``stages._lm``)."""
+"""``banded_lm_solve``'s default settings (those of ``stages.refine._lm``)."""
 
 
 def _damped(h: BandedMatrix, lam: jax.Array, scale: jax.Array) -> BandedMatrix:
@@ -299,7 +299,8 @@ def _damped(h: BandedMatrix, lam: jax.Array, scale: jax.Array) -> BandedMatrix:
 class BandedLMState(NamedTuple):
     """The banded LM's loop state between two trips, for one chain (a batch of chains
     adds a leading axis to every field). Carrying it whole lets a solve stop after any
-    trip and go on later with exactly the same iterates (``stages._chain_batch``'s slots)."""
+    trip and go on later with exactly the same iterates (``stages.refine._chain_stream``'s
+    slots)."""
 
     z: jax.Array
     """(T, d): the accepted iterate."""
@@ -411,7 +412,7 @@ def banded_lm_solve(terms: ChainResidual, project: Callable[[jax.Array], jax.Arr
         shared: pytree passed unbatched to every term.
         free: (d,) or (T, d): 1.0 for variables the solver may move, 0.0 for fixed ones.
         iterations: maximum iterations (a traced integer: no recompilation per budget).
-        config: damping and stopping rules (``stages._lm.LMConfig``; ``linear_solver`` is
+        config: damping and stopping rules (``stages.refine._lm.LMConfig``; ``linear_solver`` is
             not used: the banded solve is always the block Cholesky).
 
     Returns:

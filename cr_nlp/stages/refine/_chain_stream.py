@@ -5,7 +5,7 @@ two schedules:
 
 - "slots" (banded structure only): a fixed number S of slots, one compiled program per S.
   Every device call loads waiting chains into the free slots, runs LM trips on the
-  occupied ones (``stages._banded_lm``'s trip, vmapped; a slot whose chain converged,
+  occupied ones (``stages.refine._banded_lm``'s trip, vmapped; a slot whose chain converged,
   stalled or used its iteration budget is masked) until fewer than a wanted number of
   slots are still running or ``trips`` trips were made, and returns; the host then
   retires the finished chains, refills their slots and launches the next call before it
@@ -22,7 +22,7 @@ two schedules:
   program's small batch keeps one CPU core busy, not two).
 - "chunks": the batch is cut into chunks of one size (the last padded with copies of its
   first row), one device program per chunk, each running until its slowest chain
-  stops. The "dense" structure (``stages._lm``: one Jacobian of the whole chain and a
+  stops. The "dense" structure (``stages.refine._lm``: one Jacobian of the whole chain and a
   dense Cholesky of its (waypoints·d)² normal matrix; the reference the banded form is
   checked against) always runs so; the banded structure can, for comparison.
 
@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._programs import compile_ahead, compile_program
+from ..._programs import compile_ahead, compile_program
 from ._banded_lm import (
     BandedLMState,
     ChainResidual,

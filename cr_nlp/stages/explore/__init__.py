@@ -1,0 +1,1 @@
+"""Stage 1, explore: starting points for the LM (seed pool, roadmap, guesses, sequences)."""

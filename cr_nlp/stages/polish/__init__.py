@@ -1,0 +1,1 @@
+"""Stage 3, polish: Ipopt with the constraints as constraints, and the one acceptance."""

@@ -1,0 +1,1 @@
+"""Stage 2, refine: batched projected Levenberg–Marquardt in JAX, penalties for the rest."""
