@@ -13,12 +13,10 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-from ._jax_setup import full_precision_matmuls as _full_precision_matmuls
-
 __version__ = "0.1.0"
 
 _PUBLIC = {
-    "use_host_devices": "._jax_setup",
+    "use_host_devices": ".runtime",
     "bundled_file": "._resources",
     "models_root": "._resources",
     "run_batch": ".batch",
@@ -81,7 +79,6 @@ def __dir__() -> list[str]:
 
 
 if TYPE_CHECKING:  # the same names for type checkers and editors
-    from ._jax_setup import use_host_devices as use_host_devices
     from ._resources import bundled_file as bundled_file
     from ._resources import models_root as models_root
     from .batch import run_batch as run_batch
@@ -98,6 +95,7 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from .model.cosserat import solve_statics as solve_statics
     from .model.rotations import matrix_from_wxyz as matrix_from_wxyz
     from .model.rotations import wxyz_from_matrix as wxyz_from_matrix
+    from .runtime import use_host_devices as use_host_devices
     from .tasks._result import SCHEMA_VERSION as SCHEMA_VERSION
     from .tasks._result import load_result as load_result
     from .tasks._result import load_results as load_results
@@ -124,6 +122,3 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from .world import check as check
     from .world import check_many as check_many
     from .world import load_scene as load_scene
-
-# Same accuracy on a GPU as on a CPU: no TF32 products (see full_precision_matmuls).
-_full_precision_matmuls()

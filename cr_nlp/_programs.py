@@ -50,7 +50,7 @@ import jax
 import numpy as np
 
 from ._files import write_atomic
-from ._jax_setup import cache_dir
+from .runtime import cache_dir, register
 
 FORMAT = b"cr_nlp-program-3\n"
 """First bytes of an entry: the file format (a change of format is a change of key too)."""
@@ -64,7 +64,7 @@ SECONDS_PER_OP = 0.004
 message before any compile time was measured on this machine (measured on a 2-core CPU:
 the IK search program, ~4 000 operations, 15–20 s)."""
 
-_memory: OrderedDict[str, Any] = OrderedDict()
+_memory: OrderedDict[str, Any] = register(OrderedDict())
 _pending: dict[str, Future] = {}
 """Programs being compiled (``compile_ahead``), by the same key as ``_memory``."""
 _lock = threading.Lock()
@@ -261,7 +261,7 @@ def program_key(fn: Callable, args: Sequence[Any], split: tuple | None = None) -
 # ================================================================ compiling
 
 def _batch_size(batched: Sequence[bool] | None, args: Sequence[Any]) -> int | None:
-    """The batch size of a program split over the devices (``_jax_setup.split_over_devices``'s
+    """The batch size of a program split over the devices (``runtime.split_over_devices``'s
     rule: more than one device and a batch that divides evenly), or None: one device."""
     if batched is None or jax.device_count() == 1:
         return None
@@ -275,7 +275,7 @@ def compile_program(fn: Callable, args: Sequence[Any], *, name: str = "",
     """``fn`` compiled for ``args`` (their shapes and dtypes): a callable that takes
     arguments like ``args`` and returns ``fn``'s outputs.
 
-    ``batched``: as ``_jax_setup.split_over_devices`` (which arguments are split along
+    ``batched``: as ``runtime.split_over_devices`` (which arguments are split along
     axis 0 over the devices; ``outputs`` results, all split), or None: one device (the one
     the committed arguments live on). ``name``: what the first-run message calls it.
 
@@ -283,7 +283,7 @@ def compile_program(fn: Callable, args: Sequence[Any], *, name: str = "",
     there, else traces, stores and compiles it; a program compiled earlier in this
     process with the same key is reused, and one that ``compile_ahead`` is compiling is
     waited for. Turns on JAX's persistent compilation cache
-    (``_jax_setup.enable_compilation_cache``) unless the user configured one."""
+    (``runtime.enable_compilation_cache``) unless the user configured one."""
     return _request(fn, args, name, batched, outputs, ahead=False)
 
 
@@ -303,9 +303,9 @@ def compile_ahead(fn: Callable, args: Sequence[Any], *, name: str = "",
 
 def _request(fn: Callable, args: Sequence[Any], name: str, batched: Sequence[bool] | None,
              outputs: int, ahead: bool) -> Any:
-    from ._jax_setup import enable_compilation_cache, split_over_devices
+    from .runtime import configure, split_over_devices
 
-    enable_compilation_cache()  # XLA's half of the cache (a no-op once on, or user-set)
+    configure()  # XLA's half of the cache (a no-op once on, or user-set)
     size = _batch_size(batched, args)
     split = size is not None
     placement = (tuple(batched), outputs) if split else None
@@ -476,7 +476,7 @@ def _moved(program: _Flat, device: Any) -> _Flat:
     JAX's own compilation cache does for GPUs. Only a program XLA compiled in this
     process moves: one loaded from XLA's disk cache (or moved already) serialises without
     its code and fails when run ("Function … not found"); in a warm process each lane
-    loads the one cache entry instead (``_jax_setup._one_cache_entry_per_program``)."""
+    loads the one cache entry instead (``runtime._one_cache_entry_per_program``)."""
     from jax._src.lib import xla_client as xc
     from jax.experimental import serialize_executable as se
 

@@ -7,7 +7,7 @@ is one Dask task that solves its problems with the single-process solver
 worker management are Dask's: a chunk whose worker dies is re-run by the scheduler, a
 chunk that raises is retried (``retries``). Per worker process the solver is built once
 (``_worker_solver``: a module-level cache keyed by kind, robot, scene and settings) and
-its JAX programs come from the persistent compilation cache (``_jax_setup``).
+its JAX programs come from the persistent compilation cache (``runtime``).
 
 What lands in ``out_dir``:
 
@@ -58,6 +58,7 @@ from typing import Any
 import numpy as np
 
 from ._files import atomic_open, write_atomic
+from .runtime import register
 
 MANIFEST = "manifest.json"
 RESULTS = "results.json"
@@ -221,7 +222,7 @@ def read_chunk(path: str | Path) -> dict[str, Any] | None:
 
 # ================================================================ on the worker
 
-_SOLVERS: dict[str, Any] = {}
+_SOLVERS: dict[str, Any] = register({})
 _SOLVERS_LOCK = threading.Lock()
 
 
@@ -229,12 +230,12 @@ def prepare_worker_process() -> None:
     """JAX in a local worker process, before its first solver: the host devices
     ``start_local_cluster`` gave it (``DEVICES_ENV``; a no-op once JAX has started) and
     the persistent compilation cache."""
-    from ._jax_setup import enable_compilation_cache, use_host_devices
+    from .runtime import configure, use_host_devices
 
     devices = os.environ.get(DEVICES_ENV)
     if devices:
         use_host_devices(int(devices))
-    enable_compilation_cache()
+    configure()
 
 
 def _worker_solver(spec: JobSpec) -> Any:

@@ -13,7 +13,7 @@ Every task runs in exact mode (Ipopt polish) unless ``--penalty-only`` is given,
 answer is judged by the independent checks (python-fcl, float64 limits and tendon
 limits). Each task's result is written as JSON (and the tendon series as CSV), and one
 figure per task as PNG, into ``--out``. The first run compiles the JAX programs (cached on
-disk for the next runs: see ``cr_nlp._jax_setup``).
+disk for the next runs: see ``cr_nlp.runtime``).
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ import jax
 import numpy as np
 import pytest
 
-from cr_nlp._jax_setup import use_host_devices
+from cr_nlp.runtime import use_host_devices
 
 if TYPE_CHECKING:  # the world and model modules are imported lazily, after the settings
     from cr_nlp.model import Robot

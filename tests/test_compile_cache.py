@@ -1,5 +1,5 @@
 """A second process loads the IK's compiled programs from JAX's persistent cache instead
-of compiling them again (``_jax_setup.enable_compilation_cache``)."""
+of compiling them again (``runtime.enable_compilation_cache``)."""
 
 import json
 import os

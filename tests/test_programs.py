@@ -287,7 +287,7 @@ def test_a_second_device_gets_the_first_ones_program_not_a_compile_of_its_own(
 
 
 _TWO_LANES = """
-from cr_nlp._jax_setup import use_host_devices
+from cr_nlp.runtime import use_host_devices
 use_host_devices(2)
 import json, os
 from functools import partial

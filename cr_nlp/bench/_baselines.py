@@ -33,12 +33,12 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 
-from .._jax_setup import split_over_devices
 from ..model import CasadiModel, Robot, load_robot, q_to_z, z_to_q
 from ..model._ops import JAX
 from ..model.kinematics import model_pose_error, model_segment_frames
 from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz
+from ..runtime import split_over_devices
 from ..stages.refine._lm import solve_spd
 
 

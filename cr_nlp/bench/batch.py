@@ -47,7 +47,6 @@ from typing import Any
 
 import numpy as np
 
-from .._jax_setup import use_host_devices
 from ..batch import (
     close_cluster,
     default_chunk,
@@ -58,6 +57,7 @@ from ..batch import (
     worker_env,
 )
 from ..model import load_robot
+from ..runtime import use_host_devices
 from ..tasks.ik import IKConfig, IKSolver
 from ._common import Column, environment, environment_markdown, markdown_table, write_report
 from .ik import free_case

@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from .._jax_setup import split_over_devices, use_host_devices
 from ..model import load_robot
+from ..runtime import split_over_devices, use_host_devices
 from ._common import (
     Column,
     environment,

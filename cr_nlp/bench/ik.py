@@ -42,11 +42,11 @@ from typing import Any
 
 import numpy as np
 
-from .._jax_setup import use_host_devices
 from ..model import Robot, load_robot
 from ..model._ops import NUMPY
 from ..model.kinematics import model_q_to_z, model_segment_frames
 from ..model.rotations import wxyz_from_matrix
+from ..runtime import use_host_devices
 from ..tasks.ik import IKConfig, IKSolver
 from ..world import Scene, check_many, load_scene
 from ._baselines import (

@@ -64,14 +64,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)  # --help ends here, having imported no JAX
 
-    from .._jax_setup import enable_compilation_cache, use_host_devices
     from ..model import ModelFileError
+    from ..runtime import configure, use_host_devices
     from ._io import UsageError
 
     args.command_line = shlex.join(["cr-nlp", *argv])  # what a report says it came from
     # Every core for the batched stages (before JAX starts); ``--devices`` where given.
     use_host_devices(getattr(args, "devices", None))
-    enable_compilation_cache()
+    configure()
     try:
         return args.run(args)
     except (UsageError, ModelFileError) as exc:

@@ -29,7 +29,6 @@ iterations. Units: metres, radians, newtons, N·m, kg, m/s².
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from dataclasses import dataclass
 from typing import Any, NamedTuple
@@ -39,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._programs import CachedProgram
+from ..runtime import cached, configure
 from .kinematics import tendon_angles
 from .robot import Robot
 from .rotations import matrix_from_wxyz, wxyz_from_matrix
@@ -124,7 +124,7 @@ class _Layout(NamedTuple):
     moment_scale: float       # E I / L, N·m per radian of bending over the robot
 
 
-@functools.lru_cache(maxsize=64)
+@cached(maxsize=64)
 def _layout(robot: Robot, config: StaticsConfig, coarse: bool = False) -> _Layout:
     """The integration grid. ``coarse``: half the steps, placed regardless of the disks
     (whose masses then fall inside steps): the grid of the shooting's Jacobian passes."""
@@ -535,7 +535,7 @@ def statics_single(robot: Robot, config: StaticsConfig = StaticsConfig()) -> Any
 _FIRST_ROUND = 10
 
 
-@functools.lru_cache(maxsize=64)
+@cached(maxsize=64)
 def _programs(robot: Robot, config: StaticsConfig) -> tuple[Any, Any, Any]:
     """(first round, further rounds, finish): jitted and vmapped over cases; jit keeps one
     compiled program per padded batch size."""
@@ -659,6 +659,7 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
     Raises:
         ValueError: wrong shapes, negative or non-finite tensions, a robot without mechanics.
     """
+    configure()
     t = np.atleast_2d(np.asarray(tensions, dtype=float))
     if t.ndim != 2 or t.shape[1] != robot.n_tendons:
         raise ValueError(f"tensions: {robot.name} has {robot.n_tendons} tendons, got shape "

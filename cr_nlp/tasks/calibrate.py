@@ -36,6 +36,7 @@ from ..model.actuation import (
     robot_with_params,
     zero_sensitivity,
 )
+from ..runtime import configure
 from .measurements import Measurements
 
 
@@ -282,6 +283,7 @@ def calibrate(robot: Robot, train: Measurements, validation: Measurements | None
     Returns the calibrated robot (its ``actuation`` block records the validation errors,
     or the training errors without validation) and the error statistics in m.
     """
+    configure()
     config = config or CalibrationConfig()
     if train.tip is None:
         raise ValueError(f"{train.source}: calibration needs the measured tip columns")

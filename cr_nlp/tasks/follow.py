@@ -59,11 +59,11 @@ import jax.monitoring
 import jax.numpy as jnp
 import numpy as np
 
-from .._jax_setup import enable_compilation_cache
 from .._programs import compile_ahead, compile_program
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz
+from ..runtime import configure
 from ..stages.polish._accept import check_time_limit
 from ..stages.refine._banded_lm import ChainResidual, banded_lm_solve
 from ..stages.refine._lm import LMConfig
@@ -368,7 +368,7 @@ class PathFollower:
 
     def __init__(self, robot: Robot | str | dict, scene: Scene | str | Path | dict | None = None,
                  config: FollowConfig = FollowConfig()) -> None:
-        enable_compilation_cache()
+        configure()
         self.robot = load_robot(robot)
         self.scene = load_scene(scene) if scene is not None else None
         self.config = config

@@ -28,11 +28,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._jax_setup import enable_compilation_cache
 from ..model import Robot, load_robot, pose_error, tip_pose
 from ..model.derivatives import pose_residual
 from ..model.limits import limit_violation_q, project_z
 from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
+from ..runtime import configure
 from ..stages._chunks import SMALLEST_CHUNK as SMALLEST_CHUNK
 from ..stages._chunks import chunk_plan as chunk_plan
 from ..stages.polish._accept import check_time_limit, polish_note
@@ -169,7 +169,7 @@ class IKSolver:
 
     def __init__(self, robot: Robot | str | dict, scene: Scene | str | None = None,
                  config: IKConfig = IKConfig()) -> None:
-        enable_compilation_cache()
+        configure()
         self.robot = robot = load_robot(robot)
         self.scene = load_scene(scene) if isinstance(scene, str) else scene
         self.config = cfg = config

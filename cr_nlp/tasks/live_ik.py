@@ -20,10 +20,10 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from .._jax_setup import enable_compilation_cache
 from ..model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ..model.limits import clip_to_limits, project_z
 from ..model.rotations import matrix_from_wxyz
+from ..runtime import configure
 from ..stages.polish._accept import Polished, accept_first
 from ..stages.refine._lm import LMConfig, lm_solve
 from ..world import Scene, load_scene, scene_arrays
@@ -97,7 +97,7 @@ class LiveIKSolver:
         scene: Scene | str | None = None,
         config: LiveIKConfig = LiveIKConfig(),
     ) -> None:
-        enable_compilation_cache()
+        configure()
         self.robot = load_robot(robot)
         self.scene = load_scene(scene) if isinstance(scene, str) else scene
         self.config = config

@@ -58,6 +58,7 @@ from ..model.tendon_groups import (
     tendon_groups,
     tensions_from_moments,
 )
+from ..runtime import configure
 from ..stages.refine._lm import LMConfig, lm_solve
 from ..world.check import check_chains
 from ..world.scene import Scene, load_scene
@@ -143,6 +144,7 @@ class TensionIKSolver:
 
     def __init__(self, robot: Robot | str | dict, scene: Scene | str | None = None,
                  config: TensionIKConfig = TensionIKConfig()) -> None:
+        configure()
         self.robot = load_robot(robot)
         if self.robot.mechanics is None:
             raise ValueError(f"{self.robot.name}: tension-space IK needs a 'mechanics' block "

@@ -42,12 +42,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._jax_setup import enable_compilation_cache
 from ..model import Robot, load_robot, q_to_z_numpy
 from ..model._ops import JAX
 from ..model.derivatives import tip_position_z
 from ..model.kinematics import model_tendon_lengths
 from ..model.limits import project_z
+from ..runtime import configure
 from ..stages.explore._trajectory_guesses import initial_guesses
 from ..stages.polish._accept import check_time_limit
 from ..stages.polish._trajectory_exact import describe_polish as describe_polish
@@ -341,7 +341,7 @@ class TrajectoryPlanner:
 
     def __init__(self, robot: Robot | str | dict, scene: Scene | str | None = None,
                  config: TrajectoryConfig = TrajectoryConfig()) -> None:
-        enable_compilation_cache()
+        configure()
         self.robot = load_robot(robot)
         self.scene = load_scene(scene) if isinstance(scene, (str, Path, dict)) else scene
         self.config = config

@@ -24,7 +24,7 @@ in blocks; the per-sphere form below avoids most of that cost.
 
 from __future__ import annotations
 
-from functools import lru_cache, partial
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -33,6 +33,7 @@ import numpy as np
 from ..model._ops import JAX
 from ..model.derivatives import backbone_jacobian_z
 from ..model.robot import Robot
+from ..runtime import cached
 from . import _distances as dist
 from .clearance import SceneArrays, _centres, _kind_blocks, body_segments
 
@@ -46,7 +47,7 @@ def _has_obstacles(arrays: SceneArrays | None) -> bool:
     return arrays is not None and arrays.n_parts > 0
 
 
-@lru_cache(maxsize=32)
+@cached(maxsize=32)
 def self_pair_blocks(robot: Robot) -> tuple[tuple[int, int, int, int], ...]:
     """The self pairs (``clearance.self_pairs``) as blocks of consecutive body spheres:
     ``(row_start, row_stop, col_start, col_stop)``, one block per chain pair (s, t ≥ s + 2),
@@ -166,7 +167,7 @@ def _clearance_jvp(robot: Robot, primals: tuple,
 # (interleaved runs, load 5–7).
 
 
-@lru_cache(maxsize=32)
+@cached(maxsize=32)
 def _self_partners(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
     """Body spheres with at least one self-clearance partner (R,) and the (R, N) mask of
     their partners (spheres on segments at least two apart, ``clearance.self_pairs``)."""

@@ -52,7 +52,6 @@ of 33,000).
 
 from __future__ import annotations
 
-import functools
 import math
 import weakref
 from dataclasses import dataclass
@@ -64,6 +63,7 @@ import numpy as np
 from ..model._ops import NUMPY
 from ..model.kinematics import model_backbone, model_q_to_z
 from ..model.robot import Robot
+from ..runtime import cached
 from .scene import (
     BoxPart,
     CapsulePart,
@@ -420,7 +420,7 @@ def _run_length(per_segment: int) -> int:
     return max(g for g in range(1, min(per_segment, _RUN_PIECES) + 1) if per_segment % g == 0)
 
 
-@functools.lru_cache(maxsize=32)
+@cached(maxsize=32)
 def _far_pairs(pieces: int, per_segment: int) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs i < j of pieces whose segments are at least two apart."""
     segment = np.arange(pieces) // per_segment    # piece i joins chain points i and i + 1

@@ -26,10 +26,10 @@ from typing import Any
 import numpy as np
 
 from .._files import write_atomic
-from .._jax_setup import cache_dir
 from .._resources import bundled_file, resolve_file
 from ..model.robot import ModelFileError, _Checker, read_model_file
 from ..model.rotations import matrix_from_wxyz
+from ..runtime import cache_dir
 
 # ================================================================ parts
 

@@ -35,7 +35,6 @@ import json
 import math
 import time
 from dataclasses import asdict, dataclass
-from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -46,9 +45,9 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from ..._files import write_atomic
-from ..._jax_setup import cache_dir
 from ..._programs import cached_jit
 from ...model import Robot, q_to_z, q_to_z_numpy, z_to_q_numpy
+from ...runtime import cache_dir, cached
 from ...world import Scene, body_gap_tolerance, scene_arrays
 from ...world._broad_phase import PartCells, part_cells, reach_box
 from ...world._clearance_groups import near_clearance_z
@@ -146,7 +145,7 @@ def polyline_length(points_z: np.ndarray) -> float:
     return float(np.sum(np.linalg.norm(np.diff(np.asarray(points_z), axis=0), axis=1)))
 
 
-@lru_cache(maxsize=16)
+@cached(maxsize=16)
 def _chunk_program(robot: Robot, chunk: int) -> Any:
     """``near_clearance_z`` over a (chunk, 3n) float32 batch; chunks of 512 and more are
     split over the JAX devices (splitting tiny ones costs more than it saves)."""

@@ -21,7 +21,6 @@ dropped (lazy PRM). Every pair p attaches its start to the nodes ``start_nodes[p
 
 from __future__ import annotations
 
-from functools import lru_cache
 from typing import Any
 
 import jax
@@ -31,6 +30,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
 from ..._programs import cached_jit
+from ...runtime import cached
 from .._chunks import chunk_plan
 
 SEARCH_BACKENDS = ("auto", "device", "scipy")
@@ -152,7 +152,7 @@ def _device_search(neighbours: np.ndarray, weights: np.ndarray, start_nodes: np.
     return dist, np.asarray(last)[:count], np.asarray(pred)[:count]
 
 
-@lru_cache(maxsize=1)
+@cached(maxsize=1)
 def _relaxation() -> Any:
     return cached_jit(_relax, name="the roadmap search")
 

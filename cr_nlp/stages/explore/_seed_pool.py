@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import io
 import time
-from functools import lru_cache, partial
+from functools import partial
 from typing import Any
 
 import jax
@@ -19,11 +19,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..._files import write_atomic
-from ..._jax_setup import cache_dir
 from ..._programs import compile_program
 from ...model import Robot, q_to_z, q_to_z_numpy
 from ...model._ops import NUMPY
 from ...model.kinematics import model_q_to_z, model_segment_frames
+from ...runtime import cache_dir, cached
 from .._chunks import chunk_plan
 
 # Orientation features are unit axes scaled by this length (metres per radian, roughly):
@@ -233,7 +233,7 @@ class SeedPool:
         return np.concatenate([np.asarray(idx)[:used] for used, idx in parts]).astype(np.int64)
 
 
-@lru_cache(maxsize=8)
+@cached(maxsize=8)
 def default_pool(robot: Robot, size: int, seed: int) -> SeedPool:
     """A Sobol seed pool for a robot, built once per process."""
     return SeedPool(robot, sobol_configurations(robot, size, seed))

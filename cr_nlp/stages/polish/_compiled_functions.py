@@ -35,7 +35,7 @@ from pathlib import Path
 
 import casadi as ca
 
-from ..._jax_setup import cache_dir
+from ...runtime import cache_dir
 
 FLAGS = ("-O1",)
 """Optimisation flags: -O2 measured 2× faster on the curvature function than -O1 but

@@ -19,7 +19,9 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
-_WORKER: dict[str, Any] = {}
+from ...runtime import register
+
+_WORKER: dict[str, Any] = register({})
 
 
 def _initialise(build: Callable[..., Any], args: tuple[Any, ...]) -> None:

@@ -1,14 +1,79 @@
-"""Process-wide JAX settings that cr_nlp's entry points apply."""
+"""Process-wide settings, in one place: where the caches live, the in-memory caches and
+their ``clear_caches()``, the environment variables cr_nlp reads, JAX's persistent
+compilation cache, matrix-product precision and host devices.
+
+``import cr_nlp`` changes none of them; ``configure()`` does, once, when a solver is
+built or a command runs (every task solver, ``solve_statics``, ``calibrate``, the CLI
+and the batch workers call it). A user who set a precision or a compilation cache of
+their own keeps it.
+"""
 
 from __future__ import annotations
 
 import os
 import sys
 from collections.abc import Callable, Sequence
+from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 # JAX is imported inside the functions that use it: ``import cr_nlp`` stays light.
+
+ENVIRONMENT = {
+    "CR_NLP_CACHE_DIR": "where cr_nlp keeps its caches (default ~/.cache/cr_nlp): traced "
+                        "programs, XLA's code, compiled CasADi functions, convex parts, "
+                        "roadmaps, Sobol pools",
+    "CR_NLP_JAX_CACHE": "XLA's compilation cache alone (default $CR_NLP_CACHE_DIR/jax)",
+    "CR_NLP_BATCH_DEVICES": "host devices of each Dask worker of a batch job (set by "
+                            "cr_nlp for the workers it starts)",
+    "CR_NLP_STARTUP_T": "process start time given to the start-up probe by "
+                        "`cr-nlp bench startup` (set by the benchmark)",
+}
+"""Every environment variable cr_nlp reads, and what it means
+(``tests/test_runtime.py`` checks that the package reads no other)."""
+
+_CACHES: list[Any] = []
+"""Every in-memory cache of the package (``cached`` functions, ``register``ed dicts)."""
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def cached(maxsize: int | None = 128) -> Callable[[F], F]:
+    """``functools.lru_cache(maxsize)``, registered for ``clear_caches``."""
+    def wrap(fn: F) -> F:
+        wrapped = lru_cache(maxsize=maxsize)(fn)
+        _CACHES.append(wrapped)
+        return wrapped  # type: ignore[return-value]
+    return wrap
+
+
+def register(cache: Any) -> Any:
+    """Register an in-memory cache (anything with ``clear()``) for ``clear_caches``;
+    returns it."""
+    _CACHES.append(cache)
+    return cache
+
+
+def clear_caches() -> int:
+    """Empty every in-memory cache of cr_nlp (compiled programs, scenes, roadmaps, seed
+    tables, …; the files on disk stay): the next solver builds and loads afresh. Returns
+    how many caches were cleared."""
+    for cache in _CACHES:
+        (cache.cache_clear if hasattr(cache, "cache_clear") else cache.clear)()
+    return len(_CACHES)
+
+
+def configure() -> None:
+    """The process-wide settings a solve wants, applied once (later calls cost nothing):
+    JAX's persistent compilation cache (``enable_compilation_cache``) and full float32
+    matrix products (``full_precision_matmuls``), each unless the user set their own."""
+    _configure_once()
+
+
+@lru_cache(maxsize=1)
+def _configure_once() -> None:
+    full_precision_matmuls()
+    enable_compilation_cache()
 
 
 def cache_dir() -> Path:
@@ -69,6 +134,7 @@ def full_precision_matmuls() -> bool:
 
     Before JAX is imported this sets ``JAX_DEFAULT_MATMUL_PRECISION`` (which JAX reads
     when it starts, as do the processes this one starts), so it costs no JAX import.
+    Called by ``configure``, never on import.
     """
     if "jax" not in sys.modules:
         if os.environ.get("JAX_DEFAULT_MATMUL_PRECISION"):
