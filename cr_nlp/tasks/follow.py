@@ -424,8 +424,7 @@ class PathFollower:
         their trackable neighbours (the nearest one's at the ends; straight if none).
 
         The candidates and the sequence come from ``stages.refine._path_continuation``: full IK on
-        every
-        ``ik_stride``-th waypoint, continuation in between, the smoothest sequence, and
+        every ``ik_stride``-th waypoint, continuation in between, the smoothest sequence, and
         each jump (a tendon would have to move faster than ``tendon_speed_max``) bridged by
         continuation from both sides (``continuation_rounds`` times)."""
         t = len(positions)

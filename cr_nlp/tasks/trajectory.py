@@ -142,9 +142,9 @@ class TrajectoryConfig:
     accepts (Ipopt may then shorten their paths). False: such answers are kept as they
     are and only the rejected ones are polished."""
     polish_workers: int = 1
-    """Exact mode: processes that polish problems in parallel (``stages.polish._process_pool``); 1
-    polishes
-    in this process. The answers are the same either way."""
+    """Exact mode: processes that polish problems in parallel
+    (``stages.polish._process_pool``); 1 polishes in this process. The answers are the
+    same either way."""
     polish_time_limit: float | None = None
     """Exact mode: seconds of polishing per problem, all its candidates and re-selection
     rounds together (None: no limit). A problem out of time keeps the best answer the

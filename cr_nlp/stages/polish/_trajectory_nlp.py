@@ -142,9 +142,9 @@ class TrajectoryPolishConfig:
     ``"none"``."""
     compile: bool = True
     """Compile the per-configuration clearance functions to machine code, cached on disk
-    (``stages.polish._compiled_functions``: about 3× faster evaluations; 5–20 s once per robot and
-    scene
-    structure). False, or no C compiler: CasADi's virtual machine, the same numbers."""
+    (``stages.polish._compiled_functions``: about 3× faster evaluations; 5–20 s once per
+    robot and scene structure). False, or no C compiler: CasADi's virtual machine, the
+    same numbers."""
     hessian: str = "exact"
     """Ipopt's ``hessian_approximation``: ``"exact"`` (the structured Hessian of the
     module docstring: exact objective and bending terms, no clearance curvature) or
