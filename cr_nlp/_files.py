@@ -20,7 +20,7 @@ import contextlib
 import errno
 import json
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO, Any
 
@@ -106,6 +106,21 @@ def _sync_folder(folder: Path) -> None:
 class UnreadableJSON(ValueError):
     """A file that is not UTF-8 JSON text; the message says what is wrong, not which file
     (the loader that reads it names the file)."""
+
+
+def read_json_or(path: str | os.PathLike, fail: Callable[[str], Exception]) -> Any:
+    """``read_json_file(path)`` with each failure raised as ``fail(reason)``, the reason
+    being "file not found", "cannot read: …" or "not UTF-8 text: …" / "not valid JSON:
+    …": the one mapping every reader of a JSON input uses, each with its own error type
+    and message shape."""
+    try:
+        return read_json_file(path)
+    except FileNotFoundError:
+        raise fail("file not found") from None
+    except OSError as exc:
+        raise fail(f"cannot read: {exc}") from None
+    except UnreadableJSON as exc:
+        raise fail(str(exc)) from None
 
 
 def read_json_file(path: str | os.PathLike) -> Any:

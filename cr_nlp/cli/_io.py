@@ -13,7 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .._files import UnreadableJSON, atomic_open, read_json_file
+from .._files import atomic_open, read_json_or
 from .._resources import resolve_file
 
 if TYPE_CHECKING:
@@ -110,14 +110,7 @@ def parse_vector3(text: str | None, what: str) -> list[float] | None:
 
 def read_json(path: str | Path, what: str) -> Any:
     """The JSON content of ``path``; a missing or invalid file is a usage error."""
-    try:
-        return read_json_file(path)
-    except FileNotFoundError:
-        raise UsageError(f"{what}: file not found: {path}") from None
-    except OSError as exc:
-        raise UsageError(f"{what}: {path}: cannot read: {exc}") from None
-    except UnreadableJSON as exc:
-        raise UsageError(f"{what}: {path} is {exc}") from None
+    return read_json_or(path, lambda reason: UsageError(f"{what}: {path}: {reason}"))
 
 
 def read_problems(path: str | Path) -> tuple[list[Any], list[Any], int | None, float | None]:

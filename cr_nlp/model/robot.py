@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
-from .._files import UnreadableJSON, read_json_file
+from .._files import read_json_or
 from .._resources import resolve_file
 from ._actuation_block import parse_actuation
 from .mechanics import Mechanics, parse_mechanics
@@ -237,15 +237,7 @@ class Robot:
 def read_model_file(path: str | Path) -> Any:
     """The parsed JSON of a model file; a missing, unreadable or malformed file raises
     ``ModelFileError`` naming it."""
-    source = str(path)
-    try:
-        return read_json_file(path)
-    except FileNotFoundError:
-        raise ModelFileError(source, "<file>", "file not found") from None
-    except OSError as exc:
-        raise ModelFileError(source, "<file>", f"cannot read: {exc}") from None
-    except UnreadableJSON as exc:
-        raise ModelFileError(source, "<file>", str(exc)) from None
+    return read_json_or(path, lambda reason: ModelFileError(str(path), "<file>", reason))
 
 
 def load_robot(robot: str | Path | Robot | dict) -> Robot:

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from .._files import UnreadableJSON, atomic_open, read_json_file
+from .._files import atomic_open, read_json_or
 from ..model.actuation import planned_displacements
 
 if TYPE_CHECKING:
@@ -243,14 +243,7 @@ def result_robot(data: dict[str, Any], robot: Robot | str | None, where: str) ->
 
 def read_json(path: str | Path) -> Any:
     """The JSON content of a result file."""
-    try:
-        return read_json_file(path)
-    except FileNotFoundError:
-        raise ResultFileError(f"{path}: file not found") from None
-    except OSError as exc:
-        raise ResultFileError(f"{path}: cannot read: {exc}") from None
-    except UnreadableJSON as exc:
-        raise ResultFileError(f"{path}: {exc}") from None
+    return read_json_or(path, lambda reason: ResultFileError(f"{path}: {reason}"))
 
 
 def result_class(kind: str) -> type:

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from .._files import UnreadableJSON, read_json_file
+from .._files import read_json_or
 from ..model import Robot
 
 
@@ -55,14 +55,7 @@ def read_targets(path: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     Raises:
         ValueError: the file is missing, not JSON, or not of that shape.
     """
-    try:
-        data = read_json_file(path)
-    except FileNotFoundError:
-        raise ValueError(f"file not found: {path}") from None
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read: {exc}") from None
-    except UnreadableJSON as exc:
-        raise ValueError(f"{path} is {exc}") from None
+    data = read_json_or(path, lambda reason: ValueError(f"{path}: {reason}"))
     if not isinstance(data, dict) or not isinstance(data.get("poses"), list):
         raise ValueError(f"{path} must hold {{\"poses\": [{{\"position\": [x, y, z], "
                          f"\"wxyz\": [w, x, y, z]}}, ...]}}")
