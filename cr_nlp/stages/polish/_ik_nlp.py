@@ -54,6 +54,7 @@ from ._ipopt import (
     SUCCESS_STATUSES,
     TIME_LIMIT_STATUS,
     Deadline,
+    NLPSettings,
     WarmStart,
     build_solver,
     ipopt_options,
@@ -64,59 +65,30 @@ MODES = ("equality", "minimize")
 
 
 @dataclass(frozen=True)
-class PolishConfig:
-    """Settings of the Ipopt polish."""
+class PolishConfig(NLPSettings):
+    """Settings of the IK polish (the shared ones: ``NLPSettings``)."""
 
-    tol: float = 1e-8
-    """Ipopt's ``tol``: the scaled optimality error at which it stops."""
-    constr_viol_tol: float = 1e-8
-    """Ipopt's ``constr_viol_tol``: the largest unscaled constraint violation it accepts
-    (radians² for the bending disk, metres for clearance, mixed m/rad for the pose)."""
-    max_iter: int = 100
-    """Ipopt iterations per attempt."""
-    near_margin: float = 0.2
-    """Metres: obstacle and self pairs farther apart than this at the warm start get no
-    slot in that solve (one that comes closer than δ during the solve makes the polish
-    re-assign the slots and go on)."""
-    face_smoothing: float = 0.002
-    """Metres: smoothing μ of the max over a convex part's face planes, a conservative
-    lower bound at most ⌈log₂ F⌉·μ/2 below the unsmoothed one (``world/_distances.py``)."""
-    max_pairs: int = 16
-    """Constraint slots per group (one group per part kind in the scene, one for self
-    pairs). When more pairs are near, the nearest ones get the slots."""
     modes: tuple[str, ...] = ("equality", "minimize")
     """Attempts in order; the next one runs only if the previous failed. ``"equality"``:
     pose as 6 equality constraints, objective ‖z − z_start‖²; ``"minimize"``: objective
     ½‖log(T_tip⁻¹·T_target)‖²."""
     pose_tolerance: float = 1e-6
     """Largest pose error ‖log(T_tip⁻¹·T_target)‖ (mixed m/rad) of a successful polish."""
-    violation_tolerance: float = VIOLATION_TOLERANCE
-    """Largest re-evaluated violation (rad or m) of a successful polish."""
     clearance_curvature: str = "none"
-    """The clearance rows' second derivatives in the Hessian: ``"full"`` (through the
-    parts' shape and the kinematics), ``"parts"`` (the parts' shape only) or ``"none"``.
-    Measured on the lattice (tdcr6_ext, 50 targets, compiled): "none" 28 ms per target,
-    "parts" 34 ms, "full" 39 ms, with 14–15 iterations each: IK answers start next to
-    the optimum, where the curvature of the few active rows barely matters."""
-    compile: bool = True
-    """Compile the clearance rows' functions to machine code, cached on disk
-    (``stages.polish._compiled_functions``); False, or no C compiler: CasADi's virtual machine."""
+    """As ``NLPSettings``; "none" measured on the lattice (tdcr6_ext, 50 targets,
+    compiled): 28 ms per target, "parts" 34 ms, "full" 39 ms, with 14–15 iterations
+    each: IK answers start next to the optimum, where the curvature of the few active
+    rows barely matters."""
     warm_start: bool = True
     """Start Ipopt's barrier parameter at 1e-6 with the warm start moved only 1e-9 inside
     its bounds, instead of 0.1 and 1e-2: stage 2's answer is next to the optimum
     (measured on the lattice, tdcr6_ext, 50 targets: 14 → 3–4 iterations, the same
     answers to 1e-9)."""
-    print_level: int = 0
-    """Ipopt's ``print_level`` (0: silent)."""
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if not self.modes or any(m not in MODES for m in self.modes):
             raise ValueError(f"modes must be a non-empty sequence of {MODES}, got {self.modes!r}")
-        if self.max_pairs < 1:
-            raise ValueError(f"max_pairs must be at least 1, got {self.max_pairs}")
-        if self.clearance_curvature not in ("full", "parts", "none"):
-            raise ValueError("clearance_curvature must be 'full', 'parts' or 'none', got "
-                             f"{self.clearance_curvature!r}")
 
 
 @dataclass

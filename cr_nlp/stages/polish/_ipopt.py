@@ -28,6 +28,55 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from ...world.verdict import VIOLATION_TOLERANCE
+
+CURVATURES = ("full", "parts", "none")
+
+
+@dataclass(frozen=True)
+class NLPSettings:
+    """The settings every Ipopt polish shares (IK: ``PolishConfig``, trajectories and
+    paths: ``TrajectoryPolishConfig``, which set their own defaults where they differ)."""
+
+    tol: float = 1e-8
+    """Ipopt's ``tol``: the scaled optimality error at which it stops."""
+    constr_viol_tol: float = 1e-8
+    """Ipopt's ``constr_viol_tol``: the largest unscaled constraint violation it accepts
+    (rad² for the bending disks, m for clearance, m/s and m/s² for tendon rows, mixed
+    m/rad for IK's pose rows)."""
+    max_iter: int = 100
+    """Ipopt iterations per attempt."""
+    near_margin: float = 0.2
+    """Metres: obstacle and self pairs farther apart than this at the warm start get no
+    slot in that solve (one that comes closer than δ during the solve makes the polish
+    re-assign the slots and go on)."""
+    max_pairs: int = 16
+    """Constraint slots per group (one group per part kind in the scene, one for self
+    pairs; for trajectories, per configuration). When more pairs are near, the nearest
+    ones get the slots."""
+    face_smoothing: float = 0.002
+    """Metres: smoothing μ of the max over a convex part's face planes, a conservative
+    lower bound at most ⌈log₂ F⌉·μ/2 below the unsmoothed one (``world/_distances.py``)."""
+    clearance_curvature: str = "none"
+    """The clearance rows' second derivatives in the Hessian: ``"full"`` (through the
+    parts' shape and the kinematics), ``"parts"`` (the parts' shape only) or ``"none"``."""
+    compile: bool = True
+    """Compile the clearance rows' functions to machine code, cached on disk
+    (``stages.polish._compiled_functions``: about 3× faster evaluations; gcc runs in the
+    background, 5–20 s once per robot and scene structure). False, or no C compiler:
+    CasADi's virtual machine, the same numbers."""
+    violation_tolerance: float = VIOLATION_TOLERANCE
+    """Largest re-evaluated violation (rad, m, m/s, m/s²) of a successful polish."""
+    print_level: int = 0
+    """Ipopt's ``print_level`` (0: silent)."""
+
+    def __post_init__(self) -> None:
+        if self.max_pairs < 1:
+            raise ValueError(f"max_pairs must be at least 1, got {self.max_pairs}")
+        if self.clearance_curvature not in CURVATURES:
+            raise ValueError("clearance_curvature must be 'full', 'parts' or 'none', got "
+                             f"{self.clearance_curvature!r}")
+
 SUCCESS_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 """Ipopt return statuses of a converged solve."""
 

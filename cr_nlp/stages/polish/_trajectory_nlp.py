@@ -66,12 +66,12 @@ from ...model.kinematics import model_tendon_lengths
 from ...model.limits import limit_violation_q, project_bending
 from ...world.clearance import PairDistances, body_gap_tolerance, self_pairs
 from ...world.scene import Scene, load_scene
-from ...world.verdict import VIOLATION_TOLERANCE
 from ._clearance_rows import SlotRows, make_slot_groups, select_slots_batch
 from ._compiled_functions import pending
 from ._ipopt import (
     TIME_LIMIT_STATUS,
     Deadline,
+    NLPSettings,
     WarmStart,
     build_solver,
     ipopt_options,
@@ -82,22 +82,15 @@ OBJECTIVES = ("path", "tracking")
 
 
 @dataclass(frozen=True)
-class TrajectoryPolishConfig:
-    """Settings of the trajectory polish."""
+class TrajectoryPolishConfig(NLPSettings):
+    """Settings of the trajectory and path polish (the shared ones: ``NLPSettings``)."""
 
-    tol: float = 1e-8
-    """Ipopt's ``tol``: the scaled optimality error at which it stops."""
-    constr_viol_tol: float = 1e-8
-    """Ipopt's ``constr_viol_tol``: the largest unscaled constraint violation it accepts
-    (rad² for the bending disk, m/s and m/s² for the tendon rows, m for clearance)."""
     max_iter: int = 200
-    """Ipopt iterations per attempt."""
+    """Ipopt iterations per attempt (a whole trajectory: more than an IK target's)."""
     near_margin: float = 0.3
-    """Metres: pairs farther apart than this at the warm start get no slot in that solve
-    (a pair that comes closer during the solve triggers a re-selection)."""
+    """As ``NLPSettings``; pairs coming closer during the solve trigger a re-selection."""
     max_pairs: int = 8
-    """Constraint slots per group and per configuration (one group per part kind of the
-    scene, one for self pairs); when more pairs are near, the nearest get the slots."""
+    """As ``NLPSettings``, per configuration."""
     reselections: int = 4
     """How many times a solve may go on from its answer with re-placed check points and
     re-assigned slots: when a pair without a slot (or a sample without a check point)
@@ -121,9 +114,6 @@ class TrajectoryPolishConfig:
     verify_samples: int = 4
     """Every interval is re-evaluated at fractions j/``verify_samples`` (the samples
     ``verify_trajectory`` checks with python-fcl); a polish succeeds only if all keep δ."""
-    face_smoothing: float = 0.002
-    """Metres: smoothing μ of the max over a convex part's face planes, a conservative
-    lower bound at most ⌈log₂ F⌉·μ/2 below the unsmoothed distance."""
     path_weight: float = 1.0
     """``"path"``: weight of the squared tip displacements Σ‖p(z_{k+1}) − p(z_k)‖² (m²)."""
     smoothness_weight: float = 0.01
@@ -137,35 +127,20 @@ class TrajectoryPolishConfig:
     equally good bodies. It biases reachable poses by about weight·‖Δz‖/‖J‖: 1e-4 was
     measured to leave 1e-3 pose errors on an 8-waypoint tdcr3 path, 1e-8 below 1e-6."""
     clearance_curvature: str = "full"
-    """The clearance rows' second derivatives in the Hessian: ``"full"`` (exact:
-    through the parts' shape and the kinematics), ``"parts"`` (the parts' shape only) or
-    ``"none"``."""
-    compile: bool = True
-    """Compile the per-configuration clearance functions to machine code, cached on disk
-    (``stages.polish._compiled_functions``: about 3× faster evaluations; 5–20 s once per
-    robot and scene structure). False, or no C compiler: CasADi's virtual machine, the
-    same numbers."""
+    """As ``NLPSettings`` (exact second derivatives by default)."""
     hessian: str = "exact"
     """Ipopt's ``hessian_approximation``: ``"exact"`` (the structured Hessian of the
     module docstring: exact objective and bending terms, no clearance curvature) or
     ``"limited-memory"`` (L-BFGS)."""
-    violation_tolerance: float = VIOLATION_TOLERANCE
-    """Largest re-evaluated ``max_violation`` of a successful polish (rad, m, m/s, m/s²)."""
-    print_level: int = 0
-    """Ipopt's ``print_level`` (0: silent)."""
 
     def __post_init__(self) -> None:
-        if self.max_pairs < 1:
-            raise ValueError(f"max_pairs must be at least 1, got {self.max_pairs}")
+        super().__post_init__()
         if self.interpolation_checks < 0 or self.reselections < 0:
             raise ValueError("interpolation_checks and reselections must be ≥ 0")
         if self.verify_samples < 1 or self.interpolation_checks > self.verify_samples - 1:
             raise ValueError("verify_samples must be ≥ 1 and interpolation_checks ≤ "
                              f"verify_samples − 1, got {self.verify_samples} and "
                              f"{self.interpolation_checks}")
-        if self.clearance_curvature not in ("full", "parts", "none"):
-            raise ValueError("clearance_curvature must be 'full', 'parts' or 'none', got "
-                             f"{self.clearance_curvature!r}")
         if self.hessian not in ("exact", "limited-memory"):
             raise ValueError(f"hessian must be 'exact' or 'limited-memory', got {self.hessian!r}")
 
