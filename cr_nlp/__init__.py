@@ -17,6 +17,8 @@ __version__ = "0.1.0"
 
 _PUBLIC = {
     "use_host_devices": ".runtime",
+    "configure": ".runtime",
+    "clear_caches": ".runtime",
     "bundled_file": "._resources",
     "models_root": "._resources",
     "run_batch": ".batch",
@@ -36,6 +38,11 @@ _PUBLIC = {
     "SCHEMA_VERSION": ".tasks._result",
     "load_result": ".tasks._result",
     "load_results": ".tasks._result",
+    "CalibrationConfig": ".tasks.calibrate",
+    "CalibrationResult": ".tasks.calibrate",
+    "calibrate": ".tasks.calibrate",
+    "read_measurements": ".tasks.measurements",
+    "follow_path": ".tasks.follow",
     "FollowConfig": ".tasks.follow",
     "FollowResult": ".tasks.follow",
     "PathFollower": ".tasks.follow",
@@ -51,9 +58,11 @@ _PUBLIC = {
     "TensionIKConfig": ".tasks.tension_ik",
     "TensionIKResult": ".tasks.tension_ik",
     "TensionIKSolver": ".tasks.tension_ik",
+    "solve_tension_ik": ".tasks.tension_ik",
     "TrajectoryConfig": ".tasks.trajectory",
     "TrajectoryPlanner": ".tasks.trajectory",
     "TrajectoryResult": ".tasks.trajectory",
+    "plan_trajectories": ".tasks.trajectory",
     "save_results": ".tasks.trajectory",
     "Scene": ".world",
     "check": ".world",
@@ -95,13 +104,19 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from .model.cosserat import solve_statics as solve_statics
     from .model.rotations import matrix_from_wxyz as matrix_from_wxyz
     from .model.rotations import wxyz_from_matrix as wxyz_from_matrix
+    from .runtime import clear_caches as clear_caches
+    from .runtime import configure as configure
     from .runtime import use_host_devices as use_host_devices
     from .tasks._result import SCHEMA_VERSION as SCHEMA_VERSION
     from .tasks._result import load_result as load_result
     from .tasks._result import load_results as load_results
+    from .tasks.calibrate import CalibrationConfig as CalibrationConfig
+    from .tasks.calibrate import CalibrationResult as CalibrationResult
+    from .tasks.calibrate import calibrate as calibrate
     from .tasks.follow import FollowConfig as FollowConfig
     from .tasks.follow import FollowResult as FollowResult
     from .tasks.follow import PathFollower as PathFollower
+    from .tasks.follow import follow_path as follow_path
     from .tasks.ik import IKConfig as IKConfig
     from .tasks.ik import IKResult as IKResult
     from .tasks.ik import IKSolver as IKSolver
@@ -109,14 +124,17 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from .tasks.live_ik import LiveIKConfig as LiveIKConfig
     from .tasks.live_ik import LiveIKResult as LiveIKResult
     from .tasks.live_ik import LiveIKSolver as LiveIKSolver
+    from .tasks.measurements import read_measurements as read_measurements
     from .tasks.paths import ReferencePath as ReferencePath
     from .tasks.paths import load_path as load_path
     from .tasks.tension_ik import TensionIKConfig as TensionIKConfig
     from .tasks.tension_ik import TensionIKResult as TensionIKResult
     from .tasks.tension_ik import TensionIKSolver as TensionIKSolver
+    from .tasks.tension_ik import solve_tension_ik as solve_tension_ik
     from .tasks.trajectory import TrajectoryConfig as TrajectoryConfig
     from .tasks.trajectory import TrajectoryPlanner as TrajectoryPlanner
     from .tasks.trajectory import TrajectoryResult as TrajectoryResult
+    from .tasks.trajectory import plan_trajectories as plan_trajectories
     from .tasks.trajectory import save_results as save_results
     from .world import Scene as Scene
     from .world import check as check

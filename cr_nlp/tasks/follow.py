@@ -594,5 +594,6 @@ class PathFollower:
 def follow_path(robot: Robot | str | dict, path: ReferencePath | str | Path,
                 scene: Scene | str | None = None, config: FollowConfig = FollowConfig(),
                 exact: bool = False) -> FollowResult:
-    """One-call path following: see ``PathFollower.follow``."""
+    """One-call path following: see ``PathFollower.follow`` (waypoint poses in metres
+    and unit quaternions; answers θ, φ, L in rad, rad, m)."""
     return PathFollower(robot, scene, config).follow(path, exact=exact)

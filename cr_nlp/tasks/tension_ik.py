@@ -412,5 +412,6 @@ def _replace_rows(result: TensionIKResult, other: TensionIKResult, rows: np.ndar
 
 def solve_tension_ik(robot: Robot | str | dict, positions: Any, wxyz: Any = None,
                      **loads: Any) -> TensionIKResult:
-    """One-call tension-space IK with the default config (see ``TensionIKSolver.solve``)."""
+    """One-call tension-space IK with the default config (see ``TensionIKSolver.solve``):
+    positions in metres, wxyz unit quaternions, loads in N and N·m; tensions in N."""
     return TensionIKSolver(robot).solve(positions, wxyz, **loads)
