@@ -142,3 +142,32 @@ def test_early_give_up_checkpoint_plans_random_27_alike_in_fewer_trips():
     new, old = _plan_alike("random_27", 12, replace(TrajectoryConfig(), give_up=((20, 5.0),)),
                            10, 5e-3)
     assert new.lm.slot_trips < old.lm.slot_trips
+
+
+def test_the_first_slot_program_compiles_while_the_roadmap_is_built(monkeypatch):
+    """The planner asks for the LM's first slot program before it builds the roadmap,
+    and it is the program the stream then runs (not a second compile of another size)."""
+    from cr_nlp.bench.plan import plan_problems
+    from cr_nlp.stages.refine import _chain_stream
+
+    asked: list[tuple[str, int]] = []
+    real = _chain_stream.compile_ahead
+
+    def recording(fn, args, **kwargs):
+        asked.append((kwargs.get("name", ""), int(args[1].shape[0])))
+        return real(fn, args, **kwargs)
+
+    monkeypatch.setattr(_chain_stream, "compile_ahead", recording)
+    scene = load_scene("shelf")
+    planner = TrajectoryPlanner(ROBOT, scene, TrajectoryConfig())
+    built = []
+    real_roadmap = planner.roadmap
+    monkeypatch.setattr(planner, "roadmap", lambda: (built.append(len(asked)), real_roadmap())[1])
+    starts, goals = plan_problems(ROBOT, scene, 3, planner.margin, seed=0)
+    results = planner.plan(starts, goals)
+    assert all(r.q is not None for r in results)
+    name, slots = asked[0]
+    assert name == "the trajectory LM" and built and built[0] >= 1   # asked before the roadmap
+    first_device = planner.lm.devices[0].id
+    assert (first_device, slots) in planner.lm._slot_programs
+    assert min(s for d, s in planner.lm._slot_programs if d == first_device) == slots

@@ -491,6 +491,9 @@ class TrajectoryPlanner:
         exact stage polishes in turn."""
         cfg = self.config
         t0 = time.perf_counter()
+        # The LM's first program compiles while the roadmap is built and searched.
+        self.lm.compile_ahead(len(valid) * min(max(cfg.first_round, 1), cfg.guesses),
+                              self._arrays)
         guesses, kinds = [], []
         paths = self._roadmap_paths(valid, init)
         for (_, q_start, q_goal), path in zip(valid, paths, strict=True):

@@ -209,6 +209,28 @@ class ChainBatchLM:
                              np.concatenate(it_all), compile_seconds, callback)
 
     # ------------------------------------------------------------ slots
+    def compile_ahead(self, chains: int, arrays: Any) -> None:
+        """Start compiling, in the background, the slot program a stream of ``chains``
+        chains (at most) will first run, for the first device (the others get it moved,
+        ``_programs``): the caller's host work (a roadmap) then overlaps XLA's. Only for
+        the slot schedule; nothing when that program is compiled already. A stream that
+        starts with fewer chains may want a smaller program: this one is then not used
+        in this process, but stored for later ones."""
+        if self.schedule != "slots" or self.structure != "banded" or chains < 1:
+            return
+        share = -(-chains // len(self.devices))
+        slots = max(self._fitting(share), min((s for _, s in self._slot_programs), default=0))
+        device = self.devices[0]
+        if (device.id, slots) in self._slot_programs:
+            return
+        lane = _Lane(device, slots, self, arrays)
+        width = int(np.size(self.free))
+        args = jax.device_put((lane.state, np.zeros((slots, width), self.dtype),
+                               np.zeros(slots, bool), lane.slot_step.astype(self.dtype),
+                               lane.budget), device)
+        self._compile_slots((*args, lane.arrays, lane.free, np.int32(self.trips),
+                             np.int32(1)), ahead=True)
+
     def _solve_slots(self, z0: np.ndarray, step: np.ndarray, arrays: Any, iterations: int,
                      more: MoreChains | None) -> ChainSolution:
         self.streams += 1
