@@ -82,7 +82,7 @@ def part_table(kind: str, a: SceneArrays) -> np.ndarray:
 
 
 def make_slot_groups(robot: Robot, scene: Scene | None, capacity: int,
-               include_self: bool) -> tuple[list[SlotGroup], SceneArrays | None]:
+                     include_self: bool) -> tuple[list[SlotGroup], SceneArrays | None]:
     """The slot groups of ``robot`` in ``scene``: one per part kind present (in ``KINDS``
     order), then, with ``include_self`` and n ≥ 3 segments, one for self pairs; each holds
     at most ``capacity`` rows. Also the scene's float64 JAX arrays (None without a scene)."""
@@ -98,7 +98,8 @@ def make_slot_groups(robot: Robot, scene: Scene | None, capacity: int,
         for kind, count in zip(KINDS, counts, strict=True):
             if count:
                 groups.append(SlotGroup(kind, min(capacity, count * n_bodies), first,
-                                  part_table(kind, numeric), numeric.convex_planes.shape[1]))
+                                        part_table(kind, numeric),
+                                        numeric.convex_planes.shape[1]))
             first += count
         with jax.enable_x64(True):
             arrays = scene_arrays(scene, dtype=jnp.float64)

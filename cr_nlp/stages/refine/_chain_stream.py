@@ -218,18 +218,28 @@ class ChainBatchLM:
         in this process, but stored for later ones."""
         if self.schedule != "slots" or self.structure != "banded" or chains < 1:
             return
-        share = -(-chains // len(self.devices))
-        slots = max(self._fitting(share), min((s for _, s in self._slot_programs), default=0))
-        device = self.devices[0]
+        slots, device = self._first_slots(chains), self.devices[0]
         if (device.id, slots) in self._slot_programs:
             return
         lane = _Lane(device, slots, self, arrays)
-        width = int(np.size(self.free))
-        args = jax.device_put((lane.state, np.zeros((slots, width), self.dtype),
-                               np.zeros(slots, bool), lane.slot_step.astype(self.dtype),
-                               lane.budget), device)
-        self._compile_slots((*args, lane.arrays, lane.free, np.int32(self.trips),
-                             np.int32(1)), ahead=True)
+        self._compile_slots(self._slot_args(lane, np.zeros((slots, np.size(self.free))),
+                                            np.zeros(slots, bool), 1), ahead=True)
+
+    def _first_slots(self, chains: int) -> int:
+        """Slots per lane when a stream of ``chains`` chains starts: the fitting size for
+        a lane's share, no smaller than a slot program compiled already."""
+        share = -(-chains // len(self.devices))
+        return max(self._fitting(share),
+                   min((slots for _, slots in self._slot_programs), default=0))
+
+    def _slot_args(self, lane: _Lane, z_new: np.ndarray, load: np.ndarray,
+                   wanted: int) -> tuple:
+        """The slot program's arguments for ``lane``'s next call: its state and the
+        chains loaded into it (``z_new`` where ``load``) on its device, then the scene
+        arrays, the free mask, the trip budget and how many running slots end the call."""
+        args = jax.device_put((lane.state, z_new.astype(self.dtype), load,
+                               lane.slot_step.astype(self.dtype), lane.budget), lane.device)
+        return (*args, lane.arrays, lane.free, np.int32(self.trips), np.int32(wanted))
 
     def _solve_slots(self, z0: np.ndarray, step: np.ndarray, arrays: Any, iterations: int,
                      more: MoreChains | None) -> ChainSolution:
@@ -240,10 +250,8 @@ class ChainBatchLM:
         out_cost: dict[int, float] = {}
         out_it: dict[int, int] = {}
         waiting = deque(range(len(z0)))
-        compiled = [slots for _, slots in self._slot_programs]
-        share = -(-len(z0) // len(self.devices))
-        lanes = [_Lane(device, max(self._fitting(share), min(compiled, default=0)), self,
-                       arrays) for device in self.devices]
+        slots = self._first_slots(len(z0))
+        lanes = [_Lane(device, slots, self, arrays) for device in self.devices]
         in_flight: deque[_Lane] = deque()               # oldest call first
         compile_seconds = callback = 0.0
         # Chains finished in the last call whose ``more`` has not run yet: it runs while
@@ -324,9 +332,7 @@ class ChainBatchLM:
             wanted = occupied      # return at the first finish: more may add chains
         else:
             wanted = 1
-        args = jax.device_put((lane.state, z_new.astype(self.dtype), load,
-                               lane.slot_step.astype(self.dtype), lane.budget), lane.device)
-        args = (*args, lane.arrays, lane.free, np.int32(self.trips), np.int32(wanted))
+        args = self._slot_args(lane, z_new, load, wanted)
         key = (lane.device.id, lane.slots)
         seconds = 0.0
         if key not in self._slot_programs:
