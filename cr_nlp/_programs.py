@@ -283,7 +283,7 @@ def compile_program(fn: Callable, args: Sequence[Any], *, name: str = "",
     there, else traces, stores and compiles it; a program compiled earlier in this
     process with the same key is reused, and one that ``compile_ahead`` is compiling is
     waited for. Turns on JAX's persistent compilation cache
-    (``runtime.enable_compilation_cache``) unless the user configured one."""
+    (``runtime.configure``) unless the user configured one."""
     return _request(fn, args, name, batched, outputs, ahead=False)
 
 

@@ -63,15 +63,11 @@ def clear_caches() -> int:
     return len(_CACHES)
 
 
+@lru_cache(maxsize=1)
 def configure() -> None:
     """The process-wide settings a solve wants, applied once (later calls cost nothing):
     JAX's persistent compilation cache (``enable_compilation_cache``) and full float32
     matrix products (``full_precision_matmuls``), each unless the user set their own."""
-    _configure_once()
-
-
-@lru_cache(maxsize=1)
-def _configure_once() -> None:
     full_precision_matmuls()
     enable_compilation_cache()
 

@@ -191,7 +191,6 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
     dtype = z0.dtype
     free = free.astype(dtype)
     fixed_diag = jnp.diag(1.0 - free)
-    mask = free[:, None] * free[None, :]
     z0 = project(z0)
     solve = solve_spd_cholesky if config.linear_solver == "cholesky" else solve_spd
 
@@ -215,7 +214,7 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
               lam: jax.Array) -> tuple[jax.Array, jax.Array]:
         """The damped step's trial point and the reduction the model predicts for it."""
         if bounds is None:
-            h = h * mask + fixed_diag
+            h = h + fixed_diag              # JᵀJ is zero off the free variables already
         else:
             tight = 1e-12 * (1.0 + jnp.abs(z))
             held = (((z <= bounds[0] + tight) & (g > 0))
