@@ -43,23 +43,22 @@ import casadi as ca
 import numpy as np
 from tqdm.auto import tqdm
 
-from ...model import CasadiModel, Robot, load_robot, q_to_z_numpy, z_to_q_numpy
-from ...model.limits import limit_violation_q, project_bending
-from ...world.clearance import PairDistances, body_gap_tolerance, self_pairs
-from ...world.scene import Scene, load_scene
+from ...model import Robot, q_to_z_numpy, z_to_q_numpy
+from ...model.limits import project_bending
+from ...world.scene import Scene
 from ...world.verdict import VIOLATION_TOLERANCE, describe_violations
-from ._clearance_rows import Selection, SlotRows, make_slot_groups, select_slots
+from ._clearance_rows import Selection, select_slots
 from ._compiled_functions import compiled, pending
 from ._ipopt import (
     SUCCESS_STATUSES,
     TIME_LIMIT_STATUS,
-    Deadline,
     NLPSettings,
     WarmStart,
     build_solver,
     ipopt_options,
     run_solver,
 )
+from ._polisher import ClearancePolisher
 
 MODES = ("equality", "minimize")
 
@@ -157,7 +156,7 @@ class _Attempt:
         return max(self.violations.values())
 
 
-class IKPolisher:
+class IKPolisher(ClearancePolisher):
     """Ipopt polish of IK answers for one robot in one scene.
 
     The NLPs (one per mode in ``config.modes``) are built once here and re-solved by
@@ -175,33 +174,11 @@ class IKPolisher:
 
     def __init__(self, robot: Robot | str | Path, scene: Scene | str | Path | dict | None = None,
                  safety_margin: float | None = None, config: PolishConfig = PolishConfig()) -> None:
-        self.robot = robot = load_robot(robot)
-        self.scene = load_scene(scene) if scene is not None else None
-        self.config = config
-        self.safety_margin = float(body_gap_tolerance(robot) + 0.002 if safety_margin is None
-                                   else safety_margin)
-        self.builds = 0
-        """How many ``nlpsol`` solvers this polisher constructed."""
-        self._deadline = Deadline()
-
-        self._theta_max = np.array([s.theta_max for s in robot.segments])
-        self._lbx = np.ravel([[-s.theta_max, -s.theta_max, s.length_min] for s in robot.segments])
-        self._ubx = np.ravel([[s.theta_max, s.theta_max, s.length_max] for s in robot.segments])
-        self._n_bodies = robot.n_points + 1
-        self._self_pairs = (self_pairs(robot) if robot.has_self_pairs
-                            else np.zeros((0, 2), dtype=np.int64))
-        self._groups, _ = make_slot_groups(robot, self.scene, config.max_pairs, include_self=True)
-        self._pairs = PairDistances(robot, self.scene)
-        self._model = CasadiModel(robot)
-        self._rows = SlotRows(self._model, self._groups, config.face_smoothing)
+        super().__init__(robot, scene, safety_margin, config)
         free = int(np.count_nonzero(self._ubx > self._lbx))
         # Six pose equations over-determine a robot with fewer free variables.
         self.modes = tuple(m for m in config.modes if m != "equality" or free >= 6) or ("minimize",)
         """The modes this robot uses, in order."""
-        self._interpreted = False
-        """Built on CasADi's virtual machine while the compiled functions are being built
-        (``stages.polish._compiled_functions``): rebuilt on them before the first solve after
-        that."""
         self._solvers = self._build_all()
 
     # ------------------------------------------------------------ building
@@ -303,10 +280,9 @@ class IKPolisher:
     def _distances(self, z: np.ndarray) -> np.ndarray:
         """(…, N·P + M) pair distances (m) of z (…, 3n): exact below ``near_margin`` (and
         δ), lower bounds above."""
-        margin = max(self.config.near_margin, self.safety_margin)
         if np.ndim(z) == 1:
-            return self._pairs.near(z, margin, centres=self._rows.centres(z))
-        return self._pairs.near(z, margin)
+            return self._pairs.near(z, self._margin, centres=self._rows.centres(z))
+        return self._pairs.near(z, self._margin)
 
     def _slot_values(self, q_near: Any, q: Any) -> tuple[np.ndarray, np.ndarray]:
         """The clearance rows switched on for the warm start ``q_near``, evaluated at ``q``
@@ -331,10 +307,8 @@ class IKPolisher:
         error = np.asarray(self._model.functions_z["pose_error"](z, target_position,
                                                                  target_rotation))
         distances = self._distances(z)
-        shortfall = (max(0.0, self.safety_margin - float(np.min(distances)))
-                     if distances.size else 0.0)
-        violations = {"limits": float(limit_violation_q(self.robot, q)), "clearance": shortfall}
-        return z, float(np.linalg.norm(error)), violations, distances
+        return (z, float(np.linalg.norm(error)), self._shared_violations(z, distances),
+                distances)
 
     def _run(self, mode: str, x0: np.ndarray, z_start: np.ndarray, selection: Selection,
              target_position: np.ndarray, target_rotation: np.ndarray) -> _Attempt:

@@ -60,23 +60,22 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from ...model import CasadiModel, Robot, load_robot, q_to_z_numpy, z_to_q_numpy
+from ...model import Robot, q_to_z_numpy, z_to_q_numpy
 from ...model._ops import NUMPY
 from ...model.kinematics import model_tendon_lengths
-from ...model.limits import limit_violation_q, project_bending
-from ...world.clearance import PairDistances, body_gap_tolerance, self_pairs
-from ...world.scene import Scene, load_scene
-from ._clearance_rows import SlotRows, make_slot_groups, select_slots_batch
+from ...model.limits import project_bending
+from ...world.scene import Scene
+from ._clearance_rows import SlotRows, select_slots_batch
 from ._compiled_functions import pending
 from ._ipopt import (
     TIME_LIMIT_STATUS,
-    Deadline,
     NLPSettings,
     WarmStart,
     build_solver,
     ipopt_options,
     run_solver,
 )
+from ._polisher import ClearancePolisher
 
 OBJECTIVES = ("path", "tracking")
 
@@ -207,7 +206,7 @@ def interpolated(way: Any, fractions: Any) -> Any:
 # ================================================================ the polisher
 
 
-class TrajectoryPolisher:
+class TrajectoryPolisher(ClearancePolisher):
     """Ipopt polish of whole trajectories for one robot, scene and number of waypoints.
 
     The NLP is built on first use, once per set of clearance-row capacities (a power of
@@ -234,29 +233,12 @@ class TrajectoryPolisher:
             raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
         if int(waypoints) != waypoints or waypoints < 2:
             raise ValueError(f"waypoints must be an integer ≥ 2, got {waypoints!r}")
-        self.robot = robot = load_robot(robot)
-        self.scene = (load_scene(scene) if isinstance(scene, (str, Path, dict)) else scene)
+        super().__init__(robot, scene, safety_margin, config)
+        robot = self.robot
         self.waypoints = w = int(waypoints)
         self.objective = objective
-        self.config = config
-        self.safety_margin = float(body_gap_tolerance(robot) + 0.002 if safety_margin is None
-                                   else safety_margin)
-        self.builds = 0
-        """How many ``nlpsol`` solvers this polisher constructed."""
-        self._deadline = Deadline()
-
         self._n_configs = w + config.interpolation_checks * (w - 1)
         self._samples = np.arange(1, config.verify_samples) / config.verify_samples
-        self._n_bodies = robot.n_points + 1
-        self._self_pairs = (self_pairs(robot) if robot.has_self_pairs
-                            else np.zeros((0, 2), dtype=np.int64))
-        self._groups, _ = make_slot_groups(robot, self.scene, config.max_pairs, include_self=True)
-        self._pairs = PairDistances(robot, self.scene)
-        self._theta_max = np.array([s.theta_max for s in robot.segments])
-        self._lbx = np.ravel([[-s.theta_max, -s.theta_max, s.length_min] for s in robot.segments])
-        self._ubx = np.ravel([[s.theta_max, s.theta_max, s.length_max] for s in robot.segments])
-        self._model = CasadiModel(robot)
-        self._rows = SlotRows(self._model, self._groups, config.face_smoothing)
         self._slot_rows = {(True,) * len(self._groups): self._rows}
         # ℓ = A·z + b exactly (linear), A from the model's own CasADi tendon function.
         self._tendon_matrix = np.asarray(ca.Function(
@@ -267,10 +249,6 @@ class TrajectoryPolisher:
         self._accel = math.isfinite(robot.tendon_accel_max) and w >= 3
         self._pose_errors = self._model.functions_z["pose_error"].map(w)
         self._solvers: dict[tuple[int, ...], tuple[ca.Function, np.ndarray]] = {}
-        self._interpreted = False
-        """Some solver was built on CasADi's virtual machine while the compiled functions
-        were being built (``stages.polish._compiled_functions``): all are rebuilt once they are
-        there."""
 
     # ------------------------------------------------------------ building
 
@@ -485,7 +463,7 @@ class TrajectoryPolisher:
         """(G, N·P + M) float64 pair distances (m) at the ``_grid`` configurations of a
         (W, 3n) trajectory in z: exact below ``near_margin`` (and δ), lower bounds above
         (``PairDistances.near``)."""
-        return self._pairs.near(self._grid(z), max(self.config.near_margin, self.safety_margin))
+        return self._pairs.near(self._grid(z), self._margin)
 
     def _levers(self, z: np.ndarray) -> np.ndarray:
         """(W,) the largest Σⱼ‖∂c_b/∂zⱼ‖ over the body spheres b at each of the (W, 3n)
@@ -558,9 +536,7 @@ class TrajectoryPolisher:
         accel = (np.abs(np.diff(lengths, 2, axis=0)) / (dt * dt) if len(z) > 2
                  else np.zeros((0, lengths.shape[1])))
         violations = {
-            "clearance": (max(0.0, self.safety_margin - float(np.min(distances)))
-                          if distances.size else 0.0),
-            "limits": float(np.max(limit_violation_q(robot, z_to_q_numpy(z)))),
+            **self._shared_violations(z, distances),
             "tendon_speed": max(0.0, float(np.max(speed, initial=0.0)) - robot.tendon_speed_max),
             "tendon_accel": max(0.0, float(np.max(accel, initial=0.0)) - robot.tendon_accel_max),
         }
