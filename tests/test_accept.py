@@ -113,7 +113,7 @@ def test_shared_ipopt_setup_solves_a_closed_form_and_reports_failure_as_a_value(
     assert not bad.success and bad.status != "Solve_Succeeded"
 
 
-def test_ik_exact_retries_from_the_search_beam_without_searching_again(monkeypatch) -> None:
+def test_ik_polish_retries_from_the_search_beam_without_searching_again(monkeypatch) -> None:
     """Through IK: every first polish is made to fail; the second attempt starts from
     another member of the search's own beam (not the answer, no new search), and what
     it accepts passes an independent float64 check."""
@@ -121,7 +121,7 @@ def test_ik_exact_retries_from_the_search_beam_without_searching_again(monkeypat
 
     from cr_nlp.bench.ik import forward_kinematics
     from cr_nlp.model import load_robot
-    from cr_nlp.stages.polish import _ik_exact as ik_exact
+    from cr_nlp.tasks import _ik_polish as ik_polish
     from cr_nlp.tasks.ik import IKSolver
     from cr_nlp.world import check_many
 
@@ -134,7 +134,7 @@ def test_ik_exact_retries_from_the_search_beam_without_searching_again(monkeypat
     solver = IKSolver(robot)
     first = solver.solve(positions, wxyz)
 
-    real = ik_exact.polish_many
+    real = ik_polish.polish_many
     starts: list[np.ndarray] = []
 
     def first_polish_fails(polisher, q0s, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003
@@ -148,7 +148,7 @@ def test_ik_exact_retries_from_the_search_beam_without_searching_again(monkeypat
     def no_search(*args, **kwargs):  # noqa: ANN002, ANN003
         raise AssertionError("the exact stage must not search again")
 
-    monkeypatch.setattr(ik_exact, "polish_many", first_polish_fails)
+    monkeypatch.setattr(ik_polish, "polish_many", first_polish_fails)
     monkeypatch.setattr(IKSolver, "candidates", no_search)
     exact = solver.solve(positions, wxyz, exact=True)
     assert len(starts) >= 2 and 0 < len(starts[1]) <= len(q_true)

@@ -156,8 +156,8 @@ def test_exact_ik_out_of_time_keeps_the_verified_penalty_answer(ik_case) -> None
 
 def test_a_trajectory_polish_out_of_time_keeps_the_lm_answer_marked() -> None:
     from cr_nlp.model import load_robot
-    from cr_nlp.stages.polish._trajectory_exact import polish_trajectories
     from cr_nlp.stages.polish._trajectory_nlp import TrajectoryPolisher
+    from cr_nlp.tasks._trajectory_polish import polish_trajectories
     from cr_nlp.tasks.trajectory import verify_trajectory
 
     from .test_exact_verdict import cut_between_waypoints

@@ -14,7 +14,7 @@ from ..model import Robot
 from ..model.limits import clip_to_limits
 from ..model.rotations import matrix_from_wxyz
 from ..stages.polish._accept import Polished, accept_first, polish_note
-from ..stages.polish._trajectory_exact import describe_polish
+from ..stages.polish._trajectory_nlp import describe_polish
 from ..world.verdict import VIOLATION_TOLERANCE, Verdict
 from ._follow_result import FollowResult, tracking_cost
 from ._timing import StageTiming

@@ -363,14 +363,14 @@ class IKSolver:
 
     def _polish(self, result: IKResult, positions: np.ndarray, wxyz: np.ndarray,
                 idx: np.ndarray, beam: np.ndarray, timing: IKTiming, progress: bool) -> None:
-        """Exact stage (``stages.polish._ik_exact``): polish every answer; where the polish fails
+        """Exact stage (``tasks._ik_polish``): polish every answer; where the polish fails
         or the verdict rejects it, polish the other candidates of the search's own beam
         (``beam``: (T, width, 3n), best first) in turn, up to ``config.polish_attempts``
         polishes in all. An accepted polish replaces the answer; otherwise the refined
         answer stays with its own verdict (exact mode never succeeds less often than the
         penalty stages). ``config.polish_time_limit`` bounds each target's polishes."""
-        from ..stages.polish._ik_exact import polish_answers
         from ..stages.polish._ik_nlp import IKPolisher, build_polisher
+        from ._ik_polish import polish_answers
 
         t0 = time.perf_counter()
         if self._polisher is None:

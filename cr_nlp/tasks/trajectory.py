@@ -50,8 +50,8 @@ from ..model.limits import project_z
 from ..runtime import configure
 from ..stages.explore._trajectory_guesses import initial_guesses
 from ..stages.polish._accept import check_time_limit
-from ..stages.polish._trajectory_exact import describe_polish as describe_polish
-from ..stages.polish._trajectory_exact import trajectory_polisher
+from ..stages.polish._trajectory_nlp import describe_polish as describe_polish
+from ..stages.polish._trajectory_nlp import trajectory_polisher
 from ..stages.refine._banded_lm import ChainResidual
 from ..stages.refine._chain_stream import ChainBatchLM
 from ..stages.refine._lm import LMConfig
@@ -470,7 +470,7 @@ class TrajectoryPlanner:
             for block in range(0, len(valid), cfg.problem_chunk):
                 part = valid[block:block + cfg.problem_chunk]
                 candidates = self._plan_valid(part, results, dt, init, timing)
-                if exact:   # the exact stage (``stages.polish._trajectory_exact``)
+                if exact:   # the exact stage (``tasks._trajectory_polish``)
                     t0 = time.perf_counter()
                     polish_results(self.robot, [i for i, _, _ in part], candidates, results,
                                    dt, lambda q: self.verify(q, dt), self.polisher,

@@ -65,6 +65,7 @@ from ...model._ops import NUMPY
 from ...model.kinematics import model_tendon_lengths
 from ...model.limits import project_bending
 from ...world.scene import Scene
+from ...world.verdict import describe_violations
 from ._clearance_rows import SlotRows, select_slots_batch
 from ._compiled_functions import pending
 from ._ipopt import (
@@ -728,6 +729,47 @@ class TrajectoryPolisher(ClearancePolisher):
                                          self.config.face_smoothing)
         expected = np.concatenate([world[c, flat] for c, flat in enumerate(chosen)])
         return values[np.isfinite(lower)], expected
+
+
+# ================================================================ one polish as a unit of work
+
+
+def trajectory_polisher(robot: Robot, scene: Scene | None, waypoints: int, margin: float,
+                        samples: int) -> TrajectoryPolisher:
+    """A path-length ``TrajectoryPolisher`` with clearance rows at every waypoint and at
+    the ``samples`` − 1 points inside every interval that the verification checks (δ =
+    ``margin`` m on the sphere body); module level, so pool workers can build it."""
+    return TrajectoryPolisher(robot, scene, waypoints, safety_margin=margin,
+                              config=TrajectoryPolishConfig(interpolation_checks=samples - 1,
+                                                            verify_samples=samples))
+
+
+def describe_polish(out: Any) -> str:
+    """Why a trajectory polish failed: Ipopt's status (or that the time limit stopped it)
+    and the violations it left."""
+    broken = describe_violations(out.violations)
+    head = (f"Ipopt stopped at the time limit ({out.iterations} iterations, "
+            f"{out.seconds:.3g} s)" if _out_of_time(out) else f"Ipopt {out.status}")
+    return head + (f", {broken}" if broken else "")
+
+
+def polish_one(polisher: Any, q0: np.ndarray, dt: float,
+               time_limit: float | None = None) -> tuple[np.ndarray | None, str, float, bool]:
+    """One Ipopt polish of the trajectory ``q0`` (``dt`` s between waypoints) in at most
+    ``time_limit`` seconds (None: no limit): its answer, or None with why Ipopt failed,
+    the seconds it took, and whether the time limit stopped it; module level, so a
+    ``PolishPool`` can send it to its workers."""
+    t0 = time.perf_counter()
+    out = polisher.solve(q0, dt, time_limit=time_limit)
+    if not out.success:
+        return None, describe_polish(out), time.perf_counter() - t0, _out_of_time(out)
+    return out.q, "", time.perf_counter() - t0, _out_of_time(out)
+
+
+def _out_of_time(out: Any) -> bool:
+    """A polish result's ``out_of_time``; a result without one (a stand-in polisher's)
+    did not run out of time."""
+    return bool(getattr(out, "out_of_time", False))
 
 
 def _interval_curvature(dof: int, checks: int) -> ca.Function:

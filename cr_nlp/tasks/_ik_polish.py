@@ -1,6 +1,6 @@
-"""The IK exact stage: each target's answer, then the other candidates of the search's
-own beam, polished by Ipopt (``stages.polish._ik_nlp``) and accepted by the verdict
-(``stages.polish._accept``).
+"""The IK solver's exact mode: which answers to polish (each target's answer, then the
+other candidates of the search's own beam) and which polish counts; the polish itself is
+``stages.polish._ik_nlp``, the acceptance ``stages.polish._accept``.
 
 A polish counts as worth judging when Ipopt succeeded, or when it keeps every
 constraint and comes nearer the target than the answer it started from (it may miss the
@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from ._accept import Acceptance, Judged, Polished, polish_and_accept
-from ._ik_nlp import IKPolisher, polish_many
+from ..stages.polish._accept import Acceptance, Judged, Polished, polish_and_accept
+from ..stages.polish._ik_nlp import IKPolisher, polish_many
 
 
 def other_candidates(beam: np.ndarray, answer: np.ndarray,
