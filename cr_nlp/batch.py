@@ -38,18 +38,13 @@ but the CLI and the benchmarks.
 
 from __future__ import annotations
 
-import copy
 import dataclasses
-import hashlib
 import json
 import math
 import os
-import pickle
 import sys
 import threading
 import time
-import warnings
-import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,45 +52,27 @@ from typing import Any
 
 import numpy as np
 
-from ._files import atomic_open, write_atomic
+from ._batch_cluster import DEVICES_ENV as DEVICES_ENV
+from ._batch_cluster import LOCAL_HOST as LOCAL_HOST
+from ._batch_cluster import PRE_SPAWN as PRE_SPAWN
+from ._batch_cluster import QUIET_WORKERS as QUIET_WORKERS
+from ._batch_cluster import ExposedClusterWarning as ExposedClusterWarning
+from ._batch_cluster import close_cluster as close_cluster
+from ._batch_cluster import exposure_warning as exposure_warning
+from ._batch_cluster import is_loopback as is_loopback
+from ._batch_cluster import start_local_cluster as start_local_cluster
+from ._batch_cluster import worker_env as worker_env
+from ._batch_files import MANIFEST as MANIFEST
+from ._batch_files import MANIFEST_VERSION as MANIFEST_VERSION
+from ._batch_files import RESULTS as RESULTS
+from ._batch_files import BatchError as BatchError
+from ._batch_files import chunk_file as chunk_file
+from ._batch_files import chunk_ranges as chunk_ranges
+from ._batch_files import digest, open_manifest, plain_rows, read_chunks, write_json
+from ._batch_files import read_chunk as read_chunk
+from ._batch_files import solver_key as solver_key
+from ._batch_files import write_chunk as write_chunk
 from .runtime import register
-
-MANIFEST = "manifest.json"
-RESULTS = "results.json"
-MANIFEST_VERSION = 3
-"""3: answers in the result protocol's field names (``tasks._result``, schema 1); 2: chunk
-files hold arrays (``chunk_<id>.npz``); 1 held JSON rows."""
-PRE_SPAWN = "distributed.nanny.pre-spawn-environ"
-"""Dask's config of the environment its nannies set before spawning a worker process."""
-QUIET_WORKERS = {
-    "distributed.worker.profile.enabled": False,
-    "distributed.worker.memory.monitor-interval": "1s",
-    "distributed.admin.tick.interval": "500ms",
-    "distributed.admin.system-monitor.interval": "5s",
-}
-"""Dask settings of the scheduler and workers that ``start_local_cluster`` starts. A
-chunk is seconds of CPU-bound work in one worker thread, and Dask's defaults spend CPU
-beside it: the statistical profiler takes the GIL to sample every thread's stack 100
-times a second, the event loop ticks every 20 ms and the system and memory monitors poll
-every 0.5 and 0.1 s (idle, measured: 4 % of a core per worker and 6 % for the scheduler
-with the defaults, 0.4 % and 1 % with these)."""
-DEVICES_ENV = "CR_NLP_BATCH_DEVICES"
-"""Environment variable of a worker process: JAX host devices for its solver (set by
-``start_local_cluster``: the cores divided among the workers)."""
-
-
-LOCAL_HOST = "127.0.0.1"
-"""Where ``start_local_cluster`` listens by default: this machine only."""
-
-
-class BatchError(ValueError):
-    """A job that cannot run as asked: a directory holding another job, a resume that
-    does not match, chunks that failed after Dask's retries."""
-
-
-class ExposedClusterWarning(UserWarning):
-    """A local cluster asked to listen on an address other machines can reach."""
-
 
 # ================================================================ the job
 
@@ -120,16 +97,6 @@ class JobSpec:
     """Digest of (kind, robot, scene, config): the worker's solver cache key."""
 
 
-def chunk_file(out_dir: str | Path, index: int) -> Path:
-    """The file of chunk ``index`` in ``out_dir``."""
-    return Path(out_dir) / f"chunk_{index:06d}.npz"
-
-
-def chunk_ranges(count: int, chunk: int) -> list[tuple[int, int]]:
-    """[start, stop) of each chunk of ``chunk`` problems covering ``count`` problems."""
-    return [(s, min(s + chunk, count)) for s in range(0, count, chunk)]
-
-
 def default_chunk(kind: str, count: int, slots: int, exact: bool = True) -> int:
     """Problems per chunk. Exact-mode IK: about two chunks per worker thread, at most 256
     targets; each chunk pays the solver's fixed costs per call, which outweighed finer
@@ -143,81 +110,10 @@ def default_chunk(kind: str, count: int, slots: int, exact: bool = True) -> int:
     return int(min(largest, max(1, math.ceil(count / max(per_slot * slots, 1)))))
 
 
-def _digest(value: Any) -> str:
-    return hashlib.sha256(value if isinstance(value, bytes) else pickle.dumps(value)).hexdigest()
-
-
-def solver_key(kind: str, robot: Any, scene: Any, config: Any) -> str:
-    """The worker's solver cache key of a job: a digest of its kind, robot, scene and
-    solver settings (the file each was read from left out)."""
-    return _digest((kind, _without_source(robot), _without_source(scene), config))
-
-
-def _without_source(obj: Any) -> Any:
-    """The robot or scene without the path it was read from (a bundled name and the same
-    file are the same job)."""
-    if dataclasses.is_dataclass(obj) and any(f.name == "source" for f in dataclasses.fields(obj)):
-        return dataclasses.replace(obj, source="")
-    return obj
-
-
 def _inputs_hash(kind: str, inputs: tuple[Any, Any], problems: Sequence[str] | None) -> str:
     # No reasons and all-empty reasons are the same job (the API's None, the CLI's list).
     marks = [str(p) for p in problems] if problems and any(problems) else []
-    return _ADAPTERS[kind].inputs_digest(inputs, marks)
-
-
-def _plain(rows: Any) -> Any:
-    return [np.asarray(r, float).tolist() if _numeric(r) else repr(r) for r in rows]
-
-
-def _numeric(row: Any) -> bool:
-    try:
-        np.asarray(row, float)
-    except (TypeError, ValueError):
-        return False
-    return True
-
-
-def _write_atomic(path: Path, data: Any, sync: bool = True) -> None:
-    """Write JSON so that ``path`` is either its old content or the complete new one
-    (``sync=False`` skips the fsync: a power cut may then lose it).
-
-    Compact: ``json`` encodes in C only without ``indent`` (1000 IK rows: ~15 ms
-    instead of ~170 ms)."""
-    write_atomic(path, json.dumps(data).encode() + b"\n", sync)
-
-
-_CHUNK_META = ("chunk", "start", "stop", "run", "worker", "pid", "seconds", "timing")
-
-
-def write_chunk(path: Path, record: dict[str, Any]) -> None:
-    """Write a chunk's record (``solve_chunk``'s, with start, stop and run) atomically:
-    its metadata (and planning rows) as JSON text, the IK columns as arrays."""
-    meta = {k: record[k] for k in _CHUNK_META if k in record}
-    if "rows" in record:
-        meta["rows"] = record["rows"]
-    arrays = {f"column_{k}": v for k, v in record.get("columns", {}).items()}
-    with atomic_open(path, "wb") as handle:
-        np.savez(handle, meta=json.dumps(meta), **arrays)
-
-
-def read_chunk(path: str | Path) -> dict[str, Any] | None:
-    """A chunk file's record (``write_chunk``), None if it is absent or unreadable (then
-    the chunk is solved again)."""
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            record = json.loads(str(data["meta"]))
-            columns = {k[len("column_"):]: data[k] for k in data.files if k.startswith("column_")}
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
-        return None
-    if not isinstance(record, dict) or not ({"chunk", "start", "stop"} <= record.keys()):
-        return None
-    if columns:
-        record["columns"] = columns
-    count = record["stop"] - record["start"]
-    answers = columns.get("success") if columns else record.get("rows")
-    return record if answers is not None and len(answers) == count else None
+    return _ADAPTERS[kind].inputsdigest(inputs, marks)
 
 
 # ================================================================ on the worker
@@ -285,10 +181,10 @@ class _IKJobs:
         return first, second
 
     @staticmethod
-    def inputs_digest(inputs: tuple[Any, Any], marks: list[str]) -> str:
+    def inputsdigest(inputs: tuple[Any, Any], marks: list[str]) -> str:
         # The float64 bytes: hashing their JSON text cost ~5 ms per 1000.
         arrays = [np.ascontiguousarray(x, dtype="<f8") for x in inputs]
-        return _digest(b"".join([json.dumps([[a.shape for a in arrays], marks]).encode(),
+        return digest(b"".join([json.dumps([[a.shape for a in arrays], marks]).encode(),
                                  *(a.tobytes() for a in arrays)]))
 
     @staticmethod
@@ -355,9 +251,9 @@ class _PlanJobs:
         return first, second
 
     @staticmethod
-    def inputs_digest(inputs: tuple[Any, Any], marks: list[str]) -> str:
+    def inputsdigest(inputs: tuple[Any, Any], marks: list[str]) -> str:
         # Raw rows, possibly ragged or malformed: validated per problem on the worker.
-        return _digest(json.dumps([[_plain(inputs[0]), _plain(inputs[1])], marks]).encode())
+        return digest(json.dumps([[plain_rows(inputs[0]), plain_rows(inputs[1])], marks]).encode())
 
     @staticmethod
     def solve(spec: JobSpec, solver: Any, first: Any, second: Any) -> tuple[Any, dict]:
@@ -437,132 +333,6 @@ def solve_chunk(spec: JobSpec, index: int, first: Any, second: Any) -> dict[str,
     }
 
 
-# ================================================================ the cluster
-
-
-def worker_env(workers: int) -> dict[str, str]:
-    """Environment of one of ``workers`` local worker processes: its share of the usable
-    cores as JAX host devices (at least one), also in ``XLA_FLAGS`` (which it would
-    otherwise inherit from this process, set for all the cores)."""
-    devices = max(1, len(os.sched_getaffinity(0)) // workers)
-    flags = [
-        f
-        for f in os.environ.get("XLA_FLAGS", "").split()
-        if not f.startswith("--xla_force_host_platform_device_count")
-    ]
-    flags.append(f"--xla_force_host_platform_device_count={devices}")
-    return {DEVICES_ENV: str(devices), "XLA_FLAGS": " ".join(flags)}
-
-
-def is_loopback(host: str) -> bool:
-    """Whether ``host`` (an address or a name) is reachable from this machine only: a
-    loopback address, or a name that resolves to loopback addresses only ("localhost")."""
-    import ipaddress
-    import socket
-
-    try:
-        return ipaddress.ip_address(host.strip("[]")).is_loopback
-    except ValueError:
-        pass
-    if not host:  # "" is every interface
-        return False
-    try:
-        found = {info[4][0] for info in socket.getaddrinfo(host, None)}
-    except OSError:
-        return False
-    return bool(found) and all(ipaddress.ip_address(a.split("%")[0]).is_loopback for a in found)
-
-
-def exposure_warning(host: str) -> str | None:
-    """The warning for a local cluster listening on ``host``, None for a loopback host."""
-    if is_loopback(host):
-        return None
-    where = host or "every interface"
-    return (
-        f"the Dask cluster listens on {where}: its scheduler, workers and dashboard are "
-        f"reachable from the network, and a Dask scheduler runs whatever code a client "
-        f"sends it (use --host 127.0.0.1 unless other machines must connect)"
-    )
-
-
-def start_local_cluster(
-    workers: int | None = None, quiet: bool = False, host: str = LOCAL_HOST
-) -> Any:
-    """A ``distributed.Client`` on a new ``LocalCluster`` of ``workers`` worker processes
-    (default one per usable core), one thread each; each worker's JAX gets the cores
-    divided among the workers as host devices. Prints the dashboard address on stderr
-    unless ``quiet``. Close both with ``close_cluster(client)``.
-
-    The scheduler, its dashboard, the nannies and the workers listen on ``host`` (default
-    127.0.0.1: this machine only; Dask's own default puts the dashboard on every
-    interface). Another host issues an ``ExposedClusterWarning`` (``exposure_warning``).
-
-    The workers start without Dask's default ``MALLOC_TRIM_THRESHOLD_=65536``: setting it
-    turns off glibc's adaptive mmap threshold, so every array over 128 KiB is mapped
-    afresh and page-faulted in (measured: 17 000 page faults per 1000-target penalty
-    solve against ~0, 7–40 % more CPU time; 12 700 per 100 exact targets). Its
-    scheduler and workers also run with ``QUIET_WORKERS``' lighter diagnostics (no
-    statistical profiler; the dashboard's other pages remain)."""
-    import dask
-    import distributed
-    from distributed import Client
-
-    cores = len(os.sched_getaffinity(0))
-    workers = int(workers or cores)
-    if workers < 1:
-        raise BatchError(f"workers must be at least 1, got {workers}")
-    message = exposure_warning(host)
-    if message is not None:
-        warnings.warn(message, ExposedClusterWarning, stacklevel=2)
-    # Dask wants an IPv6 host in brackets, and splits a dashboard "HOST:PORT" at every
-    # colon (an IPv6 dashboard address as a pair, without them).
-    address = host.strip("[]")
-    ipv6 = ":" in address
-    # Read when the scheduler and the nannies are made (here).
-    with dask.config.set({f"{PRE_SPAWN}.MALLOC_TRIM_THRESHOLD_": None, **QUIET_WORKERS}):
-        cluster = distributed.LocalCluster(
-            n_workers=workers,
-            threads_per_worker=1,
-            processes=True,
-            host=f"[{address}]" if ipv6 else address,
-            dashboard_address=(address, 0) if ipv6 else f"{address}:0",
-            env=worker_env(workers),
-            # The nanny sets this config in every worker process it starts, also when it
-            # restarts a dead one after this block has restored the defaults (without it,
-            # measured: the replacement ran with the profiler). A copy of all of
-            # "distributed": the live dict is restored in place, and a partial one would
-            # replace the whole section in the worker.
-            config={"distributed": copy.deepcopy(dask.config.get("distributed"))},
-        )
-    client = Client(cluster)
-    if not quiet:
-        import importlib.util
-
-        note = "" if importlib.util.find_spec("bokeh") else " (install bokeh to view it)"
-        print(
-            f"Dask LocalCluster: {workers} workers; dashboard {client.dashboard_link}{note}",
-            file=sys.stderr,
-        )
-    return client
-
-
-def close_cluster(client: Any) -> None:
-    """Close ``client`` and the ``LocalCluster`` it was started with
-    (``start_local_cluster``), without the workers' shutdown chatter on stderr."""
-    import logging
-
-    cluster = getattr(client, "cluster", None)
-    logger = logging.getLogger("distributed")
-    level = logger.level
-    logger.setLevel(logging.CRITICAL)  # heartbeats that meet a closed scheduler
-    try:
-        client.close()
-        if cluster is not None:
-            cluster.close()
-    finally:
-        logger.setLevel(level)
-
-
 # ================================================================ the job on the client
 
 
@@ -623,6 +393,48 @@ def run_batch(
         BatchError: ``out_dir`` holds another job, or chunks failed after their retries
             (those written are kept: rerun with ``resume=True``).
     """
+    spec, first, second = _job_spec(kind, robot, inputs, scene, exact, config, init, problems,
+                                    client, workers, scheduler, host)
+    job = _job_entry(spec, first, second, problems)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if chunk is not None and chunk < 1:
+        raise BatchError(f"chunk must be at least 1, got {chunk}")
+    manifest = open_manifest(out, job, chunk, resume)
+
+    own_client = None
+    try:
+        if client is None:
+            client = own_client = _new_client(scheduler, workers, progress, host)
+        if not manifest:
+            slots = max(sum(client.nthreads().values()), 1)
+            size = int(chunk or default_chunk(kind, job["count"], slots, exact))
+            manifest = {**job, "chunk": size, "chunks": len(chunk_ranges(job["count"], size)),
+                        "runs": []}
+        _run_chunks(client, spec, out, manifest, first, second, progress, retries)
+    finally:
+        if own_client is not None:
+            close_cluster(own_client)
+    return _assemble(spec, out, manifest, problems)
+
+
+def _new_client(scheduler: str | None, workers: int | None, progress: bool,
+                host: str | None) -> Any:
+    """A client of the Dask scheduler at ``scheduler``, or of a new local cluster
+    (``start_local_cluster``): the one ``run_batch`` closes at the end."""
+    if scheduler is not None:
+        from distributed import Client
+
+        return Client(scheduler)
+    return start_local_cluster(workers, quiet=not progress, host=host or LOCAL_HOST)
+
+
+def _job_spec(kind: str, robot: Any, inputs: tuple[Any, Any], scene: Any, exact: bool,
+              config: Any, init: str, problems: Sequence[str] | None, client: Any,
+              workers: int | None, scheduler: str | None,
+              host: str | None) -> tuple[JobSpec, Any, Any]:
+    """``run_batch``'s arguments checked (``BatchError`` where they cannot run) and
+    loaded: the job's ``JobSpec`` and its inputs, normalised by the kind's adapter."""
     from .model import load_robot
     from .world import load_scene
 
@@ -642,88 +454,31 @@ def run_batch(
             "inputs must be a pair: (positions, wxyz) for ik, (starts, goals) for plan"
         ) from None
     first, second = jobs.normalise(first, second)
-    count = len(first)
-    if problems is not None and len(problems) != count:
-        raise BatchError(f"{len(problems)} problems for {count} inputs")
+    if problems is not None and len(problems) != len(first):
+        raise BatchError(f"{len(problems)} problems for {len(first)} inputs")
     if config is None:
         config = jobs.default_config()
     if init not in ("roadmap", "straight"):
         raise BatchError(f"init must be 'roadmap' or 'straight', got {init!r}")
     key = solver_key(kind, robot, scene, config)
-    spec = JobSpec(kind, robot, scene, config, bool(exact), init, key)
-    job = {
+    return JobSpec(kind, robot, scene, config, bool(exact), init, key), first, second
+
+
+def _job_entry(spec: JobSpec, first: Any, second: Any,
+               problems: Sequence[str] | None) -> dict[str, Any]:
+    """What the job is, as its manifest records it (a resume must match it)."""
+    return {
         "version": MANIFEST_VERSION,
-        "kind": kind,
-        "robot": robot.name,
-        "scene": getattr(scene, "name", None),
-        "exact": bool(exact),
-        "init": init if jobs.uses_init else None,
-        "config": json.loads(json.dumps(dataclasses.asdict(config))),
-        "settings": _digest((key, init)),  # robot, scene and config contents
-        "count": count,
-        "inputs": _inputs_hash(kind, (first, second), problems),
+        "kind": spec.kind,
+        "robot": spec.robot.name,
+        "scene": getattr(spec.scene, "name", None),
+        "exact": spec.exact,
+        "init": spec.init if _ADAPTERS[spec.kind].uses_init else None,
+        "config": json.loads(json.dumps(dataclasses.asdict(spec.config))),
+        "settings": digest((spec.key, spec.init)),  # robot, scene and config contents
+        "count": len(first),
+        "inputs": _inputs_hash(spec.kind, (first, second), problems),
     }
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    if chunk is not None and chunk < 1:
-        raise BatchError(f"chunk must be at least 1, got {chunk}")
-    manifest = _open_manifest(out, job, chunk, resume)
-
-    own_client = None
-    try:
-        if client is None:
-            if scheduler is not None:
-                from distributed import Client
-
-                client = own_client = Client(scheduler)
-            else:
-                client = own_client = start_local_cluster(
-                    workers, quiet=not progress, host=host or LOCAL_HOST
-                )
-        if not manifest:
-            slots = max(sum(client.nthreads().values()), 1)
-            size = int(chunk or default_chunk(kind, count, slots, exact))
-            manifest = {**job, "chunk": size, "chunks": len(chunk_ranges(count, size)), "runs": []}
-        _run_chunks(client, spec, out, manifest, first, second, progress, retries)
-    finally:
-        if own_client is not None:
-            close_cluster(own_client)
-    return _assemble(spec, out, manifest, problems)
-
-
-def _open_manifest(
-    out: Path, job: dict[str, Any], chunk: int | None, resume: bool
-) -> dict[str, Any] | None:
-    """The manifest of a job to resume (checked against ``job``), or None for a new job
-    (after checking that ``out`` holds no other job)."""
-    path = out / MANIFEST
-    if not path.exists():
-        if any(out.glob("chunk_*")):
-            raise BatchError(
-                f"{out} holds chunk files but no {MANIFEST}: not a batch job "
-                f"this version can resume; use an empty directory"
-            )
-        return None
-    if not resume:
-        raise BatchError(
-            f"{out} already holds a batch job ({MANIFEST}); rerun with "
-            f"--resume (resume=True) to finish it, or use another directory"
-        )
-    try:
-        manifest = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise BatchError(f"{path} is unreadable ({exc}); use another directory") from None
-    differ = [
-        f"{k}: {manifest.get(k)!r} in the manifest, {v!r} now"
-        for k, v in job.items()
-        if manifest.get(k) != v
-    ]
-    if chunk is not None and manifest.get("chunk") != chunk:
-        differ.append(f"chunk: {manifest.get('chunk')!r} in the manifest, {chunk!r} now")
-    if differ:
-        raise BatchError(f"cannot resume {out}: it holds another job (" + "; ".join(differ) + ")")
-    return manifest
 
 
 def _run_chunks(
@@ -751,24 +506,11 @@ def _run_chunks(
         "failed": [],
     }
     manifest["runs"].append(run)
-    _write_atomic(out / MANIFEST, manifest)
+    write_json(out / MANIFEST, manifest)
     if not missing:
         return
-    futures = {}
-    for i in missing:
-        start, stop = ranges[i]
-        future = client.submit(
-            solve_chunk,
-            spec,
-            i,
-            first[start:stop],
-            second[start:stop],
-            retries=retries,
-            pure=False,
-            key=f"cr_nlp-chunk-{i}-{run_id}-"
-            f"{manifest['inputs'][:8]}-{os.getpid()}-{time.time_ns()}",
-        )
-        futures[future] = i
+    futures = _submit(client, spec, ranges, missing, first, second, retries,
+                      f"{run_id}-{manifest['inputs'][:8]}")
     total = sum(ranges[i][1] - ranges[i][0] for i in missing)
     bar = tqdm(
         total=total,
@@ -799,12 +541,12 @@ def _run_chunks(
             future.release()
             run["seconds"] = time.perf_counter() - t0
             # The run log only (resume reads the chunk files): atomic, not flushed to disk.
-            _write_atomic(out / MANIFEST, manifest, sync=False)
+            write_json(out / MANIFEST, manifest, sync=False)
             bar.update(stop - start)
             bar.set_postfix_str(f"chunks {done}/{len(missing)}")
     except KeyboardInterrupt:  # a stop (Ctrl-C, SIGTERM): the chunk files stay for resume
         run["stopped"] = True
-        _write_atomic(out / MANIFEST, manifest, sync=False)
+        write_json(out / MANIFEST, manifest, sync=False)
         bar.close()
         raise
     bar.close()
@@ -815,6 +557,27 @@ def _run_chunks(
         )
 
 
+def _submit(client: Any, spec: JobSpec, ranges: list[tuple[int, int]], missing: list[int],
+            first: Any, second: Any, retries: int, tag: str) -> dict[Any, int]:
+    """One Dask task per missing chunk (``solve_chunk``), each with a key of its own
+    (``tag``: the run and the inputs' hash); future → chunk id."""
+    futures = {}
+    for i in missing:
+        start, stop = ranges[i]
+        future = client.submit(
+            solve_chunk,
+            spec,
+            i,
+            first[start:stop],
+            second[start:stop],
+            retries=retries,
+            pure=False,
+            key=f"cr_nlp-chunk-{i}-{tag}-{os.getpid()}-{time.time_ns()}",
+        )
+        futures[future] = i
+    return futures
+
+
 # ================================================================ assembling the results
 
 
@@ -823,17 +586,8 @@ def _assemble(
 ) -> Any:
     """Read every chunk file, in input order, into the single-process result objects and
     write ``results.json``."""
-    records = []
-    timing: dict[str, float] = {}
-    for i, (start, stop) in enumerate(chunk_ranges(manifest["count"], manifest["chunk"])):
-        record = read_chunk(chunk_file(out, i))
-        if record is None or (record["start"], record["stop"]) != (start, stop):
-            raise BatchError(f"chunk {i} is missing or damaged in {out}; rerun with --resume")
-        records.append(record)
-        for key, value in record.get("timing", {}).items():
-            if key != "total":
-                timing[key] = timing.get(key, 0.0) + float(value)
+    records, timing = read_chunks(out, manifest)
     kind = _ADAPTERS[spec.kind]
     result, data = kind.assemble(spec, [r[kind.answers] for r in records], timing, problems)
-    _write_atomic(out / RESULTS, data)
+    write_json(out / RESULTS, data)
     return result
