@@ -27,18 +27,9 @@ except ImportError as exc:  # the optional extra
     raise ImportError("the viewer needs viser: pip install 'cr_nlp[viewer]'") from exc
 
 from ..model import Robot, load_robot
-from ..model.rotations import wxyz_from_matrix
 from ..tasks._result import read_json
 from ..world import Scene, load_scene
-from ..world.scene import (
-    BoxPart,
-    CapsulePart,
-    ConvexPart,
-    CylinderPart,
-    SpherePart,
-    bounding_sphere,
-    rotation_z_to,
-)
+from ..world.scene import bounding_sphere
 from ._replay import (
     Answers,
     Motion,
@@ -48,6 +39,15 @@ from ._replay import (
     read_result,
     targets_of,
     tip_pose,
+)
+from ._viewer_scene import (
+    CLOSEST_RGB,
+    PALETTE,
+    REFERENCE_RGB,
+    ROBOT_RGB,
+    TENDON_RGB,
+    TRACE_RGB,
+    add_scene,
 )
 
 __all__ = [
@@ -60,30 +60,6 @@ __all__ = [
     "targets_of",
     "tip_pose",
 ]
-
-ROBOT_RGB = (217, 95, 2)
-TENDON_RGB = (31, 120, 180)
-OBSTACLE_RGB = (127, 143, 166)
-MESH_RGB = (200, 167, 126)
-REFERENCE_RGB = (227, 26, 28)
-TRACE_RGB = (255, 127, 0)
-CLOSEST_RGB = (200, 0, 120)
-PALETTE = [
-    "#1b9e77",
-    "#d95f02",
-    "#7570b3",
-    "#e7298a",
-    "#66a61e",
-    "#e6ab02",
-    "#a6761d",
-    "#666666",
-    "#1f78b4",
-    "#b2df8a",
-    "#fb9a99",
-    "#cab2d6",
-]
-"""Tendon colours in the plots."""
-
 
 # ================================================================ the viewer
 
@@ -195,7 +171,7 @@ class Viewer:
     def _build_page(self, live_ik: bool) -> None:
         """The scene, the robot, the controls and the camera."""
         self.server.scene.set_up_direction("+z")
-        self._add_scene()
+        add_scene(self.server, self.robot, self.scene)
         self._add_robot()
         self._add_gui(live_ik)
         self._aim_camera()
@@ -204,88 +180,7 @@ class Viewer:
         elif self.answers is not None:
             self.show_answer(0)
 
-    # ------------------------------------------------------------ scene
-    def _add_scene(self) -> None:
-        scene_api = self.server.scene
-        lowest = float(self.robot.base_position[2])
-        if self.scene is not None:
-            for k, obstacle in enumerate(self.scene.obstacles):
-                name = f"/scene/{k}_{obstacle.name}".replace(" ", "_")
-                if obstacle.mesh is not None:
-                    vertices = np.asarray(obstacle.mesh.vertices, dtype=float)
-                    scene_api.add_mesh_simple(
-                        name,
-                        vertices,
-                        np.asarray(obstacle.mesh.faces),
-                        color=MESH_RGB,
-                        side="double",
-                    )
-                    lowest = min(lowest, float(vertices[:, 2].min()))
-                    continue
-                for j, part in enumerate(obstacle.parts):
-                    lowest = min(lowest, self._add_part(f"{name}/{j}", part))
-        self.server.scene.add_grid(
-            "/floor",
-            width=6.0,
-            height=6.0,
-            cell_size=0.25,
-            section_size=1.0,
-            position=(0.0, 0.0, lowest),
-        )
-        self.server.scene.add_frame(
-            "/base", axes_length=0.2, axes_radius=0.01, position=tuple(self.robot.base_position)
-        )
-
-    def _add_part(self, name: str, part: Any) -> float:
-        """Draw one convex part; returns its lowest z (m)."""
-        scene_api = self.server.scene
-        if isinstance(part, SpherePart):
-            scene_api.add_icosphere(
-                name, radius=float(part.radius), color=OBSTACLE_RGB, position=tuple(part.center)
-            )
-            return float(part.center[2] - part.radius)
-        if isinstance(part, BoxPart):
-            wxyz = wxyz_from_matrix(np.asarray(part.rotation, float)[None])[0]
-            scene_api.add_box(
-                name,
-                color=OBSTACLE_RGB,
-                dimensions=tuple(2.0 * np.asarray(part.half_size)),
-                wxyz=tuple(wxyz),
-                position=tuple(part.center),
-            )
-            corners = np.abs(np.asarray(part.rotation)) @ np.asarray(part.half_size)
-            return float(part.center[2] - corners[2])
-        if isinstance(part, CapsulePart | CylinderPart):
-            a, b = np.asarray(part.a, float), np.asarray(part.b, float)
-            wxyz = wxyz_from_matrix(rotation_z_to(b - a)[None])[0]
-            scene_api.add_cylinder(
-                name,
-                radius=float(part.radius),
-                height=float(np.linalg.norm(b - a)),
-                color=OBSTACLE_RGB,
-                wxyz=tuple(wxyz),
-                position=tuple(0.5 * (a + b)),
-            )
-            if isinstance(part, CapsulePart):
-                for end, p in (("a", a), ("b", b)):
-                    scene_api.add_icosphere(
-                        f"{name}_{end}",
-                        radius=float(part.radius),
-                        color=OBSTACLE_RGB,
-                        position=tuple(p),
-                    )
-            return float(min(a[2], b[2]) - part.radius)
-        if isinstance(part, ConvexPart):
-            scene_api.add_mesh_simple(
-                name,
-                np.asarray(part.vertices, float),
-                np.asarray(part.triangles),
-                color=OBSTACLE_RGB,
-                flat_shading=True,
-            )
-            return float(np.min(part.vertices[:, 2]))
-        raise TypeError(f"not a scene part: {type(part).__name__}")
-
+    # ------------------------------------------------------------ robot
     def _add_robot(self) -> None:
         vertices, lines, _ = self._mesh.geometry(self.q)
         scene_api = self.server.scene
