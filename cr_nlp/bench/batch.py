@@ -204,7 +204,10 @@ def run_batch_benchmark(
     progress: bool = True,
 ) -> list[dict[str, Any]]:
     """Measure batch throughput; print the report, write ``batch.md``, ``batch.csv`` and
-    ``environment.json`` to ``out``. Returns the rows (seconds, targets per second)."""
+    ``environment.json`` to ``out``. Returns the rows (seconds, targets per second).
+
+    Long: one measured session (in-process rows, then each cluster) over shared inputs.
+    """
     use_host_devices()  # the in-process rows use every core, as the CLI does
     unknown = [m for m in modes if m not in MODES]
     if unknown:

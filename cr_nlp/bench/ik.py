@@ -49,20 +49,8 @@ from ..model.rotations import wxyz_from_matrix
 from ..runtime import use_host_devices
 from ..tasks.ik import IKConfig, IKSolver
 from ..world import Scene, check_many, load_scene
-from ._baselines import (
-    DampedNewtonConfig,
-    ScipyConfig,
-    damped_newton_ik,
-    scipy_ik,
-)
-from ._common import (
-    Column,
-    environment,
-    environment_markdown,
-    fixed,
-    markdown_table,
-    write_report,
-)
+from ._baselines import DampedNewtonConfig, ScipyConfig, damped_newton_ik, scipy_ik
+from ._common import Column, environment, environment_markdown, fixed, markdown_table, write_report
 from .suites import IK_FULL, IK_QUICK, IK_SUITES, IKBenchSizes
 
 NEWTON_CONFIG = DampedNewtonConfig()
@@ -395,6 +383,8 @@ def run_ik_benchmark(suite: str = "all", quick: bool = False, repeats: int | Non
                      max_targets: int | None = None,
                      ik_config: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """Run the IK benchmark and return one dict per (suite, robot, method) row.
+
+    Long: the suites run in order over shared sizes, targets and report rows.
 
     Args:
         suite: "all" (free, lattice, scaling, polish), one of those, or "throughput".

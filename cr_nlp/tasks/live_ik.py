@@ -161,6 +161,8 @@ class LiveIKSolver:
     ) -> LiveIKResult:
         """Move the answer ``q_current`` (3n; rad, rad, m) to the target pose.
 
+        Long: one update in order (warm start, search, polish, verdict) timing each stage.
+
         Args:
             q_current: the answer to start from, e.g. the previous update's ``q``.
             position: (3,) target tip position, metres.

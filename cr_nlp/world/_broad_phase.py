@@ -198,7 +198,10 @@ def part_cells(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.nd
     row (the device's work per sphere) was 8 / 9 / 9 / 12 convex parts in shelf, 9 / 9 /
     9 / 13 in cabinet (9–13 at 0.05–0.1 m when the grid was shifted by 0.1 m), 4 spheres
     in random_27; the tables took 5.2–21 / 0.73–2.7 / 0.10–0.34 / ≤ 0.04 MB and were
-    built in 0.7–1.8 / 0.17–0.27 / 0.04–0.13 / 0.05–0.10 s (2 busy cores)."""
+    built in 0.7–1.8 / 0.17–0.27 / 0.04–0.13 / 0.05–0.10 s (2 busy cores).
+
+    Long: one table built in order (grid, per-part cell bounds, per-kind columns) on shared arrays.
+    """
     region_lo, region_hi = (np.asarray(x, dtype=float) for x in region)
     if cell_size is None:
         size = max(0.5 * body_radius, float(np.max(region_hi - region_lo)) / 128)

@@ -116,6 +116,8 @@ def polish_and_accept(
     """Polish each problem's candidates in order and keep the first one the verdict
     accepts, else the penalty answer with its own verdict.
 
+    Long: one attempt loop over eight per-problem tallies; split, its pieces would pass them all.
+
     Args:
         fallback: per problem, the penalty stage's answer (kept when no polish passes).
         fallback_verdicts: per problem, the verdict on ``fallback`` (from the same judge).

@@ -170,6 +170,8 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
              ) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Run projected LM on a batch.
 
+    Long: one traced while_loop whose step helpers close over residual, bounds and config.
+
     Args:
         residual: r(z, params) of one problem (see ``Residual``); must be hashable (a
             module-level function or a ``functools.partial`` of one with hashable args).

@@ -58,6 +58,8 @@ def select_guesses(lm: ChainBatchLM, guesses: np.ndarray, ends: list[tuple[np.nd
     passes, its round-2 guesses join the stream at once, so round 2 does not wait for
     every round-1 trajectory (nor round 1's slowest for round 2).
 
+    Long: the stream's callbacks close over the rounds' shared per-problem state.
+
     Args:
         lm: the batched chain LM.
         guesses: initial trajectories in z (rad, rad, m).
