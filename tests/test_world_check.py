@@ -26,6 +26,7 @@ from cr_nlp.world.check import (
 from .conftest import MODELS, random_q, write_mixed_scene
 
 check_module = importlib.import_module("cr_nlp.world.check")
+fcl_objects = importlib.import_module("cr_nlp.world._fcl_objects")
 
 
 @pytest.fixture(scope="module")
@@ -251,7 +252,7 @@ def test_check_motion_gives_the_minima_and_collisions_of_check_many(
 
 def test_lazy_capsules_are_capsule_objects() -> None:
     """Zero-length pieces become balls, and a piece along −z gets the half turn."""
-    built = check_module._Capsules(0.1, np.zeros((2, 3)), np.array([[0, 0, 0], [0, 0, -1.0]]))
+    built = fcl_objects.Capsules(0.1, np.zeros((2, 3)), np.array([[0, 0, 0], [0, 0, -1.0]]))
     ball = fcl_object(SpherePart(np.array([0.0, 0.0, 0.5]), 0.1))
     assert built[0].getNodeType() == fcl.CollisionObject(fcl.Sphere(1.0)).getNodeType()
     assert built[1].getNodeType() == fcl.CollisionObject(fcl.Capsule(1.0, 1.0)).getNodeType()
@@ -269,7 +270,7 @@ def test_run_balls_bound_every_piece_of_their_run(robots, mixed_scene, group) ->
     chains = body_chain(robot, random_q(robot, 6, seed=group))
     a, b = chains[:, :-1], chains[:, 1:]
     for scene in (mixed_scene, load_scene("cabinet")):
-        fscene = check_module._fcl_scene(scene)
+        fscene = fcl_objects.fcl_scene(scene)
         mid = 0.5 * (a + b)
         coarse = check_module._group_bounds(r, fscene, tuple(mid[..., k] for k in range(3)),
                                             0.5 * np.linalg.norm(b - a, axis=-1), group)
@@ -308,7 +309,7 @@ def test_pruned_motion_search_gives_the_minima_of_the_plain_one(robots) -> None:
         capsules = [[capsule_object(c[i], c[i + 1], robot.backbone_radius)
                      for i in range(len(c) - 1)] for c in chains]
         every = np.array([[min(fcl_distance(p, obj) for obj in
-                               check_module._fcl_scene(scene).objects) for p in row]
+                               fcl_objects.fcl_scene(scene).objects) for p in row]
                           for row in capsules]).min(axis=1)
         assert got.obstacle_distance == pytest.approx(every.min(), abs=1e-12)
         hits += int(np.any(every < 0.0))
@@ -326,7 +327,7 @@ def test_tightened_bounds_are_below_fcl_and_a_threshold_only_skips_work(robots,
     r = robot.backbone_radius
     chains = body_chain(robot, random_q(robot, 8, seed=11))
     for scene in (mixed_scene, load_scene("cabinet")):
-        fscene = check_module._fcl_scene(scene)
+        fscene = fcl_objects.fcl_scene(scene)
         parts = len(fscene.other_index)
         a, b = chains[:, :-1].reshape(-1, 3), chains[:, 1:].reshape(-1, 3)
         pi, qi = np.repeat(np.arange(len(a)), parts), np.tile(np.arange(parts), len(a))

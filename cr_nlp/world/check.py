@@ -48,12 +48,14 @@ of its time in Python; on 600 random tdcr3 configurations (median of 5, a shared
 ``follow_sine`` (two spheres), 0.2–0.35 s to 0.02–0.03 s in ``lattice`` (27 spheres)
 and 0.6–1.0 s to 0.10–0.17 s in ``shelf`` (57 convex parts; 2,400 fcl queries instead
 of 33,000).
+
+The fcl objects (parts, capsules, a scene's arrays, ``fcl_distance``) are built in
+``world._fcl_objects``, the point, segment and capsule closed forms are
+``world._segment_distances``; this module is the verdict over them.
 """
 
 from __future__ import annotations
 
-import math
-import weakref
 from dataclasses import dataclass
 from typing import Any
 
@@ -64,17 +66,16 @@ from ..model._ops import NUMPY
 from ..model.kinematics import model_backbone, model_q_to_z
 from ..model.robot import Robot
 from ..runtime import cached
-from .scene import (
-    BoxPart,
-    CapsulePart,
-    ConvexPart,
-    CylinderPart,
-    Part,
-    Scene,
-    SpherePart,
-    bounding_sphere,
-    rotation_z_to,
-)
+from ._fcl_objects import Capsules, FclScene, fcl_scene
+from ._fcl_objects import capsule_object as capsule_object
+from ._fcl_objects import fcl_distance as fcl_distance
+from ._fcl_objects import fcl_object as fcl_object
+from ._segment_distances import Xyz, dot, point_segment, segment_segment, sub, xyz
+from ._segment_distances import capsule_capsule_distance as capsule_capsule_distance
+from ._segment_distances import capsule_sphere_distance as capsule_sphere_distance
+from ._segment_distances import point_segment_distance as point_segment_distance
+from ._segment_distances import segment_distance as segment_distance
+from .scene import Scene
 
 
 @dataclass(frozen=True)
@@ -123,284 +124,13 @@ def body_chain(robot: Robot, q: Any) -> np.ndarray:
     return np.concatenate([base, points], axis=-2)
 
 
-# ================================================================ fcl objects
-
-
-def fcl_object(part: Part) -> fcl.CollisionObject:
-    """The fcl collision object of a scene part, placed in the world."""
-    if isinstance(part, SpherePart):
-        return fcl.CollisionObject(fcl.Sphere(float(part.radius)),
-                                   fcl.Transform(np.asarray(part.center, dtype=float)))
-    if isinstance(part, BoxPart):
-        return fcl.CollisionObject(fcl.Box(*(2.0 * part.half_size)),
-                                   fcl.Transform(part.rotation, part.center))
-    if isinstance(part, CapsulePart):
-        return capsule_object(part.a, part.b, part.radius)
-    if isinstance(part, CylinderPart):
-        return fcl.CollisionObject(fcl.Cylinder(float(part.radius), 2.0 * part.half_length),
-                                   fcl.Transform(part.rotation, part.center))
-    if isinstance(part, ConvexPart):
-        tris = np.asarray(part.triangles, dtype=np.int64)
-        faces = np.c_[np.full(len(tris), 3), tris].ravel()
-        return fcl.CollisionObject(fcl.Convex(part.vertices, len(tris), faces), fcl.Transform())
-    raise TypeError(f"not a scene part: {type(part).__name__}")
-
-
-def capsule_object(a: np.ndarray, b: np.ndarray, radius: float) -> fcl.CollisionObject:
-    """An fcl capsule of ``radius`` (m) around the segment a–b (fcl's capsule lies along z).
-    Computed in Python floats: the verdict builds one for each piece it measures."""
-    ax, ay, az = np.asarray(a, dtype=float).tolist()
-    bx, by, bz = np.asarray(b, dtype=float).tolist()
-    dx, dy, dz = bx - ax, by - ay, bz - az
-    length = math.sqrt(dx * dx + dy * dy + dz * dz)
-    if length < 1e-12:
-        return fcl.CollisionObject(fcl.Sphere(float(radius)),
-                                   fcl.Transform(np.array([ax, ay, az])))
-    centre = np.array([0.5 * (ax + bx), 0.5 * (ay + by), 0.5 * (az + bz)])
-    return fcl.CollisionObject(fcl.Capsule(float(radius), length),
-                               fcl.Transform(rotation_z_to((dx, dy, dz)), centre))
-
-
-class _FclScene:
-    """A scene's fcl objects and the arrays the vectorised verdict needs."""
-
-    def __init__(self, scene: Scene) -> None:
-        parts = scene.parts
-        owner = scene.part_obstacle
-        self.objects = [fcl_object(p) for p in parts]
-        self.names = [scene.obstacles[i].name for i in owner]
-        sphere = [i for i, p in enumerate(parts) if isinstance(p, SpherePart)]
-        other = [i for i, p in enumerate(parts) if not isinstance(p, SpherePart)]
-        # Sphere parts: exact closed form (see capsule_sphere_distance).
-        self.sphere_index = np.array(sphere, dtype=np.int64)
-        self.sphere_centres = np.array([parts[i].center for i in sphere],
-                                       dtype=float).reshape(-1, 3)
-        self.sphere_radii = np.array([parts[i].radius for i in sphere], dtype=float)
-        # Other parts: fcl, pruned by lower bounds.
-        self.other_index = np.array(other, dtype=np.int64)
-        bounds = [bounding_sphere(parts[i]) for i in other]
-        self.other_centres = np.array([c for c, _ in bounds], dtype=float).reshape(-1, 3)
-        self.other_radii = np.array([r for _, r in bounds], dtype=float)
-        # Face planes n·x ≤ o of boxes and convex parts, padded by repeating a row (the
-        # max over planes is unchanged); parts without planes get a −inf row.
-        planes = [_face_planes(parts[i]) for i in other]
-        width = max([len(o) for _, o in planes] + [1])
-        normals = np.zeros((len(other), width, 3))
-        self.offsets = np.full((len(other), width), np.inf)
-        for q, (n, o) in enumerate(planes):
-            if len(o):
-                normals[q] = np.concatenate([n, np.repeat(n[:1], width - len(o), 0)])
-                self.offsets[q] = np.concatenate([o, np.repeat(o[:1], width - len(o))])
-        self.normals = tuple(np.ascontiguousarray(normals[..., k]) for k in range(3))
-        self.other_centre_norm2 = np.einsum("ij,ij->i", self.other_centres, self.other_centres)
-        # Axis-aligned boxes around the parts, 1e-12 m wider than rounding could need.
-        boxes = [_axis_aligned_box(parts[i]) for i in other]
-        self.box_lower = np.array([lo for lo, _ in boxes], dtype=float).reshape(-1, 3) - 1e-12
-        self.box_upper = np.array([hi for _, hi in boxes], dtype=float).reshape(-1, 3) + 1e-12
-        # Capsules and cylinders: the capsule around the axis contains the part.
-        axis = [_axis(parts[i]) for i in other]
-        self.axis_a = np.array([a for a, _, _ in axis], dtype=float).reshape(-1, 3)
-        self.axis_b = np.array([b for _, b, _ in axis], dtype=float).reshape(-1, 3)
-        self.axis_radius = np.array([r for _, _, r in axis], dtype=float)
-        self.has_axis = np.array([np.isfinite(r) for _, _, r in axis], dtype=bool)
-
-
-def _face_planes(part: Part) -> tuple[np.ndarray, np.ndarray]:
-    """Outward unit normals (F, 3) and offsets (F,) of a box's or convex part's faces
-    (the part is {x : n·x ≤ o}); none for other parts."""
-    if isinstance(part, BoxPart):
-        rotation = np.asarray(part.rotation, dtype=float)
-        normals = np.concatenate([rotation.T, -rotation.T])
-        half = np.asarray(part.half_size, dtype=float)
-        centre = np.asarray(part.center, dtype=float)
-        return normals, normals @ centre + np.concatenate([half, half])
-    if isinstance(part, ConvexPart):
-        return np.asarray(part.normals, dtype=float), np.asarray(part.offsets, dtype=float)
-    return np.zeros((0, 3)), np.zeros(0)
-
-
-def _axis_aligned_box(part: Part) -> tuple[np.ndarray, np.ndarray]:
-    """Lower and upper corners (3,) m of an axis-aligned box that contains the part."""
-    if isinstance(part, BoxPart):
-        extent = np.abs(np.asarray(part.rotation, dtype=float)) @ np.asarray(part.half_size,
-                                                                              dtype=float)
-        centre = np.asarray(part.center, dtype=float)
-        return centre - extent, centre + extent
-    if isinstance(part, (CapsulePart, CylinderPart)):    # in the capsule around the axis
-        a, b = np.asarray(part.a, dtype=float), np.asarray(part.b, dtype=float)
-        return np.minimum(a, b) - part.radius, np.maximum(a, b) + part.radius
-    if isinstance(part, ConvexPart):
-        vertices = np.asarray(part.vertices, dtype=float)
-        return vertices.min(axis=0), vertices.max(axis=0)
-    centre, radius = bounding_sphere(part)
-    return np.asarray(centre, dtype=float) - radius, np.asarray(centre, dtype=float) + radius
-
-
-def _axis(part: Part) -> tuple[np.ndarray, np.ndarray, float]:
-    """The axis end points and radius of a capsule or cylinder part (+inf radius: none)."""
-    if isinstance(part, (CapsulePart, CylinderPart)):
-        return (np.asarray(part.a, dtype=float), np.asarray(part.b, dtype=float),
-                float(part.radius))
-    return np.zeros(3), np.zeros(3), np.inf
-
-
-_SCENES: weakref.WeakKeyDictionary[Scene, _FclScene] = weakref.WeakKeyDictionary()
-_NO_OBSTACLES = Scene("no obstacles", ())
-
-
-def _fcl_scene(scene: Scene | None) -> _FclScene:
-    scene = _NO_OBSTACLES if scene is None else scene
-    built = _SCENES.get(scene)
-    if built is None:
-        built = _SCENES[scene] = _FclScene(scene)
-    return built
-
-
-_UNSIGNED = fcl.DistanceRequest(enable_nearest_points=True, enable_signed_distance=False)
-_SIGNED = fcl.DistanceRequest(enable_nearest_points=True, enable_signed_distance=True)
-
-
-def fcl_distance(a: fcl.CollisionObject, b: fcl.CollisionObject) -> float:
-    """fcl's signed distance between two objects (m; negative = penetration depth).
-
-    Separated pairs use fcl's unsigned query: its signed one was measured off by up to
-    1.2 mm for separated sphere–box pairs (depending on the argument order), while
-    the unsigned one matched the closed form to 1e-9. Only colliding pairs (reported
-    as −1) go to the signed query (EPA) for their depth."""
-    d = float(fcl.distance(a, b, _UNSIGNED, fcl.DistanceResult()))
-    if d > 0.0:
-        return d
-    return min(float(fcl.distance(a, b, _SIGNED, fcl.DistanceResult())), 0.0)
-
-
-# ================================================================ closed forms
-# Internally points are triples of coordinate arrays (x, y, z), broadcast together: numpy
-# is several times faster on separate contiguous coordinates than on (…, 3) arrays.
-
-Xyz = tuple[np.ndarray, np.ndarray, np.ndarray]
-
-
-def _xyz(points: Any) -> Xyz:
-    p = np.asarray(points, dtype=float)
-    return p[..., 0], p[..., 1], p[..., 2]
-
-
-def _dot(u: Xyz, v: Xyz) -> np.ndarray:
-    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
-
-
-def _sub(u: Xyz, v: Xyz) -> Xyz:
-    return u[0] - v[0], u[1] - v[1], u[2] - v[2]
-
-
-def _point_segment_square(p: Xyz, a: Xyz, u: Xyz, uu: np.ndarray) -> np.ndarray:
-    """Squared distance from points p to segments a + t·u, t ∈ [0, 1], with uu = |u|²."""
-    w = _sub(p, a)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        t = np.where(uu > 0.0, np.clip(_dot(w, u) / uu, 0.0, 1.0), 0.0)
-    dx, dy, dz = w[0] - t * u[0], w[1] - t * u[1], w[2] - t * u[2]
-    return dx * dx + dy * dy + dz * dz
-
-
-def _point_segment(p: Xyz, a: Xyz, u: Xyz, uu: np.ndarray) -> np.ndarray:
-    """Distance from points p to segments a + t·u, t ∈ [0, 1], with uu = |u|²."""
-    return np.sqrt(_point_segment_square(p, a, u, uu))
-
-
-def _segment_segment(p0: Xyz, p1: Xyz, q0: Xyz, q1: Xyz) -> np.ndarray:
-    """Distance between segments p0–p1 and q0–q1 (see ``segment_distance``)."""
-    d1, d2 = _sub(p1, p0), _sub(q1, q0)
-    a, e = _dot(d1, d1), _dot(d2, d2)
-    best = np.minimum(np.minimum(_point_segment_square(p0, q0, d2, e),
-                                 _point_segment_square(p1, q0, d2, e)),
-                      np.minimum(_point_segment_square(q0, p0, d1, a),
-                                 _point_segment_square(q1, p0, d1, a)))
-    w = _sub(p0, q0)
-    b, c, f = _dot(d1, d2), _dot(d1, w), _dot(d2, w)
-    denominator = a * e - b * b
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        s = (b * f - c * e) / denominator
-        t = (a * f - b * c) / denominator
-    inside = (denominator > 0.0) & (s >= 0.0) & (s <= 1.0) & (t >= 0.0) & (t <= 1.0)
-    if np.any(inside):
-        s, t = np.where(inside, s, 0.0), np.where(inside, t, 0.0)
-        gx = w[0] + s * d1[0] - t * d2[0]
-        gy = w[1] + s * d1[1] - t * d2[1]
-        gz = w[2] + s * d1[2] - t * d2[2]
-        best = np.where(inside, np.minimum(best, gx * gx + gy * gy + gz * gz), best)
-    return np.sqrt(best)
-
-
-def point_segment_distance(p: Any, a: Any, b: Any) -> np.ndarray:
-    """Distance (m) from points p to segments a–b, all (…, 3) broadcast together; a
-    zero-length segment is its point a."""
-    a_ = _xyz(a)
-    u = _sub(_xyz(b), a_)
-    return _point_segment(_xyz(p), a_, u, _dot(u, u))
-
-
-def segment_distance(p0: Any, p1: Any, q0: Any, q1: Any) -> np.ndarray:
-    """Distance (m) between segments p0–p1 and q0–q1, all (…, 3) broadcast together.
-
-    |p0 + s·(p1 − p0) − q0 − t·(q1 − q0)| is convex in (s, t) ∈ [0, 1]², so its minimum
-    lies either on the square's boundary (an end point against the other segment: four
-    point–segment distances) or at the stationary point of the two lines. The latter is
-    taken only where it falls inside the square; parallel and zero-length segments (no
-    unique stationary point) are covered by the boundary. Every candidate is the length
-    of a real pair of points, so rounding in a nearly parallel, ill-conditioned
-    stationary point can only raise that candidate, never undercut the boundary."""
-    return _segment_segment(_xyz(p0), _xyz(p1), _xyz(q0), _xyz(q1))
-
-
-def capsule_capsule_distance(a0: Any, b0: Any, r0: Any, a1: Any, b1: Any,
-                             r1: Any) -> np.ndarray:
-    """Signed distance (m) between capsules of radius r0 around a0–b0 and r1 around a1–b1
-    (broadcast, (…, 3) points): the segment distance minus both radii, exact when they
-    are apart. A negative value says they overlap (exactly where the sign changes), and
-    moving them apart along their closest-point direction by its magnitude separates
-    them; a shorter separating move may exist (e.g. off a segment's end)."""
-    return segment_distance(a0, b0, a1, b1) - r0 - r1
-
-
-def capsule_sphere_distance(a: np.ndarray, b: np.ndarray, radius: float, centre: np.ndarray,
-                            sphere_radius: float) -> float:
-    """Exact signed distance (m) between the capsule of ``radius`` around segment a–b and a
-    sphere: the distance from the centre to the segment minus both radii.
-
-    Used instead of fcl for spheres: fcl's penetration query (EPA) was seen to never
-    return when a sphere's centre lies on the capsule's axis."""
-    ab = b - a
-    denominator = float(ab @ ab)
-    t = 0.0 if denominator <= 0.0 else min(max(float((centre - a) @ ab) / denominator, 0.0), 1.0)
-    return float(np.linalg.norm(centre - (a + t * ab))) - radius - sphere_radius
-
-
-class _Capsules:
-    """``capsule_object(a[i], b[i], r)`` for pieces a, b (N, 3), each built on first use.
-
-    Built by ``capsule_object`` itself, not from rotations vectorised here: fcl's GJK
-    answers capsule–convex distances only to ~1e-5 m, and a 1e-16 change of the capsule's
-    rotation was seen to move its answer by 1.6e-5 m; the same inputs keep the verdict
-    identical to the per-configuration one."""
-
-    def __init__(self, r: float, a: np.ndarray, b: np.ndarray) -> None:
-        self.r, self.a, self.b = r, a, b
-        self.built: list[fcl.CollisionObject | None] = [None] * len(a)
-
-    def __getitem__(self, i: int) -> fcl.CollisionObject:
-        capsule = self.built[i]
-        if capsule is None:
-            capsule = self.built[i] = capsule_object(self.a[i], self.b[i], self.r)
-        return capsule
-
-
 # ================================================================ the verdict
 
 _BATCH_ELEMENTS = 1 << 17   # (configuration, piece, part) entries per vectorised chunk
 _CHUNK_CONFIGURATIONS = 192  # configurations per chunk of a motion at most
 
 
-def _motion_chunks(fscene: _FclScene, count: int, pieces: int,
+def _motion_chunks(fscene: FclScene, count: int, pieces: int,
                    per_segment: int) -> list[slice]:
     """Even chunks of a motion's ``count`` configurations, each array of the motion
     search within a quarter of ``_BATCH_ELEMENTS`` (it makes no (piece, part) array, so
@@ -428,7 +158,7 @@ def _far_pairs(pieces: int, per_segment: int) -> tuple[np.ndarray, np.ndarray]:
     return i, j
 
 
-def _tighten(r: float, fscene: _FclScene, sa: np.ndarray, sb: np.ndarray, qi: np.ndarray,
+def _tighten(r: float, fscene: FclScene, sa: np.ndarray, sb: np.ndarray, qi: np.ndarray,
              low: np.ndarray, below: float | np.ndarray = np.inf) -> np.ndarray:
     """Tighter lower bounds than ``low`` (N,) on the signed distance between pieces sa–sb
     (N, 3) and fcl parts qi (N,) (indices into the scene's non-sphere parts). A pair whose
@@ -446,20 +176,20 @@ def _tighten(r: float, fscene: _FclScene, sa: np.ndarray, sb: np.ndarray, qi: np
     return _tighten_more(r, fscene, sa, sb, qi, low)
 
 
-def _tighten_more(r: float, fscene: _FclScene, sa: np.ndarray, sb: np.ndarray,
+def _tighten_more(r: float, fscene: FclScene, sa: np.ndarray, sb: np.ndarray,
                   qi: np.ndarray, low: np.ndarray) -> np.ndarray:
     """``_tighten``'s bounds past the axis-aligned box: the part's bounding sphere against
     the piece's segment, face planes, the axis of capsules and cylinders."""
-    sa_, sb_ = _xyz(sa), _xyz(sb)
-    u = _sub(sb_, sa_)
+    sa_, sb_ = xyz(sa), xyz(sb)
+    u = sub(sb_, sa_)
     # The part's bounding sphere against the piece's segment.
     centre = fscene.other_centres[qi]
-    low = np.maximum(low, _point_segment(_xyz(centre), sa_, u, _dot(u, u))
+    low = np.maximum(low, point_segment(xyz(centre), sa_, u, dot(u, u))
                      - r - fscene.other_radii[qi])
     # Face planes n·x ≤ o: the capsule lies beyond one by min(n·a, n·b) − o − r.
     n = (fscene.normals[0][qi], fscene.normals[1][qi], fscene.normals[2][qi])
-    beyond = np.minimum(_dot(n, tuple(c[:, None] for c in sa_)),
-                        _dot(n, tuple(c[:, None] for c in sb_))) - fscene.offsets[qi]
+    beyond = np.minimum(dot(n, tuple(c[:, None] for c in sa_)),
+                        dot(n, tuple(c[:, None] for c in sb_))) - fscene.offsets[qi]
     low = np.maximum(low, beyond.max(axis=1) - r)
     # Capsules and cylinders lie in the capsule around their axis.
     axis = fscene.has_axis[qi]
@@ -474,7 +204,7 @@ _RUN_PIECES = 5        # pieces per ball of ``_group_bounds`` (a divisor of the 
 _SEED_CANDIDATES = 8   # pairs per configuration whose tight bound picks the first fcl query
 
 
-def _loose_bounds(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _loose_bounds(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(B, m·parts) lower bounds on the distance between pieces a–b (B, m, 3) and the
     fcl parts: each part's bounding sphere against the piece's. |m − c|² comes from a
     matrix product, lowered by far more than its rounding error so that it stays a true
@@ -490,7 +220,7 @@ def _loose_bounds(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray) -> 
             - fscene.other_radii).reshape(count, pieces * len(fscene.other_index))
 
 
-def _fcl_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray,
+def _fcl_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
                 obstacle: np.ndarray, part: np.ndarray) -> None:
     """Lower ``obstacle`` (B,) and set ``part`` (B,) in place by the fcl parts, for pieces
     a–b (B, m, 3): per configuration from its best distance so far, pairs in order of a
@@ -513,7 +243,7 @@ def _fcl_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray,
         tight = tight.reshape(-1, width)
         first = near[seed, np.argmin(tight, axis=1)]
         piece, which = np.divmod(first, parts)
-        built = _Capsules(r, a[seed, piece], b[seed, piece])
+        built = Capsules(r, a[seed, piece], b[seed, piece])
         for row, (k, i, q) in enumerate(zip(seed.tolist(), piece.tolist(),
                                             part_of[which].tolist(), strict=True)):
             seeded[k * pieces + i] = built[row]
@@ -533,7 +263,7 @@ def _fcl_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray,
     bi, pi, low = bi[order], pi[order], low[order]
     # Capsules of the pieces still needed, at most one per (configuration, piece).
     unique, slot = np.unique(bi * pieces + pi, return_inverse=True)
-    capsules = _Capsules(r, a.reshape(-1, 3)[unique], b.reshape(-1, 3)[unique])
+    capsules = Capsules(r, a.reshape(-1, 3)[unique], b.reshape(-1, 3)[unique])
     for i, x in enumerate(unique.tolist()):
         if x in seeded:
             capsules.built[i] = seeded[x]
@@ -552,7 +282,7 @@ def _fcl_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray,
         obstacle[k], part[k] = best, best_part
 
 
-def _group_bounds(r: float, fscene: _FclScene, mid: Xyz, half: np.ndarray,
+def _group_bounds(r: float, fscene: FclScene, mid: Xyz, half: np.ndarray,
                   group: int) -> np.ndarray:
     """(B, m / group, parts) lower bounds on the distance between each run of ``group``
     consecutive pieces (mid points ``mid``, coordinates (B, m) each; half lengths ``half``
@@ -564,11 +294,11 @@ def _group_bounds(r: float, fscene: _FclScene, mid: Xyz, half: np.ndarray,
     mid = tuple(c.reshape(count, -1, group) for c in mid)
     half = half.reshape(count, -1, group)
     centre = tuple(c.mean(axis=2) for c in mid)
-    off = _sub(mid, tuple(c[:, :, None] for c in centre))
-    reach = (np.sqrt(_dot(off, off)) + half).max(axis=2) + r
-    gap = _sub(tuple(c[:, :, None] for c in centre),
+    off = sub(mid, tuple(c[:, :, None] for c in centre))
+    reach = (np.sqrt(dot(off, off)) + half).max(axis=2) + r
+    gap = sub(tuple(c[:, :, None] for c in centre),
                tuple(fscene.other_centres[:, k] for k in range(3)))
-    apart = np.sqrt(_dot(gap, gap)) - fscene.other_radii
+    apart = np.sqrt(dot(gap, gap)) - fscene.other_radii
     # The part's axis-aligned box: the ball's centre lies beyond one of its faces.
     for k in range(3):
         apart = np.maximum(apart, np.maximum(fscene.box_lower[:, k] - centre[k][:, :, None],
@@ -577,7 +307,7 @@ def _group_bounds(r: float, fscene: _FclScene, mid: Xyz, half: np.ndarray,
     return apart - reach[:, :, None] - 1e-12
 
 
-def _fcl_motion_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray,
+def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
                        obstacle: np.ndarray, part: np.ndarray, best: float,
                        group: int) -> float:
     """``_fcl_search`` for a motion, where only the smallest distance over the whole batch
@@ -598,8 +328,8 @@ def _fcl_motion_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray
     x0 = tuple(np.ascontiguousarray(a[..., k]) for k in range(3))
     x1 = tuple(np.ascontiguousarray(b[..., k]) for k in range(3))
     mid = tuple(0.5 * (p + q) for p, q in zip(x0, x1, strict=True))
-    u = _sub(x1, x0)
-    half = 0.5 * np.sqrt(_dot(u, u))
+    u = sub(x1, x0)
+    half = 0.5 * np.sqrt(dot(u, u))
     coarse = _group_bounds(r, fscene, mid, half, group)
     reach = half + r
     centres = tuple(fscene.other_centres[:, k] for k in range(3))
@@ -618,8 +348,8 @@ def _fcl_motion_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray
         against the piece's ball) is below the threshold, with their tight bounds."""
         bi, qi = np.repeat(bk, group), np.repeat(bq, group)
         pi = ((bg * group)[:, None] + np.arange(group)).ravel()
-        gap = _sub(tuple(c[bi, pi] for c in mid), tuple(c[qi] for c in centres))
-        loose = np.sqrt(_dot(gap, gap)) - reach[bi, pi] - fscene.other_radii[qi]
+        gap = sub(tuple(c[bi, pi] for c in mid), tuple(c[qi] for c in centres))
+        loose = np.sqrt(dot(gap, gap)) - reach[bi, pi] - fscene.other_radii[qi]
         keep = np.flatnonzero(loose < max(best, 0.0))
         bi, pi, qi = bi[keep], pi[keep], qi[keep]
         return bi, pi, qi, _tighten(r, fscene, a[bi, pi], b[bi, pi], qi, loose[keep],
@@ -646,7 +376,7 @@ def _fcl_motion_search(r: float, fscene: _FclScene, a: np.ndarray, b: np.ndarray
     order = order[np.argsort(low[order], kind="stable")]
     bi, pi, qi, low = bi[order], pi[order], qi[order], low[order]
     unique, slot = np.unique(bi * pieces + pi, return_inverse=True)
-    capsules = _Capsules(r, a.reshape(-1, 3)[unique], b.reshape(-1, 3)[unique])
+    capsules = Capsules(r, a.reshape(-1, 3)[unique], b.reshape(-1, 3)[unique])
     for k, s, bound, q in zip(bi.tolist(), slot.tolist(), low.tolist(),
                               part_of[qi].tolist(), strict=True):
         if bound >= max(best, 0.0):
@@ -663,21 +393,21 @@ def _self_distance(r: float, a: Xyz, b: Xyz, i: np.ndarray, j: np.ndarray) -> np
     minus both half lengths) exceeds the smallest mid-point gap (the distance of a real
     pair of points) cannot hold the minimum; only the others get the segment distance."""
     mid = tuple(0.5 * (p + q) for p, q in zip(a, b, strict=True))
-    u = _sub(b, a)
-    half = 0.5 * np.sqrt(_dot(u, u))
-    between = _sub(tuple(c[:, i] for c in mid), tuple(c[:, j] for c in mid))
-    gap = np.sqrt(_dot(between, between))
+    u = sub(b, a)
+    half = 0.5 * np.sqrt(dot(u, u))
+    between = sub(tuple(c[:, i] for c in mid), tuple(c[:, j] for c in mid))
+    gap = np.sqrt(dot(between, between))
     upper = gap.min(axis=1, keepdims=True)
     rows, cols = np.nonzero(gap - half[:, i] - half[:, j] <= upper + 1e-9)
     pi, pj = i[cols], j[cols]
-    d = _segment_segment(tuple(c[rows, pi] for c in a), tuple(c[rows, pi] for c in b),
+    d = segment_segment(tuple(c[rows, pi] for c in a), tuple(c[rows, pi] for c in b),
                          tuple(c[rows, pj] for c in a), tuple(c[rows, pj] for c in b))
     own = np.full(len(half), np.inf)
     np.minimum.at(own, rows, d)
     return own - 2.0 * r
 
 
-def _spheres_that_matter(r: float, fscene: _FclScene, chains: np.ndarray,
+def _spheres_that_matter(r: float, fscene: FclScene, chains: np.ndarray,
                          best: float) -> np.ndarray:
     """Indices of the sphere parts that can lower a motion's smallest distance below
     ``best`` (m) or reach a configuration of ``chains`` (B, points, 3): those whose gap to
@@ -699,7 +429,7 @@ def _spheres_that_matter(r: float, fscene: _FclScene, chains: np.ndarray,
     return np.flatnonzero(gap <= bound)
 
 
-def _verdicts(robot: Robot, fscene: _FclScene, chains: np.ndarray, per_segment: int,
+def _verdicts(robot: Robot, fscene: FclScene, chains: np.ndarray, per_segment: int,
               motion: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Obstacle distance (B,), its part index (B,; −1: none), self distance (B,) and the
     smallest obstacle distance for body chains (B, 1 + n·k, 3) of k pieces per segment.
@@ -721,10 +451,10 @@ def _verdicts(robot: Robot, fscene: _FclScene, chains: np.ndarray, per_segment: 
     spheres = (np.arange(len(fscene.sphere_index)) if motion is None else
                _spheres_that_matter(r, fscene, chains, best))
     if len(spheres):
-        u = _sub(b, a)
+        u = sub(b, a)
         centre = tuple(fscene.sphere_centres[spheres, k] for k in range(3))
-        d = (_point_segment(centre, tuple(c[:, :, None] for c in a),
-                            tuple(c[:, :, None] for c in u), _dot(u, u)[:, :, None])
+        d = (point_segment(centre, tuple(c[:, :, None] for c in a),
+                            tuple(c[:, :, None] for c in u), dot(u, u)[:, :, None])
              - r - fscene.sphere_radii[spheres]).reshape(count, -1)
         nearest = np.argmin(d, axis=1)
         obstacle = d[np.arange(count), nearest]
@@ -772,7 +502,7 @@ def check_chains(robot: Robot, scene: Scene | None, chains: Any,
     if chains.ndim != 3 or chains.shape[2] != 3 or (chains.shape[1] - 1) % pieces_per_segment:
         raise ValueError(f"chains must be (B, 1 + n·{pieces_per_segment}, 3), got "
                          f"{chains.shape}")
-    fscene = _fcl_scene(scene)
+    fscene = fcl_scene(scene)
     pieces = chains.shape[1] - 1
     width = max(len(fscene.objects), len(_far_pairs(pieces, pieces_per_segment)[0]), 1)
     step = max(1, _BATCH_ELEMENTS // (pieces * width))
@@ -819,7 +549,7 @@ def check_motion(robot: Robot, scene: Scene | None, qs: Any) -> MotionCheck:
     qs = np.asarray(qs, dtype=np.float64).reshape(-1, robot.dof)
     chains = body_chain(robot, qs)
     per_segment = robot.points_per_segment
-    fscene = _fcl_scene(scene)
+    fscene = fcl_scene(scene)
     pieces = chains.shape[1] - 1
     best, closest, own_min = np.inf, "", np.inf
     collision = np.zeros(len(qs), dtype=bool)
