@@ -5,8 +5,8 @@ statement — at module level, inside functions, under ``TYPE_CHECKING`` — bec
 of the intra-package import graph (relative imports resolved; ``from pkg import name``
 points at ``pkg.name`` when that is a module, else at ``pkg``). The layers (docs/design.md §5)
 are model → world → stages → tasks → interfaces; ``_resources``, ``runtime``,
-``_programs`` (with ``_fingerprint``) and ``_files`` sit below them all, the package's ``__init__`` (the public
-surface) above.
+``_programs`` (with ``_fingerprint``) and ``_files`` sit below them all, the package's
+``__init__`` (the public surface) above.
 """
 
 from __future__ import annotations
