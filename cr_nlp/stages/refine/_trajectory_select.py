@@ -98,12 +98,12 @@ def select_guesses(lm: ChainBatchLM, guesses: np.ndarray, ends: list[tuple[np.nd
             q[0], q[-1] = q_start, q_goal
             verdict = verify(q)
             verified.add(g)
-            tried[row].append((not verdict["success"], verdict["max_violation"], cost, q, g))
+            tried[row].append((not verdict.success, verdict.max_violation, cost, q, g))
             b = best[row]
-            if b is None or (verdict["success"], -verdict["max_violation"]) > (
-                    b[0]["success"], -b[0]["max_violation"]):
+            if b is None or (verdict.success, -verdict.max_violation) > (
+                    b[0].success, -b[0].max_violation):
                 best[row] = (verdict, g, q, cost)
-            if verdict["success"]:
+            if verdict.success:
                 break
         for g in sorted(done):
             if g not in verified:          # not verified: ranked after the verified
