@@ -84,7 +84,7 @@ def _plan(out: Path, exact: bool) -> DemoRow:
         result.save_csv(out / "plan_tendons.csv")
         figure = trajectory_figure(
             result, planner.scene, tendon_names(planner.robot),
-            title=f"shelf: {result.stage}, {result.path_length:.2f} m tip path")
+            title=f"shelf: {result.stage_text}, {result.path_length:.2f} m tip path")
         write_figure(figure, out / "plan.png", dpi=120)
         files += ["plan_tendons.csv", "plan.png"]
     return DemoRow("plan", "shelf, compartment to compartment", "yes" if result.success else
@@ -105,7 +105,7 @@ def _follow(out: Path, exact: bool) -> DemoRow:
     result.save(out / "follow_result.json")
     result.save_csv(out / "follow_tendons.csv")
     figure = follow_figure(result, follower.scene, tendon_names(follower.robot),
-                           title=f"{result.path.name}: {result.stage}")
+                           title=f"{result.path.name}: {result.stage_text}")
     write_figure(figure, out / "follow.png", dpi=120)
     err = 1e3 * result.position_error
     return DemoRow("follow", f"'{result.path.name}', {len(err)} waypoints",

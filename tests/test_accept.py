@@ -160,7 +160,9 @@ def test_ik_polish_retries_from_the_search_beam_without_searching_again(monkeypa
     assert 1 <= polished.sum() <= len(starts[1]), exact.stage
     assert exact.success.all(), exact.reason
     assert all("polish failed: Ipopt: Maximum_Iterations_Exceeded" in s
-               for s in np.array(exact.stage)[~polished])
+               for s in np.array(exact.stage_text)[~polished])
+    assert all(exact.notes[i][0].startswith("polish failed: Ipopt: Maximum_Iterations_Exceeded")
+               for i in np.flatnonzero(~polished))
     reached_p, reached_w = forward_kinematics(robot, exact.q[polished])
     assert np.abs(reached_p - positions[polished]).max() < 1e-6
     assert np.abs(np.abs(np.sum(reached_w * wxyz[polished], axis=1)) - 1).max() < 1e-9

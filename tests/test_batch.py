@@ -405,8 +405,8 @@ def test_batch_plan_results_pass_the_independent_check(robot, client, tmp_path):
         verdict = verify_trajectory(
             robot, scene, result.q, result.dt, config.safety_margin, config.verify_samples
         )
-        assert verdict["success"] == result.success
-        assert verdict["max_violation"] == pytest.approx(result.max_violation, abs=1e-12)
+        assert verdict.success == result.success
+        assert verdict.max_violation == pytest.approx(result.max_violation, abs=1e-12)
     assert results[0].success and results[2].success
     data = json.loads((out / RESULTS).read_text())
     assert data.keys() == {"kind", "schema_version", "robot", "results", "summary", "timing"}

@@ -60,8 +60,8 @@ def test_damped_newton_solves_a_target_near_its_start(easy: tuple) -> None:
     solved = baselines.damped_newton_ik(TDCR3, positions, wxyz, starts=starts)
     checked = IKSolver(TDCR3).verify(solved.q, positions, wxyz)
     assert solved.q.shape == (2, TDCR3.dof)
-    assert np.all(checked["pose_error"] < 1e-2)
-    assert np.all(checked["max_violation"] == 0.0)
+    assert np.all(checked.pose_error < 1e-2)
+    assert np.all(checked.max_violation == 0.0)
     assert solved.seconds > 0.0
 
 
@@ -69,8 +69,8 @@ def test_scipy_solves_a_target_near_its_start(easy: tuple) -> None:
     q_true, positions, wxyz, starts = easy
     solved = baselines.scipy_ik(TDCR3, positions, wxyz, starts=starts)
     checked = IKSolver(TDCR3).verify(solved.q, positions, wxyz)
-    assert np.all(checked["pose_error"] < 1e-2)
-    assert np.all(checked["max_violation"] == 0.0)
+    assert np.all(checked.pose_error < 1e-2)
+    assert np.all(checked.max_violation == 0.0)
 
 
 def test_baselines_keep_answers_inside_the_limits() -> None:
@@ -124,8 +124,8 @@ def test_every_row_success_is_the_library_verdict_on_its_answers(free_rows: tupl
     for row in rows:
         answers = row["answers"]
         checked = solver.verify(answers.q, answers.positions, answers.wxyz)
-        np.testing.assert_array_equal(checked["success"], answers.success, row["method"])
-        assert row["success_pct"] == pytest.approx(100.0 * checked["success"].mean())
+        np.testing.assert_array_equal(checked.success, answers.success, row["method"])
+        assert row["success_pct"] == pytest.approx(100.0 * checked.success.mean())
         assert row["targets"] == len(answers.q)
 
 
@@ -140,8 +140,8 @@ def test_benchmark_success_is_the_shared_judge(free_rows: tuple) -> None:
                                         seed=3 + 7919)
     checked = judge(solver, newton.q, case.positions, case.wxyz)
     row = next(r for r in rows if r["method"] == NEWTON)
-    assert row["success_pct"] == pytest.approx(100.0 * checked["success"].mean())
-    assert row["mean_pose_error"] == pytest.approx(checked["pose_error"].mean(), rel=1e-6)
+    assert row["success_pct"] == pytest.approx(100.0 * checked.success.mean())
+    assert row["mean_pose_error"] == pytest.approx(checked.pose_error.mean(), rel=1e-6)
 
     result = solver.solve(case.positions, case.wxyz)
     mine = judge(solver, result.q, case.positions, case.wxyz)

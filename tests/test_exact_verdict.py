@@ -56,15 +56,15 @@ def test_a_valid_answer_breaking_a_limit_by_1e_8_is_a_success() -> None:
     solver = IKSolver(robot)
     wxyz = wxyz_from_matrix(rotation[None])
     checked = solver.verify(q[None], position[None], wxyz)
-    assert checked["success"][0], checked["reason"][0]
-    assert checked["max_violation"][0] == pytest.approx(1e-8, rel=1e-3)
+    assert checked.success[0], checked.reason[0]
+    assert checked.max_violation[0] == pytest.approx(1e-8, rel=1e-3)
     # A trajectory with that waypoint is judged by the same rule.
     traj = np.stack([q, q, q])
     traj[:, 2], traj[:, 5] = 0.12, 0.10
-    assert verify_trajectory(robot, None, traj, 1.0)["success"]
+    assert verify_trajectory(robot, None, traj, 1.0).success
     traj[1, 0] = 2.0 + 2e-6
     verdict = verify_trajectory(robot, None, traj, 1.0)
-    assert not verdict["success"] and "configuration limit by 2e-06" in verdict["reason"]
+    assert not verdict.success and "configuration limit by 2e-06" in verdict.reason
 
 
 def test_exact_ik_on_the_issue_robot_calls_every_valid_answer_a_success() -> None:
@@ -83,7 +83,7 @@ def test_parallel_ik_polishes_return_the_serial_answers() -> None:
     parallel_solver = IKSolver(robot, "lattice", IKConfig(polish_workers=2))
     parallel = parallel_solver.solve(case.positions, case.wxyz, exact=True)
     parallel_solver._polish_pool.close()
-    assert serial.stage == parallel.stage
+    assert serial.stage_text == parallel.stage_text
     np.testing.assert_array_equal(serial.success, parallel.success)
     np.testing.assert_allclose(parallel.q, serial.q, atol=1e-9)
 
@@ -109,7 +109,7 @@ def test_a_motion_cutting_an_obstacle_between_clear_waypoints_is_caught_and_repa
     waypoints = check_many(robot, scene, q0)
     assert not waypoints.collision.any() and waypoints.min_distance.min() > 0.022
     before = verify_trajectory(robot, scene, q0, dt)
-    assert not before["collision_free"]             # only the motion cuts it
+    assert not before.collision_free             # only the motion cuts it
     polisher = TrajectoryPolisher(robot, scene, 6)
     out = polisher.solve(q0, dt)
     # The polish's own constraints see the cut (at the samples inside the interval) ...
@@ -117,7 +117,7 @@ def test_a_motion_cutting_an_obstacle_between_clear_waypoints_is_caught_and_repa
     # ... and repair it: the checker accepts the polished motion.
     assert out.success, out.status
     after = verify_trajectory(robot, scene, out.q, dt)
-    assert after["success"], after["reason"]
+    assert after.success, after.reason
     np.testing.assert_allclose(out.q[[0, -1]], q0[[0, -1]], atol=1e-12)
     # Rows at the waypoints alone do not see it: that polish leaves the cut.
     blind = TrajectoryPolisher(robot, scene, 6, config=TrajectoryPolishConfig(

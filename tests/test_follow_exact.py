@@ -55,7 +55,7 @@ def test_exact_mode_keeps_the_bound_and_the_checker_agrees(slow_robot_runs) -> N
     assert exact.max_violation <= 1e-6, exact.violations
     assert exact.tendon_speed <= robot.tendon_speed_max + 1e-6
     verdict = verify_trajectory(robot, None, exact.q, path.dt)
-    assert verdict["max_violation"] <= 1e-6 and verdict["collision_free"], verdict["reason"]
+    assert verdict.max_violation <= 1e-6 and verdict.collision_free, verdict.reason
     # Keeping the bound costs tracking accuracy somewhere: the path needs a faster motion.
     assert np.max(exact.position_error) > np.max(penalty.position_error)
 

@@ -196,7 +196,8 @@ def test_exact_mode_repairs_penalty_answers_that_break_the_margin() -> None:
     assert len(repaired) >= 1
     # A polish that fails keeps the JAX answer, marked.
     for i in np.flatnonzero(~polished):
-        assert exact.stage[i].startswith("refine (polish")
+        assert exact.stage[i] == "refine" and exact.notes[i][0].startswith("polish")
+        assert exact.stage_text[i].startswith("refine (polish")
         np.testing.assert_allclose(exact.q[i], penalty.q[i], atol=1e-6)
 
 

@@ -36,7 +36,7 @@ def test_self_colliding_free_answers_are_repaired_in_a_small_chunk() -> None:
     assert repair and repair[0][0] == repaired * 4, solver.lm_calls
     # The verdict reused the repair's self-clearance: it equals world.check's own.
     checked = solver.verify(result.q, case.positions[rows], case.wxyz[rows])
-    np.testing.assert_allclose(result.min_clearance, checked["clearance"], atol=1e-12)
+    np.testing.assert_allclose(result.min_clearance, checked.clearance, atol=1e-12)
 
 
 @pytest.mark.slow  # compiles the repair's retry program (~15 s on 2 cores): -m slow

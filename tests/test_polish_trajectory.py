@@ -54,7 +54,7 @@ def test_path_polish_keeps_the_ends_and_meets_a_tendon_speed_limit(tdcr3, path_p
     q0 = straight(Q_A, Q_B, 6)
     dt = 0.25
     before = verify_trajectory(tdcr3, None, q0, dt)
-    assert before["violations"]["tendon_speed"] > 0.01
+    assert before.violations["tendon_speed"] > 0.01
     out = path_polisher.solve(q0, dt)
     assert out.success, out
     assert out.max_violation <= 1e-6
@@ -63,7 +63,7 @@ def test_path_polish_keeps_the_ends_and_meets_a_tendon_speed_limit(tdcr3, path_p
     speed = np.abs(np.diff(tendon_series(tdcr3, out.q), axis=0)) / dt
     assert speed.max() <= tdcr3.tendon_speed_max + 1e-6
     verdict = verify_trajectory(tdcr3, None, out.q, dt)
-    assert verdict["success"], verdict["reason"]
+    assert verdict.success, verdict.reason
     assert out.objective < 10.0 and out.iterations > 0 and out.seconds > 0.0
 
 
@@ -91,7 +91,7 @@ def test_the_nlp_is_built_once_over_solves_with_new_dt_and_warm_starts(tdcr3, mo
         assert polisher.builds == 1 == len(constructions)      # the same rows: no rebuild
     assert all(r.success for r in results), [r.status for r in results]
     for r, dt in zip(results, dts, strict=True):
-        assert verify_trajectory(tdcr3, None, r.q, dt)["success"]
+        assert verify_trajectory(tdcr3, None, r.q, dt).success
 
 
 @pytest.mark.parametrize("scene_name", ["lattice", "shelf"])
@@ -128,13 +128,13 @@ def test_tracking_keeps_a_too_small_tendon_speed_limit_at_the_price_of_error(
     q_ref = straight(Q_A, Q_B, 8)
     positions, rotations = poses(tdcr3, q_ref)
     dt = 0.02                                    # the reference would need ~3 m/s
-    assert verify_trajectory(tdcr3, None, q_ref, dt)["violations"]["tendon_speed"] > 1.0
+    assert verify_trajectory(tdcr3, None, q_ref, dt).violations["tendon_speed"] > 1.0
     out = tracking_polisher.solve(q_ref, dt, positions, rotations)
     assert out.success, out
     assert out.max_violation <= 1e-6
     verdict = verify_trajectory(tdcr3, None, out.q, dt)
-    assert verdict["violations"]["tendon_speed"] <= 1e-6
-    assert verdict["violations"]["tendon_accel"] <= 1e-6
+    assert verdict.violations["tendon_speed"] <= 1e-6
+    assert verdict.violations["tendon_accel"] <= 1e-6
     assert out.pose_errors.max() > 1e-2
 
 

@@ -10,6 +10,7 @@ import csv
 import dataclasses
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,7 +24,15 @@ from cr_nlp import (
     load_results,
     load_robot,
 )
-from cr_nlp.tasks._result import ResultFileError, result_from_dict
+from cr_nlp.tasks._result import (
+    ResultFileError,
+    Stage,
+    Status,
+    result_from_dict,
+    split_stage,
+    stage_text,
+    status_of,
+)
 from cr_nlp.tasks._timing import StageTiming
 from cr_nlp.tasks.follow import tracking_errors
 from cr_nlp.tasks.ik import IKSolver
@@ -56,6 +65,9 @@ def assert_same_result(a: object, b: object) -> None:
         elif isinstance(x, dict):
             assert x.keys() == y.keys(), f.name
             for k in x:
+                if isinstance(x[k], np.ndarray):   # IK: per family, one value per answer
+                    np.testing.assert_array_equal(x[k], y[k], err_msg=f"{f.name}.{k}")
+                    continue
                 assert x[k] == y[k] or (math.isnan(x[k]) and math.isnan(y[k])), (f.name, k)
         else:
             assert x == y, f.name
@@ -85,11 +97,12 @@ def ik_result() -> IKResult:
 
     position, rotation = tip_pose(robot, q)
     checked = solver.verify(q, position + 0.001, wxyz_from_matrix(rotation))
-    result = IKResult(robot, q, checked["position"], checked["wxyz"],
-                      *(checked[k] for k in ("pose_error", "position_error", "rotation_error",
-                                             "max_violation", "clearance")),
-                      collision_free=checked["collision_free"],
-                      success=checked["pose_error"] < 0.01, stage=["refine"] * 6,
+    result = IKResult(robot, q, checked.position, checked.wxyz,
+                      *(getattr(checked, k) for k in ("pose_error", "position_error",
+                                                      "rotation_error", "max_violation",
+                                                      "clearance")),
+                      collision_free=checked.collision_free,
+                      success=checked.pose_error < 0.01, stage=["refine"] * 6,
                       reason=[""] * 6, timing=StageTiming(explore=0.25, refine=0.5),
                       has_scene=True)
     for name in ("q", "position", "wxyz"):
@@ -130,11 +143,11 @@ def test_the_ik_csv_has_a_row_per_target_in_si_units(ik_result, tmp_path) -> Non
 def _trajectory(robot, q: np.ndarray, dt: float) -> TrajectoryResult:
     verdict = verify_trajectory(robot, load_scene("shelf"), q, dt)
     return TrajectoryResult(
-        robot, q, dt, verdict["success"], verdict["reason"], "refine (straight)",
-        path_length=verdict["path_length"], min_clearance=verdict["min_clearance"],
-        max_violation=verdict["max_violation"], violations=verdict["violations"],
-        tendon_lengths=verdict["tendon_lengths"], tendon_speed=verdict["tendon_speed"],
-        tendon_accel=verdict["tendon_accel"], cost=1.5,
+        robot, q, dt, verdict.success, verdict.reason, "refine (straight)",
+        path_length=verdict.path_length, min_clearance=verdict.min_clearance,
+        max_violation=verdict.max_violation, violations=verdict.violations,
+        tendon_lengths=verdict.tendon_lengths, tendon_speed=verdict.tendon_speed,
+        tendon_accel=verdict.tendon_accel, cost=1.5,
         timing=StageTiming(explore=0.1, refine=0.2, verify=0.05))
 
 
@@ -166,16 +179,16 @@ def test_a_follow_result_round_trips_with_its_reference(tmp_path) -> None:
     result = FollowResult(
         robot, reference, q, errors["position"], errors["wxyz"], errors["pose_error"],
         errors["position_error"], errors["rotation_error"], errors["position_error"] < 0.005,
-        verdict["tendon_lengths"], verdict["tendon_speed"], verdict["tendon_accel"], True,
-        verdict["min_clearance"], verdict["max_violation"], verdict["violations"],
+        verdict.tendon_lengths, verdict.tendon_speed, verdict.tendon_accel, True,
+        verdict.min_clearance, verdict.max_violation, verdict.violations,
         success=False, reason="12 of 12 waypoints not reached", stage="refine",
         timing=StageTiming(compile=2.0, refine=0.3))
     back = round_trip(result, tmp_path)
     assert back.summary() == result.summary()
     # The pose error is the IK metric: the IK verdict on the same poses agrees.
     checked = IKSolver(robot).verify(q, reference.positions, reference.wxyz)
-    np.testing.assert_allclose(result.pose_error, checked["pose_error"], rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(result.rotation_error, checked["rotation_error"], atol=1e-9)
+    np.testing.assert_allclose(result.pose_error, checked.pose_error, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(result.rotation_error, checked.rotation_error, atol=1e-9)
 
 
 def test_a_file_is_read_as_the_class_its_kind_names_or_refused_by_name(ik_result,
@@ -225,3 +238,50 @@ def test_the_public_api_is_one_import_line() -> None:
 
     for cls in (namespace["IKResult"], namespace["TrajectoryResult"], namespace["FollowResult"]):
         assert result_class(cls.kind) is cls
+
+
+DATA = Path(__file__).parent / "data"
+
+
+def test_results_of_schema_1_are_read_with_stage_and_notes_apart():
+    # tests/data holds files of schema 1, whose ``stage`` held the notes in parentheses.
+    ik = load_result(DATA / "ik_lattice_result.json")
+    assert json.loads((DATA / "ik_lattice_result.json").read_text())["schema_version"] == 1
+    assert ik.stage == [Stage.REFINE] * len(ik) and ik.notes == [[]] * len(ik)
+    assert ik.status == [Status.SUCCESS if s else Status.FAILED for s in ik.success]
+    assert ik.success.all() and np.isnan(ik.violations["limits"]).all()  # schema 1 had none
+    follow = load_result(DATA / "follow_icra_result.json")
+    assert follow.stage == Stage.REFINE and follow.notes == [] and follow.stage_text == "refine"
+    data = json.loads((DATA / "plan_shelf_result.json").read_text())
+    (plan,) = trajectories_from_dict(data)
+    assert plan.stage == Stage.REFINE and plan.notes == ["roadmap"]
+    assert plan.stage_text == "refine (roadmap)"
+    # A note with parentheses of its own, as a time limit writes it.
+    late = "polish out of time: Ipopt stopped at the time limit (7 iterations, 2 s)"
+    data["results"][0]["stage"] = f"refine (roadmap) ({late})"
+    (plan,) = trajectories_from_dict(data)
+    assert plan.stage == "refine" and plan.notes == ["roadmap", late]
+    assert plan.stage_text == f"refine (roadmap) ({late})"
+    # Written again as schema 2: the stage's value, the notes apart, the status.
+    entry = plan.to_dict()["results"][0]
+    assert plan.to_dict()["schema_version"] == SCHEMA_VERSION == 2
+    assert (entry["stage"], entry["notes"], entry["status"]) == ("refine", ["roadmap", late],
+                                                                 "success")
+    assert trajectories_from_dict(plan.to_dict())[0].notes == plan.notes
+    data["results"][0]["stage"] = "lucky guess"
+    with pytest.raises(ResultFileError, match="unknown stage 'lucky guess'"):
+        trajectories_from_dict(data)
+
+
+def test_split_stage_and_stage_text_are_inverse():
+    for text in ("polish", "none", "refine (feasible: polish not needed)",
+                 "refine (straight) (polish failed: from refine (straight): Ipopt: "
+                 "Infeasible_Problem_Detected)"):
+        stage, notes = split_stage(text)
+        assert stage_text(stage, notes) == text
+    assert split_stage("refine (straight) (polish failed: x)") == (
+        Stage.REFINE, ["straight", "polish failed: x"])
+    with pytest.raises(ValueError, match="unbalanced"):
+        split_stage("refine (polish failed")
+    assert status_of(False, "rejected") == Status.REJECTED == status_of(False, Stage.NONE)
+    assert status_of(False, "polish") == Status.FAILED and status_of(True, "refine") == "success"

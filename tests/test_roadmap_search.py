@@ -217,7 +217,7 @@ def test_planning_many_problems_in_one_call_matches_one_by_one_and_streams(robot
     assert blocks == [2, 2, 1]
     alone = [planner.plan(starts[i:i + 1], goals[i:i + 1])[0] for i in range(len(starts))]
     assert [r.success for r in together] == [r.success for r in alone]
-    assert [r.stage for r in together] == [r.stage for r in alone]
+    assert [r.stage_text for r in together] == [r.stage_text for r in alone]
     for a, b in zip(together, alone, strict=True):
         np.testing.assert_allclose(a.q, b.q, atol=1e-4)
 

@@ -137,8 +137,10 @@ def test_exact_ik_out_of_time_keeps_the_verified_penalty_answer(ik_case) -> None
     penalty = solver.solve(positions, wxyz)
     late = solver.solve(positions, wxyz, exact=True)
     for i in range(len(positions)):
-        assert late.stage[i].startswith("refine (polish out of time: Ipopt stopped at the "
-                                        "time limit (0 iterations"), late.stage[i]
+        assert late.stage[i] == "refine" and late.notes[i][0].startswith(
+            "polish out of time: Ipopt stopped at the time limit (0 iterations"), late.notes[i]
+        assert late.stage_text[i].startswith("refine (polish out of time: Ipopt stopped at "
+                                             "the time limit (0 iterations"), late.stage_text[i]
     # The penalty answer, judged by the same verdict.
     np.testing.assert_array_equal(late.q, penalty.q)
     np.testing.assert_array_equal(late.success, penalty.success)
@@ -149,7 +151,8 @@ def test_exact_ik_out_of_time_keeps_the_verified_penalty_answer(ik_case) -> None
     free = solver.solve(positions, wxyz, exact=True)
     solver.config = replace(solver.config, polish_time_limit=600.0)
     generous = solver.solve(positions, wxyz, exact=True)
-    assert generous.stage == free.stage and "out of time" not in " ".join(free.stage)
+    assert generous.stage_text == free.stage_text
+    assert "out of time" not in " ".join(free.stage_text)
     np.testing.assert_array_equal(generous.q, free.q)
     np.testing.assert_array_equal(generous.success, free.success)
 
@@ -172,10 +175,10 @@ def test_a_trajectory_polish_out_of_time_keeps_the_lm_answer_marked() -> None:
     assert time.perf_counter() - t0 < 2.0
     assert out.out_of_time and not out.success
     before = verify_trajectory(robot, scene, q0, dt)
-    lm = SimpleNamespace(q=q0, success=bool(before["success"]), reason=before["reason"])
+    lm = SimpleNamespace(q=q0, success=bool(before.success), reason=before.reason)
     acceptance, seconds = polish_trajectories(
         [[(q0, "refine (straight)"), (q0, "refine (perturbed)")]], [lm], dt,
-        lambda q, r: verify_trajectory(robot, scene, q, dt)["verdict"], lambda: polisher,
+        lambda q, r: verify_trajectory(robot, scene, q, dt).verdict, lambda: polisher,
         time_limit=1e-3)
     outcome = acceptance.outcomes[0]
     assert outcome.out_of_time and not outcome.accepted and outcome.attempts == 1
@@ -209,8 +212,8 @@ def test_a_path_polish_out_of_time_keeps_the_lm_answer_marked() -> None:
     out = polish_follow(None, lambda waypoints: Slow(), lm, path, np.ones(3, bool), never,
                         never, StageTiming(), False, time_limit=2.0)
     assert out is lm and limits == [2.0]
-    assert lm.stage.startswith("refine (polish out of time: Ipopt stopped at the time limit "
-                               "(7 iterations, 2 s)"), lm.stage
+    assert lm.stage == "refine" and lm.notes[0].startswith(
+        "polish out of time: Ipopt stopped at the time limit (7 iterations, 2 s)"), lm.notes
 
 
 @pytest.mark.parametrize("command", [

@@ -7,6 +7,7 @@ import argparse
 import csv
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -56,7 +57,8 @@ def test_roadmap_init_finds_the_passage_the_straight_line_misses(shelf_planner):
     assert not straight.success and "collision" in straight.reason
     found = shelf_planner.plan([SHELF_START], [SHELF_GOAL], init="roadmap")[0]
     assert found.success, found.reason
-    assert found.stage == "refine (roadmap)"
+    assert found.stage == "refine" and found.notes == ["roadmap"]
+    assert found.stage_text == "refine (roadmap)"
     assert found.max_violation <= 1e-6
     assert found.min_clearance >= 0.0
     np.testing.assert_allclose(found.q[0], SHELF_START)
@@ -77,11 +79,11 @@ def test_verify_catches_tunnelling_between_waypoints(robot):
     scene = load_scene({"name": "thin", "obstacles": [
         {"type": "sphere", "name": "thin", "center": centre.tolist(), "radius": 0.02}]})
     waypoints_only = verify_trajectory(robot, scene, TUNNEL_Q, dt=10.0, samples=1)
-    assert waypoints_only["collision_free"]
+    assert waypoints_only.collision_free
     dense = verify_trajectory(robot, scene, TUNNEL_Q, dt=10.0, samples=4)
-    assert not dense["success"] and not dense["collision_free"]
-    assert dense["violations"]["clearance"] > 0.002
-    assert "collision" in dense["reason"]
+    assert not dense.success and not dense.collision_free
+    assert dense.violations["clearance"] > 0.002
+    assert "collision" in dense.reason
 
 
 def test_verify_measures_tendon_speed_and_acceleration(robot):
@@ -90,10 +92,10 @@ def test_verify_measures_tendon_speed_and_acceleration(robot):
     verdict = verify_trajectory(robot, None, q, dt=0.1)
     lengths = tendon_series(robot, q)
     speed = np.max(np.abs(np.diff(lengths, axis=0))) / 0.1
-    assert verdict["tendon_speed"] == pytest.approx(speed)
-    assert verdict["violations"]["tendon_speed"] == pytest.approx(speed - 0.2)
-    assert verdict["violations"]["tendon_accel"] > 0.0
-    assert not verdict["success"] and "tendon speed" in verdict["reason"]
+    assert verdict.tendon_speed == pytest.approx(speed)
+    assert verdict.violations["tendon_speed"] == pytest.approx(speed - 0.2)
+    assert verdict.violations["tendon_accel"] > 0.0
+    assert not verdict.success and "tendon speed" in verdict.reason
 
 
 def _run_cli(argv: list[str]) -> int:
@@ -182,21 +184,21 @@ def test_exact_mode_respects_tendon_limits_where_the_penalty_answer_breaks_them(
     planner = TrajectoryPlanner(robot, None, config)
     penalty = planner.plan([start], [goal], init="straight")[0]
     verdict = verify_trajectory(robot, None, penalty.q, config.dt)
-    assert not verdict["success"] and "tendon" in verdict["reason"]
-    assert max(verdict["violations"]["tendon_speed"],
-               verdict["violations"]["tendon_accel"]) > 1e-3
+    assert not verdict.success and "tendon" in verdict.reason
+    assert max(verdict.violations["tendon_speed"],
+               verdict.violations["tendon_accel"]) > 1e-3
     # Beside it, a short move whose LM answer the verdict accepts: it is not polished,
     # and its result (polish time 0) is written and read back like any other.
     near = np.add(start, [0.02, 0.0, 0.0] * 3)
     exact, short = planner.plan([start, start], [goal, near], init="straight", exact=True)
     assert short.success and short.stage.startswith("refine") and short.timing.polish == 0.0
     again = trajectories_from_dict(json.loads(json.dumps(trajectories_to_dict([short]))))[0]
-    assert again.stage == short.stage and again.timing.polish == 0.0
+    assert again.stage_text == short.stage_text and again.timing.polish == 0.0
     np.testing.assert_allclose(again.q, short.q)
     assert exact.stage == "polish", exact.stage
     assert exact.success and exact.max_violation <= 1e-6
     checked = verify_trajectory(robot, None, exact.q, config.dt)
-    assert checked["success"] and checked["max_violation"] <= 1e-6
+    assert checked.success and checked.max_violation <= 1e-6
     np.testing.assert_allclose(exact.q[0], start, atol=1e-9)
     np.testing.assert_allclose(exact.q[-1], goal, atol=1e-9)
 
@@ -218,18 +220,19 @@ def test_one_verdict_a_margin_violation_is_a_failure_in_both_modes(shelf_planner
     true_verify = T.verify_trajectory
 
     def verify_with_a_short_margin(robot, scene, q, dt, margin, samples, *a, **k):
-        verdict = true_verify(robot, scene, q, dt, margin, samples, *a, **k)
-        verdict["violations"]["clearance"] = 1e-3
-        verdict["max_violation"] = max(verdict["violations"].values())
-        verdict["reason"] = failure_reason(verdict["violations"])
-        verdict["success"] = not verdict["reason"]
-        return verdict
+        checked = true_verify(robot, scene, q, dt, margin, samples, *a, **k)
+        violations = {**checked.violations, "clearance": 1e-3}
+        reason = failure_reason(violations)
+        return replace(checked, verdict=replace(
+            checked.verdict, violations=violations, max_violation=max(violations.values()),
+            reason=reason, success=not reason))
 
     monkeypatch.setattr(T, "verify_trajectory", verify_with_a_short_margin)
     penalty = shelf_planner.plan([SHELF_START], [SHELF_GOAL])[0]
     exact = shelf_planner.plan([SHELF_START], [SHELF_GOAL], exact=True)[0]
-    assert "polish failed: from refine" in exact.stage
-    assert "Infeasible_Problem_Detected" in exact.stage
+    assert "polish failed: from refine" in exact.stage_text
+    assert "Infeasible_Problem_Detected" in exact.stage_text
+    assert exact.stage == "refine" and exact.notes[-1].startswith("polish failed: from refine")
     for result in (penalty, exact):
         assert not result.success and result.max_violation > 1e-6
         assert "breaks the clearance by 0.001 m" in result.reason

@@ -121,16 +121,16 @@ def test_verify_rejects_a_self_colliding_answer_without_a_scene() -> None:
     own = fcl_self_clearance(snake, q)[0]
     positions, wxyz = forward_kinematics(snake, q)
     checked = IKSolver(snake).verify(q, positions, wxyz)       # its own target: exact
-    assert checked["pose_error"][0] < 1e-9
-    assert not checked["success"][0] and "self-collision" in checked["reason"][0]
-    assert checked["self_clearance"][0] == pytest.approx(own, abs=1e-6)
-    assert checked["max_violation"][0] == pytest.approx(0.002 - own, abs=1e-6)
+    assert checked.pose_error[0] < 1e-9
+    assert not checked.success[0] and "self-collision" in checked.reason[0]
+    assert checked.self_clearance[0] == pytest.approx(own, abs=1e-6)
+    assert checked.max_violation[0] == pytest.approx(0.002 - own, abs=1e-6)
     off = dataclasses.replace(snake, self_collision=False)
-    assert IKSolver(off).verify(q, positions, wxyz)["success"][0]
+    assert IKSolver(off).verify(q, positions, wxyz).success[0]
     # A trajectory holding that configuration fails by the same rule.
     still = verify_trajectory(snake, None, np.repeat(q, 2, 0), dt=1.0)
-    assert not still["success"] and "self-collision" in still["reason"]
-    assert still["violations"]["self_clearance"] == pytest.approx(0.002 - own, abs=1e-6)
+    assert not still.success and "self-collision" in still.reason
+    assert still.violations["self_clearance"] == pytest.approx(0.002 - own, abs=1e-6)
 
 
 def _snake_solver(robot: Robot) -> IKSolver:

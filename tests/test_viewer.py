@@ -217,7 +217,7 @@ def test_live_ik_reaches_a_moved_target() -> None:
         answer = view.move_target(position, wxyz, exact=True)
         assert answer.success and answer.pose_error < 1e-6, answer
         verified = IKSolver(robot, view.scene).verify(answer.q[None], position[None], wxyz[None])
-        assert verified["pose_error"][0] < 1e-6 and verified["collision_free"][0]
+        assert verified.pose_error[0] < 1e-6 and verified.collision_free[0]
     median = float(np.median(seconds[1:]))
     print(
         f"live IK, tdcr3 in the shelf: {1e3 * median:.1f} ms median per update "

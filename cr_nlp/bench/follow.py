@@ -64,7 +64,7 @@ def measure_follow(follower: Any, shape: str, exact: bool, repeats: int,
         "collision_free": bool(result.collision_free),
         "min_clearance_mm": 1e3 * float(result.min_clearance),
         "max_violation": float(result.max_violation),
-        "stage": result.stage,
+        "stage": result.stage_text,
         "time_per_path": statistics.median(seconds) if seconds else float("nan"),
         "polish_seconds": statistics.median(polish) if exact and polish else float("nan"),
         "dt": reference.dt,
@@ -119,7 +119,7 @@ def run_follow_benchmark(shapes: Sequence[str] = SHAPES, modes: Sequence[str] = 
 
             figure = follow_figure(result, followers[shape].scene,
                                    tendon_names(followers[shape].robot),
-                                   title=f"{row['shape']} ({mode}): {result.stage}")
+                                   title=f"{row['shape']} ({mode}): {result.stage_text}")
             Path(out).mkdir(parents=True, exist_ok=True)
             write_figure(figure, Path(out) / f"{row['shape']}_{mode}.png", dpi=110)
     env = environment()

@@ -47,7 +47,7 @@ from ..model._ops import NUMPY
 from ..model.kinematics import model_q_to_z, model_segment_frames
 from ..model.rotations import wxyz_from_matrix
 from ..runtime import use_host_devices
-from ..tasks.ik import IKConfig, IKSolver
+from ..tasks.ik import IKConfig, IKSolver, IKVerification
 from ..world import Scene, check_many, load_scene
 from ._baselines import DampedNewtonConfig, ScipyConfig, damped_newton_ik, scipy_ik
 from ._common import Column, environment, environment_markdown, fixed, markdown_table, write_report
@@ -177,7 +177,7 @@ def lattice_case(robot: Robot, scene: Scene, count: int, margin: float, seed: in
 
 
 def judge(solver: IKSolver, q: np.ndarray, positions: np.ndarray,
-          wxyz: np.ndarray) -> dict[str, np.ndarray]:
+          wxyz: np.ndarray) -> IKVerification:
     """The library's verdict on answers q (T, 3n), whoever produced them:
     ``solver.verify`` (float64 pose error, limits, python-fcl clearance, self-clearance;
     ``world.verdict.judge_many``), exactly what ``IKSolver.solve`` reports for its own."""
@@ -337,9 +337,9 @@ def _baseline_row(case: Case, judge_solver: IKSolver, q: np.ndarray, positions: 
                   wxyz: np.ndarray, times: dict[str, Any]) -> dict[str, Any]:
     start = time.perf_counter()
     checked = judge(judge_solver, q, positions, wxyz)
-    row = _quality(checked["pose_error"], checked["success"], checked["max_violation"],
-                   checked["collision_free"], case.scene is not None)
-    row["answers"] = RowAnswers(np.asarray(q, dtype=float), positions, wxyz, checked["success"])
+    row = _quality(checked.pose_error, checked.success, checked.max_violation,
+                   checked.collision_free, case.scene is not None)
+    row["answers"] = RowAnswers(np.asarray(q, dtype=float), positions, wxyz, checked.success)
     row.update(times)
     row["verify_s"] = time.perf_counter() - start  # not part of total_s for baselines
     return row

@@ -154,12 +154,15 @@ def _summary(scene: str, method: str, verdicts: Sequence[dict[str, Any]],
 
 
 def _judge(planner: TrajectoryPlanner, q: np.ndarray | None, dt: float) -> dict[str, Any]:
-    """The shared verdict (``verify_trajectory``), or a failure without a trajectory."""
+    """The shared verdict's numbers a row sums up (``verify_trajectory``), or a failure
+    without a trajectory."""
     if q is None:
         return {"success": False, "collision_free": False, "path_length": float("nan"),
                 "max_violation": float("nan")}
-    return verify_trajectory(planner.robot, planner.scene, q, dt,
-                             planner.config.safety_margin, planner.config.verify_samples)
+    checked = verify_trajectory(planner.robot, planner.scene, q, dt,
+                                planner.config.safety_margin, planner.config.verify_samples)
+    return {"success": checked.success, "collision_free": checked.collision_free,
+            "path_length": checked.path_length, "max_violation": checked.max_violation}
 
 
 def measure_planner(planner: TrajectoryPlanner, scene: str, method: str, starts: np.ndarray,

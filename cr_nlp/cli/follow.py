@@ -86,6 +86,6 @@ def run(args: argparse.Namespace) -> int:
           f"{s['max_position_error_mm']:.3g}), rotation error mean "
           f"{s['mean_rotation_error_deg']:.3g}° (max {s['max_rotation_error_deg']:.3g}), "
           f"collision-free {result.collision_free}, max violation "
-          f"{result.max_violation:.3g}, stage {result.stage}; {timing['total']:.2f} s "
+          f"{result.max_violation:.3g}, stage {result.stage_text}; {timing['total']:.2f} s "
           f"(compile {timing['compile']:.2f} s)", file=sys.stderr)
     return 0

@@ -16,21 +16,22 @@ from ..model.rotations import matrix_from_wxyz
 from ..stages.polish._accept import Polished, accept_first, polish_note
 from ..stages.polish._trajectory_nlp import describe_polish
 from ..world.verdict import VIOLATION_TOLERANCE, Verdict
-from ._follow_result import FollowResult, tracking_cost
+from ._follow_result import FollowResult, PathVerification, tracking_cost
+from ._result import Stage
 from ._timing import StageTiming
 from .paths import ReferencePath
 
 
 def polish_follow(robot: Robot, polisher: Callable[[int], Any], lm: FollowResult,
                   path: ReferencePath, trackable: np.ndarray,
-                  verify: Callable[[np.ndarray], dict[str, Any]],
-                  make_result: Callable[[np.ndarray, dict[str, Any]], FollowResult],
+                  verify: Callable[[np.ndarray], PathVerification],
+                  make_result: Callable[[np.ndarray, PathVerification], FollowResult],
                   timing: StageTiming, progress: bool,
                   time_limit: float | None = None) -> FollowResult:
     """Stage 3: Ipopt from the LM answer ``lm``; keep the polish only if the independent
     verdict agrees (collision-free, every violation ≤ 1e-6) and, where the LM answer is
     feasible too, only if it tracks the path better. Otherwise ``lm`` is returned with its
-    ``stage`` saying why.
+    ``notes`` saying why.
 
     Args:
         robot: the robot.
@@ -38,18 +39,19 @@ def polish_follow(robot: Robot, polisher: Callable[[int], Any], lm: FollowResult
         lm: the stage-2 result.
         path: the reference (positions m, wxyz, ``dt`` s).
         trackable: (T,) bool, the waypoints within reach.
-        verify: q (T, 3n) → the follower's verdict dict (``PathFollower.verify``).
+        verify: q (T, 3n) → the follower's report (``PathFollower.verify``).
         make_result: (q, verdict) → the polished ``FollowResult``.
         timing: its ``polish`` and ``verify`` seconds are increased.
         progress: print a line to stderr before the polish.
         time_limit: seconds the polish may take (None: no limit); out of time, ``lm``
-            stays with ``stage`` "refine (polish out of time: …)".
+            stays with the note "polish out of time: …".
     """
     try:
         from ..stages.polish import _trajectory_nlp  # noqa: F401 — only whether it is available
     except ImportError:
-        lm.stage = ("refine (polish failed: the Ipopt trajectory stage "
-                    "cr_nlp.stages.polish._trajectory_nlp is not available)")
+        lm.stage, lm.notes = Stage.REFINE, [
+            "polish failed: the Ipopt trajectory stage "
+            "cr_nlp.stages.polish._trajectory_nlp is not available"]
         return lm
     if lm.max_violation <= VIOLATION_TOLERANCE and lm.collision_free and \
             bool(np.all(lm.reached)):
@@ -57,7 +59,7 @@ def polish_follow(robot: Robot, polisher: Callable[[int], Any], lm: FollowResult
         # tracked: Ipopt has nothing to enforce. Measured on the bundled shapes, its
         # interior-point iterates left such an answer for another branch (square: mean
         # error 0.0 → 4.3 mm) at 50–150 s per path, so the answer is kept as it is.
-        lm.stage = "refine (feasible: polish not needed)"
+        lm.stage, lm.notes = Stage.REFINE, ["feasible: polish not needed"]
         return lm
     t = len(lm.q)
     solver = polisher(t)
@@ -66,7 +68,7 @@ def polish_follow(robot: Robot, polisher: Callable[[int], Any], lm: FollowResult
     # Untrackable waypoints keep the LM's reference: its own tip pose (zero error).
     positions = np.where(trackable[:, None], path.positions, lm.position)
     rotations = matrix_from_wxyz(np.where(trackable[:, None], path.wxyz, lm.wxyz))
-    reports: list[dict[str, Any]] = []
+    reports: list[PathVerification] = []
 
     def polish(q0: np.ndarray) -> Polished[np.ndarray]:
         t0 = time.perf_counter()
@@ -85,16 +87,16 @@ def polish_follow(robot: Robot, polisher: Callable[[int], Any], lm: FollowResult
         t1 = time.perf_counter()
         reports.append(verify(q))
         timing.verify += time.perf_counter() - t1
-        return reports[-1]["verdict"]
+        return reports[-1].motion.verdict
 
     outcome = accept_first([lm.q], lm.q, lm, polish, judge)
     if not outcome.accepted:
-        lm.stage = f"refine ({polish_note(outcome)})"
+        lm.stage, lm.notes = Stage.REFINE, [polish_note(outcome)]
         return lm
     polished = make_result(outcome.answer, reports[-1])
     if lm.max_violation <= VIOLATION_TOLERANCE and lm.collision_free and \
             tracking_cost(polished) > tracking_cost(lm):
         # Both feasible: keep the one that tracks the path better.
-        lm.stage = "refine (feasible; the polished answer tracked worse)"
+        lm.stage, lm.notes = Stage.REFINE, ["feasible; the polished answer tracked worse"]
         return lm
     return polished

@@ -14,7 +14,22 @@ from .._files import atomic_open
 from ..model import Robot
 from ..model.kinematics import pose_error, tip_pose
 from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
-from ._result import ResultFileError, ResultIO, array, as_float, num, nums, write_series_csv
+from ..world._motion import MotionVerification
+from ._result import (
+    ResultFileError,
+    ResultIO,
+    Stage,
+    Status,
+    array,
+    as_float,
+    num,
+    nums,
+    read_stage,
+    stage_text,
+    status_of,
+    typed_stage,
+    write_series_csv,
+)
 from ._timing import StageTiming
 from ._trajectory_result import controller_columns, tendon_names
 from .paths import ReferencePath
@@ -34,6 +49,56 @@ def tracking_errors(robot: Robot, q: np.ndarray, positions: np.ndarray,
             "pose_error": pose_error(position, rotation, positions, reference),
             "position_error": np.linalg.norm(position - positions, axis=1),
             "rotation_error": np.arccos(cos_angle)}
+
+
+@dataclass(frozen=True)
+class PathVerification:
+    """``PathFollower.verify``'s report on a followed path: the motion's report
+    (``verify_trajectory``) and the float64 tracking of the reference. Units: rad, m."""
+
+    motion: MotionVerification
+    """The verdict on the motion and what it measured (clearance, tendon limits)."""
+    position: np.ndarray
+    """(T, 3) tip positions reached, m."""
+    wxyz: np.ndarray
+    """(T, 4) tip orientations reached."""
+    pose_error: np.ndarray
+    """(T,) ‖log(T_tip⁻¹·T_ref)‖ (mixed m/rad)."""
+    position_error: np.ndarray
+    """(T,) m."""
+    rotation_error: np.ndarray
+    """(T,) rad."""
+    reached: np.ndarray
+    """(T,) bool: within the follower's position and rotation tolerances."""
+
+    @classmethod
+    def of(cls, robot: Robot, motion: MotionVerification, q: np.ndarray, path: ReferencePath,
+           position_tolerance_mm: float, rotation_tolerance_deg: float) -> PathVerification:
+        """The report on (T, 3n) q following ``path``, its motion judged by ``motion``."""
+        errors = tracking_errors(robot, q, path.positions, path.wxyz)
+        reached = ((1e3 * errors["position_error"] <= position_tolerance_mm)
+                   & (np.degrees(errors["rotation_error"]) <= rotation_tolerance_deg))
+        return cls(motion, **errors, reached=reached)
+
+    @property
+    def success(self) -> bool:
+        """The verdict accepts the motion (``reached`` is judged apart)."""
+        return self.motion.success
+
+    @property
+    def reason(self) -> str:
+        """The motion verdict's words ("" on success)."""
+        return self.motion.reason
+
+    @property
+    def violations(self) -> dict[str, float]:
+        """Largest violation per family (``MotionVerification.violations``)."""
+        return self.motion.violations
+
+    @property
+    def max_violation(self) -> float:
+        """The largest of ``violations``."""
+        return self.motion.max_violation
 
 
 def unreached_stretches(reached: np.ndarray) -> list[tuple[int, int]]:
@@ -95,12 +160,9 @@ class FollowResult(ResultIO):
     limits."""
     reason: str
     """"" on success, else why not (unreached waypoints, collision, limits)."""
-    stage: str
-    """What produced ``q``: "refine", "polish", "refine (polish failed: <why>)", "refine
-    (polish out of time: <why>)" (``FollowConfig.polish_time_limit``), or in
-    exact mode "refine (feasible: polish not needed)" / "refine (feasible; the polished
-    answer tracked worse)" when the LM answer already keeps every constraint (max
-    violation ≤ 1e-6 by the independent checks)."""
+    stage: Stage
+    """What produced ``q``: ``Stage.REFINE`` or ``Stage.POLISH``; why a refine answer
+    stands in exact mode is in ``notes``."""
     timing: StageTiming = field(default_factory=StageTiming)
     """Seconds per stage: compile, explore, refine, polish, verify (and ``total``)."""
     scene_name: str | None = None
@@ -110,6 +172,25 @@ class FollowResult(ResultIO):
     tendon_displacements: np.ndarray | None = None
     """(T, n_tendons) motor commands at the waypoints, m (positive = pulled), when the
     robot file has an ``actuation`` block (``model.actuation``); else None."""
+    notes: list[str] = field(default_factory=list)
+    """Free text qualifying ``stage`` in exact mode: "polish failed: <why>", "polish out
+    of time: <why>" (``FollowConfig.polish_time_limit``), "feasible: polish not needed" or
+    "feasible; the polished answer tracked worse" (the LM answer already keeps every
+    constraint: max violation ≤ 1e-6 by the independent checks)."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.stage, self.notes = typed_stage(self.stage, self.notes)
+
+    @property
+    def stage_text(self) -> str:
+        """The stage and its notes for people: "refine (polish failed: …)"."""
+        return stage_text(self.stage, self.notes)
+
+    @property
+    def status(self) -> Status:
+        """``Status``: success or failed (a followed path is never rejected whole)."""
+        return status_of(self.success, self.stage)
 
     @property
     def dt(self) -> float:
@@ -143,7 +224,9 @@ class FollowResult(ResultIO):
             "scene": self.scene_name,
             "success": bool(self.success),
             "reason": self.reason or None,
-            "stage": self.stage,
+            "stage": Stage(self.stage).value,
+            "notes": list(self.notes),
+            "status": self.status.value,
             "dt": self.dt,
             "times": self.times.tolist(),
             "q": self.q.tolist(),
@@ -172,6 +255,7 @@ class FollowResult(ResultIO):
     def _from_fields(cls, data: dict[str, Any], robot: Robot) -> FollowResult:
         path = ReferencePath.from_dict(data["path"], source="path")
         count = len(path)
+        stage, notes = read_stage(data, data["schema_version"])
         return cls(
             robot, path, array(data["q"], robot.dof, "q"), array(data["position"], 3, "position"),
             array(data["wxyz"], 4, "wxyz"), *(array(data[k], name=k) for k in (
@@ -183,7 +267,8 @@ class FollowResult(ResultIO):
             bool(data["collision_free"]), as_float(data["min_clearance"], "min_clearance"),
             as_float(data["max_violation"], "max_violation"),
             {k: as_float(v, f"violations.{k}") for k, v in data["violations"].items()},
-            success=bool(data["success"]), reason=data["reason"] or "", stage=data["stage"],
+            success=bool(data["success"]), reason=data["reason"] or "", stage=stage,
+            notes=notes,
             timing=StageTiming.from_dict(data["timing"]), scene_name=data["scene"],
             safety_margin=float(data["safety_margin"]),
         )._checked(count)
@@ -212,7 +297,7 @@ class FollowResult(ResultIO):
                      rotation_error=self.rotation_error, reached=self.reached,
                      tendon_lengths=self.tendon_lengths, collision_free=self.collision_free,
                      min_clearance=self.min_clearance, max_violation=self.max_violation,
-                     success=self.success, stage=self.stage, reason=self.reason)
+                     success=self.success, stage=self.stage_text, reason=self.reason)
         return path
 
     def save_csv(self, path: str | Path) -> Path:
@@ -229,13 +314,14 @@ def tracking_cost(result: FollowResult) -> float:
 
 
 def result_from_verdict(robot: Robot, path: ReferencePath, q: np.ndarray,
-                        verdict: dict[str, Any], stage: str, why_untrackable: dict[int, str],
-                        scene_name: str | None, safety_margin: float) -> FollowResult:
+                        verdict: PathVerification, stage: Stage | str,
+                        why_untrackable: dict[int, str], scene_name: str | None,
+                        safety_margin: float) -> FollowResult:
     """The result of the followed path ``q`` (T, 3n) (rad, rad, m) judged by ``verdict``
-    (``PathFollower.verify``'s dict: ``world._motion.verify_trajectory``'s plus the
-    tracking errors and ``reached``); ``why_untrackable``: waypoint index → why it cannot
-    be tracked; ``safety_margin`` δ, m."""
-    reached = np.asarray(verdict["reached"], bool)
+    (``PathFollower.verify``'s report); ``why_untrackable``: waypoint index → why it
+    cannot be tracked; ``safety_margin`` δ, m."""
+    reached = np.asarray(verdict.reached, bool)
+    motion = verdict.motion
     reasons = []
     unreached = np.flatnonzero(~reached)
     if len(unreached):
@@ -245,14 +331,14 @@ def result_from_verdict(robot: Robot, path: ReferencePath, q: np.ndarray,
                        f"{stretches})")
         for i, why in sorted(why_untrackable.items())[:3]:
             reasons.append(f"waypoint {i}: {why}")
-    if verdict["reason"]:
-        reasons.append(verdict["reason"])
+    if motion.reason:
+        reasons.append(motion.reason)
     return FollowResult(
-        robot, path, q, verdict["position"], verdict["wxyz"], verdict["pose_error"],
-        verdict["position_error"], verdict["rotation_error"], reached,
-        verdict["tendon_lengths"], verdict["tendon_speed"], verdict["tendon_accel"],
-        bool(verdict["collision_free"]), float(verdict["min_clearance"]),
-        float(verdict["max_violation"]), dict(verdict["violations"]),
-        success=bool(verdict["success"]) and bool(reached.all()),
+        robot, path, q, verdict.position, verdict.wxyz, verdict.pose_error,
+        verdict.position_error, verdict.rotation_error, reached,
+        motion.tendon_lengths, motion.tendon_speed, motion.tendon_accel,
+        bool(motion.collision_free), float(motion.min_clearance),
+        float(motion.max_violation), motion.violations,
+        success=bool(motion.success) and bool(reached.all()),
         reason="; ".join(reasons), stage=stage, scene_name=scene_name,
         safety_margin=safety_margin)

@@ -11,17 +11,97 @@ import numpy as np
 
 from .._files import atomic_open
 from ..model import Robot
-from ._result import ResultIO, array, nums, row_lists
+from ..world.verdict import Verdicts
+from ._result import (
+    ResultIO,
+    Stage,
+    Status,
+    array,
+    nums,
+    read_stage,
+    row_lists,
+    stage_text,
+    status_of,
+    typed_stage,
+)
 from ._timing import StageTiming
+
+
+@dataclass(frozen=True)
+class IKVerification:
+    """``IKSolver.verify``'s report on B answers: their float64 re-evaluation, independent
+    of the optimiser, and the verdict on each (``world.verdict.judge_many``). Arrays (B, …);
+    units m, rad."""
+
+    position: np.ndarray
+    """(B, 3) tip positions reached, m."""
+    wxyz: np.ndarray
+    """(B, 4) tip orientations reached, unit quaternions."""
+    pose_error: np.ndarray
+    """(B,) ‖log(T_tip⁻¹·T_target)‖ (mixed m/rad)."""
+    position_error: np.ndarray
+    """(B,) m."""
+    rotation_error: np.ndarray
+    """(B,) rad."""
+    obstacle_clearance: np.ndarray
+    """(B,) python-fcl distance to the nearest obstacle, m; +inf without a scene."""
+    self_clearance: np.ndarray
+    """(B,) distance between segments at least two apart, m; +inf where not checked."""
+    clearance: np.ndarray
+    """(B,) the smaller of the two, m; NaN when neither is checked."""
+    collision_free: np.ndarray
+    """(B,) bool: no obstacle or self penetration."""
+    verdicts: Verdicts
+    """The verdict on each answer."""
+
+    @property
+    def success(self) -> np.ndarray:
+        """(B,) bool: the verdict accepts the answer."""
+        return self.verdicts.success
+
+    @property
+    def reason(self) -> np.ndarray:
+        """(B,) str (object array): "" on success, else why not."""
+        return np.array(self.verdicts.reason, dtype=object)
+
+    @property
+    def violations(self) -> dict[str, np.ndarray]:
+        """Per family (limits, clearance, self_clearance), (B,) the largest violation."""
+        return dict(self.verdicts.violations)
+
+    @property
+    def max_violation(self) -> np.ndarray:
+        """(B,) the largest of ``violations`` (rad or m)."""
+        return self.verdicts.max_violation
+
+    def take(self, rows: Any) -> IKVerification:
+        """The report on answers ``rows`` (an index array, or a slice)."""
+        def part(values: np.ndarray) -> np.ndarray:
+            return np.asarray(values)[rows]
+
+        verdicts = self.verdicts
+        return IKVerification(
+            part(self.position), part(self.wxyz), part(self.pose_error),
+            part(self.position_error), part(self.rotation_error),
+            part(self.obstacle_clearance), part(self.self_clearance), part(self.clearance),
+            part(self.collision_free),
+            Verdicts(success=part(verdicts.success), reason=tuple(part(self.reason).tolist()),
+                     violations={k: part(v) for k, v in verdicts.violations.items()},
+                     max_violation=part(verdicts.max_violation)))
+
 
 PER_TARGET = ("pose_error", "position_error", "rotation_error", "max_violation",
                "min_clearance")
 """The float columns of an ``IKResult`` that ``IKSolver.verify`` fills per target."""
 VERIFIED = {"min_clearance": "clearance"}
-"""``IKResult`` column → the key of ``IKSolver.verify``'s output where they differ."""
+"""``IKResult`` column → the field of ``IKVerification`` where they differ."""
+FAMILIES = ("limits", "clearance", "self_clearance")
+"""The violation families of IK (``world.verdict.UNITS``), each an ``IKResult.violations``
+column."""
 COLUMNS = ("q", "position", "wxyz", *PER_TARGET, "collision_free", "success", "stage",
-           "reason")
-"""The per-target fields of an ``IKResult`` (``IKResult.columns``)."""
+           "reason", *(f"violation_{k}" for k in FAMILIES))
+"""The per-target fields of an ``IKResult`` (``IKResult.columns``; ``stage`` as
+``stage_text``, its notes included)."""
 
 
 @dataclass
@@ -45,13 +125,56 @@ class IKResult(ResultIO):
     #                                neither is checked)
     collision_free: np.ndarray     # (T,) bool: no obstacle or self penetration
     success: np.ndarray            # (T,) bool
-    stage: list[str]               # which stage produced each answer
+    stage: list[Stage]             # which stage produced each answer (a string such as
+    #                                "refine (polish failed: …)" is split into stage and notes)
     reason: list[str]              # empty on success, else why it failed
     timing: StageTiming = field(default_factory=StageTiming)
     has_scene: bool = False
     tendon_displacements: np.ndarray | None = None
     """(T, n_tendons) motor commands reproducing each answer, m (positive = pulled), when
     the robot file has an ``actuation`` block (``model.actuation``); else None."""
+    notes: list[list[str]] = field(default_factory=list)
+    """Per answer, the free text that qualifies its stage ("polish failed: …"); empty
+    lists by default."""
+    violations: dict[str, np.ndarray] = field(default_factory=dict)
+    """Per family (``FAMILIES``: limits rad or m, clearance and self_clearance m below δ),
+    (T,) the largest violation of each answer (``world.verdict``); NaN where not judged."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        notes = self.notes or [[] for _ in self.stage]
+        pairs = [typed_stage(s, n) for s, n in zip(self.stage, notes, strict=True)]
+        self.stage = [stage for stage, _ in pairs]
+        self.notes = [more for _, more in pairs]
+        self.violations = {k: np.asarray(self.violations[k], dtype=float)
+                           if k in self.violations else np.full(len(self.q), np.nan)
+                           for k in FAMILIES}
+
+    def store(self, rows: Any, checked: IKVerification) -> None:
+        """The report ``checked`` on answers ``rows`` (``IKSolver.verify``) into their
+        columns: reached pose, errors, clearance, violations and the verdict."""
+        for k in ("position", "wxyz", "collision_free", "success", *PER_TARGET):
+            getattr(self, k)[rows] = getattr(checked, VERIFIED.get(k, k))
+        for k in FAMILIES:
+            self.violations[k][rows] = checked.violations[k]
+        for i, why in zip(np.arange(len(self))[rows].reshape(-1).tolist(),
+                          checked.reason.tolist(), strict=True):
+            self.reason[i] = str(why)
+
+    def set_stage(self, i: int, stage: Stage, *notes: str) -> None:
+        """Answer i was produced by ``stage``; ``notes`` say why (they replace any)."""
+        self.stage[i], self.notes[i] = Stage(stage), list(notes)
+
+    @property
+    def stage_text(self) -> list[str]:
+        """Per answer, the stage and its notes for people: "refine (polish failed: …)"."""
+        return [stage_text(s, n) for s, n in zip(self.stage, self.notes, strict=True)]
+
+    @property
+    def status(self) -> list[Status]:
+        """Per answer, ``Status``: success, failed (solved, rejected by the verdict) or
+        rejected (never solved)."""
+        return [status_of(bool(ok), s) for ok, s in zip(self.success, self.stage, strict=True)]
 
     def __len__(self) -> int:
         return len(self.q)
@@ -98,13 +221,17 @@ class IKResult(ResultIO):
                           else none)
         min_clearance = nums(self.min_clearance) if self.has_scene else none
         success = np.asarray(self.success, bool).tolist()
+        status = self.status
+        violations = {k: nums(v) for k, v in self.violations.items()}
         entries = [{"q": q[i], "theta": theta[i], "phi": phi[i], "length": length[i],
                     "position": position[i], "wxyz": wxyz[i], "pose_error": pose_error[i],
                     "position_error": position_error[i],
                     "rotation_error": rotation_error[i], "success": success[i],
                     "collision_free": collision_free[i], "min_clearance": min_clearance[i],
-                    "max_violation": max_violation[i], "stage": self.stage[i],
-                    "reason": self.reason[i] or None}
+                    "max_violation": max_violation[i],
+                    "violations": {k: v[i] for k, v in violations.items()},
+                    "stage": Stage(self.stage[i]).value, "notes": self.notes[i],
+                    "status": status[i].value, "reason": self.reason[i] or None}
                    for i in range(len(self))]
         if self.tendon_displacements is not None:
             for entry, d in zip(entries, row_lists(self.tendon_displacements, finite),
@@ -117,25 +244,32 @@ class IKResult(ResultIO):
     def _from_fields(cls, data: dict[str, Any], robot: Robot) -> IKResult:
         entries = data["results"]
         has_scene = bool(data["has_scene"])
+        version = data["schema_version"]
+        judged = version >= 2 and entries   # schema 1 kept no violations per family
 
         def column(name: str, width: int | None = None) -> np.ndarray:
             return array([e[name] for e in entries], width, name)
 
+        pose = (column("q", robot.dof), column("position", 3), column("wxyz", 4))
+        stages = [read_stage(e, version) for e in entries]
         return cls(
-            robot, column("q", robot.dof), column("position", 3), column("wxyz", 4),
-            **{k: column(k) for k in PER_TARGET},
+            robot, *pose, **{k: column(k) for k in PER_TARGET},
             collision_free=np.array([bool(e["collision_free"]) if has_scene else True
                                      for e in entries], dtype=bool),
             success=np.array([bool(e["success"]) for e in entries], dtype=bool),
-            stage=[str(e["stage"]) for e in entries],
+            stage=[stage for stage, _ in stages], notes=[notes for _, notes in stages],
             reason=[e["reason"] or "" for e in entries],
+            violations={k: array([e["violations"].get(k) for e in entries], name=k)
+                        for k in FAMILIES} if judged else {},
             timing=StageTiming.from_dict(data.get("timing")), has_scene=has_scene)
 
     def columns(self) -> dict[str, np.ndarray]:
         """The per-target fields as arrays (``COLUMNS``; stage and reason as strings): the
         compact form a batch job's chunk files hold."""
-        return {k: np.asarray(getattr(self, k), dtype=str if k in ("stage", "reason") else None)
-                for k in COLUMNS}
+        out = {k: np.asarray(getattr(self, k), dtype=str if k == "reason" else None)
+               for k in COLUMNS[:-len(FAMILIES)] if k != "stage"}
+        return {**out, "stage": np.asarray(self.stage_text, dtype=str),
+                **{f"violation_{k}": self.violations[k] for k in FAMILIES}}
 
     @classmethod
     def from_columns(cls, robot: Robot, columns: dict[str, np.ndarray],
@@ -151,6 +285,8 @@ class IKResult(ResultIO):
             success=np.asarray(columns["success"], dtype=bool),
             stage=[str(x) for x in columns["stage"]],
             reason=[str(x) for x in columns["reason"]],
+            violations={k: np.asarray(columns[f"violation_{k}"], dtype=float)
+                        for k in FAMILIES if f"violation_{k}" in columns},
             timing=timing, has_scene=has_scene)
 
     def save_csv(self, path: str | Path) -> Path:
@@ -166,6 +302,7 @@ class IKResult(ResultIO):
                                      self.rotation_error, self.min_clearance,
                                      self.max_violation)]
         q = row_lists(self.q, [True] * len(self))
+        stages = self.stage_text
         with atomic_open(path, newline="") as handle:
             writer = csv.writer(handle)
             writer.writerow(["target", "success", "pose_error", "position_error_m",
@@ -176,5 +313,5 @@ class IKResult(ResultIO):
                                                    for v in q[i]]
                 writer.writerow([i, int(bool(self.success[i])),
                                  *("" if v is None else f"{v:.9g}" for v in cells),
-                                 self.stage[i], self.reason[i]])
+                                 stages[i], self.reason[i]])
         return path

@@ -4,18 +4,27 @@ Every result class mixes in ``ResultIO``: ``to_dict()`` / ``from_dict(data)`` (t
 RESULT.json form), ``save(path)`` (JSON), ``load(path)``, ``save_csv(path)``. Its JSON
 carries ``"kind"`` (the registry key below) and ``"schema_version"``, and the same field
 names for the same quantities in every kind: ``q`` (rad, rad, m), ``success``,
-``reason``, ``stage`` ("explore", "refine", "polish", …), ``pose_error`` (the
+``reason``, ``stage`` (a ``Stage``) with ``notes`` (the free text that qualifies it),
+``status`` (a ``Status``, written for readers; derived from ``success`` and ``stage``),
+``violations`` (largest violation per family, ``world.verdict.UNITS``), ``pose_error`` (the
 ‖log(T⁻¹·T_target)‖ metric), ``position_error`` (m), ``rotation_error`` (rad),
 ``min_clearance`` (m, python-fcl), ``max_violation``, ``timing`` (seconds per stage,
 ``StageTiming``). Arrays are SI; millimetre / degree figures appear only in summaries.
 
-``load_result(path)`` / ``result_from_dict(data)`` read any kind by its ``"kind"``.
-A new kind registers with one line in ``RESULT_KINDS``.
+``load_result(path)`` / ``result_from_dict(data)`` read any kind by its ``"kind"``, of
+this schema version or the one before (``READS``). A new kind registers with one line in
+``RESULT_KINDS``.
+
+Schema 2 (this version) writes ``stage`` as a ``Stage`` value and its free text apart, in
+``notes``; schema 1 wrote both in one string, "refine (polish failed: …)", which
+``split_stage`` takes apart on reading. ``stage_text`` joins them again for people (the
+CLI, summaries): the same text as schema 1 held.
 """
 
 from __future__ import annotations
 
 import csv
+import enum
 import importlib
 import json
 import math
@@ -30,8 +39,13 @@ from ..model.actuation import planned_displacements
 if TYPE_CHECKING:
     from ..model import Robot
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 """Version of the RESULT.json layout; bumped when a field changes meaning or name."""
+
+READS = (1, SCHEMA_VERSION)
+"""The schema versions ``load_result`` reads: this one and the one before (version 1 held
+``stage`` and its notes in one string; it had no ``notes``, ``status``, nor IK
+``violations``)."""
 
 RESULT_KINDS: dict[str, str] = {
     "ik": "cr_nlp.tasks.ik:IKResult",
@@ -45,6 +59,100 @@ RESULT_KINDS: dict[str, str] = {
 class ResultFileError(ValueError):
     """A RESULT.json (or its dict) that is not a result this version reads; the message
     names the file and the field."""
+
+
+# ================================================================ stage and status
+
+
+class Stage(enum.StrEnum):
+    """What produced an answer (docs/design.md §2). A ``str``: ``stage == "polish"``
+    holds, and it is written to JSON as its value. Why it is that stage (a polish that
+    failed, the guess a trajectory started from) is free text in the result's ``notes``."""
+
+    SEARCH = "search"
+    """Live IK: the batched IK search (explore, then refine) answered."""
+    REFINE = "refine"
+    """The batched penalty LM (stage 2)."""
+    POLISH = "polish"
+    """Ipopt with the constraints as constraints (stage 3), accepted by the verdict."""
+    NONE = "none"
+    """IK: no answer; the target was refused before solving (``reason`` says why)."""
+    REJECTED = "rejected"
+    """Trajectory: the problem was refused before planning (``reason`` says why)."""
+    ERROR = "error"
+    """A batch job's chunk failed before solving (``cr_nlp.batch``)."""
+
+
+class Status(enum.StrEnum):
+    """The outcome of one answer, from ``success`` and ``stage`` (``status_of``)."""
+
+    SUCCESS = "success"
+    """The verdict (``world.verdict``) accepts the answer."""
+    FAILED = "failed"
+    """Solved, and the verdict rejects the answer (``reason`` says why)."""
+    REJECTED = "rejected"
+    """Never solved: the input was refused or its chunk failed (``reason`` says why)."""
+
+
+_UNSOLVED = (Stage.NONE, Stage.REJECTED, Stage.ERROR)
+
+
+def status_of(success: bool, stage: Stage | str) -> Status:
+    """The ``Status`` of an answer that ``success`` judges and ``stage`` produced."""
+    if success:
+        return Status.SUCCESS
+    return Status.REJECTED if Stage(stage) in _UNSOLVED else Status.FAILED
+
+
+def split_stage(text: Stage | str) -> tuple[Stage, list[str]]:
+    """A stage with its notes in parentheses, as schema 1 wrote it ("refine (roadmap)
+    (polish failed: …)"), → (``Stage.REFINE``, ["roadmap", "polish failed: …"]). A note
+    may hold parentheses of its own ("… the time limit (7 iterations, 2 s)").
+
+    Raises:
+        ValueError: not a known stage, or unbalanced parentheses.
+    """
+    if isinstance(text, Stage):
+        return text, []
+    head, _, rest = str(text).partition(" (")
+    notes: list[str] = []
+    rest = f"({rest}" if rest else ""
+    while rest:
+        depth, end = 0, -1
+        for k, char in enumerate(rest):
+            depth += {"(": 1, ")": -1}.get(char, 0)
+            if depth == 0:
+                end = k
+                break
+        if not rest.startswith("(") or end < 0:
+            raise ValueError(f"stage {text!r:.60}: unbalanced parentheses")
+        notes.append(rest[1:end])
+        rest = rest[end + 1:].lstrip(" ")
+    try:
+        return Stage(head), notes
+    except ValueError:
+        raise ValueError(f"unknown stage {head!r:.40}; known: "
+                         f"{', '.join(s.value for s in Stage)}") from None
+
+
+def stage_text(stage: Stage | str, notes: list[str] | tuple[str, ...] = ()) -> str:
+    """The stage and its notes for people, each note in parentheses: "refine (polish
+    failed: …)" (the inverse of ``split_stage``; what schema 1 wrote)."""
+    return "".join([Stage(stage).value, *(f" ({note})" for note in notes)])
+
+
+def read_stage(entry: dict[str, Any], version: int) -> tuple[Stage, list[str]]:
+    """``stage`` and ``notes`` of a RESULT.json entry of schema ``version``."""
+    if version < 2:
+        return split_stage(entry["stage"])
+    return Stage(entry["stage"]), [str(note) for note in entry.get("notes") or []]
+
+
+def typed_stage(stage: Stage | str, notes: list[str] | None) -> tuple[Stage, list[str]]:
+    """``stage`` as a ``Stage`` and its notes: those in parentheses in a ``stage`` string
+    ("refine (roadmap)", the form schema 1 and older callers used), then ``notes``."""
+    stage, more = split_stage(stage)
+    return stage, [*more, *(notes or [])]
 
 
 # ================================================================ JSON values
@@ -219,9 +327,9 @@ def check_header(data: Any, where: str, kind: str | None = None) -> str:
     if kind is not None and found != kind:
         raise ResultFileError(f"{where}: holds a {found!r} result, not {kind!r}")
     version = data.get("schema_version")
-    if version != SCHEMA_VERSION:
+    if version not in READS or isinstance(version, bool):
         raise ResultFileError(f"{where}: schema_version {version!r}; this version of cr_nlp "
-                              f"reads {SCHEMA_VERSION}")
+                              f"reads {' and '.join(map(str, READS))}")
     return found
 
 

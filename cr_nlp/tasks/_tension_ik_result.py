@@ -11,13 +11,20 @@ import numpy as np
 
 from .._files import atomic_open
 from ..model import Robot
-from ._result import ResultIO, array, nums, row_lists
+from ._result import ResultIO, Stage, Status, array, nums, read_stage, row_lists, status_of
 from ._timing import StageTiming
+
+FAMILIES = ("limits", "clearance", "self_clearance")
+"""The violation families of tension IK (``world.verdict.judge_many``)."""
 
 
 @dataclass
 class TensionIKResult(ResultIO):
-    """One row per target (SI units; the tip as the independent forward solve puts it)."""
+    """One row per target (SI units; the tip as the independent forward solve puts it).
+
+    It has no ``q``, on purpose: the answer is the tensions, and the shape they give is a
+    Cosserat rod's (``model.cosserat``), not PCC arcs, so there is no configuration θ, φ, L
+    to report without fitting one (which would be a second, inexact answer)."""
 
     kind: ClassVar[str] = "tension_ik"
 
@@ -39,6 +46,28 @@ class TensionIKResult(ResultIO):
     gravity: np.ndarray           # (B, 3) m/s²
     tendon_displacements: np.ndarray | None = None   # (B, n_tendons) m, pulled > 0
     timing: StageTiming = field(default_factory=StageTiming)
+    violations: dict[str, np.ndarray] = field(default_factory=dict)
+    """Per family (``FAMILIES``: limits N outside [0, τ_max], clearance and
+    self_clearance m below δ), (B,) the largest violation of each answer; NaN where not
+    judged."""
+    stage: list[Stage] = field(default_factory=list)
+    """Per answer: ``Stage.REFINE`` (the LM in tension space; there is no polish), or
+    ``Stage.NONE`` for a target refused before solving."""
+    notes: list[list[str]] = field(default_factory=list)
+    """Per answer, free text qualifying its stage (none so far)."""
+
+    def __post_init__(self) -> None:
+        count = len(self.tensions)
+        self.violations = {k: np.asarray(self.violations[k], dtype=float)
+                           if k in self.violations else np.full(count, np.nan)
+                           for k in FAMILIES}
+        self.stage = [Stage(s) for s in self.stage] or [Stage.REFINE] * count
+        self.notes = self.notes or [[] for _ in range(count)]
+
+    @property
+    def status(self) -> list[Status]:
+        """Per answer, ``Status`` (success, failed, or rejected: never solved)."""
+        return [status_of(bool(ok), s) for ok, s in zip(self.success, self.stage, strict=True)]
 
     def __len__(self) -> int:
         return len(self.tensions)
@@ -67,6 +96,9 @@ class TensionIKResult(ResultIO):
             "tip_force": row_lists(self.tip_force), "tip_moment": row_lists(self.tip_moment),
             "gravity": row_lists(self.gravity),
             "tendon_displacements": row_lists(self.tendon_displacements),
+            "violations": {k: nums(v) for k, v in self.violations.items()},
+            "stage": [Stage(s).value for s in self.stage], "notes": self.notes,
+            "status": [s.value for s in self.status],
             "timing": self.timing.as_dict(), "summary": self.summary(),
         }
 
@@ -74,6 +106,9 @@ class TensionIKResult(ResultIO):
     def _from_fields(cls, data: dict[str, Any], robot: Robot) -> TensionIKResult:
         n = robot.n_tendons
         count = len(data["tensions"])
+        stages = ([read_stage({"stage": s, "notes": m}, 2)
+                   for s, m in zip(data["stage"], data["notes"], strict=True)]
+                  if data["schema_version"] >= 2 else [])   # schema 1: every row refined
 
         def inf(values: list) -> np.ndarray:
             out = array(values)
@@ -95,7 +130,10 @@ class TensionIKResult(ResultIO):
             gravity=array(data["gravity"], 3, "gravity"),
             tendon_displacements=array(data["tendon_displacements"], n,
                                        "tendon_displacements") if count else np.zeros((0, n)),
-            timing=StageTiming.from_dict(data.get("timing")))
+            timing=StageTiming.from_dict(data.get("timing")),
+            violations={k: array(v, name=f"violations.{k}")
+                        for k, v in data.get("violations", {}).items()},
+            stage=[stage for stage, _ in stages], notes=[notes for _, notes in stages])
 
     def save_csv(self, path: str | Path) -> Path:
         """One row per target: target x, y, z (m), the tensions t1…tN (N), the reached tip

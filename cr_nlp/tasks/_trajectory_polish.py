@@ -21,18 +21,21 @@ import numpy as np
 from ..model import Robot
 from ..stages.polish._accept import Acceptance, Judged, Polished, polish_and_accept, polish_note
 from ..stages.polish._trajectory_nlp import polish_one
+from ..world._motion import MotionVerification
 from ..world.verdict import Verdict
+from ._result import Stage
 from ._trajectory_result import TrajectoryResult, result_from_verdict
 
 
 def polish_results(robot: Robot, rows: list[int], candidates: list[list[tuple[np.ndarray, str]]],
                    results: list[TrajectoryResult | None], dt: float,
-                   verify: Callable[[np.ndarray], dict[str, Any]], polisher: Callable[[], Any],
+                   verify: Callable[[np.ndarray], MotionVerification],
+                   polisher: Callable[[], Any],
                    pool: Callable[[], Any] | None, attempts: int, polish_accepted: bool,
                    bar: Any, time_limit: float | None = None) -> None:
     """Polish each problem's LM candidates in order (best first, at most ``attempts``) and
     keep the first polished answer the verification accepts; if none is, the LM answer
-    stays with its own verdict, its ``stage`` noting why each polish failed (exact mode
+    stays with its own verdict, its ``notes`` saying why each polish failed (exact mode
     never succeeds less often than the LM stage), or that its time limit ran out.
 
     Args:
@@ -42,7 +45,7 @@ def polish_results(robot: Robot, rows: list[int], candidates: list[list[tuple[np
         candidates: per problem, (q (waypoints, 3n) rad/m, stage name), best first.
         results: the LM results.
         dt: seconds between waypoints.
-        verify: q → ``world._motion.verify_trajectory``'s dict.
+        verify: q → ``world._motion.verify_trajectory``'s report.
         polisher, pool: as for ``polish_trajectories``.
         attempts: most candidates polished per problem.
         polish_accepted: also polish problems whose LM answer the verification accepts.
@@ -62,11 +65,11 @@ def polish_results(robot: Robot, rows: list[int], candidates: list[list[tuple[np
         else:
             todo.append(row)
     options = [candidates[row][:attempts] for row in todo]
-    reports: dict[int, dict[str, Any]] = {}
+    reports: dict[int, MotionVerification] = {}
 
     def judge(q: np.ndarray, r: int) -> Verdict:
         reports[r] = verify(q)
-        return reports[r]["verdict"]
+        return reports[r].verdict
 
     acceptance, seconds = polish_trajectories(
         options, [results[rows[row]] for row in todo], dt, judge, polisher, pool, bar,
@@ -76,12 +79,12 @@ def polish_results(robot: Robot, rows: list[int], candidates: list[list[tuple[np
         previous = results[i]
         assert previous is not None
         if outcome.accepted:
-            results[i] = result_from_verdict(robot, outcome.answer, dt, reports[r], "polish",
+            results[i] = result_from_verdict(robot, outcome.answer, dt, reports[r], Stage.POLISH,
                                              previous.cost, previous.timing)
         else:
             failures = [f"from {options[r][k][1]}: {why}"
                         for k, why in enumerate(outcome.failures)]
-            previous.stage = f"{previous.stage} ({polish_note(outcome, failures)})"
+            previous.notes.append(polish_note(outcome, failures))
         result = results[i]
         assert result is not None
         result.timing = replace(previous.timing, polish=float(seconds[r]))

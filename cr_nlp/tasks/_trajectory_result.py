@@ -12,14 +12,21 @@ import numpy as np
 
 from .._files import atomic_open
 from ..model import Robot
+from ..world._motion import MotionVerification
 from ._result import (
     SCHEMA_VERSION,
     ResultFileError,
     ResultIO,
+    Stage,
+    Status,
     as_float,
     check_header,
     num,
+    read_stage,
     result_robot,
+    stage_text,
+    status_of,
+    typed_stage,
     write_json,
     write_series_csv,
 )
@@ -46,11 +53,12 @@ class TrajectoryResult(ResultIO):
     and acceleration limits."""
     reason: str
     """"" on success, else why it failed."""
-    stage: str
-    """What produced ``q``: "refine (roadmap)", "refine (straight)", "refine (perturbed)",
-    "polish", or a refine stage with the polish's failure noted ("… (polish failed: …)",
-    or "… (polish out of time: …)" under ``polish_time_limit``); "rejected" for bad
-    input."""
+    stage: Stage
+    """What produced ``q``: ``Stage.REFINE`` (notes: the guess it started from,
+    "roadmap", "straight" or "perturbed", then the polish's failure where the polish was
+    tried: "polish failed: …", or "polish out of time: …" under ``polish_time_limit``),
+    ``Stage.POLISH``; ``Stage.REJECTED`` for bad input, ``Stage.ERROR`` for a batch chunk
+    that failed. A string "refine (roadmap)" is split into stage and notes."""
     path_length: float = math.nan
     """Tip path length along the interpolated motion, m."""
     min_clearance: float = math.nan
@@ -73,6 +81,23 @@ class TrajectoryResult(ResultIO):
     tendon_displacements: np.ndarray | None = None
     """(H+1, n_tendons) motor commands at the waypoints, m (positive = pulled), when the
     robot file has an ``actuation`` block (``model.actuation``); else None."""
+    notes: list[str] = field(default_factory=list)
+    """Free text qualifying ``stage``, in order: the guess, then why no polish was
+    accepted."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.stage, self.notes = typed_stage(self.stage, self.notes)
+
+    @property
+    def stage_text(self) -> str:
+        """The stage and its notes for people: "refine (roadmap) (polish failed: …)"."""
+        return stage_text(self.stage, self.notes)
+
+    @property
+    def status(self) -> Status:
+        """``Status``: success, failed (planned, rejected by the verdict) or rejected."""
+        return status_of(self.success, self.stage)
 
     @property
     def times(self) -> np.ndarray:
@@ -99,18 +124,24 @@ class TrajectoryResult(ResultIO):
             "tendon_speed": num(self.tendon_speed),
             "tendon_accel": num(self.tendon_accel),
             "cost": num(self.cost),
-            "stage": self.stage,
+            "stage": Stage(self.stage).value,
+            "notes": list(self.notes),
+            "status": self.status.value,
             "reason": self.reason or None,
             "timing": self.timing.as_dict(),
         }
 
     @classmethod
-    def from_entry(cls, robot: Robot, entry: dict[str, Any]) -> TrajectoryResult:
-        """The result of one ``entry()`` (a row of a RESULT.json ``results`` list)."""
+    def from_entry(cls, robot: Robot, entry: dict[str, Any],
+                   version: int = SCHEMA_VERSION) -> TrajectoryResult:
+        """The result of one ``entry()`` (a row of a RESULT.json ``results`` list of schema
+        ``version``)."""
         q, tendons = entry["q"], entry["tendon_lengths"]
+        stage, notes = read_stage(entry, version)
         return cls(
             robot, None if q is None else np.asarray(q, dtype=float).reshape(-1, robot.dof),
-            float(entry["dt"]), bool(entry["success"]), entry["reason"] or "", entry["stage"],
+            float(entry["dt"]), bool(entry["success"]), entry["reason"] or "", stage,
+            notes=notes,
             path_length=as_float(entry["path_length"], "path_length"),
             min_clearance=as_float(entry["min_clearance"], "min_clearance"),
             max_violation=as_float(entry["max_violation"], "max_violation"),
@@ -130,7 +161,7 @@ class TrajectoryResult(ResultIO):
         if len(entries) != 1:
             raise ResultFileError(f"holds {len(entries)} trajectories, not one: read it with "
                                   f"load_results / trajectories_from_dict")
-        return cls.from_entry(robot, entries[0])
+        return cls.from_entry(robot, entries[0], data["schema_version"])
 
     @classmethod
     def list_from_dict(cls, data: Any, robot: Robot | str | None = None,
@@ -159,7 +190,8 @@ class TrajectoryResult(ResultIO):
                      tendon_lengths=(self.tendon_lengths if self.tendon_lengths is not None
                                      else np.zeros((0, n_t))),
                      path_length=self.path_length, min_clearance=self.min_clearance,
-                     max_violation=self.max_violation, reason=self.reason, stage=self.stage)
+                     max_violation=self.max_violation, reason=self.reason,
+                     stage=self.stage_text)
 
 
 def controller_columns(robot: Robot, lengths: np.ndarray,
@@ -214,7 +246,8 @@ def trajectories_from_dict(data: Any, robot: Robot | str | None = None,
     check_header(data, where, kind=TrajectoryResult.kind)
     robot = result_robot(data, robot, where)
     try:
-        return [TrajectoryResult.from_entry(robot, e) for e in data["results"]]
+        return [TrajectoryResult.from_entry(robot, e, data["schema_version"])
+                for e in data["results"]]
     except (KeyError, TypeError, ValueError) as exc:
         raise ResultFileError(f"{where}: not a valid trajectory result ({exc!r})") from None
 
@@ -244,13 +277,14 @@ def save_results(results: list[TrajectoryResult], path: str | Path,
 
 
 
-def result_from_verdict(robot: Robot, q: np.ndarray, dt: float, verdict: dict[str, Any], stage: str,
-            cost: float, timing: StageTiming) -> TrajectoryResult:
+def result_from_verdict(robot: Robot, q: np.ndarray, dt: float, verdict: MotionVerification,
+                        stage: Stage | str, cost: float, timing: StageTiming) -> TrajectoryResult:
     """The result of trajectory ``q`` (rad, rad, m; ``dt`` s) judged by ``verdict``
-    (``world._motion.verify_trajectory``'s dict)."""
+    (``world._motion.verify_trajectory``'s report); ``stage`` may carry its notes in
+    parentheses ("refine (roadmap)")."""
     return TrajectoryResult(
-        robot, q, dt, bool(verdict["success"]), verdict["reason"], stage,
-        path_length=verdict["path_length"], min_clearance=verdict["min_clearance"],
-        max_violation=verdict["max_violation"], violations=dict(verdict["violations"]),
-        tendon_lengths=verdict["tendon_lengths"], tendon_speed=verdict["tendon_speed"],
-        tendon_accel=verdict["tendon_accel"], cost=cost, timing=timing)
+        robot, q, dt, bool(verdict.success), verdict.reason, stage,
+        path_length=verdict.path_length, min_clearance=verdict.min_clearance,
+        max_violation=verdict.max_violation, violations=verdict.violations,
+        tendon_lengths=verdict.tendon_lengths, tendon_speed=verdict.tendon_speed,
+        tendon_accel=verdict.tendon_accel, cost=cost, timing=timing)

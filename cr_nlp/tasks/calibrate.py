@@ -176,7 +176,10 @@ class Repeatability:
 
 @dataclass
 class CalibrationResult:
-    """The calibrated robot with its errors on the training (and validation) rows."""
+    """The calibrated robot with its errors on the training (and validation) rows.
+
+    Outside ``tasks._result.ResultIO`` on purpose: a fit gives one robot file and error
+    statistics, not an answer per input with a verdict; it is saved as that robot file."""
 
     robot: Robot
     """The calibrated robot (geometry, base pose and ``actuation`` block)."""

@@ -83,9 +83,11 @@ from ._follow_kinematics import tracking_from, tracking_jacobian, waypoint_jacob
 from ._follow_kinematics import waypoint_kinematics as waypoint_kinematics
 from ._follow_polish import polish_follow
 from ._follow_result import FollowResult as FollowResult
+from ._follow_result import PathVerification as PathVerification
 from ._follow_result import result_from_verdict
 from ._follow_result import tracking_errors as tracking_errors
 from ._follow_result import unreached_stretches as unreached_stretches
+from ._result import Stage
 from ._timing import StageTiming, compile_seconds
 from .ik import IKConfig, IKSolver, validate_targets
 from .paths import ReferencePath, checked_path
@@ -453,7 +455,7 @@ class PathFollower:
     def _refined_and_judged(self, q0: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
                             trackable: np.ndarray, path: ReferencePath, dt: float,
                             timing: StageTiming,
-                            repair: bool = False) -> tuple[np.ndarray, dict[str, Any]]:
+                            repair: bool = False) -> tuple[np.ndarray, PathVerification]:
         """``refine`` then ``verify`` (Δt ``dt``, s), their seconds added to ``timing``."""
         t1 = time.perf_counter()
         with compile_seconds() as compiled:
@@ -502,19 +504,16 @@ class PathFollower:
         return z0, params, self._shared(dt), self._free, np.int32(self.config.iterations)
 
     # ------------------------------------------------------------ verification
-    def verify(self, q: np.ndarray, path: ReferencePath, dt: float) -> dict[str, Any]:
+    def verify(self, q: np.ndarray, path: ReferencePath, dt: float) -> PathVerification:
         """Float64 verdict on (T, 3n) q against the reference: ``verify_trajectory``'s
-        dict plus ``tracking_errors``' arrays and ``reached``."""
-        verdict = verify_trajectory(self.robot, self.scene, q, dt, self.config.safety_margin,
-                                    self.config.verify_samples)
-        verdict.update(tracking_errors(self.robot, q, path.positions, path.wxyz))
-        verdict["reached"] = ((1e3 * verdict["position_error"]
-                               <= self.config.position_tolerance_mm)
-                              & (np.degrees(verdict["rotation_error"])
-                                 <= self.config.rotation_tolerance_deg))
-        return verdict
+        report with ``tracking_errors`` and ``reached`` (``PathVerification``)."""
+        motion = verify_trajectory(self.robot, self.scene, q, dt, self.config.safety_margin,
+                                   self.config.verify_samples)
+        return PathVerification.of(self.robot, motion, q, path, self.config.position_tolerance_mm,
+                                   self.config.rotation_tolerance_deg)
 
-    def _result(self, q: np.ndarray, path: ReferencePath, verdict: dict[str, Any], stage: str,
+    def _result(self, q: np.ndarray, path: ReferencePath, verdict: PathVerification,
+                stage: Stage,
                 why_untrackable: dict[int, str]) -> FollowResult:
         return result_from_verdict(self.robot, path, q, verdict, stage, why_untrackable,
                                    self.scene.name if self.scene is not None else None,
@@ -563,17 +562,17 @@ class PathFollower:
         refine_args = (q0, positions, wxyz, trackable, path, dt, timing)
         q, verdict = self._refined_and_judged(*refine_args)
         if self._repair_terms is not None and (
-                verdict["tendon_speed"] > self.robot.tendon_speed_max
-                or verdict["tendon_accel"] > self.robot.tendon_accel_max):
+                verdict.motion.tendon_speed > self.robot.tendon_speed_max
+                or verdict.motion.tendon_accel > self.robot.tendon_accel_max):
             # The soft tendon penalty left a limit broken: the stiff one from stage 1's
             # sequence (from the soft answer, measured, it may creep for 40 iterations).
             q, verdict = self._refined_and_judged(*refine_args, repair=True)
-        result = self._result(q, path, verdict, "refine", why)
+        result = self._result(q, path, verdict, Stage.REFINE, why)
         if exact:   # stage 3 (``tasks._follow_polish``)
             result = polish_follow(
                 self.robot, self.polisher, result, path, trackable,
                 lambda q: self.verify(q, path, path.dt),
-                lambda q, verdict: self._result(q, path, verdict, "polish", why), timing,
+                lambda q, verdict: self._result(q, path, verdict, Stage.POLISH, why), timing,
                 progress, self.config.polish_time_limit)
         result.timing = timing
         return result

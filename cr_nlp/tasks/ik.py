@@ -44,8 +44,10 @@ from ..world._penalty import sphere_clearances_z
 from ..world.clearance import body_gap_tolerance
 from ..world.verdict import judge_many
 from ._ik_result import COLUMNS as COLUMNS
-from ._ik_result import PER_TARGET, VERIFIED
+from ._ik_result import PER_TARGET
 from ._ik_result import IKResult as IKResult
+from ._ik_result import IKVerification as IKVerification
+from ._result import Stage
 from ._targets import read_targets as read_targets
 from ._targets import validate_targets as validate_targets
 from ._timing import StageTiming
@@ -151,8 +153,8 @@ class _Checked:
 
     success: bool
     reason: str
-    row: dict[str, Any] | None
-    """Every number ``verify`` returned for the answer (None: the result holds them)."""
+    row: IKVerification | None
+    """``verify``'s report on the answer alone (None: the result holds it)."""
 
 
 def _counter(name: str, doc: str) -> property:
@@ -243,18 +245,19 @@ class IKSolver:
 
     # ------------------------------------------------------------ verification
     def verify(self, q: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
-               self_clearance: np.ndarray | None = None) -> dict[str, np.ndarray]:
+               self_clearance: np.ndarray | None = None) -> IKVerification:
         """Float64 re-evaluation of answers q (B, 3n; rad, rad, m) against targets
         (positions (B, 3) m, wxyz (B, 4)), independent of the optimiser's numbers, and
         the library's verdict on them (``world.verdict.judge_many``).
 
         The pose error by the numpy backend of the model, the limits, the python-fcl
         distance to the obstacles and the distance between segments at least two apart
-        (``world.check``; with or without a scene). Returns arrays (B, …): position,
-        wxyz, pose_error, position_error (m), rotation_error (rad), obstacle_clearance
-        and self_clearance (m, +inf where not checked), clearance (m, the smaller of the
-        two, NaN when neither is checked), collision_free, max_violation (rad or m: the
-        largest limit violation or clearance shortfall below δ), success and reason.
+        (``world.check``; with or without a scene). Returns an ``IKVerification``: arrays
+        (B, …) position, wxyz, pose_error, position_error (m), rotation_error (rad),
+        obstacle_clearance and self_clearance (m, +inf where not checked), clearance (m,
+        the smaller of the two, NaN when neither is checked), collision_free, and the
+        verdicts: success, reason, violations per family and max_violation (rad or m: the
+        largest limit violation or clearance shortfall below δ).
         ``self_clearance``: (B,) the answers' self-clearance by ``world.check`` when the
         caller has it already (no scene only; the search's self-repair measured it)."""
         robot = self.robot
@@ -262,36 +265,29 @@ class IKSolver:
         target_r = matrix_from_wxyz(wxyz)
         rel_rot = np.einsum("bji,bjk->bik", rot_m, target_r)
         cos_angle = np.clip((np.trace(rel_rot, axis1=1, axis2=2) - 1) / 2, -1, 1)
-        out = {
-            "position": pos_v, "wxyz": wxyz_from_matrix(rot_m),
-            "pose_error": pose_error(pos_v, rot_m, positions, target_r),
-            "position_error": np.linalg.norm(pos_v - positions, axis=1),
-            "rotation_error": np.arccos(cos_angle),
-            "obstacle_clearance": np.full(len(q), np.inf),
-            "self_clearance": np.full(len(q), np.inf),
-        }
+        errors = pose_error(pos_v, rot_m, positions, target_r)
+        obstacle = np.full(len(q), np.inf)
+        own = np.full(len(q), np.inf)
         if self.scene is None and self_clearance is not None:
-            out["self_clearance"] = np.asarray(self_clearance, dtype=float).reshape(len(q))
+            own = np.asarray(self_clearance, dtype=float).reshape(len(q))
         elif self.scene is not None or robot.has_self_pairs:
             # In parts of the stream's size: the check's temporaries grow with its rows.
             step = max(int(self.config.stream_size), 1)
             parts = [check_many(robot, self.scene, q[i:i + step])
                      for i in (range(0, len(q), step) if len(q) else [0])]
-            out["obstacle_clearance"] = np.concatenate([c.obstacle_distance for c in parts])
-            out["self_clearance"] = np.concatenate([c.self_distance for c in parts])
-        nearest = np.minimum(out["obstacle_clearance"], out["self_clearance"])
-        out["clearance"] = np.where(np.isfinite(nearest), nearest, np.nan)
-        out["collision_free"] = ~(nearest < 0.0)
+            obstacle = np.concatenate([c.obstacle_distance for c in parts])
+            own = np.concatenate([c.self_distance for c in parts])
+        nearest = np.minimum(obstacle, own)
         verdicts = judge_many(margin=self.config.safety_margin,
-                              limits=limit_violation_q(robot, q),
-                              min_clearance=out["obstacle_clearance"],
-                              self_clearance=out["self_clearance"],
-                              pose_error=out["pose_error"],
+                              limits=limit_violation_q(robot, q), min_clearance=obstacle,
+                              self_clearance=own, pose_error=errors,
                               pose_tolerance=self.config.success_tolerance)
-        out["max_violation"] = verdicts.max_violation
-        out["success"] = verdicts.success
-        out["reason"] = np.array(verdicts.reason, dtype=object)
-        return out
+        return IKVerification(
+            position=pos_v, wxyz=wxyz_from_matrix(rot_m), pose_error=errors,
+            position_error=np.linalg.norm(pos_v - positions, axis=1),
+            rotation_error=np.arccos(cos_angle), obstacle_clearance=obstacle,
+            self_clearance=own, clearance=np.where(np.isfinite(nearest), nearest, np.nan),
+            collision_free=~(nearest < 0.0), verdicts=verdicts)
 
     def close(self) -> None:
         """Stop the polish pool's worker processes (``polish_workers`` > 1), if any; the
@@ -327,12 +323,12 @@ class IKSolver:
             self.stream_parts.append(len(part))
 
             def accepts(q: np.ndarray, rows: np.ndarray, part: np.ndarray = part) -> np.ndarray:
-                return self.verify(q, positions[part[rows]], wxyz[part[rows]])["success"]
+                return self.verify(q, positions[part[rows]], wxyz[part[rows]]).success
 
             q_out[part], found, own[part] = self._search.solve_part(
                 positions[part], matrix_from_wxyz(wxyz[part]), timing, accepts)
             beam[part, :found.shape[1]] = found
-        stage = np.where(valid, "refine", "none").tolist()
+        stage = [Stage.REFINE if ok else Stage.NONE for ok in valid.tolist()]
         self_checked = own if self._search.self_repair else None
         result = self._finish(q_out, positions, wxyz, reasons, stage, timing, self_checked)
         if exact and len(idx):
@@ -340,7 +336,7 @@ class IKSolver:
         return result
 
     def _finish(self, q: np.ndarray, positions: np.ndarray, wxyz: np.ndarray,
-                reasons: list[str], stage: list[str], timing: IKTiming,
+                reasons: list[str], stage: list[Stage], timing: IKTiming,
                 self_clearance: np.ndarray | None = None) -> IKResult:
         t0 = time.perf_counter()
         valid = np.array([not r for r in reasons], dtype=bool)
@@ -352,12 +348,9 @@ class IKSolver:
                           has_scene=self.scene is not None, **fields)
         rows = np.flatnonzero(valid)
         if len(rows):
-            checked = self.verify(q[rows], positions[rows], wxyz[rows],
-                                  None if self_clearance is None else self_clearance[rows])
-            for k in ("position", "wxyz", "collision_free", "success", *PER_TARGET):
-                getattr(result, k)[rows] = checked[VERIFIED.get(k, k)]
-            for i, why in zip(rows.tolist(), checked["reason"].tolist(), strict=True):
-                result.reason[i] = why
+            result.store(rows, self.verify(
+                q[rows], positions[rows], wxyz[rows],
+                None if self_clearance is None else self_clearance[rows]))
         timing.verify += time.perf_counter() - t0
         return result
 
@@ -383,8 +376,8 @@ class IKSolver:
 
         def judge(q: np.ndarray, rows: np.ndarray) -> list[_Checked]:
             checked = self.verify(q, positions[todo[rows]], wxyz[todo[rows]])
-            return [_Checked(bool(checked["success"][j]), str(checked["reason"][j]),
-                             {k: v[j] for k, v in checked.items()}) for j in range(len(q))]
+            return [_Checked(bool(checked.success[j]), str(checked.reason[j]),
+                             checked.take(np.array([j]))) for j in range(len(q))]
 
         accepted = polish_answers(
             self._polisher, result.q[todo], beam[todo], result.pose_error[todo],
@@ -395,19 +388,12 @@ class IKSolver:
         for i, outcome in zip(todo.tolist(), accepted.outcomes, strict=True):
             if outcome.accepted:
                 result.q[i] = outcome.answer
-                self._store(result, i, outcome.verdict.row)
-                result.stage[i] = "polish"
+                result.store(np.array([i]), outcome.verdict.row)
+                result.set_stage(i, Stage.POLISH)
             else:
-                result.stage[i] = f"refine ({polish_note(outcome)})"
+                result.set_stage(i, Stage.REFINE, polish_note(outcome))
         timing.verify += accepted.judge_seconds
         timing.polish += time.perf_counter() - t0 - accepted.judge_seconds
-
-    @staticmethod
-    def _store(result: IKResult, i: int, row: dict[str, Any]) -> None:
-        """One row of ``verify``'s output (numbers and verdict) into answer i of ``result``."""
-        for k in ("position", "wxyz", "collision_free", "success", *PER_TARGET):
-            getattr(result, k)[i] = row[VERIFIED.get(k, k)]
-        result.reason[i] = str(row["reason"])
 
 
 def solve_ik(robot: Robot | str | dict, positions: Any, wxyz: Any,

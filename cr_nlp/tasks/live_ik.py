@@ -27,7 +27,8 @@ from ..runtime import configure
 from ..stages.polish._accept import Polished, accept_first
 from ..stages.refine._lm import LMConfig, lm_solve
 from ..world import Scene, load_scene, scene_arrays
-from .ik import IKConfig, IKSolver, ik_residual, validate_targets
+from ._result import Stage
+from .ik import IKConfig, IKSolver, IKVerification, ik_residual, validate_targets
 
 
 @dataclass(frozen=True)
@@ -53,7 +54,11 @@ class LiveIKConfig:
 
 @dataclass
 class LiveIKResult:
-    """One live-IK answer, verified in float64. Units: rad, m, s."""
+    """One live-IK answer, verified in float64. Units: rad, m, s.
+
+    Outside ``tasks._result.ResultIO`` on purpose: one interactive answer of the viewer
+    (one target, timed in milliseconds), never written to or read from a RESULT.json; its
+    fields keep the base's names (``q``, ``success``, ``reason``, ``stage``, …)."""
 
     q: np.ndarray
     """(3n,) θ, φ, L."""
@@ -75,13 +80,16 @@ class LiveIKResult:
     """Pose error below the tolerance, every violation ≤ 1e-6, collision-free."""
     reason: str
     """"" on success, else why not."""
-    stage: str
-    """What produced ``q``: "refine" (warm-started LM), "search" (the batched fallback)
-    or "polish" (Ipopt)."""
+    stage: Stage
+    """What produced ``q``: ``Stage.REFINE`` (warm-started LM), ``Stage.SEARCH`` (the
+    batched fallback) or ``Stage.POLISH`` (Ipopt)."""
     seconds: float
     """Wall time of the update, verification included."""
     timing: dict[str, float] = field(default_factory=dict)
     """Seconds per part of the update: "refine", "search", "polish", "verify"."""
+    violations: dict[str, float] = field(default_factory=dict)
+    """Largest violation per family (``world.verdict.UNITS``: limits rad or m, clearance
+    and self_clearance m below δ)."""
 
 
 class LiveIKSolver:
@@ -146,10 +154,9 @@ class LiveIKSolver:
         )
         return clip_to_limits(self.robot, z_to_q_numpy(np.asarray(z[0], dtype=float)))
 
-    def _verify(self, q: np.ndarray, position: np.ndarray, wxyz: np.ndarray) -> dict[str, Any]:
-        """``IKSolver.verify`` of one answer: its numbers and the library's verdict."""
-        checked = self.ik.verify(q[None], position[None], wxyz[None])
-        return {k: v[0] for k, v in checked.items()}
+    def _verify(self, q: np.ndarray, position: np.ndarray, wxyz: np.ndarray) -> IKVerification:
+        """``IKSolver.verify`` of one answer (B = 1): its numbers and the verdict."""
+        return self.ik.verify(q[None], position[None], wxyz[None])
 
     def solve(
         self,
@@ -191,17 +198,17 @@ class LiveIKSolver:
         t0 = time.perf_counter()
         row = self._verify(q, position, wxyz)
         timing["verify"] = time.perf_counter() - t0
-        stage = "refine"
+        stage = Stage.REFINE
 
         search = self.config.fallback_search if search is None else search
-        if not row["success"] and search:
+        if not row.success[0] and search:
             t0 = time.perf_counter()
             found = self.ik.solve(position[None], wxyz[None])
             timing["search"] = time.perf_counter() - t0
             if np.all(np.isfinite(found.q[0])):
                 other = self._verify(found.q[0], position, wxyz)
                 if _better(other, row):
-                    q, row, stage = found.q[0], other, "search"
+                    q, row, stage = found.q[0], other, Stage.SEARCH
 
         if exact:
             t0 = time.perf_counter()
@@ -217,26 +224,27 @@ class LiveIKSolver:
 
             def judge(answer: np.ndarray) -> _Row:
                 checked = self._verify(answer, position, wxyz)
-                return _Row(bool(checked["success"]), str(checked["reason"]), checked)
+                return _Row(bool(checked.success[0]), str(checked.reason[0]), checked)
 
-            outcome = accept_first([q], q, _Row(bool(row["success"]), str(row["reason"]), row),
+            outcome = accept_first([q], q, _Row(bool(row.success[0]), str(row.reason[0]), row),
                                    polish, judge)
             timing["polish"] = time.perf_counter() - t0
             if outcome.accepted:
-                q, row, stage = outcome.answer, outcome.verdict.checked, "polish"
+                q, row, stage = outcome.answer, outcome.verdict.checked, Stage.POLISH
 
         return LiveIKResult(
             q=np.asarray(q, dtype=float),
-            position=np.asarray(row["position"], dtype=float),
-            wxyz=np.asarray(row["wxyz"], dtype=float),
-            pose_error=float(row["pose_error"]),
-            position_error=float(row["position_error"]),
-            rotation_error=float(row["rotation_error"]),
-            min_clearance=float(row["clearance"]),
-            max_violation=float(row["max_violation"]),
-            success=bool(row["success"]),
-            reason=str(row["reason"]),
+            position=np.asarray(row.position[0], dtype=float),
+            wxyz=np.asarray(row.wxyz[0], dtype=float),
+            pose_error=float(row.pose_error[0]),
+            position_error=float(row.position_error[0]),
+            rotation_error=float(row.rotation_error[0]),
+            min_clearance=float(row.clearance[0]),
+            max_violation=float(row.max_violation[0]),
+            success=bool(row.success[0]),
+            reason=str(row.reason[0]),
             stage=stage,
+            violations={k: float(v[0]) for k, v in row.violations.items()},
             seconds=time.perf_counter() - t_start,
             timing=timing,
         )
@@ -254,13 +262,13 @@ class _Row:
 
     success: bool
     reason: str
-    checked: dict[str, Any]
-    """``IKSolver.verify``'s numbers of the answer."""
+    checked: IKVerification
+    """``IKSolver.verify``'s report on the answer (B = 1)."""
 
 
-def _better(a: dict[str, Any], b: dict[str, Any]) -> bool:
-    """Is verified answer a better than b: a success over a failure, else the smaller
-    pose error."""
-    if bool(a["success"]) != bool(b["success"]):
-        return bool(a["success"])
-    return float(a["pose_error"]) < float(b["pose_error"])
+def _better(a: IKVerification, b: IKVerification) -> bool:
+    """Is verified answer a better than b (each B = 1): a success over a failure, else
+    the smaller pose error."""
+    if bool(a.success[0]) != bool(b.success[0]):
+        return bool(a.success[0])
+    return float(a.pose_error[0]) < float(b.pose_error[0])

@@ -63,6 +63,7 @@ from ..stages.refine._lm import LMConfig, lm_solve
 from ..world.check import check_chains
 from ..world.scene import Scene, load_scene
 from ..world.verdict import judge_many
+from ._result import Stage
 from ._tension_ik_result import TensionIKResult as TensionIKResult
 from ._timing import StageTiming
 
@@ -287,6 +288,11 @@ class TensionIKSolver:
             setattr(full, name, out)
         full.target_position = positions
         full.reason = ["the target has non-finite coordinates"] * count
+        full.stage = [Stage.REFINE if ok else Stage.NONE for ok in finite.tolist()]
+        full.notes = [[] for _ in range(count)]
+        full.violations = {k: np.full(count, np.nan) for k in part.violations}
+        for k, values in part.violations.items():
+            full.violations[k][finite] = values
         for i, j in zip(np.flatnonzero(finite).tolist(), range(len(part)), strict=True):
             full.reason[i] = part.reason[j]
         full.timing = part.timing
@@ -394,7 +400,8 @@ class TensionIKSolver:
             max_violation=np.array(verdicts.max_violation),
             success=np.array(verdicts.success & statics.converged), reason=reason,
             tip_force=loads[0], tip_moment=loads[1], gravity=loads[2],
-            tendon_displacements=np.array(statics.tendon_displacements), timing=timing)
+            tendon_displacements=np.array(statics.tendon_displacements), timing=timing,
+            violations=dict(verdicts.violations))
 
 
 def _replace_rows(result: TensionIKResult, other: TensionIKResult, rows: np.ndarray,
@@ -406,6 +413,8 @@ def _replace_rows(result: TensionIKResult, other: TensionIKResult, rows: np.ndar
         values = np.array(getattr(result, name))
         values[rows] = getattr(other, name)[from_rows]
         setattr(result, name, values)
+    for k, values in other.violations.items():
+        result.violations[k][rows] = values[from_rows]
     for i, j in zip(rows.tolist(), from_rows.tolist(), strict=True):
         result.reason[i] = other.reason[j]
 

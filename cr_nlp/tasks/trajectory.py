@@ -60,12 +60,14 @@ from ..stages.refine._trajectory_select import select_guesses
 from ..world import Scene, load_scene, scene_arrays
 from ..world._broad_phase import part_cells, reach_box
 from ..world._clearance_groups import clearance_groups, has_clearance, near_clearance_groups
+from ..world._motion import MotionVerification as MotionVerification
 from ..world._motion import check_ends
 from ..world._motion import interpolate_trajectory as interpolate_trajectory
 from ..world._motion import tendon_series as tendon_series
 from ..world._motion import tip_positions as tip_positions
 from ..world._motion import verify_trajectory as verify_trajectory
 from ..world.clearance import SceneArrays, body_gap_tolerance
+from ._result import Stage
 from ._timing import StageTiming
 from ._trajectory_polish import polish_results
 from ._trajectory_result import TrajectoryResult as TrajectoryResult
@@ -412,7 +414,7 @@ class TrajectoryPlanner:
         """``validate`` for every (start, goal) pair, python-fcl run once on all ends."""
         return check_ends(self.robot, self.scene, starts, goals)
 
-    def verify(self, q: np.ndarray, dt: float) -> dict[str, Any]:
+    def verify(self, q: np.ndarray, dt: float) -> MotionVerification:
         """``verify_trajectory`` with this planner's scene, δ and sampling."""
         return verify_trajectory(self.robot, self.scene, q, dt, self.config.safety_margin,
                                  self.config.verify_samples)
@@ -456,7 +458,8 @@ class TrajectoryPlanner:
         t0 = time.perf_counter()
         for i, (q_start, q_goal, reason) in enumerate(self.validate_many(starts, goals)):
             if reason:
-                results[i] = TrajectoryResult(self.robot, None, dt, False, reason, "rejected")
+                results[i] = TrajectoryResult(self.robot, None, dt, False, reason,
+                                              Stage.REJECTED)
             else:
                 valid.append((i, q_start, q_goal))
         timing.verify += time.perf_counter() - t0

@@ -221,7 +221,7 @@ def _ik_answers(robot: Robot, results: list[Any], targets: Any = None, **_: Any)
             + _verdict_line(
                 bool(result.success[i]),
                 result.reason[i],
-                result.stage[i],
+                result.stage_text[i],
                 _finite(result.max_violation[i]),
             )
             + f"  \npose error: {_fmt(_finite(result.pose_error[i]))} (m/rad)"
@@ -303,7 +303,7 @@ def _motion(
         tendon_names=tendon_names(robot),
         summary=f"{label}: "
         + _verdict_line(
-            result.success, result.reason, result.stage, _finite(result.max_violation)
+            result.success, result.reason, result.stage_text, _finite(result.max_violation)
         )
         + f"  \n{detail}"
         + f"  \nmin clearance: {_fmt(_finite(result.min_clearance), ' m')}",

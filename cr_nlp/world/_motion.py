@@ -11,6 +11,7 @@ and path following both answer to it. Units: rad, m, s.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -21,7 +22,54 @@ from ..model.kinematics import model_segment_frames, model_tendon_lengths
 from ..model.limits import limit_violation_q
 from .check import check_many, check_motion
 from .scene import Scene
-from .verdict import VIOLATION_TOLERANCE, judge
+from .verdict import VIOLATION_TOLERANCE, Verdict, judge
+
+
+@dataclass(frozen=True)
+class MotionVerification:
+    """``verify_trajectory``'s report on a motion: the verdict and what it measured.
+    Units: rad, m, s."""
+
+    verdict: Verdict
+    """The verdict (``world.verdict.judge``) on the whole motion."""
+    min_clearance: float
+    """The smaller of the python-fcl obstacle distance and the self-clearance along the
+    motion, m; +inf with neither."""
+    self_clearance: float
+    """Smallest distance between segments at least two apart, m; +inf when not checked."""
+    collision_free: bool
+    """No python-fcl collision along the dense motion."""
+    path_length: float
+    """The tip path along the dense motion, m."""
+    tendon_lengths: np.ndarray
+    """(H+1, n_tendons) tendon lengths at the waypoints, m."""
+    tendon_speed: float
+    """Largest |tendon speed| by finite differences, m/s."""
+    tendon_accel: float
+    """Largest |tendon acceleration| by finite differences, m/s²."""
+    first_collision: int
+    """Index into the dense motion of its first collision, −1 if none."""
+
+    @property
+    def success(self) -> bool:
+        """The verdict accepts the motion."""
+        return self.verdict.success
+
+    @property
+    def reason(self) -> str:
+        """"" on success, else each failed check and by how much."""
+        return self.verdict.reason
+
+    @property
+    def violations(self) -> dict[str, float]:
+        """Largest violation per family: ``clearance`` and ``self_clearance`` m below δ,
+        ``limits`` rad or m, ``tendon_speed`` m/s, ``tendon_accel`` m/s²."""
+        return dict(self.verdict.violations)
+
+    @property
+    def max_violation(self) -> float:
+        """The largest of ``violations``."""
+        return self.verdict.max_violation
 
 
 def interpolate_trajectory(q: np.ndarray, samples: int) -> np.ndarray:
@@ -50,7 +98,7 @@ def tendon_series(robot: Robot, q: np.ndarray) -> np.ndarray:
 
 def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
                       margin: float = 0.002, samples: int = 4,
-                      tolerance: float = VIOLATION_TOLERANCE) -> dict[str, Any]:
+                      tolerance: float = VIOLATION_TOLERANCE) -> MotionVerification:
     """Float64 verdict on a trajectory, independent of any optimiser (``world.verdict``).
 
     Args:
@@ -63,18 +111,11 @@ def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
             checks every piece's end, so the whole motion, not only the waypoints, is judged.
         tolerance: the largest violation of any family a success may have.
 
-    Returns a dict: ``success`` (``world.verdict.judge``: every violation ≤ ``tolerance``:
-    clearance to obstacles and between segments at least two apart ≥ δ − tolerance
-    along the whole motion, limits and tendon limits), ``reason`` ("" on success, else
-    each failed check and by how much), ``violations`` (largest violation per constraint
-    family: ``clearance`` and ``self_clearance`` m below δ, ``limits`` rad or m,
-    ``tendon_speed`` m/s, ``tendon_accel`` m/s²), ``max_violation`` (their maximum),
-    ``min_clearance`` (m, the smaller of the python-fcl obstacle distance and the
-    self-clearance, +inf with neither), ``self_clearance`` (m, +inf when not checked),
-    ``verdict`` (the ``world.verdict.Verdict``), ``collision_free``,
-    ``path_length`` (m, the tip path along the dense motion), ``tendon_lengths``
-    (H+1, n_tendons) m, ``tendon_speed`` and ``tendon_accel`` (largest |value|, m/s and
-    m/s²) and ``first_collision`` (index into the dense motion, −1 if none).
+    Returns a ``MotionVerification``: the ``verdict`` (``world.verdict.judge``: every
+    violation ≤ ``tolerance``: clearance to obstacles and between segments at least two
+    apart ≥ δ − tolerance along the whole motion, limits and tendon limits; its
+    ``success``, ``reason``, ``violations`` per family and ``max_violation``) and the
+    measured clearances, path length, tendon lengths, speed and acceleration.
     """
     q = np.asarray(q, dtype=np.float64)
     if q.ndim != 2 or q.shape[1] != robot.dof or len(q) < 2:
@@ -104,15 +145,11 @@ def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
                     tendon_speed=speed_max - robot.tendon_speed_max,
                     tendon_accel=accel_max - robot.tendon_accel_max,
                     collision_where=where, tolerance=tolerance)
-    return {
-        "success": verdict.success, "reason": verdict.reason,
-        "violations": dict(verdict.violations), "max_violation": verdict.max_violation,
-        "min_clearance": min(min_clearance, self_clearance),
-        "self_clearance": self_clearance, "verdict": verdict,
-        "collision_free": first_collision < 0, "path_length": path_length,
-        "tendon_lengths": lengths, "tendon_speed": speed_max, "tendon_accel": accel_max,
-        "first_collision": first_collision,
-    }
+    return MotionVerification(
+        verdict=verdict, min_clearance=min(min_clearance, self_clearance),
+        self_clearance=self_clearance, collision_free=first_collision < 0,
+        path_length=path_length, tendon_lengths=lengths, tendon_speed=speed_max,
+        tendon_accel=accel_max, first_collision=first_collision)
 
 
 def check_ends(robot: Robot, scene: Scene | None, starts: Any,

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from ...model import z_to_q_numpy
+from ...world._motion import MotionVerification
 from ._chain_stream import ChainBatchLM
 
 
@@ -31,7 +32,7 @@ from ._chain_stream import ChainBatchLM
 class Selection:
     """What ``select_guesses`` found for P problems."""
 
-    best: list[tuple[dict[str, Any], int, np.ndarray, float]]
+    best: list[tuple[MotionVerification, int, np.ndarray, float]]
     """Per problem: (verdict, guess index, q (waypoints, 3n) rad/m, LM cost ½‖r‖²)."""
     candidates: list[list[tuple[np.ndarray, int]]]
     """Per problem, every refined guess (q, guess index): verified successes first, then
@@ -49,7 +50,7 @@ class Selection:
 def select_guesses(lm: ChainBatchLM, guesses: np.ndarray, ends: list[tuple[np.ndarray,
                                                                             np.ndarray]],
                    dt: float, arrays: Any, iterations: int, first_round: int,
-                   verify: Callable[[np.ndarray], dict[str, Any]]) -> Selection:
+                   verify: Callable[[np.ndarray], MotionVerification]) -> Selection:
     """Refine the (P, G, waypoints, 3n) ``guesses`` (bending vectors z) in two rounds and
     pick each problem's best by ``verify``.
 
@@ -69,7 +70,8 @@ def select_guesses(lm: ChainBatchLM, guesses: np.ndarray, ends: list[tuple[np.nd
         arrays: the scene arrays the LM's clearance terms use (or None).
         iterations: LM iterations per guess.
         first_round: guesses refined for every problem in round 1 (at least 1).
-        verify: q (waypoints, 3n) → a verdict dict with ``success`` and ``max_violation``.
+        verify: q (waypoints, 3n) → its ``MotionVerification`` (``success``,
+            ``max_violation``).
     """
     p_count, g_count, n, dof = guesses.shape
     first = min(max(first_round, 1), g_count)
@@ -98,12 +100,12 @@ def select_guesses(lm: ChainBatchLM, guesses: np.ndarray, ends: list[tuple[np.nd
             q[0], q[-1] = q_start, q_goal
             verdict = verify(q)
             verified.add(g)
-            tried[row].append((not verdict["success"], verdict["max_violation"], cost, q, g))
+            tried[row].append((not verdict.success, verdict.max_violation, cost, q, g))
             b = best[row]
-            if b is None or (verdict["success"], -verdict["max_violation"]) > (
-                    b[0]["success"], -b[0]["max_violation"]):
+            if b is None or (verdict.success, -verdict.max_violation) > (
+                    b[0].success, -b[0].max_violation):
                 best[row] = (verdict, g, q, cost)
-            if verdict["success"]:
+            if verdict.success:
                 break
         for g in sorted(done):
             if g not in verified:          # not verified: ranked after the verified
@@ -124,7 +126,7 @@ def select_guesses(lm: ChainBatchLM, guesses: np.ndarray, ends: list[tuple[np.nd
             judge(row)
             b = best[row]
             later = rounds[row][1]
-            if not second[row] and not (b is not None and b[0]["success"]) and later:
+            if not second[row] and not (b is not None and b[0].success) and later:
                 # Round 2 for this problem: its remaining guesses.
                 owner.extend((row, h) for h in later)
                 outstanding[row], second[row] = len(later), True
