@@ -167,7 +167,8 @@ def test_the_shape_is_in_moment_equilibrium(rao: tuple) -> None:
 def test_batched_solve_agrees_with_the_per_case_loop() -> None:
     """``solve_statics`` takes M(0) = M_tip without a tip force or gravity and shoots the
     rest in rounds (the unfinished cases continue in a smaller batch); the per-case
-    function runs one loop per case from M(0) = 0. Both must land on the same shapes."""
+    function runs one loop per case from M(0) = 0 (the loading path, no branch check).
+    Where only one equilibrium was found both must land on the same shape."""
     from cr_nlp.bench.statics import statics_cases
 
     tensions, forces, moments = statics_cases(6, 3, 48, "mixed", seed=3)
@@ -179,11 +180,14 @@ def test_batched_solve_agrees_with_the_per_case_loop() -> None:
     with jax.enable_x64(True):
         single = jax.jit(jax.vmap(statics_single(RAO)))(
             *(jax.numpy.asarray(v) for v in (tensions, forces, moments, gravity)))
-    np.testing.assert_allclose(batched.positions, np.asarray(single["positions"]), atol=1e-9)
+    unique = (batched.equilibria == 1) & np.asarray(single["converged"])
+    assert unique.sum() >= 40
+    np.testing.assert_allclose(batched.positions[unique],
+                               np.asarray(single["positions"])[unique], atol=1e-9)
     unloaded = ~np.any(forces, axis=1) & ~np.any(gravity, axis=1)
     assert (batched.iterations[unloaded] == 0).all()
-    np.testing.assert_array_equal(batched.iterations[~unloaded],
-                                  np.asarray(single["iterations"])[~unloaded])
+    np.testing.assert_array_equal(batched.iterations[~unloaded & unique],
+                                  np.asarray(single["iterations"])[~unloaded & unique])
 
 
 @pytest.mark.slow  # compiles the forward- and reverse-mode programs (minutes under load)

@@ -1,25 +1,28 @@
 """Cosserat-rod statics of a tendon-driven robot, batched in JAX.
 
-The model is Rucker & Webster's (IEEE T-RO 2011): an elastic backbone with strains
-v (shear, extension) and u (bending, torsion), ``n = R Kse (v − e3)``,
-``m = R Kbt u``, and each tendon a frictionless string routed parallel to the backbone
-at ``r_i`` in the disks' frame, pulling with tension τ_i ≥ 0 and ending at the end of its
-segment (per-segment routing) or at the tip (shared routing).
+The model is Rucker & Webster's (IEEE T-RO 2011; the rod and its integration:
+``model._rod``): an elastic backbone with strains v (shear, extension) and u (bending,
+torsion), each tendon a frictionless string routed parallel to the backbone at ``r_i`` in
+the disks' frame, pulling with tension τ_i ≥ 0 and ending at the end of its segment
+(per-segment routing) or at the tip (shared routing).
 
 How it is solved. Cut the robot at arc length s and take everything distal of the cut,
-tendons included: the force and moment that cross the cut are
-``N = n + Σ τ_i t_i`` and ``M = m + Σ (R r_i) × τ_i t_i`` (t_i the tendon's unit tangent).
-The tendons' distributed loads and their end loads are internal to that free body, so
-N and M obey the plain rod equations with the external loads only:
-``N' = −f_ext`` and ``M' = −p' × N``. With a tip force F, a tip moment M_tip and gravity g
-(backbone mass per metre, disk masses) this gives N(s) = F + g·m_distal(s) in closed
-form; the only unknown is M(0) (3 numbers), found by shooting on ``M(L) = M_tip`` with
-Newton's method and continuation in the loads (``_shooting``). Without a tip force and
-gravity N ≡ 0, so M is constant and M(0) = M_tip: the batched solve integrates those cases
-once, with no iteration. At each integration point the strains come from N and M by
-inverting the constitutive law with the tendons (``_strains``): a small fixed-point
-iteration on the tendons' stretch factors |v + u × r_i|, each step a closed-form 2×2 +
-1×1 + diagonal solve.
+tendons included: the force N and moment M that cross the cut obey the plain rod
+equations with the external loads only, so N(s) is known in closed form and the only
+unknown is M(0) (3 numbers), found by shooting on ``M(L) = M_tip`` (``_shooting``).
+Without an external force N ≡ 0, so M(0) = M_tip plus the point moments, with no
+iteration.
+
+Which equilibrium. Past a buckling load one set of loads has several equilibria. The
+answer is the one a robot loaded from rest reaches: Newton with continuation in a load
+factor λ that scales the tensions and every external load together from 0 (the straight,
+unloaded rod, M(0) = 0) to 1, following the branch. Where the branch ends in a fold
+before λ = 1 (a snap-through) the continuation stalls; the solve records the load factor
+and goes on from the last shape under the full loads. Every answer is tested for
+stability (``model._equilibria``: no conjugate point along the rod); cases whose loads
+reach a buckling load are also solved from other starts, which counts the distinct
+equilibria found, and an unstable answer of the loading path is replaced by a stable one
+found there (the robot would not stay on it).
 
 The solution M(0) is differentiated implicitly (``jax.lax.custom_root``): derivatives of
 the shape with respect to tensions and loads cost one 3×3 solve, not the unrolled
@@ -29,8 +32,7 @@ iterations. Units: metres, radians, newtons, N·m, kg, m/s².
 from __future__ import annotations
 
 import dataclasses
-import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import jax
@@ -39,35 +41,36 @@ import numpy as np
 
 from .._programs import CachedProgram
 from ..runtime import cached, configure
-from .kinematics import tendon_angles
+from ._equilibria import DOUBTFUL, distinct, jacobi_margin, load_parameter
+from ._rod import CaseLoads, StaticsConfig, _integrate, _Layout, _layout, _solve3
+from .loads import static_loads
 from .robot import Robot
 from .rotations import matrix_from_wxyz, wxyz_from_matrix
 
+__all__ = ["CaseLoads", "Equilibrium", "StaticsConfig", "StaticsResult", "case_loads",
+           "moment_scale", "solve_statics",
+           "statics_single", "tip_equilibrium"]
+
 
 @dataclass(frozen=True)
-class StaticsConfig:
-    """Discretisation and solver settings of the Cosserat statics."""
+class Equilibrium:
+    """One equilibrium shape of a load case (world frame, float64 numpy)."""
 
-    min_steps_per_segment: int = 10
-    """RK4 steps per segment at least; rounded up to a multiple of the segment's disks
-    (disk masses act at step ends)."""
-    constitutive_iterations: int = 2
-    """Sweeps of the strain inversion at every integration point after the first (tendons
-    parallel to the backbone); each refreshes the tendons' stretch factors."""
-    max_iterations: int = 24
-    """Most Newton iterations of the shooting (each: one pass with its Jacobian)."""
-    tolerance: float | None = None
-    """Converged when |M(L) − M_tip| · L / (E I) ≤ tolerance, i.e. the boundary residual as
-    the bending angle (radians) it would cause over the robot. None: 1e-10 in float64,
-    1e-5 in float32."""
-    dtype: str = "float64"
-    """"float64" (default) or "float32" (a speed setting for large batches)."""
+    positions: np.ndarray
+    """(P, 3) backbone points, m."""
+    rotations: np.ndarray
+    """(P, 3, 3) backbone frames."""
+    base_moment: np.ndarray
+    """(3,) moment at the base, N·m."""
+    stable: bool
+    """A strict local minimum of the energy (no conjugate point along the rod)."""
+    reached: bool
+    """The one ``StaticsResult`` reports (the equilibrium reached by loading from rest)."""
 
-    def resolved_tolerance(self) -> float:
-        """The tolerance in radians of bending with the dtype's default filled in."""
-        if self.tolerance is not None:
-            return float(self.tolerance)
-        return 1e-10 if self.dtype == "float64" else 1e-5
+    @property
+    def tip_position(self) -> np.ndarray:
+        """(3,) tip position, m."""
+        return self.positions[-1]
 
 
 @dataclass(frozen=True)
@@ -94,6 +97,20 @@ class StaticsResult:
     base_force: np.ndarray
     """(B, 3) force at the base (rod and tendons together), N, world frame."""
 
+    stable: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    """(B,) True where the equilibrium is a strict local minimum of the energy (no
+    conjugate point along the rod, ``model._equilibria``)."""
+    equilibria: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    """(B,) distinct equilibria found for the case's loads (1 where the loads are below a
+    buckling load and no other start was tried; ``solve_statics``)."""
+    snap_load: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    """(B,) load factor in (0, 1) at which the loading path left its branch (a
+    snap-through: the branch folded, or its end was unstable and a stable equilibrium
+    was taken instead, then 1.0); NaN where the path reached the answer smoothly."""
+    all_equilibria: list | None = None
+    """With ``all_equilibria=True``: per case the list of ``Equilibrium`` found (the one
+    reported first); else None."""
+
     @property
     def tip_position(self) -> np.ndarray:
         """(B, 3) tip position, m."""
@@ -110,246 +127,9 @@ class StaticsResult:
         return np.array([wxyz_from_matrix(r) for r in self.tip_rotation]).reshape(-1, 4)
 
 
-class _Layout(NamedTuple):
-    """Static (numpy) description of the integration grid and the tendons."""
-
-    step_length: np.ndarray   # (S,) m
-    mass_distal: np.ndarray   # (S, 3) kg distal of the step's start, middle and end (−)
-    active: np.ndarray        # (S, T) 1 where tendon T runs through the step's segment
-    routing: np.ndarray       # (T, 3) tendon positions in the disk frame, m
-    arc_length: np.ndarray    # (S + 1,) m
-    total_mass_moment: np.ndarray  # (S + 1,) kg distal of each grid point (straight guess)
-    kse: tuple[float, float, float]
-    kbt: tuple[float, float, float]
-    moment_scale: float       # E I / L, N·m per radian of bending over the robot
-
-
-@cached(maxsize=64)
-def _layout(robot: Robot, config: StaticsConfig, coarse: bool = False) -> _Layout:
-    """The integration grid. ``coarse``: half the steps, placed regardless of the disks
-    (whose masses then fall inside steps): the grid of the shooting's Jacobian passes."""
-    mech = robot.mechanics
-    if mech is None:
-        raise ValueError(f"{robot.name}: the robot file has no 'mechanics' block; the "
-                         "Cosserat statics need one (see models/README.md)")
-    if any(s.extendable for s in robot.segments):
-        raise ValueError(f"{robot.name}: the Cosserat statics need fixed segment lengths")
-    angles = tendon_angles(robot)
-    if robot.tendons.routing == "shared":
-        if not np.allclose(angles, angles[0]):
-            raise ValueError(f"{robot.name}: shared routing with different offsets per "
-                             "segment is not a straight routing")
-        angles = angles[:1]
-    alpha = angles.reshape(-1)
-    routing = robot.tendons.radius * np.stack(
-        [np.cos(alpha), np.sin(alpha), np.zeros_like(alpha)], axis=-1)
-
-    m = robot.tendons.per_segment
-    lengths, active, disk_s = [], [], []
-    start_s = 0.0
-    for i, seg in enumerate(robot.segments):
-        disks = mech.disks_per_segment[i]
-        per_disk = max(1, math.ceil(config.min_steps_per_segment / disks))
-        steps = (max(2, math.ceil(config.min_steps_per_segment / 2)) if coarse
-                 else disks * per_disk)
-        disk_s += [start_s + seg.length_min * (k + 1) / disks for k in range(disks)]
-        start_s += seg.length_min
-        for _ in range(steps):
-            lengths.append(seg.length_min / steps)
-            if robot.tendons.routing == "shared":
-                active.append(np.ones(m))
-            else:
-                active.append((np.arange(robot.n_tendons) // m >= i).astype(float))
-    h = np.asarray(lengths)
-    arc = np.concatenate([[0.0], np.cumsum(h)])
-    total = arc[-1]
-    disk_s = np.asarray(disk_s)
-
-    def distal(s: np.ndarray, include_at: bool) -> np.ndarray:
-        rod = mech.linear_density * (total - s)
-        gap = disk_s[None, :] - s[:, None]
-        at = gap >= -1e-12 if include_at else gap > 1e-12
-        return rod + mech.disk_mass * at.sum(axis=1)
-
-    start, end = arc[:-1], arc[1:]
-    mass = np.stack([distal(start, False), distal(0.5 * (start + end), False),
-                     distal(end, True)], axis=-1)
-    kse, kbt = mech.stiffness_diagonals()
-    return _Layout(h, mass, np.asarray(active), routing, arc, distal(arc, False), kse, kbt,
-                   mech.bending_stiffness / total)
-
-
-# ---------------------------------------------------------------- small vector helpers
-# The rod equations are written on tuples of scalars (x, y, z; a rotation's nine entries):
-# under vmap every entry is one (B,) array and XLA fuses the whole right-hand side into a
-# few loops over the batch, instead of many small (B, 3, 3) products.
-
-Vec = tuple[Any, Any, Any]
-Rot = tuple[Any, Any, Any, Any, Any, Any, Any, Any, Any]
-
-
-def _cross(a: Vec, b: Vec) -> Vec:
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-def _matvec(r: Rot, v: Vec) -> Vec:
-    return tuple(r[3 * i] * v[0] + r[3 * i + 1] * v[1] + r[3 * i + 2] * v[2]
-                 for i in range(3))  # type: ignore[return-value]
-
-
-def _rmatvec(r: Rot, v: Vec) -> Vec:
-    """Rᵀ v."""
-    return tuple(r[i] * v[0] + r[3 + i] * v[1] + r[6 + i] * v[2]
-                 for i in range(3))  # type: ignore[return-value]
-
-
-def _rot_times_hat(r: Rot, u: Vec) -> Rot:
-    """R · û (the rotation's derivative along the arc)."""
-    out = []
-    for i in range(3):
-        a, b, c = r[3 * i], r[3 * i + 1], r[3 * i + 2]
-        out += [b * u[2] - c * u[1], c * u[0] - a * u[2], a * u[1] - b * u[0]]
-    return tuple(out)  # type: ignore[return-value]
-
-
-def _vec(x: jax.Array) -> Vec:
-    return (x[0], x[1], x[2])
-
-
-def _array(v: tuple) -> jax.Array:
-    return jnp.stack(v)
-
-
-def _solve3(a: jax.Array, b: jax.Array) -> jax.Array:
-    """a⁻¹ b for one 3×3 matrix by cofactors (Cramer), no LAPACK call."""
-    c0 = jnp.cross(a[1], a[2])
-    c1 = jnp.cross(a[2], a[0])
-    c2 = jnp.cross(a[0], a[1])
-    det = jnp.dot(a[0], c0)
-    det = jnp.where(jnp.abs(det) > 0, det, jnp.finfo(a.dtype).tiny)
-    return (c0 * b[0] + c1 * b[1] + c2 * b[2]) / det
-
-
-# ---------------------------------------------------------------- the rod equations
-
-def _strains(lay: _Layout, n_body: Vec, m_body: Vec, tension: list[Any],
-             iterations: int) -> tuple[Vec, Vec, list[Any]]:
-    """Strains (u, v) from the cut's force and moment in the disk frame, and the tendons'
-    stretch factors |v + u × r_i|.
-
-    Solves ``Kse (v − e3) + Σ c_i w_i = n``, ``Kbt u + Σ c_i r_i × w_i = m`` with
-    ``w_i = v + u × r_i`` and ``c_i = τ_i / |w_i|`` (τ_i zero for tendons not in this
-    segment). The first pass takes every tendon parallel to the backbone (t_i = e3, exact
-    for a bend without torsion or shear). Each further sweep fixes c_i at the current
-    strains and solves the then linear equations: u from a 2×2 + 1×1 system (r_i lies in
-    the disk plane), v from a diagonal one.
-    """
-    (gax, gay, eaz), (ei, _, gj) = lay.kse, lay.kbt
-    rs = [(float(x), float(y)) for x, y, _ in lay.routing]
-    # r_i × (τ_i e3) = τ_i (r_y, −r_x, 0)
-    u = ((m_body[0] - sum(t * ry for t, (_, ry) in zip(tension, rs, strict=True))) / ei,
-         (m_body[1] + sum(t * rx for t, (rx, _) in zip(tension, rs, strict=True))) / ei,
-         m_body[2] / gj)
-    total = sum(tension)
-    v = (n_body[0] / gax, n_body[1] / gay, 1.0 + (n_body[2] - total) / eaz)
-
-    def stretches(u: Vec, v: Vec) -> list[Any]:
-        # w_i = v + u × r_i with r_i = (rx, ry, 0)
-        return [jnp.sqrt((v[0] - u[2] * ry) ** 2 + (v[1] + u[2] * rx) ** 2
-                         + (v[2] + u[0] * ry - u[1] * rx) ** 2) for rx, ry in rs]
-
-    for _ in range(iterations):
-        c = [t / s for t, s in zip(tension, stretches(u, v), strict=True)]
-        sxx = sum(ci * ry * ry for ci, (_, ry) in zip(c, rs, strict=True))
-        syy = sum(ci * rx * rx for ci, (rx, _) in zip(c, rs, strict=True))
-        sxy = sum(ci * rx * ry for ci, (rx, ry) in zip(c, rs, strict=True))
-        csum = sum(c)
-        crx = sum(ci * rx for ci, (rx, _) in zip(c, rs, strict=True))
-        cry = sum(ci * ry for ci, (_, ry) in zip(c, rs, strict=True))
-        # b = m − Σ c_i r_i × v,  r × v = (ry vz, −rx vz, rx vy − ry vx)
-        b0 = m_body[0] - cry * v[2]
-        b1 = m_body[1] + crx * v[2]
-        b2 = m_body[2] - (crx * v[1] - cry * v[0])
-        axx, ayy = ei + sxx, ei + syy
-        det = axx * ayy - sxy * sxy
-        u = ((ayy * b0 + sxy * b1) / det, (sxy * b0 + axx * b1) / det, b2 / (gj + sxx + syy))
-        # Σ c_i u × r_i = (−uz Σc ry, uz Σc rx, ux Σc ry − uy Σc rx)
-        v = ((n_body[0] + u[2] * cry) / (gax + csum),
-             (n_body[1] - u[2] * crx) / (gay + csum),
-             (eaz + n_body[2] - (u[0] * cry - u[1] * crx)) / (eaz + csum))
-    return u, v, stretches(u, v)
-
-
-def _derivative(lay: _Layout, config: StaticsConfig, rotation: Rot, moment: Vec,
-                force: Vec, tension: list[Any]) -> tuple:
-    """d/ds of (p, R, M, tendon lengths) at one point; N (``force``) is given."""
-    u, v, stretch = _strains(lay, _rmatvec(rotation, force), _rmatvec(rotation, moment),
-                             tension, config.constitutive_iterations)
-    dp = _matvec(rotation, v)
-    dm = _cross(dp, force)
-    return dp, _rot_times_hat(rotation, u), (-dm[0], -dm[1], -dm[2]), tuple(stretch)
-
-
-def _integrate(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
-               tension: jax.Array, tip_force: jax.Array, gravity: jax.Array,
-               keep_path: bool) -> tuple:
-    """RK4 from the base (disk frame = base frame) with M(0) = ``base_moment``.
-
-    Returns (M at the tip (3,), tendon lengths (T,), then with ``keep_path`` the positions
-    (S+1, 3) and rotations (S+1, 3, 3) along the arc, else the tip's position (3,) and
-    rotation (3, 3)).
-    """
-    dtype = base_moment.dtype
-    n_tendons = lay.active.shape[1]
-    xs = (jnp.asarray(lay.step_length, dtype), jnp.asarray(lay.mass_distal, dtype),
-          jnp.asarray(lay.active, dtype))
-    # Start values made from the inputs (not fresh constants): when the batch is split over
-    # devices (shard_map) a loop carry must vary over the devices like the values it takes.
-    zero = 0 * (base_moment[0] + tension.sum() + tip_force[0] + gravity[0])
-    one = zero + 1
-    p0 = (zero, zero, zero)
-    r0 = (one, zero, zero, zero, one, zero, zero, zero, one)
-    l0 = tuple(zero for _ in range(n_tendons))
-    tension_list = [tension[i] for i in range(n_tendons)]
-    fvec, gvec = _vec(tip_force), _vec(gravity)
-
-    def axpy(y: Any, h: Any, k: Any) -> Any:
-        return jax.tree_util.tree_map(lambda a, b: a + h * b, y, k)
-
-    stage_shift = jnp.asarray([0.0, 0.5, 0.5, 1.0], dtype)
-    stage_weight = jnp.asarray([1.0, 2.0, 2.0, 1.0], dtype) / 6.0
-    stage_point = jnp.asarray([0, 1, 1, 2])
-
-    def step(carry: tuple, x: tuple) -> tuple:
-        h, mass, act = x
-        active = [t * act[i] for i, t in enumerate(tension_list)]
-
-        def stage(inner: tuple, c: tuple) -> tuple:
-            previous, total = inner
-            shift, weight, point = c
-            _, rot, mom, _ = axpy(carry, shift * h, previous)
-            force = tuple(f + g * mass[point] for f, g in zip(fvec, gvec, strict=True))
-            dp, drot, dmom, dl = _derivative(lay, config, rot, mom, force, active)
-            k = (dp, drot, dmom, tuple(s * act[i] for i, s in enumerate(dl)))
-            return (k, axpy(total, weight, k)), None
-
-        zeros = jax.tree_util.tree_map(lambda a: 0 * a, carry)  # varying, as above
-        (_, slope), _ = jax.lax.scan(stage, (zeros, zeros),
-                                     (stage_shift, stage_weight, stage_point))
-        new = axpy(carry, h, slope)
-        return new, ((_array(new[0]), _array(new[1]).reshape(3, 3)) if keep_path else None)
-
-    (tip, frame, mom, ell), path = jax.lax.scan(step, (p0, r0, _vec(base_moment), l0), xs)
-    mom, ell = _array(mom), _array(ell) if n_tendons else jnp.zeros(0, dtype)
-    if not keep_path:
-        return mom, ell, _array(tip), _array(frame).reshape(3, 3)
-    positions = jnp.concatenate([jnp.zeros((1, 3), dtype), path[0]], axis=0)
-    rotations = jnp.concatenate([jnp.eye(3, dtype=dtype)[None], path[1]], axis=0)
-    return mom, ell, positions, rotations
-
 
 class _Newton(NamedTuple):
-    """The shooting iteration's state for one case (see ``_shoot``)."""
+    """The shooting iteration's state for one case (see ``_shooting``)."""
 
     x: jax.Array        # (3,) M(0), N·m
     lam: jax.Array      # load factor reached
@@ -359,18 +139,30 @@ class _Newton(NamedTuple):
     g: jax.Array        # (3,) ∂r/∂λ
     step: jax.Array     # Newton step length
     it: jax.Array       # iterations used
+    stall: jax.Array    # load factor where the continuation stalled (a fold), −1: none
+
+
+_NEWTON_RANGE = 1e-3
+"""A residual below this (radians of bending over the robot, times E·I/L) is one Newton
+corrects: a continuation step that leaves less is kept."""
+SMALLEST_INCREMENT = 1e-3
+"""A load increment the continuation may shrink to before it declares a fold (the branch
+ends: a snap-through) and stops; the branch check then looks for where it snaps to."""
 
 
 def _shooting(lay: _Layout, coarse: _Layout, config: StaticsConfig, tension: jax.Array,
-              tip_force: jax.Array, tip_moment: jax.Array,
-              gravity: jax.Array) -> tuple[Any, Any, Any]:
+              loads: CaseLoads, mode: jax.Array) -> tuple[Any, Any, Any]:
     """(start, iterate, done) of the shooting on M(0) for one case.
 
-    Newton with continuation in the external loads: with the loads scaled by λ = 0 the
-    answer is M(0) = 0 exactly (tendons alone); each iteration tries the next λ with a
-    predictor step from the current Jacobian, keeps it when Newton at least halved the
-    residual it set out to remove (the old one plus the load increment), doubles the
-    increment then and quarters it otherwise. A case without loads starts at λ = 1.
+    Newton with continuation in a load factor λ: the external loads, and with ``mode[0]``
+    = 1 the tensions too, are scaled by λ (with 0 the tensions stay whole: the older,
+    direct start); ``mode[1]`` is the largest increment of λ (1: none; small increments
+    follow a branch past a bifurcation instead of jumping onto another one). At λ = 0 the
+    answer is M(0) = 0 exactly. Each iteration tries the next λ with a predictor step from
+    the current Jacobian, keeps it when Newton at least halved the residual it set out to
+    remove (the old one plus the load increment), doubles the increment then and quarters
+    it otherwise; an increment below ``SMALLEST_INCREMENT`` is a fold (its λ recorded in
+    ``stall``), where the iteration stops. A start at λ = 1 is plain damped Newton.
 
     The Jacobian (∂r/∂M(0), ∂r/∂λ) is taken by forward differences: five passes in one
     vectorised evaluation, on the ``coarse`` grid with one strain sweep (a third of a
@@ -387,9 +179,10 @@ def _shooting(lay: _Layout, coarse: _Layout, config: StaticsConfig, tension: jax
 
     def scaled_residual(base_moment: jax.Array, lam: jax.Array, grid: _Layout = lay,
                         settings: StaticsConfig = config) -> jax.Array:
-        mom, _, _, _ = _integrate(grid, settings, base_moment, tension, lam * tip_force,
-                                  lam * gravity, False)
-        return mom - lam * tip_moment
+        pull = tension * (1.0 + mode[0] * (lam - 1.0))
+        mom, _, _, _ = _integrate(grid, settings, base_moment, pull, loads.scaled(lam),
+                                  False)
+        return mom - lam * loads.moment
 
     def linearized(x: jax.Array, lam: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
         hx = root_eps * jnp.maximum(jnp.max(jnp.abs(x)), lay.moment_scale)
@@ -398,36 +191,43 @@ def _shooting(lay: _Layout, coarse: _Layout, config: StaticsConfig, tension: jax
         rs = jax.vmap(lambda a, b: scaled_residual(a, b, coarse, rough))(xs, lams)
         return scaled_residual(x, lam), (rs[1:4] - rs[0]).T / hx, (rs[4] - rs[0]) / root_eps
 
-    def start(x0: jax.Array) -> _Newton:
-        unloaded = (jnp.all(tip_force == 0) & jnp.all(tip_moment == 0)
-                    & jnp.all(gravity == 0))
-        lam0 = jnp.where(unloaded, 1.0, 0.0).astype(dtype) + 0 * x0[0]
+    def start(x0: jax.Array, lam0: jax.Array) -> _Newton:
+        # No external force (the padding rows): nothing to ramp.
+        unloaded = ~(jnp.any(loads.force != 0) | jnp.any(loads.gravity != 0)
+                     | jnp.any(loads.distributed != 0) | jnp.any(loads.point_force != 0))
+        lam0 = jnp.where(unloaded, 1.0, lam0)
         r0, j0, g0 = linearized(x0, lam0)
         one = 1 + 0 * x0[0]  # varies like x0 (see _integrate)
-        return _Newton(x0, lam0, one, r0, j0, g0, one, jnp.asarray(0))
+        return _Newton(x0, lam0, jnp.minimum(1.0, lam0 + mode[1]) * one, r0, j0, g0, one,
+                       jnp.asarray(0), -one)
 
     def done(state: _Newton) -> jax.Array:
-        return (state.lam >= 1.0) & (jnp.linalg.norm(state.r) <= tol)
+        return ((state.lam >= 1.0) & (jnp.linalg.norm(state.r) <= tol)) | (state.stall >= 0)
 
     def iterate(state: _Newton) -> _Newton:
-        x, lam, target, r, j, g, step, it = state
+        x, lam, target, r, j, g, step, it, stall = state
         x_new = x - step * _solve3(j, r + (target - lam) * g)
         r_new, j_new, g_new = linearized(x_new, target)
         size, size_new = jnp.linalg.norm(r), jnp.linalg.norm(r_new)
         continuing = target > lam
         # The residual the step set out to remove: the old one plus the load increment.
         predicted = jnp.linalg.norm(r + (target - lam) * g)
-        # A step that lands within the tolerance is always taken.
-        ok = jnp.isfinite(size_new) & ((size_new <= tol)
-                                       | (size_new < jnp.maximum(size, 0.5 * predicted)))
+        # A step that lands within the tolerance is always taken, and so is one that
+        # leaves less than ``_NEWTON_RANGE`` (from the unloaded straight rod the first
+        # increment's residual is of second order: the predictor has nothing to remove).
+        ok = jnp.isfinite(size_new) & (
+            (size_new <= tol) | (size_new < jnp.maximum(size, 0.5 * predicted))
+            | (size_new < _NEWTON_RANGE * lay.moment_scale))
         x, r, j, g = (jnp.where(ok, a, b) for a, b in
                       ((x_new, x), (r_new, r), (j_new, j), (g_new, g)))
         reached = jnp.where(ok, target, lam)
         # After a success try twice the increment; after a failure a quarter of it.
-        increment = jnp.where(ok, 2.0 * (target - lam), 0.25 * (target - lam))
+        increment = jnp.minimum(mode[1], jnp.where(ok, 2.0 * (target - lam),
+                                                   0.25 * (target - lam)))
+        folded = continuing & ~ok & (increment < SMALLEST_INCREMENT)
         step = jnp.where(ok | continuing, 1.0, 0.25 * step)
         return _Newton(x, reached, jnp.minimum(1.0, reached + increment), r, j, g, step,
-                       it + 1)
+                       it + 1, jnp.where(folded, reached, stall))
 
     return start, iterate, done
 
@@ -439,20 +239,19 @@ def _run(iterate: Any, done: Any, state: _Newton, iterations: int) -> _Newton:
 
 
 def _shoot(lay: _Layout, coarse: _Layout, config: StaticsConfig, tension: jax.Array,
-           tip_force: jax.Array, tip_moment: jax.Array,
-           gravity: jax.Array) -> tuple[jax.Array, tuple]:
-    """M(0) with M(L) = M_tip, differentiable implicitly; and (iterations, λ reached)."""
-    start, iterate, done = _shooting(lay, coarse, config, tension, tip_force, tip_moment,
-                                     gravity)
+           loads: CaseLoads) -> tuple[jax.Array, tuple]:
+    """M(0) with M(L) = M_tip on the loading path, differentiable implicitly; and
+    (iterations, λ reached)."""
+    mode = jnp.ones(2, tension.dtype)
+    start, iterate, done = _shooting(lay, coarse, config, tension, loads, mode)
 
     def residual(base_moment: jax.Array) -> jax.Array:
-        mom, _, _, _ = _integrate(lay, config, base_moment, tension, tip_force, gravity,
-                                  False)
-        return mom - tip_moment
+        mom, _, _, _ = _integrate(lay, config, base_moment, tension, loads, False)
+        return mom - loads.moment
 
     def solve(f: Any, x0: jax.Array) -> tuple[jax.Array, tuple]:
         del f  # the same residual, reached through its load-scaled family
-        state = _run(iterate, done, start(x0), config.max_iterations)
+        state = _run(iterate, done, start(x0, 0 * x0[0]), config.max_iterations)
         # aux as floats: custom_root's JVP rule gives aux tangents of the solution's dtype
         return state.x, (state.it.astype(x0.dtype), state.lam)
 
@@ -463,10 +262,24 @@ def _shoot(lay: _Layout, coarse: _Layout, config: StaticsConfig, tension: jax.Ar
     return jax.lax.custom_root(residual, guess, solve, tangent_solve, has_aux=True)
 
 
+def case_loads(tip_force: jax.Array, tip_moment: jax.Array, gravity: jax.Array,
+               distributed: Any = None, point_s: Any = None, point_force: Any = None,
+               point_moment: Any = None) -> CaseLoads:
+    """One case's loads in the base frame for the per-case JAX functions (N, N·m, m/s²,
+    N/m; point loads: (K,) arc lengths in m, (K, 3) forces and moments); None is none."""
+    zero = jnp.zeros_like(tip_force)
+    if point_s is None:
+        point_s = jnp.zeros((0,), tip_force.dtype)
+        point_force = point_moment = jnp.zeros((0, 3), tip_force.dtype)
+    return CaseLoads(tip_force, tip_moment, gravity,
+                     zero if distributed is None else distributed, point_s,
+                     point_force, point_moment)
+
+
 def tip_equilibrium(robot: Robot, config: StaticsConfig = StaticsConfig()) -> Any:
-    """The per-case JAX function ``f(tension, base_moment, tip_force, tip_moment, gravity)
-    -> (tip position (3,), tip rotation (3, 3), equilibrium residual (3,))`` of one
-    integration pass from a given moment at the base M(0) (N·m), base frame.
+    """The per-case JAX function ``f(tension, base_moment, loads) -> (tip position (3,),
+    tip rotation (3, 3), equilibrium residual (3,))`` of one integration pass from a given
+    moment at the base M(0) (N·m), base frame; ``loads`` from ``case_loads``.
 
     The residual ``M(L) − M_tip`` (N·m) is zero at an equilibrium: a solver may take M(0)
     as an unknown beside the tensions (tension-space IK does) instead of shooting for it
@@ -474,11 +287,11 @@ def tip_equilibrium(robot: Robot, config: StaticsConfig = StaticsConfig()) -> An
     """
     lay = _layout(robot, config)
 
-    def tip(tension: jax.Array, base_moment: jax.Array, tip_force: jax.Array,
-            tip_moment: jax.Array, gravity: jax.Array) -> tuple[jax.Array, ...]:
-        mom, _, position, rotation = _integrate(lay, config, base_moment, tension,
-                                                tip_force, gravity, False)
-        return position, rotation, mom - tip_moment
+    def tip(tension: jax.Array, base_moment: jax.Array,
+            loads: CaseLoads) -> tuple[jax.Array, ...]:
+        mom, _, position, rotation = _integrate(lay, config, base_moment, tension, loads,
+                                                False)
+        return position, rotation, mom - loads.moment
 
     return tip
 
@@ -489,13 +302,12 @@ def moment_scale(robot: Robot) -> float:
 
 
 def _finish(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
-            tension: jax.Array, tip_force: jax.Array, tip_moment: jax.Array,
-            gravity: jax.Array) -> dict[str, jax.Array]:
+            tension: jax.Array, loads: CaseLoads) -> dict[str, jax.Array]:
     """The shape and its checks for one case from its M(0): one integration pass."""
-    mom, ell, positions, rotations = _integrate(lay, config, base_moment, tension,
-                                                tip_force, gravity, True)
+    mom, ell, positions, rotations, _ = _integrate(lay, config, base_moment, tension, loads,
+                                                   True)
     straight = jnp.asarray(lay.active.T @ lay.step_length, ell.dtype)
-    residual = jnp.linalg.norm(mom - tip_moment)
+    residual = jnp.linalg.norm(mom - loads.moment)
     tol = config.resolved_tolerance() * lay.moment_scale
     return {
         "positions": positions, "rotations": rotations,
@@ -503,7 +315,7 @@ def _finish(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
         # A last check on the final pass itself (the loop's own flag is a twin).
         "converged": jnp.isfinite(residual) & (residual <= 10.0 * tol),
         "base_moment": base_moment,
-        "base_force": tip_force + gravity * float(lay.total_mass_moment[0]),
+        "base_force": loads.external_force(lay),
     }
 
 
@@ -512,17 +324,17 @@ def statics_single(robot: Robot, config: StaticsConfig = StaticsConfig()) -> Any
 
     Inputs in the base frame (N, N, N·m, m/s²); the dict holds ``positions`` (P, 3),
     ``rotations`` (P, 3, 3) in the base frame, ``tendon_displacements`` (T,), ``residual``
-    (N·m), ``iterations``, ``converged`` and ``base_moment``. Differentiable (forward and
-    reverse) with respect to all four inputs through the implicit solution.
+    (N·m), ``iterations``, ``converged`` and ``base_moment``: the equilibrium of the
+    loading path. Differentiable (forward and reverse) with respect to all four inputs
+    through the implicit solution.
     """
     lay, coarse = _layout(robot, config), _layout(robot, config, coarse=True)
 
     def solve_case(tension: jax.Array, tip_force: jax.Array, tip_moment: jax.Array,
                    gravity: jax.Array) -> dict[str, jax.Array]:
-        base_moment, (iterations, load_reached) = _shoot(lay, coarse, config, tension,
-                                                         tip_force,
-                                                         tip_moment, gravity)
-        out = _finish(lay, config, base_moment, tension, tip_force, tip_moment, gravity)
+        loads = case_loads(tip_force, tip_moment, gravity)
+        base_moment, (iterations, load_reached) = _shoot(lay, coarse, config, tension, loads)
+        out = _finish(lay, config, base_moment, tension, loads)
         out["iterations"] = jax.lax.stop_gradient(iterations).astype(jnp.int32)
         out["load_reached"] = load_reached
         return out
@@ -536,112 +348,227 @@ _FIRST_ROUND = 10
 
 
 @cached(maxsize=64)
-def _programs(robot: Robot, config: StaticsConfig) -> tuple[Any, Any, Any]:
-    """(first round, further rounds, finish): jitted and vmapped over cases; jit keeps one
-    compiled program per padded batch size."""
+def _programs(robot: Robot, config: StaticsConfig) -> tuple[Any, Any, Any, Any]:
+    """(first round, further rounds, finish, stability): jitted and vmapped over cases;
+    jit keeps one compiled program per padded batch size."""
     lay, coarse = _layout(robot, config), _layout(robot, config, coarse=True)
 
-    def first(tension: jax.Array, force: jax.Array, moment: jax.Array,
-              gravity: jax.Array) -> _Newton:
-        start, iterate, done = _shooting(lay, coarse, config, tension, force, moment, gravity)
-        zero = 0 * tension[:1]  # varies over the devices like the state (see _integrate)
-        return _run(iterate, done, start(jnp.broadcast_to(zero, (3,))),
-                    min(_FIRST_ROUND, config.max_iterations))
+    def first(tension: jax.Array, loads: CaseLoads, x0: jax.Array, lam0: jax.Array,
+              mode: jax.Array) -> _Newton:
+        start, iterate, done = _shooting(lay, coarse, config, tension, loads, mode)
+        return _run(iterate, done, start(x0, lam0), min(_FIRST_ROUND, config.max_iterations))
 
-    def further(tension: jax.Array, force: jax.Array, moment: jax.Array,
-                gravity: jax.Array, state: _Newton) -> _Newton:
-        _, iterate, done = _shooting(lay, coarse, config, tension, force, moment, gravity)
+    def further(tension: jax.Array, loads: CaseLoads, mode: jax.Array,
+                state: _Newton) -> _Newton:
+        _, iterate, done = _shooting(lay, coarse, config, tension, loads, mode)
         return _run(iterate, done, state, max(0, config.max_iterations - _FIRST_ROUND))
 
-    def finish(base_moment: jax.Array, tension: jax.Array, force: jax.Array,
-               moment: jax.Array, gravity: jax.Array) -> dict[str, jax.Array]:
-        return _finish(lay, config, base_moment, tension, force, moment, gravity)
+    def finish(base_moment: jax.Array, tension: jax.Array,
+               loads: CaseLoads) -> dict[str, jax.Array]:
+        return _finish(lay, config, base_moment, tension, loads)
 
-    return (_split(jax.vmap(first), 4), _split(jax.vmap(further), 5),
-            _split(jax.vmap(finish), 5))
+    def stability(base_moment: jax.Array, tension: jax.Array, loads: CaseLoads) -> jax.Array:
+        return jacobi_margin(lay, config, base_moment, tension, loads)
+
+    return (_split(jax.vmap(first), 5), _split(jax.vmap(further), 4),
+            _split(jax.vmap(finish), 3), _split(jax.vmap(stability), 3))
 
 
 def _split(fn: Any, arguments: int) -> Any:
     """``fn`` jitted, its batch split over the JAX devices (one per CPU core when the
     process asked for host devices) when the batch divides evenly, else on one."""
-    programs: dict[int, Any] = {}
+    programs: dict[tuple, Any] = {}
 
     def call(*args: Any) -> Any:
-        size = args[0].shape[0]
-        if size not in programs:
-            programs[size] = CachedProgram(fn, name="the Cosserat shooting",
-                                           batched=(True,) * arguments)
-        return programs[size](*args)
+        key = tuple(np.shape(leaf) for leaf in jax.tree_util.tree_leaves(args))
+        if key not in programs:
+            programs[key] = CachedProgram(fn, name="the Cosserat shooting",
+                                          batched=(True,) * arguments)
+        return programs[key](*args)
 
     return call
 
 
-def _padded(rows: np.ndarray, edge: bool = False) -> np.ndarray:
-    """Rows padded to a power of two (at least 16; above 1024 a multiple of 1024) so that a
-    few compiled programs serve every batch size: with zero rows (no load: done at once) or
-    copies of the first row."""
-    size = max(16, 1 << (len(rows) - 1).bit_length())
+def _padded(rows: Any, edge: bool = False) -> Any:
+    """Rows (an array or a pytree of arrays with the same first axis) padded to a power of
+    two (at least 16; above 1024 a multiple of 1024) so that a few compiled programs serve
+    every batch size: with zero rows (no load: done at once) or copies of the first row."""
+    leaves, tree = jax.tree_util.tree_flatten(rows)
+    count = len(leaves[0])
+    size = max(16, 1 << (count - 1).bit_length())
     if size > 1024:
-        size = -(-len(rows) // 1024) * 1024
-    fill = (np.repeat(rows[:1], size - len(rows), axis=0) if edge
-            else np.zeros((size - len(rows), *rows.shape[1:]), rows.dtype))
-    return np.concatenate([rows, fill])
+        size = -(-count // 1024) * 1024
+
+    def pad(a: np.ndarray) -> np.ndarray:
+        a = np.asarray(a)
+        fill = (np.repeat(a[:1], size - count, axis=0) if edge
+                else np.zeros((size - count, *a.shape[1:]), a.dtype))
+        return np.concatenate([a, fill])
+
+    return jax.tree_util.tree_unflatten(tree, [pad(a) for a in leaves])
 
 
-def _base_moments(robot: Robot, config: StaticsConfig, cases: list[np.ndarray],
-                  dtype: Any) -> tuple[np.ndarray, np.ndarray]:
-    """M(0) (B, 3) and the Newton iterations (B,) of every case.
+def _device(rows: Any, dtype: Any) -> Any:
+    return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), rows)
 
-    Without a tip force and gravity the cut's force N is zero, so M is constant along the
-    robot and M(0) = M_tip exactly (no iteration). The other cases are shot: every case
-    gets ``_FIRST_ROUND`` iterations, then the unfinished ones continue in a smaller batch.
-    """
-    tension, force, moment, gravity = cases
-    base = moment.copy()
-    iterations = np.zeros(len(tension), dtype=int)
-    shot = np.flatnonzero(np.any(force != 0, axis=1) | np.any(gravity != 0, axis=1))
-    if shot.size == 0:
-        return base, iterations
-    first, further, _ = _programs(robot, config)
-    rows = [v[shot] for v in cases]
-    state = first(*(jnp.asarray(_padded(v), dtype) for v in rows))
-    x, its = np.array(state.x)[:shot.size], np.array(state.it)[:shot.size]
+
+class _Solved(NamedTuple):
+    """Shooting answers of some rows (numpy)."""
+
+    x: np.ndarray           # (R, 3) M(0), N·m
+    iterations: np.ndarray  # (R,)
+    converged: np.ndarray   # (R,) the loop's own test
+    stall: np.ndarray       # (R,) load factor of a fold, −1: none
+
+
+def _solve_rows(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads: CaseLoads,
+                x0: np.ndarray, lam0: np.ndarray, mode: np.ndarray, dtype: Any,
+                further_round: bool = True) -> _Solved:
+    """Shoot the given rows from M(0) = ``x0`` at load factor ``lam0`` with ``mode``
+    (R, 2) (see ``_shooting``): every row gets ``_FIRST_ROUND`` iterations, then (with
+    ``further_round``) the unfinished ones continue in a smaller batch."""
+    first, further, _, _ = _programs(robot, config)
+    count = len(tension)
+    rows = (tension, loads)
+    state = first(*_device(_padded((*rows, x0, lam0, mode)), dtype))
+    x, its = np.array(state.x)[:count], np.array(state.it)[:count]
+    stall = np.array(state.stall)[:count]
     limit = min(_FIRST_ROUND, config.max_iterations)
-    # Unfinished: the loop's own test (``done`` in ``_shooting``), read on the host.
     tol = config.resolved_tolerance() * _layout(robot, config).moment_scale
-    finished = ((np.asarray(state.lam)[:shot.size] >= 1.0)
-                & (np.linalg.norm(np.asarray(state.r)[:shot.size], axis=1) <= tol))
-    left = np.flatnonzero(~finished & (its >= limit))
-    if left.size and config.max_iterations > limit:
+
+    def finished(s: _Newton, n: int) -> np.ndarray:
+        return ((np.asarray(s.lam)[:n] >= 1.0)
+                & (np.linalg.norm(np.asarray(s.r)[:n], axis=1) <= tol))
+
+    ok = finished(state, count)
+    left = np.flatnonzero(~ok & (its >= limit))
+    if left.size and config.max_iterations > limit and further_round:
         # Padded with copies of the first unfinished case (zero rows would have no state).
-        def pick(a: Any) -> jax.Array:
-            return jnp.asarray(_padded(np.asarray(a)[left], edge=True))
+        def pick(a: Any) -> Any:
+            return _padded(np.asarray(a)[left], edge=True)
 
-        more = further(*(pick(v) for v in rows), jax.tree_util.tree_map(pick, state))
+        more = further(*_device(jax.tree_util.tree_map(pick, (*rows, mode)), dtype),
+                       jax.tree_util.tree_map(lambda a: jnp.asarray(pick(a)), state))
         x[left], its[left] = np.asarray(more.x)[:left.size], np.asarray(more.it)[:left.size]
-    base[shot], iterations[shot] = x, its
-    return base, iterations
+        stall[left] = np.asarray(more.stall)[:left.size]
+        ok[left] = finished(more, left.size)
+    return _Solved(x, its, ok, stall)
 
 
-def load_cases(value: Any, batch: int, size: int, name: str) -> np.ndarray:
-    """A load input as (batch, size) float64: None → zeros, one row → broadcast to every
-    case; a wrong shape or a non-finite entry is a ValueError naming ``name``."""
-    if value is None:
-        return np.zeros((batch, size))
-    arr = np.asarray(value, dtype=float)
-    if arr.ndim == 1:
-        arr = np.broadcast_to(arr, (batch, arr.shape[0]))
-    if arr.shape != (batch, size):
-        raise ValueError(f"{name}: expected {size} numbers or ({batch}, {size}), got shape "
-                         f"{np.shape(value)}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name}: non-finite entries")
-    return np.array(arr)
+def _stable(robot: Robot, config: StaticsConfig, x: np.ndarray, tension: np.ndarray,
+            loads: CaseLoads, dtype: Any) -> np.ndarray:
+    """(R,) True where M(0) = ``x`` gives a stable equilibrium (``model._equilibria``)."""
+    stability = _programs(robot, config)[3]
+    det = stability(*_device(_padded((x, tension, loads)), dtype))
+    return np.asarray(det)[:len(x)] > 0.0
+
+
+def _rows(value: Any, index: np.ndarray) -> Any:
+    return jax.tree_util.tree_map(lambda a: np.asarray(a)[index], value)
+
+
+# Other starts of a doubtful case: the direct continuation (tensions whole, the external
+# loads ramped: the solver's older path), and Newton under the full loads from the
+# mirror image of the answer's M(0). An unstable or failed answer (and every case with
+# ``all_equilibria``) also gets Newton from M(0) = 0 and from four pushes sideways, and
+# the loading path again in small steps (``SMALL_STEP``).
+_CHECK_STARTS = 2
+_SEARCH_STARTS = 7
+SMALL_STEP = 1 / 32
+"""Largest load increment of the loading path's second try: small steps follow the branch
+past a bifurcation (an imperfect column buckles towards its imperfection)."""
+
+
+def _starts(x: np.ndarray, push: np.ndarray, count: int
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(M(0) starts (R, count, 3), λ at the start (R, count), modes (R, count, 2)) from
+    the path's answers ``x`` (R, 3) and the size of a sideways push (R,), N·m."""
+    rows = len(x)
+    sideways = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]], float)
+    x0 = np.concatenate([np.zeros((rows, 1, 3)), -x[:, None], np.zeros((rows, 1, 3)),
+                         x[:, None] + push[:, None, None] * sideways[None]], axis=1)
+    lam0 = np.ones((rows, _SEARCH_STARTS))
+    lam0[:, 0] = 0.0
+    mode = np.zeros((rows, _SEARCH_STARTS, 2))
+    mode[..., 1] = 1.0
+    return x0[:, :count], lam0[:, :count], mode[:, :count]
+
+
+class _Check(NamedTuple):
+    """What the branch check of some rows found."""
+
+    base: np.ndarray        # (R, 3) the reported M(0)
+    stable: np.ndarray      # (R,)
+    equilibria: np.ndarray  # (R,)
+    replaced: np.ndarray    # (R,) the loading path's answer was unstable or failed
+    found: list             # per row: [(M(0), stable, reported)]
+
+
+def _check(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads: CaseLoads,
+           push: np.ndarray, path: _Solved, path_stable: np.ndarray, search: np.ndarray,
+           dtype: Any) -> _Check:
+    """Solve the rows again from other starts (``_starts``; all of them where ``search``),
+    count the distinct equilibria, and where the path's answer is not stable take the
+    small-step path's if that is, else the stable equilibrium nearest to it."""
+    rows = len(tension)
+    scale = _layout(robot, config).moment_scale
+    count = _SEARCH_STARTS if search.any() else _CHECK_STARTS
+    x0, lam0, modes = _starts(path.x, push, count)
+    use = np.ones((rows, count), bool)
+    use[:, _CHECK_STARTS:] = search[:, None]
+    r, c = np.nonzero(use)
+    # Other starts get the first round only: a start that needs more is rarely the answer.
+    extra = _solve_rows(robot, config, tension[r], _rows(loads, r), x0[r, c], lam0[r, c],
+                        modes[r, c], dtype, further_round=False)
+    careful = np.flatnonzero(search)
+    again = _solve_rows(robot, config, tension[careful], _rows(loads, careful),
+                        np.zeros((careful.size, 3)), np.zeros(careful.size),
+                        np.tile([1.0, SMALL_STEP], (careful.size, 1)), dtype)
+    r, c = np.concatenate([careful, r]), np.concatenate([np.zeros(careful.size, int), c + 1])
+    x = np.concatenate([again.x, extra.x])
+    converged = np.concatenate([again.converged, extra.converged])
+    stable_extra = np.zeros(len(r), bool)
+    if converged.any():
+        good = np.flatnonzero(converged)
+        stable_extra[good] = _stable(robot, config, x[good], tension[r[good]],
+                                     _rows(loads, r[good]), dtype)
+    moments = np.zeros((rows, count + 2, 3))
+    valid = np.zeros((rows, count + 2), bool)
+    stable = np.zeros((rows, count + 2), bool)
+    moments[:, 0], valid[:, 0], stable[:, 0] = path.x, path.converged, path_stable
+    moments[r, c + 1], valid[r, c + 1], stable[r, c + 1] = x, converged, stable_extra
+    first = distinct(moments, valid, scale)
+    chosen = np.zeros(rows, int)
+    for i in np.flatnonzero(~(valid[:, 0] & stable[:, 0])):
+        if valid[i, 1] & stable[i, 1]:  # the small-step path
+            chosen[i] = 1
+            continue
+        options = np.flatnonzero(valid[i] & stable[i])
+        if options.size:  # the stable equilibrium nearest to where the path ended
+            gaps = np.linalg.norm(moments[i, options] - moments[i, 0], axis=1)
+            chosen[i] = options[np.argmin(gaps)]
+    found = []
+    for i in range(rows):
+        entries = [k for k in np.flatnonzero(first[i])]
+        # the chosen one stands for its group even when an equal answer came first
+        same = np.linalg.norm(moments[i, entries] - moments[i, chosen[i]], axis=1)
+        entries = [k for k, gap in zip(entries, same, strict=True) if gap > 1e-6 * scale]
+        found.append([(moments[i, chosen[i]], bool(stable[i, chosen[i]]), True)]
+                     + [(moments[i, k], bool(stable[i, k]), False) for k in entries])
+    pick = np.arange(rows)
+    return _Check(moments[pick, chosen], stable[pick, chosen], first.sum(axis=1),
+                  chosen > 1, found)
 
 
 def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment: Any = None,
-                  gravity: Any = None, config: StaticsConfig = StaticsConfig()) -> StaticsResult:
+                  gravity: Any = None, config: StaticsConfig = StaticsConfig(), *,
+                  distributed_force: Any = None, point_loads: Any = None,
+                  all_equilibria: bool = False) -> StaticsResult:
     """Equilibrium shapes for a batch of tendon tensions and loads (numpy in, numpy out).
+
+    The answer is the equilibrium reached by loading the robot from rest (tensions and
+    loads scaled together from zero, the branch followed; see the module), with its
+    stability and the number of distinct equilibria found for the same loads.
 
     Args:
         robot: a robot with a ``mechanics`` block and fixed segment lengths.
@@ -651,13 +578,22 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
         tip_moment: (3,) or (B, 3) moment on the tip, N·m, world frame (default none).
         gravity: (3,) or (B, 3) gravitational acceleration, m/s², world frame (default none).
         config: discretisation, tolerance and dtype.
+        distributed_force: (3,) or (B, 3) force per metre along the whole backbone, N/m,
+            world frame (default none).
+        point_loads: wrenches at arc lengths, world frame: a list of
+            ``{"s": m from the base, "force": [N], "moment": [N·m]}`` for every case, or
+            one such list per case (``model.loads``).
+        all_equilibria: solve every loaded case from several starts and return the
+            distinct equilibria found in ``StaticsResult.all_equilibria``.
 
     Returns:
         ``StaticsResult`` in the world frame; a case that did not converge is marked in
         ``converged`` (a value, not an exception).
 
     Raises:
-        ValueError: wrong shapes, negative or non-finite tensions, a robot without mechanics.
+        ValueError: wrong shapes, negative or non-finite tensions or loads, an unknown key
+            or a point load off the robot (naming the case and the key), a robot without
+            mechanics.
     """
     configure()
     t = np.atleast_2d(np.asarray(tensions, dtype=float))
@@ -666,30 +602,106 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
                          f"{np.shape(tensions)}")
     if not np.all(np.isfinite(t)) or np.any(t < 0):
         bad = np.argwhere(~np.isfinite(t) | (t < 0))[0]
-        raise ValueError(f"tensions: case {bad[0]}, tendon {bad[1] + 1}: a tension must be a "
-                         f"finite number ≥ 0 N, got {t[tuple(bad)]}")
-    batch = t.shape[0]
-    base_rot = matrix_from_wxyz(np.asarray(robot.base_wxyz))
-    base_pos = np.asarray(robot.base_position)
-    loads = [load_cases(v, batch, 3, n) @ base_rot for v, n in
-             ((tip_force, "tip_force"), (tip_moment, "tip_moment"), (gravity, "gravity"))]
+        raise ValueError(f"case {bad[0]}: tensions: tendon {bad[1] + 1}: a tension must be "
+                         f"a finite number ≥ 0 N, got {t[tuple(bad)]}")
     if config.dtype not in ("float64", "float32"):
         raise ValueError(f"dtype: 'float64' or 'float32', got {config.dtype!r}")
+    lay = _layout(robot, config)
+    length = float(lay.arc_length[-1])
+    if len(t) == 1:  # one tension set under every load case
+        t = np.repeat(t, _load_batch(tip_force, tip_moment, gravity, distributed_force,
+                                     point_loads), axis=0)
+    batch = t.shape[0]
+    world = static_loads(batch, length, tip_force, tip_moment, gravity, distributed_force,
+                         point_loads)
+    base_rot = matrix_from_wxyz(np.asarray(robot.base_wxyz))
+    base_pos = np.asarray(robot.base_position)
+    frame = world.in_base_frame(base_rot)
+    loads = CaseLoads(*frame.arrays())
     dtype = np.float64 if config.dtype == "float64" else np.float32
+    # Without an external force N ≡ 0: M is constant between the point moments.
+    base = frame.tip_moment + frame.point_moment.sum(axis=1)
+    iterations = np.zeros(batch, dtype=int)
+    stable, equilibria = np.ones(batch, bool), np.ones(batch, int)
+    snap_load = np.full(batch, np.nan)
+    found: list = [[(base[i], True, True)] for i in range(batch)]
+    shot = np.flatnonzero(frame.has_force())
     # float64 without touching the process-wide flag (the batched stages keep theirs).
     with jax.enable_x64(config.dtype == "float64"):
-        cases = [t, *loads]
-        base, iterations = _base_moments(robot, config, cases, dtype)
+        if shot.size:
+            part, tension = _rows(loads, shot), t[shot]
+            path = _solve_rows(robot, config, tension, part, np.zeros((shot.size, 3)),
+                               np.zeros(shot.size), np.ones((shot.size, 2)), dtype)
+            base[shot], iterations[shot] = path.x, path.iterations
+            folded = path.stall >= 0
+            snap_load[shot[folded]] = path.stall[folded]
+            path_stable = _stable(robot, config, path.x, tension, part, dtype)
+            stable[shot] = path_stable
+            ei = robot.mechanics.bending_stiffness
+            search = (all_equilibria | ~path_stable | ~path.converged)
+            doubtful = search | (load_parameter(lay, frame.rows(shot), ei) >= DOUBTFUL)
+            for i in shot[~doubtful]:
+                found[i] = [(base[i], bool(stable[i]), True)]
+            if doubtful.any():
+                d = np.flatnonzero(doubtful)
+                force_size = (np.linalg.norm(frame.tip_force[shot[d]], axis=1)
+                              + np.linalg.norm(frame.point_force[shot[d]], axis=2).sum(1)
+                              + np.linalg.norm(frame.distributed_force[shot[d]], axis=1)
+                              * length
+                              + np.linalg.norm(frame.gravity[shot[d]], axis=1)
+                              * float(lay.total_mass_moment[0]))
+                push = np.maximum(0.5 * length * force_size, lay.moment_scale)
+                check = _check(robot, config, tension[d], _rows(part, d), push,
+                               _Solved(*(_rows(path, d))), path_stable[d], search[d], dtype)
+                rows = shot[d]
+                base[rows], stable[rows] = check.base, check.stable
+                equilibria[rows] = check.equilibria
+                snap_load[rows[check.replaced & np.isnan(snap_load[rows])]] = 1.0
+                for i, entries in zip(rows, check.found, strict=True):
+                    found[i] = entries
         finish = _programs(robot, config)[2]
-        out = finish(*(jnp.asarray(_padded(v), dtype) for v in (base, *cases)))
+        out = finish(*_device(_padded((base, t, loads)), dtype))
         out = {k: np.asarray(v)[:batch] for k, v in out.items()}
+        shapes = None
+        if all_equilibria:
+            shapes = _shapes(robot, config, found, t, loads, base_rot, base_pos, dtype)
     positions = out["positions"].astype(float) @ base_rot.T + base_pos
     rotations = np.einsum("ij,bpjk->bpik", base_rot, out["rotations"].astype(float))
     return StaticsResult(
-        positions=positions, rotations=rotations,
-        arc_length=_layout(robot, config).arc_length,
+        positions=positions, rotations=rotations, arc_length=lay.arc_length,
         tendon_displacements=out["tendon_displacements"].astype(float),
         converged=out["converged"].astype(bool), residual=out["residual"].astype(float),
         iterations=iterations,
         base_moment=out["base_moment"].astype(float) @ base_rot.T,
-        base_force=out["base_force"].astype(float) @ base_rot.T)
+        base_force=out["base_force"].astype(float) @ base_rot.T,
+        stable=stable, equilibria=equilibria, snap_load=snap_load, all_equilibria=shapes)
+
+
+def _load_batch(*loads: Any) -> int:
+    """The number of cases the loads give (1 when every load is one row)."""
+    sizes = [len(v) for v in loads[:4] if v is not None and np.ndim(v) == 2]
+    points = loads[4]
+    if points is not None and len(points) and not isinstance(points[0], dict):
+        sizes.append(len(points))
+    return max(sizes, default=1)
+
+
+def _shapes(robot: Robot, config: StaticsConfig, found: list, tension: np.ndarray,
+            loads: CaseLoads, base_rot: np.ndarray, base_pos: np.ndarray,
+            dtype: Any) -> list[list[Equilibrium]]:
+    """The shapes of every equilibrium found, per case, the reported one first."""
+    case = np.array([i for i, entries in enumerate(found) for _ in entries], int)
+    flat = [e for entries in found for e in entries]
+    x = np.array([e[0] for e in flat]).reshape(-1, 3)
+    out = _programs(robot, config)[2](*_device(_padded((x, tension[case],
+                                                         _rows(loads, case))), dtype))
+    positions = np.asarray(out["positions"], float)[:len(x)] @ base_rot.T + base_pos
+    rotations = np.einsum("ij,bpjk->bpik", base_rot,
+                          np.asarray(out["rotations"], float)[:len(x)])
+    shapes: list[list[Equilibrium]] = [[] for _ in found]
+    for k, (i, (moment, stable, reached)) in enumerate(zip(case, flat, strict=True)):
+        shapes[i].append(Equilibrium(positions[k], rotations[k], moment @ base_rot.T,
+                                     stable, reached))
+    for entries in shapes:
+        entries.sort(key=lambda e: not e.reached)
+    return shapes
