@@ -141,7 +141,8 @@ class CaseLoads(NamedTuple):
     force: jax.Array         # (3,) tip force, N
     moment: jax.Array        # (3,) tip moment, N·m
     gravity: jax.Array       # (3,) gravitational acceleration, m/s²
-    distributed: jax.Array   # (3,) force per unit length along the whole backbone, N/m
+    distributed: jax.Array   # (3,) force per unit length along the whole backbone, N/m;
+    #                          (0,): none (a smaller program, as without point loads)
     point_s: jax.Array       # (K,) arc length of each point load from the base, m
     point_force: jax.Array   # (K, 3) N
     point_moment: jax.Array  # (K, 3) N·m
@@ -156,7 +157,8 @@ class CaseLoads(NamedTuple):
         """(3,) the sum of every external force on the robot, N (what the base carries)."""
         total = float(lay.arc_length[-1])
         return (self.force + self.gravity * float(lay.total_mass_moment[0])
-                + self.distributed * total + self.point_force.sum(axis=0))
+                + (self.distributed * total if self.distributed.shape[0] else 0.0)
+                + self.point_force.sum(axis=0))
 
 
 class _Grid(NamedTuple):
@@ -324,6 +326,7 @@ def _integrate(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
     n_tendons = lay.active.shape[1]
     grid = _grid(lay, loads, dtype)
     points = grid.point_force is not None
+    spread = loads.distributed.shape[0] > 0
     xs = tuple(jnp.asarray(a, dtype) for a in (grid.step_length, grid.mass, grid.length,
                                                  grid.active))
     if points:
@@ -353,12 +356,11 @@ def _integrate(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
             previous, total = inner
             shift, weight, point = c
             _, rot, mom, _ = axpy(carry, shift * h, previous)
-            # N at the stage's point (a select, not an index: it fuses under vmap)
-            m = jnp.where(point == 0, mass[0], jnp.where(point == 1, mass[1], mass[2]))
-            arc = jnp.where(point == 0, length[0], jnp.where(point == 1, length[1],
-                                                             length[2]))
-            n = tuple(f + g * m + w * arc for f, g, w in zip(
-                _vec(force), _vec(loads.gravity), _vec(loads.distributed), strict=True))
+            n = tuple(f + g * mass[point] for f, g in zip(_vec(force), _vec(loads.gravity),
+                                                           strict=True))
+            if spread:  # the force per metre distal of the stage's point
+                n = tuple(a + w * length[point] for a, w in zip(n, _vec(loads.distributed),
+                                                                 strict=True))
             dp, drot, dmom, dl = _derivative(lay, config, rot, mom, n, active)
             k = (dp, drot, dmom, tuple(s * act[i] for i, s in enumerate(dl)))
             return (k, axpy(total, weight, k)), None

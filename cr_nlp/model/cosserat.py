@@ -240,9 +240,9 @@ def _run(iterate: Any, done: Any, state: _Newton, iterations: int) -> _Newton:
 
 def _shoot(lay: _Layout, coarse: _Layout, config: StaticsConfig, tension: jax.Array,
            loads: CaseLoads) -> tuple[jax.Array, tuple]:
-    """M(0) with M(L) = M_tip on the loading path, differentiable implicitly; and
-    (iterations, λ reached)."""
-    mode = jnp.ones(2, tension.dtype)
+    """M(0) with M(L) = M_tip by the direct continuation (``solve_statics``' first try),
+    differentiable implicitly; and (iterations, λ reached)."""
+    mode = jnp.asarray([0.0, 1.0], tension.dtype)
     start, iterate, done = _shooting(lay, coarse, config, tension, loads, mode)
 
     def residual(base_moment: jax.Array) -> jax.Array:
@@ -267,12 +267,12 @@ def case_loads(tip_force: jax.Array, tip_moment: jax.Array, gravity: jax.Array,
                point_moment: Any = None) -> CaseLoads:
     """One case's loads in the base frame for the per-case JAX functions (N, N·m, m/s²,
     N/m; point loads: (K,) arc lengths in m, (K, 3) forces and moments); None is none."""
-    zero = jnp.zeros_like(tip_force)
     if point_s is None:
         point_s = jnp.zeros((0,), tip_force.dtype)
         point_force = point_moment = jnp.zeros((0, 3), tip_force.dtype)
     return CaseLoads(tip_force, tip_moment, gravity,
-                     zero if distributed is None else distributed, point_s,
+                     jnp.zeros((0,), tip_force.dtype) if distributed is None else distributed,
+                     point_s,
                      point_force, point_moment)
 
 
@@ -325,8 +325,8 @@ def statics_single(robot: Robot, config: StaticsConfig = StaticsConfig()) -> Any
     Inputs in the base frame (N, N, N·m, m/s²); the dict holds ``positions`` (P, 3),
     ``rotations`` (P, 3, 3) in the base frame, ``tendon_displacements`` (T,), ``residual``
     (N·m), ``iterations``, ``converged`` and ``base_moment``: the equilibrium of the
-    loading path. Differentiable (forward and reverse) with respect to all four inputs
-    through the implicit solution.
+    direct continuation (where it is unique, the loading path's). Differentiable (forward
+    and reverse) with respect to all four inputs through the implicit solution.
     """
     lay, coarse = _layout(robot, config), _layout(robot, config, coarse=True)
 
@@ -423,10 +423,11 @@ class _Solved(NamedTuple):
 
 def _solve_rows(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads: CaseLoads,
                 x0: np.ndarray, lam0: np.ndarray, mode: np.ndarray, dtype: Any,
-                further_round: bool = True) -> _Solved:
+                further_round: Any = True) -> _Solved:
     """Shoot the given rows from M(0) = ``x0`` at load factor ``lam0`` with ``mode``
-    (R, 2) (see ``_shooting``): every row gets ``_FIRST_ROUND`` iterations, then (with
-    ``further_round``) the unfinished ones continue in a smaller batch."""
+    (R, 2) (see ``_shooting``): every row gets ``_FIRST_ROUND`` iterations, then the
+    unfinished ones among ``further_round`` (True: all; or a (R,) mask) continue in a
+    smaller batch."""
     first, further, _, _ = _programs(robot, config)
     count = len(tension)
     rows = (tension, loads)
@@ -441,8 +442,8 @@ def _solve_rows(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads:
                 & (np.linalg.norm(np.asarray(s.r)[:n], axis=1) <= tol))
 
     ok = finished(state, count)
-    left = np.flatnonzero(~ok & (its >= limit))
-    if left.size and config.max_iterations > limit and further_round:
+    left = np.flatnonzero(~ok & (its >= limit) & further_round)
+    if left.size and config.max_iterations > limit:
         # Padded with copies of the first unfinished case (zero rows would have no state).
         def pick(a: Any) -> Any:
             return _padded(np.asarray(a)[left], edge=True)
@@ -467,31 +468,23 @@ def _rows(value: Any, index: np.ndarray) -> Any:
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[index], value)
 
 
-# Other starts of a doubtful case: the direct continuation (tensions whole, the external
-# loads ramped: the solver's older path), and Newton under the full loads from the
-# mirror image of the answer's M(0). An unstable or failed answer (and every case with
-# ``all_equilibria``) also gets Newton from M(0) = 0 and from four pushes sideways, and
-# the loading path again in small steps (``SMALL_STEP``).
-_CHECK_STARTS = 2
-_SEARCH_STARTS = 7
+# Other starts of a doubtful case, beside the direct continuation's answer: Newton under
+# the full loads from the mirror image of that answer's M(0) (solved with the loading path,
+# in one batch). A failed or unstable path answer (and every case with ``all_equilibria``)
+# also gets Newton from M(0) = 0 and from four pushes sideways, and the loading path again
+# in small steps (``SMALL_STEP``).
+_SEARCH_STARTS = 5
 SMALL_STEP = 1 / 32
 """Largest load increment of the loading path's second try: small steps follow the branch
 past a bifurcation (an imperfect column buckles towards its imperfection)."""
 
 
-def _starts(x: np.ndarray, push: np.ndarray, count: int
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(M(0) starts (R, count, 3), λ at the start (R, count), modes (R, count, 2)) from
-    the path's answers ``x`` (R, 3) and the size of a sideways push (R,), N·m."""
-    rows = len(x)
+def _starts(x: np.ndarray, push: np.ndarray) -> np.ndarray:
+    """(R, 5, 3) M(0) starts for Newton under the full loads around the path's answers
+    ``x`` (R, 3): zero and four pushes sideways of size ``push`` (R,), N·m."""
     sideways = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]], float)
-    x0 = np.concatenate([np.zeros((rows, 1, 3)), -x[:, None], np.zeros((rows, 1, 3)),
-                         x[:, None] + push[:, None, None] * sideways[None]], axis=1)
-    lam0 = np.ones((rows, _SEARCH_STARTS))
-    lam0[:, 0] = 0.0
-    mode = np.zeros((rows, _SEARCH_STARTS, 2))
-    mode[..., 1] = 1.0
-    return x0[:, :count], lam0[:, :count], mode[:, :count]
+    return np.concatenate([np.zeros((len(x), 1, 3)),
+                           x[:, None] + push[:, None, None] * sideways[None]], axis=1)
 
 
 class _Check(NamedTuple):
@@ -505,38 +498,46 @@ class _Check(NamedTuple):
 
 
 def _check(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads: CaseLoads,
-           push: np.ndarray, path: _Solved, path_stable: np.ndarray, search: np.ndarray,
+           push: np.ndarray, known: list[tuple[_Solved, np.ndarray]], search: np.ndarray,
            dtype: Any) -> _Check:
-    """Solve the rows again from other starts (``_starts``; all of them where ``search``),
-    count the distinct equilibria, and where the path's answer is not stable take the
-    small-step path's if that is, else the stable equilibrium nearest to it."""
+    """Count the distinct equilibria among the answers already ``known`` (the path's
+    first, each with its stability) and, where ``search``, those of more starts; where the
+    path's answer is not stable take the small-step path's if that is, else the stable
+    equilibrium nearest to it."""
     rows = len(tension)
     scale = _layout(robot, config).moment_scale
-    count = _SEARCH_STARTS if search.any() else _CHECK_STARTS
-    x0, lam0, modes = _starts(path.x, push, count)
-    use = np.ones((rows, count), bool)
-    use[:, _CHECK_STARTS:] = search[:, None]
-    r, c = np.nonzero(use)
-    # Other starts get the first round only: a start that needs more is rarely the answer.
-    extra = _solve_rows(robot, config, tension[r], _rows(loads, r), x0[r, c], lam0[r, c],
-                        modes[r, c], dtype, further_round=False)
+    # columns: the path, the small-step path, the known others, the search starts
+    columns = 2 + len(known) - 1 + (_SEARCH_STARTS if search.any() else 0)
+    moments = np.zeros((rows, columns, 3))
+    valid = np.zeros((rows, columns), bool)
+    stable = np.zeros((rows, columns), bool)
+    for k, (solved, solved_stable) in enumerate(known):
+        col = 0 if k == 0 else k + 1
+        moments[:, col], valid[:, col], stable[:, col] = (solved.x, solved.converged,
+                                                          solved_stable)
     careful = np.flatnonzero(search)
-    again = _solve_rows(robot, config, tension[careful], _rows(loads, careful),
-                        np.zeros((careful.size, 3)), np.zeros(careful.size),
-                        np.tile([1.0, SMALL_STEP], (careful.size, 1)), dtype)
-    r, c = np.concatenate([careful, r]), np.concatenate([np.zeros(careful.size, int), c + 1])
-    x = np.concatenate([again.x, extra.x])
-    converged = np.concatenate([again.converged, extra.converged])
-    stable_extra = np.zeros(len(r), bool)
-    if converged.any():
-        good = np.flatnonzero(converged)
-        stable_extra[good] = _stable(robot, config, x[good], tension[r[good]],
-                                     _rows(loads, r[good]), dtype)
-    moments = np.zeros((rows, count + 2, 3))
-    valid = np.zeros((rows, count + 2), bool)
-    stable = np.zeros((rows, count + 2), bool)
-    moments[:, 0], valid[:, 0], stable[:, 0] = path.x, path.converged, path_stable
-    moments[r, c + 1], valid[r, c + 1], stable[r, c + 1] = x, converged, stable_extra
+    if careful.size:
+        x0 = _starts(moments[careful, 0], push[careful])
+        r = np.repeat(careful, _SEARCH_STARTS)
+        # Other starts get the first round only: one that needs more is rarely the answer.
+        extra = _solve_rows(robot, config, tension[r], _rows(loads, r), x0.reshape(-1, 3),
+                            np.ones(len(r)), np.tile([0.0, 1.0], (len(r), 1)), dtype,
+                            further_round=False)
+        again = _solve_rows(robot, config, tension[careful], _rows(loads, careful),
+                            np.zeros((careful.size, 3)), np.zeros(careful.size),
+                            np.tile([1.0, SMALL_STEP], (careful.size, 1)), dtype)
+        r = np.concatenate([careful, r])
+        c = np.concatenate([np.ones(careful.size, int),
+                            np.tile(np.arange(_SEARCH_STARTS), careful.size)
+                            + 1 + len(known)])
+        x = np.concatenate([again.x, extra.x])
+        converged = np.concatenate([again.converged, extra.converged])
+        stable_extra = np.zeros(len(r), bool)
+        if converged.any():
+            good = np.flatnonzero(converged)
+            stable_extra[good] = _stable(robot, config, x[good], tension[r[good]],
+                                         _rows(loads, r[good]), dtype)
+        moments[r, c], valid[r, c], stable[r, c] = x, converged, stable_extra
     first = distinct(moments, valid, scale)
     chosen = np.zeros(rows, int)
     for i in np.flatnonzero(~(valid[:, 0] & stable[:, 0])):
@@ -549,7 +550,7 @@ def _check(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads: Case
             chosen[i] = options[np.argmin(gaps)]
     found = []
     for i in range(rows):
-        entries = [k for k in np.flatnonzero(first[i])]
+        entries = list(np.flatnonzero(first[i]))
         # the chosen one stands for its group even when an equal answer came first
         same = np.linalg.norm(moments[i, entries] - moments[i, chosen[i]], axis=1)
         entries = [k for k, gap in zip(entries, same, strict=True) if gap > 1e-6 * scale]
@@ -617,7 +618,7 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
     base_rot = matrix_from_wxyz(np.asarray(robot.base_wxyz))
     base_pos = np.asarray(robot.base_position)
     frame = world.in_base_frame(base_rot)
-    loads = CaseLoads(*frame.arrays())
+    loads = _case_loads(frame)
     dtype = np.float64 if config.dtype == "float64" else np.float32
     # Without an external force N ≡ 0: M is constant between the point moments.
     base = frame.tip_moment + frame.point_moment.sum(axis=1)
@@ -630,32 +631,55 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
     with jax.enable_x64(config.dtype == "float64"):
         if shot.size:
             part, tension = _rows(loads, shot), t[shot]
-            path = _solve_rows(robot, config, tension, part, np.zeros((shot.size, 3)),
-                               np.zeros(shot.size), np.ones((shot.size, 2)), dtype)
-            base[shot], iterations[shot] = path.x, path.iterations
-            folded = path.stall >= 0
-            snap_load[shot[folded]] = path.stall[folded]
-            path_stable = _stable(robot, config, path.x, tension, part, dtype)
-            stable[shot] = path_stable
-            ei = robot.mechanics.bending_stiffness
-            search = (all_equilibria | ~path_stable | ~path.converged)
-            doubtful = search | (load_parameter(lay, frame.rows(shot), ei) >= DOUBTFUL)
-            for i in shot[~doubtful]:
+            # The direct continuation (tensions whole, the loads ramped) first: where the
+            # equilibrium is unique it is the loading path's, and it is the cheaper one.
+            direct = _solve_rows(robot, config, tension, part, np.zeros((shot.size, 3)),
+                                 np.zeros(shot.size), np.tile([0.0, 1.0], (shot.size, 1)),
+                                 dtype)
+            direct_stable = _stable(robot, config, direct.x, tension, part, dtype)
+            base[shot], iterations[shot] = direct.x, direct.iterations
+            stable[shot] = direct_stable
+            for i in shot:
                 found[i] = [(base[i], bool(stable[i]), True)]
+            ei = robot.mechanics.bending_stiffness
+            doubtful = (all_equilibria | ~direct_stable | ~direct.converged
+                        | ((direct.iterations > _FIRST_ROUND)
+                           & (load_parameter(lay, frame.rows(shot), ei) >= DOUBTFUL)))
             if doubtful.any():
                 d = np.flatnonzero(doubtful)
-                force_size = (np.linalg.norm(frame.tip_force[shot[d]], axis=1)
-                              + np.linalg.norm(frame.point_force[shot[d]], axis=2).sum(1)
-                              + np.linalg.norm(frame.distributed_force[shot[d]], axis=1)
+                rows, sub_tension, sub_loads = shot[d], tension[d], _rows(part, d)
+                # the loading path and Newton from the direct answer's mirror, one batch
+                both = np.concatenate([d, d])
+                solved = _solve_rows(
+                    robot, config, tension[both], _rows(part, both),
+                    np.concatenate([np.zeros((d.size, 3)), -direct.x[d]]),
+                    np.concatenate([np.zeros(d.size), np.ones(d.size)]),
+                    np.concatenate([np.ones((d.size, 2)), np.tile([0.0, 1.0], (d.size, 1))]),
+                    dtype, further_round=np.arange(2 * d.size) < d.size)
+                path = _Solved(*_rows(solved, np.arange(d.size)))
+                mirror = _Solved(*_rows(solved, np.arange(d.size, 2 * d.size)))
+                answers = np.flatnonzero(solved.converged)
+                solved_stable = np.zeros(2 * d.size, bool)
+                solved_stable[answers] = _stable(robot, config, solved.x[answers],
+                                                 tension[both[answers]],
+                                                 _rows(part, both[answers]), dtype)
+                path_stable = solved_stable[:d.size]
+                search = all_equilibria | ~(path.converged & path_stable)
+                force_size = (np.linalg.norm(frame.tip_force[rows], axis=1)
+                              + np.linalg.norm(frame.point_force[rows], axis=2).sum(1)
+                              + np.linalg.norm(frame.distributed_force[rows], axis=1)
                               * length
-                              + np.linalg.norm(frame.gravity[shot[d]], axis=1)
+                              + np.linalg.norm(frame.gravity[rows], axis=1)
                               * float(lay.total_mass_moment[0]))
                 push = np.maximum(0.5 * length * force_size, lay.moment_scale)
-                check = _check(robot, config, tension[d], _rows(part, d), push,
-                               _Solved(*(_rows(path, d))), path_stable[d], search[d], dtype)
-                rows = shot[d]
+                check = _check(robot, config, sub_tension, sub_loads, push,
+                               [(path, path_stable), (_Solved(*_rows(direct, d)),
+                                                      direct_stable[d]),
+                                (mirror, solved_stable[d.size:])], search, dtype)
                 base[rows], stable[rows] = check.base, check.stable
-                equilibria[rows] = check.equilibria
+                equilibria[rows], iterations[rows] = check.equilibria, path.iterations
+                folded = path.stall >= 0
+                snap_load[rows[folded]] = path.stall[folded]
                 snap_load[rows[check.replaced & np.isnan(snap_load[rows])]] = 1.0
                 for i, entries in zip(rows, check.found, strict=True):
                     found[i] = entries
@@ -675,6 +699,15 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
         base_moment=out["base_moment"].astype(float) @ base_rot.T,
         base_force=out["base_force"].astype(float) @ base_rot.T,
         stable=stable, equilibria=equilibria, snap_load=snap_load, all_equilibria=shapes)
+
+
+def _case_loads(frame: Any) -> CaseLoads:
+    """The programs' loads of a ``StaticLoads``; without a force per metre in any case its
+    array is (B, 0), which selects the smaller program."""
+    arrays = list(frame.arrays())
+    if not np.any(arrays[3]):
+        arrays[3] = np.zeros((len(arrays[3]), 0))
+    return CaseLoads(*arrays)
 
 
 def _load_batch(*loads: Any) -> int:
