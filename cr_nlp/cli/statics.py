@@ -6,7 +6,15 @@ import argparse
 import math
 from typing import Any, NamedTuple
 
-from ._io import UsageError, load_robot_arg, parse_numbers, parse_vector3, read_json, write_json
+from ._io import (
+    UsageError,
+    load_robot_arg,
+    parse_numbers,
+    parse_point_loads,
+    parse_vector3,
+    read_json,
+    write_json,
+)
 
 CASE_KEYS = ("tensions", "tip_force", "tip_moment", "gravity", "distributed_force",
              "point_loads")
@@ -116,19 +124,6 @@ def _numbers(path: str, field: str, values: list, nonnegative: bool = False) -> 
     return out
 
 
-def _point_loads_arg(values: list[str] | None) -> list[dict]:
-    """``--point-load S,FX,FY,FZ[,MX,MY,MZ]`` options as point-load objects."""
-    out = []
-    for k, text in enumerate(values or []):
-        numbers = parse_numbers(text, f"--point-load[{k}]")
-        if len(numbers) not in (4, 7):
-            raise UsageError(f"--point-load[{k}]: expected S,FX,FY,FZ or S,FX,FY,FZ,MX,MY,MZ, "
-                             f"got {len(numbers)} numbers")
-        moment = numbers[4:] if len(numbers) == 7 else [0.0, 0.0, 0.0]
-        out.append({"s": numbers[0], "force": numbers[1:4], "moment": moment})
-    return out
-
-
 def _record(result: Any, i: int, every: bool) -> dict[str, Any]:
     snap = float(result.snap_load[i])
     record: dict[str, Any] = {
@@ -176,7 +171,7 @@ def run(args: argparse.Namespace) -> int:
             [tensions], [parse_vector3(args.tip_force, "--tip-force") or [0.0, 0.0, 0.0]],
             [parse_vector3(args.tip_moment, "--tip-moment") or [0.0, 0.0, 0.0]], [None],
             [parse_vector3(args.distributed_force, "--distributed-force") or [0.0] * 3],
-            [_point_loads_arg(args.point_load)])
+            [parse_point_loads(args.point_load)])
     try:
         result = solve_statics(
             robot, cases.tensions, cases.tip_force, cases.tip_moment,
