@@ -30,8 +30,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         description="The answer is the equilibrium a robot reaches when its tensions and "
                     "loads grow together from zero; 'stable' says whether it is a minimum of "
                     "the energy, 'equilibria' how many distinct equilibria were found for "
-                    "the same loads (other starts are tried where the loads reach a buckling "
-                    "load), 'snap_load' the load factor of a snap-through on the way.")
+                    "the same loads (other starts are tried where the direct solve's answer "
+                    "is doubtful: unstable, unconverged, or past a buckling load with a slow "
+                    "continuation), 'snap_load' the load factor of a snap-through on the way.")
     p.add_argument("--robot", required=True, help="robot JSON file or bundled name "
                                                   "(tdcr2_rao2021)")
     p.add_argument("--tensions", help="t1,...,tN tendon tensions in N (robot file's order)")
