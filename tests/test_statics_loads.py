@@ -9,7 +9,7 @@ from scipy.optimize import brentq
 from scipy.special import ellipe, ellipk
 
 from cr_nlp.model import load_robot
-from cr_nlp.model.cosserat import solve_statics
+from cr_nlp.model.statics import solve_statics
 
 RAO = load_robot("tdcr2_rao2021")
 EI = RAO.mechanics.bending_stiffness

@@ -13,7 +13,7 @@ import pytest
 
 from cr_nlp import load_result
 from cr_nlp.model import load_robot
-from cr_nlp.model.cosserat import solve_statics
+from cr_nlp.model.statics import solve_statics
 from cr_nlp.model.tendon_groups import moments_from_tensions, tendon_groups, tensions_from_moments
 from cr_nlp.tasks.tension_ik import TensionIKConfig, TensionIKResult, TensionIKSolver
 

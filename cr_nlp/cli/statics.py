@@ -148,7 +148,7 @@ def _record(result: Any, i: int, every: bool) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     """Solve and print the tip pose and convergence (text), or JSON with ``--json`` or
     ``--cases``."""
-    from ..model.cosserat import solve_statics
+    from ..model.statics import solve_statics
 
     robot = load_robot_arg(args.robot)
     if robot.mechanics is None:

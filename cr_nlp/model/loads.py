@@ -1,6 +1,6 @@
 """External loads of the Cosserat statics: what a case may carry, checked (numpy).
 
-A load case of ``model.cosserat.solve_statics`` (and of the tension-space IK) may hold,
+A load case of ``model.statics.solve_statics`` (and of the tension-space IK) may hold,
 all in the world frame:
 
 - ``tip_force`` (N) and ``tip_moment`` (N·m) on the tip;

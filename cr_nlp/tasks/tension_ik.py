@@ -46,16 +46,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..model import Robot, load_robot
-from ..model.cosserat import (
-    CaseLoads,
-    StaticsConfig,
-    StaticsResult,
-    moment_scale,
-    solve_statics,
-)
+from ..model.cosserat import CaseLoads, StaticsConfig, StaticsResult, moment_scale
 from ..model.cosserat import tip_equilibrium as _tip_equilibrium
 from ..model.loads import StaticLoads, static_loads
 from ..model.rotations import matrix_from_wxyz
+from ..model.statics import solve_statics
 from ..model.tendon_groups import (
     moments_from_tensions,
     tendon_groups,
