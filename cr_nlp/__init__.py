@@ -32,7 +32,7 @@ _PUBLIC = {
     "tip_pose": ".model",
     "StaticsConfig": ".model.cosserat",
     "StaticsResult": ".model.cosserat",
-    "solve_statics": ".model.cosserat",
+    "solve_statics": ".model.statics",
     "matrix_from_wxyz": ".model.rotations",
     "wxyz_from_matrix": ".model.rotations",
     "SCHEMA_VERSION": ".tasks._result",
@@ -101,9 +101,9 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from .model import tip_pose as tip_pose
     from .model.cosserat import StaticsConfig as StaticsConfig
     from .model.cosserat import StaticsResult as StaticsResult
-    from .model.cosserat import solve_statics as solve_statics
     from .model.rotations import matrix_from_wxyz as matrix_from_wxyz
     from .model.rotations import wxyz_from_matrix as wxyz_from_matrix
+    from .model.statics import solve_statics as solve_statics
     from .runtime import clear_caches as clear_caches
     from .runtime import configure as configure
     from .runtime import use_host_devices as use_host_devices

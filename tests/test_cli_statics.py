@@ -10,7 +10,7 @@ import pytest
 
 from cr_nlp.cli.main import main
 from cr_nlp.model import load_robot
-from cr_nlp.model.cosserat import solve_statics
+from cr_nlp.model.statics import solve_statics
 
 
 def test_statics_json_matches_the_library(capsys: pytest.CaptureFixture[str]) -> None:
@@ -62,3 +62,72 @@ def test_statics_bad_input_is_a_usage_error(args: list[str], message: str,
 def test_statics_needs_a_mechanics_block(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["statics", "--robot", "tdcr3", "--tensions", "0,0,0,0,0,0,0,0,0"]) == 2
     assert "mechanics" in capsys.readouterr().err
+
+
+def test_statics_cases_with_loads_anywhere(tmp_path: Path,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """Per-case gravity, a force per metre and point loads reach the library unchanged, and
+    every record says whether it is stable and how many equilibria were found."""
+    point = [{"s": 0.15, "force": [0.0, 0.02, 0.0], "moment": [0.0, 0.0, 0.001]}]
+    cases = [{"tensions": [1.0, 0, 0, 0, 0.5, 0], "gravity": [0.0, 0.0, -9.81]},
+             {"tensions": [0.0] * 6, "point_loads": point},
+             {"tensions": [0.0] * 6, "distributed_force": [0.05, 0.0, 0.0]}]
+    path = tmp_path / "cases.json"
+    path.write_text(json.dumps({"cases": cases}))
+    assert main(["statics", "--robot", "tdcr2_rao2021", "--cases", str(path)]) == 0
+    records = json.loads(capsys.readouterr().out)
+    robot = load_robot("tdcr2_rao2021")
+    expected = [solve_statics(robot, [1.0, 0, 0, 0, 0.5, 0], gravity=[0, 0, -9.81]),
+                solve_statics(robot, np.zeros(6), point_loads=point),
+                solve_statics(robot, np.zeros(6), distributed_force=[0.05, 0, 0])]
+    for record, result in zip(records, expected, strict=True):
+        np.testing.assert_allclose(record["position"], result.tip_position[0], atol=1e-12)
+        assert record["stable"] is True and record["equilibria"] == 1
+        assert record["snap_load"] is None
+    assert records[2]["position"][0] > 1e-3  # the force per metre bends it towards +x
+
+
+def test_statics_all_equilibria_of_a_buckled_column(capsys: pytest.CaptureFixture[str]) -> None:
+    """Twice Euler's load π²EI/(4L²) down a straight column, nudged towards +x."""
+    ei = load_robot("tdcr2_rao2021").mechanics.bending_stiffness
+    load = 2 * np.pi ** 2 * ei / (4 * 0.4 ** 2)
+    assert main(["statics", "--robot", "tdcr2_rao2021", "--tensions", "0,0,0,0,0,0",
+                 "--tip-force", f"{1e-4 * load},0,{-load}", "--all-equilibria", "--json"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert record["stable"] is True and record["equilibria"] >= 2
+    assert record["position"][0] > 0.1
+    found = record["all_equilibria"]
+    assert len(found) == record["equilibria"] and found[0]["reached"]
+    # Its mirror image is an equilibrium too, but in 3-D an unstable one: it can turn
+    # about the load's line towards the nudge.
+    assert any(e["position"][0] < -0.1 and not e["stable"] for e in found)
+
+
+@pytest.mark.parametrize(("case", "message"), [
+    ({"point_loads": [{"s": 0.45, "force": [0, 0, 1]}]},
+     "cases[1].point_loads[0].s: 0.45 m lies outside the robot"),
+    ({"point_loads": [{"s": 0.1, "force": [0, 1e999, 0]}]},
+     "cases[1].point_loads[0].force[1]: must be finite"),
+    ({"point_loads": [{"s": 0.1, "torque": [0, 0, 1]}]},
+     "cases[1].point_loads[0].torque: unknown key"),
+    ({"gravity": [0, 9.81]}, "cases[1].gravity: expected 3 numbers"),
+    ({"distributed_forces": [0, 0, 1]}, "cases[1].distributed_forces: unknown key"),
+    ({"tensions": [0, 0, -1, 0, 0, 0]}, "cases[1].tensions[2]: a tension must not be negative"),
+])
+def test_statics_bad_case_names_the_case_and_key(tmp_path: Path, case: dict, message: str,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    cases = [{"tensions": [0.0] * 6}, {"tensions": [0.0] * 6, **case}]
+    path = tmp_path / "cases.json"
+    path.write_text(json.dumps({"cases": cases}))
+    assert main(["statics", "--robot", "tdcr2_rao2021", "--cases", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1, err
+
+
+def test_statics_point_load_option_is_the_tip_force(capsys: pytest.CaptureFixture[str]) -> None:
+    base = ["statics", "--robot", "tdcr2_rao2021", "--tensions", "1,0,0,0,0.5,0", "--json"]
+    assert main([*base, "--tip-force", "0.02,0,0"]) == 0
+    tip = json.loads(capsys.readouterr().out)
+    assert main([*base, "--point-load", "0.4,0.02,0,0"]) == 0
+    point = json.loads(capsys.readouterr().out)
+    np.testing.assert_allclose(point["position"], tip["position"], atol=1e-9)

@@ -11,7 +11,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cr_nlp.model import ModelFileError, Robot, load_robot, tendon_lengths, tip_pose
-from cr_nlp.model.cosserat import StaticsConfig, solve_statics, statics_single
+from cr_nlp.model.cosserat import StaticsConfig, statics_single
+from cr_nlp.model.statics import solve_statics
 
 RAO = load_robot("tdcr2_rao2021")
 
@@ -167,7 +168,8 @@ def test_the_shape_is_in_moment_equilibrium(rao: tuple) -> None:
 def test_batched_solve_agrees_with_the_per_case_loop() -> None:
     """``solve_statics`` takes M(0) = M_tip without a tip force or gravity and shoots the
     rest in rounds (the unfinished cases continue in a smaller batch); the per-case
-    function runs one loop per case from M(0) = 0. Both must land on the same shapes."""
+    function runs one loop per case from M(0) = 0 (the loading path, no branch check).
+    Where only one equilibrium was found both must land on the same shape."""
     from cr_nlp.bench.statics import statics_cases
 
     tensions, forces, moments = statics_cases(6, 3, 48, "mixed", seed=3)
@@ -179,11 +181,18 @@ def test_batched_solve_agrees_with_the_per_case_loop() -> None:
     with jax.enable_x64(True):
         single = jax.jit(jax.vmap(statics_single(RAO)))(
             *(jax.numpy.asarray(v) for v in (tensions, forces, moments, gravity)))
-    np.testing.assert_allclose(batched.positions, np.asarray(single["positions"]), atol=1e-9)
+    unique = (batched.equilibria == 1) & np.asarray(single["converged"])
+    assert unique.sum() >= 40
+    np.testing.assert_allclose(batched.positions[unique],
+                               np.asarray(single["positions"])[unique], atol=1e-9)
     unloaded = ~np.any(forces, axis=1) & ~np.any(gravity, axis=1)
     assert (batched.iterations[unloaded] == 0).all()
-    np.testing.assert_array_equal(batched.iterations[~unloaded],
-                                  np.asarray(single["iterations"])[~unloaded])
+    # A case that needed the second round past a buckling load was also solved along the
+    # loading path (its iterations are reported); the others are the direct loop's.
+    direct = ~unloaded & unique & ((batched.iterations <= 10) | ~np.any(forces, axis=1))
+    assert direct.sum() >= 15
+    np.testing.assert_array_equal(batched.iterations[direct],
+                                  np.asarray(single["iterations"])[direct])
 
 
 @pytest.mark.slow  # compiles the forward- and reverse-mode programs (minutes under load)

@@ -373,21 +373,29 @@ def test_problem_files(workdir: Path, mutation: tuple[bytes, str, list[Any]]) ->
 STATICS_ROBOT = load_robot("tdcr2_rao2021")
 CASES_DOC = {"cases": [
     {"tensions": [0.5, 0.0, 0.0, 0.0, 0.2, 0.0], "tip_force": [0.0, 0.0, -0.01],
-     "tip_moment": [0.0, 0.0, 0.0]},
+     "tip_moment": [0.0, 0.0, 0.0], "gravity": [0.0, -9.81, 0.0],
+     "distributed_force": [0.01, 0.0, 0.0],
+     "point_loads": [{"s": 0.1, "force": [0.0, 0.02, 0.0], "moment": [0.0, 0.0, 0.001]}]},
     {"tensions": [0.0] * 6}]}
+STATICS_LENGTH = sum(seg.length_min for seg in STATICS_ROBOT.segments)
 
 
 def _check_cases(data: bytes, what: str, path: list[Any], file: Path) -> Exception | None:
-    read, exc = _load(lambda f: _cases_from_file(str(f), STATICS_ROBOT.n_tendons), data, file,
-                      (UsageError,))
+    read, exc = _load(lambda f: _cases_from_file(str(f), STATICS_ROBOT.n_tendons,
+                                                 STATICS_LENGTH), data, file, (UsageError,))
     if read is None:
         return exc
-    tensions, forces, moments = read
+    tensions = read.tensions
     assert np.asarray(tensions, dtype=float).shape == (len(tensions), STATICS_ROBOT.n_tendons)
     assert np.all(np.isfinite(np.asarray(tensions, dtype=float)))
     assert np.all(np.asarray(tensions, dtype=float) >= 0)
-    for vectors in (forces, moments):
+    gravity = [g for g in read.gravity if g is not None]
+    for vectors in (read.tip_force, read.tip_moment, gravity, read.distributed_force):
         assert np.all(np.isfinite(np.asarray(vectors, dtype=float).reshape(-1, 3)))
+    for loads in read.point_loads:
+        for load in loads:
+            assert 0.0 <= load["s"] <= STATICS_LENGTH
+            assert np.all(np.isfinite(load["force"])) and np.all(np.isfinite(load["moment"]))
     return None
 
 
@@ -399,6 +407,9 @@ def _check_cases(data: bytes, what: str, path: list[Any], file: Path) -> Excepti
 @example(mutation=_with(CASES_DOC, ["cases", 1, "tensions", 0], 10 ** 400))
 @example(mutation=_with(CASES_DOC, ["cases", 0, "tip_force", 2], math.nan))
 @example(mutation=_with(CASES_DOC, ["cases", 0, "tip_moment", 0], {}))
+@example(mutation=_with(CASES_DOC, ["cases", 0, "point_loads", 0, "s"], 0.5))
+@example(mutation=_with(CASES_DOC, ["cases", 0, "point_loads", 0, "force", 1], math.inf))
+@example(mutation=_with(CASES_DOC, ["cases", 0, "gravity"], [0.0, 1.0]))
 def test_statics_cases(workdir: Path, mutation: tuple[bytes, str, list[Any]]) -> None:
     _check_cases(*mutation, workdir / "cases.json")
 

@@ -13,7 +13,7 @@ import pytest
 
 from cr_nlp import load_result
 from cr_nlp.model import load_robot
-from cr_nlp.model.cosserat import solve_statics
+from cr_nlp.model.statics import solve_statics
 from cr_nlp.model.tendon_groups import moments_from_tensions, tendon_groups, tensions_from_moments
 from cr_nlp.tasks.tension_ik import TensionIKConfig, TensionIKResult, TensionIKSolver
 
@@ -78,6 +78,21 @@ def test_round_trip_under_a_tip_force(solver: TensionIKSolver) -> None:
     assert np.all(error[result.success] < 1e-4)
     # Without the force in the model the same tensions miss: the load was solved for.
     unloaded = solve_statics(RAO, result.tensions)
+    assert np.median(np.linalg.norm(unloaded.tip_position - truth.tip_position, axis=1)) > 1e-3
+
+
+def test_round_trip_under_a_payload_held_mid_body(solver: TensionIKSolver) -> None:
+    """A 20 g payload held at 0.25 m from the base, and gravity on the backbone."""
+    loads = {"gravity": [0.0, 0.0, -9.81],
+             "point_loads": [{"s": 0.25, "force": [0.0, 0.0, -0.196]}]}
+    truth = solve_statics(RAO, _random_tensions(12, seed=4), **loads)
+    result = solver.solve(truth.tip_position, **loads)
+    assert result.success.mean() >= 11 / 12, [r for r in result.reason if r]
+    again = solve_statics(RAO, result.tensions, **loads)
+    error = np.linalg.norm(again.tip_position - truth.tip_position, axis=1)
+    assert np.all(error[result.success] < 1e-4)
+    # Without the payload in the model the same tensions miss: the load was solved for.
+    unloaded = solve_statics(RAO, result.tensions, gravity=loads["gravity"])
     assert np.median(np.linalg.norm(unloaded.tip_position - truth.tip_position, axis=1)) > 1e-3
 
 

@@ -108,6 +108,20 @@ def parse_vector3(text: str | None, what: str) -> list[float] | None:
     return values
 
 
+def parse_point_loads(values: list[str] | None) -> list[dict]:
+    """``--point-load S,FX,FY,FZ[,MX,MY,MZ]`` options (arc length m, force N, moment N·m)
+    as point-load objects ``{"s", "force", "moment"}``."""
+    out = []
+    for k, text in enumerate(values or []):
+        numbers = parse_numbers(text, f"--point-load[{k}]")
+        if len(numbers) not in (4, 7):
+            raise UsageError(f"--point-load[{k}]: expected S,FX,FY,FZ or S,FX,FY,FZ,MX,MY,MZ, "
+                             f"got {len(numbers)} numbers")
+        moment = numbers[4:] if len(numbers) == 7 else [0.0, 0.0, 0.0]
+        out.append({"s": numbers[0], "force": numbers[1:4], "moment": moment})
+    return out
+
+
 def read_json(path: str | Path, what: str) -> Any:
     """The JSON content of ``path``; a missing or invalid file is a usage error."""
     return read_json_or(path, lambda reason: UsageError(f"{what}: {path}: {reason}"))

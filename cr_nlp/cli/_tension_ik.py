@@ -14,6 +14,7 @@ from ._io import (
     fmt,
     load_scene_arg,
     model_margin,
+    parse_point_loads,
     parse_vector3,
     resolve,
     write_result,
@@ -29,6 +30,11 @@ def add_options(p: argparse.ArgumentParser) -> None:
                                        "world frame")
     p.add_argument("--tip-moment", help="--model cosserat: mx,my,mz moment on the tip, N·m")
     p.add_argument("--gravity", help="--model cosserat: gx,gy,gz gravity, m/s², world frame")
+    p.add_argument("--distributed-force", help="--model cosserat: wx,wy,wz force per metre "
+                                               "along the backbone, N/m, world frame")
+    p.add_argument("--point-load", action="append", metavar="S,FX,FY,FZ[,MX,MY,MZ]",
+                   help="--model cosserat: a wrench at arc length S (m from the base), N and "
+                        "N·m, world frame; repeat for more")
 
 
 def run(args: argparse.Namespace, robot: object) -> int:
@@ -49,12 +55,17 @@ def run(args: argparse.Namespace, robot: object) -> int:
         raise UsageError(f"--targets: {exc}") from None
     loads = {"tip_force": parse_vector3(args.tip_force, "--tip-force"),
              "tip_moment": parse_vector3(args.tip_moment, "--tip-moment"),
-             "gravity": parse_vector3(args.gravity, "--gravity")}
+             "gravity": parse_vector3(args.gravity, "--gravity"),
+             "distributed_force": parse_vector3(args.distributed_force, "--distributed-force"),
+             "point_loads": parse_point_loads(args.point_load)}
     config = TensionIKConfig(seed=args.seed)
     config = replace(config, safety_margin=config.safety_margin
                      + model_margin(robot, args.model_margin))
     solver = TensionIKSolver(robot, load_scene_arg(args.scene), config)
-    result = solver.solve(positions, wxyz if args.orientation else None, **loads)
+    try:
+        result = solver.solve(positions, wxyz if args.orientation else None, **loads)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     for i, problem in enumerate(problems):
         if problem:
             result.reason[i] = problem

@@ -4,49 +4,106 @@ from __future__ import annotations
 
 import argparse
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
-from ._io import UsageError, load_robot_arg, parse_numbers, parse_vector3, read_json, write_json
+from ._io import (
+    UsageError,
+    load_robot_arg,
+    parse_numbers,
+    parse_point_loads,
+    parse_vector3,
+    read_json,
+    write_json,
+)
+
+CASE_KEYS = ("tensions", "tip_force", "tip_moment", "gravity", "distributed_force",
+             "point_loads")
+"""The keys of one case in a ``--cases`` file."""
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register ``cr-nlp statics`` on the command's subparsers."""
-    p = sub.add_parser("statics", help="Cosserat-rod statics: shape from tendon tensions "
-                                       "and loads (robot file with a 'mechanics' block)")
+    p = sub.add_parser(
+        "statics", help="Cosserat-rod statics: shape from tendon tensions and loads (robot "
+                        "file with a 'mechanics' block); the equilibrium reached by loading "
+                        "the robot from rest, whether it is stable, how many were found",
+        description="The answer is the equilibrium a robot reaches when its tensions and "
+                    "loads grow together from zero; 'stable' says whether it is a minimum of "
+                    "the energy, 'equilibria' how many distinct equilibria were found for "
+                    "the same loads (other starts are tried where the direct solve's answer "
+                    "is doubtful: unstable, unconverged, or past a buckling load with a slow "
+                    "continuation), 'snap_load' the load factor of a snap-through on the way.")
     p.add_argument("--robot", required=True, help="robot JSON file or bundled name "
                                                   "(tdcr2_rao2021)")
     p.add_argument("--tensions", help="t1,...,tN tendon tensions in N (robot file's order)")
     p.add_argument("--tip-force", help="fx,fy,fz force on the tip, N, world frame")
     p.add_argument("--tip-moment", help="mx,my,mz moment on the tip, N·m, world frame")
-    p.add_argument("--gravity", help="gx,gy,gz gravity, m/s², world frame (default none)")
+    p.add_argument("--gravity", help="gx,gy,gz gravity, m/s², world frame (default none; "
+                                     "with --cases: for the cases without their own)")
+    p.add_argument("--distributed-force", help="wx,wy,wz force per metre along the whole "
+                                               "backbone, N/m, world frame")
+    p.add_argument("--point-load", action="append", metavar="S,FX,FY,FZ[,MX,MY,MZ]",
+                   help="a wrench at arc length S (m from the base): force N and moment N·m, "
+                        "world frame; repeat for more")
     p.add_argument("--cases", help='JSON file {"cases": [{"tensions": [...], "tip_force": '
-                                   '[...], "tip_moment": [...]}, ...]}; prints a JSON list')
+                                   '[...], "tip_moment": [...], "gravity": [...], '
+                                   '"distributed_force": [...], "point_loads": [{"s": m, '
+                                   '"force": [...], "moment": [...]}]}, ...]}; prints a JSON '
+                                   'list')
+    p.add_argument("--all-equilibria", action="store_true",
+                   help="solve from several starts and list every equilibrium found "
+                        "(JSON: 'all_equilibria')")
     p.add_argument("--json", action="store_true", help="print JSON (with the backbone)")
     p.set_defaults(run=run)
 
 
-def _cases_from_file(path: str, n_tendons: int) -> tuple[list, list, list]:
+class StaticsCases(NamedTuple):
+    """The cases of a ``--cases`` file (or of the command line), one entry per case."""
+
+    tensions: list
+    tip_force: list
+    tip_moment: list
+    gravity: list          # None where the case gives none (the --gravity default)
+    distributed_force: list
+    point_loads: list      # lists of {"s", "force", "moment"}
+
+
+def _cases_from_file(path: str, n_tendons: int, length: float = math.inf) -> StaticsCases:
+    """Read and check a cases file; every error names the case and the key."""
+    from ..model.loads import parse_point_loads
+
     data = read_json(path, "--cases")
     cases = data.get("cases") if isinstance(data, dict) else None
     if not isinstance(cases, list) or not cases:
         raise UsageError(f"{path}: expected {{\"cases\": [{{\"tensions\": [...]}}, ...]}}")
-    tensions, forces, moments = [], [], []
+    out = StaticsCases([], [], [], [], [], [])
     for i, case in enumerate(cases):
         if not isinstance(case, dict) or "tensions" not in case:
             raise UsageError(f"{path}: cases[{i}]: needs a 'tensions' list")
-        unknown = sorted(set(case) - {"tensions", "tip_force", "tip_moment"})
+        unknown = sorted(set(case) - set(CASE_KEYS))
         if unknown:
-            raise UsageError(f"{path}: cases[{i}].{unknown[0]}: unknown key")
+            raise UsageError(f"{path}: cases[{i}].{unknown[0]}: unknown key (a case has "
+                             f"{', '.join(CASE_KEYS)})")
         t = case["tensions"]
         if not isinstance(t, list) or len(t) != n_tendons:
             raise UsageError(f"{path}: cases[{i}].tensions: expected {n_tendons} numbers")
-        tensions.append(_numbers(path, f"cases[{i}].tensions", t, nonnegative=True))
-        for key, out in (("tip_force", forces), ("tip_moment", moments)):
-            value = case.get(key, [0.0, 0.0, 0.0])
+        out.tensions.append(_numbers(path, f"cases[{i}].tensions", t, nonnegative=True))
+        for key in ("tip_force", "tip_moment", "gravity", "distributed_force"):
+            value = case.get(key)
+            if value is None and key == "gravity":
+                out.gravity.append(None)
+                continue
+            value = [0.0, 0.0, 0.0] if value is None else value
             if not isinstance(value, list) or len(value) != 3:
                 raise UsageError(f"{path}: cases[{i}].{key}: expected 3 numbers")
-            out.append(_numbers(path, f"cases[{i}].{key}", value))
-    return tensions, forces, moments
+            getattr(out, key).append(_numbers(path, f"cases[{i}].{key}", value))
+        try:
+            loads = parse_point_loads(case.get("point_loads"), length,
+                                      f"cases[{i}].point_loads")
+        except ValueError as exc:
+            raise UsageError(f"{path}: {exc}") from None
+        out.point_loads.append([{"s": s, "force": f, "moment": m} for s, f, m in loads])
+    return out
 
 
 def _numbers(path: str, field: str, values: list, nonnegative: bool = False) -> list[float]:
@@ -68,10 +125,30 @@ def _numbers(path: str, field: str, values: list, nonnegative: bool = False) -> 
     return out
 
 
+def _record(result: Any, i: int, every: bool) -> dict[str, Any]:
+    snap = float(result.snap_load[i])
+    record: dict[str, Any] = {
+        "position": result.tip_position[i].tolist(),
+        "wxyz": result.tip_wxyz[i].tolist(),
+        "converged": bool(result.converged[i]),
+        "residual": float(result.residual[i]),
+        "stable": bool(result.stable[i]),
+        "equilibria": int(result.equilibria[i]),
+        "snap_load": None if math.isnan(snap) else snap,
+        "tendon_displacements": result.tendon_displacements[i].tolist(),
+        "backbone": result.positions[i].tolist(),
+    }
+    if every:
+        record["all_equilibria"] = [
+            {"position": e.tip_position.tolist(), "stable": e.stable, "reached": e.reached,
+             "backbone": e.positions.tolist()} for e in result.all_equilibria[i]]
+    return record
+
+
 def run(args: argparse.Namespace) -> int:
     """Solve and print the tip pose and convergence (text), or JSON with ``--json`` or
     ``--cases``."""
-    from ..model.cosserat import solve_statics
+    from ..model.statics import solve_statics
 
     robot = load_robot_arg(args.robot)
     if robot.mechanics is None:
@@ -79,30 +156,32 @@ def run(args: argparse.Namespace) -> int:
                          "models/README.md)")
     if (args.cases is None) == (args.tensions is None):
         raise UsageError("give either --tensions or --cases")
-    gravity = parse_vector3(args.gravity, "--gravity")
+    length = sum(seg.length_min for seg in robot.segments)
+    gravity = parse_vector3(args.gravity, "--gravity") or [0.0, 0.0, 0.0]
     if args.cases is not None:
-        tensions, forces, moments = _cases_from_file(args.cases, robot.n_tendons)
+        if args.point_load or args.distributed_force:
+            raise UsageError("--point-load and --distributed-force go with --tensions; in a "
+                             "--cases file give them per case")
+        cases = _cases_from_file(args.cases, robot.n_tendons, length)
     else:
-        tensions = [parse_numbers(args.tensions, "--tensions")]
-        if len(tensions[0]) != robot.n_tendons:
+        tensions = parse_numbers(args.tensions, "--tensions")
+        if len(tensions) != robot.n_tendons:
             raise UsageError(f"--tensions: {robot.name} has {robot.n_tendons} tendons, got "
-                             f"{len(tensions[0])} numbers")
-        forces = [parse_vector3(args.tip_force, "--tip-force") or [0.0, 0.0, 0.0]]
-        moments = [parse_vector3(args.tip_moment, "--tip-moment") or [0.0, 0.0, 0.0]]
+                             f"{len(tensions)} numbers")
+        cases = StaticsCases(
+            [tensions], [parse_vector3(args.tip_force, "--tip-force") or [0.0, 0.0, 0.0]],
+            [parse_vector3(args.tip_moment, "--tip-moment") or [0.0, 0.0, 0.0]], [None],
+            [parse_vector3(args.distributed_force, "--distributed-force") or [0.0] * 3],
+            [parse_point_loads(args.point_load)])
     try:
-        result = solve_statics(robot, tensions, forces, moments, gravity)
+        result = solve_statics(
+            robot, cases.tensions, cases.tip_force, cases.tip_moment,
+            [gravity if g is None else g for g in cases.gravity],
+            distributed_force=cases.distributed_force, point_loads=cases.point_loads,
+            all_equilibria=args.all_equilibria)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    records: list[dict[str, Any]] = []
-    for i in range(len(tensions)):
-        records.append({
-            "position": result.tip_position[i].tolist(),
-            "wxyz": result.tip_wxyz[i].tolist(),
-            "converged": bool(result.converged[i]),
-            "residual": float(result.residual[i]),
-            "tendon_displacements": result.tendon_displacements[i].tolist(),
-            "backbone": result.positions[i].tolist(),
-        })
+    records = [_record(result, i, args.all_equilibria) for i in range(len(cases.tensions))]
     if args.cases is not None:
         write_json(records, None)
         return 0
@@ -114,6 +193,13 @@ def run(args: argparse.Namespace) -> int:
     print("tip position   [{:.9f}, {:.9f}, {:.9f}] m".format(*rec["position"]))
     print("tip wxyz       [{:.9f}, {:.9f}, {:.9f}, {:.9f}]".format(*rec["wxyz"]))
     print(f"converged      {rec['converged']} (boundary residual {rec['residual']:.2e} N·m)")
+    snap = ("" if rec["snap_load"] is None
+            else f"; snapped through at {rec['snap_load']:.3f} of the loads")
+    print(f"stable         {rec['stable']} ({rec['equilibria']} equilibria found{snap})")
     disp = ", ".join(f"{v:.9f}" for v in rec["tendon_displacements"])
     print(f"displacements  [{disp}] m")
+    for k, e in enumerate(rec.get("all_equilibria", [])):
+        print("equilibrium {}  tip [{:.6f}, {:.6f}, {:.6f}] m, {}{}".format(
+            k + 1, *e["position"], "stable" if e["stable"] else "unstable",
+            ", reached" if e["reached"] else ""))
     return 0 if rec["converged"] else 1

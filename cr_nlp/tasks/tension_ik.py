@@ -9,7 +9,9 @@ The problem of one target: tensions τ ∈ [0, τ_max]ⁿ and the moment at the 
 
 one integration pass of the rod per residual evaluation. The equilibrium term is zero at
 a solution, so the answer is an equilibrium of the rod, not a penalty compromise (it and
-M(0) are left out when no tip force or gravity acts: then M(0) = M_tip exactly).
+M(0) are left out when no external force acts: then M(0) = M_tip plus the point moments
+exactly). The loads are those of the forward statics (``model.loads``): tip wrench,
+gravity, a force per metre and point wrenches at given arc lengths.
 
 The unknowns. Three or more tendons per segment (evenly around it) bend it in two
 directions, so many tension sets give one shape. The LM therefore works on each tendon
@@ -44,15 +46,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..model import Robot, load_robot
-from ..model.cosserat import (
-    StaticsConfig,
-    StaticsResult,
-    load_cases,
-    moment_scale,
-    solve_statics,
-)
+from ..model.cosserat import CaseLoads, StaticsConfig, StaticsResult, moment_scale
 from ..model.cosserat import tip_equilibrium as _tip_equilibrium
+from ..model.loads import StaticLoads, static_loads
 from ..model.rotations import matrix_from_wxyz
+from ..model.statics import solve_statics
 from ..model.tendon_groups import (
     moments_from_tensions,
     tendon_groups,
@@ -105,7 +103,7 @@ def _residual(robot: Robot, statics: StaticsConfig, weights: tuple[float, float,
     ``shoot`` M(0)/(EI/L)); ``weights`` are (τ_max N, EI/L N·m, robot length m, ρ m)."""
     del shared
     tension_max, scale, length, rho = weights
-    target, target_rot, rot_weight, force, moment, gravity = p
+    target, target_rot, rot_weight, loads = p
     n = robot.n_tendons
     groups = tendon_groups(robot)
     if groups is None:
@@ -118,9 +116,9 @@ def _residual(robot: Robot, statics: StaticsConfig, weights: tuple[float, float,
         tension = tensions_from_moments(groups, n, tension_max,
                                          z[:width].reshape(-1, 2) * reference)
         unknowns = jnp.zeros(0, z.dtype)
-    base_moment = z[width:] * scale if shoot else moment
-    tip, rot, eq = _tip_equilibrium(robot, statics)(tension, base_moment, force, moment,
-                                                    gravity)
+    base_moment = (z[width:] * scale if shoot
+                   else loads.moment + loads.point_moment.sum(axis=0))
+    tip, rot, eq = _tip_equilibrium(robot, statics)(tension, base_moment, loads)
     # rot(R*ᵀR): the vector of its skew part, sin of the angle about its axis.
     rel = target_rot.T @ rot
     twist = 0.5 * jnp.stack([rel[2, 1] - rel[1, 2], rel[0, 2] - rel[2, 0],
@@ -167,12 +165,11 @@ class TensionIKSolver:
 
     # ------------------------------------------------------------ the seeds
 
-    def pool(self, force: np.ndarray, moment: np.ndarray,
-             gravity: np.ndarray) -> tuple[np.ndarray, cKDTree]:
+    def pool(self, loads: StaticLoads) -> tuple[np.ndarray, cKDTree]:
         """(tensions (P, n) N, a k-d tree of their tips (m, world frame)): the seed pool
         under one load case, random tensions on one or two tendons of each segment (most
         robots bend with at most two of three), solved once and kept."""
-        key = np.concatenate([force, moment, gravity]).tobytes()
+        key = b"".join(np.ascontiguousarray(a).tobytes() for a in loads.arrays())
         if key not in self._pool:
             rng = np.random.default_rng(self.config.seed)
             per = self.robot.tendons.per_segment
@@ -185,8 +182,11 @@ class TensionIKSolver:
                 tensions[np.arange(size), s * per + drop] = 0.0
                 second = rng.random(size) < 1 / 3
                 tensions[np.flatnonzero(second), s * per + (drop[second] + 1) % per] = 0.0
-            result = solve_statics(self.robot, tensions, force, moment, gravity,
-                                   self.config.statics)
+            one = loads.rows(np.zeros(size, int))
+            result = solve_statics(self.robot, tensions, one.tip_force, one.tip_moment,
+                                   one.gravity, self.config.statics,
+                                   distributed_force=one.distributed_force,
+                                   point_loads=_point_loads(one))
             keep = result.converged
             self._pool[key] = (tensions[keep], cKDTree(result.tip_position[keep]))
         return self._pool[key]
@@ -194,7 +194,8 @@ class TensionIKSolver:
     # ------------------------------------------------------------ solve
 
     def solve(self, positions: Any, wxyz: Any = None, tip_force: Any = None,
-              tip_moment: Any = None, gravity: Any = None) -> TensionIKResult:
+              tip_moment: Any = None, gravity: Any = None, *,
+              distributed_force: Any = None, point_loads: Any = None) -> TensionIKResult:
         """Tensions for each target.
 
         Args:
@@ -203,6 +204,9 @@ class TensionIKSolver:
                 quaternions w, x, y, z); a row of NaN leaves that target's orientation free.
             tip_force, tip_moment, gravity: (3,) or (B, 3) loads in the world frame (N,
                 N·m, m/s²); default none.
+            distributed_force: (3,) or (B, 3) force per metre along the backbone, N/m.
+            point_loads: ``[{"s": m, "force": [N], "moment": [N·m]}]`` for every target,
+                or one such list per target (world frame; ``model.loads``).
 
         Returns:
             ``TensionIKResult`` with every target's tensions and the independent verdict.
@@ -214,7 +218,8 @@ class TensionIKSolver:
         count = len(positions)
         finite = np.all(np.isfinite(positions), axis=1)
         if not finite.all():  # such rows are reported, not solved
-            return self._solve_finite(finite, positions, wxyz, tip_force, tip_moment, gravity)
+            return self._solve_finite(finite, positions, wxyz, tip_force, tip_moment, gravity,
+                                      distributed_force, point_loads)
         if wxyz is None:
             quats = np.full((count, 4), np.nan)
         else:
@@ -224,9 +229,8 @@ class TensionIKSolver:
             if np.any(np.abs(norms - 1.0) > 1e-6):
                 bad = np.flatnonzero(rows)[np.argmax(np.abs(norms - 1.0))]
                 raise ValueError(f"wxyz: target {bad} is not a unit quaternion")
-        loads = [load_cases(v, count, 3, n) for v, n in ((tip_force, "tip_force"),
-                                                        (tip_moment, "tip_moment"),
-                                                        (gravity, "gravity"))]
+        loads = static_loads(count, self.length, tip_force, tip_moment, gravity,
+                             distributed_force, point_loads)
         timing = StageTiming()
         if count == 0:
             nothing = np.zeros((0, self.robot.n_tendons))
@@ -236,8 +240,8 @@ class TensionIKSolver:
                 target_wxyz=quats, position=positions, wxyz=quats, pose_error=empty,
                 position_error=empty, rotation_error=empty, min_clearance=empty,
                 max_violation=empty, success=np.zeros(0, bool), reason=[],
-                tip_force=loads[0], tip_moment=loads[1], gravity=loads[2],
-                tendon_displacements=nothing, timing=timing)
+                tip_force=loads.tip_force, tip_moment=loads.tip_moment,
+                gravity=loads.gravity, tendon_displacements=nothing, timing=timing)
         start = time.perf_counter()
         tensions = self._seeds(positions, loads, 0)
         timing.explore = time.perf_counter() - start
@@ -252,7 +256,7 @@ class TensionIKSolver:
             if not failed.size:
                 break
             start = time.perf_counter()
-            part = [v[failed] for v in loads]
+            part = loads.rows(failed)
             retry = self._lm(self._seeds(positions[failed], part, k), positions[failed],
                              quats[failed], part)
             timing.refine += time.perf_counter() - start
@@ -275,7 +279,11 @@ class TensionIKSolver:
             arr = np.asarray(value, dtype=float)
             return arr[finite] if arr.ndim == 2 and len(arr) == count else arr
 
-        part = self.solve(positions[finite], rows(wxyz, 4), *(rows(v, 3) for v in loads))
+        points = loads[4]
+        if points is not None and len(points) == count and not isinstance(points[0], dict):
+            points = [p for p, keep in zip(points, finite, strict=True) if keep]
+        part = self.solve(positions[finite], rows(wxyz, 4), *(rows(v, 3) for v in loads[:3]),
+                          distributed_force=rows(loads[3], 3), point_loads=points)
         full = self.solve(np.zeros((0, 3)))
         for name in ("tensions", "target_position", "target_wxyz", "position", "wxyz",
                      "pose_error", "position_error", "rotation_error", "min_clearance",
@@ -298,17 +306,18 @@ class TensionIKSolver:
         full.timing = part.timing
         return full
 
-    def _seeds(self, positions: np.ndarray, loads: list[np.ndarray], rank: int) -> np.ndarray:
+    def _seeds(self, positions: np.ndarray, loads: StaticLoads, rank: int) -> np.ndarray:
         """The pool tensions whose tip is the ``rank``-th nearest to each target, under the
         target's loads when all targets share one load case, else without loads."""
-        shared = all(np.all(v == v[:1]) for v in loads)
-        case = [v[0] if shared else np.zeros(3) for v in loads]
-        pool_t, tree = self.pool(*case)
+        shared = all(np.all(v == v[:1]) for v in loads.arrays())
+        case = (loads.rows(np.zeros(1, int)) if shared
+                else static_loads(1, self.length))
+        pool_t, tree = self.pool(case)
         _, order = tree.query(positions, k=[rank + 1])
         return pool_t[order[:, 0]]
 
     def _lm(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,
-            loads: list[np.ndarray]) -> np.ndarray:
+            loads: StaticLoads) -> np.ndarray:
         """LM from the given tensions; returns the answer's tensions (B, n), N."""
         robot, cfg = self.robot, self.config
         dtype = np.float64 if cfg.statics.dtype == "float64" else np.float32
@@ -321,10 +330,11 @@ class TensionIKSolver:
         if oriented.any():
             target_rot[oriented] = base_rot.T @ np.stack(
                 [matrix_from_wxyz(q) for q in quats[oriented]])
-        force, moment, gravity = (v @ base_rot for v in loads)
+        frame = loads.in_base_frame(base_rot)
+        moment = frame.tip_moment + frame.point_moment.sum(axis=1)
         scale = moment_scale(robot)
         n = robot.n_tendons
-        shoot = bool(np.any(force) or np.any(gravity))
+        shoot = bool(np.any(frame.has_force()))
         if self._groups is None:
             z0 = tensions / self.tension_max
         else:
@@ -332,7 +342,7 @@ class TensionIKSolver:
             z0 = moments_from_tensions(self._groups, tensions).reshape(len(tensions), -1)
             z0 = z0 / reference
         width = z0.shape[1]
-        if shoot:  # M(0) starts at the tip moment (exact without force and gravity)
+        if shoot:  # M(0) starts at the tip and point moments (exact without forces)
             z0 = np.concatenate([z0, moment / scale], axis=1)
         size = max(16, 1 << (len(z0) - 1).bit_length())
         pad = size - len(z0)
@@ -342,7 +352,8 @@ class TensionIKSolver:
 
         with jax.enable_x64(dtype == np.float64):
             params = tuple(padded(a) for a in (target, target_rot,
-                                               oriented.astype(float), force, moment, gravity))
+                                               oriented.astype(float))) + (
+                CaseLoads(*(padded(a) for a in frame.arrays())),)
             bounds = None
             if self._groups is None:
                 extra = z0.shape[1] - n
@@ -364,11 +375,14 @@ class TensionIKSolver:
         return np.asarray(tension, dtype=float)
 
     def _verdict(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,
-                 loads: list[np.ndarray], timing: StageTiming) -> TensionIKResult:
+                 loads: StaticLoads, timing: StageTiming) -> TensionIKResult:
         """The independent check: a fresh forward statics solve of the answer's tensions,
         the bounds, and with a scene python-fcl clearance of the solved backbone."""
         cfg = self.config
-        statics: StaticsResult = solve_statics(self.robot, tensions, *loads, cfg.statics)
+        statics: StaticsResult = solve_statics(
+            self.robot, tensions, loads.tip_force, loads.tip_moment, loads.gravity,
+            cfg.statics, distributed_force=loads.distributed_force,
+            point_loads=_point_loads(loads))
         position_error = np.linalg.norm(statics.tip_position - positions, axis=1)
         oriented = ~np.any(np.isnan(quats), axis=1)
         rotation_error = np.full(len(positions), np.nan)
@@ -399,9 +413,17 @@ class TensionIKSolver:
             min_clearance=np.array(checked.obstacle_distance),
             max_violation=np.array(verdicts.max_violation),
             success=np.array(verdicts.success & statics.converged), reason=reason,
-            tip_force=loads[0], tip_moment=loads[1], gravity=loads[2],
+            tip_force=loads.tip_force, tip_moment=loads.tip_moment, gravity=loads.gravity,
             tendon_displacements=np.array(statics.tendon_displacements), timing=timing,
             violations=dict(verdicts.violations))
+
+
+def _point_loads(loads: StaticLoads) -> list[list[dict]]:
+    """The point loads of every case in ``solve_statics``' form (padding dropped)."""
+    return [[{"s": float(s), "force": f.tolist(), "moment": m.tolist()}
+             for s, f, m in zip(ss, fs, ms, strict=True) if np.any(f) or np.any(m)]
+            for ss, fs, ms in zip(loads.point_s, loads.point_force, loads.point_moment,
+                                  strict=True)]
 
 
 def _replace_rows(result: TensionIKResult, other: TensionIKResult, rows: np.ndarray,

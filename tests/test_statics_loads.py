@@ -1,0 +1,118 @@
+"""Loads anywhere and the equilibrium a robot reaches: point wrenches, distributed forces
+and buckling against closed forms (Euler–Bernoulli, the elastica), and bad loads named."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import brentq
+from scipy.special import ellipe, ellipk
+
+from cr_nlp.model import load_robot
+from cr_nlp.model.statics import solve_statics
+
+RAO = load_robot("tdcr2_rao2021")
+EI = RAO.mechanics.bending_stiffness
+LENGTH = 0.4
+NO_TENSION = np.zeros(6)
+
+
+def test_a_point_load_at_the_tip_is_the_tip_load() -> None:
+    tensions = np.array([2.0, 0.3, 1.0, 0.2, 1.5, 0.4])
+    force, moment = np.array([0.05, -0.1, 0.02]), np.array([0.0, 0.002, 0.001])
+    tip = solve_statics(RAO, tensions, force, moment)
+    point = solve_statics(RAO, tensions, point_loads=[
+        {"s": LENGTH, "force": force.tolist(), "moment": moment.tolist()}])
+    assert tip.converged.all() and point.converged.all()
+    np.testing.assert_allclose(point.positions, tip.positions, atol=1e-9)
+    np.testing.assert_allclose(point.base_force, tip.base_force, atol=1e-12)
+
+
+@pytest.mark.parametrize("at", [0.13, 0.2, 0.31])
+def test_a_point_force_bends_a_straight_rod_as_euler_bernoulli(at: float) -> None:
+    """Tip deflection F a² (3L − a) / (6EI) for a load at a from the clamp (at 0.13 and
+    0.31 m the load falls between grid points: the case gets its own)."""
+    force = 0.01 * EI / LENGTH ** 2  # F L² / EI = 0.01: small deflection
+    result = solve_statics(RAO, NO_TENSION, point_loads=[{"s": at, "force": [force, 0, 0]}])
+    expected = force * at ** 2 * (3 * LENGTH - at) / (6 * EI)
+    assert result.converged.all() and result.stable.all()
+    assert result.tip_position[0, 0] == pytest.approx(expected, rel=2e-3)
+    assert len(result.arc_length) == result.positions.shape[1]  # the robot's grid points
+
+
+def test_a_point_moment_turns_the_rod_distal_of_it_only() -> None:
+    """A pure moment M at a: the part proximal of a bends as an arc of curvature M/EI, the
+    distal part stays straight (tangent at the tip = tangent at a)."""
+    at, moment = 0.1, 0.5 * EI / 0.1  # half a radian of bending over 0.1 m
+    result = solve_statics(RAO, NO_TENSION, point_loads=[{"s": at, "moment": [0, moment, 0]}])
+    angle = moment * at / EI
+    # 1 µm and 1 µrad: the RK4 steps' error at this curvature (test_cosserat's arcs)
+    np.testing.assert_allclose(result.tip_rotation[0][:, 2],
+                               [np.sin(angle), 0, np.cos(angle)], atol=1e-6)
+    arc = np.array([(1 - np.cos(angle)) * at / angle, 0, np.sin(angle) * at / angle])
+    tip = arc + (LENGTH - at) * np.array([np.sin(angle), 0, np.cos(angle)])
+    np.testing.assert_allclose(result.tip_position[0], tip, atol=1e-6)
+
+
+def test_a_distributed_force_bends_a_straight_rod_as_the_uniform_cantilever() -> None:
+    w = 0.01 * EI / LENGTH ** 3  # w L³ / EI = 0.01
+    result = solve_statics(RAO, NO_TENSION, distributed_force=[0, w, 0])
+    assert result.converged.all()
+    assert result.tip_position[0, 1] == pytest.approx(w * LENGTH ** 4 / (8 * EI), rel=2e-3)
+    np.testing.assert_allclose(result.base_force[0], [0, w * LENGTH, 0], rtol=1e-12)
+
+
+def test_gravity_per_case() -> None:
+    gravity = np.array([[0, 0, 0], [-9.81, 0, 0], [9.81, 0, 0]])
+    result = solve_statics(RAO, NO_TENSION, gravity=gravity)
+    x = result.tip_position[:, 0]
+    assert x[0] == 0 and x[1] < -1e-4 and x[2] == pytest.approx(-x[1], rel=1e-9)
+
+
+def _elastica_tip(load: float) -> tuple[float, float]:
+    """(lateral, axial) tip position of the buckled clamped–free elastica under an axial
+    load P (Timoshenko & Gere §2.7): L √(P/EI) = K(k), k = sin(α/2)."""
+    lam = np.sqrt(load / EI)
+    m = brentq(lambda m: ellipk(m) - lam * LENGTH, 1e-12, 1 - 1e-12)  # m = k²
+    k = np.sqrt(m)
+    return 2 * k / lam, (2 * ellipe(m) - ellipk(m)) / lam
+
+
+def test_a_column_past_its_buckling_load_has_two_equilibria_and_buckles() -> None:
+    """Euler: P_cr = π² EI / (4 L²). Below it the straight column is the only equilibrium;
+    at 2 P_cr a column loaded from rest with a sideways nudge of 1e-4 P buckles towards
+    it, to the elastica's shape, and its mirror image is an equilibrium too."""
+    critical = np.pi ** 2 * EI / (4 * LENGTH ** 2)
+    below = solve_statics(RAO, NO_TENSION, [1e-4 * 0.8 * critical, 0, -0.8 * critical],
+                          all_equilibria=True)
+    assert below.equilibria[0] == 1 and below.stable[0]
+    assert abs(below.tip_position[0, 0]) < 1e-3 * LENGTH
+    load = 2.0 * critical
+    above = solve_statics(RAO, NO_TENSION, [1e-4 * load, 0, -load])
+    assert above.converged[0] and above.stable[0]
+    assert above.equilibria[0] >= 2
+    lateral, axial = _elastica_tip(load)
+    assert above.tip_position[0, 0] == pytest.approx(lateral, rel=2e-3)  # towards +x
+    assert above.tip_position[0, 2] == pytest.approx(axial, abs=2e-3 * LENGTH)
+    every = solve_statics(RAO, NO_TENSION, [1e-4 * load, 0, -load], all_equilibria=True)
+    shapes = every.all_equilibria[0]
+    assert shapes[0].reached and shapes[0].stable
+    np.testing.assert_allclose(shapes[0].tip_position, above.tip_position[0], atol=1e-9)
+    # The mirror image, buckled the other way, is an equilibrium too; in 3-D an unstable
+    # one (it can turn about the load's line towards the nudge).
+    mirror = [e for e in shapes if e.tip_position[0] < -0.5 * lateral]
+    assert mirror and not any(e.stable for e in mirror)
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"point_loads": [{"s": 0.5, "force": [0, 0, 1]}]}, "case 0: point_loads[0].s"),
+    ({"point_loads": [[], [{"s": 0.1, "force": [0, np.inf, 0]}]]},
+     "case 1: point_loads[0].force[1]"),
+    ({"point_loads": [{"s": 0.1, "forse": [0, 0, 1]}]}, "point_loads[0].forse: unknown key"),
+    ({"distributed_force": [[0, 0, 0], [0, np.nan, 0]]}, "case 1: distributed_force"),
+])
+def test_bad_loads_name_the_case_and_the_key(kwargs: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        solve_statics(RAO, np.zeros((2, 6)), **kwargs)
+    with pytest.raises(ValueError, match=r"case 1: tensions: tendon 3"):
+        solve_statics(RAO, [[0, 0, 0, 0, 0, 0], [0, 0, -1, 0, 0, 0]])
