@@ -338,20 +338,20 @@ def test_results_of_a_calibrated_robot_carry_motor_commands(tmp_path) -> None:
                   [np.nan] * 9])
     pos, _ = tip_pose(robot, q[:1])
     ik = IKResult(robot, q, *(np.zeros((2, k)) for k in (3, 4)), *(np.zeros(2),) * 5,
-                  np.ones(2, bool), np.ones(2, bool), ["lm"] * 2, ["", "failed"])
+                  np.ones(2, bool), np.ones(2, bool), ["refine"] * 2, ["", "failed"])
     rows = ik.to_dict()["results"]
     assert rows[1]["tendon_displacements"] is None
     marker = dataclasses.replace(robot, actuation=dataclasses.replace(
         robot.actuation, tip_marker=(0.0, 0.0, 0.0)))
     np.testing.assert_allclose(predict_tip(marker, [rows[0]["tendon_displacements"]]), pos,
                                atol=1e-10)
-    plan = TrajectoryResult(robot, np.repeat(q[:1], 3, axis=0), 0.1, True, "", "lm",
+    plan = TrajectoryResult(robot, np.repeat(q[:1], 3, axis=0), 0.1, True, "", "refine",
                             tendon_lengths=np.zeros((3, 9)))
     plan.save_csv(tmp_path / "plan.csv")
     header = (tmp_path / "plan.csv").read_text().splitlines()[0].split(",")
     assert header[10:] == [f"{name}_displacement" for name in header[1:10]]
     assert "tendon_displacements" in plan.to_dict()["results"][0]
     plain = IKResult(load_robot("ftdcr_v6"), q, *(np.zeros((2, k)) for k in (3, 4)),
-                     *(np.zeros(2),) * 5, np.ones(2, bool), np.ones(2, bool), ["lm"] * 2,
+                     *(np.zeros(2),) * 5, np.ones(2, bool), np.ones(2, bool), ["refine"] * 2,
                      ["", ""])
     assert plain.tendon_displacements is not None   # the bundled file has an actuation block

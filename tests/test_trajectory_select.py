@@ -3,6 +3,8 @@ each distinct guess is refined once, round 2 only where round 1 found no valid a
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 
 from cr_nlp.stages.refine._chain_stream import ChainSolution
@@ -54,9 +56,9 @@ def test_a_repeated_guess_is_refined_once_and_round_two_runs_only_where_needed()
     # Problem 2 (known by its start, written over each answer's first waypoint) fails
     # every verdict; the others pass with their first verified guess.
 
-    def verify(q: np.ndarray) -> dict:
+    def verify(q: np.ndarray) -> SimpleNamespace:   # the verification's two fields read
         ok = not np.array_equal(q[0], ends[2][0])
-        return {"success": ok, "max_violation": 0.0 if ok else 1.0}
+        return SimpleNamespace(success=ok, max_violation=0.0 if ok else 1.0)
 
     lm = RecordingLM()
     sel = select_guesses(lm, guesses, ends, 0.35, None, 10, 2, verify)
@@ -66,5 +68,5 @@ def test_a_repeated_guess_is_refined_once_and_round_two_runs_only_where_needed()
     for expected in (guesses[0, 0], guesses[1, 0], guesses[1, 1], guesses[2, 2]):
         assert sum(np.array_equal(c, expected) for c in solved) == 1
     assert not any(np.array_equal(c, guesses[0, 2]) for c in solved)
-    assert [b[0]["success"] for b in sel.best] == [True, True, False]
+    assert [b[0].success for b in sel.best] == [True, True, False]
     assert [len(c) for c in sel.candidates] == [1, 2, 4]
