@@ -16,18 +16,15 @@ from ..model.kinematics import pose_error, tip_pose
 from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
 from ..world._motion import MotionVerification
 from ._result import (
+    OneStage,
     ResultFileError,
     ResultIO,
     Stage,
-    Status,
     array,
     as_float,
     num,
     nums,
     read_stage,
-    stage_text,
-    status_of,
-    typed_stage,
     write_series_csv,
 )
 from ._timing import StageTiming
@@ -116,7 +113,7 @@ def unreached_stretches(reached: np.ndarray) -> list[tuple[int, int]]:
 
 
 @dataclass
-class FollowResult(ResultIO):
+class FollowResult(OneStage, ResultIO):
     """A followed path. Units: rad, m, s (millimetre / degree figures in ``summary``)."""
 
     kind: ClassVar[str] = "follow"
@@ -177,20 +174,6 @@ class FollowResult(ResultIO):
     of time: <why>" (``FollowConfig.polish_time_limit``), "feasible: polish not needed" or
     "feasible; the polished answer tracked worse" (the LM answer already keeps every
     constraint: max violation ≤ 1e-6 by the independent checks)."""
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        self.stage, self.notes = typed_stage(self.stage, self.notes)
-
-    @property
-    def stage_text(self) -> str:
-        """The stage and its notes for people: "refine (polish failed: …)"."""
-        return stage_text(self.stage, self.notes)
-
-    @property
-    def status(self) -> Status:
-        """``Status``: success or failed (a followed path is never rejected whole)."""
-        return status_of(self.success, self.stage)
 
     @property
     def dt(self) -> float:

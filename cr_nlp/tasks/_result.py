@@ -242,6 +242,32 @@ def write_series_csv(path: str | Path, times: np.ndarray, names: list[str],
 # ================================================================ the protocol
 
 
+class OneStage:
+    """The stage of a result of one problem (trajectory, follow): ``stage`` typed as a
+    ``Stage`` with its free text in ``notes`` on construction (an old one-line text is
+    split), ``stage_text`` and ``status`` derived from them. Mixed in before
+    ``ResultIO``."""
+
+    stage: Stage
+    notes: list[str]
+    success: bool
+
+    def __post_init__(self) -> None:
+        super().__post_init__()  # type: ignore[misc]
+        self.stage, self.notes = typed_stage(self.stage, self.notes)
+
+    @property
+    def stage_text(self) -> str:
+        """The stage and its notes for people: "refine (roadmap) (polish failed: …)"."""
+        return stage_text(self.stage, self.notes)
+
+    @property
+    def status(self) -> Status:
+        """``Status``: success, failed (rejected by the verdict) or rejected (refused
+        before solving)."""
+        return status_of(self.success, self.stage)
+
+
 class ResultIO:
     """What every task result provides. A class sets ``kind`` and implements
     ``_fields_dict`` (its fields, JSON-ready, without the header) and

@@ -15,18 +15,15 @@ from ..model import Robot
 from ..world._motion import MotionVerification
 from ._result import (
     SCHEMA_VERSION,
+    OneStage,
     ResultFileError,
     ResultIO,
     Stage,
-    Status,
     as_float,
     check_header,
     num,
     read_stage,
     result_robot,
-    stage_text,
-    status_of,
-    typed_stage,
     write_json,
     write_series_csv,
 )
@@ -34,7 +31,7 @@ from ._timing import StageTiming
 
 
 @dataclass
-class TrajectoryResult(ResultIO):
+class TrajectoryResult(OneStage, ResultIO):
     """One planned trajectory (or the reason there is none). Units: rad, m, s.
 
     Its RESULT.json (``to_dict``) is a list of one: the form ``cr-nlp plan --out`` writes
@@ -84,20 +81,6 @@ class TrajectoryResult(ResultIO):
     notes: list[str] = field(default_factory=list)
     """Free text qualifying ``stage``, in order: the guess, then why no polish was
     accepted."""
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        self.stage, self.notes = typed_stage(self.stage, self.notes)
-
-    @property
-    def stage_text(self) -> str:
-        """The stage and its notes for people: "refine (roadmap) (polish failed: …)"."""
-        return stage_text(self.stage, self.notes)
-
-    @property
-    def status(self) -> Status:
-        """``Status``: success, failed (planned, rejected by the verdict) or rejected."""
-        return status_of(self.success, self.stage)
 
     @property
     def times(self) -> np.ndarray:
