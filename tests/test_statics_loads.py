@@ -8,8 +8,10 @@ import pytest
 from scipy.optimize import brentq
 from scipy.special import ellipe, ellipk
 
-from cr_nlp.model import load_robot
-from cr_nlp.model.statics import solve_statics
+from cr_nlp.model import load_robot, statics
+from cr_nlp.model.loads import static_loads
+from cr_nlp.model.rotations import matrix_from_wxyz
+from cr_nlp.model.statics import StaticsConfig, small_step, solve_statics
 
 RAO = load_robot("tdcr2_rao2021")
 EI = RAO.mechanics.bending_stiffness
@@ -102,6 +104,24 @@ def test_a_column_past_its_buckling_load_has_two_equilibria_and_buckles() -> Non
     # one (it can turn about the load's line towards the nudge).
     mirror = [e for e in shapes if e.tip_position[0] < -0.5 * lateral]
     assert mirror and not any(e.stable for e in mirror)
+
+
+def test_the_small_step_loading_path_reaches_the_full_loads(float64) -> None:
+    """The branch check's second try, loading from rest in increments of at most
+    ``small_step``, ends at the full loads within the iteration budget, at the one
+    equilibrium of a moderately loaded case (a fixed 1/32 needed 32 steps of 24)."""
+    config = StaticsConfig()
+    tensions = np.array([[2.0, 0.3, 1.0, 0.2, 1.5, 0.4]])
+    force = [0.05, -0.1, 0.02]
+    base = matrix_from_wxyz(np.asarray(RAO.base_wxyz))
+    loads = statics._case_loads(static_loads(1, LENGTH, force).in_base_frame(base))
+    path = statics._solve_rows(RAO, config, tensions, loads, np.zeros((1, 3)), np.zeros(1),
+                               np.array([[1.0, small_step(config)]]), np.float64)
+    assert path.converged[0] and path.stall[0] < 0
+    assert path.iterations[0] <= config.max_iterations
+    answer = solve_statics(RAO, tensions, force)
+    assert answer.equilibria[0] == 1
+    np.testing.assert_allclose(path.x[0], answer.base_moment[0] @ base, atol=1e-7)
 
 
 @pytest.mark.parametrize(("kwargs", "message"), [

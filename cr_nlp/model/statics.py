@@ -156,11 +156,18 @@ def _rows(value: Any, index: np.ndarray) -> Any:
 # the full loads from the mirror image of that answer's M(0) (solved with the loading path,
 # in one batch). A failed or unstable path answer (and every case with ``all_equilibria``)
 # also gets Newton from M(0) = 0 and from four pushes sideways, and the loading path again
-# in small steps (``SMALL_STEP``).
+# in small steps (``small_step``).
 _SEARCH_STARTS = 5
-SMALL_STEP = 1 / 32
-"""Largest load increment of the loading path's second try: small steps follow the branch
-past a bifurcation (an imperfect column buckles towards its imperfection)."""
+
+
+def small_step(config: StaticsConfig) -> float:
+    """Largest load increment of the loading path's second try: small steps follow the
+    branch past a bifurcation (an imperfect column buckles towards its imperfection).
+
+    A third of the iteration budget (1/8 with the default 24 iterations): λ reaches 1
+    after 1/step accepted steps, which leaves room for one rejected step in two. (A fixed
+    1/32 never reached λ = 1 within 24 iterations: the second try always failed.)"""
+    return 1.0 / max(1, config.max_iterations // 3)
 
 
 def _starts(x: np.ndarray, push: np.ndarray) -> np.ndarray:
@@ -209,7 +216,7 @@ def _check(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads: Case
                             further_round=False)
         again = _solve_rows(robot, config, tension[careful], _rows(loads, careful),
                             np.zeros((careful.size, 3)), np.zeros(careful.size),
-                            np.tile([1.0, SMALL_STEP], (careful.size, 1)), dtype)
+                            np.tile([1.0, small_step(config)], (careful.size, 1)), dtype)
         r = np.concatenate([careful, r])
         c = np.concatenate([np.ones(careful.size, int),
                             np.tile(np.arange(_SEARCH_STARTS), careful.size)
