@@ -81,8 +81,9 @@ def test_round_trip_under_a_tip_force(solver: TensionIKSolver) -> None:
     assert np.median(np.linalg.norm(unloaded.tip_position - truth.tip_position, axis=1)) > 1e-3
 
 
-def test_round_trip_under_a_payload_held_mid_body(solver: TensionIKSolver) -> None:
-    """A 20 g payload held at 0.25 m from the base, and gravity on the backbone."""
+def test_round_trip_under_a_payload_held_mid_body(solver: TensionIKSolver, tmp_path) -> None:
+    """A 20 g payload held at 0.25 m from the base, and gravity on the backbone; the
+    result file keeps the loads it was solved under."""
     loads = {"gravity": [0.0, 0.0, -9.81],
              "point_loads": [{"s": 0.25, "force": [0.0, 0.0, -0.196]}]}
     truth = solve_statics(RAO, _random_tensions(12, seed=4), **loads)
@@ -94,6 +95,13 @@ def test_round_trip_under_a_payload_held_mid_body(solver: TensionIKSolver) -> No
     # Without the payload in the model the same tensions miss: the load was solved for.
     unloaded = solve_statics(RAO, result.tensions, gravity=loads["gravity"])
     assert np.median(np.linalg.norm(unloaded.tip_position - truth.tip_position, axis=1)) > 1e-3
+    back = load_result(result.save(tmp_path / "R.json"))
+    assert back.point_loads == [[{**loads["point_loads"][0], "moment": [0.0, 0.0, 0.0]}]] * 12
+    np.testing.assert_array_equal(back.gravity, np.tile(loads["gravity"], (12, 1)))
+    np.testing.assert_array_equal(back.distributed_force, np.zeros((12, 3)))
+    replayed = solve_statics(RAO, back.tensions, gravity=back.gravity,
+                             point_loads=back.point_loads)
+    np.testing.assert_allclose(replayed.tip_position, again.tip_position, atol=1e-12)
 
 
 def test_an_obstacle_on_the_backbone_fails_the_verdict() -> None:

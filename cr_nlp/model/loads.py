@@ -62,6 +62,14 @@ class StaticLoads:
         """The seven arrays in field order."""
         return tuple(getattr(self, f) for f in _FIELDS)
 
+    def point_load_lists(self) -> list[list[dict]]:
+        """The point loads of every case in ``solve_statics``' form, ``[{"s": m, "force":
+        [N], "moment": [N·m]}, …]`` per case (padding dropped)."""
+        return [[{"s": float(s), "force": f.tolist(), "moment": m.tolist()}
+                 for s, f, m in zip(ss, fs, ms, strict=True) if np.any(f) or np.any(m)]
+                for ss, fs, ms in zip(self.point_s, self.point_force, self.point_moment,
+                                      strict=True)]
+
     def has_force(self) -> np.ndarray:
         """(B,) True where some external force acts (then the cut's force N is not zero and
         the statics must shoot for M(0))."""

@@ -44,6 +44,10 @@ class TensionIKResult(ResultIO):
     tip_force: np.ndarray         # (B, 3) N, world frame
     tip_moment: np.ndarray        # (B, 3) N·m
     gravity: np.ndarray           # (B, 3) m/s²
+    distributed_force: np.ndarray | None = None  # (B, 3) N/m along the backbone; None: 0
+    point_loads: list[list[dict]] | None = None
+    """Per target, the point wrenches ``[{"s": m, "force": [N], "moment": [N·m]}, …]``,
+    world frame (``solve_statics``' form); None: none."""
     tendon_displacements: np.ndarray | None = None   # (B, n_tendons) m, pulled > 0
     timing: StageTiming = field(default_factory=StageTiming)
     violations: dict[str, np.ndarray] = field(default_factory=dict)
@@ -58,6 +62,10 @@ class TensionIKResult(ResultIO):
 
     def __post_init__(self) -> None:
         count = len(self.tensions)
+        if self.distributed_force is None:
+            self.distributed_force = np.zeros((count, 3))
+        if self.point_loads is None:
+            self.point_loads = [[] for _ in range(count)]
         self.violations = {k: np.asarray(self.violations[k], dtype=float)
                            if k in self.violations else np.full(count, np.nan)
                            for k in FAMILIES}
@@ -95,6 +103,8 @@ class TensionIKResult(ResultIO):
             "success": [bool(s) for s in self.success], "reason": list(self.reason),
             "tip_force": row_lists(self.tip_force), "tip_moment": row_lists(self.tip_moment),
             "gravity": row_lists(self.gravity),
+            "distributed_force": row_lists(self.distributed_force),
+            "point_loads": self.point_loads,
             "tendon_displacements": row_lists(self.tendon_displacements),
             "violations": {k: nums(v) for k, v in self.violations.items()},
             "stage": [Stage(s).value for s in self.stage], "notes": self.notes,
@@ -106,6 +116,11 @@ class TensionIKResult(ResultIO):
     def _from_fields(cls, data: dict[str, Any], robot: Robot) -> TensionIKResult:
         n = robot.n_tendons
         count = len(data["tensions"])
+        points = data.get("point_loads")
+        if points is not None and (not isinstance(points, list) or len(points) != count
+                                   or not all(isinstance(p, list) for p in points)):
+            raise ValueError(f"point_loads: one list of point loads per target ({count}) "
+                             "expected")
         stages = ([read_stage({"stage": s, "notes": m}, 2)
                    for s, m in zip(data["stage"], data["notes"], strict=True)]
                   if data["schema_version"] >= 2 else [])   # schema 1: every row refined
@@ -128,6 +143,9 @@ class TensionIKResult(ResultIO):
             tip_force=array(data["tip_force"], 3, "tip_force"),
             tip_moment=array(data["tip_moment"], 3, "tip_moment"),
             gravity=array(data["gravity"], 3, "gravity"),
+            distributed_force=array(data["distributed_force"], 3, "distributed_force")
+            if "distributed_force" in data else None,   # files before the loads: none
+            point_loads=points,
             tendon_displacements=array(data["tendon_displacements"], n,
                                        "tendon_displacements") if count else np.zeros((0, n)),
             timing=StageTiming.from_dict(data.get("timing")),

@@ -186,7 +186,7 @@ class TensionIKSolver:
             result = solve_statics(self.robot, tensions, one.tip_force, one.tip_moment,
                                    one.gravity, self.config.statics,
                                    distributed_force=one.distributed_force,
-                                   point_loads=_point_loads(one))
+                                   point_loads=one.point_load_lists())
             keep = result.converged
             self._pool[key] = (tensions[keep], cKDTree(result.tip_position[keep]))
         return self._pool[key]
@@ -241,7 +241,8 @@ class TensionIKSolver:
                 position_error=empty, rotation_error=empty, min_clearance=empty,
                 max_violation=empty, success=np.zeros(0, bool), reason=[],
                 tip_force=loads.tip_force, tip_moment=loads.tip_moment,
-                gravity=loads.gravity, tendon_displacements=nothing, timing=timing)
+                gravity=loads.gravity, distributed_force=loads.distributed_force,
+                point_loads=[], tendon_displacements=nothing, timing=timing)
         start = time.perf_counter()
         tensions = self._seeds(positions, loads, 0)
         timing.explore = time.perf_counter() - start
@@ -288,7 +289,7 @@ class TensionIKSolver:
         for name in ("tensions", "target_position", "target_wxyz", "position", "wxyz",
                      "pose_error", "position_error", "rotation_error", "min_clearance",
                      "max_violation", "success", "tip_force", "tip_moment", "gravity",
-                     "tendon_displacements"):
+                     "distributed_force", "tendon_displacements"):
             values = getattr(part, name)
             out = (np.zeros(count, bool) if values.dtype == bool
                    else np.full((count, *values.shape[1:]), np.nan))
@@ -298,6 +299,9 @@ class TensionIKSolver:
         full.reason = ["the target has non-finite coordinates"] * count
         full.stage = [Stage.REFINE if ok else Stage.NONE for ok in finite.tolist()]
         full.notes = [[] for _ in range(count)]
+        full.point_loads = [[] for _ in range(count)]   # a refused target: none solved for
+        for i, j in zip(np.flatnonzero(finite).tolist(), range(len(part)), strict=True):
+            full.point_loads[i] = part.point_loads[j]
         full.violations = {k: np.full(count, np.nan) for k in part.violations}
         for k, values in part.violations.items():
             full.violations[k][finite] = values
@@ -382,7 +386,7 @@ class TensionIKSolver:
         statics: StaticsResult = solve_statics(
             self.robot, tensions, loads.tip_force, loads.tip_moment, loads.gravity,
             cfg.statics, distributed_force=loads.distributed_force,
-            point_loads=_point_loads(loads))
+            point_loads=loads.point_load_lists())
         position_error = np.linalg.norm(statics.tip_position - positions, axis=1)
         oriented = ~np.any(np.isnan(quats), axis=1)
         rotation_error = np.full(len(positions), np.nan)
@@ -414,16 +418,10 @@ class TensionIKSolver:
             max_violation=np.array(verdicts.max_violation),
             success=np.array(verdicts.success & statics.converged), reason=reason,
             tip_force=loads.tip_force, tip_moment=loads.tip_moment, gravity=loads.gravity,
+            distributed_force=loads.distributed_force,
+            point_loads=loads.point_load_lists(),
             tendon_displacements=np.array(statics.tendon_displacements), timing=timing,
             violations=dict(verdicts.violations))
-
-
-def _point_loads(loads: StaticLoads) -> list[list[dict]]:
-    """The point loads of every case in ``solve_statics``' form (padding dropped)."""
-    return [[{"s": float(s), "force": f.tolist(), "moment": m.tolist()}
-             for s, f, m in zip(ss, fs, ms, strict=True) if np.any(f) or np.any(m)]
-            for ss, fs, ms in zip(loads.point_s, loads.point_force, loads.point_moment,
-                                  strict=True)]
 
 
 def _replace_rows(result: TensionIKResult, other: TensionIKResult, rows: np.ndarray,
