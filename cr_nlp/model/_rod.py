@@ -27,8 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..runtime import cached
-from .kinematics import tendon_angles
 from .robot import Robot
+from .routing import routing_of
 
 
 @dataclass(frozen=True)
@@ -87,17 +87,16 @@ def _layout(robot: Robot, config: StaticsConfig, coarse: bool = False) -> _Layou
                          "Cosserat statics need one (see models/README.md)")
     if any(s.extendable for s in robot.segments):
         raise ValueError(f"{robot.name}: the Cosserat statics need fixed segment lengths")
-    angles = tendon_angles(robot)
-    if robot.tendons.routing == "shared":
-        if not np.allclose(angles, angles[0]):
-            raise ValueError(f"{robot.name}: shared routing with different offsets per "
-                             "segment is not a straight routing")
-        angles = angles[:1]
-    alpha = angles.reshape(-1)
+    tendons = routing_of(robot)
+    angles = tendons.angles(robot.tendons.offsets)            # (T, n)
+    alpha = angles[np.arange(len(angles)), tendons.first]     # (T,) where each starts
+    if not np.allclose(np.where(tendons.through, angles, alpha[:, None]), alpha[:, None]):
+        raise ValueError(f"{robot.name}: a tendon whose angle changes between segments "
+                         "(shared routing with different offsets per segment) is not a "
+                         "straight routing")
     routing = robot.tendons.radius * np.stack(
         [np.cos(alpha), np.sin(alpha), np.zeros_like(alpha)], axis=-1)
 
-    m = robot.tendons.per_segment
     lengths, active, disk_s = [], [], []
     start_s = 0.0
     for i, seg in enumerate(robot.segments):
@@ -109,17 +108,13 @@ def _layout(robot: Robot, config: StaticsConfig, coarse: bool = False) -> _Layou
         start_s += seg.length_min
         for _ in range(steps):
             lengths.append(seg.length_min / steps)
-            if robot.tendons.routing == "shared":
-                active.append(np.ones(m))
-            else:
-                active.append((np.arange(robot.n_tendons) // m >= i).astype(float))
+            active.append(tendons.through[:, i].astype(float))
     h = np.asarray(lengths)
     arc = np.concatenate([[0.0], np.cumsum(h)])
     total = arc[-1]
     disk_s = np.asarray(disk_s)
     ends = np.cumsum([seg.length_min for seg in robot.segments])
-    tendon_end = (np.full(m, total) if robot.tendons.routing == "shared"
-                  else ends[np.arange(robot.n_tendons) // m])
+    tendon_end = ends[tendons.anchor]
 
     def distal(s: np.ndarray, include_at: bool) -> np.ndarray:
         rod = mech.linear_density * (total - s)

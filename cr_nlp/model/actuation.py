@@ -54,6 +54,7 @@ from ._actuation_block import Actuation as Actuation
 from ._actuation_block import parse_actuation as parse_actuation
 from .kinematics import tip_pose_z
 from .robot import Robot
+from .routing import routing_of
 
 
 def actuation_of(robot: Robot) -> Actuation:
@@ -66,38 +67,24 @@ def actuation_of(robot: Robot) -> Actuation:
 
 def tendon_segments(robot: Robot) -> np.ndarray:
     """(n_tendons, n_segments) 0/1: which segments each tendon runs through."""
-    n, m = robot.n_segments, robot.tendons.per_segment
-    if robot.tendons.routing == "shared":
-        return np.ones((m, n))
-    return np.array([[1.0 if i <= k else 0.0 for i in range(n)]
-                     for k in range(n) for _ in range(m)])
+    return routing_of(robot).through.astype(float)
 
 
 def _nominal_angles(robot: Robot) -> np.ndarray:
     """(n_tendons, n_segments) nominal angle α of each tendon in each segment, without
     the per-segment offsets (those are parameters), rad."""
-    n, m = robot.n_segments, robot.tendons.per_segment
-    base = np.arange(m) * 2.0 * np.pi / m
-    if robot.tendons.routing == "shared":
-        return np.repeat(base[:, None], n, axis=1)
-    return np.array([[base[j]] * n for _ in range(n) for j in range(m)])
+    return routing_of(robot).angles(np.zeros(robot.n_segments))
 
 
 def _offset_owner(robot: Robot) -> np.ndarray:
     """(n_tendons, n_segments) index of the segment whose offset applies to tendon j in
-    segment i (docs/design.md §1: per-segment routing uses the tendon's own segment)."""
-    n, m = robot.n_segments, robot.tendons.per_segment
-    if robot.tendons.routing == "shared":
-        return np.tile(np.arange(n), (m, 1))
-    return np.array([[k] * n for k in range(n) for _ in range(m)])
+    segment i (``model.routing``)."""
+    return routing_of(robot).owner
 
 
 def _groups(robot: Robot) -> np.ndarray:
     """(n_tendons,) the segment each tendon is anchored at (its stiffness group)."""
-    n, m = robot.n_segments, robot.tendons.per_segment
-    if robot.tendons.routing == "shared":
-        return np.full(m, n - 1)
-    return np.repeat(np.arange(n), m)
+    return routing_of(robot).anchor
 
 
 def params_of(robot: Robot) -> dict[str, np.ndarray]:
@@ -417,7 +404,7 @@ def commands_for_configuration(robot: Robot, q: Any, slack: float = 0.0) -> np.n
     q = np.atleast_2d(np.asarray(q, dtype=np.float64))
     if q.shape[-1] != robot.dof:
         raise ValueError(f"q must be (N, {robot.dof}), got shape {q.shape}")
-    if robot.tendons.routing != "per_segment":
+    if routing_of(robot).shared:
         raise ValueError("commands_for_configuration needs per_segment routing")
     p = params_of(robot)
     z = q_to_z_numpy(q)

@@ -41,6 +41,7 @@ from .lie import (
     transform_compose,
 )
 from .robot import Robot
+from .routing import routing_of
 
 # ================================================================ the model, once
 
@@ -106,13 +107,6 @@ def model_backbone(ops: Ops, robot: Robot, z: list[Any],
     return ops.stack_points(per_segment)
 
 
-def tendon_angles(robot: Robot) -> np.ndarray:
-    """(n_segments, m) angular positions α of each segment's tendons, radians."""
-    m = robot.tendons.per_segment
-    base = np.arange(m) * 2.0 * np.pi / m
-    return base[None, :] + np.asarray(robot.tendons.offsets)[:, None]
-
-
 def model_tendon_lengths(ops: Ops, robot: Robot, z: list[Any]) -> list[Any]:
     """Tendon lengths (metres), ``ℓᵢⱼ = Lᵢ − r·θᵢ·cos(αⱼ − φᵢ) = Lᵢ − r·(uxᵢ cos αⱼ + uyᵢ sin αⱼ)``.
 
@@ -121,20 +115,15 @@ def model_tendon_lengths(ops: Ops, robot: Robot, z: list[Any]) -> list[Any]:
     segment k and sum over segments 1…k; order ``[seg1 tendons, seg2 tendons, …]``.
     """
     n, r = robot.n_segments, robot.tendons.radius
-    alpha = tendon_angles(robot)
+    routing = routing_of(robot)
+    alpha = routing.angles(robot.tendons.offsets)
 
     def contribution(i: int, angle: float) -> Any:
         ux, uy, length = z[3 * i], z[3 * i + 1], z[3 * i + 2]
         return length - r * (ux * float(np.cos(angle)) + uy * float(np.sin(angle)))
 
-    m = robot.tendons.per_segment
-    if robot.tendons.routing == "shared":
-        return [sum(contribution(i, alpha[i, j]) for i in range(n)) for j in range(m)]
-    return [
-        sum(contribution(i, alpha[k, j]) for i in range(k + 1))
-        for k in range(n)
-        for j in range(m)
-    ]
+    return [sum(contribution(i, alpha[t, i]) for i in range(n) if routing.through[t, i])
+            for t in range(len(alpha))]
 
 
 def model_pose_error(ops: Ops, tip: Transform, target: Transform) -> tuple[Any, ...]:

@@ -18,6 +18,7 @@ from .._files import read_json_or
 from .._resources import resolve_file
 from ._actuation_block import parse_actuation
 from .mechanics import Mechanics, parse_mechanics
+from .routing import tendon_count
 
 if TYPE_CHECKING:
     from ._actuation_block import Actuation
@@ -112,8 +113,7 @@ class Robot:
 
     @property
     def n_tendons(self) -> int:
-        m = self.tendons.per_segment
-        return m if self.tendons.routing == "shared" else m * self.n_segments
+        return tendon_count(self.tendons.per_segment, self.n_segments, self.tendons.routing)
 
     @property
     def n_points(self) -> int:
@@ -375,8 +375,7 @@ def _parse_robot(data: Any, source: str) -> Robot:
 
     actuation = None
     if "actuation" in d:
-        actuation = parse_actuation(c, d["actuation"], per_segment * (
-            1 if routing == "shared" else n), n)
+        actuation = parse_actuation(c, d["actuation"], tendon_count(per_segment, n, routing), n)
 
     return Robot(
         name=name,

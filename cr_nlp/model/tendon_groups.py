@@ -17,8 +17,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .kinematics import tendon_angles
 from .robot import Robot
+from .routing import routing_of
 
 
 class TendonGroups(NamedTuple):
@@ -37,10 +37,12 @@ def tendon_groups(robot: Robot) -> TendonGroups | None:
     m = robot.tendons.per_segment
     if m < 3:
         return None
-    angles = tendon_angles(robot)
-    if robot.tendons.routing == "shared":
-        angles = angles[:1]
-    index = np.arange(angles.size).reshape(angles.shape)
+    routing = routing_of(robot)
+    # a group: the tendons that end at one segment, at their angles where they start
+    index = np.stack([np.flatnonzero(routing.anchor == g) for g in np.unique(routing.anchor)])
+    first = routing.angles(robot.tendons.offsets)[np.arange(len(routing.anchor)),
+                                                  routing.first]
+    angles = first[index]
     r = robot.tendons.radius
     # r_i × e3 for r_i = r (cos α, sin α, 0): r (sin α, −cos α, 0)
     pull = r * np.stack([np.sin(angles), -np.cos(angles)], axis=-1)

@@ -12,6 +12,7 @@ import numpy as np
 
 from .._files import atomic_open
 from ..model import Robot
+from ..model.routing import routing_of
 from ..world._motion import MotionVerification
 from ._result import (
     SCHEMA_VERSION,
@@ -190,10 +191,7 @@ def controller_columns(robot: Robot, lengths: np.ndarray,
 
 def tendon_names(robot: Robot) -> list[str]:
     """Column names of the tendon-length series (CSV), in ``tendon_lengths`` order."""
-    m = robot.tendons.per_segment
-    if robot.tendons.routing == "shared":
-        return [f"tendon_{j + 1}" for j in range(m)]
-    return [f"tendon_{k + 1}_{j + 1}" for k in range(robot.n_segments) for j in range(m)]
+    return routing_of(robot).names()
 
 
 def _trajectories_fields(results: list[TrajectoryResult],

@@ -14,10 +14,10 @@ from ..model.kinematics import (
     model_q_to_z,
     model_segment_frames,
     model_segment_transform,
-    tendon_angles,
 )
 from ..model.lie import transform_compose
 from ..model.robot import Robot
+from ..model.routing import routing_of
 from ..world.scene import BoxPart
 
 
@@ -55,29 +55,19 @@ def tube_grid(
 def tendon_paths(
     robot: Robot, positions: np.ndarray, rotations: np.ndarray, samples: int
 ) -> list[np.ndarray]:
-    """Polylines of every tendon (m), at the routing radius in each cross-section."""
-    alpha = tendon_angles(robot)
+    """Polylines of every tendon (m), at the routing radius in each cross-section, from
+    the base to the end of the segment it ends at (``positions`` (1 + n·samples, 3) and
+    ``rotations`` from ``backbone_frames``)."""
+    routing = routing_of(robot)
+    alpha = routing.angles(robot.tendons.offsets)   # (T, n)
     r = robot.tendons.radius
-    n, m = robot.n_segments, robot.tendons.per_segment
-
-    def offset(index: np.ndarray, angles: np.ndarray) -> np.ndarray:
-        local = np.stack([np.cos(angles), np.sin(angles)], axis=-1) * r
-        rot = rotations[index]
-        return positions[index] + local[:, :1] * rot[:, :, 0] + local[:, 1:] * rot[:, :, 1]
-
-    def segment_of(index: np.ndarray) -> np.ndarray:
-        return np.maximum(index - 1, 0) // samples
-
     paths = []
-    if robot.tendons.routing == "shared":
-        index = np.arange(len(positions))
-        for j in range(m):
-            paths.append(offset(index, alpha[segment_of(index), j]))
-    else:
-        for k in range(n):
-            index = np.arange(1 + (k + 1) * samples)
-            for j in range(m):
-                paths.append(offset(index, np.full(len(index), alpha[k, j])))
+    for t, anchor in enumerate(routing.anchor):
+        index = np.arange(1 + (anchor + 1) * samples)
+        segment = np.maximum(index - 1, 0) // samples
+        local = np.stack([np.cos(alpha[t, segment]), np.sin(alpha[t, segment])], axis=-1) * r
+        rot = rotations[index]
+        paths.append(positions[index] + local[:, :1] * rot[:, :, 0] + local[:, 1:] * rot[:, :, 1])
     return paths
 
 
