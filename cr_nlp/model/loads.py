@@ -186,3 +186,11 @@ def static_loads(batch: int, length: float, tip_force: Any = None, tip_moment: A
         for k, (s, force, moment) in enumerate(loads):
             point_s[i, k], point_force[i, k], point_moment[i, k] = s, force, moment
     return StaticLoads(*vectors, point_s, point_force, point_moment)
+
+
+def point_load_lists(loads: StaticLoads) -> list[list[dict]]:
+    """The point loads of every case in ``solve_statics``' form (padding dropped)."""
+    return [[{"s": float(s), "force": f.tolist(), "moment": m.tolist()}
+             for s, f, m in zip(ss, fs, ms, strict=True) if np.any(f) or np.any(m)]
+            for ss, fs, ms in zip(loads.point_s, loads.point_force, loads.point_moment,
+                                  strict=True)]

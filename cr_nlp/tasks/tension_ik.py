@@ -48,7 +48,7 @@ from scipy.spatial import cKDTree
 from ..model import Robot, load_robot
 from ..model.cosserat import CaseLoads, StaticsConfig, StaticsResult, moment_scale
 from ..model.cosserat import tip_equilibrium as _tip_equilibrium
-from ..model.loads import StaticLoads, static_loads
+from ..model.loads import StaticLoads, point_load_lists, static_loads
 from ..model.rotations import matrix_from_wxyz
 from ..model.statics import solve_statics
 from ..model.tendon_groups import (
@@ -186,7 +186,7 @@ class TensionIKSolver:
             result = solve_statics(self.robot, tensions, one.tip_force, one.tip_moment,
                                    one.gravity, self.config.statics,
                                    distributed_force=one.distributed_force,
-                                   point_loads=_point_loads(one))
+                                   point_loads=point_load_lists(one))
             keep = result.converged
             self._pool[key] = (tensions[keep], cKDTree(result.tip_position[keep]))
         return self._pool[key]
@@ -382,7 +382,7 @@ class TensionIKSolver:
         statics: StaticsResult = solve_statics(
             self.robot, tensions, loads.tip_force, loads.tip_moment, loads.gravity,
             cfg.statics, distributed_force=loads.distributed_force,
-            point_loads=_point_loads(loads))
+            point_loads=point_load_lists(loads))
         position_error = np.linalg.norm(statics.tip_position - positions, axis=1)
         oriented = ~np.any(np.isnan(quats), axis=1)
         rotation_error = np.full(len(positions), np.nan)
@@ -416,14 +416,6 @@ class TensionIKSolver:
             tip_force=loads.tip_force, tip_moment=loads.tip_moment, gravity=loads.gravity,
             tendon_displacements=np.array(statics.tendon_displacements), timing=timing,
             violations=dict(verdicts.violations))
-
-
-def _point_loads(loads: StaticLoads) -> list[list[dict]]:
-    """The point loads of every case in ``solve_statics``' form (padding dropped)."""
-    return [[{"s": float(s), "force": f.tolist(), "moment": m.tolist()}
-             for s, f, m in zip(ss, fs, ms, strict=True) if np.any(f) or np.any(m)]
-            for ss, fs, ms in zip(loads.point_s, loads.point_force, loads.point_moment,
-                                  strict=True)]
 
 
 def _replace_rows(result: TensionIKResult, other: TensionIKResult, rows: np.ndarray,
