@@ -63,6 +63,10 @@ _PUBLIC = {
     "TensionFollower": ".tasks.tension_follow",
     "TensionFollowResult": ".tasks.tension_follow",
     "follow_tensions": ".tasks.tension_follow",
+    "TensionPlanConfig": ".tasks.tension_trajectory",
+    "TensionPlanner": ".tasks.tension_trajectory",
+    "TensionTrajectoryResult": ".tasks.tension_trajectory",
+    "plan_tensions": ".tasks.tension_trajectory",
     "TrajectoryConfig": ".tasks.trajectory",
     "TrajectoryPlanner": ".tasks.trajectory",
     "TrajectoryResult": ".tasks.trajectory",
@@ -139,6 +143,10 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from .tasks.tension_ik import TensionIKResult as TensionIKResult
     from .tasks.tension_ik import TensionIKSolver as TensionIKSolver
     from .tasks.tension_ik import solve_tension_ik as solve_tension_ik
+    from .tasks.tension_trajectory import TensionPlanConfig as TensionPlanConfig
+    from .tasks.tension_trajectory import TensionPlanner as TensionPlanner
+    from .tasks.tension_trajectory import TensionTrajectoryResult as TensionTrajectoryResult
+    from .tasks.tension_trajectory import plan_tensions as plan_tensions
     from .tasks.trajectory import TrajectoryConfig as TrajectoryConfig
     from .tasks.trajectory import TrajectoryPlanner as TrajectoryPlanner
     from .tasks.trajectory import TrajectoryResult as TrajectoryResult

@@ -53,7 +53,7 @@ RESULT_KINDS: dict[str, str] = {
     "follow": "cr_nlp.tasks.follow:FollowResult",
     "tension_ik": "cr_nlp.tasks.tension_ik:TensionIKResult",
     "tension_follow": "cr_nlp.tasks.tension_follow:TensionFollowResult",
-    "tension_trajectory": "cr_nlp.tasks._tension_motion_result:TensionMotionResult",
+    "tension_trajectory": "cr_nlp.tasks.tension_trajectory:TensionTrajectoryResult",
 }
 """kind → "module:class" of its result class (imported on first use)."""
 

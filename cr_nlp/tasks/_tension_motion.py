@@ -19,10 +19,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..model import Robot
-from ..model.cosserat import StaticsConfig
+from ..model.cosserat import StaticsConfig, StaticsResult
 from ..model.loads import StaticLoads, point_load_lists
 from ..model.statics import solve_statics
-from ..world.check import check_chains
+from ..world.check import CheckManyResult, check_chains
 from ..world.scene import Scene
 from ..world.verdict import VIOLATION_TOLERANCE, failure_reason, judge_many
 
@@ -73,6 +73,20 @@ def interpolated(tensions: np.ndarray, samples_between: int) -> tuple[np.ndarray
     return samples, np.arange(count) * (samples_between + 1)
 
 
+def solve_and_check(robot: Robot, scene: Scene | None, samples: np.ndarray,
+                    loads: StaticLoads, statics: StaticsConfig | None = None
+                    ) -> tuple[StaticsResult, CheckManyResult]:
+    """A fresh forward statics solve of every tension set of ``samples`` (k, n) N under
+    the one load case ``loads``, and python-fcl on each solved backbone."""
+    case = loads.rows(np.zeros(len(samples), int))
+    solved = solve_statics(robot, samples, case.tip_force, case.tip_moment, case.gravity,
+                           statics or StaticsConfig(),
+                           distributed_force=case.distributed_force,
+                           point_loads=point_load_lists(case))
+    per_segment = (solved.positions.shape[1] - 1) // len(robot.segments)
+    return solved, check_chains(robot, scene, solved.positions, per_segment)
+
+
 def verify_tension_motion(robot: Robot, scene: Scene | None, tensions: np.ndarray, dt: float,
                           loads: StaticLoads, *, margin: float, rate_max: float,
                           samples_between: int = 2,
@@ -98,15 +112,9 @@ def verify_tension_motion(robot: Robot, scene: Scene | None, tensions: np.ndarra
         raise ValueError(f"waypoint {k}: tendon {j + 1}: a tension must be a finite number "
                          f"≥ 0 N (a tendon pulls), got {tensions[k, j]:g}")
     samples, at = interpolated(tensions, samples_between)
-    case = loads.rows(np.zeros(len(samples), int))
-    solved = solve_statics(robot, samples, case.tip_force, case.tip_moment, case.gravity,
-                           statics or StaticsConfig(),
-                           distributed_force=case.distributed_force,
-                           point_loads=point_load_lists(case))
+    solved, checked = solve_and_check(robot, scene, samples, loads, statics)
     tension_max = float(robot.mechanics.tension_max)
     limits = np.maximum(np.max(-samples, axis=1), np.max(samples - tension_max, axis=1))
-    per_segment = (solved.positions.shape[1] - 1) // len(robot.segments)
-    checked = check_chains(robot, scene, solved.positions, per_segment)
     verdicts = judge_many(margin=margin, limits=limits,
                           min_clearance=None if scene is None else checked.obstacle_distance,
                           self_clearance=checked.self_distance)

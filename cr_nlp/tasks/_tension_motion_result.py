@@ -14,12 +14,16 @@ import numpy as np
 
 from ..model import Robot
 from ._result import (
+    SCHEMA_VERSION,
     OneStage,
+    ResultFileError,
     ResultIO,
     Stage,
     array,
+    check_header,
     num,
     nums,
+    result_robot,
     row_lists,
     typed_stage,
     write_series_csv,
@@ -29,7 +33,7 @@ from ._timing import StageTiming
 
 
 @dataclass(kw_only=True)
-class TensionMotionResult(OneStage, ResultIO):
+class TensionTrajectoryResult(OneStage, ResultIO):
     """One tension motion: waypoints ``dt`` apart, judged as a whole."""
 
     kind: ClassVar[str] = "tension_trajectory"
@@ -91,6 +95,30 @@ class TensionMotionResult(OneStage, ResultIO):
                 "max_violation": num(self.max_violation), "time_s": self.timing.total}
 
     def _fields_dict(self) -> dict[str, Any]:
+        return _trajectories_fields([self], self.timing)
+
+    @classmethod
+    def _from_fields(cls, data: dict[str, Any], robot: Robot) -> TensionTrajectoryResult:
+        entries = data["results"]
+        if len(entries) != 1:
+            raise ResultFileError(f"holds {len(entries)} trajectories, not one: read it with "
+                                  "load_results")
+        return cls.from_entry(entries[0], robot)
+
+    @classmethod
+    def list_from_dict(cls, data: Any, robot: Robot | str | None = None,
+                       source: str = "") -> list[Any]:
+        """Every trajectory of a RESULT.json's content (``tension_trajectories_to_dict``)."""
+        where = source or "the result"
+        check_header(data, where, kind=cls.kind)
+        robot = result_robot(data, robot, where)
+        try:
+            return [cls.from_entry(e, robot) for e in data["results"]]
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
+            raise ResultFileError(f"{where}: not a valid {cls.kind} result ({exc!r})") from None
+
+    def entry(self) -> dict[str, Any]:
+        """This motion's JSON fields (one entry of a trajectories file)."""
         return {
             "tensions": row_lists(self.tensions), "dt": self.dt,
             "position": row_lists(self.position), "wxyz": row_lists(self.wxyz),
@@ -136,7 +164,8 @@ class TensionMotionResult(OneStage, ResultIO):
         }
 
     @classmethod
-    def _from_fields(cls, data: dict[str, Any], robot: Robot) -> TensionMotionResult:
+    def from_entry(cls, data: dict[str, Any], robot: Robot) -> TensionTrajectoryResult:
+        """The result of one ``entry()``."""
         return cls(**cls._common(data, robot))
 
     def _series(self) -> tuple[list[str], np.ndarray]:
@@ -154,7 +183,7 @@ class TensionMotionResult(OneStage, ResultIO):
 
 
 @dataclass(kw_only=True)
-class TensionFollowResult(TensionMotionResult):
+class TensionFollowResult(TensionTrajectoryResult):
     """A path followed in tension space: the motion, and per waypoint its target and how
     close the fresh statics solve's tip came to it."""
 
@@ -178,7 +207,21 @@ class TensionFollowResult(TensionMotionResult):
                 if np.any(np.isfinite(self.rotation_error)) else None}
 
     def _fields_dict(self) -> dict[str, Any]:
-        return {**super()._fields_dict(),
+        return self.entry()
+
+    @classmethod
+    def _from_fields(cls, data: dict[str, Any], robot: Robot) -> TensionFollowResult:
+        return cls.from_entry(data, robot)
+
+    @classmethod
+    def list_from_dict(cls, data: Any, robot: Robot | str | None = None,
+                       source: str = "") -> list[Any]:
+        """The one followed path of a RESULT.json's content."""
+        return [cls.from_dict(data, robot, source)]
+
+    def entry(self) -> dict[str, Any]:
+        """This path's JSON fields."""
+        return {**super().entry(),
                 "target_position": row_lists(self.target_position),
                 "target_wxyz": row_lists(self.target_wxyz),
                 "position_error": nums(self.position_error),
@@ -186,7 +229,8 @@ class TensionFollowResult(TensionMotionResult):
                 "reached": [bool(r) for r in self.reached], "tolerance": self.tolerance}
 
     @classmethod
-    def _from_fields(cls, data: dict[str, Any], robot: Robot) -> TensionFollowResult:
+    def from_entry(cls, data: dict[str, Any], robot: Robot) -> TensionFollowResult:
+        """The result of ``entry()``'s form."""
         return cls(**cls._common(data, robot),
                    target_position=array(data["target_position"], 3, "target_position"),
                    target_wxyz=array(data["target_wxyz"], 4, "target_wxyz"),
@@ -200,3 +244,21 @@ class TensionFollowResult(TensionMotionResult):
         return ([*names, "target_x", "target_y", "target_z", "position_error_m"],
                 np.concatenate([values, self.target_position, self.position_error[:, None]],
                                axis=1))
+
+
+def _trajectories_fields(results: list[TensionTrajectoryResult],
+                         timing: StageTiming | None) -> dict[str, Any]:
+    ok = [r.success for r in results]
+    return {"results": [r.entry() for r in results],
+            "summary": {"problems": len(results),
+                        "success_rate": float(np.mean(ok)) if results else 0.0},
+            "timing": (timing or StageTiming()).as_dict()}
+
+
+def tension_trajectories_to_dict(results: list[TensionTrajectoryResult],
+                                 timing: StageTiming | None, robot: Robot) -> dict[str, Any]:
+    """The RESULT.json form of many tension trajectories (``cr-nlp plan --model
+    cosserat``): the header (kind "tension_trajectory"), one entry per problem, a summary
+    and the batch's ``timing`` (s); ``load_results`` reads every one back."""
+    return {"kind": TensionTrajectoryResult.kind, "schema_version": SCHEMA_VERSION,
+            "robot": robot.name, **_trajectories_fields(results, timing)}
