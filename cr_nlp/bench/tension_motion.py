@@ -3,7 +3,7 @@ targets).
 
 ``cr-nlp bench tension`` on a robot with a ``mechanics`` block (default
 ``tdcr2_rao2021``) under gravity and a 5 g payload at the tip, among the spheres and boxes
-of ``SCENE``: ``problems`` planning problems between random collision-free start and goal
+of ``SCENE`` (both rows): ``problems`` planning problems between random collision-free start and goal
 tensions (``TensionPlanner``), and a ``waypoints``-waypoint path (``TensionFollower``)
 traced by the tip of a smooth loop of tensions (so every waypoint is reachable). Success
 is the planners' own verdict (fresh statics at every checked sample, python-fcl); the
@@ -85,13 +85,14 @@ def bench_follow(robot: str, waypoints: int, repeats: int) -> dict[str, Any]:
 
     rob = load_robot(robot)
     path = solve_statics(rob, loop_tensions(waypoints), PAYLOAD, None, GRAVITY).tip_position
-    follower = TensionFollower(rob)
+    follower = TensionFollower(rob, SCENE)
     result, first, median = _timed(
         lambda: follower.follow(path, dt=0.05, gravity=GRAVITY, tip_force=PAYLOAD), repeats)
     return {"waypoints": waypoints, "first_s": first, "median_s": median,
             "success": bool(result.success), "reached": int(result.reached.sum()),
             "max_error_mm": 1e3 * float(np.max(result.position_error)),
-            "max_rate_n_s": float(np.max(np.abs(np.diff(result.tensions, axis=0)))) / 0.05}
+            "max_rate_n_s": float(np.max(np.abs(np.diff(result.tensions, axis=0)))) / 0.05,
+            "min_clearance_mm": 1e3 * result.min_clearance}
 
 
 PLAN_COLUMNS = [
@@ -105,6 +106,7 @@ FOLLOW_COLUMNS = [
     Column("waypoints", "waypoints"), Column("reached", "reached"),
     Column("max_error_mm", "max position error (mm)", fixed(4)),
     Column("max_rate_n_s", "max tension rate (N/s)", fixed(1)),
+    Column("min_clearance_mm", "min clearance (mm)", fixed(1)),
     Column("median_s", "median (s)", fixed(3)), Column("first_s", "first call (s)", fixed(2)),
 ]
 

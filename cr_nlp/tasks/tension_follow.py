@@ -148,7 +148,8 @@ class TensionFollower:
     def _retry(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,
                loads: StaticLoads) -> np.ndarray:
         """Waypoints whose own check fails, again from their predecessor's answer, then
-        from further pool seeds; an attempt is kept where it is closer to the target."""
+        from further pool seeds; an attempt is kept where it passes its check (tip,
+        bounds, clearance of the scene), or fails it closer to the target."""
         count = len(positions)
         check = self.ik._verdict(tensions, positions, quats, loads.rows(np.zeros(count, int)),
                                  StageTiming())
@@ -164,7 +165,9 @@ class TensionFollower:
             judged = self.ik._verdict(again, positions[failed], quats[failed], part,
                                       StageTiming())
             new_error = np.nan_to_num(judged.pose_error, nan=np.inf)
-            better = new_error < error[failed]
+            # A check passed (e.g. another tension set for the same tip that is clear of
+            # the scene) beats any failed one; among failed ones the closer tip wins.
+            better = judged.success | (new_error < error[failed])
             tensions[failed[better]] = again[better]
             error[failed[better]] = new_error[better]
             check.success[failed[better]] = judged.success[better]
