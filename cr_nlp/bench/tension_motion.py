@@ -3,10 +3,10 @@ targets).
 
 ``cr-nlp bench tension`` on a robot with a ``mechanics`` block (default
 ``tdcr2_rao2021``) under gravity and a 5 g payload at the tip, among the spheres and boxes
-of ``SCENE`` (both rows): ``problems`` planning problems between random collision-free start and goal
-tensions (``TensionPlanner``), and a ``waypoints``-waypoint path (``TensionFollower``)
-traced by the tip of a smooth loop of tensions (so every waypoint is reachable). Success
-is the planners' own verdict (fresh statics at every checked sample, python-fcl); the
+of ``SCENE`` (both rows): ``problems`` planning problems between random collision-free
+start and goal tensions (``TensionPlanner``), and a ``waypoints``-waypoint path
+(``TensionFollower``) traced by the tip of a smooth loop of tensions (so every waypoint is
+reachable). Success is the planners' own verdict (fresh statics at every checked sample, python-fcl); the
 first call (compiles, seed and via pools) is reported apart from the steady state (the
 median of ``repeats`` timed runs after it).
 """
