@@ -6,9 +6,9 @@ targets).
 of ``SCENE`` (both rows): ``problems`` planning problems between random collision-free
 start and goal tensions (``TensionPlanner``), and a ``waypoints``-waypoint path
 (``TensionFollower``) traced by the tip of a smooth loop of tensions (so every waypoint is
-reachable). Success is the planners' own verdict (fresh statics at every checked sample, python-fcl); the
-first call (compiles, seed and via pools) is reported apart from the steady state (the
-median of ``repeats`` timed runs after it).
+reachable). Success is the planners' own verdict (fresh statics at every checked sample,
+python-fcl); the first call (compiles, seed and via pools) is reported apart from the
+steady state (the median of ``repeats`` timed runs after it).
 """
 
 from __future__ import annotations
