@@ -59,6 +59,14 @@ _PUBLIC = {
     "TensionIKResult": ".tasks.tension_ik",
     "TensionIKSolver": ".tasks.tension_ik",
     "solve_tension_ik": ".tasks.tension_ik",
+    "TensionFollowConfig": ".tasks.tension_follow",
+    "TensionFollower": ".tasks.tension_follow",
+    "TensionFollowResult": ".tasks.tension_follow",
+    "follow_tensions": ".tasks.tension_follow",
+    "TensionPlanConfig": ".tasks.tension_trajectory",
+    "TensionPlanner": ".tasks.tension_trajectory",
+    "TensionTrajectoryResult": ".tasks.tension_trajectory",
+    "plan_tensions": ".tasks.tension_trajectory",
     "TrajectoryConfig": ".tasks.trajectory",
     "TrajectoryPlanner": ".tasks.trajectory",
     "TrajectoryResult": ".tasks.trajectory",
@@ -127,10 +135,18 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from .tasks.measurements import read_measurements as read_measurements
     from .tasks.paths import ReferencePath as ReferencePath
     from .tasks.paths import load_path as load_path
+    from .tasks.tension_follow import TensionFollowConfig as TensionFollowConfig
+    from .tasks.tension_follow import TensionFollower as TensionFollower
+    from .tasks.tension_follow import TensionFollowResult as TensionFollowResult
+    from .tasks.tension_follow import follow_tensions as follow_tensions
     from .tasks.tension_ik import TensionIKConfig as TensionIKConfig
     from .tasks.tension_ik import TensionIKResult as TensionIKResult
     from .tasks.tension_ik import TensionIKSolver as TensionIKSolver
     from .tasks.tension_ik import solve_tension_ik as solve_tension_ik
+    from .tasks.tension_trajectory import TensionPlanConfig as TensionPlanConfig
+    from .tasks.tension_trajectory import TensionPlanner as TensionPlanner
+    from .tasks.tension_trajectory import TensionTrajectoryResult as TensionTrajectoryResult
+    from .tasks.tension_trajectory import plan_tensions as plan_tensions
     from .tasks.trajectory import TrajectoryConfig as TrajectoryConfig
     from .tasks.trajectory import TrajectoryPlanner as TrajectoryPlanner
     from .tasks.trajectory import TrajectoryResult as TrajectoryResult

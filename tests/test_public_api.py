@@ -11,7 +11,7 @@ import cr_nlp
 
 ROOT = Path(__file__).resolve().parents[1]
 TASK_FUNCTIONS = ("solve_ik", "plan_trajectories", "follow_path", "solve_tension_ik",
-                  "solve_statics", "calibrate")
+                  "solve_statics", "calibrate", "follow_tensions", "plan_tensions")
 
 
 def test_every_public_name_resolves_and_each_task_has_its_function() -> None:

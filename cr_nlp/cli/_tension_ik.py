@@ -22,10 +22,15 @@ from ._io import (
 
 
 def add_options(p: argparse.ArgumentParser) -> None:
-    """The options ``cr-nlp ik`` takes for ``--model cosserat``."""
+    """The options ``cr-nlp ik`` and ``follow`` take for ``--model cosserat``."""
     p.add_argument("--orientation", action="store_true",
                    help="--model cosserat: also reach the targets' wxyz (robots with the "
                         "freedom for it); default: positions only")
+    add_load_options(p)
+
+
+def add_load_options(p: argparse.ArgumentParser) -> None:
+    """The load options of ``--model cosserat`` (those of ``cr-nlp statics``)."""
     p.add_argument("--tip-force", help="--model cosserat: fx,fy,fz force on the tip, N, "
                                        "world frame")
     p.add_argument("--tip-moment", help="--model cosserat: mx,my,mz moment on the tip, N·m")
@@ -37,27 +42,38 @@ def add_options(p: argparse.ArgumentParser) -> None:
                         "N·m, world frame; repeat for more")
 
 
+def loads_from_args(args: argparse.Namespace) -> dict:
+    """The load options as keyword arguments of the tension solvers (N, N·m, m/s², N/m)."""
+    return {"tip_force": parse_vector3(args.tip_force, "--tip-force"),
+            "tip_moment": parse_vector3(args.tip_moment, "--tip-moment"),
+            "gravity": parse_vector3(args.gravity, "--gravity"),
+            "distributed_force": parse_vector3(args.distributed_force, "--distributed-force"),
+            "point_loads": parse_point_loads(args.point_load)}
+
+
+def needs_mechanics(robot: object, exact: bool) -> None:
+    """Refuse ``--model cosserat`` for a robot without mechanics, and ``--exact``."""
+    if getattr(robot, "mechanics", None) is None:
+        raise UsageError(f"--model cosserat: {robot.name} has no 'mechanics' block (the rod's "
+                         f"stiffness and tension limit); see models/README.md")
+    if exact:
+        raise UsageError("--exact: the Cosserat model has no exact (Ipopt) stage (CasADi has "
+                         "no graph of the rod's shooting); its answers are checked by an "
+                         "independent forward statics solve")
+
+
 def run(args: argparse.Namespace, robot: object) -> int:
     """Solve in tension space, write RESULT.json (kind ``tension_ik``) and, with ``--csv``,
     the tensions; print a one-line summary on stderr."""
     from ..tasks.ik import read_targets
     from ..tasks.tension_ik import TensionIKConfig, TensionIKSolver
 
-    if getattr(robot, "mechanics", None) is None:
-        raise UsageError(f"--model cosserat: {robot.name} has no 'mechanics' block (the rod's "
-                         f"stiffness and tension limit); see models/README.md")
-    if args.exact:
-        raise UsageError("--exact: the Cosserat model has no exact (Ipopt) stage; its answers "
-                         "are checked by an independent forward statics solve")
+    needs_mechanics(robot, args.exact)
     try:
         positions, wxyz, problems = read_targets(resolve(args.targets, "targets", "--targets"))
     except ValueError as exc:
         raise UsageError(f"--targets: {exc}") from None
-    loads = {"tip_force": parse_vector3(args.tip_force, "--tip-force"),
-             "tip_moment": parse_vector3(args.tip_moment, "--tip-moment"),
-             "gravity": parse_vector3(args.gravity, "--gravity"),
-             "distributed_force": parse_vector3(args.distributed_force, "--distributed-force"),
-             "point_loads": parse_point_loads(args.point_load)}
+    loads = loads_from_args(args)
     config = TensionIKConfig(seed=args.seed)
     config = replace(config, safety_margin=config.safety_margin
                      + model_margin(robot, args.model_margin))

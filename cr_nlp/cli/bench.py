@@ -1,4 +1,4 @@
-"""``cr-nlp bench ik|plan|follow|clearance|batch|statics``: benchmarks that print tables.
+"""``cr-nlp bench ik|plan|follow|clearance|batch|statics|tension``: benchmarks that print tables.
 
 Every benchmark gets the same options from ``add_common_options`` (``--out`` folder,
 ``--repeats``, ``--robot``, ``--seed``, ``--devices``, ``--no-progress``, ``--markdown``) and
@@ -276,6 +276,29 @@ def _run_statics(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_tension(group: argparse._SubParsersAction) -> None:
+    p = group.add_parser("tension", help="tension-space planning and following under "
+                                         "gravity and a 5 g payload (Cosserat model)")
+    p.add_argument("--problems", type=int, default=20, help="planning problems (default 20)")
+    p.add_argument("--waypoints", type=int, default=100,
+                   help="waypoints of the followed path (default 100)")
+    add_common_options(p, "tension", repeats=3, robot=False, seed=True)
+    p.add_argument("--robot", default="tdcr2_rao2021",
+                   help="robot with a mechanics block and 2×3 tendons (default tdcr2_rao2021)")
+    p.set_defaults(run=_run_tension)
+
+
+def _run_tension(args: argparse.Namespace) -> int:
+    from ..bench.tension_motion import run_tension_motion_benchmark
+
+    _check_repeats(args)
+    run_tension_motion_benchmark(robot=args.robot, problems=args.problems,
+                                 waypoints=args.waypoints, repeats=args.repeats,
+                                 seed=args.seed, out=args.out)
+    _wrote(args, "tension")
+    return 0
+
+
 # ---------------------------------------------------------------- batch
 
 
@@ -345,5 +368,5 @@ def _run_startup(args: argparse.Namespace) -> int:
 
 
 BENCHMARKS = [_add_ik, _add_plan, _add_follow, _add_clearance, _add_batch, _add_statics,
-              _add_startup]
+              _add_tension, _add_startup]
 """The ``cr-nlp bench`` benchmarks, in ``--help`` order."""

@@ -16,6 +16,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from . import _tension_follow, _tension_ik
 from ._io import (
     UsageError,
     add_model_margin_option,
@@ -49,6 +50,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--csv", help="also write the tendon-length series (time_s, one column per "
                                  "tendon, m; with a calibrated robot also "
                                  "<tendon>_displacement, m) to this CSV file")
+    p.add_argument("--model", choices=("pcc", "cosserat"), default="pcc",
+                   help="pcc (default): configurations of the constant-curvature model; "
+                        "cosserat: tendon tensions on the Cosserat-rod model under loads "
+                        "(robot files with a mechanics block), result kind tension_follow")
+    _tension_ik.add_options(p)
+    _tension_follow.add_options(p)
     add_model_margin_option(p)
     p.set_defaults(run=run)
 
@@ -62,6 +69,8 @@ def run(args: argparse.Namespace) -> int:
 
     time_limit = time_limit_arg(args)
     robot = load_robot_arg(args.robot)
+    if args.model == "cosserat":
+        return _tension_follow.run(args, robot)
     scene = load_scene_arg(args.scene)
     path = load_path(resolve(args.path, "paths", "--path"))
     if args.dt is not None and not (math.isfinite(args.dt) and args.dt > 0):

@@ -18,6 +18,7 @@ import json
 import sys
 from pathlib import Path
 
+from . import _tension_follow, _tension_ik, _tension_plan
 from ._io import (
     add_model_margin_option,
     add_time_limit_option,
@@ -52,6 +53,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--csv", help="directory for one tendon-length CSV per result "
                                  "(problem_<i>.csv: time_s, then one column per tendon, m; "
                                  "with a calibrated robot also <tendon>_displacement, m)")
+    p.add_argument("--model", choices=("pcc", "cosserat"), default="pcc",
+                   help="pcc (default): configurations of the constant-curvature model; "
+                        "cosserat: tension trajectories on the Cosserat-rod model under "
+                        'loads, problems {"problems": [{"start": [N…], "goal": [N…]}]} '
+                        "(robot files with a mechanics block), result kind "
+                        "tension_trajectory")
+    _tension_ik.add_load_options(p)
+    _tension_follow.add_options(p)
+    _tension_plan.add_options(p)
     add_model_margin_option(p)
     p.set_defaults(run=run)
 
@@ -67,6 +77,8 @@ def run(args: argparse.Namespace) -> int:
 
     time_limit = time_limit_arg(args)
     robot = load_robot_arg(args.robot)
+    if args.model == "cosserat":
+        return _tension_plan.run(args, robot)
     scene = load_scene_arg(args.scene)
     starts, goals, horizon, dt = read_problems(resolve(args.problems, "problems", "--problems"))
     config = TrajectoryConfig(seed=args.seed)

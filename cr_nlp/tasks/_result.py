@@ -52,6 +52,8 @@ RESULT_KINDS: dict[str, str] = {
     "trajectory": "cr_nlp.tasks.trajectory:TrajectoryResult",
     "follow": "cr_nlp.tasks.follow:FollowResult",
     "tension_ik": "cr_nlp.tasks.tension_ik:TensionIKResult",
+    "tension_follow": "cr_nlp.tasks.tension_follow:TensionFollowResult",
+    "tension_trajectory": "cr_nlp.tasks.tension_trajectory:TensionTrajectoryResult",
 }
 """kind → "module:class" of its result class (imported on first use)."""
 

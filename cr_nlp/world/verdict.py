@@ -37,6 +37,7 @@ UNITS = {
     "self_clearance": "m below the safety margin",
     "tendon_speed": "m/s",
     "tendon_accel": "m/s²",
+    "tension_rate": "N/s",
 }
 """The violation families and the unit each is measured in."""
 
@@ -46,6 +47,7 @@ _NAMES = {
     "self_clearance": "the self-clearance",
     "tendon_speed": "the tendon speed limit",
     "tendon_accel": "the tendon acceleration limit",
+    "tension_rate": "the tension rate limit",
 }
 
 

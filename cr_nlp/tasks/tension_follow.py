@@ -1,0 +1,257 @@
+"""Path following in tension space on the Cosserat rod model: tendon tensions that put
+the tip at each waypoint of a reference path (positions, or poses) under gravity and
+loads, one quasi-static motion judged as a whole.
+
+Each waypoint is a tension-space IK problem (``tasks.tension_ik``: the LM over each tendon
+group's net pull moment, and M(0) where a force acts, one rod pass per residual). The
+path is solved in blocks of ``block`` consecutive waypoints in one batch, every waypoint of
+a block warm-started from the answer of the waypoint before the block (the first from the
+seed pool): neighbouring waypoints then land on the same branch of the redundant tension
+sets, so the tensions move continuously. A waypoint whose answer fails its own check is
+solved again from its predecessor's answer, then from the pool's nearer seeds.
+
+The verdict (``tasks._tension_motion.verify_tension_motion``) is independent of the LM: a
+fresh forward statics solve at every waypoint and at ``samples_between`` interpolated
+tension sets between each pair, converged; the tensions within [0, τ_max]; their rates
+within ``tension_rate_max``; python-fcl clearance of every solved backbone; and every
+waypoint's tip within ``tolerance``. Tensions and their rates are constraints the LM keeps
+(tensions: the least-tension map keeps them in the box) or the warm start favours (rates,
+clearance): a path that needs a faster change or passes an obstacle fails the verdict,
+naming where; it is not retimed or bent. There is no exact (Ipopt) stage: CasADi would
+need the rod's shooting as a graph, which ``model.cosserat`` does not export.
+
+Units: metres, radians, seconds, newtons, N·m, m/s².
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..model import Robot
+from ..model.loads import StaticLoads, static_loads
+from ..world.scene import Scene
+from ._result import Stage
+from ._tension_motion import TensionMotionVerification, verify_tension_motion
+from ._tension_motion_result import TensionFollowResult as TensionFollowResult
+from ._timing import StageTiming
+from .paths import ReferencePath, checked_path
+from .tension_ik import TensionIKConfig, TensionIKSolver
+
+
+@dataclass(frozen=True)
+class TensionFollowConfig:
+    """Settings of tension-space path following."""
+
+    tolerance: float = 1e-3
+    """A waypoint is reached when the fresh solve's tip is within this of it (m; with
+    orientations the pose error √(‖Δp‖² + (L·Δθ)²))."""
+    tension_rate_max: float = 50.0
+    """The largest |dτ/dt| of any tendon, N/s."""
+    safety_margin: float = 0.002
+    """δ, metres: the clearance kept from obstacles and between segments two apart."""
+    samples_between: int = 2
+    """Interpolated tension sets checked between consecutive waypoints."""
+    block: int = 8
+    """Waypoints solved together, each warm-started from the waypoint before the block."""
+    smooth_passes: int = 16
+    """Passes that re-solve the waypoint after a too-fast tension change from the one
+    before it (``TensionFollower._smooth``)."""
+    retry_seeds: int = 2
+    """Waypoints that fail are solved again from their predecessor, then from this many
+    further pool seeds."""
+    ik: TensionIKConfig = field(default_factory=lambda: TensionIKConfig(
+        tolerance=1e-4, pool_size=4096, retry_seeds=0))
+    """The per-waypoint tension IK (its pool seeds the first waypoint)."""
+
+
+def _reference(path: Any, dt: float | None) -> ReferencePath:
+    """A ``ReferencePath`` from a path, a file or bundled name, or (T, 3) positions (m)."""
+    if isinstance(path, (np.ndarray, list, tuple)):
+        positions = np.asarray(path, dtype=float)
+        if positions.ndim != 2 or positions.shape[1] != 3:
+            raise ValueError(f"path: expected (T, 3) positions in metres, got shape "
+                             f"{positions.shape}")
+        wxyz = np.tile([1.0, 0.0, 0.0, 0.0], (len(positions), 1))
+        path = ReferencePath("positions", positions, wxyz, 0.1 if dt is None else dt,
+                             np.ones(len(positions), bool))
+    return checked_path(path, dt)
+
+
+class TensionFollower:
+    """Tension-space path following of a robot with a ``mechanics`` block (numpy in/out)."""
+
+    def __init__(self, robot: Robot | str | dict, scene: Scene | str | None = None,
+                 config: TensionFollowConfig = TensionFollowConfig()) -> None:
+        self.config = config
+        self.ik = TensionIKSolver(robot, scene, config.ik)
+        self.robot, self.scene = self.ik.robot, self.ik.scene
+
+    def follow(self, path: Any, *, dt: float | None = None, orientation: bool = False,
+               tip_force: Any = None, tip_moment: Any = None, gravity: Any = None,
+               distributed_force: Any = None,
+               point_loads: Any = None) -> TensionFollowResult:
+        """Tensions for every waypoint of ``path``, judged as one motion.
+
+        Args:
+            path: a ``ReferencePath``, a path file or bundled name ("square", …), or
+                (T, 3) tip positions, m, world frame.
+            dt: seconds between waypoints (default: the path's own; 0.1 for positions).
+            orientation: also reach the path's orientations (default positions only).
+            tip_force, tip_moment, gravity, distributed_force: (3,) loads throughout the
+                motion, world frame: N, N·m, m/s², N/m (default none).
+            point_loads: ``[{"s": m, "force": [N], "moment": [N·m]}]``, world frame.
+
+        Returns:
+            ``TensionFollowResult``: tensions (T, n) N, the verdict's tip, backbone and
+            errors per waypoint, success and reason for the whole motion.
+
+        Raises:
+            ValueError: a malformed path or load (naming the waypoint or key).
+        """
+        start = time.perf_counter()
+        reference = _reference(path, dt)
+        count = len(reference)
+        loads = static_loads(1, self.ik.length, tip_force, tip_moment, gravity,
+                             distributed_force, point_loads)
+        positions = reference.positions
+        quats = (reference.wxyz if orientation else np.full((count, 4), np.nan))
+        timing = StageTiming()
+        tensions = self._sweep(positions, quats, loads)
+        tensions = self._retry(tensions, positions, quats, loads)
+        tensions = self._smooth(tensions, reference.dt, positions, quats, loads)
+        timing.refine = time.perf_counter() - start
+        start = time.perf_counter()
+        report = self.verify_tensions(tensions, reference.dt, loads)
+        result = self._result(tensions, reference, quats, loads, report)
+        timing.verify = time.perf_counter() - start
+        result.timing = timing
+        return result
+
+    def _sweep(self, positions: np.ndarray, quats: np.ndarray,
+               loads: StaticLoads) -> np.ndarray:
+        """Blocks of waypoints, each warm-started from the answer before it."""
+        count, block = len(positions), max(1, self.config.block)
+        tensions = np.zeros((count, self.robot.n_tendons))
+        previous = self.ik._seeds(positions[:1], loads, 0)
+        for first in range(0, count, block):
+            rows = np.arange(first, min(first + block, count))
+            tensions[rows] = self.ik._lm(np.repeat(previous, len(rows), axis=0),
+                                         positions[rows], quats[rows],
+                                         loads.rows(np.zeros(len(rows), int)))
+            previous = tensions[rows[-1:]]
+        return tensions
+
+    def _retry(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,
+               loads: StaticLoads) -> np.ndarray:
+        """Waypoints whose own check fails, again from their predecessor's answer, then
+        from further pool seeds; an attempt is kept where it passes its check (tip,
+        bounds, clearance of the scene), or fails it closer to the target."""
+        count = len(positions)
+        check = self.ik._verdict(tensions, positions, quats, loads.rows(np.zeros(count, int)),
+                                 StageTiming())
+        error = np.nan_to_num(check.pose_error, nan=np.inf)
+        for attempt in range(self.config.retry_seeds + 1):
+            failed = np.flatnonzero(~check.success)
+            if not failed.size:
+                break
+            part = loads.rows(np.zeros(len(failed), int))
+            seeds = (tensions[np.maximum(failed - 1, 0)] if attempt == 0
+                     else self.ik._seeds(positions[failed], part, attempt))
+            again = self.ik._lm(seeds, positions[failed], quats[failed], part)
+            judged = self.ik._verdict(again, positions[failed], quats[failed], part,
+                                      StageTiming())
+            new_error = np.nan_to_num(judged.pose_error, nan=np.inf)
+            # A check passed (e.g. another tension set for the same tip that is clear of
+            # the scene) beats any failed one; among failed ones the closer tip wins.
+            better = judged.success | (new_error < error[failed])
+            tensions[failed[better]] = again[better]
+            error[failed[better]] = new_error[better]
+            check.success[failed[better]] = judged.success[better]
+        return tensions
+
+    def _smooth(self, tensions: np.ndarray, dt: float, positions: np.ndarray,
+                quats: np.ndarray, loads: StaticLoads) -> np.ndarray:
+        """Where the tensions jump faster than ``tension_rate_max`` (a block's far
+        waypoints landed on another tension set for the same tip), the waypoint after the
+        jump is solved again from the one before it, pass after pass (each pass carries
+        the branch one waypoint on); an answer is kept where it passes its check and
+        slows the jump."""
+        rate_max = self.config.tension_rate_max
+        for _ in range(self.config.smooth_passes):
+            rate = np.max(np.abs(np.diff(tensions, axis=0)), axis=1) / dt
+            steps = np.flatnonzero(rate > rate_max)
+            if not steps.size:
+                break
+            rows = steps + 1
+            part = loads.rows(np.zeros(len(rows), int))
+            again = self.ik._lm(tensions[steps], positions[rows], quats[rows], part)
+            judged = self.ik._verdict(again, positions[rows], quats[rows], part,
+                                      StageTiming())
+            slower = np.max(np.abs(again - tensions[steps]), axis=1) / dt < rate[steps]
+            keep = judged.success & slower
+            if not keep.any():
+                break
+            tensions[rows[keep]] = again[keep]
+        return tensions
+
+    def verify_tensions(self, tensions: np.ndarray, dt: float,
+                        loads: StaticLoads) -> TensionMotionVerification:
+        """The independent check of a motion (``verify_tension_motion``) with this
+        follower's scene, margin and limits."""
+        cfg = self.config
+        return verify_tension_motion(self.robot, self.scene, tensions, dt, loads,
+                                     margin=cfg.safety_margin, rate_max=cfg.tension_rate_max,
+                                     samples_between=cfg.samples_between,
+                                     statics=cfg.ik.statics)
+
+    def verify(self, result: TensionFollowResult) -> TensionMotionVerification:
+        """The verdict of a result again, from its tensions and loads alone (a typed
+        report; ``result`` is not changed)."""
+        loads = static_loads(1, self.ik.length, **result.loads())
+        return self.verify_tensions(result.tensions, result.dt, loads)
+
+    def _result(self, tensions: np.ndarray, reference: ReferencePath, quats: np.ndarray,
+                loads: StaticLoads, report: TensionMotionVerification) -> TensionFollowResult:
+        """The result of a judged motion, with its tracking errors."""
+        position_error = np.linalg.norm(report.tip_position - reference.positions, axis=1)
+        oriented = ~np.any(np.isnan(quats), axis=1)
+        rotation_error = np.full(len(tensions), np.nan)
+        for i in np.flatnonzero(oriented):
+            w = np.abs(np.dot(quats[i], report.tip_wxyz[i]))
+            rotation_error[i] = 2.0 * np.arccos(np.clip(w, 0.0, 1.0))
+        pose_error = np.sqrt(position_error ** 2 + np.where(
+            oriented, self.ik.length * np.nan_to_num(rotation_error), 0.0) ** 2)
+        reached = pose_error <= self.config.tolerance
+        result = TensionFollowResult(
+            robot=self.robot, tensions=tensions, dt=reference.dt,
+            position=report.tip_position, wxyz=report.tip_wxyz, backbone=report.backbone,
+            clearance=report.clearance, min_clearance=report.min_clearance,
+            max_violation=report.max_violation, success=False, reason="",
+            tip_force=loads.tip_force[0], tip_moment=loads.tip_moment[0],
+            gravity=loads.gravity[0], distributed_force=loads.distributed_force[0],
+            point_loads=loads.point_load_lists()[0],
+            tension_rate_max=self.config.tension_rate_max, stage=Stage.REFINE,
+            target_position=reference.positions, target_wxyz=quats,
+            position_error=position_error, rotation_error=rotation_error, reached=reached,
+            tolerance=self.config.tolerance)
+        result.judged(report)
+        if not reached.all():
+            missed = np.flatnonzero(~reached)
+            words = (f"{len(missed)} of {len(reached)} waypoints not reached within "
+                     f"{self.config.tolerance:g} m (first: waypoint {missed[0]}, error "
+                     f"{pose_error[missed[0]]:.3g} m)")
+            result.reason = "; ".join(filter(None, [words, result.reason]))
+            result.success = False
+        return result
+
+
+def follow_tensions(robot: Robot | str | dict, path: Any, scene: Scene | str | None = None,
+                    **options: Any) -> TensionFollowResult:
+    """One-call tension-space path following with the default config (see
+    ``TensionFollower.follow``): a path of tip positions in metres (or poses), loads in N,
+    N·m, m/s², N/m; returns tensions per waypoint in N."""
+    return TensionFollower(robot, scene).follow(path, **options)

@@ -1,0 +1,295 @@
+"""Trajectory planning in tension space on the Cosserat rod model: from start tensions
+to goal tensions (N) under gravity and loads, collision-free along the quasi-static
+motion, within the tension bounds and the tension rate limit.
+
+Between waypoints the tensions move linearly and the robot passes through the equilibria
+of the interpolated tensions. A plan is a chain of straight legs in tension space: the
+direct leg start → goal, or, where that leg's motion is not clear, start → via → goal
+through the cheapest via tension set (fewest seconds at the rate limit) whose legs are
+clear. Via candidates come from a pool of random tension sets solved once per planner and
+load case, kept where the robot is clear of the scene. Each leg is cut into the fewest
+waypoints ``dt`` apart that keep every tendon's rate within ``tension_rate_max``, so the
+rate limit holds by construction, and a candidate is screened on exactly the samples the
+verdict checks: every waypoint and ``samples_between`` interpolated tension sets between
+each pair, each a forward statics solve and python-fcl on the solved backbone.
+
+The verdict is the one of every tension motion (``tasks._tension_motion``): a fresh
+solve at every checked sample, independent of the screening's. This planner is a search
+over straight-leg chains, not an optimisation: it does not shorten a plan beyond the
+choice of via point, and it finds no plan that needs two via points. There is no exact
+(Ipopt) stage: CasADi has no graph of the rod's shooting (``model.cosserat``).
+
+Units: newtons, N/s, seconds, metres.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..model import Robot, load_robot
+from ..model.cosserat import StaticsConfig
+from ..model.loads import StaticLoads, static_loads
+from ..world.scene import Scene, load_scene
+from ._result import Stage
+from ._tension_motion import interpolated, solve_and_check, verify_tension_motion
+from ._tension_motion_result import TensionTrajectoryResult as TensionTrajectoryResult
+from ._timing import StageTiming
+
+PROBLEM_KEYS = ("start", "goal")
+"""The keys of one problem of a tension problems file."""
+
+
+@dataclass(frozen=True)
+class TensionPlanConfig:
+    """Settings of tension-space trajectory planning."""
+
+    dt: float = 0.05
+    """Seconds between waypoints."""
+    tension_rate_max: float = 50.0
+    """The largest |dτ/dt| of any tendon, N/s."""
+    safety_margin: float = 0.002
+    """δ, metres: the clearance kept from obstacles and between segments two apart."""
+    samples_between: int = 2
+    """Interpolated tension sets checked between consecutive waypoints."""
+    via_pool: int = 512
+    """Random tension sets solved once per load case; the clear ones are via candidates."""
+    via_candidates: int = 16
+    """Via points screened per problem whose direct leg is not clear (cheapest first)."""
+    seed: int = 0
+    """Seed of the via pool."""
+    statics: StaticsConfig = StaticsConfig()
+    """The rod discretisation of every forward solve."""
+
+
+def check_tensions(robot: Robot, values: Any, where: str) -> np.ndarray:
+    """One tension set (n,) N, checked: the robot's tendon count, finite, in
+    [0, τ_max]. ``where`` names it in the error ("problem 3: start").
+
+    Raises:
+        ValueError: naming ``where``, the tendon and the problem.
+    """
+    n, tension_max = robot.n_tendons, float(robot.mechanics.tension_max)
+    if isinstance(values, (str, bytes, dict)) or not hasattr(values, "__len__"):
+        raise ValueError(f"{where}: expected a list of {n} tensions in N")
+    if len(values) != n:
+        raise ValueError(f"{where}: expected {n} tensions (the robot file's tendon order), "
+                         f"got {len(values)}")
+    out = np.zeros(n)
+    for j, value in enumerate(values):
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+            raise ValueError(f"{where}[{j}]: expected a number of newtons, got {value!r:.40}")
+        x = float(value)
+        if not math.isfinite(x) or x < 0.0:
+            raise ValueError(f"{where}[{j}]: a tension must be a finite number ≥ 0 N (a "
+                             f"tendon pulls), got {value!r:.40}")
+        if x > tension_max:
+            raise ValueError(f"{where}[{j}]: {x:g} N is above the robot's tension_max "
+                             f"{tension_max:g} N")
+        out[j] = x
+    return out
+
+
+def read_tension_problems(robot: Robot, source: str | Path | dict) -> tuple[np.ndarray,
+                                                                          np.ndarray]:
+    """(starts (B, n), goals (B, n)) N from ``{"problems": [{"start": [N…], "goal":
+    [N…]}]}`` (a file or its content), every entry checked.
+
+    Raises:
+        ValueError: one error naming the problem and the key.
+    """
+    data = source
+    if not isinstance(source, dict):
+        try:
+            data = json.loads(Path(source).read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{source}: not a readable JSON file ({exc})") from None
+    if not isinstance(data, dict) or set(data) != {"problems"} or not isinstance(
+            data["problems"], list):
+        raise ValueError('expected {"problems": [{"start": [N…], "goal": [N…]}, …]}')
+    starts, goals = [], []
+    for i, problem in enumerate(data["problems"]):
+        if not isinstance(problem, dict):
+            raise ValueError(f"problem {i}: expected an object with 'start' and 'goal'")
+        unknown = sorted(set(problem) - set(PROBLEM_KEYS))
+        if unknown:
+            raise ValueError(f"problem {i}: unknown key {unknown[0]!r} (a problem has "
+                             f"'start' and 'goal', tensions in N)")
+        for key in PROBLEM_KEYS:
+            if key not in problem:
+                raise ValueError(f"problem {i}: missing {key!r}")
+        starts.append(check_tensions(robot, problem["start"], f"problem {i}: start"))
+        goals.append(check_tensions(robot, problem["goal"], f"problem {i}: goal"))
+    n = robot.n_tendons
+    return np.reshape(starts, (-1, n)), np.reshape(goals, (-1, n))
+
+
+class TensionPlanner:
+    """Tension-space trajectory planning of a robot with a ``mechanics`` block."""
+
+    def __init__(self, robot: Robot | str | dict, scene: Scene | str | None = None,
+                 config: TensionPlanConfig = TensionPlanConfig()) -> None:
+        self.robot = load_robot(robot)
+        if self.robot.mechanics is None:
+            raise ValueError(f"{self.robot.name}: tension-space planning needs a 'mechanics' "
+                             "block in the robot file (see models/README.md)")
+        self.scene = None if scene is None else load_scene(scene)
+        self.config = config
+        self.length = float(sum(s.length_min for s in self.robot.segments))
+        self._vias: dict[bytes, np.ndarray] = {}
+
+    def _clear(self, samples: np.ndarray, loads: StaticLoads) -> np.ndarray:
+        """(k,) True where the solved robot of a tension set converged and keeps δ."""
+        solved, checked = solve_and_check(self.robot, self.scene, samples, loads,
+                                          self.config.statics)
+        margin = self.config.safety_margin
+        return (solved.converged & (checked.obstacle_distance >= margin)
+                & (checked.self_distance >= margin))
+
+    def _legs(self, points: list[np.ndarray]) -> np.ndarray:
+        """The waypoints of straight legs through ``points``, each cut so that no tendon
+        changes faster than the rate limit."""
+        step = self.config.tension_rate_max * self.config.dt * (1 - 1e-9)
+        out = [points[0][None]]
+        for a, b in zip(points[:-1], points[1:], strict=True):
+            count = max(1, math.ceil(float(np.max(np.abs(b - a))) / step))
+            out.append(a + np.linspace(0.0, 1.0, count + 1)[1:, None] * (b - a))
+        return np.concatenate(out)
+
+    def vias(self, loads: StaticLoads) -> np.ndarray:
+        """The via candidates under one load case: random tension sets (one or two
+        tendons of each segment slack) where the robot is clear, (V, n) N."""
+        key = b"".join(np.ascontiguousarray(a).tobytes() for a in loads.arrays())
+        if key not in self._vias:
+            rng = np.random.default_rng(self.config.seed)
+            per, n = self.robot.tendons.per_segment, self.robot.n_tendons
+            size = self.config.via_pool
+            tensions = rng.uniform(0.0, float(self.robot.mechanics.tension_max), (size, n))
+            for s in range(n // per):
+                tensions[np.arange(size), s * per + rng.integers(0, per, size)] = 0.0
+            self._vias[key] = tensions[self._clear(tensions, loads)]
+        return self._vias[key]
+
+    def _screen(self, plans: list[np.ndarray], loads: StaticLoads) -> np.ndarray:
+        """(len(plans),) True where every sample the verdict will check is clear (one
+        batch of forward solves for all plans)."""
+        samples = [interpolated(p, self.config.samples_between)[0] for p in plans]
+        if not samples:
+            return np.zeros(0, bool)
+        clear = self._clear(np.concatenate(samples), loads)
+        bounds = np.cumsum([0, *(len(s) for s in samples)])
+        return np.array([clear[a:b].all() for a, b in zip(bounds[:-1], bounds[1:],
+                                                          strict=True)])
+
+    def plan(self, starts: Any, goals: Any, *, tip_force: Any = None, tip_moment: Any = None,
+             gravity: Any = None, distributed_force: Any = None,
+             point_loads: Any = None) -> list[TensionTrajectoryResult]:
+        """A tension trajectory for every (start, goal) pair.
+
+        Args:
+            starts, goals: (B, n) or (n,) tensions, N, the robot file's tendon order.
+            tip_force, tip_moment, gravity, distributed_force: (3,) loads throughout, world
+                frame: N, N·m, m/s², N/m (default none).
+            point_loads: ``[{"s": m, "force": [N], "moment": [N·m]}]``, world frame.
+
+        Returns:
+            One ``TensionTrajectoryResult`` per problem, in order; a start or goal in
+            collision is refused (``Stage.REJECTED``) with its reason.
+
+        Raises:
+            ValueError: a malformed tension set or load (naming the problem and key).
+
+        Long: the search's three steps (endpoints, direct legs, via points) and the
+        verdict, in order, over the whole batch.
+        """
+        begin = time.perf_counter()
+        starts, goals = (np.atleast_2d(np.asarray(v, dtype=float)) for v in (starts, goals))
+        if starts.shape != goals.shape:
+            raise ValueError(f"starts {starts.shape} and goals {goals.shape} differ in shape")
+        for i in range(len(starts)):
+            check_tensions(self.robot, starts[i].tolist(), f"problem {i}: start")
+            check_tensions(self.robot, goals[i].tolist(), f"problem {i}: goal")
+        loads = static_loads(1, self.length, tip_force, tip_moment, gravity,
+                             distributed_force, point_loads)
+        count = len(starts)
+        ends_clear = (self._clear(np.concatenate([starts, goals]), loads).reshape(2, count)
+                      if count else np.zeros((2, 0), bool))
+        plans: list[np.ndarray | None] = [None] * count
+        notes: list[list[str]] = [[] for _ in range(count)]
+        valid = np.flatnonzero(ends_clear.all(axis=0))
+        direct = [self._legs([starts[i], goals[i]]) for i in valid]
+        for i, plan, ok in zip(valid, direct, self._screen(direct, loads), strict=True):
+            if ok:
+                plans[i], notes[i] = plan, ["direct leg"]
+        for i in valid:
+            if plans[i] is None:
+                plans[i], notes[i] = self._via_plan(starts[i], goals[i], loads)
+        timing = StageTiming(explore=time.perf_counter() - begin)
+        results = []
+        for i in range(count):
+            start = time.perf_counter()
+            results.append(self._result(i, starts[i], goals[i], ends_clear[:, i], plans[i],
+                                        notes[i], loads))
+            results[-1].timing = StageTiming(explore=timing.explore / max(count, 1),
+                                             verify=time.perf_counter() - start)
+        return results
+
+    def _via_plan(self, start: np.ndarray, goal: np.ndarray,
+                  loads: StaticLoads) -> tuple[np.ndarray, list[str]]:
+        """The cheapest clear start → via → goal among the best via candidates, else the
+        direct legs (which the verdict will fail, saying where)."""
+        vias = self.vias(loads)
+        cost = (np.max(np.abs(vias - start), axis=1) + np.max(np.abs(goal - vias), axis=1))
+        order = np.argsort(cost)[:self.config.via_candidates]
+        plans = [self._legs([start, vias[k], goal]) for k in order]
+        clear = self._screen(plans, loads)
+        if clear.any():
+            k = int(np.flatnonzero(clear)[0])
+            return plans[k], [f"via tension set {int(order[k])} of the pool"]
+        return self._legs([start, goal]), [
+            f"no clear via among the {len(order)} cheapest of {len(vias)} candidates"]
+
+    def _result(self, index: int, start: np.ndarray, goal: np.ndarray, ends_clear: np.ndarray,
+                plan: np.ndarray | None, notes: list[str],
+                loads: StaticLoads) -> TensionTrajectoryResult:
+        """The judged result of one problem (refused where an end is not clear)."""
+        cfg = self.config
+        tensions = np.stack([start, goal]) if plan is None else plan
+        report = verify_tension_motion(self.robot, self.scene, tensions, cfg.dt, loads,
+                                       margin=cfg.safety_margin,
+                                       rate_max=cfg.tension_rate_max,
+                                       samples_between=cfg.samples_between,
+                                       statics=cfg.statics)
+        result = TensionTrajectoryResult(
+            robot=self.robot, tensions=tensions, dt=cfg.dt, position=report.tip_position,
+            wxyz=report.tip_wxyz, backbone=report.backbone, clearance=report.clearance,
+            min_clearance=report.min_clearance, max_violation=report.max_violation,
+            success=False, reason="", tip_force=loads.tip_force[0],
+            tip_moment=loads.tip_moment[0], gravity=loads.gravity[0],
+            distributed_force=loads.distributed_force[0],
+            point_loads=loads.point_load_lists()[0], tension_rate_max=cfg.tension_rate_max,
+            stage=Stage.REFINE if plan is not None else Stage.REJECTED, notes=notes)
+        result.judged(report)
+        if plan is None:
+            which = " and ".join(k for k, ok in zip(("start", "goal"), ends_clear,
+                                                    strict=True) if not ok)
+            result.success = False
+            result.reason = (f"problem {index}: the {which} is not clear of the scene by "
+                             f"{cfg.safety_margin:g} m (or its statics did not converge)")
+        return result
+
+
+def plan_tensions(robot: Robot | str | dict, starts: Any, goals: Any,
+                  scene: Scene | str | None = None,
+                  **loads: Any) -> list[TensionTrajectoryResult]:
+    """One-call tension-space planning with the default config (see
+    ``TensionPlanner.plan``): start and goal tensions in newtons, loads in N, N·m, m/s²,
+    N/m (clearance in metres);
+    returns one trajectory of tensions (N) per problem."""
+    return TensionPlanner(robot, scene).plan(starts, goals, **loads)

@@ -1,0 +1,196 @@
+"""Path following (and its verdict) in tension space on the Cosserat model
+(``tasks.tension_follow``): a followed path under gravity and a payload re-solved by a
+fresh statics solve, bad input, the result file and the command. Small batches: one
+follower and one 24-waypoint path shared by the tests."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from cr_nlp import TensionFollower, TensionFollowResult, load_result
+from cr_nlp.model import load_robot
+from cr_nlp.model.statics import solve_statics
+from cr_nlp.world.check import check_chains
+
+RAO = load_robot("tdcr2_rao2021")
+GRAVITY = [0.0, 0.0, -9.81]
+PAYLOAD = [0.0, 0.0, -0.005 * 9.81]        # 5 g at the tip, N
+
+
+def _tension_path(count: int) -> np.ndarray:
+    """A smooth loop of tensions (N) on both segments."""
+    t = np.linspace(0.0, 1.0, count)[:, None]
+    return np.concatenate([2 + 2 * np.sin(2 * np.pi * t), 1 + np.cos(2 * np.pi * t), 0 * t,
+                           1 + t, 0 * t, 2 * t], axis=1)
+
+
+@pytest.fixture(scope="module")
+def path() -> np.ndarray:
+    truth = solve_statics(RAO, _tension_path(24), PAYLOAD, None, GRAVITY)
+    assert truth.converged.all()
+    return truth.tip_position
+
+
+@pytest.fixture(scope="module")
+def follower() -> TensionFollower:
+    return TensionFollower(RAO)
+
+
+@pytest.fixture(scope="module")
+def followed(follower: TensionFollower, path: np.ndarray) -> TensionFollowResult:
+    return follower.follow(path, dt=0.05, gravity=GRAVITY, tip_force=PAYLOAD)
+
+
+def test_followed_tips_by_fresh_statics_are_on_the_path(followed: TensionFollowResult,
+                                                       path: np.ndarray) -> None:
+    assert followed.success, followed.reason
+    again = solve_statics(RAO, followed.tensions, PAYLOAD, None, GRAVITY)
+    assert again.converged.all()
+    assert np.max(np.linalg.norm(again.tip_position - path, axis=1)) < 1e-3
+    assert np.all(followed.tensions >= 0) and np.all(followed.tensions <= 10.0)
+    rate = np.abs(np.diff(followed.tensions, axis=0)) / 0.05
+    assert rate.max() <= followed.tension_rate_max
+
+
+def test_an_obstacle_on_the_motion_fails_the_verdict(follower: TensionFollower,
+                                                     followed: TensionFollowResult) -> None:
+    middle = followed.backbone[12, 15]      # a point of the body at waypoint 12
+    scene = {"obstacles": [{"name": "ball", "type": "sphere", "center": middle.tolist(),
+                            "radius": 0.01}]}
+    blocked = TensionFollower(RAO, scene, follower.config)
+    report = blocked.verify(followed)
+    assert not report.success and "collision" in report.reason
+    # python-fcl on an independent solve of the same tensions agrees.
+    again = solve_statics(RAO, followed.tensions[12], PAYLOAD, None, GRAVITY)
+    assert check_chains(RAO, blocked.scene, again.positions, 10).collision[0]
+
+
+@pytest.mark.parametrize(("options", "words"), [
+    ({"tip_force": [0.0, -1.0]}, "tip_force"),
+    ({"point_loads": [{"s": 0.1, "force": [0, 0, -1], "mass": 1}]}, "mass"),
+    ({"point_loads": [{"s": 0.9, "force": [0, 0, -1]}]}, "outside the robot"),
+])
+def test_bad_loads_name_the_key(follower: TensionFollower, path: np.ndarray,
+                                options: dict, words: str) -> None:
+    with pytest.raises(ValueError, match=words):
+        follower.follow(path[:3], **options)
+
+
+def test_bad_path_names_the_waypoint(follower: TensionFollower, path: np.ndarray) -> None:
+    bad = path[:4].copy()
+    bad[2, 1] = np.nan
+    with pytest.raises(ValueError, match="waypoint 2"):
+        follower.follow(bad)
+    with pytest.raises(ValueError, match=r"\(T, 3\)"):
+        follower.follow(path[:4, :2])
+
+
+def test_verdict_rejects_a_negative_tension_and_a_fast_change(
+        follower: TensionFollower, followed: TensionFollowResult) -> None:
+    from cr_nlp.model.loads import static_loads
+
+    loads = static_loads(1, follower.ik.length, PAYLOAD, None, GRAVITY)
+    tensions = followed.tensions[:3].copy()
+    tensions[1, 0] = -0.5
+    with pytest.raises(ValueError, match="waypoint 1: tendon 1: a tension must be"):
+        follower.verify_tensions(tensions, 0.05, loads)
+    jump = followed.tensions[[0, 12]]
+    report = follower.verify_tensions(jump, 0.01, loads)
+    assert not report.success and "tension rate" in report.reason
+
+
+def test_result_file_round_trip(followed: TensionFollowResult, tmp_path) -> None:
+    path = followed.save(tmp_path / "R.json")
+    assert json.loads(path.read_text())["kind"] == "tension_follow"
+    back = load_result(path)
+    assert isinstance(back, TensionFollowResult)
+    np.testing.assert_array_equal(back.tensions, followed.tensions)
+    np.testing.assert_array_equal(back.backbone, followed.backbone)
+    assert back.success == followed.success and back.stage == followed.stage
+    assert back.loads()["gravity"].tolist() == GRAVITY
+    rows = followed.save_csv(tmp_path / "t.csv").read_text().splitlines()
+    assert rows[0].startswith("time_s,tension_1_N") and len(rows) == len(followed) + 1
+
+
+@pytest.mark.slow
+def test_cli_follow_model_cosserat(path: np.ndarray, tmp_path) -> None:
+    file = tmp_path / "path.json"
+    file.write_text(json.dumps({"dt": 0.05, "poses": [
+        {"position": p.tolist(), "wxyz": [1, 0, 0, 0]} for p in path[:8]]}))
+    out, table = tmp_path / "R.json", tmp_path / "t.csv"
+    run = subprocess.run([sys.executable, "-m", "cr_nlp.cli", "follow", "--model", "cosserat",
+                          "--robot", "tdcr2_rao2021", "--path", str(file), "--gravity",
+                          "0,0,-9.81", "--tip-force", "0,0,-0.04905", "--out", str(out),
+                          "--csv", str(table)], capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0, run.stderr
+    result = load_result(out)
+    assert result.kind == "tension_follow" and result.success, result.reason
+    assert len(table.read_text().splitlines()) == 9
+
+
+# ---------------------------------------------------------------- planning
+
+SCENE = {"obstacles": [
+    {"name": "ball", "type": "sphere", "center": [0.12, 0.0, 0.30], "radius": 0.03},
+    {"name": "crate", "type": "box", "center": [0.0, -0.2, 0.2], "size": [0.1, 0.04, 0.1]}]}
+
+
+@pytest.fixture(scope="module")
+def planner():
+    from cr_nlp import TensionPlanConfig, TensionPlanner
+
+    return TensionPlanner(RAO, SCENE, TensionPlanConfig(via_pool=128))
+
+
+def test_a_plan_replayed_through_fresh_statics_keeps_its_clearance(planner) -> None:
+    # The straight legs between these pairs pass through the scene: a via is needed.
+    starts = np.array([[0, 0, 0, 0, 0, 3.0], [0, 0, 0, 0, 0, 6.0]])
+    goals = np.array([[0, 6.0, 0, 0, 0, 3.0], [0, 6.0, 0, 0, 0, 0]])
+    straight = starts[:, None] + np.linspace(0, 1, 9)[None, :, None] * (goals - starts)[:, None]
+    direct = solve_statics(RAO, straight.reshape(-1, 6), PAYLOAD, None, GRAVITY)
+    assert check_chains(RAO, planner.scene, direct.positions, 10).obstacle_distance.min() < 0
+    results = planner.plan(starts, goals, gravity=GRAVITY, tip_force=PAYLOAD)
+    assert all(r.success and "via" in r.notes[0] for r in results), [
+        (r.reason, r.notes) for r in results]
+    for result, start, goal in zip(results, starts, goals, strict=True):
+        np.testing.assert_array_equal(result.tensions[[0, -1]], np.stack([start, goal]))
+        assert np.abs(np.diff(result.tensions, axis=0)).max() / result.dt <= 50.0
+        # Independent replay: statics at waypoints and midpoints, python-fcl on each.
+        mids = 0.5 * (result.tensions[1:] + result.tensions[:-1])
+        replay = solve_statics(RAO, np.concatenate([result.tensions, mids]), PAYLOAD, None,
+                               GRAVITY)
+        assert replay.converged.all()
+        checked = check_chains(RAO, planner.scene, replay.positions, 10)
+        assert checked.obstacle_distance.min() >= planner.config.safety_margin
+
+
+@pytest.mark.parametrize(("problem", "words"), [
+    ({"start": [1, 0, 0, 0, 0, -1], "goal": [0] * 6}, r"problem 0: start\[5\].*≥ 0 N"),
+    ({"start": [1, 0, 0], "goal": [0] * 6}, "problem 0: start: expected 6 tensions"),
+    ({"start": [0] * 6, "goal": [0] * 6, "via": [0] * 6}, "problem 0: unknown key 'via'"),
+])
+def test_bad_problems_name_the_problem_and_key(problem: dict, words: str) -> None:
+    from cr_nlp.tasks.tension_trajectory import read_tension_problems
+
+    with pytest.raises(ValueError, match=words):
+        read_tension_problems(RAO, {"problems": [problem]})
+
+
+def test_trajectories_file_round_trip(planner, tmp_path) -> None:
+    from cr_nlp import TensionTrajectoryResult, load_results
+    from cr_nlp.tasks._result import write_json
+    from cr_nlp.tasks._tension_motion_result import tension_trajectories_to_dict
+
+    results = planner.plan(np.zeros(6), [0, 1.0, 0, 0, 0, 0.5], gravity=GRAVITY)
+    path = tmp_path / "R.json"
+    write_json(tension_trajectories_to_dict(results, None, RAO), path)
+    back = load_results(path)
+    assert len(back) == 1 and isinstance(back[0], TensionTrajectoryResult)
+    assert back[0].kind == "tension_trajectory" and back[0].success == results[0].success
+    np.testing.assert_array_equal(back[0].tensions, results[0].tensions)
+    np.testing.assert_array_equal(back[0].backbone, results[0].backbone)
