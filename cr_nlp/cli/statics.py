@@ -108,16 +108,14 @@ def _cases_from_file(path: str, n_tendons: int, length: float = math.inf) -> Sta
 
 def _numbers(path: str, field: str, values: list, nonnegative: bool = False) -> list[float]:
     """Finite floats (≥ 0 with ``nonnegative``: tensions pull) of a cases file's list."""
+    from ..model.loads import finite_number
+
     out = []
     for j, value in enumerate(values):
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise UsageError(f"{path}: {field}[{j}]: expected a number, got {value!r:.40}")
         try:
-            x = float(value)
-        except OverflowError:  # an integer past float's range
-            x = math.inf
-        if not math.isfinite(x):
-            raise UsageError(f"{path}: {field}[{j}]: must be finite, got {value!r:.40}")
+            x = finite_number(value, f"{field}[{j}]")
+        except ValueError as exc:
+            raise UsageError(f"{path}: {exc}") from None
         if nonnegative and x < 0:
             raise UsageError(f"{path}: {field}[{j}]: a tension must not be negative (a "
                              f"tendon pulls), got {value!r}")

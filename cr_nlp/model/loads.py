@@ -100,7 +100,9 @@ def load_cases(value: Any, batch: int, size: int, name: str) -> np.ndarray:
     return np.array(arr)
 
 
-def _number(value: Any, where: str) -> float:
+def finite_number(value: Any, where: str) -> float:
+    """``value`` as a finite float; a bool, a non-number or a non-finite value raises a
+    ValueError naming ``where`` (an integer past float's range counts as infinite)."""
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise ValueError(f"{where}: expected a number, got {value!r:.40}")
     try:
@@ -117,7 +119,7 @@ def _vector(value: Any, where: str) -> list[float]:
         value = value.tolist()
     if not isinstance(value, (list, tuple)) or len(value) != 3:
         raise ValueError(f"{where}: expected 3 numbers, got {value!r:.60}")
-    return [_number(v, f"{where}[{j}]") for j, v in enumerate(value)]
+    return [finite_number(v, f"{where}[{j}]") for j, v in enumerate(value)]
 
 
 def parse_point_loads(value: Any, length: float, where: str) -> list[tuple[float, list, list]]:
@@ -140,7 +142,7 @@ def parse_point_loads(value: Any, length: float, where: str) -> list[tuple[float
                              "'force', 'moment')")
         if "s" not in load:
             raise ValueError(f"{here}.s: missing (the arc length from the base, m)")
-        s = _number(load["s"], f"{here}.s")
+        s = finite_number(load["s"], f"{here}.s")
         if s < 0.0 or s > length * (1 + 1e-12):
             raise ValueError(f"{here}.s: {s} m lies outside the robot (0 to its length "
                              f"{length:g} m)")
