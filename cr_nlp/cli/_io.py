@@ -203,6 +203,17 @@ def write_result(result: Any, path: str) -> None:
         result.save(path)
 
 
+def write_path_result(result: Any, out: str, csv: str | None) -> None:
+    """A path-following result to ``--out`` (its CSV time series where the name ends in
+    .csv, else ``write_result``) and, with ``--csv``, its time series there too."""
+    if Path(out).suffix == ".csv":
+        result.save_csv(out)
+    else:
+        write_result(result, out)
+    if csv:
+        result.save_csv(csv)
+
+
 def configurations_from_args(robot: Robot, q: str | None, q_file: str | None) -> np.ndarray:
     """(k, 3n) configurations from ``--q`` or ``--q-file`` ({"q": [[...], ...]})."""
     import numpy as np

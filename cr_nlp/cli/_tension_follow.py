@@ -5,9 +5,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-from ._io import UsageError, load_scene_arg, model_margin, resolve, write_result
+from ._io import UsageError, load_scene_arg, model_margin, resolve, write_path_result
 from ._tension_ik import loads_from_args, needs_mechanics
 
 
@@ -48,12 +47,7 @@ def run(args: argparse.Namespace, robot: object) -> int:
         result = follower.follow(path, dt=args.dt, orientation=args.orientation, **loads)
     except ValueError as exc:
         raise UsageError(f"--path: {exc}") from None
-    if Path(args.out).suffix == ".csv":
-        result.save_csv(args.out)
-    else:
-        write_result(result, args.out)
-    if args.csv:
-        result.save_csv(args.csv)
+    write_path_result(result, args.out, args.csv)
     s = result.summary()
     print(f"{robot.name} (Cosserat) on {path.name}: {s['reached']}/{s['waypoints']} waypoints "
           f"reached, position error max {s['max_position_error_mm']:.3g} mm, success "

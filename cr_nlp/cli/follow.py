@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 from . import _tension_follow, _tension_ik
 from ._io import (
@@ -26,7 +25,7 @@ from ._io import (
     model_margin,
     resolve,
     time_limit_arg,
-    write_result,
+    write_path_result,
 )
 
 
@@ -83,12 +82,7 @@ def run(args: argparse.Namespace) -> int:
                                  dt=args.dt)
     except ValueError as exc:
         raise UsageError(f"--path: {exc}") from None
-    if Path(args.out).suffix == ".csv":
-        result.save_csv(args.out)
-    else:
-        write_result(result, args.out)
-    if args.csv:
-        result.save_csv(args.csv)
+    write_path_result(result, args.out, args.csv)
     s, timing = result.summary(), result.timing
     print(f"{robot.name} on {path.name}: {s['reached']}/{s['waypoints']} waypoints reached, "
           f"position error mean {s['mean_position_error_mm']:.3g} mm (max "
