@@ -156,17 +156,10 @@ class TrajectoryConfig:
     chunk_size: int = 8
     """Most trajectories per compiled LM call: the slots of the continuous batching
     (``stages.refine._chain_stream``; split between its lanes, one per JAX device, at most
-    chunk_size // 2 lanes), or the chunk size with ``lm_schedule="chunks"``. Measured
+    chunk_size // 2 lanes), or the chunk size of the dense structure's fixed chunks. Measured
     on the 40 round-1 shelf trajectories (2-core CPU under a load of ~6, float32,
     interleaved, best of 5): 2, 4 and 8 slots took 6.0, 6.1 and 6.2 s in 38, 35 and 22
     device calls, 16 slots 14.3 s (more slots idle while the stream drains)."""
-    lm_schedule: str = "slots"
-    """How the banded LM runs a batch: "slots" (continuous batching: a finished
-    trajectory's slot is refilled with a waiting one at once, and the second round of
-    guesses joins the same stream) or "chunks" (fixed chunks, each running until its
-    slowest trajectory stops; the former schedule, kept for comparison). The answers are
-    the same; measured on 20 problems per bundled scene, chunks of 16 made 1.8–2.3× the
-    slot-trips (LM iterations × slots) of 8 slots and the LM took 1.5–2.3× as long."""
     dtype: str = "float32"
     """JAX dtype of the LM stage ("float64" needs jax_enable_x64)."""
     near_parts: int = 16
@@ -210,9 +203,6 @@ class TrajectoryConfig:
         if self.lm_structure not in ("banded", "dense"):
             raise ValueError(f"lm_structure must be 'banded' or 'dense', "
                              f"got {self.lm_structure!r}")
-        if self.lm_schedule not in ("slots", "chunks"):
-            raise ValueError(f"lm_schedule must be 'slots' or 'chunks', "
-                             f"got {self.lm_schedule!r}")
         if self.chunk_size < 1:
             raise ValueError(f"chunk_size must be ≥ 1, got {self.chunk_size}")
         if self.problem_chunk < 1:
@@ -370,7 +360,6 @@ class TrajectoryPlanner:
                                    config.interpolation_checks, float(self.margin), weights,
                                    config.tendon_limit_fraction),
             dense_project=partial(_project_waypoints, self.robot, n), extra=self.cells,
-            schedule=config.lm_schedule,
             config=LMConfig(cost_tolerance=0.0, give_up=config.give_up))
         """Stage 2 (``stages.refine._chain_stream``): the LM over a stream of trajectories."""
         self.last_programs = 0
