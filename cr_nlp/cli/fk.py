@@ -23,8 +23,10 @@ def run(args: argparse.Namespace) -> int:
 
     from ..model import backbone_points, tendon_lengths, tip_pose
     from ..model.rotations import wxyz_from_matrix
+    from ..model.routing import routing_of
 
     robot = load_robot_arg(args.robot)
+    routing = routing_of(robot)
     qs = configurations_from_args(robot, args.q, args.q_file)
     # numpy in: the model evaluates in float64 numpy (no float32 JAX noise in the output).
     pos, rot = tip_pose(robot, qs)
@@ -46,9 +48,9 @@ def run(args: argparse.Namespace) -> int:
         # 12 decimals: the float64 evaluation is good to ~1e-15 m (JSON has every digit).
         print("tip position   [{:.12f}, {:.12f}, {:.12f}] m".format(*rec["position"]))
         print("tip wxyz       [{:.12f}, {:.12f}, {:.12f}, {:.12f}]".format(*rec["wxyz"]))
-        m = robot.tendons.per_segment
-        for k in range(0, len(rec["tendon_lengths"]), m):
-            label = "tendons" if robot.tendons.routing == "shared" else f"tendons seg {k // m + 1}"
-            vals = ", ".join(f"{v:.12f}" for v in rec["tendon_lengths"][k: k + m])
+        for segment in np.unique(routing.anchor):   # one row per segment tendons end at
+            label = "tendons" if routing.shared else f"tendons seg {segment + 1}"
+            lengths = np.asarray(rec["tendon_lengths"])[routing.anchor == segment]
+            vals = ", ".join(f"{v:.12f}" for v in lengths)
             print(f"{label:<15}[{vals}] m")
     return 0

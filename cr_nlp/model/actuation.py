@@ -424,12 +424,12 @@ def _holding_tensions(robot: Robot, b: np.ndarray, c: np.ndarray,
                       u: np.ndarray) -> np.ndarray:
     """(N, n_tendons) the least tensions λ ≥ 0 (energy units per rad) that hold the
     bending vectors u (N, 2n) rad: c·u = Bᵀλ, from the tip segment down."""
-    n, m = robot.n_segments, robot.tendons.per_segment
+    anchor = _groups(robot)
     moment = c * u                                           # (N, 2n) = Bᵀ λ
     tension = np.zeros((len(u), robot.n_tendons))
     carried = np.zeros_like(moment)
-    for k in reversed(range(n)):
-        rows = slice(k * m, (k + 1) * m)
+    for k in reversed(range(robot.n_segments)):
+        rows = np.flatnonzero(anchor == k)                   # the tendons ending at k
         need = moment[:, 2 * k: 2 * k + 2] - carried[:, 2 * k: 2 * k + 2]
         dirs = b[rows, 2 * k: 2 * k + 2]                     # (m, 2)
         lam = _bracketing_tensions(need, dirs)

@@ -16,6 +16,8 @@ from typing import Protocol
 
 import numpy as np
 
+from ..runtime import cached
+
 
 class _Tendons(Protocol):
     per_segment: int
@@ -68,8 +70,10 @@ class TendonRouting:
         return self.slot_angle[:, None] + np.asarray(offsets, dtype=float)[self.owner]
 
 
+@cached(maxsize=64)
 def routing_of(robot: Robot) -> TendonRouting:
-    """The routing of ``robot``'s tendons (see the module)."""
+    """The routing of ``robot``'s tendons (see the module), derived once per robot (the
+    robot is frozen; the arrays are read-only, shared by every caller)."""
     n, m = robot.n_segments, robot.tendons.per_segment
     count = tendon_count(m, n, robot.tendons.routing)
     tendon = np.arange(count)
@@ -82,9 +86,11 @@ def routing_of(robot: Robot) -> TendonRouting:
     else:
         anchor = tendon // m
         owner = np.repeat(anchor[:, None], n, axis=1)
-    return TendonRouting(through=segment[None, :] <= anchor[:, None], anchor=anchor,
-                         slot=slot, owner=owner, slot_angle=slot * 2.0 * np.pi / m,
-                         shared=shared)
+    arrays = {"through": segment[None, :] <= anchor[:, None], "anchor": anchor,
+              "slot": slot, "owner": owner, "slot_angle": slot * 2.0 * np.pi / m}
+    for value in arrays.values():
+        value.flags.writeable = False
+    return TendonRouting(**arrays, shared=shared)
 
 
 def tendon_angles(robot: Robot) -> np.ndarray:
