@@ -56,6 +56,11 @@ class History:
         return out
 
 
+def _steps(values: tuple[float, ...]) -> list[float]:
+    """Differences of consecutive values."""
+    return [b - a for a, b in zip(values[:-1], values[1:], strict=True)]
+
+
 _HISTORY_KEYS = {"version", "kind", "widths", "weights", "model_error_mean",
                  "model_error_p95", "fold_score", "description"}
 
@@ -75,7 +80,7 @@ def parse_history(checker: Any, raw: Any, n_tendons: int) -> History:
     if not isinstance(raw_widths, list) or not raw_widths:
         raise checker.fail("actuation.history.widths", "expected a non-empty list of metres")
     widths = checker.vector(raw_widths, "actuation.history.widths", len(raw_widths))
-    if any(w <= 0 for w in widths) or any(b <= a for a, b in zip(widths, widths[1:])):
+    if any(w <= 0 for w in widths) or any(step <= 0 for step in _steps(widths)):
         raise checker.fail("actuation.history.widths",
                            f"must be positive and increasing, got {list(widths)}")
     rows = h["weights"]
