@@ -296,3 +296,45 @@ def calibrate_history(static: Robot, train: Measurements,
         robot = with_history(static, model)
     return HistoryCalibration(robot, model, folds, train_stats, val_stats,
                               time.perf_counter() - t0)
+
+
+@dataclass
+class Compensation:
+    """Motor commands for a planned shape sequence, without and with the history
+    compensation, and the tip error of each replayed through the history-aware model."""
+
+    planned_tip: np.ndarray
+    """(T, 3) the plan's measured point (tip marker) in the measurement frame, m."""
+    uncompensated: np.ndarray
+    """(T, n_tendons) the static model's commands for the plan, m (positive = pulled)."""
+    compensated: np.ndarray
+    """(T, n_tendons) the commands whose effective commands are the uncompensated ones, m."""
+    error_uncompensated: np.ndarray
+    """(T,) tip error of the uncompensated series through the history-aware model, m."""
+    error_compensated: np.ndarray
+    """(T,) tip error of the compensated series through the history-aware model, m."""
+
+
+def compensate_plan(robot: Robot, q: Any) -> Compensation:
+    """The command series that makes ``robot``'s history-aware model (its
+    ``actuation.history``) take the planned configurations q (T, 3n) (rad, rad, m) in
+    order, beside the static model's commands for them (``commands_for_configuration``),
+    with the predicted tip error of both (m). Raises ValueError without a history block or
+    with rows of q that are not finite (an IK target without an answer)."""
+    from ..model.actuation import commands_for_configuration, predict_tip
+    from ..model.hysteresis import compensate_commands, history_of
+
+    history = history_of(robot)
+    if history is None:
+        raise ValueError(f"{robot.name} has no actuation.history block: run cr-nlp "
+                         f"calibrate --history first")
+    q = np.atleast_2d(np.asarray(q, np.float64))
+    if not np.all(np.isfinite(q)):
+        raise ValueError("the plan has rows without a configuration (not finite)")
+    static = with_history(robot, None)
+    uncompensated = commands_for_configuration(static, q)
+    planned = predict_tip(static, uncompensated)
+    compensated = compensate_commands(history, uncompensated)
+    errors = [np.linalg.norm(predict_tip_series(robot, cmd) - planned, axis=1)
+              for cmd in (uncompensated, compensated)]
+    return Compensation(planned, uncompensated, compensated, *errors)
