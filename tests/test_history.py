@@ -169,3 +169,37 @@ def test_predict_history_none_is_the_static_model(tmp_path) -> None:
                      str(out), *option]) == 0
         np.testing.assert_allclose(np.loadtxt(out, delimiter=",", skiprows=1)[:, 1:],
                                    expected, atol=1e-12)
+
+
+def test_rows_out_of_time_order_are_named(tmp_path) -> None:
+    from cr_nlp.tasks.measurements import DataFileError, read_measurements
+
+    path = tmp_path / "late.csv"
+    path.write_text("timestamp,tendon_1,tip_x,tip_y,tip_z\n1,0,0,0,0\n2,0,0,0,0\n1.5,0,0,0,0\n")
+    with pytest.raises(DataFileError, match=r"late\.csv: column 'timestamp', row 3: earlier"):
+        read_measurements(path, 1, time_column="timestamp")
+    assert read_measurements(path, 1).times is None           # without it: file order
+
+
+@pytest.mark.slow  # a static calibration first (~20 s on 2 cores); the fit is tested above
+def test_calibrate_history_writes_the_block_and_the_report(tmp_path, capsys) -> None:
+    robot = with_history(_static(), _truth_history())
+    commands = _walk(240, 9)
+    tips = predict_tip_series(robot, commands)
+    path = tmp_path / "train.csv"
+    with open(path, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["timestamp", "pattern_label", *(f"tendon_{j}" for j in range(1, 10)),
+                         "tip_x", "tip_y", "tip_z"])
+        writer.writerows([[0.5 * t, f"rep1_block{t // 60}", *(1e3 * commands[t]),
+                           *(1e3 * tips[t])] for t in range(len(commands))])
+    out, report = tmp_path / "cal.json", tmp_path / "report"
+    assert main(["calibrate", "--robot", "ftdcr_v6_calibrated", "--data", str(path),
+                 "--units", "mm", "--out", str(out), "--report", str(report),
+                 "--history", "auto", "--fold-pattern", r"_(block\d)"]) == 0
+    saved = load_robot(out)
+    summary = json.loads((report / "report.json").read_text())
+    assert summary["history"]["folds"]["chosen"] != "none"
+    assert saved.actuation.history is not None
+    assert "history folds (leave one of block0, block1, block2, block3 out" in \
+        capsys.readouterr().out

@@ -124,15 +124,22 @@ def read_measurements(path: str | Path, n_tendons: int, *,
                 raise DataFileError(f"{source}: column {name!r}, row {row_number}: "
                                     f"{cell!r} is not a finite number")
             values[out, k] = x
-    times = values[:, -1].copy() if clock else None
-    if times is not None and np.any(np.diff(times) < 0):
-        row = int(np.flatnonzero(np.diff(times) < 0)[0]) + 2
-        raise DataFileError(f"{source}: column {time_column!r}, row {body[row - 1][0]}: "
-                            f"earlier than the row before (rows must be in time order)")
+    times = _in_time_order(values[:, -1], [k for k, _ in body], source, clock[0]) \
+        if clock else None
     values = values[:, :len(columns) + len(tips)] * UNITS[units]
     commands = values[:, :n_tendons]
     tip = values[:, n_tendons:] if tips else None
     return Measurements(commands, tip, source, times)
+
+
+def _in_time_order(times: np.ndarray, row_numbers: list[int], source: str,
+                   column: str) -> np.ndarray:
+    """``times`` (s), after checking that no row is earlier than the one before."""
+    late = np.flatnonzero(np.diff(times) < 0)
+    if late.size:
+        raise DataFileError(f"{source}: column {column!r}, row {row_numbers[late[0] + 1]}: "
+                            f"earlier than the row before (rows must be in time order)")
+    return times.copy()
 
 
 def read_labels(path: str | Path, column: str) -> np.ndarray | None:
