@@ -301,6 +301,9 @@ def add_data_options(p: Any) -> None:
                    help="measured tip columns x,y,z (default tip_x,tip_y,tip_z)")
     p.add_argument("--units", choices=["m", "mm"], default="m",
                    help="length unit of commands and tip in the file (default m)")
+    p.add_argument("--time-column", default="timestamp",
+                   help="with --history: the column of times (s) that orders the rows "
+                        "(default timestamp; a file without it is read in its own order)")
 
 
 def read_data_arg(robot: Robot, value: str, args: Any, *,
@@ -317,9 +320,11 @@ def read_data_arg(robot: Robot, value: str, args: Any, *,
         raise UsageError(str(exc)) from None
     columns = (args.tendon_columns.split(",") if args.tendon_columns else None)
     tips = args.tip_columns.split(",")
+    # Rows are a time series only for the history-aware model: --history none reads as before.
+    clock = args.time_column if getattr(args, "history", "none") != "none" else None
     try:
         return read_measurements(path, robot.n_tendons, tendon_columns=columns,
                                  tip_columns=tips, units=args.units,
-                                 require_tip=require_tip)
+                                 require_tip=require_tip, time_column=clock)
     except DataFileError as exc:
         raise UsageError(str(exc)) from None

@@ -4,10 +4,21 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .._files import atomic_open
-from ._io import add_data_options, load_robot_arg, read_data_arg
+from ._io import UsageError, add_data_options, load_robot_arg, read_data_arg
+
+if TYPE_CHECKING:
+    from ..model import Robot
+    from ..tasks.calibrate import ErrorStats
+    from ..tasks.history import HistoryCalibration
+    from ..tasks.measurements import Measurements
+
+HISTORY_NAMES = ("play1", "play2", "play3")
+"""The named history models (``tasks.history.VARIANTS``; here without importing JAX)."""
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -26,6 +37,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "'segments' (the default when given without a value) shortens the "
                         "segments, so plans' commands reproduce the tip only to ~1 mm; "
                         "'tendons' keeps their lengths and fits the tendons' take-up alone")
+    p.add_argument("--history", default="none", choices=("none", "auto", *HISTORY_NAMES),
+                   help="also fit a history-aware model (play operators on each tendon's "
+                        "command, rows in time order): 'auto' picks none, play1, play2 or "
+                        "play3 by leave-one-family-out folds of the training rows; default "
+                        "none (the static model alone)")
+    p.add_argument("--fold-column", default="pattern_label",
+                   help="with --history auto: the column whose text names each row's "
+                        "pattern family (default pattern_label; without it, 5 blocks of "
+                        "rows in time order)")
+    p.add_argument("--fold-pattern",
+                   help="a regular expression whose first group, found in --fold-column, "
+                        "is the family (e.g. '_(tendon|seg|pair\\d\\d)' for ftdcr_v6)")
     add_data_options(p)
     p.set_defaults(run=run)
 
@@ -41,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
                        CalibrationConfig(
                            axial_compression=args.axial_compression is not None,
                            axial_shortens_segments=args.axial_compression != "tendons"))
-    calibrated = result.robot.to_dict()
+    history = _fit_history(args, result.robot, train, val) if args.history != "none" else None
+    calibrated = (history.robot if history else result.robot).to_dict()
     calibrated["description"] = (f"{robot.name} calibrated by cr-nlp calibrate on "
                                  f"{Path(train.source).name} ({len(train)} rows; "
                                  f"validation error in actuation.model_error_*)")
@@ -57,11 +81,10 @@ def run(args: argparse.Namespace) -> int:
                          ("validation", result.validation)):
         if stats is None:
             continue
-        d = stats.to_dict()
-        mm = "".join(f"{d['mm'][k]:9.2f}"
-                     for k in ("mean", "median", "p95", "max", "rmse", "rmse_aligned"))
-        pct = " ".join(f"{d['percent_of_length'][k]:.1f}%" for k in ("mean", "p95"))
-        print(f"{label:<16}{stats.rows:>6}{mm}   ({pct})")
+        _print_row(label, stats)
+    if history is not None:
+        _print_history(history)
+        report["history"] = history.report()
     print("aligned: the RMSE after removing the rows' mean error vector (OpenCR-MuJoCo's "
           "metric)")
     sensitivity = report["zero_sensitivity_mm_per_mm"]["median"]
@@ -81,6 +104,48 @@ def run(args: argparse.Namespace) -> int:
         folder.mkdir(parents=True, exist_ok=True)
         with atomic_open(folder / "report.json") as handle:
             handle.write(json.dumps(report, indent=2) + "\n")
-        written = write_report_figures(result.robot, train, val, folder)
+        written = write_report_figures(result.robot, train, val, folder)  # the static model
         print(f"report → {folder / 'report.json'}, " + ", ".join(p.name for p in written))
     return 0
+
+
+def _print_row(label: str, stats: ErrorStats) -> None:
+    d = stats.to_dict()
+    mm = "".join(f"{d['mm'][k]:9.2f}"
+                 for k in ("mean", "median", "p95", "max", "rmse", "rmse_aligned"))
+    pct = " ".join(f"{d['percent_of_length'][k]:.1f}%" for k in ("mean", "p95"))
+    print(f"{label:<16}{stats.rows:>6}{mm}   ({pct})")
+
+
+def _fit_history(args: argparse.Namespace, static: Robot, train: Measurements,
+                 val: Measurements | None) -> HistoryCalibration:
+    """The history model of ``--history`` on the calibrated static robot
+    (``tasks.history.calibrate_history``), folds by ``--fold-column``/``--fold-pattern``."""
+    from ..tasks.history import calibrate_history, families_of, time_blocks
+    from ..tasks.measurements import read_labels
+
+    labels = read_labels(train.source, args.fold_column) if args.history == "auto" else None
+    try:
+        families = (families_of(labels, args.fold_pattern) if labels is not None
+                    else time_blocks(len(train)))
+    except (ValueError, re.error) as exc:
+        raise UsageError(f"--fold-pattern: {exc}") from None
+    return calibrate_history(static, train, val, args.history, families)
+
+
+def _print_history(history: HistoryCalibration) -> None:
+    model = history.history
+    if history.folds is not None:
+        folds = history.folds
+        scores = "  ".join(f"{name} {1e3 * folds.score(name):.2f}" for name in folds.errors)
+        print(f"history folds (leave one of {', '.join(folds.families)} out; held-out mean "
+              f"mm): {scores} → {folds.chosen} ({folds.seconds:.0f} s)")
+    if model is None:
+        print("history: none (the static model alone is saved)")
+        return
+    widths = ", ".join(f"{1e3 * w:.3g}" for w in model.widths)
+    print(f"history: {len(model.widths)} play operators per tendon, widths {widths} mm "
+          f"({history.seconds:.0f} s)")
+    _print_row("history (train)", history.train)
+    if history.validation is not None:
+        _print_row("history (valid.)", history.validation)

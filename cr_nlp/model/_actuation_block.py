@@ -10,9 +10,92 @@ from typing import Any
 NOMINAL_TENDON_STIFFNESS_RATIO = 100.0
 """κ without a calibration: tendons 100× stiffer than the backbone in bending."""
 
+HISTORY_VERSION = 1
+"""Version of the ``actuation.history`` block this code writes and reads."""
+
 NOMINAL_AXIAL_STIFFNESS_RATIO = 30.0
 """a where a calibration starts fitting axial compression (``calibrate``); a robot file
 without ``axial_stiffness_ratio`` has incompressible segments."""
+
+
+@dataclass(frozen=True)
+class History:
+    """The history-aware part of the actuation model (the ``actuation.history`` block,
+    ``model.hysteresis``): each tendon's command passes through K play (backlash)
+    operators of widths r_k before the static model, as a Prandtl–Ishlinskii sum
+
+        d_eff_j(t) = d_j(t) + Σ_k w_jk · (play_{r_k}(d_j)(t) − d_j(t)),
+
+    with w_jk ≥ 0 and Σ_k w_jk < 1, so d_eff rises strictly with d (the operator is
+    invertible: ``model.hysteresis.compensate_commands``)."""
+
+    widths: tuple[float, ...]
+    """Play widths r_k shared by every tendon, m (> 0, increasing)."""
+    weights: tuple[tuple[float, ...], ...]
+    """(n_tendons, K) weight of each play operator for each tendon (≥ 0, each row's sum
+    < 1; dimensionless)."""
+    kind: str = "play"
+    """The operator family; "play" is the only one."""
+    model_error_mean: float | None = None
+    """Mean tip error (m) of the history-aware model on the calibration's validation rows
+    (or its training rows)."""
+    model_error_p95: float | None = None
+    """95th-percentile tip error (m) of the history-aware model on the same rows."""
+    fold_score: float | None = None
+    """Mean held-out tip error (m) over the leave-one-family-out folds of the training rows
+    that chose this model (``tasks.history``), None when it was not chosen by folds."""
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON form of the ``history`` block (round-trips through ``parse_history``)."""
+        out: dict[str, Any] = {"version": HISTORY_VERSION, "kind": self.kind,
+                               "widths": list(self.widths),
+                               "weights": [list(row) for row in self.weights]}
+        for key in ("model_error_mean", "model_error_p95", "fold_score"):
+            if getattr(self, key) is not None:
+                out[key] = getattr(self, key)
+        return out
+
+
+def _steps(values: tuple[float, ...]) -> list[float]:
+    """Differences of consecutive values."""
+    return [b - a for a, b in zip(values[:-1], values[1:], strict=True)]
+
+
+_HISTORY_KEYS = {"version", "kind", "widths", "weights", "model_error_mean",
+                 "model_error_p95", "fold_score", "description"}
+
+
+def parse_history(checker: Any, raw: Any, n_tendons: int) -> History:
+    """The ``actuation.history`` block, checked field by field (``ModelFileError`` naming
+    the field)."""
+    h = checker.obj(raw, "actuation.history", _HISTORY_KEYS, {"version", "widths", "weights"})
+    version = checker.integer(h["version"], "actuation.history.version", 1, 10 ** 6)
+    if version != HISTORY_VERSION:
+        raise checker.fail("actuation.history.version",
+                           f"this cr_nlp reads version {HISTORY_VERSION}, got {version}")
+    kind = h.get("kind", "play")
+    if kind != "play":
+        raise checker.fail("actuation.history.kind", f"must be 'play', got {kind!r}")
+    raw_widths = h["widths"]
+    if not isinstance(raw_widths, list) or not raw_widths:
+        raise checker.fail("actuation.history.widths", "expected a non-empty list of metres")
+    widths = checker.vector(raw_widths, "actuation.history.widths", len(raw_widths))
+    if any(w <= 0 for w in widths) or any(step <= 0 for step in _steps(widths)):
+        raise checker.fail("actuation.history.widths",
+                           f"must be positive and increasing, got {list(widths)}")
+    rows = h["weights"]
+    if not isinstance(rows, list) or len(rows) != n_tendons:
+        raise checker.fail("actuation.history.weights",
+                           f"expected {n_tendons} rows (one per tendon) of {len(widths)} numbers")
+    weights = tuple(checker.vector(row, f"actuation.history.weights[{j}]", len(widths))
+                    for j, row in enumerate(rows))
+    for j, row in enumerate(weights):
+        if min(row) < 0 or sum(row) >= 1:
+            raise checker.fail(f"actuation.history.weights[{j}]",
+                               f"must be ≥ 0 with a sum below 1, got {list(row)}")
+    errors = {key: checker.number(h[key], f"actuation.history.{key}", nonnegative=True)
+              for key in ("model_error_mean", "model_error_p95", "fold_score") if key in h}
+    return History(widths, weights, kind, **errors)
 
 
 @dataclass(frozen=True)
@@ -48,6 +131,9 @@ class Actuation:
     """Mean tip error (m) of this model on the calibration's validation rows (or train)."""
     model_error_p95: float | None = None
     """95th percentile tip error (m), the figure ``--model-margin auto`` adds."""
+    history: History | None = None
+    """The history-aware correction (``cr-nlp calibrate --history``); None: the static
+    model alone (the model errors above are the static model's)."""
 
     @classmethod
     def nominal(cls, n_tendons: int, n_segments: int) -> Actuation:
@@ -74,13 +160,15 @@ class Actuation:
             out["model_error_mean"] = self.model_error_mean
         if self.model_error_p95 is not None:
             out["model_error_p95"] = self.model_error_p95
+        if self.history is not None:
+            out["history"] = self.history.to_dict()
         return out
 
 
 _ACTUATION_KEYS = {"zero_offsets", "gains", "tendon_angle_deltas", "segment_stiffness",
                    "tendon_stiffness_ratio", "axial_stiffness_ratio", "axial_shortens_segments",
                    "tip_marker",
-                   "model_error_mean", "model_error_p95", "description"}
+                   "model_error_mean", "model_error_p95", "history", "description"}
 
 
 def parse_actuation(checker: Any, raw: Any, n_tendons: int, n_segments: int) -> Actuation:
@@ -127,5 +215,6 @@ def parse_actuation(checker: Any, raw: Any, n_tendons: int, n_segments: int) -> 
         axial_stiffness_ratio=axial,
         axial_shortens_segments=shortens,
         tip_marker=vec("tip_marker", 3, 0.0),  # type: ignore[arg-type]
+        history=parse_history(checker, a["history"], n_tendons) if "history" in a else None,
         **errors,
     )

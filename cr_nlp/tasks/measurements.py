@@ -36,6 +36,9 @@ class Measurements:
     """(N, 3) measured tip positions in the measurement frame, m (None: not read)."""
     source: str = ""
     """The file the rows came from."""
+    times: np.ndarray | None = None
+    """(N,) the rows' times, s, non-decreasing (None: no time column was read; the file's
+    order is then the time order)."""
 
     def __len__(self) -> int:
         return len(self.commands)
@@ -52,7 +55,8 @@ DEFAULT_TIP_COLUMNS = ("tip_x", "tip_y", "tip_z")
 def read_measurements(path: str | Path, n_tendons: int, *,
                       tendon_columns: list[str] | None = None,
                       tip_columns: list[str] | tuple[str, ...] | None = DEFAULT_TIP_COLUMNS,
-                      units: str = "m", require_tip: bool = True) -> Measurements:
+                      units: str = "m", require_tip: bool = True,
+                      time_column: str | None = None) -> Measurements:
     """Read a measurement CSV (see the module docstring) into metres.
 
     Args:
@@ -62,10 +66,13 @@ def read_measurements(path: str | Path, n_tendons: int, *,
             ``tendon_1 … tendon_N``).
         tip_columns: the three measured-tip columns, or None to read commands only.
         units: "m" or "mm", for commands and tips alike.
+        time_column: a column of times (s) to read where the file has it; the rows must
+            be in time order (the history-aware model runs through them in that order).
 
     Raises:
         DataFileError: missing file or column, wrong tendon count, an empty file, a cell
-            that is not a finite number (naming file, column and data row, 1-based).
+            that is not a finite number (naming file, column and data row, 1-based), a
+            time earlier than the row before.
     """
     source = str(path)
     if units not in UNITS:
@@ -99,7 +106,8 @@ def read_measurements(path: str | Path, n_tendons: int, *,
     body = [(k + 1, r) for k, r in enumerate(rows[1:]) if any(cell.strip() for cell in r)]
     if not body:
         raise DataFileError(f"{source}: no data rows after the header")
-    wanted = columns + tips
+    clock = [time_column] if time_column and time_column in index else []
+    wanted = columns + tips + clock
     values = np.empty((len(body), len(wanted)))
     for out, (row_number, row) in enumerate(body):
         if len(row) != len(header):
@@ -116,10 +124,34 @@ def read_measurements(path: str | Path, n_tendons: int, *,
                 raise DataFileError(f"{source}: column {name!r}, row {row_number}: "
                                     f"{cell!r} is not a finite number")
             values[out, k] = x
-    values *= UNITS[units]
+    times = _in_time_order(values[:, -1], [k for k, _ in body], source, clock[0]) \
+        if clock else None
+    values = values[:, :len(columns) + len(tips)] * UNITS[units]
     commands = values[:, :n_tendons]
     tip = values[:, n_tendons:] if tips else None
-    return Measurements(commands, tip, source)
+    return Measurements(commands, tip, source, times)
+
+
+def _in_time_order(times: np.ndarray, row_numbers: list[int], source: str,
+                   column: str) -> np.ndarray:
+    """``times`` (s), after checking that no row is earlier than the one before."""
+    late = np.flatnonzero(np.diff(times) < 0)
+    if late.size:
+        raise DataFileError(f"{source}: column {column!r}, row {row_numbers[late[0] + 1]}: "
+                            f"earlier than the row before (rows must be in time order)")
+    return times.copy()
+
+
+def read_labels(path: str | Path, column: str) -> np.ndarray | None:
+    """(N,) the text of ``column`` in each data row of a measurement CSV (rows as
+    ``read_measurements`` reads them), None when the file has no such column."""
+    with open(path, newline="") as handle:
+        rows = list(csv.reader(handle))
+    header = [h.strip() for h in rows[0]] if rows else []
+    if column not in header:
+        return None
+    k = header.index(column)
+    return np.array([r[k].strip() for r in rows[1:] if any(cell.strip() for cell in r)])
 
 
 def write_tip_csv(path: str | Path, tip: np.ndarray, units: str = "m",
