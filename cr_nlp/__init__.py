@@ -67,6 +67,7 @@ _PUBLIC = {
     "TensionPlanner": ".tasks.tension_trajectory",
     "TensionTrajectoryResult": ".tasks.tension_trajectory",
     "plan_tensions": ".tasks.tension_trajectory",
+    "replay_pcc_motion": ".tasks.tension_trajectory",
     "TrajectoryConfig": ".tasks.trajectory",
     "TrajectoryPlanner": ".tasks.trajectory",
     "TrajectoryResult": ".tasks.trajectory",
@@ -147,6 +148,7 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from .tasks.tension_trajectory import TensionPlanner as TensionPlanner
     from .tasks.tension_trajectory import TensionTrajectoryResult as TensionTrajectoryResult
     from .tasks.tension_trajectory import plan_tensions as plan_tensions
+    from .tasks.tension_trajectory import replay_pcc_motion as replay_pcc_motion
     from .tasks.trajectory import TrajectoryConfig as TrajectoryConfig
     from .tasks.trajectory import TrajectoryPlanner as TrajectoryPlanner
     from .tasks.trajectory import TrajectoryResult as TrajectoryResult

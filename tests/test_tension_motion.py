@@ -194,3 +194,69 @@ def test_trajectories_file_round_trip(planner, tmp_path) -> None:
     assert back[0].kind == "tension_trajectory" and back[0].success == results[0].success
     np.testing.assert_array_equal(back[0].tensions, results[0].tensions)
     np.testing.assert_array_equal(back[0].backbone, results[0].backbone)
+
+
+# ---------------------------------------------------------------- a PCC plan under load
+
+def test_tensions_of_a_configuration_round_trip() -> None:
+    from cr_nlp.model.tendon_groups import configuration_of_tensions, tensions_of_configuration
+
+    rng = np.random.default_rng(3)
+    tensions = rng.uniform(0.0, 5.0, (20, 6))
+    q = configuration_of_tensions(RAO, tensions)
+    least, missed = tensions_of_configuration(RAO, q)
+    assert least.dtype == np.float64 and missed.max() < 1e-12
+    np.testing.assert_allclose(configuration_of_tensions(RAO, least), q, atol=1e-12)
+    # the least tensions: never more total pull than the set that made the shape
+    assert (least.sum(axis=1) <= tensions.sum(axis=1) + 1e-9).all()
+    # the unloaded rod (independent: the Cosserat shooting) takes the PCC shape
+    from cr_nlp.model import tip_pose
+
+    solved = solve_statics(RAO, least)
+    pcc_tips = np.array([tip_pose(RAO, x)[0] for x in q])
+    assert np.linalg.norm(solved.tip_position - pcc_tips, axis=1).max() < 1e-4
+    # a bend the tension limit cannot hold is reported, not clipped silently
+    _, missed = tensions_of_configuration(RAO, [3.0, 0.0, 0.2, 0.0, 0.0, 0.2])
+    assert missed > 0.1
+
+
+# A PCC motion sweeping segment 1 from 0.6 to 0.9 rad and segment 2 to 0.3 rad towards +x;
+# the ball sits clear of it (by the PCC model) and where the sagging tip goes under gravity.
+PCC_MOTION = (np.array([0.6, 0.0, 0.2, 0.0, 0.0, 0.2])
+              + np.linspace(0.0, 1.0, 8)[:, None] * np.array([0.3, 0.0, 0.0, 0.3, 0.0, 0.0]))
+SAG_SCENE = {"obstacles": [{"name": "ball", "type": "sphere", "center": [0.30, 0.0, 0.17],
+                            "radius": 0.03}]}
+
+
+def test_a_pcc_plan_replayed_under_gravity_shows_the_error() -> None:
+    from cr_nlp import check_many, load_scene, replay_pcc_motion, tip_pose
+
+    scene = load_scene(SAG_SCENE)
+    pcc_clearance = check_many(RAO, scene, PCC_MOTION).obstacle_distance
+    pcc_tips = np.array([tip_pose(RAO, x)[0] for x in PCC_MOTION])
+    assert pcc_clearance.min() > 0.05                      # python-fcl on the PCC shapes
+    free = replay_pcc_motion(RAO, PCC_MOTION, scene, dt=0.1)
+    assert free.success, free.reason
+    assert np.linalg.norm(free.position - pcc_tips, axis=1).max() < 1e-4
+    np.testing.assert_allclose(free.clearance, pcc_clearance, atol=1e-4)
+    loaded = replay_pcc_motion(RAO, PCC_MOTION, scene, dt=0.1, gravity=GRAVITY)
+    assert not loaded.success and "collision" in loaded.reason, loaded.reason
+    assert loaded.min_clearance < 0.0 and loaded.violations["clearance"] > 0.0
+    sag = np.linalg.norm(loaded.position - pcc_tips, axis=1)
+    assert sag.min() > 0.05                                # m: the robot sags by > 5 cm
+    # the reported tips are the statics of the replayed tensions (a fresh solve)
+    again = solve_statics(RAO, loaded.tensions, gravity=GRAVITY)
+    np.testing.assert_allclose(loaded.position, again.tip_position, atol=1e-9)
+
+
+def test_a_replay_names_the_waypoint_no_tension_reaches() -> None:
+    from cr_nlp import replay_pcc_motion
+
+    motion = PCC_MOTION.copy()
+    motion[5, 0] = 3.0                                     # rad: beyond τ_max
+    result = replay_pcc_motion(RAO, motion, dt=0.1)
+    assert not result.success and result.reason.startswith("waypoint 5:"), result.reason
+    with pytest.raises(ValueError, match="dt"):
+        replay_pcc_motion(RAO, motion)
+    with pytest.raises(ValueError, match="configurations"):
+        replay_pcc_motion(RAO, motion[:, :3], dt=0.1)

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..runtime import cached
+from .mechanics import require_mechanics
 from .robot import Robot
 from .routing import routing_of
 
@@ -81,10 +82,7 @@ class _Layout(NamedTuple):
 def _layout(robot: Robot, config: StaticsConfig, coarse: bool = False) -> _Layout:
     """The integration grid. ``coarse``: half the steps, placed regardless of the disks
     (whose masses then fall inside steps): the grid of the shooting's Jacobian passes."""
-    mech = robot.mechanics
-    if mech is None:
-        raise ValueError(f"{robot.name}: the robot file has no 'mechanics' block; the "
-                         "Cosserat statics need one (see models/README.md)")
+    mech = require_mechanics(robot, "the Cosserat statics")
     if any(s.extendable for s in robot.segments):
         raise ValueError(f"{robot.name}: the Cosserat statics need fixed segment lengths")
     tendons = routing_of(robot)

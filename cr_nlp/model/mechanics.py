@@ -20,6 +20,19 @@ MAX_DISKS_PER_SEGMENT = 1000
 _REQUIRED = {"youngs_modulus", "poisson_ratio", "backbone_outer_radius"}
 
 
+def require_mechanics(robot: Any, needs: str) -> Mechanics:
+    """The robot's ``mechanics`` block; ``needs`` names what asks for it ("tension-space
+    IK") in the error.
+
+    Raises:
+        ValueError: the robot file has no ``mechanics`` block.
+    """
+    if robot.mechanics is None:
+        raise ValueError(f"{robot.name}: {needs} needs a 'mechanics' block in the robot file "
+                         "(see models/README.md)")
+    return robot.mechanics
+
+
 @dataclass(frozen=True)
 class Mechanics:
     """Material and mass data of the backbone (the robot file's ``mechanics`` block)."""

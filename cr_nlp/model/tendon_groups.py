@@ -11,12 +11,14 @@ piecewise linear, a 2×2 solve per group). Units: newtons, metres, N·m.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from functools import partial
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .mechanics import require_mechanics
 from .robot import Robot
 from .routing import routing_of
 
@@ -74,3 +76,76 @@ def moments_from_tensions(groups: TendonGroups, tensions: np.ndarray) -> np.ndar
     """(B, G, 2) net pull moments of tension sets (B, n), N·m (the map's inverse on its
     least-tension sets, and a seed for any set)."""
     return np.einsum("bgm,gmk->bgk", tensions[:, groups.index], groups.pull)
+
+
+# ------------------------------------------------ PCC configurations and tensions, unloaded
+def bending_per_tension(robot: Robot) -> np.ndarray:
+    """(2S, n) rad/N: the bending vectors u = (ux₁, uy₁, …) of the unloaded rod per unit
+    tension, u = B τ.
+
+    Closed form (parallel routing, no loads): tension τ_j pulls its tendon by d = A u
+    (A = ∂d/∂u, m/rad, exact from the PCC tendon lengths), so by virtual work it loads the
+    bending vectors with the moments Aᵀτ (N·m), and segment i resists with EI / L_i; the
+    Cosserat rod agrees to its axial compression (micrometres, notebook 04)."""
+    stiffness = require_mechanics(robot, "the tensions of a configuration").bending_stiffness
+    from .kinematics import tendon_lengths, z_to_q_numpy
+
+    lengths = np.array([s.length_min for s in robot.segments])
+    count = len(lengths)
+
+    def configuration(u: np.ndarray) -> np.ndarray:
+        return z_to_q_numpy(np.insert(u.reshape(count, 2), 2, lengths, axis=1).reshape(-1))
+
+    straight = np.asarray(tendon_lengths(robot, configuration(np.zeros(2 * count))))
+    pull = np.stack([straight - np.asarray(tendon_lengths(robot, configuration(e)))
+                     for e in np.eye(2 * count)], axis=1)            # (n, 2S) m/rad
+    return np.repeat(lengths, 2)[:, None] / stiffness * pull.T
+
+
+def configuration_of_tensions(robot: Robot, tensions: Any) -> np.ndarray:
+    """The PCC configuration (…, 3S) (θ rad, φ rad, L m) the unloaded rod takes under
+    tendon tensions (…, n) N, the robot file's tendon order (``bending_per_tension``)."""
+    from .kinematics import z_to_q_numpy
+
+    u = np.asarray(tensions, dtype=float) @ bending_per_tension(robot).T
+    lengths = np.array([s.length_min for s in robot.segments])
+    z = np.concatenate([u.reshape(*u.shape[:-1], -1, 2),
+                        np.broadcast_to(lengths[:, None], (*u.shape[:-1], len(lengths), 1))],
+                       axis=-1)
+    return z_to_q_numpy(z.reshape(*u.shape[:-1], -1))
+
+
+def tensions_of_configuration(robot: Robot, q: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The least tensions (…, n) N whose unloaded rod takes PCC configuration q (…, 3S)
+    (θ rad, φ rad, L m), and (…,) the bending each misses, rad (0 where q is reachable:
+    every tension within [0, τ_max] and one independent group per segment).
+
+    Per tendon group the two neighbouring tendons enclosing the needed net moment carry
+    it (``tensions_from_moments``), so the answer is continuous along a path of q.
+
+    Raises:
+        ValueError: no ``mechanics`` block, or fewer than three tendons per group.
+    """
+    from .kinematics import q_to_z_numpy
+
+    groups = tendon_groups(robot)
+    if groups is None:
+        raise ValueError(f"{robot.name}: the tensions of a configuration need at least "
+                         "three tendons per group")
+    per_tension = bending_per_tension(robot)                          # (2S, n)
+    q = np.asarray(q, dtype=float)
+    u = q_to_z_numpy(q).reshape(*q.shape[:-1], -1, 3)[..., :2].reshape(*q.shape[:-1], -1)
+    # u depends on the tensions only through the groups' net moments D: u = C D
+    moments = np.zeros((2 * len(groups.index), robot.n_tendons))
+    for g, index in enumerate(groups.index):
+        moments[2 * g:2 * g + 2, index] = groups.pull[g].T
+    per_moment = per_tension @ np.linalg.pinv(moments)               # (2S, 2G)
+    needed = np.linalg.lstsq(per_moment, u.reshape(-1, u.shape[-1]).T, rcond=None)[0].T
+    least = partial(tensions_from_moments, groups, robot.n_tendons,
+                    float(robot.mechanics.tension_max))
+    with jax.enable_x64(True):
+        tensions = np.asarray(jax.vmap(least)(jnp.asarray(needed.reshape(len(needed), -1, 2))),
+                              dtype=np.float64)
+    tensions = tensions.reshape(*q.shape[:-1], robot.n_tendons)
+    missed = np.linalg.norm(tensions @ per_tension.T - u, axis=-1)
+    return tensions, missed

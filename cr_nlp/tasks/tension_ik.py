@@ -49,6 +49,7 @@ from ..model import Robot, load_robot
 from ..model.cosserat import CaseLoads, StaticsConfig, StaticsResult, moment_scale
 from ..model.cosserat import tip_equilibrium as _tip_equilibrium
 from ..model.loads import StaticLoads, static_loads
+from ..model.mechanics import require_mechanics
 from ..model.rotations import matrix_from_wxyz
 from ..model.statics import solve_statics
 from ..model.tendon_groups import (
@@ -145,9 +146,7 @@ class TensionIKSolver:
                  config: TensionIKConfig = TensionIKConfig()) -> None:
         configure()
         self.robot = load_robot(robot)
-        if self.robot.mechanics is None:
-            raise ValueError(f"{self.robot.name}: tension-space IK needs a 'mechanics' block "
-                             "in the robot file (see models/README.md)")
+        require_mechanics(self.robot, "tension-space IK")
         self.scene = None if scene is None else load_scene(scene)
         self.config = config
         self.tension_max = float(self.robot.mechanics.tension_max)

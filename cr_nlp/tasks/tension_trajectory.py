@@ -36,6 +36,8 @@ import numpy as np
 from ..model import Robot, load_robot
 from ..model.cosserat import StaticsConfig
 from ..model.loads import StaticLoads, static_loads
+from ..model.mechanics import require_mechanics
+from ..model.tendon_groups import tensions_of_configuration
 from ..world.scene import Scene, load_scene
 from ._result import Stage
 from ._tension_motion import interpolated, solve_and_check, verify_tension_motion
@@ -136,9 +138,7 @@ class TensionPlanner:
     def __init__(self, robot: Robot | str | dict, scene: Scene | str | None = None,
                  config: TensionPlanConfig = TensionPlanConfig()) -> None:
         self.robot = load_robot(robot)
-        if self.robot.mechanics is None:
-            raise ValueError(f"{self.robot.name}: tension-space planning needs a 'mechanics' "
-                             "block in the robot file (see models/README.md)")
+        require_mechanics(self.robot, "tension-space planning")
         self.scene = None if scene is None else load_scene(scene)
         self.config = config
         self.length = float(sum(s.length_min for s in self.robot.segments))
@@ -255,19 +255,66 @@ class TensionPlanner:
         return self._legs([start, goal]), [
             f"no clear via among the {len(order)} cheapest of {len(vias)} candidates"]
 
+    def replay(self, motion: Any, dt: float | None = None, *, tip_force: Any = None,
+               tip_moment: Any = None, gravity: Any = None, distributed_force: Any = None,
+               point_loads: Any = None) -> TensionTrajectoryResult:
+        """A PCC motion replayed through the mechanics model under loads: what the robot
+        does when a geometric plan is executed by tensions.
+
+        At each waypoint the tendons get the least tensions whose unloaded rod takes the
+        waypoint's PCC shape (``model.tendon_groups.tensions_of_configuration``, closed
+        form); the result is that tension motion judged like every plan of this planner
+        (fresh statics under the loads at every waypoint and between them, python-fcl on
+        the solved backbone, tension bounds and rates). Without loads its tips are the PCC
+        tips to the rod's axial compression (micrometres); with loads, the distance
+        between the two is what the PCC plan leaves out.
+
+        Args:
+            motion: a ``TrajectoryResult`` or ``FollowResult`` (its ``q``), or PCC
+                configurations (T, 3S) (θ rad, φ rad, L m).
+            dt: seconds between waypoints (default: the result's ``dt``).
+            tip_force, tip_moment, gravity, distributed_force, point_loads: as ``plan``.
+
+        Returns:
+            A ``TensionTrajectoryResult``; a waypoint that no tensions within [0, τ_max]
+            reach fails it, named in ``reason``.
+
+        Raises:
+            ValueError: no configurations, or no ``dt``.
+        """
+        q = np.atleast_2d(np.asarray(getattr(motion, "q", motion), dtype=float))
+        dt = getattr(motion, "dt", None) if dt is None else dt
+        if dt is None or not math.isfinite(float(dt)) or float(dt) <= 0.0:
+            raise ValueError("replay: give dt > 0 (seconds between waypoints)")
+        if q.ndim != 2 or len(q) == 0 or q.shape[1] != 3 * self.robot.n_segments:
+            raise ValueError(f"replay: expected configurations (T, {3 * self.robot.n_segments}),"
+                             f" got {q.shape}")
+        tensions, missed = tensions_of_configuration(self.robot, q)
+        loads = static_loads(1, self.length, tip_force, tip_moment, gravity,
+                             distributed_force, point_loads)
+        result = self._result(0, tensions[0], tensions[-1], np.ones(2, bool), tensions,
+                              ["replay of a PCC motion"], loads, dt=float(dt))
+        far = np.flatnonzero(missed > 1e-6)
+        if far.size:
+            result.success = False
+            result.reason = (f"waypoint {far[0]}: no tensions within [0, τ_max] give its PCC "
+                             f"shape (misses it by {missed[far[0]]:.3g} rad)")
+        return result
+
     def _result(self, index: int, start: np.ndarray, goal: np.ndarray, ends_clear: np.ndarray,
-                plan: np.ndarray | None, notes: list[str],
-                loads: StaticLoads) -> TensionTrajectoryResult:
+                plan: np.ndarray | None, notes: list[str], loads: StaticLoads,
+                dt: float | None = None) -> TensionTrajectoryResult:
         """The judged result of one problem (refused where an end is not clear)."""
         cfg = self.config
+        dt = cfg.dt if dt is None else dt
         tensions = np.stack([start, goal]) if plan is None else plan
-        report = verify_tension_motion(self.robot, self.scene, tensions, cfg.dt, loads,
+        report = verify_tension_motion(self.robot, self.scene, tensions, dt, loads,
                                        margin=cfg.safety_margin,
                                        rate_max=cfg.tension_rate_max,
                                        samples_between=cfg.samples_between,
                                        statics=cfg.statics)
         result = TensionTrajectoryResult(
-            robot=self.robot, tensions=tensions, dt=cfg.dt, position=report.tip_position,
+            robot=self.robot, tensions=tensions, dt=dt, position=report.tip_position,
             wxyz=report.tip_wxyz, backbone=report.backbone, clearance=report.clearance,
             min_clearance=report.min_clearance, max_violation=report.max_violation,
             success=False, reason="", tip_force=loads.tip_force[0],
@@ -293,3 +340,11 @@ def plan_tensions(robot: Robot | str | dict, starts: Any, goals: Any,
     N/m (clearance in metres);
     returns one trajectory of tensions (N) per problem."""
     return TensionPlanner(robot, scene).plan(starts, goals, **loads)
+
+
+def replay_pcc_motion(robot: Robot | str | dict, motion: Any, scene: Scene | str | None = None,
+                      dt: float | None = None, **loads: Any) -> TensionTrajectoryResult:
+    """A PCC plan or path (``TrajectoryResult``, ``FollowResult`` or configurations
+    (T, 3S), rad and m) replayed through the mechanics model under loads (N, N·m, m/s²,
+    N/m), judged like a tension plan (see ``TensionPlanner.replay``); dt in seconds."""
+    return TensionPlanner(robot, scene).replay(motion, dt, **loads)
