@@ -75,13 +75,15 @@ def _split(fn: Any, arguments: int) -> Any:
 
 def _padded(rows: Any, edge: bool = False) -> Any:
     """Rows (an array or a pytree of arrays with the same first axis) padded to a power of
-    two (at least 16; above 1024 a multiple of 1024) so that a few compiled programs serve
-    every batch size: with zero rows (no load: done at once) or copies of the first row."""
+    two (at least 16; above 1024 a multiple of 512) so that a few compiled programs serve
+    every batch size: with zero rows (no load: done at once) or copies of the first row.
+    (Padding rows still iterate in the vmapped loop: 3333 loaded rows of 10 000 mixed
+    cases cost 10–15 % less padded to 3584 than to 4096.)"""
     leaves, tree = jax.tree_util.tree_flatten(rows)
     count = len(leaves[0])
     size = max(16, 1 << (count - 1).bit_length())
     if size > 1024:
-        size = -(-count // 1024) * 1024
+        size = -(-count // 512) * 512
 
     def pad(a: np.ndarray) -> np.ndarray:
         a = np.asarray(a)
@@ -208,21 +210,21 @@ def _check(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads: Case
                                                           solved_stable)
     careful = np.flatnonzero(search)
     if careful.size:
-        x0 = _starts(moments[careful, 0], push[careful])
-        r = np.repeat(careful, _SEARCH_STARTS)
-        # Other starts get the first round only: one that needs more is rarely the answer.
-        extra = _solve_rows(robot, config, tension[r], _rows(loads, r), x0.reshape(-1, 3),
-                            np.ones(len(r)), np.tile([0.0, 1.0], (len(r), 1)), dtype,
-                            further_round=False)
-        again = _solve_rows(robot, config, tension[careful], _rows(loads, careful),
-                            np.zeros((careful.size, 3)), np.zeros(careful.size),
-                            np.tile([1.0, small_step(config)], (careful.size, 1)), dtype)
-        r = np.concatenate([careful, r])
+        # One batch: the small-step path from rest, then Newton under the full loads from
+        # the search starts, which get the first round only (one that needs more is
+        # rarely the answer).
+        x0 = _starts(moments[careful, 0], push[careful]).reshape(-1, 3)
+        r = np.concatenate([careful, np.repeat(careful, _SEARCH_STARTS)])
+        path_rows = np.arange(len(r)) < careful.size
+        solved = _solve_rows(robot, config, tension[r], _rows(loads, r),
+                             np.concatenate([np.zeros((careful.size, 3)), x0]),
+                             np.where(path_rows, 0.0, 1.0),
+                             np.where(path_rows[:, None], [1.0, small_step(config)],
+                                      [0.0, 1.0]), dtype, further_round=path_rows)
         c = np.concatenate([np.ones(careful.size, int),
                             np.tile(np.arange(_SEARCH_STARTS), careful.size)
                             + 1 + len(known)])
-        x = np.concatenate([again.x, extra.x])
-        converged = np.concatenate([again.converged, extra.converged])
+        x, converged = solved.x, solved.converged
         stable_extra = np.zeros(len(r), bool)
         if converged.any():
             good = np.flatnonzero(converged)
