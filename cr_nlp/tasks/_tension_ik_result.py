@@ -12,6 +12,7 @@ import numpy as np
 from .._files import atomic_open
 from ..model import Robot
 from ._result import ResultIO, Stage, Status, array, nums, read_stage, row_lists, status_of
+from ._tension_motion import EXACT_MODE
 from ._timing import StageTiming
 
 FAMILIES = ("limits", "clearance", "self_clearance")
@@ -108,7 +109,7 @@ class TensionIKResult(ResultIO):
             "tendon_displacements": row_lists(self.tendon_displacements),
             "violations": {k: nums(v) for k, v in self.violations.items()},
             "stage": [Stage(s).value for s in self.stage], "notes": self.notes,
-            "status": [s.value for s in self.status],
+            "status": [s.value for s in self.status], "exact_mode": EXACT_MODE,
             "timing": self.timing.as_dict(), "summary": self.summary(),
         }
 

@@ -26,6 +26,10 @@ from ..world.check import CheckManyResult, check_chains
 from ..world.scene import Scene
 from ..world.verdict import VIOLATION_TOLERANCE, failure_reason, judge_many
 
+EXACT_MODE = ("none: CasADi has no graph of the Cosserat rod's shooting, so there is no Ipopt "
+              "stage; every answer is judged by a fresh forward statics solve and python-fcl")
+"""What a tension-space result says of exact mode (its ``exact_mode`` field)."""
+
 MOTION_FAMILIES = ("limits", "clearance", "self_clearance", "tension_rate")
 """The violation families of a tension motion: tensions outside [0, τ_max] (N), clearance
 and self-clearance below δ (m), tension rate above its limit (N/s)."""

@@ -28,7 +28,7 @@ from ._result import (
     typed_stage,
     write_series_csv,
 )
-from ._tension_motion import MOTION_FAMILIES, TensionMotionVerification
+from ._tension_motion import EXACT_MODE, MOTION_FAMILIES, TensionMotionVerification
 from ._timing import StageTiming
 
 
@@ -132,7 +132,7 @@ class TensionTrajectoryResult(OneStage, ResultIO):
             "tendon_displacements": row_lists(self.tendon_displacements),
             "violations": {k: num(v) for k, v in self.violations.items()},
             "stage": self.stage.value, "notes": self.notes, "status": self.status.value,
-            "timing": self.timing.as_dict(), "summary": self.summary(),
+            "exact_mode": EXACT_MODE, "timing": self.timing.as_dict(), "summary": self.summary(),
         }
 
     @classmethod
