@@ -261,3 +261,37 @@ def test_a_replay_names_the_waypoint_no_tension_reaches() -> None:
         replay_pcc_motion(RAO, motion)
     with pytest.raises(ValueError, match="configurations"):
         replay_pcc_motion(RAO, motion[:, :3], dt=0.1)
+
+
+DENSE_SCENE = {"obstacles": SCENE["obstacles"] + [
+    {"name": "ball_b", "type": "sphere", "center": [-0.10, 0.12, 0.28], "radius": 0.03},
+    {"name": "post", "type": "box", "center": [-0.2, -0.05, 0.15], "size": [0.04, 0.1, 0.1]},
+    {"name": "ball_c", "type": "sphere", "center": [0.0, 0.15, 0.20], "radius": 0.035},
+    {"name": "ball_d", "type": "sphere", "center": [0.18, -0.10, 0.22], "radius": 0.035},
+    {"name": "slab", "type": "box", "center": [0.15, 0.15, 0.12], "size": [0.08, 0.08, 0.06]}]}
+
+
+def test_a_problem_no_single_via_solves_gets_two() -> None:
+    from cr_nlp import TensionPlanner
+
+    planner = TensionPlanner(RAO, DENSE_SCENE)
+    start = np.array([0.077, 0.0, 0.0, 4.965, 0.662, 0.345])
+    goal = np.array([0.0, 5.596, 2.12, 0.0, 1.314, 5.639])
+    result = planner.plan(start, goal, gravity=GRAVITY, tip_force=PAYLOAD)[0]
+    assert result.success and result.notes[0].startswith("via tension sets "), (
+        result.reason, result.notes)
+    # no single via of the screened candidates is clear (what sent it to two)
+    from cr_nlp.model.loads import static_loads
+
+    loads = static_loads(1, planner.length, PAYLOAD, None, GRAVITY)
+    vias = planner.vias(loads)
+    cost = np.abs(vias - start).max(axis=1) + np.abs(goal - vias).max(axis=1)
+    singles = [planner._legs([start, vias[k], goal]) for k in np.argsort(cost)[:16]]
+    assert not planner._screen(singles, loads).any()
+    # independent replay: statics at waypoints and midpoints, python-fcl on each
+    mids = 0.5 * (result.tensions[1:] + result.tensions[:-1])
+    replay = solve_statics(RAO, np.concatenate([result.tensions, mids]), PAYLOAD, None, GRAVITY)
+    assert replay.converged.all()
+    clearance = check_chains(RAO, planner.scene, replay.positions, 10).obstacle_distance
+    assert clearance.min() >= planner.config.safety_margin
+    assert np.abs(np.diff(result.tensions, axis=0)).max() / result.dt <= 50.0 + 1e-9

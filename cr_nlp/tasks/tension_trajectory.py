@@ -6,17 +6,19 @@ Between waypoints the tensions move linearly and the robot passes through the eq
 of the interpolated tensions. A plan is a chain of straight legs in tension space: the
 direct leg start → goal, or, where that leg's motion is not clear, start → via → goal
 through the cheapest via tension set (fewest seconds at the rate limit) whose legs are
-clear. Via candidates come from a pool of random tension sets solved once per planner and
-load case, kept where the robot is clear of the scene. Each leg is cut into the fewest
-waypoints ``dt`` apart that keep every tendon's rate within ``tension_rate_max``, so the
-rate limit holds by construction, and a candidate is screened on exactly the samples the
-verdict checks: every waypoint and ``samples_between`` interpolated tension sets between
-each pair, each a forward statics solve and python-fcl on the solved backbone.
+clear, else start → via → via → goal (the first via among the sets nearest the start, the
+second among those nearest the goal). Via candidates come from a pool of random tension
+sets solved once per planner and load case, kept where the robot is clear of the scene.
+Each leg is cut into the fewest waypoints ``dt`` apart that keep every tendon's rate
+within ``tension_rate_max``, so the rate limit holds by construction, and a candidate is
+screened on exactly the samples the verdict checks: every waypoint and
+``samples_between`` interpolated tension sets between each pair, each a forward statics
+solve and python-fcl on the solved backbone.
 
 The verdict is the one of every tension motion (``tasks._tension_motion``): a fresh
 solve at every checked sample, independent of the screening's. This planner is a search
 over straight-leg chains, not an optimisation: it does not shorten a plan beyond the
-choice of via point, and it finds no plan that needs two via points. There is no exact
+choice of via points, and it finds no plan that needs three. There is no exact
 (Ipopt) stage: CasADi has no graph of the rod's shooting (``model.cosserat``).
 
 Units: newtons, N/s, seconds, metres.
@@ -63,7 +65,8 @@ class TensionPlanConfig:
     via_pool: int = 512
     """Random tension sets solved once per load case; the clear ones are via candidates."""
     via_candidates: int = 16
-    """Via points screened per problem whose direct leg is not clear (cheapest first)."""
+    """Via points screened per problem whose direct leg is not clear (cheapest first); for
+    two-via chains, the sets nearest the start and those nearest the goal."""
     seed: int = 0
     """Seed of the via pool."""
     statics: StaticsConfig = StaticsConfig()
@@ -243,17 +246,45 @@ class TensionPlanner:
     def _via_plan(self, start: np.ndarray, goal: np.ndarray,
                   loads: StaticLoads) -> tuple[np.ndarray, list[str]]:
         """The cheapest clear start → via → goal among the best via candidates, else the
-        direct legs (which the verdict will fail, saying where)."""
+        cheapest clear start → via → via → goal, else the direct legs (which the verdict
+        will fail, saying where)."""
         vias = self.vias(loads)
-        cost = (np.max(np.abs(vias - start), axis=1) + np.max(np.abs(goal - vias), axis=1))
+        cost = _seconds(vias, start) + _seconds(goal, vias)
         order = np.argsort(cost)[:self.config.via_candidates]
         plans = [self._legs([start, vias[k], goal]) for k in order]
         clear = self._screen(plans, loads)
         if clear.any():
             k = int(np.flatnonzero(clear)[0])
             return plans[k], [f"via tension set {int(order[k])} of the pool"]
+        chain = self._two_vias(start, goal, vias, loads)
+        if chain is not None:
+            a, b = chain
+            return self._legs([start, vias[a], vias[b], goal]), [
+                f"via tension sets {a} and {b} of the pool"]
         return self._legs([start, goal]), [
-            f"no clear via among the {len(order)} cheapest of {len(vias)} candidates"]
+            f"no clear via among the {len(order)} cheapest of {len(vias)} candidates, nor a "
+            "chain of two"]
+
+    def _two_vias(self, start: np.ndarray, goal: np.ndarray, vias: np.ndarray,
+                  loads: StaticLoads) -> tuple[int, int] | None:
+        """(a, b): pool indices of the cheapest clear start → a → b → goal, a among the
+        ``via_candidates`` sets nearest the start, b among those nearest the goal (legs
+        screened one by one, the middle legs only between clear ends), or None."""
+        count = self.config.via_candidates
+        near_start = np.argsort(_seconds(vias, start))[:count]
+        near_goal = np.argsort(_seconds(goal, vias))[:count]
+        ends = self._screen([self._legs([start, vias[a]]) for a in near_start]
+                            + [self._legs([vias[b], goal]) for b in near_goal], loads)
+        firsts, lasts = near_start[ends[:count]], near_goal[ends[count:]]
+        pairs = [(int(a), int(b)) for a in firsts for b in lasts if a != b]
+        if not pairs:
+            return None
+        pairs.sort(key=lambda ab: float(_seconds(vias[ab[0]], start)
+                                        + _seconds(vias[ab[1]], vias[ab[0]])
+                                        + _seconds(goal, vias[ab[1]])))
+        pairs = pairs[:4 * count]
+        middle = self._screen([self._legs([vias[a], vias[b]]) for a, b in pairs], loads)
+        return pairs[int(np.flatnonzero(middle)[0])] if middle.any() else None
 
     def replay(self, motion: Any, dt: float | None = None, *, tip_force: Any = None,
                tip_moment: Any = None, gravity: Any = None, distributed_force: Any = None,
@@ -330,6 +361,12 @@ class TensionPlanner:
             result.reason = (f"problem {index}: the {which} is not clear of the scene by "
                              f"{cfg.safety_margin:g} m (or its statics did not converge)")
         return result
+
+
+def _seconds(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The largest tension change from a to b per tendon (N): the seconds of the leg at the
+    rate limit, up to the constant factor."""
+    return np.max(np.abs(np.asarray(b) - np.asarray(a)), axis=-1)
 
 
 def plan_tensions(robot: Robot | str | dict, starts: Any, goals: Any,
