@@ -22,7 +22,6 @@ def run(args: argparse.Namespace, robot: object) -> int:
     ``--csv``, the time series; print a one-line summary on stderr."""
     from dataclasses import replace
 
-    from ..model.loads import static_loads
     from ..tasks.paths import load_path
     from ..tasks.tension_follow import TensionFollowConfig, TensionFollower
 
@@ -37,12 +36,8 @@ def run(args: argparse.Namespace, robot: object) -> int:
                              f"{args.tension_rate_max}")
         config = replace(config, tension_rate_max=args.tension_rate_max)
     path = load_path(resolve(args.path, "paths", "--path"))
-    loads = loads_from_args(args)
     follower = TensionFollower(robot, load_scene_arg(args.scene), config)
-    try:
-        static_loads(1, follower.ik.length, **loads)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
+    loads = loads_from_args(args, follower.ik.length)
     try:
         result = follower.follow(path, dt=args.dt, orientation=args.orientation, **loads)
     except ValueError as exc:

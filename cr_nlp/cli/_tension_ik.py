@@ -16,6 +16,7 @@ from ._io import (
     model_margin,
     parse_point_loads,
     parse_vector3,
+    read_json,
     resolve,
     write_result,
 )
@@ -40,15 +41,45 @@ def add_load_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--point-load", action="append", metavar="S,FX,FY,FZ[,MX,MY,MZ]",
                    help="--model cosserat: a wrench at arc length S (m from the base), N and "
                         "N·m, world frame; repeat for more")
+    p.add_argument("--loads", metavar="LOADS.json",
+                   help="--model cosserat: the loads as a file, {\"gravity\": [m/s²], "
+                        "\"tip_force\": [N], \"tip_moment\": [N·m], \"distributed_force\": "
+                        "[N/m], \"point_loads\": [{\"s\": m, \"force\": [N], \"moment\": "
+                        "[N·m]}]} (any of them; not also given as an option)")
 
 
-def loads_from_args(args: argparse.Namespace) -> dict:
-    """The load options as keyword arguments of the tension solvers (N, N·m, m/s², N/m)."""
-    return {"tip_force": parse_vector3(args.tip_force, "--tip-force"),
-            "tip_moment": parse_vector3(args.tip_moment, "--tip-moment"),
-            "gravity": parse_vector3(args.gravity, "--gravity"),
-            "distributed_force": parse_vector3(args.distributed_force, "--distributed-force"),
-            "point_loads": parse_point_loads(args.point_load)}
+def loads_from_args(args: argparse.Namespace, length: float) -> dict:
+    """The load options and the ``--loads`` file as keyword arguments of the tension
+    solvers (N, N·m, m/s², N/m), checked against the robot's ``length`` (m).
+
+    Raises:
+        UsageError: naming the option, or the file and the key.
+    """
+    from ..model.loads import LOAD_KEYS, static_loads
+
+    loads = {"tip_force": parse_vector3(args.tip_force, "--tip-force"),
+             "tip_moment": parse_vector3(args.tip_moment, "--tip-moment"),
+             "gravity": parse_vector3(args.gravity, "--gravity"),
+             "distributed_force": parse_vector3(args.distributed_force, "--distributed-force"),
+             "point_loads": parse_point_loads(args.point_load)}
+    where = "the load options"
+    if getattr(args, "loads", None):
+        where = f"--loads: {args.loads}"
+        data = read_json(args.loads, "--loads")
+        if not isinstance(data, dict):
+            raise UsageError(f"{where}: expected an object with any of {', '.join(LOAD_KEYS)}")
+        for key, value in data.items():
+            if key not in LOAD_KEYS:
+                raise UsageError(f"{where}: {key}: unknown key (a loads file has "
+                                 f"{', '.join(LOAD_KEYS)})")
+            if loads[key]:
+                raise UsageError(f"{where}: {key} is also given as --{key.replace('_', '-')}")
+            loads[key] = value
+    try:
+        static_loads(1, length, **loads)
+    except ValueError as exc:
+        raise UsageError(f"{where}: {str(exc).removeprefix('case 0: ')}") from None
+    return loads
 
 
 def needs_mechanics(robot: object, exact: bool) -> None:
@@ -73,7 +104,7 @@ def run(args: argparse.Namespace, robot: object) -> int:
         positions, wxyz, problems = read_targets(resolve(args.targets, "targets", "--targets"))
     except ValueError as exc:
         raise UsageError(f"--targets: {exc}") from None
-    loads = loads_from_args(args)
+    loads = loads_from_args(args, sum(s.length_min for s in robot.segments))
     config = TensionIKConfig(seed=args.seed)
     config = replace(config, safety_margin=config.safety_margin
                      + model_margin(robot, args.model_margin))

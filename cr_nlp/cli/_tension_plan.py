@@ -22,7 +22,6 @@ def add_options(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace, robot: object) -> int:
     """Plan in tension space, write RESULT.json (kind ``tension_trajectory``, one entry per
     problem) and, with ``--csv``, one time series per problem; print a summary."""
-    from ..model.loads import static_loads
     from ..tasks._tension_motion_result import tension_trajectories_to_dict
     from ..tasks.tension_trajectory import (
         TensionPlanConfig,
@@ -44,12 +43,8 @@ def run(args: argparse.Namespace, robot: object) -> int:
                                                              "--problems"))
     except ValueError as exc:
         raise UsageError(f"--problems: {exc}") from None
-    loads = loads_from_args(args)
     planner = TensionPlanner(robot, load_scene_arg(args.scene), config)
-    try:
-        static_loads(1, planner.length, **loads)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
+    loads = loads_from_args(args, planner.length)
     results = planner.plan(starts, goals, **loads)
     data = tension_trajectories_to_dict(results, None, robot)
     if args.out == "-":

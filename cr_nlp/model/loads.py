@@ -24,6 +24,9 @@ from typing import Any
 import numpy as np
 
 POINT_LOAD_KEYS = ("s", "force", "moment")
+LOAD_KEYS = ("tip_force", "tip_moment", "gravity", "distributed_force", "point_loads")
+"""The loads of one case: the keyword arguments of ``static_loads`` and the keys of a
+loads file (``--loads``)."""
 """The keys of one point load (``s`` required, ``force`` and ``moment`` default zero)."""
 
 
@@ -88,7 +91,11 @@ def load_cases(value: Any, batch: int, size: int, name: str) -> np.ndarray:
     case)."""
     if value is None:
         return np.zeros((batch, size))
-    arr = np.asarray(value, dtype=float)
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected {size} numbers or ({batch}, {size}), got "
+                         f"{value!r:.60}") from None
     if arr.ndim == 1:
         arr = np.broadcast_to(arr, (batch, arr.shape[0]))
     if arr.shape != (batch, size):
