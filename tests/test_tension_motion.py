@@ -290,6 +290,11 @@ def test_a_replay_names_the_waypoint_no_tension_reaches() -> None:
     assert not result.success and result.reason.startswith("waypoint 5:"), result.reason
     with pytest.raises(ValueError, match="dt"):
         replay_pcc_motion(RAO, motion)
+    # a follow result's dt is its path's
+    from types import SimpleNamespace
+
+    followed = SimpleNamespace(q=PCC_MOTION, path=SimpleNamespace(dt=0.2))
+    assert replay_pcc_motion(RAO, followed).dt == 0.2
     with pytest.raises(ValueError, match="configurations"):
         replay_pcc_motion(RAO, motion[:, :3], dt=0.1)
 

@@ -314,7 +314,8 @@ class TensionPlanner:
             ValueError: no configurations, or no ``dt``.
         """
         q = np.atleast_2d(np.asarray(getattr(motion, "q", motion), dtype=float))
-        dt = getattr(motion, "dt", None) if dt is None else dt
+        if dt is None:  # a plan's dt, or a followed path's
+            dt = getattr(motion, "dt", None) or getattr(getattr(motion, "path", None), "dt", None)
         if dt is None or not math.isfinite(float(dt)) or float(dt) <= 0.0:
             raise ValueError("replay: give dt > 0 (seconds between waypoints)")
         if q.ndim != 2 or len(q) == 0 or q.shape[1] != 3 * self.robot.n_segments:
