@@ -104,11 +104,11 @@ def run(args: argparse.Namespace, robot: object) -> int:
         positions, wxyz, problems = read_targets(resolve(args.targets, "targets", "--targets"))
     except ValueError as exc:
         raise UsageError(f"--targets: {exc}") from None
-    loads = loads_from_args(args, sum(s.length_min for s in robot.segments))
     config = TensionIKConfig(seed=args.seed)
     config = replace(config, safety_margin=config.safety_margin
                      + model_margin(robot, args.model_margin))
     solver = TensionIKSolver(robot, load_scene_arg(args.scene), config)
+    loads = loads_from_args(args, solver.length)
     try:
         result = solver.solve(positions, wxyz if args.orientation else None, **loads)
     except ValueError as exc:

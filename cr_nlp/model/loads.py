@@ -24,10 +24,10 @@ from typing import Any
 import numpy as np
 
 POINT_LOAD_KEYS = ("s", "force", "moment")
+"""The keys of one point load (``s`` required, ``force`` and ``moment`` default zero)."""
 LOAD_KEYS = ("tip_force", "tip_moment", "gravity", "distributed_force", "point_loads")
 """The loads of one case: the keyword arguments of ``static_loads`` and the keys of a
 loads file (``--loads``)."""
-"""The keys of one point load (``s`` required, ``force`` and ``moment`` default zero)."""
 
 
 @dataclass(frozen=True)

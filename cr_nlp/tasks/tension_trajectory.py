@@ -161,7 +161,7 @@ class TensionPlanner:
         step = self.config.tension_rate_max * self.config.dt * (1 - 1e-9)
         out = [points[0][None]]
         for a, b in zip(points[:-1], points[1:], strict=True):
-            count = max(1, math.ceil(float(np.max(np.abs(b - a))) / step))
+            count = max(1, math.ceil(float(_seconds(a, b)) / step))
             out.append(a + np.linspace(0.0, 1.0, count + 1)[1:, None] * (b - a))
         return np.concatenate(out)
 
