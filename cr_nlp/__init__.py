@@ -55,19 +55,19 @@ _PUBLIC = {
     "LiveIKSolver": ".tasks.live_ik",
     "ReferencePath": ".tasks.paths",
     "load_path": ".tasks.paths",
-    "TensionIKConfig": ".tasks.tension_ik",
-    "TensionIKResult": ".tasks.tension_ik",
-    "TensionIKSolver": ".tasks.tension_ik",
-    "solve_tension_ik": ".tasks.tension_ik",
-    "TensionFollowConfig": ".tasks.tension_follow",
-    "TensionFollower": ".tasks.tension_follow",
-    "TensionFollowResult": ".tasks.tension_follow",
-    "follow_tensions": ".tasks.tension_follow",
-    "TensionPlanConfig": ".tasks.tension_trajectory",
-    "TensionPlanner": ".tasks.tension_trajectory",
-    "TensionTrajectoryResult": ".tasks.tension_trajectory",
-    "plan_tensions": ".tasks.tension_trajectory",
-    "replay_pcc_motion": ".tasks.tension_trajectory",
+    "TensionIKConfig": ".tasks.mechanics.ik",
+    "TensionIKResult": ".tasks.mechanics.ik",
+    "TensionIKSolver": ".tasks.mechanics.ik",
+    "solve_tension_ik": ".tasks.mechanics.ik",
+    "TensionFollowConfig": ".tasks.mechanics.follow",
+    "TensionFollower": ".tasks.mechanics.follow",
+    "TensionFollowResult": ".tasks.mechanics.follow",
+    "follow_tensions": ".tasks.mechanics.follow",
+    "TensionPlanConfig": ".tasks.mechanics.trajectory",
+    "TensionPlanner": ".tasks.mechanics.trajectory",
+    "TensionTrajectoryResult": ".tasks.mechanics.trajectory",
+    "plan_tensions": ".tasks.mechanics.trajectory",
+    "replay_pcc_motion": ".tasks.mechanics.trajectory",
     "TrajectoryConfig": ".tasks.trajectory",
     "TrajectoryPlanner": ".tasks.trajectory",
     "TrajectoryResult": ".tasks.trajectory",
@@ -134,21 +134,21 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from .tasks.live_ik import LiveIKResult as LiveIKResult
     from .tasks.live_ik import LiveIKSolver as LiveIKSolver
     from .tasks.measurements import read_measurements as read_measurements
+    from .tasks.mechanics.follow import TensionFollowConfig as TensionFollowConfig
+    from .tasks.mechanics.follow import TensionFollower as TensionFollower
+    from .tasks.mechanics.follow import TensionFollowResult as TensionFollowResult
+    from .tasks.mechanics.follow import follow_tensions as follow_tensions
+    from .tasks.mechanics.ik import TensionIKConfig as TensionIKConfig
+    from .tasks.mechanics.ik import TensionIKResult as TensionIKResult
+    from .tasks.mechanics.ik import TensionIKSolver as TensionIKSolver
+    from .tasks.mechanics.ik import solve_tension_ik as solve_tension_ik
+    from .tasks.mechanics.trajectory import TensionPlanConfig as TensionPlanConfig
+    from .tasks.mechanics.trajectory import TensionPlanner as TensionPlanner
+    from .tasks.mechanics.trajectory import TensionTrajectoryResult as TensionTrajectoryResult
+    from .tasks.mechanics.trajectory import plan_tensions as plan_tensions
+    from .tasks.mechanics.trajectory import replay_pcc_motion as replay_pcc_motion
     from .tasks.paths import ReferencePath as ReferencePath
     from .tasks.paths import load_path as load_path
-    from .tasks.tension_follow import TensionFollowConfig as TensionFollowConfig
-    from .tasks.tension_follow import TensionFollower as TensionFollower
-    from .tasks.tension_follow import TensionFollowResult as TensionFollowResult
-    from .tasks.tension_follow import follow_tensions as follow_tensions
-    from .tasks.tension_ik import TensionIKConfig as TensionIKConfig
-    from .tasks.tension_ik import TensionIKResult as TensionIKResult
-    from .tasks.tension_ik import TensionIKSolver as TensionIKSolver
-    from .tasks.tension_ik import solve_tension_ik as solve_tension_ik
-    from .tasks.tension_trajectory import TensionPlanConfig as TensionPlanConfig
-    from .tasks.tension_trajectory import TensionPlanner as TensionPlanner
-    from .tasks.tension_trajectory import TensionTrajectoryResult as TensionTrajectoryResult
-    from .tasks.tension_trajectory import plan_tensions as plan_tensions
-    from .tasks.tension_trajectory import replay_pcc_motion as replay_pcc_motion
     from .tasks.trajectory import TrajectoryConfig as TrajectoryConfig
     from .tasks.trajectory import TrajectoryPlanner as TrajectoryPlanner
     from .tasks.trajectory import TrajectoryResult as TrajectoryResult

@@ -270,3 +270,41 @@ def test_internal_modules_are_private_by_name() -> None:
     public = sorted(p.name for p in stages.glob("*.py")
                     if not p.name.startswith("_"))
     assert not public, f"public modules in cr_nlp/stages: {public}"
+
+
+def family_private_imports(graph: dict[str, set[str]]) -> list[str]:
+    """'a imports b' where b is a private module of a task family that a is not in: the
+    mechanics family (``tasks.mechanics``) and the geometry (PCC) family (the rest of
+    ``tasks``) share only ``tasks._result``, ``tasks._timing`` and the public modules."""
+    shared = {"cr_nlp.tasks._result", "cr_nlp.tasks._timing"}
+
+    def family(name: str) -> str | None:
+        parts = name.split(".")
+        if len(parts) < 3 or parts[1] != "tasks":
+            return None
+        return "mechanics" if parts[2] == "mechanics" else "geometry"
+
+    found = []
+    for a in sorted(graph):
+        for b in sorted(graph[a]):
+            private = b.rpartition(".")[2].startswith("_") and b not in shared
+            if private and family(b) and family(a) and family(a) != family(b):
+                found.append(f"{a} ({family(a)}) imports {b} ({family(b)})")
+    return found
+
+
+def test_task_families_import_no_private_module_of_another(
+        graph: dict[str, set[str]]) -> None:
+    assert "cr_nlp.tasks.mechanics.ik" in graph
+    found = family_private_imports(graph)
+    assert not found, "a task family reaching into another's private modules:\n" + \
+        "\n".join(found)
+
+
+def test_the_family_check_finds_a_private_import() -> None:
+    graph = {"cr_nlp.tasks.mechanics.follow": {"cr_nlp.tasks._follow_result",
+                                               "cr_nlp.tasks._result"},
+             "cr_nlp.tasks.ik": {"cr_nlp.tasks.mechanics.ik"}}
+    assert family_private_imports(graph) == [
+        "cr_nlp.tasks.mechanics.follow (mechanics) imports cr_nlp.tasks._follow_result "
+        "(geometry)"]

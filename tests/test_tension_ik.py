@@ -15,7 +15,7 @@ from cr_nlp import load_result
 from cr_nlp.model import load_robot
 from cr_nlp.model.statics import solve_statics
 from cr_nlp.model.tendon_groups import moments_from_tensions, tendon_groups, tensions_from_moments
-from cr_nlp.tasks.tension_ik import TensionIKConfig, TensionIKResult, TensionIKSolver
+from cr_nlp.tasks.mechanics.ik import TensionIKConfig, TensionIKResult, TensionIKSolver
 
 RAO = load_robot("tdcr2_rao2021")
 TENSION_MAX = RAO.mechanics.tension_max

@@ -1,5 +1,5 @@
 """Path following (and its verdict) in tension space on the Cosserat model
-(``tasks.tension_follow``): a followed path under gravity and a payload re-solved by a
+(``tasks.mechanics.follow``): a followed path under gravity and a payload re-solved by a
 fresh statics solve, bad input, the result file and the command. Small batches: one
 follower and one 24-waypoint path shared by the tests."""
 
@@ -206,7 +206,7 @@ def test_a_plan_replayed_through_fresh_statics_keeps_its_clearance(planner) -> N
     ({"start": [0] * 6, "goal": [0] * 6, "via": [0] * 6}, "problem 0: unknown key 'via'"),
 ])
 def test_bad_problems_name_the_problem_and_key(problem: dict, words: str) -> None:
-    from cr_nlp.tasks.tension_trajectory import read_tension_problems
+    from cr_nlp.tasks.mechanics.trajectory import read_tension_problems
 
     with pytest.raises(ValueError, match=words):
         read_tension_problems(RAO, {"problems": [problem]})
@@ -215,7 +215,7 @@ def test_bad_problems_name_the_problem_and_key(problem: dict, words: str) -> Non
 def test_trajectories_file_round_trip(planner, tmp_path) -> None:
     from cr_nlp import TensionTrajectoryResult, load_results
     from cr_nlp.tasks._result import write_json
-    from cr_nlp.tasks._tension_motion_result import tension_trajectories_to_dict
+    from cr_nlp.tasks.mechanics._motion_result import tension_trajectories_to_dict
 
     results = planner.plan(np.zeros(6), [0, 1.0, 0, 0, 0, 0.5], gravity=GRAVITY)
     path = tmp_path / "R.json"

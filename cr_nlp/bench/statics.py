@@ -113,7 +113,7 @@ def bench_tension_ik(robot: str = "tdcr2_rao2021", targets: int = 1000, loads: s
     """Time ``TensionIKSolver.solve`` on ``targets`` tip positions made by forward statics
     from random feasible tensions (``statics_cases``' tension sets; ``loads`` "force": all
     under one 0.05 N sideways tip force). Compile and the seed pool are the first call."""
-    from ..tasks.tension_ik import TensionIKSolver
+    from ..tasks.mechanics.ik import TensionIKSolver
 
     rob = load_robot(robot)
     t, _, _ = statics_cases(rob.n_tendons, rob.tendons.per_segment, targets, "tensions",

@@ -60,7 +60,7 @@ def _timed(call: Any, repeats: int) -> tuple[Any, float, float]:
 
 def bench_plan(robot: str, problems: int, repeats: int, seed: int) -> dict[str, Any]:
     """Plan ``problems`` random collision-free problems; success and seconds."""
-    from ..tasks.tension_trajectory import TensionPlanner
+    from ..tasks.mechanics.trajectory import TensionPlanner
 
     planner = TensionPlanner(robot, SCENE)
     rob = planner.robot
@@ -81,7 +81,7 @@ def bench_plan(robot: str, problems: int, repeats: int, seed: int) -> dict[str, 
 
 def bench_follow(robot: str, waypoints: int, repeats: int) -> dict[str, Any]:
     """Follow a ``waypoints``-waypoint loop under load; error (fresh statics) and time."""
-    from ..tasks.tension_follow import TensionFollower
+    from ..tasks.mechanics.follow import TensionFollower
 
     rob = load_robot(robot)
     path = solve_statics(rob, loop_tensions(waypoints), PAYLOAD, None, GRAVITY).tip_position

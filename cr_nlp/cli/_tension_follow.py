@@ -1,5 +1,5 @@
 """``cr-nlp follow --model cosserat``: tendon tensions that make the tip of the
-Cosserat-rod model trace a path under loads (``tasks.tension_follow``)."""
+Cosserat-rod model trace a path under loads (``tasks.mechanics.follow``)."""
 
 from __future__ import annotations
 
@@ -22,8 +22,8 @@ def run(args: argparse.Namespace, robot: object) -> int:
     ``--csv``, the time series; print a one-line summary on stderr."""
     from dataclasses import replace
 
+    from ..tasks.mechanics.follow import TensionFollowConfig, TensionFollower
     from ..tasks.paths import load_path
-    from ..tasks.tension_follow import TensionFollowConfig, TensionFollower
 
     needs_mechanics(robot, args.exact)
     config = TensionFollowConfig()

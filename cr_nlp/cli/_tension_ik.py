@@ -1,5 +1,5 @@
 """``cr-nlp ik --model cosserat``: tendon tensions for target tip positions on the
-Cosserat-rod model (tension-space IK, ``tasks.tension_ik``)."""
+Cosserat-rod model (tension-space IK, ``tasks.mechanics.ik``)."""
 
 from __future__ import annotations
 
@@ -97,7 +97,7 @@ def run(args: argparse.Namespace, robot: object) -> int:
     """Solve in tension space, write RESULT.json (kind ``tension_ik``) and, with ``--csv``,
     the tensions; print a one-line summary on stderr."""
     from ..tasks.ik import read_targets
-    from ..tasks.tension_ik import TensionIKConfig, TensionIKSolver
+    from ..tasks.mechanics.ik import TensionIKConfig, TensionIKSolver
 
     needs_mechanics(robot, args.exact)
     try:

@@ -1,5 +1,5 @@
 """``cr-nlp plan --model cosserat``: tension trajectories from start to goal tensions on
-the Cosserat-rod model under loads (``tasks.tension_trajectory``)."""
+the Cosserat-rod model under loads (``tasks.mechanics.trajectory``)."""
 
 from __future__ import annotations
 
@@ -22,8 +22,8 @@ def add_options(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace, robot: object) -> int:
     """Plan in tension space, write RESULT.json (kind ``tension_trajectory``, one entry per
     problem) and, with ``--csv``, one time series per problem; print a summary."""
-    from ..tasks._tension_motion_result import tension_trajectories_to_dict
-    from ..tasks.tension_trajectory import (
+    from ..tasks.mechanics._motion_result import tension_trajectories_to_dict
+    from ..tasks.mechanics.trajectory import (
         TensionPlanConfig,
         TensionPlanner,
         read_tension_problems,

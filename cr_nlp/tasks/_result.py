@@ -51,9 +51,9 @@ RESULT_KINDS: dict[str, str] = {
     "ik": "cr_nlp.tasks.ik:IKResult",
     "trajectory": "cr_nlp.tasks.trajectory:TrajectoryResult",
     "follow": "cr_nlp.tasks.follow:FollowResult",
-    "tension_ik": "cr_nlp.tasks.tension_ik:TensionIKResult",
-    "tension_follow": "cr_nlp.tasks.tension_follow:TensionFollowResult",
-    "tension_trajectory": "cr_nlp.tasks.tension_trajectory:TensionTrajectoryResult",
+    "tension_ik": "cr_nlp.tasks.mechanics.ik:TensionIKResult",
+    "tension_follow": "cr_nlp.tasks.mechanics.follow:TensionFollowResult",
+    "tension_trajectory": "cr_nlp.tasks.mechanics.trajectory:TensionTrajectoryResult",
 }
 """kind → "module:class" of its result class (imported on first use)."""
 

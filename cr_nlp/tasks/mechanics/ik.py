@@ -45,26 +45,26 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..model import Robot, load_robot
-from ..model.cosserat import CaseLoads, StaticsConfig, StaticsResult, moment_scale
-from ..model.cosserat import tip_equilibrium as _tip_equilibrium
-from ..model.loads import StaticLoads, static_loads
-from ..model.mechanics import require_mechanics
-from ..model.rotations import matrix_from_wxyz
-from ..model.statics import solve_statics
-from ..model.tendon_groups import (
+from ...model import Robot, load_robot
+from ...model.cosserat import CaseLoads, StaticsConfig, StaticsResult, moment_scale
+from ...model.cosserat import tip_equilibrium as _tip_equilibrium
+from ...model.loads import StaticLoads, static_loads
+from ...model.mechanics import require_mechanics
+from ...model.rotations import matrix_from_wxyz
+from ...model.statics import solve_statics
+from ...model.tendon_groups import (
     moments_from_tensions,
     tendon_groups,
     tensions_from_moments,
 )
-from ..runtime import configure
-from ..stages.refine._lm import LMConfig, lm_solve
-from ..world.check import check_chains
-from ..world.scene import Scene, load_scene
-from ..world.verdict import judge_many
-from ._result import Stage
-from ._tension_ik_result import TensionIKResult as TensionIKResult
-from ._timing import StageTiming
+from ...runtime import configure
+from ...stages.refine._lm import LMConfig, lm_solve
+from ...world.check import check_chains
+from ...world.scene import Scene, load_scene
+from ...world.verdict import judge_many
+from .._result import Stage
+from .._timing import StageTiming
+from ._ik_result import TensionIKResult as TensionIKResult
 
 EQUILIBRIUM_WEIGHT = 10.0
 """Weight of the equilibrium residual against the tip residual (both in metres)."""

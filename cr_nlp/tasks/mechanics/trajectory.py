@@ -15,7 +15,7 @@ screened on exactly the samples the verdict checks: every waypoint and
 ``samples_between`` interpolated tension sets between each pair, each a forward statics
 solve and python-fcl on the solved backbone.
 
-The verdict is the one of every tension motion (``tasks._tension_motion``): a fresh
+The verdict is the one of every tension motion (``tasks.mechanics._motion``): a fresh
 solve at every checked sample, independent of the screening's. This planner is a search
 over straight-leg chains, not an optimisation: it does not shorten a plan beyond the
 choice of via points, and it finds no plan that needs three. There is no exact
@@ -35,16 +35,16 @@ from typing import Any
 
 import numpy as np
 
-from ..model import Robot, load_robot
-from ..model.cosserat import StaticsConfig
-from ..model.loads import StaticLoads, static_loads
-from ..model.mechanics import require_mechanics
-from ..model.tendon_groups import tensions_of_configuration
-from ..world.scene import Scene, load_scene
-from ._result import Stage
-from ._tension_motion import interpolated, solve_and_check, verify_tension_motion
-from ._tension_motion_result import TensionTrajectoryResult as TensionTrajectoryResult
-from ._timing import StageTiming
+from ...model import Robot, load_robot
+from ...model.cosserat import StaticsConfig
+from ...model.loads import StaticLoads, static_loads
+from ...model.mechanics import require_mechanics
+from ...model.tendon_groups import tensions_of_configuration
+from ...world.scene import Scene, load_scene
+from .._result import Stage
+from .._timing import StageTiming
+from ._motion import interpolated, solve_and_check, verify_tension_motion
+from ._motion_result import TensionTrajectoryResult as TensionTrajectoryResult
 
 PROBLEM_KEYS = ("start", "goal")
 """The keys of one problem of a tension problems file."""

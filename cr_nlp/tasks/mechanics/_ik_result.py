@@ -1,4 +1,4 @@
-"""The result of tension-space IK (``tasks.tension_ik``) and its file forms."""
+"""The result of tension-space IK (``tasks.mechanics.ik``) and its file forms."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from .._files import atomic_open
-from ..model import Robot
-from ._result import ResultIO, Stage, Status, array, nums, read_stage, row_lists, status_of
-from ._tension_motion import EXACT_MODE
-from ._timing import StageTiming
+from ..._files import atomic_open
+from ...model import Robot
+from .._result import ResultIO, Stage, Status, array, nums, read_stage, row_lists, status_of
+from .._timing import StageTiming
+from ._motion import EXACT_MODE
 
 FAMILIES = ("limits", "clearance", "self_clearance")
 """The violation families of tension IK (``world.verdict.judge_many``)."""

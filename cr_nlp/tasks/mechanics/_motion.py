@@ -1,4 +1,4 @@
-"""The verdict of a tension-space motion (``tasks.tension_follow``, and any tension
+"""The verdict of a tension-space motion (``tasks.mechanics.follow``, and any tension
 trajectory): the one rule of ``world.verdict`` on numbers re-evaluated independently of
 the optimiser.
 
@@ -18,13 +18,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..model import Robot
-from ..model.cosserat import StaticsConfig, StaticsResult
-from ..model.loads import StaticLoads
-from ..model.statics import solve_statics
-from ..world.check import CheckManyResult, check_chains
-from ..world.scene import Scene
-from ..world.verdict import VIOLATION_TOLERANCE, failure_reason, judge_many
+from ...model import Robot
+from ...model.cosserat import StaticsConfig, StaticsResult
+from ...model.loads import StaticLoads
+from ...model.statics import solve_statics
+from ...world.check import CheckManyResult, check_chains
+from ...world.scene import Scene
+from ...world.verdict import VIOLATION_TOLERANCE, failure_reason, judge_many
 
 EXACT_MODE = ("none: CasADi has no graph of the Cosserat rod's shooting, so there is no Ipopt "
               "stage; every answer is judged by a fresh forward statics solve and python-fcl")

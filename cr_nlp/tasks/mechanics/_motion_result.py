@@ -1,5 +1,5 @@
 """The results of tension-space motions on the Cosserat model: a followed path
-(``tension_follow``, ``tasks.tension_follow``) and a planned trajectory
+(``tension_follow``, ``tasks.mechanics.follow``) and a planned trajectory
 (``tension_trajectory``), with their file forms. Both hold the tensions per waypoint (N,
 the robot file's tendon order), the verdict's fresh statics solve at every waypoint (tip
 pose, backbone) and the loads they were solved under. SI units throughout."""
@@ -12,8 +12,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ..model import Robot
-from ._result import (
+from ...model import Robot
+from .._result import (
     SCHEMA_VERSION,
     OneStage,
     ResultFileError,
@@ -28,8 +28,8 @@ from ._result import (
     typed_stage,
     write_series_csv,
 )
-from ._tension_motion import EXACT_MODE, MOTION_FAMILIES, TensionMotionVerification
-from ._timing import StageTiming
+from .._timing import StageTiming
+from ._motion import EXACT_MODE, MOTION_FAMILIES, TensionMotionVerification
 
 
 @dataclass(kw_only=True)

@@ -2,7 +2,7 @@
 the tip at each waypoint of a reference path (positions, or poses) under gravity and
 loads, one quasi-static motion judged as a whole.
 
-Each waypoint is a tension-space IK problem (``tasks.tension_ik``: the LM over each tendon
+Each waypoint is a tension-space IK problem (``tasks.mechanics.ik``: the LM over each tendon
 group's net pull moment, and M(0) where a force acts, one rod pass per residual). The
 path is solved in blocks of ``block`` consecutive waypoints in one batch, every waypoint of
 a block warm-started from the answer of the waypoint before the block (the first from the
@@ -10,7 +10,7 @@ seed pool): neighbouring waypoints then land on the same branch of the redundant
 sets, so the tensions move continuously. A waypoint whose answer fails its own check is
 solved again from its predecessor's answer, then from the pool's nearer seeds.
 
-The verdict (``tasks._tension_motion.verify_tension_motion``) is independent of the LM: a
+The verdict (``tasks.mechanics._motion.verify_tension_motion``) is independent of the LM: a
 fresh forward statics solve at every waypoint and at ``samples_between`` interpolated
 tension sets between each pair, converged; the tensions within [0, τ_max]; their rates
 within ``tension_rate_max``; python-fcl clearance of every solved backbone; and every
@@ -31,15 +31,15 @@ from typing import Any
 
 import numpy as np
 
-from ..model import Robot
-from ..model.loads import StaticLoads, static_loads
-from ..world.scene import Scene
-from ._result import Stage
-from ._tension_motion import TensionMotionVerification, verify_tension_motion
-from ._tension_motion_result import TensionFollowResult as TensionFollowResult
-from ._timing import StageTiming
-from .paths import ReferencePath, checked_path
-from .tension_ik import TensionIKConfig, TensionIKSolver
+from ...model import Robot
+from ...model.loads import StaticLoads, static_loads
+from ...world.scene import Scene
+from .._result import Stage
+from .._timing import StageTiming
+from ..paths import ReferencePath, checked_path
+from ._motion import TensionMotionVerification, verify_tension_motion
+from ._motion_result import TensionFollowResult as TensionFollowResult
+from .ik import TensionIKConfig, TensionIKSolver
 
 
 @dataclass(frozen=True)
