@@ -13,6 +13,7 @@ import pytest
 
 from cr_nlp import load_result
 from cr_nlp.model import load_robot
+from cr_nlp.model.loads import static_loads
 from cr_nlp.model.statics import solve_statics
 from cr_nlp.model.tendon_groups import moments_from_tensions, tendon_groups, tensions_from_moments
 from cr_nlp.tasks.mechanics.ik import TensionIKConfig, TensionIKResult, TensionIKSolver
@@ -109,14 +110,49 @@ def test_an_obstacle_on_the_backbone_fails_the_verdict() -> None:
     middle = truth.positions[0, len(truth.arc_length) // 3]
     scene = {"obstacles": [{"name": "ball", "type": "sphere", "center": middle.tolist(),
                             "radius": 0.004}]}
-    blocked = TensionIKSolver(RAO, scene, TensionIKConfig(pool_size=1024, retry_seeds=0))
+    blocked = TensionIKSolver(RAO, scene, TensionIKConfig(pool_size=1024, retry_seeds=0,
+                                                          clearance_weight=0.0))
     result = blocked.solve(truth.tip_position)
-    # The LM does not see obstacles: it reaches the target through the ball, and the
-    # verdict (python-fcl on the solved backbone) refuses it.
+    # Without its clearance rows the LM does not see obstacles: it reaches the target
+    # through the ball, and the verdict (python-fcl on the solved backbone) refuses it.
     assert result.position_error[0] < 1e-4
     assert not result.success[0]
     assert "collision" in result.reason[0], result.reason[0]
     assert result.min_clearance[0] < 0
+
+
+def test_the_clearance_rows_steer_the_backbone_around_an_obstacle() -> None:
+    gravity = [0, 0, -9.81]
+    truth = solve_statics(RAO, [[3.0, 0, 0, 0, 0, 0]], gravity=gravity)
+    plain = TensionIKSolver(RAO, None, TensionIKConfig(pool_size=1024, retry_seeds=0,
+                                                       clearance_weight=0.0))
+    # Another tension set for the same tip (the redundancy of 2 × 2 bending moments for 3
+    # coordinates): its backbone leaves the first one by a few millimetres mid-body.
+    loads = static_loads(1, plain.length, None, None, gravity)
+    other = plain._lm(np.array([[2.0, 0, 0, 0, 0, 2.0]]), truth.tip_position,
+                      np.full((1, 4), np.nan), loads)
+    second = solve_statics(RAO, other, gravity=gravity)
+    apart = np.linalg.norm(second.positions[0] - truth.positions[0], axis=1)
+    k = int(np.argmax(apart))
+    assert apart[k] > 0.005
+    # A ball beside the first backbone, on the side away from the second: the first
+    # touches it (1 mm deep), the second clears it by ~4 mm.
+    away = (truth.positions[0, k] - second.positions[0, k]) / apart[k]
+    centre = truth.positions[0, k] + away * (RAO.backbone_radius + 0.004 - 0.001)
+    scene = {"obstacles": [{"name": "ball", "type": "sphere", "center": centre.tolist(),
+                            "radius": 0.004}]}
+    config = TensionIKConfig(pool_size=1024, retry_seeds=0, clearance_weight=0.0)
+    blind = TensionIKSolver(RAO, scene, config).solve(truth.tip_position, gravity=gravity)
+    steered_solver = TensionIKSolver(RAO, scene, TensionIKConfig(pool_size=1024))
+    steered = steered_solver.solve(truth.tip_position, gravity=gravity)
+    assert not blind.success[0], blind.reason[0]
+    assert blind.min_clearance[0] < steered_solver.config.safety_margin
+    # The same target, by a tension set whose backbone keeps δ from the ball, checked by
+    # python-fcl on a fresh statics solve of the answer.
+    assert steered.success[0], steered.reason[0]
+    assert steered.min_clearance[0] >= steered_solver.config.safety_margin
+    again = solve_statics(RAO, steered.tensions, gravity=gravity)
+    assert np.linalg.norm(again.tip_position[0] - truth.tip_position[0]) < 1e-4
 
 
 def test_result_file_round_trip(solver: TensionIKSolver, tmp_path) -> None:

@@ -39,7 +39,8 @@ from ._rod import CaseLoads, StaticsConfig, _integrate, _Layout, _layout, _solve
 from .robot import Robot
 from .rotations import wxyz_from_matrix
 
-__all__ = ["CaseLoads", "Equilibrium", "StaticsConfig", "StaticsResult", "case_loads",
+__all__ = ["CaseLoads", "Equilibrium", "StaticsConfig", "StaticsResult", "backbone_equilibrium",
+           "case_loads",
            "moment_scale", "statics_single", "tip_equilibrium"]
 
 
@@ -285,6 +286,21 @@ def tip_equilibrium(robot: Robot, config: StaticsConfig = StaticsConfig()) -> An
         return position, rotation, mom - loads.moment
 
     return tip
+
+
+def backbone_equilibrium(robot: Robot, config: StaticsConfig = StaticsConfig()) -> Any:
+    """As ``tip_equilibrium``, with the whole backbone: ``f(tension, base_moment, loads)
+    -> (positions (P, 3) at the robot's points, base to tip, m; tip rotation (3, 3);
+    equilibrium residual M(L) − M_tip (3,), N·m)``, base frame, one integration pass."""
+    lay = _layout(robot, config)
+
+    def backbone(tension: jax.Array, base_moment: jax.Array,
+                 loads: CaseLoads) -> tuple[jax.Array, ...]:
+        mom, _, positions, rotations, _ = _integrate(lay, config, base_moment, tension, loads,
+                                                     True)
+        return positions, rotations[-1], mom - loads.moment
+
+    return backbone
 
 
 def moment_scale(robot: Robot) -> float:

@@ -73,6 +73,9 @@ class Stage(enum.StrEnum):
 
     SEARCH = "search"
     """Live IK: the batched IK search (explore, then refine) answered."""
+    EXPLORE = "explore"
+    """Stage 1's answer as it was, no LM after it (a tension plan's straight-leg search
+    where the refined motion did not verify)."""
     REFINE = "refine"
     """The batched penalty LM (stage 2)."""
     POLISH = "polish"

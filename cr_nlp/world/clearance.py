@@ -328,6 +328,21 @@ def soft_clearance_z(robot: Robot, arrays: SceneArrays, z: jax.Array, temperatur
     return _soft_clearance(robot, arrays, z, False, temperature, face_smoothing)
 
 
+def backbone_clearance_numpy(radius: float, arrays: SceneArrays | None,
+                             points: Any) -> np.ndarray:
+    """Float64 numpy: (…,) the smallest signed distance (m) from spheres of ``radius`` m at
+    the backbone ``points`` (…, P, 3) m and at the midpoints between neighbours to any part
+    of the scene (``arrays``: numpy ``SceneArrays``; inf with none). A quick screen (e.g.
+    of seed pools); the verdict uses python-fcl capsules."""
+    points = np.asarray(points, dtype=np.float64)
+    if arrays is None or arrays.n_parts == 0:
+        return np.full(points.shape[:-2], np.inf)
+    centres = np.concatenate([points, 0.5 * (points[..., 1:, :] + points[..., :-1, :])],
+                             axis=-2)
+    blocks = kind_distances(radius, arrays, centres, 0.0, NUMPY)
+    return np.min(np.concatenate(blocks, axis=-1), axis=(-2, -1))
+
+
 def all_pair_distances_numpy(robot: Robot, arrays: SceneArrays | None, z: Any,
                              face_smoothing: float = 0.0,
                              include_self: bool = True) -> np.ndarray:

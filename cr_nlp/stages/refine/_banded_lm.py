@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg
 import numpy as np
 
-from ._lm import LMConfig, judge_step
+from ._lm import LMConfig, difference_jacobian, judge_step
 
 UnaryResidual = Callable[[jax.Array, Any, Any], jax.Array]
 """r(z_t, params_t, shared) → (m₁,): depends on one waypoint z_t (d,)."""
@@ -108,10 +108,13 @@ def chain_cost(terms: ChainResidual, z: jax.Array, params: Any, shared: Any) -> 
 
 
 def chain_jacobians(terms: ChainResidual, z: jax.Array, params: Any,
-                    shared: Any) -> list[tuple[int, jax.Array, jax.Array]]:
+                    shared: Any, differences: bool = False
+                    ) -> list[tuple[int, jax.Array, jax.Array]]:
     """Per-window residuals and Jacobians: a list of (k, r (W, m), J (W, m, k, d)) for
     each term present, k its window size and W = T − k + 1 its window count; J[w, :, a]
-    is the derivative with respect to waypoint w + a."""
+    is the derivative with respect to waypoint w + a. With ``differences`` the unary
+    term's Jacobian is taken by forward differences (``LMConfig.jacobian``), the others
+    by forward mode."""
     t, d = z.shape
 
     def window_jacobians(fn: Callable, k: int) -> tuple[jax.Array, jax.Array]:
@@ -127,6 +130,10 @@ def chain_jacobians(terms: ChainResidual, z: jax.Array, params: Any,
     out = []
     for k, fn in ((1, terms.unary), (2, terms.pair), (3, terms.triple)):
         if fn is None:
+            continue
+        if k == 1 and differences:
+            j, r = difference_jacobian(fn, z, params, shared)
+            out.append((1, r, j[:, :, None, :]))
             continue
         if k == 1 and terms.unary_far is not None and terms.near is not None:
             far = terms.unary_far
@@ -364,7 +371,8 @@ def banded_lm_trip(terms: ChainResidual, project: Callable[[jax.Array], jax.Arra
     fixed_diag = (1.0 - free)[:, :, None] * jnp.eye(d, dtype=dtype)
 
     def step_system(z: jax.Array) -> tuple[BandedMatrix, jax.Array, jax.Array]:
-        blocks = chain_jacobians(terms, z, params, shared)
+        blocks = chain_jacobians(terms, z, params, shared,
+                                 differences=config.jacobian == "differences")
         h, g = normal_equations(blocks, t)
         g = g * free
         # Fixed variables: zero coupling, unit diagonal, zero gradient (a zero step).

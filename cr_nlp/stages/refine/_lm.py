@@ -100,7 +100,7 @@ def solve_spd_cholesky(a: jax.Array, b: jax.Array) -> jax.Array:
     return jax.scipy.linalg.cho_solve(factor, b[..., None])[..., 0]
 
 
-def _differences(residual: Residual, z: jax.Array, params: Any,
+def difference_jacobian(residual: Residual, z: jax.Array, params: Any,
                  shared: Any) -> tuple[jax.Array, jax.Array]:
     """(J (B, m, n), r (B, m)) by forward differences, all n + 1 points in one call."""
     n = z.shape[-1]
@@ -203,7 +203,7 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
     # One forward-mode pass gives the Jacobian and the residual together.
     jac_and_residual = jax.vmap(jax.jacfwd(with_value, has_aux=True), in_axes=(0, 0, None))
     if config.jacobian == "differences":
-        jac_and_residual = partial(_differences, residual)
+        jac_and_residual = partial(difference_jacobian, residual)
 
     def normal_equations(z: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
         """JᵀJ (B, n, n), Jᵀr (B, n) over the free variables, and the cost ½‖r‖² (B,)."""

@@ -59,8 +59,10 @@ class TensionTrajectoryResult(OneStage, ResultIO):
     violations: dict[str, float] = field(default_factory=dict)
     """Per family (``MOTION_FAMILIES``), the largest violation along the motion."""
     stage: Stage = Stage.REFINE
-    """``Stage.REFINE`` (the batched LM / penalty optimisation; there is no polish) or
-    ``Stage.REJECTED`` for a problem refused before solving."""
+    """``Stage.REFINE`` (the banded LM over the whole motion answered), ``Stage.EXPLORE``
+    (a plan: the straight-leg search's motion, kept where the refined one did not verify
+    or was not better; following: the per-waypoint answers, kept the same way; ``notes``
+    say why) or ``Stage.REJECTED`` for a problem refused before solving."""
     notes: list[str] = field(default_factory=list)
     timing: StageTiming = field(default_factory=StageTiming)
 

@@ -1,24 +1,29 @@
 """Path following in tension space on the Cosserat rod model: tendon tensions that put
 the tip at each waypoint of a reference path (positions, or poses) under gravity and
-loads, one quasi-static motion judged as a whole.
+loads, one quasi-static motion judged as a whole, through the stages.
 
-Each waypoint is a tension-space IK problem (``tasks.mechanics.ik``: the LM over each tendon
-group's net pull moment, and M(0) where a force acts, one rod pass per residual). The
-path is solved in blocks of ``block`` consecutive waypoints in one batch, every waypoint of
-a block warm-started from the answer of the waypoint before the block (the first from the
-seed pool): neighbouring waypoints then land on the same branch of the redundant tension
-sets, so the tensions move continuously. A waypoint whose answer fails its own check is
-solved again from its predecessor's answer, then from the pool's nearer seeds.
+- explore: each waypoint is a tension-space IK problem (``tasks.mechanics.ik``), solved in
+  blocks of ``block`` consecutive waypoints in one batch, every waypoint of a block
+  warm-started from the answer before the block (the first from the seed pool); a
+  waypoint whose answer fails its own check is solved again from its predecessor's
+  answer, then from the pool's nearer seeds.
+- refine: the whole motion at once by the banded LM (``stages.refine``'s
+  ``solve_motion``): every waypoint's tip, equilibrium and clearance rows, and between
+  neighbours a smoothness term and a hinge on the tension rate (aiming at ``rate_margin``
+  of the limit). Solved together, the waypoints stay on one branch of the redundant
+  tension sets and keep the rate limit, where waypoints solved one by one jump between
+  branches.
+- where the refined motion does not verify, the per-waypoint answers are repaired (the
+  waypoint after a too-fast change solved again from the one before it) and the better
+  verified motion is kept; ``stage`` and ``notes`` say which.
 
 The verdict (``tasks.mechanics._motion.verify_tension_motion``) is independent of the LM: a
 fresh forward statics solve at every waypoint and at ``samples_between`` interpolated
 tension sets between each pair, converged; the tensions within [0, τ_max]; their rates
 within ``tension_rate_max``; python-fcl clearance of every solved backbone; and every
-waypoint's tip within ``tolerance``. Tensions and their rates are constraints the LM keeps
-(tensions: the least-tension map keeps them in the box) or the warm start favours (rates,
-clearance): a path that needs a faster change or passes an obstacle fails the verdict,
-naming where; it is not retimed or bent. There is no exact (Ipopt) stage: CasADi would
-need the rod's shooting as a graph, which ``model.cosserat`` does not export.
+waypoint's tip within ``tolerance``. A path that needs a faster change or passes through
+an obstacle fails the verdict, naming where; it is not retimed. There is no exact (Ipopt)
+stage yet for this model.
 
 Units: metres, radians, seconds, newtons, N·m, m/s².
 """
@@ -33,6 +38,14 @@ import numpy as np
 
 from ...model import Robot
 from ...model.loads import StaticLoads, static_loads
+from ...model.statics import solve_statics
+from ...stages.refine import (
+    MotionTerms,
+    base_frame,
+    solve_motion,
+    tensions_of_unknowns,
+    unknowns_of,
+)
 from ...world.scene import Scene
 from .._result import Stage
 from .._timing import StageTiming
@@ -63,9 +76,19 @@ class TensionFollowConfig:
     retry_seeds: int = 2
     """Waypoints that fail are solved again from their predecessor, then from this many
     further pool seeds."""
+    chain_iterations: int = 40
+    """Iterations of the banded LM over the whole motion (0: no chain refine)."""
+    smooth_weight: float = 1e-2
+    """s of the chain's smoothness rows s·Δτ/τ_max (m): keeps the motion on one branch of
+    the redundant tension sets."""
+    rate_weight: float = 1.0
+    """h of the chain's rate hinge rows h·max(0, |Δτ| − κ·τ̇_max·dt)/τ_max (m)."""
+    rate_margin: float = 0.9
+    """κ: the chain aims at this fraction of ``tension_rate_max``."""
     ik: TensionIKConfig = field(default_factory=lambda: TensionIKConfig(
         tolerance=1e-4, pool_size=4096, retry_seeds=0))
-    """The per-waypoint tension IK (its pool seeds the first waypoint)."""
+    """The per-waypoint tension IK (its pool seeds the first waypoint; its clearance rows
+    and LM rules serve the chain too)."""
 
 
 def _reference(path: Any, dt: float | None) -> ReferencePath:
@@ -122,14 +145,52 @@ class TensionFollower:
         timing = StageTiming()
         tensions = self._sweep(positions, quats, loads)
         tensions = self._retry(tensions, positions, quats, loads)
-        tensions = self._smooth(tensions, reference.dt, positions, quats, loads)
+        timing.explore = time.perf_counter() - start
+        start = time.perf_counter()
+        chained = self._chain(tensions, reference.dt, positions, quats, loads)
         timing.refine = time.perf_counter() - start
         start = time.perf_counter()
-        report = self.verify_tensions(tensions, reference.dt, loads)
-        result = self._result(tensions, reference, quats, loads, report)
+        report = self.verify_tensions(chained, reference.dt, loads)
         timing.verify = time.perf_counter() - start
+        stage, notes = Stage.REFINE, ["banded LM over the whole motion"]
+        if not report.success:  # the per-waypoint repair, and the better verified answer
+            start = time.perf_counter()
+            smoothed = self._smooth(tensions, reference.dt, positions, quats, loads)
+            timing.explore += time.perf_counter() - start
+            start = time.perf_counter()
+            other = self.verify_tensions(smoothed, reference.dt, loads)
+            if _better(other, report):
+                chained, report = smoothed, other
+                stage, notes = Stage.EXPLORE, [
+                    "per-waypoint answers (the motion refined as a whole did not verify: "
+                    f"{report.reason or 'a larger violation'})"]
+            timing.verify += time.perf_counter() - start
+        result = self._result(chained, reference, quats, loads, report, stage, notes)
         result.timing = timing
         return result
+
+    def _chain(self, tensions: np.ndarray, dt: float, positions: np.ndarray,
+               quats: np.ndarray, loads: StaticLoads) -> np.ndarray:
+        """The whole motion refined at once by the banded LM (``stages.refine``'s
+        ``solve_motion``): every waypoint's tip, equilibrium and clearance rows, and
+        between neighbours the smoothness and tension-rate rows, from the per-waypoint
+        answers ``tensions`` (T, n) N; M(0) of each starts at a fresh statics solve's."""
+        cfg, ik = self.config, self.ik
+        count = len(tensions)
+        if cfg.chain_iterations <= 0 or count < 2:
+            return tensions
+        every = loads.rows(np.zeros(count, int))
+        shoot, params, _ = ik.waypoint_params(positions, quats, every)
+        solved = solve_statics(self.robot, tensions, every.tip_force, every.tip_moment,
+                               every.gravity, cfg.ik.statics,
+                               distributed_force=every.distributed_force,
+                               point_loads=every.point_load_lists())
+        terms = MotionTerms(ik.terms(shoot), rate_step=cfg.rate_margin * cfg.tension_rate_max
+                            * dt, smooth_weight=cfg.smooth_weight, rate_weight=cfg.rate_weight)
+        z0 = unknowns_of(terms.waypoint, tensions, base_frame(self.robot, solved.base_moment))
+        z, _, _ = solve_motion(terms, z0, params, ik.scene_arrays, np.ones_like(z0),
+                               cfg.chain_iterations, ik.lm_config())
+        return tensions_of_unknowns(terms.waypoint, z)
 
     def _sweep(self, positions: np.ndarray, quats: np.ndarray,
                loads: StaticLoads) -> np.ndarray:
@@ -215,7 +276,9 @@ class TensionFollower:
         return self.verify_tensions(result.tensions, result.dt, loads)
 
     def _result(self, tensions: np.ndarray, reference: ReferencePath, quats: np.ndarray,
-                loads: StaticLoads, report: TensionMotionVerification) -> TensionFollowResult:
+                loads: StaticLoads, report: TensionMotionVerification,
+                stage: Stage = Stage.REFINE,
+                notes: list[str] | None = None) -> TensionFollowResult:
         """The result of a judged motion, with its tracking errors."""
         position_error = np.linalg.norm(report.tip_position - reference.positions, axis=1)
         oriented = ~np.any(np.isnan(quats), axis=1)
@@ -234,7 +297,7 @@ class TensionFollower:
             tip_force=loads.tip_force[0], tip_moment=loads.tip_moment[0],
             gravity=loads.gravity[0], distributed_force=loads.distributed_force[0],
             point_loads=loads.point_load_lists()[0],
-            tension_rate_max=self.config.tension_rate_max, stage=Stage.REFINE,
+            tension_rate_max=self.config.tension_rate_max, stage=stage, notes=notes or [],
             target_position=reference.positions, target_wxyz=quats,
             position_error=position_error, rotation_error=rotation_error, reached=reached,
             tolerance=self.config.tolerance)
@@ -247,6 +310,14 @@ class TensionFollower:
             result.reason = "; ".join(filter(None, [words, result.reason]))
             result.success = False
         return result
+
+
+def _better(a: TensionMotionVerification, b: TensionMotionVerification) -> bool:
+    """Whether motion check ``a`` beats ``b``: verified first, then the smaller largest
+    violation."""
+    if a.success != b.success:
+        return a.success
+    return a.max_violation < b.max_violation
 
 
 def follow_tensions(robot: Robot | str | dict, path: Any, scene: Scene | str | None = None,

@@ -1,29 +1,27 @@
 """Inverse kinematics in tension space: tendon tensions that put the tip of the Cosserat
-rod model (``model.cosserat``) at target positions (and orientations), batched.
+rod model (``model.cosserat``) at target positions (and orientations), batched, through
+the stages of every task.
 
 The problem of one target: tensions τ ∈ [0, τ_max]ⁿ and the moment at the base M(0)
 (the shooting unknown of the statics, here an unknown of the IK itself) minimise
 
     ‖p(τ, M(0)) − p*‖² + ‖L·rot(R*ᵀR)‖² (with an orientation) + w_eq‖L·(M(L) − M_tip)/(EI/L)‖²
-    + ρ²‖τ/τ_max‖²,
+    + w_c²‖max(0, δ + b − d(backbone))‖² (with a scene) (+ ρ²‖τ/τ_max‖²),
 
-one integration pass of the rod per residual evaluation. The equilibrium term is zero at
-a solution, so the answer is an equilibrium of the rod, not a penalty compromise (it and
-M(0) are left out when no external force acts: then M(0) = M_tip plus the point moments
-exactly). The loads are those of the forward statics (``model.loads``): tip wrench,
-gravity, a force per metre and point wrenches at given arc lengths.
+one integration pass of the rod per residual evaluation (the rows and the unknowns, the
+tendon groups' net pull moments, are ``stages.refine``'s ``waypoint_residual``). The
+equilibrium term is zero at a solution, so the answer is an equilibrium of the rod, not a
+penalty compromise; the clearance rows steer the solved backbone away from obstacles.
 
-The unknowns. Three or more tendons per segment (evenly around it) bend it in two
-directions, so many tension sets give one shape. The LM therefore works on each tendon
-group's net pull moment d = Σ τ_i (r_i × e3) (2 numbers per segment; one group for shared
-routing), and the tensions are the least ones giving it: the two tendons whose directions
-enclose d (a 2×2 solve), the others slack, capped at τ_max (``model.tendon_groups``).
-That map is continuous and piecewise linear, needs no bounds in the LM, and never asks
-antagonistic tendons to fight. Robots with fewer than three tendons per group solve
-in the tensions themselves, kept in [0, τ_max] by the LM's active-set projection, with
-ρ (a length, default 10 µm) picking the least-tension answer. The LM's Jacobian is taken
-by forward differences (``LMConfig.jacobian``), and every target starts from the pool
-tension set whose tip is nearest (a batch of forward statics solves).
+The stages:
+- explore: the seed pool of the robot under the load case (``stages.explore``'s
+  ``tension_pool``: random tension sets solved once, cached on disk, so a new process
+  under the same loads does not rebuild it); each target starts from the pool set whose
+  tip is nearest;
+- refine: the batched LM (``stages.refine.lm_solve``), Jacobians by forward differences
+  over the unknowns (``TensionIKConfig.jacobian``);
+- verify, then again from the next-nearest pool sets for the targets that failed.
+There is no exact (Ipopt) stage yet for this model (``exact_mode`` in the result says so).
 
 Success is the one verdict (``world.verdict``) on numbers re-evaluated independently of
 the LM: the tip of a fresh forward statics solve (``solve_statics``, its own shooting) of
@@ -43,31 +41,34 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ...model import Robot, load_robot
-from ...model.cosserat import CaseLoads, StaticsConfig, StaticsResult, moment_scale
-from ...model.cosserat import tip_equilibrium as _tip_equilibrium
+from ...model.cosserat import StaticsConfig, StaticsResult
 from ...model.loads import StaticLoads, static_loads
 from ...model.mechanics import require_mechanics
 from ...model.rotations import matrix_from_wxyz
 from ...model.statics import solve_statics
-from ...model.tendon_groups import (
-    moments_from_tensions,
-    tendon_groups,
-    tensions_from_moments,
-)
 from ...runtime import configure
-from ...stages.refine._lm import LMConfig, lm_solve
+from ...stages.explore import TensionPool, tension_pool
+from ...stages.refine import (
+    LMConfig,
+    TensionTerms,
+    WaypointParams,
+    box_bounds,
+    lm_solve,
+    project_box,
+    tensions_of_unknowns,
+    unknowns_of,
+    waypoint_params,
+    waypoint_residual,
+)
 from ...world.check import check_chains
+from ...world.clearance import SceneArrays, backbone_clearance_numpy, scene_arrays
 from ...world.scene import Scene, load_scene
 from ...world.verdict import judge_many
 from .._result import Stage
 from .._timing import StageTiming
 from ._ik_result import TensionIKResult as TensionIKResult
-
-EQUILIBRIUM_WEIGHT = 10.0
-"""Weight of the equilibrium residual against the tip residual (both in metres)."""
 
 
 @dataclass(frozen=True)
@@ -92,51 +93,21 @@ class TensionIKConfig:
     least two apart."""
     seed: int = 0
     """Seed of the pool."""
+    clearance_weight: float = 10.0
+    """Weight of the clearance rows of the solved backbone in the LM (with a scene): a
+    sphere 1 mm inside the band costs as much as 1 cm of tip error."""
+    clearance_buffer: float = 0.002
+    """The LM keeps the backbone's spheres this far beyond δ (m): the verdict checks
+    capsules between the points, which can come closer than the spheres."""
+    jacobian: str = "differences"
+    """How the LM differentiates the rod (``LMConfig.jacobian``): ``"differences"``
+    (forward differences over the unknowns) or ``"forward"`` (forward mode)."""
     statics: StaticsConfig = field(default_factory=StaticsConfig)
     """The rod discretisation (shared by the LM and the verdict's solve) and its dtype."""
 
 
-# ---------------------------------------------------------------- the LM problem
-
-def _residual(robot: Robot, statics: StaticsConfig, weights: tuple[float, float, float, float],
-              shoot: bool, z: jax.Array, p: tuple, shared: Any) -> jax.Array:
-    """One target's residual (metres) at z = (the unknowns of the tensions, then with
-    ``shoot`` M(0)/(EI/L)); ``weights`` are (τ_max N, EI/L N·m, robot length m, ρ m)."""
-    del shared
-    tension_max, scale, length, rho = weights
-    target, target_rot, rot_weight, loads = p
-    n = robot.n_tendons
-    groups = tendon_groups(robot)
-    if groups is None:
-        tension = z[:n] * tension_max
-        width = n
-        unknowns = rho * z[:n]
-    else:
-        width = 2 * len(groups.index)
-        reference = tension_max * robot.tendons.radius
-        tension = tensions_from_moments(groups, n, tension_max,
-                                         z[:width].reshape(-1, 2) * reference)
-        unknowns = jnp.zeros(0, z.dtype)
-    base_moment = (z[width:] * scale if shoot
-                   else loads.moment + loads.point_moment.sum(axis=0))
-    tip, rot, eq = _tip_equilibrium(robot, statics)(tension, base_moment, loads)
-    # rot(R*ᵀR): the vector of its skew part, sin of the angle about its axis.
-    rel = target_rot.T @ rot
-    twist = 0.5 * jnp.stack([rel[2, 1] - rel[1, 2], rel[0, 2] - rel[2, 0],
-                             rel[1, 0] - rel[0, 1]])
-    rows = [tip - target, rot_weight * length * twist, unknowns]
-    if shoot:
-        rows.append(EQUILIBRIUM_WEIGHT * length * eq / scale)
-    return jnp.concatenate(rows)
-
-
-def _project(n: int, z: jax.Array) -> jax.Array:
-    """Tensions onto [0, τ_max] (z's first n entries onto [0, 1]); M(0) is free."""
-    return z.at[:, :n].set(jnp.clip(z[:, :n], 0.0, 1.0))
-
-
-def _identity(z: jax.Array) -> jax.Array:
-    return z
+SEED_NEIGHBOURS = 16
+"""Pool sets nearest to a target among which a clear one is preferred as its seed."""
 
 
 class TensionIKSolver:
@@ -151,44 +122,33 @@ class TensionIKSolver:
         self.config = config
         self.tension_max = float(self.robot.mechanics.tension_max)
         self.length = float(sum(s.length_min for s in self.robot.segments))
-        self._pool: dict[bytes, tuple[np.ndarray, cKDTree]] = {}
-        self._groups = tendon_groups(self.robot)
+        self._pools: dict[bytes, TensionPool] = {}
+        self._pool_clear: dict[int, np.ndarray] = {}
+        self._arrays = (None if self.scene is None or not self.scene.parts
+                        else scene_arrays(self.scene, as_numpy=True))
+        weight = config.clearance_weight if self._arrays is not None else 0.0
         # One residual and projection object per solver and case (with or without M(0)
         # as an unknown): lm_solve compiles per object.
-        weights = (self.tension_max, moment_scale(self.robot), self.length,
-                   config.tension_weight)
-        self._residuals = {shoot: partial(_residual, self.robot, config.statics, weights, shoot)
-                           for shoot in (False, True)}
-        self._project = (_identity if self._groups is not None
-                         else partial(_project, self.robot.n_tendons))
+        self._terms = {shoot: TensionTerms(self.robot, config.statics, shoot,
+                                           config.tension_weight, weight,
+                                           config.safety_margin + config.clearance_buffer)
+                       for shoot in (False, True)}
+        self._residuals = {shoot: partial(waypoint_residual, terms)
+                           for shoot, terms in self._terms.items()}
+        self._project = partial(project_box, self._terms[False])
 
     # ------------------------------------------------------------ the seeds
 
-    def pool(self, loads: StaticLoads) -> tuple[np.ndarray, cKDTree]:
-        """(tensions (P, n) N, a k-d tree of their tips (m, world frame)): the seed pool
-        under one load case, random tensions on one or two tendons of each segment (most
-        robots bend with at most two of three), solved once and kept."""
+    def pool(self, loads: StaticLoads) -> TensionPool:
+        """The seed pool under one load case (``stages.explore``'s ``tension_pool``:
+        random tension sets solved once, cached on disk per robot and loads, and kept
+        here), with a k-d tree of its tips (m, world frame)."""
         key = b"".join(np.ascontiguousarray(a).tobytes() for a in loads.arrays())
-        if key not in self._pool:
-            rng = np.random.default_rng(self.config.seed)
-            per = self.robot.tendons.per_segment
-            n = self.robot.n_tendons
-            size = self.config.pool_size
-            tensions = rng.uniform(0.0, self.tension_max, (size, n))
-            # Slacken one tendon (or, for a third of the sets, two) of every segment.
-            for s in range(n // per):
-                drop = rng.integers(0, per, size)
-                tensions[np.arange(size), s * per + drop] = 0.0
-                second = rng.random(size) < 1 / 3
-                tensions[np.flatnonzero(second), s * per + (drop[second] + 1) % per] = 0.0
-            one = loads.rows(np.zeros(size, int))
-            result = solve_statics(self.robot, tensions, one.tip_force, one.tip_moment,
-                                   one.gravity, self.config.statics,
-                                   distributed_force=one.distributed_force,
-                                   point_loads=one.point_load_lists())
-            keep = result.converged
-            self._pool[key] = (tensions[keep], cKDTree(result.tip_position[keep]))
-        return self._pool[key]
+        if key not in self._pools:
+            cfg = self.config
+            self._pools[key] = tension_pool(self.robot, loads, cfg.pool_size, cfg.seed,
+                                            cfg.statics)
+        return self._pools[key]
 
     # ------------------------------------------------------------ solve
 
@@ -315,38 +275,54 @@ class TensionIKSolver:
         shared = all(np.all(v == v[:1]) for v in loads.arrays())
         case = (loads.rows(np.zeros(1, int)) if shared
                 else static_loads(1, self.length))
-        pool_t, tree = self.pool(case)
-        _, order = tree.query(positions, k=[rank + 1])
-        return pool_t[order[:, 0]]
+        pool = self.pool(case)
+        if self._arrays is None:
+            return pool.tensions[pool.nearest(positions, rank)]
+        # Among the nearest sets, the clear ones first (in order of distance).
+        clear = self._clear_pool(pool)
+        k = min(len(pool.tensions), SEED_NEIGHBOURS + rank)
+        _, index = pool.tree.query(positions, k=k)
+        order = np.argsort(~clear[index], axis=1, kind="stable")
+        return pool.tensions[np.take_along_axis(index, order[:, rank:rank + 1], axis=1)[:, 0]]
+
+    def _clear_pool(self, pool: TensionPool) -> np.ndarray:
+        """(P,) True where a pool set's backbone keeps δ + buffer from the scene (a quick
+        sphere screen, once per pool)."""
+        key = id(pool)
+        if key not in self._pool_clear:
+            band = self.config.safety_margin + self.config.clearance_buffer
+            self._pool_clear[key] = backbone_clearance_numpy(
+                self.robot.backbone_radius, self._arrays, pool.backbones) >= band
+        return self._pool_clear[key]
+
+    def terms(self, shoot: bool) -> TensionTerms:
+        """The rows of one waypoint for this solver (with M(0) as an unknown: ``shoot``)."""
+        return self._terms[shoot]
+
+    @property
+    def scene_arrays(self) -> Any:
+        """The scene's parts as numpy arrays for the clearance rows, or None."""
+        return self._arrays
+
+    def waypoint_params(self, positions: np.ndarray, quats: np.ndarray, loads: StaticLoads,
+                        tip_weight: float = 1.0) -> tuple[bool, WaypointParams, np.ndarray]:
+        """``stages.refine``'s ``waypoint_params`` for this solver's robot."""
+        return waypoint_params(self.robot, positions, quats, loads, tip_weight)
+
+    def lm_config(self) -> LMConfig:
+        """The refine stage's LM rules for this solver's tolerance."""
+        return LMConfig(jacobian=self.config.jacobian, linear_solver="unrolled",
+                        cost_tolerance=0.5 * (1e-3 * self.config.tolerance) ** 2,
+                        stall_tolerance=1e-6)
 
     def _lm(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,
             loads: StaticLoads) -> np.ndarray:
         """LM from the given tensions; returns the answer's tensions (B, n), N."""
-        robot, cfg = self.robot, self.config
+        cfg = self.config
         dtype = np.float64 if cfg.statics.dtype == "float64" else np.float32
-        base_rot = matrix_from_wxyz(np.asarray(robot.base_wxyz))
-        base_pos = np.asarray(robot.base_position)
-        # Targets and loads into the base frame (the rod is solved there).
-        target = (positions - base_pos) @ base_rot
-        oriented = ~np.any(np.isnan(quats), axis=1)
-        target_rot = np.tile(np.eye(3), (len(positions), 1, 1))
-        if oriented.any():
-            target_rot[oriented] = base_rot.T @ np.stack(
-                [matrix_from_wxyz(q) for q in quats[oriented]])
-        frame = loads.in_base_frame(base_rot)
-        moment = frame.tip_moment + frame.point_moment.sum(axis=1)
-        scale = moment_scale(robot)
-        n = robot.n_tendons
-        shoot = bool(np.any(frame.has_force()))
-        if self._groups is None:
-            z0 = tensions / self.tension_max
-        else:
-            reference = self.tension_max * robot.tendons.radius
-            z0 = moments_from_tensions(self._groups, tensions).reshape(len(tensions), -1)
-            z0 = z0 / reference
-        width = z0.shape[1]
-        if shoot:  # M(0) starts at the tip and point moments (exact without forces)
-            z0 = np.concatenate([z0, moment / scale], axis=1)
+        shoot, params, moment = self.waypoint_params(positions, quats, loads)
+        terms = self._terms[shoot]
+        z0 = unknowns_of(terms, tensions, moment)
         size = max(16, 1 << (len(z0) - 1).bit_length())
         pad = size - len(z0)
 
@@ -354,28 +330,14 @@ class TensionIKSolver:
             return jnp.asarray(np.concatenate([a, np.repeat(a[:1], pad, axis=0)]), dtype)
 
         with jax.enable_x64(dtype == np.float64):
-            params = tuple(padded(a) for a in (target, target_rot,
-                                               oriented.astype(float))) + (
-                CaseLoads(*(padded(a) for a in frame.arrays())),)
-            bounds = None
-            if self._groups is None:
-                extra = z0.shape[1] - n
-                bounds = (jnp.asarray(np.r_[np.zeros(n), np.full(extra, -np.inf)], dtype),
-                          jnp.asarray(np.r_[np.ones(n), np.full(extra, np.inf)], dtype))
-            z, _, _ = lm_solve(self._residuals[shoot], self._project, padded(z0), params,
-                               None, jnp.ones(z0.shape[1], dtype), jnp.asarray(cfg.iterations),
-                               LMConfig(jacobian="differences", linear_solver="unrolled",
-                                        cost_tolerance=0.5 * (1e-3 * cfg.tolerance) ** 2,
-                                        stall_tolerance=1e-6), bounds=bounds)
-            z = np.asarray(z, dtype=float)[:len(z0), :width]
-        if self._groups is None:
-            return np.clip(z, 0.0, 1.0) * self.tension_max
-        reference = self.tension_max * robot.tendons.radius
-        with jax.enable_x64(True):
-            tension = jax.vmap(partial(tensions_from_moments, self._groups, n,
-                                       self.tension_max))(
-                jnp.asarray(z.reshape(len(z), -1, 2) * reference))
-        return np.asarray(tension, dtype=float)
+            shared = (None if self._arrays is None
+                      else SceneArrays(*(jnp.asarray(a, dtype) for a in self._arrays)))
+            z, _, _ = lm_solve(self._residuals[shoot], self._project, padded(z0),
+                               jax.tree_util.tree_map(padded, params), shared,
+                               jnp.ones(z0.shape[1], dtype), jnp.asarray(cfg.iterations),
+                               self.lm_config(), bounds=box_bounds(terms, dtype))
+            z = np.asarray(z, dtype=float)[:len(z0)]
+        return tensions_of_unknowns(terms, z)
 
     def _verdict(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,
                  loads: StaticLoads, timing: StageTiming) -> TensionIKResult:

@@ -15,11 +15,18 @@ screened on exactly the samples the verdict checks: every waypoint and
 ``samples_between`` interpolated tension sets between each pair, each a forward statics
 solve and python-fcl on the solved backbone.
 
+That search is the explore stage. The refine stage then optimises the searched motion as
+a whole (``refine_motion``): resampled to ``time_slack`` times as many waypoints (the
+search's legs run at the rate limit), it is solved by the banded LM over every waypoint's
+tension set, M(0) and tip, with the start and goal fixed: the equilibrium and the backbone
+clearance at every waypoint, and between neighbours the tip's step (a shorter tip path),
+a smoothness term and a hinge on the tension rate (``stages.refine``'s ``MotionTerms``).
+The refined motion is kept where it verifies and its tip path (fresh statics along the
+motion) is no longer, else the search's (``Stage.EXPLORE``; the notes say why).
+
 The verdict is the one of every tension motion (``tasks.mechanics._motion``): a fresh
-solve at every checked sample, independent of the screening's. This planner is a search
-over straight-leg chains, not an optimisation: it does not shorten a plan beyond the
-choice of via points, and it finds no plan that needs three. There is no exact
-(Ipopt) stage: CasADi has no graph of the rod's shooting (``model.cosserat``).
+solve at every checked sample, independent of the screening's and of the LM. There is no
+exact (Ipopt) stage yet for planning on this model.
 
 Units: newtons, N/s, seconds, metres.
 """
@@ -39,7 +46,19 @@ from ...model import Robot, load_robot
 from ...model.cosserat import StaticsConfig
 from ...model.loads import StaticLoads, static_loads
 from ...model.mechanics import require_mechanics
+from ...model.statics import solve_statics
 from ...model.tendon_groups import tensions_of_configuration
+from ...stages.refine import (
+    LMConfig,
+    MotionTerms,
+    TensionTerms,
+    base_frame,
+    solve_motion,
+    tensions_of_unknowns,
+    unknowns_of,
+    waypoint_params,
+)
+from ...world.clearance import scene_arrays
 from ...world.scene import Scene, load_scene
 from .._result import Stage
 from .._timing import StageTiming
@@ -71,6 +90,26 @@ class TensionPlanConfig:
     """Seed of the via pool."""
     statics: StaticsConfig = StaticsConfig()
     """The rod discretisation of every forward solve."""
+    chain_iterations: int = 40
+    """Iterations of the banded LM that refines each searched motion (0: the search's
+    motion as it is)."""
+    tip_path_weight: float = 1.0
+    """Weight of the refine's tip path length rows (each waypoint's step of the tip, m)."""
+    rate_weight: float = 10.0
+    """h of the refine's rate hinge rows h·max(0, |Δτ| − κ·τ̇_max·dt)/τ_max, m."""
+    smooth_weight: float = 1e-2
+    """s of the refine's smoothness rows s·Δτ/τ_max, m."""
+    rate_margin: float = 0.9
+    """κ: the refine aims at this fraction of ``tension_rate_max``."""
+    time_slack: float = 1.5
+    """The refined motion may take this many times the searched one's duration (the
+    search's legs run at the rate limit, which leaves the refine no room): the searched
+    motion is resampled to that many more waypoints before it is refined."""
+    clearance_weight: float = 100.0
+    """Weight of the refine's clearance rows of the solved backbones (against the tip
+    path's 1: 10 let the shortened motions cut through obstacles)."""
+    clearance_buffer: float = 0.002
+    """The refine keeps the backbone's spheres this far beyond δ, m."""
 
 
 def check_tensions(robot: Robot, values: Any, where: str) -> np.ndarray:
@@ -233,15 +272,88 @@ class TensionPlanner:
         for i in valid:
             if plans[i] is None:
                 plans[i], notes[i] = self._via_plan(starts[i], goals[i], loads)
-        timing = StageTiming(explore=time.perf_counter() - begin)
+        explore = (time.perf_counter() - begin) / max(count, 1)
         results = []
         for i in range(count):
-            start = time.perf_counter()
-            results.append(self._result(i, starts[i], goals[i], ends_clear[:, i], plans[i],
-                                        notes[i], loads))
-            results[-1].timing = StageTiming(explore=timing.explore / max(count, 1),
-                                             verify=time.perf_counter() - start)
+            timing = StageTiming(explore=explore)
+            searched = self._result(i, starts[i], goals[i], ends_clear[:, i], plans[i],
+                                    notes[i], loads, stage=Stage.EXPLORE)
+            results.append(searched if plans[i] is None
+                           else self._refined(i, searched, loads, timing))
+            results[-1].timing = timing
         return results
+
+    def _refined(self, index: int, searched: TensionTrajectoryResult, loads: StaticLoads,
+                 timing: StageTiming) -> TensionTrajectoryResult:
+        """The searched motion refined by the banded LM (``refine_motion``), kept where it
+        verifies and is no worse (verified, then the shorter tip path), else the search's
+        (``Stage.EXPLORE``, the note says why); ``timing`` gets the seconds."""
+        if self.config.chain_iterations <= 0:
+            return searched
+        start = time.perf_counter()
+        tensions = self.refine_motion(searched.tensions, loads)
+        timing.refine = time.perf_counter() - start
+        start = time.perf_counter()
+        refined = self._result(index, tensions[0], tensions[-1], np.ones(2, bool), tensions,
+                               [*searched.notes, "refined by the banded LM"], loads)
+        timing.verify = time.perf_counter() - start
+        length, before = (self.tip_path(r.tensions, loads) for r in (refined, searched))
+        if refined.success and (not searched.success or length <= before):
+            refined.notes.append(f"tip path {1e3 * length:.1f} mm (searched {1e3 * before:.1f})")
+            return refined
+        why = (refined.reason if not refined.success else
+               f"its tip path {1e3 * length:.1f} mm is not shorter than {1e3 * before:.1f}")
+        searched.notes.append(f"the refined motion was not kept: {why}")
+        return searched
+
+    def tip_path(self, tensions: np.ndarray, loads: StaticLoads, samples: int = 64) -> float:
+        """The length of the tip's path (m) along a motion (T, n) N, from fresh statics
+        at ``samples`` tension sets evenly spaced along it (so that motions with different
+        waypoint counts compare fairly)."""
+        dense = _resampled(np.asarray(tensions, float), samples)
+        every = loads.rows(np.zeros(samples, int))
+        solved = solve_statics(self.robot, dense, every.tip_force, every.tip_moment,
+                               every.gravity, self.config.statics,
+                               distributed_force=every.distributed_force,
+                               point_loads=every.point_load_lists())
+        return _tip_path(np.asarray(solved.tip_position))
+
+    def refine_motion(self, tensions: np.ndarray, loads: StaticLoads) -> np.ndarray:
+        """A motion (T, n) N refined as a whole with its first and last tension sets
+        fixed: resampled to ``time_slack`` times as many steps, then each waypoint's
+        equilibrium and backbone clearance, between neighbours the tip's step, a
+        smoothness term and the tension-rate hinge (``stages.refine``'s ``solve_motion``,
+        tip path weight ``tip_path_weight``); returns (T', n) N."""
+        cfg = self.config
+        count = max(len(tensions), math.ceil(cfg.time_slack * (len(tensions) - 1)) + 1)
+        tensions = _resampled(tensions, count)
+        every = loads.rows(np.zeros(count, int))
+        solved = solve_statics(self.robot, tensions, every.tip_force, every.tip_moment,
+                               every.gravity, cfg.statics,
+                               distributed_force=every.distributed_force,
+                               point_loads=every.point_load_lists())
+        tips = np.asarray(solved.tip_position)
+        shoot, params, _ = waypoint_params(self.robot, tips, np.full((count, 4), np.nan),
+                                           every, tip_weight=0.0)
+        arrays = (None if self.scene is None or not self.scene.parts
+                  else scene_arrays(self.scene, as_numpy=True))
+        waypoint = TensionTerms(self.robot, cfg.statics, shoot,
+                                clearance_weight=0.0 if arrays is None else cfg.clearance_weight,
+                                clearance_band=cfg.safety_margin + cfg.clearance_buffer,
+                                direct=True)
+        terms = MotionTerms(waypoint, rate_step=cfg.rate_margin * cfg.tension_rate_max * cfg.dt,
+                            smooth_weight=cfg.smooth_weight, rate_weight=cfg.rate_weight,
+                            tip_path_weight=cfg.tip_path_weight)
+        z0 = np.concatenate([unknowns_of(waypoint, tensions,
+                                         base_frame(self.robot, solved.base_moment)),
+                             params.target], axis=1)
+        free = np.ones_like(z0)
+        free[[0, -1], :waypoint.size] = 0.0      # the start and goal stay as they are
+        z, _, _ = solve_motion(terms, z0, params, arrays, free, cfg.chain_iterations,
+                               LMConfig(jacobian="differences", stall_tolerance=1e-6))
+        out = np.array(tensions_of_unknowns(waypoint, z))
+        out[0], out[-1] = tensions[0], tensions[-1]
+        return out
 
     def _via_plan(self, start: np.ndarray, goal: np.ndarray,
                   loads: StaticLoads) -> tuple[np.ndarray, list[str]]:
@@ -335,7 +447,8 @@ class TensionPlanner:
 
     def _result(self, index: int, start: np.ndarray, goal: np.ndarray, ends_clear: np.ndarray,
                 plan: np.ndarray | None, notes: list[str], loads: StaticLoads,
-                dt: float | None = None) -> TensionTrajectoryResult:
+                dt: float | None = None, stage: Stage = Stage.REFINE
+                ) -> TensionTrajectoryResult:
         """The judged result of one problem (refused where an end is not clear)."""
         cfg = self.config
         dt = cfg.dt if dt is None else dt
@@ -353,7 +466,7 @@ class TensionPlanner:
             tip_moment=loads.tip_moment[0], gravity=loads.gravity[0],
             distributed_force=loads.distributed_force[0],
             point_loads=loads.point_load_lists()[0], tension_rate_max=cfg.tension_rate_max,
-            stage=Stage.REFINE if plan is not None else Stage.REJECTED, notes=notes)
+            stage=stage if plan is not None else Stage.REJECTED, notes=list(notes))
         result.judged(report)
         if plan is None:
             which = " and ".join(k for k, ok in zip(("start", "goal"), ends_clear,
@@ -362,6 +475,19 @@ class TensionPlanner:
             result.reason = (f"problem {index}: the {which} is not clear of the scene by "
                              f"{cfg.safety_margin:g} m (or its statics did not converge)")
         return result
+
+
+def _resampled(tensions: np.ndarray, count: int) -> np.ndarray:
+    """The piecewise-linear motion through ``tensions`` (T, n) N at ``count`` waypoints
+    evenly spaced in the waypoint index (the same path in tension space, slower)."""
+    old = np.linspace(0.0, 1.0, len(tensions))
+    new = np.linspace(0.0, 1.0, count)
+    return np.stack([np.interp(new, old, column) for column in tensions.T], axis=1)
+
+
+def _tip_path(tips: np.ndarray) -> float:
+    """The length of a polyline of tip positions (T, 3), m."""
+    return float(np.sum(np.linalg.norm(np.diff(tips, axis=0), axis=1)))
 
 
 def _seconds(a: np.ndarray, b: np.ndarray) -> np.ndarray:
