@@ -104,13 +104,18 @@ def test_polish_with_orientation_and_point_load() -> None:
 
 
 def test_time_limit_and_bad_inputs() -> None:
-    """No time: rows keep their start tensions, marked; wrong shapes are named."""
+    """No time: rows keep their start tensions, marked; a non-finite row is kept and named;
+    wrong shapes are refused."""
     start = np.array([[1.0, 0.0, 0.0, 0.0, 1.0, 0.0]] * 2)
     targets = np.array([[0.0, 0.0, 0.39]] * 2)
     result = polish_tension_ik(RAO, None, start, targets, margin=MARGIN, time_limit=0.0,
                                config=CONFIG)
     assert result.status == [TIME_LIMIT_STATUS] * 2
     np.testing.assert_array_equal(result.tensions, start)
+    unknown = polish_tension_ik(RAO, None, start[:1], [[np.nan, 0.0, 0.3]], margin=MARGIN,
+                                config=CONFIG)
+    assert unknown.status == ["non-finite input"]
+    np.testing.assert_array_equal(unknown.tensions, start[:1])
     with pytest.raises(ValueError, match="tensions0"):
         polish_tension_ik(RAO, None, start[:, :4], targets, margin=MARGIN)
     with pytest.raises(ValueError, match="objective"):

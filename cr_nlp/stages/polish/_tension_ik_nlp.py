@@ -40,7 +40,7 @@ import numpy as np
 from ...model import Robot
 from ...model._ops import NUMPY
 from ...model.cosserat import CasadiRod, RodLoads, StaticsConfig, flat_loads, moment_scale
-from ...model.loads import StaticLoads
+from ...model.loads import StaticLoads, static_loads
 from ...model.rotations import matrix_from_wxyz
 from ...model.statics import solve_statics
 from ...runtime import cached
@@ -104,11 +104,12 @@ class TensionPolish(NamedTuple):
     """(B,) Ipopt iterations per row."""
 
 
-def _bodies(lay_arc: np.ndarray, robot: Robot, robot_points: int) -> tuple[np.ndarray, ...]:
-    """(body matrix A (N × (S+1)): sphere centres from the grid points (points, then chord
-    midpoints), arc length of each sphere (N,) m, chord spacing bound (m))."""
-    s = lay_arc
-    count = robot_points
+def _bodies(s: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """For grid points at arc lengths ``s`` (S+1,) m: (the body matrix A (N × (S+1)) giving
+    the sphere centres from the points: the points, then their chords' midpoints; each
+    sphere's arc length (N,) m; the largest spacing of neighbouring spheres, m, at most
+    half the longest step)."""
+    count = len(s)
     a = np.zeros((2 * count - 1, count))
     a[np.arange(count), np.arange(count)] = 1.0
     mid = np.arange(count - 1)
@@ -156,8 +157,7 @@ class TensionIKPolisher:
         self.tension_max = tension_max
         self.tension_scale = tension_max if math.isfinite(tension_max) else 1.0
         self._state_scale = np.r_[[self.length] * 3, [1.0] * 9, [self.moment_scale] * 3]
-        self._body_matrix, arc, spacing = _bodies(rod.layout.arc_length, robot,
-                                                  len(rod.grid.robot_points))
+        self._body_matrix, arc, spacing = _bodies(rod.layout.arc_length)
         r = robot.backbone_radius
         # How much nearer the capsule chain can come than its spheres (world.clearance).
         gap = max(math.sqrt(r * r + spacing ** 2 / 4) - r,
@@ -382,6 +382,21 @@ class TensionIKPolisher:
         return x, status, iterations
 
 
+def _start_moments(robot: Robot, tensions0: np.ndarray, loads: StaticLoads,
+                   statics: StaticsConfig) -> np.ndarray:
+    """(B, 3) M(0) of the start tensions (N·m, world frame) by the JAX statics; where it did
+    not solve, M(0) as without external forces (the tip and point moments), from which
+    Ipopt's unknowns start."""
+    start = solve_statics(robot, np.where(np.isfinite(tensions0), tensions0, 0.0).clip(0.0),
+                          loads.tip_force, loads.tip_moment, loads.gravity, statics,
+                          distributed_force=loads.distributed_force,
+                          point_loads=loads.point_load_lists())
+    moments = np.array(start.base_moment)
+    unsolved = ~start.converged | ~np.all(np.isfinite(moments), axis=1)
+    moments[unsolved] = (loads.tip_moment + loads.point_moment.sum(axis=1))[unsolved]
+    return moments
+
+
 @cached(maxsize=16)
 def tension_ik_polisher(robot: Robot, scene: Scene | None, statics: StaticsConfig,
                         point_s: tuple[float, ...], oriented: bool, margin: float,
@@ -417,7 +432,9 @@ def polish_tension_ik(robot: Robot, scene: Scene | None, tensions0: Any, targets
         config: ``TensionPolishConfig`` (objective, tolerances, slots).
 
     Returns:
-        ``TensionPolish``: tensions (B, n) N, Ipopt's status per row, seconds per row,
+        ``TensionPolish``: tensions (B, n) N, Ipopt's status per row ("non-finite input"
+        for a row with non-finite tensions or target: kept as given), seconds per row (the
+        first row of a new robot, scene or load layout includes building its NLP, seconds),
         Ipopt iterations per row. Nothing here judges the answer: the caller's verdict does.
     """
     statics_config = StaticsConfig() if statics_config is None else statics_config
@@ -432,17 +449,13 @@ def polish_tension_ik(robot: Robot, scene: Scene | None, tensions0: Any, targets
              else np.array(np.broadcast_to(np.asarray(wxyz, dtype=float), (count, 4))))
     length = float(sum(seg.length_min for seg in robot.segments))
     if loads is None:
-        from ...model.loads import static_loads
         loads = static_loads(count, length)
     end = math.inf if time_limit is None else time.perf_counter() + float(time_limit)
-    start = solve_statics(robot, np.clip(tensions0, 0.0, None), loads.tip_force,
-                          loads.tip_moment, loads.gravity, statics_config,
-                          distributed_force=loads.distributed_force,
-                          point_loads=loads.point_load_lists())
     base_rot = matrix_from_wxyz(np.asarray(robot.base_wxyz))
     frame = loads.in_base_frame(base_rot)
     base_targets = (targets - np.asarray(robot.base_position, dtype=float)) @ base_rot
-    base_moments = start.base_moment @ base_rot
+    base_moments = _start_moments(robot, tensions0, loads, statics_config) @ base_rot
+    finite = np.all(np.isfinite(tensions0), axis=1) & np.all(np.isfinite(targets), axis=1)
     out = np.array(tensions0)
     status = [TIME_LIMIT_STATUS] * count
     seconds, iterations = np.zeros(count), np.zeros(count, dtype=int)
@@ -450,6 +463,9 @@ def polish_tension_ik(robot: Robot, scene: Scene | None, tensions0: Any, targets
         began = time.perf_counter()
         if began >= end:
             break
+        if not finite[i]:
+            status[i] = "non-finite input"
+            continue
         real = np.any(frame.point_force[i] != 0, axis=1) | np.any(frame.point_moment[i] != 0,
                                                                   axis=1)
         oriented = not np.any(np.isnan(quats[i]))
