@@ -120,3 +120,33 @@ def test_time_limit_and_bad_inputs() -> None:
         polish_tension_ik(RAO, None, start[:, :4], targets, margin=MARGIN)
     with pytest.raises(ValueError, match="objective"):
         TensionPolishConfig(objective="smallest")
+
+
+def test_self_pairs_are_spheres_two_segments_apart() -> None:
+    """Three segments: the self rows pair spheres (grid points and chord midpoints) of
+    segments 1 and 3, a junction sphere counted on both of its segments (the PCC body's
+    rule); none with self-collision off."""
+    import json
+    from pathlib import Path
+
+    from cr_nlp.stages.polish._tension_ik_nlp import _bodies, _self_table
+
+    data = json.loads((Path(__file__).resolve().parents[1] / "models" / "robots"
+                       / "tdcr2_rao2021.json").read_text())
+    data["name"] = "tdcr3_rao_like"
+    data["segments"].append({"length": 0.2, "theta_max": 3.0})
+    data["tendons"]["offsets"].append(1.5707963267948966)
+    data["mechanics"]["disks_per_segment"] = [4, 4, 4]
+    three = load_robot(data)
+    arc = np.linspace(0.0, 0.6, 13)                      # 4 steps per segment
+    matrix, spheres, spacing = _bodies(arc)
+    assert matrix.shape == (25, 13) and spacing == pytest.approx(0.025)
+    np.testing.assert_allclose(matrix @ arc, spheres)
+    pairs = _self_table(three, spheres)
+    first = spheres <= 0.2 + 1e-12
+    last = spheres >= 0.4 - 1e-12
+    expected = {(i, j) for i in range(25) for j in range(i + 1, 25)
+                if (first[i] and last[j]) or (first[j] and last[i])}
+    assert {tuple(p) for p in pairs} == expected
+    data["self_collision"] = False
+    assert len(_self_table(load_robot(data), spheres)) == 0

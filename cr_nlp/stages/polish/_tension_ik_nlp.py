@@ -72,10 +72,12 @@ class TensionPolishConfig(NLPSettings):
     clearance rows' curvature is always exact here, ``clearance_curvature`` unused)."""
 
     tol: float = 1e-8
+    """Ipopt's ``tol`` (scaled optimality error; the objective is O(1) in scaled tensions)."""
     constr_viol_tol: float = 1e-10
     """Scaled rows: 1e-10 of the robot's length on the steps' and target's positions, of
     E·I/L on the moments, metres on the clearance rows."""
     max_iter: int = 200
+    """Ipopt iterations per attempt (a start inside an obstacle took 40–75)."""
     objective: str = "least"
     """"least": ‖τ/τ_max‖²; "nearest": ‖(τ − τ_start)/τ_max‖²."""
     warm_start: bool = True
@@ -91,11 +93,12 @@ class TensionPolishConfig(NLPSettings):
 
 
 class TensionPolish(NamedTuple):
-    """The polished rows (never raised: a failed row keeps its start tensions' place with
-    Ipopt's status)."""
+    """The polished rows (a failure is a status, never an exception; nothing here is
+    judged: the caller replays the tensions through a fresh statics solve)."""
 
     tensions: np.ndarray
-    """(B, n) tensions, N, within [0, τ_max] (Ipopt's last iterate, clipped)."""
+    """(B, n) tensions, N, within [0, τ_max]: Ipopt's last iterate (clipped), or the start
+    where no run finished (time limit, non-finite input, a numerical failure)."""
     status: list[str]
     """Ipopt's return status per row (``TIME_LIMIT_STATUS`` where the time ran out)."""
     seconds: np.ndarray
@@ -119,8 +122,10 @@ def _bodies(s: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
 
 
 def _self_table(robot: Robot, arc: np.ndarray) -> np.ndarray:
-    """(M, 2) sphere pairs on segments at least two apart (a sphere at a junction belongs
-    to both segments); none when the robot file turns self-collision off."""
+    """(M, 2) sphere pairs on segments at least two apart, a sphere at a junction counted
+    on both of its segments (as ``world.clearance.self_pairs`` counts the PCC body: the
+    verdict's pieces of segments two apart end there); none when the robot file turns
+    self-collision off."""
     if not robot.has_self_pairs:
         return np.zeros((0, 2), dtype=np.int64)
     ends = np.cumsum([0.0] + [seg.length_min for seg in robot.segments])
@@ -128,7 +133,7 @@ def _self_table(robot: Robot, arc: np.ndarray) -> np.ndarray:
     hi = np.searchsorted(ends, arc + 1e-12, side="left") - 1    # last one
     lo, hi = np.clip(lo, 0, len(robot.segments) - 1), np.clip(hi, 0, len(robot.segments) - 1)
     i, j = np.triu_indices(len(arc), 1)
-    far = (lo[j] - hi[i] >= 2) | (lo[i] - hi[j] >= 2)
+    far = (hi[j] - lo[i] >= 2) | (hi[i] - lo[j] >= 2)
     return np.stack([i[far], j[far]], axis=1).astype(np.int64)
 
 
