@@ -73,7 +73,7 @@ class ShootingRows:
                 ca.Function(f"rod_step_{tag}_jacobian", [x, tension, q],
                             [value, ca.jacobian(value, x), ca.jacobian(value, tension)]),
                 ca.Function(f"rod_step_{tag}_hessian", [x, tension, q, lam],
-                            [ca.densify(hessian)])]
+                            [hessian])]
 
     def _call(self, k: int, kind: str, *args: Any) -> Any:
         tag = self._names[tuple(self.rod.grid.active[k].tolist())]
