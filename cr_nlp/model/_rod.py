@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..runtime import cached
+from ._ops import JAX, Ops
 from .mechanics import require_mechanics
 from .robot import Robot
 from .routing import routing_of
@@ -176,34 +177,55 @@ def _grid(lay: _Layout, loads: CaseLoads, dtype: Any) -> _Grid:
         start, end = lay.arc_length[:-1], lay.arc_length[1:]
         length = total - np.stack([start, 0.5 * (start + end), end], -1)
         return _Grid(lay.step_length, lay.mass_distal, length, lay.active, None, None, None)
+    step_length, mass, length, active, distal, ends_here, robot_points = _grid_with_points(
+        lay, loads.point_s, jnp, dtype)
+    return _Grid(step_length, mass, length, active, distal @ loads.point_force,
+                 ends_here @ loads.point_moment, robot_points)
+
+
+def _grid_with_points(lay: _Layout, point_s: Any, xp: Any, dtype: Any) -> tuple:
+    """The grid with a point at each arc length ``point_s`` (K,) m, by array module ``xp``
+    (jnp inside the JAX programs, np for a CasADi rod built for fixed load points):
+    (step lengths (S',), masses and lengths distal of each step's three points (S', 3),
+    tendons through each step (S', T), which point loads lie distal of each step (S', K),
+    which act at its end (S', K), and which of the S' + 1 points are the robot's (S + 1,))."""
+    total = float(lay.arc_length[-1])
     robot_points = len(lay.arc_length)
-    s_all = jnp.concatenate([jnp.asarray(lay.arc_length, dtype), loads.point_s])
-    order = jnp.argsort(s_all, stable=True)  # a load at a grid point comes after it
+    s_all = xp.concatenate([xp.asarray(lay.arc_length, dtype), xp.asarray(point_s, dtype)])
+    order = xp.argsort(s_all, stable=True)  # a load at a grid point comes after it
     s = s_all[order]
-    place = jnp.argsort(order)               # where each entry landed in s
+    place = xp.argsort(order)               # where each entry landed in s
     start, end = s[:-1], s[1:]
-    stage_s = jnp.stack([start, 0.5 * (start + end), end], -1)  # (S', 3)
-    gap = jnp.asarray(lay.disk_s, dtype) - stage_s[..., None]
-    include = jnp.asarray([False, False, True])[None, :, None]
-    at = jnp.where(include, gap >= -1e-12, gap > 1e-12)
+    stage_s = xp.stack([start, 0.5 * (start + end), end], -1)  # (S', 3)
+    gap = xp.asarray(lay.disk_s, dtype) - stage_s[..., None]
+    include = xp.asarray([False, False, True])[None, :, None]
+    at = xp.where(include, gap >= -1e-12, gap > 1e-12)
     mass = lay.linear_density * (total - stage_s) + lay.disk_mass * at.sum(-1)
-    step = jnp.arange(s.shape[0] - 1)
+    step = xp.arange(s.shape[0] - 1)
     load_at = place[robot_points:]             # (K,) the point where each load acts
     distal = (load_at[None, :] >= step[:, None] + 1).astype(dtype)   # (S', K)
     ends_here = (load_at[None, :] == step[:, None] + 1).astype(dtype)
-    active = (stage_s[:, 1:2] < jnp.asarray(lay.tendon_end, dtype)[None, :] - 1e-12)
-    return _Grid(end - start, mass, total - stage_s, active.astype(dtype),
-                 distal @ loads.point_force, ends_here @ loads.point_moment,
-                 place[:robot_points])
+    active = (stage_s[:, 1:2] < xp.asarray(lay.tendon_end, dtype)[None, :] - 1e-12)
+    return (end - start, mass, total - stage_s, active.astype(dtype), distal, ends_here,
+            place[:robot_points])
 
 
 # ---------------------------------------------------------------- small vector helpers
-# The rod equations are written on tuples of scalars (x, y, z; a rotation's nine entries):
-# under vmap every entry is one (B,) array and XLA fuses the whole right-hand side into a
-# few loops over the batch, instead of many small (B, 3, 3) products.
+# The rod equations are written once, on tuples of scalars (x, y, z; a rotation's nine
+# entries), for both backends (``model._ops``): under JAX's vmap every entry is one (B,)
+# array and XLA fuses the whole right-hand side into a few loops over the batch, instead of
+# many small (B, 3, 3) products; under CasADi every entry is an SX or MX scalar
+# (``model.rod_casadi``). Only ``ops.sqrt`` and the loop over the RK4 stages differ.
 
 Vec = tuple[Any, Any, Any]
 Rot = tuple[Any, Any, Any, Any, Any, Any, Any, Any, Any]
+State = tuple[Vec, Rot, Vec, tuple]
+"""The integrated state at a grid point: position p (m), rotation R (row-major), the cut's
+moment M (N·m) and the tendons' lengths so far (m)."""
+
+RK4_STAGES = ((0.0, 1.0 / 6.0, 0), (0.5, 2.0 / 6.0, 1), (0.5, 2.0 / 6.0, 1), (1.0, 1.0 / 6.0, 2))
+"""The classical RK4 tableau as (shift of the stage along the step, weight, which of the
+step's three points (start, middle, end) its loads are taken at)."""
 
 
 def _cross(a: Vec, b: Vec) -> Vec:
@@ -230,6 +252,17 @@ def _rot_times_hat(r: Rot, u: Vec) -> Rot:
     return tuple(out)  # type: ignore[return-value]
 
 
+def _axpy(y: tuple, h: Any, k: tuple) -> tuple:
+    """y + h k on nested tuples of entries (a state and its slope)."""
+    return tuple(_axpy(a, h, b) if isinstance(a, tuple) else a + h * b
+                 for a, b in zip(y, k, strict=True))
+
+
+def _zeros(y: tuple) -> tuple:
+    """0 · y on nested tuples of entries (zeros that vary like y)."""
+    return tuple(_zeros(a) if isinstance(a, tuple) else 0 * a for a in y)
+
+
 def _vec(x: jax.Array) -> Vec:
     return (x[0], x[1], x[2])
 
@@ -250,7 +283,7 @@ def _solve3(a: jax.Array, b: jax.Array) -> jax.Array:
 
 # ---------------------------------------------------------------- the rod equations
 
-def _strains(lay: _Layout, n_body: Vec, m_body: Vec, tension: list[Any],
+def _strains(ops: Ops, lay: _Layout, n_body: Vec, m_body: Vec, tension: list[Any],
              iterations: int) -> tuple[Vec, Vec, list[Any]]:
     """Strains (u, v) from the cut's force and moment in the disk frame, and the tendons'
     stretch factors |v + u × r_i|.
@@ -273,7 +306,7 @@ def _strains(lay: _Layout, n_body: Vec, m_body: Vec, tension: list[Any],
 
     def stretches(u: Vec, v: Vec) -> list[Any]:
         # w_i = v + u × r_i with r_i = (rx, ry, 0)
-        return [jnp.sqrt((v[0] - u[2] * ry) ** 2 + (v[1] + u[2] * rx) ** 2
+        return [ops.sqrt((v[0] - u[2] * ry) ** 2 + (v[1] + u[2] * rx) ** 2
                          + (v[2] + u[0] * ry - u[1] * rx) ** 2) for rx, ry in rs]
 
     for _ in range(iterations):
@@ -298,14 +331,50 @@ def _strains(lay: _Layout, n_body: Vec, m_body: Vec, tension: list[Any],
     return u, v, stretches(u, v)
 
 
-def _derivative(lay: _Layout, config: StaticsConfig, rotation: Rot, moment: Vec,
+def _derivative(ops: Ops, lay: _Layout, config: StaticsConfig, rotation: Rot, moment: Vec,
                 force: Vec, tension: list[Any]) -> tuple:
     """d/ds of (p, R, M, tendon lengths) at one point; N (``force``) is given."""
-    u, v, stretch = _strains(lay, _rmatvec(rotation, force), _rmatvec(rotation, moment),
-                             tension, config.constitutive_iterations)
+    u, v, stretch = _strains(ops, lay, _rmatvec(rotation, force),
+                             _rmatvec(rotation, moment), tension,
+                             config.constitutive_iterations)
     dp = _matvec(rotation, v)
     dm = _cross(dp, force)
     return dp, _rot_times_hat(rotation, u), (-dm[0], -dm[1], -dm[2]), tuple(stretch)
+
+
+def rk4_step(ops: Ops, lay: _Layout, config: StaticsConfig, state: State, h: Any,
+             mass: Any, length: Any, act: Any, tension: list[Any], force: Vec, gravity: Vec,
+             distributed: Vec | None, moment_jump: Vec | None, stages: Any) -> State:
+    """One RK4 step of the rod over a step of length ``h`` (m) from ``state``.
+
+    ``mass`` and ``length``: the kg and m of backbone distal of the step's start, middle
+    and end (indexable by 0, 1, 2); ``act``: 1 per tendon running through the step;
+    ``force``: the cut's force from the tip and point loads distal of the step (N);
+    ``gravity`` (m/s²) and ``distributed`` (N/m, None: none) add theirs per stage point;
+    ``moment_jump`` (N·m, None: none): a point moment at the step's end. ``stages`` runs
+    ``body(inner, (shift, weight, point))`` over ``RK4_STAGES`` and returns the last inner
+    value: a ``lax.scan`` on JAX (a small program), a Python loop on CasADi.
+    """
+    active = [t * act[i] for i, t in enumerate(tension)]
+
+    def stage(inner: tuple, c: tuple) -> tuple:
+        previous, total = inner
+        shift, weight, point = c
+        _, rot, mom, _ = _axpy(state, shift * h, previous)
+        n = tuple(f + g * mass[point] for f, g in zip(force, gravity, strict=True))
+        if distributed is not None:  # the force per metre distal of the stage's point
+            n = tuple(a + w * length[point] for a, w in zip(n, distributed, strict=True))
+        dp, drot, dmom, dl = _derivative(ops, lay, config, rot, mom, n, active)
+        k = (dp, drot, dmom, tuple(s * act[i] for i, s in enumerate(dl)))
+        return k, _axpy(total, weight, k)
+
+    zeros = _zeros(state)  # varying like the state (see _integrate)
+    _, slope = stages(stage, (zeros, zeros))
+    new = _axpy(state, h, slope)
+    if moment_jump is not None:  # a point moment: M just distal of its point is smaller by it
+        new = (new[0], new[1], tuple(m - j for m, j in zip(new[2], moment_jump, strict=True)),
+               new[3])
+    return new
 
 
 def _integrate(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
@@ -334,38 +403,20 @@ def _integrate(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
     l0 = tuple(zero for _ in range(n_tendons))
     tension_list = [tension[i] for i in range(n_tendons)]
 
-    def axpy(y: Any, h: Any, k: Any) -> Any:
-        return jax.tree_util.tree_map(lambda a, b: a + h * b, y, k)
+    stage_table = tuple(jnp.asarray([c[k] for c in RK4_STAGES], dtype if k < 2 else None)
+                        for k in range(3))
 
-    stage_shift = jnp.asarray([0.0, 0.5, 0.5, 1.0], dtype)
-    stage_weight = jnp.asarray([1.0, 2.0, 2.0, 1.0], dtype) / 6.0
-    stage_point = jnp.asarray([0, 1, 1, 2])
+    def stages(body: Any, init: tuple) -> tuple:
+        return jax.lax.scan(lambda inner, c: (body(inner, c), None), init, stage_table)[0]
+
+    gravity = _vec(loads.gravity)
+    distributed = _vec(loads.distributed) if spread else None
 
     def step(carry: tuple, x: tuple) -> tuple:
         h, mass, length, act = x[:4]
-        active = [t * act[i] for i, t in enumerate(tension_list)]
-        force = loads.force + x[4] if points else loads.force
-
-        def stage(inner: tuple, c: tuple) -> tuple:
-            previous, total = inner
-            shift, weight, point = c
-            _, rot, mom, _ = axpy(carry, shift * h, previous)
-            n = tuple(f + g * mass[point] for f, g in zip(_vec(force), _vec(loads.gravity),
-                                                           strict=True))
-            if spread:  # the force per metre distal of the stage's point
-                n = tuple(a + w * length[point] for a, w in zip(n, _vec(loads.distributed),
-                                                                 strict=True))
-            dp, drot, dmom, dl = _derivative(lay, config, rot, mom, n, active)
-            k = (dp, drot, dmom, tuple(s * act[i] for i, s in enumerate(dl)))
-            return (k, axpy(total, weight, k)), None
-
-        zeros = jax.tree_util.tree_map(lambda a: 0 * a, carry)  # varying, as above
-        (_, slope), _ = jax.lax.scan(stage, (zeros, zeros),
-                                     (stage_shift, stage_weight, stage_point))
-        new = axpy(carry, h, slope)
-        if points:  # a point moment: M just distal of its point is smaller by it
-            new = (new[0], new[1], tuple(m - j for m, j in zip(new[2], _vec(x[5]),
-                                                               strict=True)), new[3])
+        force = _vec(loads.force + x[4] if points else loads.force)
+        new = rk4_step(JAX, lay, config, carry, h, mass, length, act, tension_list, force,
+                       gravity, distributed, _vec(x[5]) if points else None, stages)
         return new, ((_array(new[0]), _array(new[1]).reshape(3, 3), _array(new[2]))
                      if keep_path else None)
 

@@ -36,12 +36,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._rod import CaseLoads, StaticsConfig, _integrate, _Layout, _layout, _solve3
+from ._rod_casadi import CasadiRod, RodLoads, flat_loads
 from .robot import Robot
 from .rotations import wxyz_from_matrix
 
-__all__ = ["CaseLoads", "Equilibrium", "StaticsConfig", "StaticsResult", "backbone_equilibrium",
-           "case_loads",
-           "moment_scale", "statics_single", "tip_equilibrium"]
+__all__ = ["CasadiRod", "CaseLoads", "Equilibrium", "RodLoads", "StaticsConfig",
+           "StaticsResult", "backbone_equilibrium", "case_loads", "flat_loads", "moment_scale",
+           "statics_single", "tip_equilibrium"]
 
 
 @dataclass(frozen=True)

@@ -234,24 +234,7 @@ class SlotRows:
         centre = [ca.SX.sym(f"centre_{k}", 3) for k in range(spheres)]
         jacobian = [ca.SX.sym(f"centre_jacobian_{k}", 3, dof) for k in range(spheres)]
         part = ca.SX.sym("part", group.width - spheres)
-        c = tuple(centre[0][i] for i in range(3))
-        if group.kind == "self":
-            d = dist.sphere_to_sphere(CASADI, c, r, tuple(centre[1][i] for i in range(3)), r)
-        elif group.kind == "sphere":
-            d = dist.sphere_to_sphere(CASADI, c, r, _entries(part, 0, 3), part[3])
-        elif group.kind == "box":
-            d = dist.sphere_to_box(CASADI, c, r, _entries(part, 0, 3), _entries(part, 3, 12),
-                                   _entries(part, 12, 15))
-        elif group.kind == "capsule":
-            d = dist.sphere_to_capsule(CASADI, c, r, _entries(part, 0, 3), _entries(part, 3, 6),
-                                       part[6])
-        elif group.kind == "cylinder":
-            d = dist.sphere_to_cylinder(CASADI, c, r, _entries(part, 0, 3),
-                                        _entries(part, 3, 12), part[12], part[13])
-        else:
-            f = group.faces
-            planes = tuple(part[k * f:(k + 1) * f] for k in range(4))
-            d = dist.sphere_to_convex(CASADI, c, r, planes, f, smoothing)
+        d = slot_distance(group, centre, part, r, smoothing)
         row = sum(ca.mtimes(ca.gradient(d, x).T, j) for x, j in zip(centre, jacobian,
                                                                        strict=True))
         value = ca.Function(f"slot_{group.kind}", [*centre, part], [d])
@@ -383,6 +366,32 @@ class SlotRows:
     def interpreted(self) -> bool:
         """Some functions were handed out uncompiled while their library is being built."""
         return bool(self._interpreted)
+
+
+def slot_distance(group: SlotGroup, centre: list[Any], part: Any, radius: float,
+                  smoothing: float) -> Any:
+    """The signed distance (m, SX) of one slot: a body sphere of ``radius`` m at
+    ``centre[0]`` (3) to the part whose parameter row is ``part`` (a ``part_table`` row of
+    the group's kind), or for self pairs between the spheres at ``centre[0]`` and
+    ``centre[1]``; convex parts' face-plane max smoothed by ``smoothing`` m."""
+    c = tuple(centre[0][i] for i in range(3))
+    r = radius
+    if group.kind == "self":
+        return dist.sphere_to_sphere(CASADI, c, r, tuple(centre[1][i] for i in range(3)), r)
+    if group.kind == "sphere":
+        return dist.sphere_to_sphere(CASADI, c, r, _entries(part, 0, 3), part[3])
+    if group.kind == "box":
+        return dist.sphere_to_box(CASADI, c, r, _entries(part, 0, 3), _entries(part, 3, 12),
+                                  _entries(part, 12, 15))
+    if group.kind == "capsule":
+        return dist.sphere_to_capsule(CASADI, c, r, _entries(part, 0, 3), _entries(part, 3, 6),
+                                      part[6])
+    if group.kind == "cylinder":
+        return dist.sphere_to_cylinder(CASADI, c, r, _entries(part, 0, 3),
+                                       _entries(part, 3, 12), part[12], part[13])
+    f = group.faces
+    planes = tuple(part[k * f:(k + 1) * f] for k in range(4))
+    return dist.sphere_to_convex(CASADI, c, r, planes, f, smoothing)
 
 
 def _entries(x: Any, start: int, stop: int) -> tuple[Any, ...]:

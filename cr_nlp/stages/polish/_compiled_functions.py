@@ -57,12 +57,12 @@ def _compiler() -> str | None:
 
 
 def compiled(functions: Sequence[ca.Function], enabled: bool = True,
-             wait: bool = False) -> tuple[list[ca.Function], bool]:
+             wait: bool = False, flags: Sequence[str] = FLAGS) -> tuple[list[ca.Function], bool]:
     """``functions`` as compiled ``ca.external`` functions from one cached shared library
     (same names, inputs and outputs), or unchanged when ``enabled`` is False or no
     compiler works; and whether they came back unchanged because the library is being
     built (in the background; ``wait``: here, before returning): ask again once
-    ``pending()`` is False."""
+    ``pending()`` is False. ``flags``: the compiler's optimisation flags (``FLAGS``)."""
     functions = list(functions)
     compiler = _compiler() if enabled else None
     if compiler is None:
@@ -74,14 +74,14 @@ def compiled(functions: Sequence[ca.Function], enabled: bool = True,
     for function in functions:
         generator.add(function)
     source = generator.dump()
-    key = hashlib.sha256("\n".join([ca.__version__, *FLAGS, source]).encode()).hexdigest()[:24]
+    key = hashlib.sha256("\n".join([ca.__version__, *flags, source]).encode()).hexdigest()[:24]
     library = cache_dir() / "casadi" / f"{key}.so"
     if not library.exists():
         if wait:
-            if not _build(compiler, source, library):
+            if not _build(compiler, source, library, tuple(flags)):
                 return functions, False
         else:
-            _start(compiler, source, library)
+            _start(compiler, source, library, tuple(flags))
             return functions, True
     return [ca.external(f.name(), str(library)) for f in functions], False
 
@@ -106,7 +106,7 @@ def wait_for_builds(timeout: float | None = None) -> bool:
     return not pending()
 
 
-def _start(compiler: str, source: str, library: Path) -> None:
+def _start(compiler: str, source: str, library: Path, flags: tuple[str, ...] = FLAGS) -> None:
     """Build ``library`` in a background thread, unless this process or another is
     building it already."""
     with _lock:
@@ -119,7 +119,7 @@ def _start(compiler: str, source: str, library: Path) -> None:
               f"(5–20 s, once: later processes load them from {cache_dir()}); until then "
               "they run in CasADi's virtual machine", file=sys.stderr, flush=True)
         # Not a daemon: the interpreter waits for it at exit, so the library is kept.
-        thread = threading.Thread(target=_build, args=(compiler, source, library),
+        thread = threading.Thread(target=_build, args=(compiler, source, library, flags),
                                   name=f"cr_nlp gcc {library.stem}")
         _pending[library] = thread
         thread.start()
@@ -146,7 +146,7 @@ def _locked(library: Path) -> bool:
     return False
 
 
-def _build(compiler: str, source: str, library: Path) -> bool:
+def _build(compiler: str, source: str, library: Path, flags: tuple[str, ...] = FLAGS) -> bool:
     """Compile ``source`` into ``library`` atomically (a library is complete or absent,
     also when several processes compile it at once), holding its lock file; False (and
     a warning, once) when compiling failed."""
@@ -163,7 +163,7 @@ def _build(compiler: str, source: str, library: Path) -> bool:
             with tempfile.TemporaryDirectory(dir=library.parent) as work:
                 c_file, out = Path(work) / "functions.c", Path(work) / "functions.so"
                 c_file.write_text(source)
-                subprocess.run([compiler, *FLAGS, "-shared", "-fPIC", "-o", str(out),
+                subprocess.run([compiler, *flags, "-shared", "-fPIC", "-o", str(out),
                                 str(c_file), "-lm"], check=True, capture_output=True)
                 os.replace(out, library)
         return True

@@ -1,0 +1,148 @@
+"""Multiple shooting over the Cosserat rod's RK4 steps: the step rows of the tension-space
+exact stage and their exact first and second derivatives.
+
+The unknowns are the scaled tensions τ̃ = τ/τ_s, the scaled moment at the base
+m̃₀ = M(0)/(E·I/L) and every step's scaled end state x̃_k (position / L, rotation, moment
+/ (E·I/L)); row block k is ``x̃_{k+1} − Ψ_k(x̃_k, τ̃)`` with Ψ_k the rod's step
+(``model.cosserat.CasadiRod``) in scaled variables, x̃₀ the base (p = 0, R = I, m̃₀).
+
+Derivatives. CasADi's own derivative of the whole NLP (the steps expanded into one SX
+graph) was measured at 1.95 million instructions for the Hessian of the Lagrangian on
+``tdcr2_rao2021`` (20 steps), 37 ms per evaluation in the virtual machine. Here each
+distinct step (one per set of tendons running through it) is one small SX function with
+its Jacobian (15 × (15 + n)) and the Hessian of λᵀΨ ((15 + n) square), compiled to machine
+code (``stages.polish._compiled_functions``) and called once per step; the NLP's Jacobian
+and Hessian are assembled from the blocks. ``-O0``: gcc -O1 took 5 minutes for one step's
+Hessian (124 000 instructions) on this 2-core machine, -O0 16 s, and the -O0 code still
+runs 2× faster than the virtual machine (1.0 ms against 1.9 ms per step; the Jacobian
+0.2 ms against 1.6 ms).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from ...model.cosserat import CasadiRod, RodLoads
+from ._compiled_functions import compiled
+
+STATE = 15
+"""Entries of a step's state: position (3), rotation (9, row-major), moment (3)."""
+STEP_INPUTS = 19
+"""Numbers of one step's loads and grid: h, mass (3), length (3), force (3), gravity (3),
+force per metre (3), point-moment jump (3)."""
+FLAGS = ("-O0",)
+
+
+class ShootingRows:
+    """The step rows of one rod in scaled variables, their Jacobian and Hessian blocks.
+
+    Args:
+        rod: the CasADi rod (its grid and step functions).
+        state_scale: (15,) the units of the scaled state (m, 1, N·m).
+        tension_scale: N per unit of scaled tension.
+        compile: compile the step functions (in the background; ``interpreted`` says
+            whether they still run in CasADi's virtual machine).
+    """
+
+    def __init__(self, rod: CasadiRod, state_scale: np.ndarray, tension_scale: float,
+                 compile: bool) -> None:
+        self.rod, self.n = rod, rod.n_tendons
+        self.scale = np.asarray(state_scale, dtype=float)
+        self.tension_scale = float(tension_scale)
+        functions, self._names = [], {}
+        for pattern, step in sorted(rod._functions.items()):
+            tag = "".join("1" if a else "0" for a in pattern)
+            functions += self._derivatives(step, tag)
+            self._names[pattern] = tag
+        done, self.interpreted = compiled(functions, compile, flags=FLAGS)
+        self._functions = {f.name(): f for f in done}
+
+    def _derivatives(self, step: ca.Function, tag: str) -> list[ca.Function]:
+        """SX (value, Jacobian, Hessian) functions of one step in scaled variables."""
+        x, tension = ca.SX.sym("x", STATE), ca.SX.sym("tension", self.n)
+        q, lam = ca.SX.sym("step_inputs", STEP_INPUTS), ca.SX.sym("lam", STATE)
+        parts = [q[0], q[1:4], q[4:7], q[7:10], q[10:13], q[13:16], q[16:19]]
+        end, _ = step(x * ca.DM(self.scale), tension * self.tension_scale, *parts)
+        value = end / ca.DM(self.scale)
+        both = ca.vertcat(x, tension)
+        hessian, _ = ca.hessian(ca.dot(lam, value), both)
+        return [ca.Function(f"rod_step_{tag}", [x, tension, q], [value]),
+                ca.Function(f"rod_step_{tag}_jacobian", [x, tension, q],
+                            [value, ca.jacobian(value, x), ca.jacobian(value, tension)]),
+                ca.Function(f"rod_step_{tag}_hessian", [x, tension, q, lam],
+                            [hessian])]
+
+    def _call(self, k: int, kind: str, *args: Any) -> Any:
+        tag = self._names[tuple(self.rod.grid.active[k].tolist())]
+        return self._functions[f"rod_step_{tag}{kind}"](*args)
+
+    def step_inputs(self, loads: RodLoads) -> list[Any]:
+        """Per step the (19,) inputs Ψ_k takes (MX, from the symbolic ``loads``)."""
+        g = self.rod.grid
+        out = []
+        for k in range(self.rod.steps):
+            force = loads.tip_force + ca.mtimes(loads.point_force.T, ca.DM(g.distal[k]))
+            jump = ca.mtimes(loads.point_moment.T, ca.DM(g.ends_here[k]))
+            out.append(ca.vertcat(g.step_length[k], ca.DM(g.mass[k]), ca.DM(g.length[k]),
+                                  force, loads.gravity, loads.distributed, jump))
+        return out
+
+    def base_state(self, base_moment: Any) -> Any:
+        """x̃₀ (15): the base, p = 0 and R = I, with the scaled moment ``base_moment``."""
+        return ca.vertcat(ca.DM.zeros(3), ca.DM(np.eye(3).reshape(-1)), base_moment)
+
+    def defects(self, tension: Any, base_moment: Any, states: list[Any],
+                inputs: list[Any]) -> list[Any]:
+        """The row blocks x̃_{k+1} − Ψ_k(x̃_k, τ̃) (15 each); ``states`` are x̃_1 … x̃_S'."""
+        starts = [self.base_state(base_moment), *states[:-1]]
+        return [states[k] - self._call(k, "", starts[k], tension, inputs[k])
+                for k in range(self.rod.steps)]
+
+    def jacobian(self, tension: Any, base_moment: Any, states: list[Any],
+                 inputs: list[Any]) -> tuple[Any, Any]:
+        """(the rows, their Jacobian over (τ̃, m̃₀, x̃_1 … x̃_S')) as MX."""
+        steps = self.rod.steps
+        starts = [self.base_state(base_moment), *states[:-1]]
+        values, blocks = [], []
+        identity = ca.MX(ca.DM.eye(STATE))
+        for k in range(steps):
+            value, d_state, d_tension = self._call(k, "_jacobian", starts[k], tension,
+                                                   inputs[k])
+            values.append(states[k] - value)
+            # column blocks: τ̃, m̃₀, then x̃_j at 1 + j
+            row = [-d_tension, ca.MX(STATE, 3)] + [ca.MX(STATE, STATE)] * steps
+            if k == 0:
+                row[1] = -d_state[:, 12:15]
+            else:
+                row[1 + k] = -d_state
+            row[2 + k] = identity
+            blocks.append(row)
+        return ca.vertcat(*values), ca.blockcat(blocks)
+
+    def hessian(self, tension: Any, base_moment: Any, states: list[Any], inputs: list[Any],
+                lam: Any) -> Any:
+        """Σ_k λ_kᵀ ∇²(x̃_{k+1} − Ψ_k) over (τ̃, m̃₀, x̃_1 … x̃_S') as MX; ``lam`` the rows'
+        multipliers (15 S')."""
+        steps, n = self.rod.steps, self.n
+        size = n + 3 + STATE * steps
+        starts = [self.base_state(base_moment), *states[:-1]]
+        total = ca.MX(size, size)
+        for k in range(steps):
+            block = -self._call(k, "_hessian", starts[k], tension, inputs[k],
+                                lam[STATE * k: STATE * (k + 1)])
+            # rows of the block (x̃_k, then τ̃) → columns of the unknowns
+            place = np.full(STATE + n, -1)
+            place[STATE:] = np.arange(n)
+            if k == 0:
+                place[12:15] = n + np.arange(3)
+            else:
+                place[:STATE] = n + 3 + STATE * (k - 1) + np.arange(STATE)
+            used = np.flatnonzero(place >= 0)
+            select = ca.DM(ca.Sparsity.triplet(len(used), size, list(range(len(used))),
+                                               [int(c) for c in place[used]]),
+                           np.ones(len(used)))
+            total += ca.mtimes([select.T, block[used.tolist(), used.tolist()], select])
+        return total
