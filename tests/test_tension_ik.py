@@ -16,7 +16,10 @@ from cr_nlp.model import load_robot
 from cr_nlp.model.loads import static_loads
 from cr_nlp.model.statics import solve_statics
 from cr_nlp.model.tendon_groups import moments_from_tensions, tendon_groups, tensions_from_moments
+from cr_nlp.tasks._result import Stage
 from cr_nlp.tasks.mechanics.ik import TensionIKConfig, TensionIKResult, TensionIKSolver
+from cr_nlp.world.check import check_chains
+from cr_nlp.world.scene import load_scene
 
 RAO = load_robot("tdcr2_rao2021")
 TENSION_MAX = RAO.mechanics.tension_max
@@ -121,38 +124,68 @@ def test_an_obstacle_on_the_backbone_fails_the_verdict() -> None:
     assert result.min_clearance[0] < 0
 
 
-def test_the_clearance_rows_steer_the_backbone_around_an_obstacle() -> None:
-    gravity = [0, 0, -9.81]
-    truth = solve_statics(RAO, [[3.0, 0, 0, 0, 0, 0]], gravity=gravity)
+GRAVITY = [0, 0, -9.81]
+
+
+@pytest.fixture(scope="module")
+def ball_beside() -> tuple:
+    """(the target's statics, a scene) where the first answer's backbone touches a ball
+    (1 mm deep) and another tension set for the same tip clears it by a few millimetres."""
+    truth = solve_statics(RAO, [[3.0, 0, 0, 0, 0, 0]], gravity=GRAVITY)
     plain = TensionIKSolver(RAO, None, TensionIKConfig(pool_size=1024, retry_seeds=0,
                                                        clearance_weight=0.0))
     # Another tension set for the same tip (the redundancy of 2 × 2 bending moments for 3
     # coordinates): its backbone leaves the first one by a few millimetres mid-body.
-    loads = static_loads(1, plain.length, None, None, gravity)
+    loads = static_loads(1, plain.length, None, None, GRAVITY)
     other = plain._lm(np.array([[2.0, 0, 0, 0, 0, 2.0]]), truth.tip_position,
                       np.full((1, 4), np.nan), loads)
-    second = solve_statics(RAO, other, gravity=gravity)
+    second = solve_statics(RAO, other, gravity=GRAVITY)
     apart = np.linalg.norm(second.positions[0] - truth.positions[0], axis=1)
     k = int(np.argmax(apart))
     assert apart[k] > 0.005
-    # A ball beside the first backbone, on the side away from the second: the first
-    # touches it (1 mm deep), the second clears it by ~4 mm.
     away = (truth.positions[0, k] - second.positions[0, k]) / apart[k]
     centre = truth.positions[0, k] + away * (RAO.backbone_radius + 0.004 - 0.001)
-    scene = {"obstacles": [{"name": "ball", "type": "sphere", "center": centre.tolist(),
-                            "radius": 0.004}]}
+    return truth, {"obstacles": [{"name": "ball", "type": "sphere", "center": centre.tolist(),
+                                  "radius": 0.004}]}
+
+
+def test_the_clearance_rows_steer_the_backbone_around_an_obstacle(ball_beside) -> None:
+    truth, scene = ball_beside
     config = TensionIKConfig(pool_size=1024, retry_seeds=0, clearance_weight=0.0)
-    blind = TensionIKSolver(RAO, scene, config).solve(truth.tip_position, gravity=gravity)
+    blind = TensionIKSolver(RAO, scene, config).solve(truth.tip_position, gravity=GRAVITY)
     steered_solver = TensionIKSolver(RAO, scene, TensionIKConfig(pool_size=1024))
-    steered = steered_solver.solve(truth.tip_position, gravity=gravity)
+    steered = steered_solver.solve(truth.tip_position, gravity=GRAVITY)
     assert not blind.success[0], blind.reason[0]
     assert blind.min_clearance[0] < steered_solver.config.safety_margin
     # The same target, by a tension set whose backbone keeps δ from the ball, checked by
     # python-fcl on a fresh statics solve of the answer.
     assert steered.success[0], steered.reason[0]
     assert steered.min_clearance[0] >= steered_solver.config.safety_margin
-    again = solve_statics(RAO, steered.tensions, gravity=gravity)
+    again = solve_statics(RAO, steered.tensions, gravity=GRAVITY)
     assert np.linalg.norm(again.tip_position[0] - truth.tip_position[0]) < 1e-4
+
+
+def test_exact_mode_rescues_an_answer_the_penalty_stage_leaves_in_collision(
+        ball_beside, tmp_path) -> None:
+    truth, scene = ball_beside
+    solver = TensionIKSolver(RAO, scene, TensionIKConfig(pool_size=1024, retry_seeds=0,
+                                                         clearance_weight=0.0))
+    penalty = solver.solve(truth.tip_position, gravity=GRAVITY)
+    exact = solver.solve(truth.tip_position, gravity=GRAVITY, exact=True)
+    assert not penalty.success[0] and penalty.stage[0] == Stage.REFINE
+    assert exact.success[0], (exact.reason[0], exact.notes[0])
+    assert exact.stage[0] == Stage.POLISH and exact.max_violation[0] <= 1e-6
+    # Replayed independently: a fresh JAX statics solve of the polished tensions reaches the
+    # target, and python-fcl keeps its backbone δ from the ball.
+    again = solve_statics(RAO, exact.tensions, gravity=GRAVITY)
+    assert np.linalg.norm(again.tip_position[0] - truth.tip_position[0]) < 1e-4
+    checked = check_chains(RAO, load_scene(scene), again.positions,
+                           (again.positions.shape[1] - 1) // 2)
+    assert checked.obstacle_distance[0] >= solver.config.safety_margin - 1e-6
+    exact.save(tmp_path / "exact.json")
+    written = json.loads((tmp_path / "exact.json").read_text())
+    assert written["exact_mode"] == "cosserat multiple shooting"
+    assert load_result(tmp_path / "exact.json").stage[0] == Stage.POLISH
 
 
 def test_result_file_round_trip(solver: TensionIKSolver, tmp_path) -> None:

@@ -25,7 +25,7 @@ def run(args: argparse.Namespace, robot: object) -> int:
     from ..tasks.mechanics.follow import TensionFollowConfig, TensionFollower
     from ..tasks.paths import load_path
 
-    needs_mechanics(robot, args.exact)
+    needs_mechanics(robot, args.exact, "follow")
     config = TensionFollowConfig()
     config = replace(config, safety_margin=config.safety_margin
                      + model_margin(robot, args.model_margin),

@@ -18,6 +18,7 @@ from ._io import (
     parse_vector3,
     read_json,
     resolve,
+    time_limit_arg,
     write_result,
 )
 
@@ -82,15 +83,16 @@ def loads_from_args(args: argparse.Namespace, length: float) -> dict:
     return loads
 
 
-def needs_mechanics(robot: object, exact: bool) -> None:
-    """Refuse ``--model cosserat`` for a robot without mechanics, and ``--exact``."""
+def needs_mechanics(robot: object, exact: bool, task: str = "ik") -> None:
+    """Refuse ``--model cosserat`` for a robot without mechanics, and ``--exact`` for a
+    task (``plan``, ``follow``) whose exact stage on the rod does not exist yet."""
     if getattr(robot, "mechanics", None) is None:
         raise UsageError(f"--model cosserat: {robot.name} has no 'mechanics' block (the rod's "
                          f"stiffness and tension limit); see models/README.md")
-    if exact:
-        raise UsageError("--exact: the Cosserat model has no exact (Ipopt) stage (CasADi has "
-                         "no graph of the rod's shooting); its answers are checked by an "
-                         "independent forward statics solve")
+    if exact and task != "ik":
+        raise UsageError(f"--exact: the Cosserat model has an exact (Ipopt) stage for ik only,"
+                         f" not yet for {task}; its answers are checked by an independent "
+                         "forward statics solve")
 
 
 def run(args: argparse.Namespace, robot: object) -> int:
@@ -100,6 +102,7 @@ def run(args: argparse.Namespace, robot: object) -> int:
     from ..tasks.mechanics.ik import TensionIKConfig, TensionIKSolver
 
     needs_mechanics(robot, args.exact)
+    time_limit = time_limit_arg(args)
     try:
         positions, wxyz, problems = read_targets(resolve(args.targets, "targets", "--targets"))
     except ValueError as exc:
@@ -110,7 +113,8 @@ def run(args: argparse.Namespace, robot: object) -> int:
     solver = TensionIKSolver(robot, load_scene_arg(args.scene), config)
     loads = loads_from_args(args, solver.length)
     try:
-        result = solver.solve(positions, wxyz if args.orientation else None, **loads)
+        result = solver.solve(positions, wxyz if args.orientation else None, **loads,
+                              exact=args.exact, time_limit=time_limit)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     for i, problem in enumerate(problems):

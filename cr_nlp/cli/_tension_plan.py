@@ -29,7 +29,7 @@ def run(args: argparse.Namespace, robot: object) -> int:
         read_tension_problems,
     )
 
-    needs_mechanics(robot, args.exact)
+    needs_mechanics(robot, args.exact, "plan")
     config = TensionPlanConfig(seed=args.seed)
     config = replace(config, safety_margin=config.safety_margin
                      + model_margin(robot, args.model_margin))

@@ -48,6 +48,17 @@ class Judged(Protocol):
     def reason(self) -> str: ...
 
 
+@dataclass(frozen=True)
+class RowVerdict:
+    """A verdict as the acceptance reads it, for a task whose checks come as arrays (one
+    row of a judged batch)."""
+
+    success: bool
+    """The answer passed the verdict."""
+    reason: str
+    """Empty on success, else why not."""
+
+
 A = TypeVar("A")
 V = TypeVar("V", bound=Judged)
 

@@ -56,10 +56,14 @@ class TensionIKResult(ResultIO):
     self_clearance m below δ), (B,) the largest violation of each answer; NaN where not
     judged."""
     stage: list[Stage] = field(default_factory=list)
-    """Per answer: ``Stage.REFINE`` (the LM in tension space; there is no polish), or
-    ``Stage.NONE`` for a target refused before solving."""
+    """Per answer: ``Stage.REFINE`` (the LM in tension space), ``Stage.POLISH`` (exact
+    mode: Ipopt's answer, accepted by the verdict), or ``Stage.NONE`` for a target refused
+    before solving."""
     notes: list[list[str]] = field(default_factory=list)
-    """Per answer, free text qualifying its stage (none so far)."""
+    """Per answer, free text qualifying its stage (why a polish was not accepted)."""
+    exact_mode: str = EXACT_MODE
+    """The exact stage's formulation where it ran (``stages.polish``'s tension-IK
+    ``EXACT_MODE``), else why there was none."""
 
     def __post_init__(self) -> None:
         count = len(self.tensions)
@@ -109,7 +113,7 @@ class TensionIKResult(ResultIO):
             "tendon_displacements": row_lists(self.tendon_displacements),
             "violations": {k: nums(v) for k, v in self.violations.items()},
             "stage": [Stage(s).value for s in self.stage], "notes": self.notes,
-            "status": [s.value for s in self.status], "exact_mode": EXACT_MODE,
+            "status": [s.value for s in self.status], "exact_mode": self.exact_mode,
             "timing": self.timing.as_dict(), "summary": self.summary(),
         }
 
@@ -152,7 +156,8 @@ class TensionIKResult(ResultIO):
             timing=StageTiming.from_dict(data.get("timing")),
             violations={k: array(v, name=f"violations.{k}")
                         for k, v in data.get("violations", {}).items()},
-            stage=[stage for stage, _ in stages], notes=[notes for _, notes in stages])
+            stage=[stage for stage, _ in stages], notes=[notes for _, notes in stages],
+            exact_mode=str(data.get("exact_mode", EXACT_MODE)))
 
     def save_csv(self, path: str | Path) -> Path:
         """One row per target: target x, y, z (m), the tensions t1…tN (N), the reached tip

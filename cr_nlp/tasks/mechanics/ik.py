@@ -21,7 +21,10 @@ The stages:
 - refine: the batched LM (``stages.refine.lm_solve``), Jacobians by forward differences
   over the unknowns (``TensionIKConfig.jacobian``);
 - verify, then again from the next-nearest pool sets for the targets that failed.
-There is no exact (Ipopt) stage yet for this model (``exact_mode`` in the result says so).
+- polish (``exact=True``): the answers the verdict rejects, polished by Ipopt on the rod's
+  own discrete equations with the target, the tension bounds and the clearance as
+  constraints (``stages.polish``'s ``polish_tension_ik``, multiple shooting), accepted
+  through the one acceptance policy: a polish is kept only where the verdict accepts it.
 
 Success is the one verdict (``world.verdict``) on numbers re-evaluated independently of
 the LM: the tip of a fresh forward statics solve (``solve_statics``, its own shooting) of
@@ -50,6 +53,17 @@ from ...model.rotations import matrix_from_wxyz
 from ...model.statics import solve_statics
 from ...runtime import configure
 from ...stages.explore import TensionPool, tension_pool
+from ...stages.polish import (
+    POLISH_EXACT_MODE,
+    SUCCESS_STATUSES,
+    TIME_LIMIT_STATUS,
+    Polished,
+    RowVerdict,
+    check_time_limit,
+    polish_and_accept,
+    polish_note,
+    polish_tension_ik,
+)
 from ...stages.refine import (
     LMConfig,
     TensionTerms,
@@ -154,7 +168,8 @@ class TensionIKSolver:
 
     def solve(self, positions: Any, wxyz: Any = None, tip_force: Any = None,
               tip_moment: Any = None, gravity: Any = None, *,
-              distributed_force: Any = None, point_loads: Any = None) -> TensionIKResult:
+              distributed_force: Any = None, point_loads: Any = None, exact: bool = False,
+              time_limit: float | None = None) -> TensionIKResult:
         """Tensions for each target.
 
         Args:
@@ -166,10 +181,16 @@ class TensionIKSolver:
             distributed_force: (3,) or (B, 3) force per metre along the backbone, N/m.
             point_loads: ``[{"s": m, "force": [N], "moment": [N·m]}]`` for every target,
                 or one such list per target (world frame; ``model.loads``).
+            exact: polish the answers the verdict rejects with Ipopt (the rod's equations,
+                the target, the tension bounds and the clearance as constraints,
+                ``stages.polish``'s tension-IK stage) and keep a polish the verdict
+                accepts (``Stage.POLISH``); the others keep their answer.
+            time_limit: with ``exact``, seconds of polishing per target (None: no limit).
 
         Returns:
             ``TensionIKResult`` with every target's tensions and the independent verdict.
         """
+        check_time_limit(time_limit, "time_limit")
         positions = np.atleast_2d(np.asarray(positions, dtype=float))
         if positions.ndim != 2 or positions.shape[1] != 3:
             raise ValueError(f"positions: expected (B, 3) metres, got shape "
@@ -225,8 +246,63 @@ class TensionIKSolver:
             better = again.success | (again.pose_error < result.pose_error[failed])
             _replace_rows(result, again, failed[better], np.flatnonzero(better))
             timing.verify += time.perf_counter() - start
+        if exact:
+            self._polish(result, positions, quats, loads, time_limit, timing)
         result.timing = timing
         return result
+
+    def _polish(self, result: TensionIKResult, positions: np.ndarray, quats: np.ndarray,
+                loads: StaticLoads, time_limit: float | None, timing: StageTiming) -> None:
+        """Exact mode: the rejected answers polished by Ipopt and judged by the verdict,
+        through the one acceptance policy (``polish_and_accept``); ``result`` is updated in
+        place (accepted rows: ``Stage.POLISH``; the others: a note why)."""
+        result.exact_mode = POLISH_EXACT_MODE
+        rows = np.flatnonzero(~result.success)
+        if not rows.size:
+            return
+        oriented = bool(np.any(~np.isnan(quats[rows])))
+        found: dict[int, TensionIKResult] = {}
+
+        def polish(starts: list, index: np.ndarray, attempt: int,
+                   budgets: np.ndarray) -> list[Polished]:
+            del attempt
+            limit = None if not np.all(np.isfinite(budgets)) else float(np.sum(budgets))
+            out = polish_tension_ik(self.robot, self.scene, np.stack(starts), positions[index],
+                                    quats[index] if oriented else None, loads.rows(index),
+                                    margin=self.config.safety_margin,
+                                    statics_config=self.config.statics, time_limit=limit)
+            # Ipopt's answer is judged where it succeeded or ran out of time (its last
+            # iterate may still pass the verdict); otherwise the status is the reason.
+            return [Polished(t if status in (*SUCCESS_STATUSES, TIME_LIMIT_STATUS) else None,
+                             "" if status in SUCCESS_STATUSES else f"Ipopt: {status}",
+                             float(sec), status == TIME_LIMIT_STATUS)
+                    for t, status, sec in zip(out.tensions, out.status, out.seconds,
+                                              strict=True)]
+
+        def judge(answers: list, index: np.ndarray) -> list[RowVerdict]:
+            judged = self._verdict(np.stack(answers), positions[index], quats[index],
+                                   loads.rows(index), timing)
+            for k, i in enumerate(index.tolist()):
+                found[i] = (judged, k)
+            return [RowVerdict(bool(ok), why) for ok, why in zip(judged.success, judged.reason,
+                                                                  strict=True)]
+
+        fallback = [RowVerdict(False, result.reason[i]) for i in rows.tolist()]
+        start = time.perf_counter()
+        accepted = polish_and_accept(
+            list(result.tensions[rows]), fallback,
+            lambda attempt, index: [result.tensions[rows[i]] for i in index.tolist()],
+            lambda starts, index, attempt, budgets: polish(starts, rows[index], attempt,
+                                                           budgets),
+            lambda answers, index: judge(answers, rows[index]), 1, time_limit)
+        timing.polish += time.perf_counter() - start - accepted.judge_seconds
+        for i, outcome in zip(rows.tolist(), accepted.outcomes, strict=True):
+            if outcome.accepted:
+                judged, k = found[i]
+                _replace_rows(result, judged, np.array([i]), np.array([k]))
+                result.stage[i] = Stage.POLISH
+            else:
+                result.notes[i].append(polish_note(outcome))
 
     def _solve_finite(self, finite: np.ndarray, positions: np.ndarray, wxyz: Any,
                       *loads: Any) -> TensionIKResult:
