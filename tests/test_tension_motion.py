@@ -331,3 +331,46 @@ def test_a_problem_no_single_via_solves_gets_two() -> None:
     clearance = check_chains(RAO, planner.scene, replay.positions, 10).obstacle_distance
     assert clearance.min() >= planner.config.safety_margin
     assert np.abs(np.diff(result.tensions, axis=0)).max() / result.dt <= 50.0 + 1e-9
+
+
+def test_a_path_through_a_narrow_gap_keeps_the_rate_limit_and_the_margin() -> None:
+    """A tip path traced by a clear tension motion (70 % of the rate limit) that passes
+    between two balls 6 mm from its backbone: followed, the motion is
+    verified (fresh statics at waypoints and between them, python-fcl, rates), refined as
+    a whole (stage refine), and its rates stay within the limit."""
+    from cr_nlp.model.loads import static_loads
+    from cr_nlp.tasks.mechanics._motion import verify_tension_motion
+    from cr_nlp.tasks.mechanics.follow import TensionFollowConfig
+
+    count, dt = 24, 0.05
+    # A planar sweep: the first tendon of each segment (same angle), gravity in the plane.
+    motion = np.zeros((count, 6))
+    motion[:, 0] = np.linspace(0.5, 3.5, count)
+    motion[:, 3] = np.linspace(1.0, 0.4, count)
+    rate_max = np.max(np.abs(np.diff(motion, axis=0))) / dt / 0.7   # the motion: 70 %
+    truth = solve_statics(RAO, motion, PAYLOAD, None, GRAVITY)
+    # Two balls either side of the sweep's plane at the backbone's mid point at the middle
+    # waypoint, 6 mm beyond the body's surface: the robot passes between them.
+    m, k = count // 2, truth.positions.shape[1] // 2
+    moving = truth.positions[m + 1, k] - truth.positions[m - 1, k]
+    tangent = truth.positions[m, k + 1] - truth.positions[m, k - 1]
+    across = np.cross(moving, tangent)
+    across /= np.linalg.norm(across)
+    offset = RAO.backbone_radius + 0.005 + 0.006
+    scene = {"obstacles": [
+        {"name": f"ball_{i}", "type": "sphere", "radius": 0.005,
+         "center": (truth.positions[m, k] + sign * offset * across).tolist()}
+        for i, sign in enumerate((1.0, -1.0))]}
+    follower = TensionFollower(RAO, scene, TensionFollowConfig(tension_rate_max=rate_max))
+    loads = static_loads(1, follower.ik.length, PAYLOAD, None, GRAVITY)
+    traced = verify_tension_motion(RAO, follower.scene, motion, dt, loads, margin=0.002,
+                                   rate_max=rate_max)
+    assert traced.success and traced.min_clearance < 0.008, (traced.reason,
+                                                             traced.min_clearance)
+    result = follower.follow(truth.tip_position, dt=dt, gravity=GRAVITY, tip_force=PAYLOAD)
+    assert result.success, (result.reason, result.notes)
+    assert result.stage.value == "refine"
+    assert np.max(np.abs(np.diff(result.tensions, axis=0))) / dt <= rate_max
+    assert result.min_clearance >= 0.002
+    again = follower.verify(result)
+    assert again.success and again.violations["tension_rate"] == 0.0

@@ -68,7 +68,7 @@ def bench_plan(robot: str, problems: int, repeats: int, seed: int) -> dict[str, 
     rng = np.random.default_rng(seed)
     candidates = rng.uniform(0.0, 6.0, (8 * problems, rob.n_tendons))
     candidates[rng.random(candidates.shape) < 0.4] = 0.0
-    clear = candidates[planner._clear(candidates, loads)][:2 * problems]
+    clear = candidates[planner.clear(candidates, loads)][:2 * problems]
     starts, goals = clear[:problems], clear[problems:]
     results, first, median = _timed(
         lambda: planner.plan(starts, goals, gravity=GRAVITY, tip_force=PAYLOAD), repeats)

@@ -277,11 +277,20 @@ def _run_statics(args: argparse.Namespace) -> int:
 
 
 def _add_tension(group: argparse._SubParsersAction) -> None:
-    p = group.add_parser("tension", help="tension-space planning and following under "
+    p = group.add_parser("tension", help="tension-space IK, planning and following under "
                                          "gravity and a 5 g payload (Cosserat model)")
+    p.add_argument("--suite", choices=("loop", "clutter"), default="loop",
+                   help="loop (default): planning among four obstacles and one followed "
+                        "loop; clutter: IK, following and planning among 14 spheres and "
+                        "2 boxes through the loaded workspace")
     p.add_argument("--problems", type=int, default=20, help="planning problems (default 20)")
-    p.add_argument("--waypoints", type=int, default=100,
-                   help="waypoints of the followed path (default 100)")
+    p.add_argument("--waypoints", type=int, default=None,
+                   help="waypoints of each followed path (default 100 loop, 60 clutter)")
+    p.add_argument("--targets", type=int, default=200,
+                   help="clutter: IK targets (default 200)")
+    p.add_argument("--paths", type=int, default=6, help="clutter: followed paths (default 6)")
+    p.add_argument("--modes", nargs="+", choices=("penalty", "exact"), default=["penalty"],
+                   help="clutter: IK modes (default penalty)")
     add_common_options(p, "tension", repeats=3, robot=False, seed=True)
     p.add_argument("--robot", default="tdcr2_rao2021",
                    help="robot with a mechanics block and 2×3 tendons (default tdcr2_rao2021)")
@@ -289,11 +298,20 @@ def _add_tension(group: argparse._SubParsersAction) -> None:
 
 
 def _run_tension(args: argparse.Namespace) -> int:
+    _check_repeats(args)
+    if args.suite == "clutter":
+        from ..bench.tension_clutter import run_tension_clutter_benchmark
+
+        run_tension_clutter_benchmark(robot=args.robot, targets=args.targets,
+                                      paths=args.paths, waypoints=args.waypoints or 60,
+                                      problems=args.problems, modes=tuple(args.modes),
+                                      repeats=args.repeats, seed=args.seed, out=args.out)
+        _wrote(args, "tension_clutter")
+        return 0
     from ..bench.tension_motion import run_tension_motion_benchmark
 
-    _check_repeats(args)
     run_tension_motion_benchmark(robot=args.robot, problems=args.problems,
-                                 waypoints=args.waypoints, repeats=args.repeats,
+                                 waypoints=args.waypoints or 100, repeats=args.repeats,
                                  seed=args.seed, out=args.out)
     _wrote(args, "tension")
     return 0

@@ -20,6 +20,7 @@ import io
 import json
 import time
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -109,6 +110,13 @@ def _build(robot: Robot, loads: StaticLoads, size: int, seed: int,
                        np.asarray(solved.positions)[keep], time.perf_counter() - start)
 
 
+def tension_pool_path(robot: Robot, loads: StaticLoads, size: int, seed: int = 0,
+                      statics: StaticsConfig = StaticsConfig()) -> Path:
+    """The cache file of a pool (``tension_pool``'s arguments; ``loads``' first row)."""
+    case = loads.rows(np.zeros(1, int))
+    return cache_dir() / "tension_pools" / f"{_pool_key(robot, case, size, seed, statics)}.npz"
+
+
 def tension_pool(robot: Robot, loads: StaticLoads, size: int, seed: int = 0,
                  statics: StaticsConfig = StaticsConfig(), cache: bool = True) -> TensionPool:
     """The seed pool of ``robot`` under the one load case ``loads`` (its first row).
@@ -117,7 +125,7 @@ def tension_pool(robot: Robot, loads: StaticLoads, size: int, seed: int = 0,
     seed and rod settings is there (``cache``), else built (a batch of ``size`` forward
     statics solves) and written there. A damaged cache file is rebuilt."""
     case = loads.rows(np.zeros(1, int))
-    path = cache_dir() / "tension_pools" / f"{_pool_key(robot, case, size, seed, statics)}.npz"
+    path = tension_pool_path(robot, case, size, seed, statics)
     if cache and path.exists():
         try:
             with np.load(path) as data:

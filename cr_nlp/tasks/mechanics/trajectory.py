@@ -186,7 +186,7 @@ class TensionPlanner:
         self.length = float(sum(s.length_min for s in self.robot.segments))
         self._vias: dict[bytes, np.ndarray] = {}
 
-    def _clear(self, samples: np.ndarray, loads: StaticLoads) -> np.ndarray:
+    def clear(self, samples: np.ndarray, loads: StaticLoads) -> np.ndarray:
         """(k,) True where the solved robot of a tension set converged and keeps δ."""
         solved, checked = solve_and_check(self.robot, self.scene, samples, loads,
                                           self.config.statics)
@@ -215,7 +215,7 @@ class TensionPlanner:
             tensions = rng.uniform(0.0, float(self.robot.mechanics.tension_max), (size, n))
             for s in range(n // per):
                 tensions[np.arange(size), s * per + rng.integers(0, per, size)] = 0.0
-            self._vias[key] = tensions[self._clear(tensions, loads)]
+            self._vias[key] = tensions[self.clear(tensions, loads)]
         return self._vias[key]
 
     def _screen(self, plans: list[np.ndarray], loads: StaticLoads) -> np.ndarray:
@@ -224,7 +224,7 @@ class TensionPlanner:
         samples = [interpolated(p, self.config.samples_between)[0] for p in plans]
         if not samples:
             return np.zeros(0, bool)
-        clear = self._clear(np.concatenate(samples), loads)
+        clear = self.clear(np.concatenate(samples), loads)
         bounds = np.cumsum([0, *(len(s) for s in samples)])
         return np.array([clear[a:b].all() for a, b in zip(bounds[:-1], bounds[1:],
                                                           strict=True)])
@@ -260,7 +260,7 @@ class TensionPlanner:
         loads = static_loads(1, self.length, tip_force, tip_moment, gravity,
                              distributed_force, point_loads)
         count = len(starts)
-        ends_clear = (self._clear(np.concatenate([starts, goals]), loads).reshape(2, count)
+        ends_clear = (self.clear(np.concatenate([starts, goals]), loads).reshape(2, count)
                       if count else np.zeros((2, 0), bool))
         plans: list[np.ndarray | None] = [None] * count
         notes: list[list[str]] = [[] for _ in range(count)]

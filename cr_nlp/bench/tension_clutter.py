@@ -1,0 +1,238 @@
+"""Benchmark: the mechanics tasks in clutter under load (issues 51 and 52).
+
+``cr-nlp bench tension --suite clutter`` on ``tdcr2_rao2021`` under gravity and a 5 g tip
+payload, in a scene of 14 spheres and 2 boxes placed through the loaded workspace
+(``clutter_scene``: centres on the solved backbones of random tension sets, so every
+obstacle is somewhere the robot goes). Rows:
+
+- IK: ``targets`` tip positions of random tension sets whose backbones are clear, solved
+  by ``TensionIKSolver`` (penalty, and with ``exact`` in the modes, exact);
+- following: ``paths`` tip paths of ``waypoints`` waypoints, each traced by a smooth
+  tension motion that is clear of the scene (verified) and keeps ``rate_fraction`` of the
+  tension-rate limit, followed by ``TensionFollower``;
+- planning: ``problems`` start/goal pairs of clear random tension sets, planned by
+  ``TensionPlanner`` and by its search alone (``chain_iterations=0``), with the median
+  ratio of the tip paths (fresh statics along each motion).
+
+Success is every task's own verdict (fresh statics, python-fcl); times are the first
+call (compiles, pools) and the median of ``repeats`` later calls.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import statistics
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..model import load_robot
+from ..model.loads import static_loads
+from ..model.statics import solve_statics
+from ._common import Column, environment, environment_markdown, fixed, markdown_table, write_report
+from .tension_motion import GRAVITY, PAYLOAD
+
+RATE_MAX = 50.0
+"""The tension-rate limit of the following rows, N/s."""
+DT = 0.05
+"""Seconds between waypoints."""
+
+
+def clutter_scene(robot: Any, seed: int = 0, spheres: int = 14, boxes: int = 2) -> dict:
+    """A scene dict of ``spheres`` spheres (radius 10–16 mm) and ``boxes`` boxes (20–40 mm)
+    centred on points of the loaded robot's workspace (backbones of random tension sets
+    under gravity and the payload, m)."""
+    from ..stages.explore import random_tensions
+
+    rng = np.random.default_rng(seed)
+    solved = solve_statics(robot, random_tensions(robot, 256, seed), PAYLOAD, None, GRAVITY)
+    points = np.asarray(solved.positions)[solved.converged][:, 4:].reshape(-1, 3)
+    centres = points[rng.choice(len(points), spheres + boxes, replace=False)]
+    obstacles = [{"name": f"ball_{i}", "type": "sphere", "center": c.tolist(),
+                  "radius": float(rng.uniform(0.010, 0.016))}
+                 for i, c in enumerate(centres[:spheres])]
+    obstacles += [{"name": f"box_{i}", "type": "box", "center": c.tolist(),
+                   "size": rng.uniform(0.02, 0.04, 3).tolist()}
+                  for i, c in enumerate(centres[spheres:])]
+    return {"obstacles": obstacles}
+
+
+def clear_tensions(follower: Any, count: int, rng: np.random.Generator) -> np.ndarray:
+    """(count, n) random tension sets whose equilibria keep δ from the scene, N."""
+    from ..stages.explore import random_tensions
+    from ..tasks.mechanics.trajectory import TensionPlanner
+
+    loads = static_loads(1, follower.ik.length, PAYLOAD, None, GRAVITY)
+    screen = TensionPlanner(follower.robot, follower.scene)
+    found: list[np.ndarray] = []
+    while sum(len(f) for f in found) < count:
+        candidates = 0.6 * random_tensions(follower.robot, 4 * count,
+                                           int(rng.integers(1 << 30)))
+        found.append(candidates[screen.clear(candidates, loads)])
+    return np.concatenate(found)[:count]
+
+
+def clear_motions(follower: Any, count: int, waypoints: int, rate_fraction: float,
+                  rng: np.random.Generator, tries: int = 40) -> list[np.ndarray]:
+    """Up to ``count`` smooth tension motions (waypoints, n) N that the verdict accepts
+    (clear, rate within ``rate_fraction`` of ``RATE_MAX``): each a loop through two clear
+    tension sets, scaled in time to the rate."""
+    loads = static_loads(1, follower.ik.length, PAYLOAD, None, GRAVITY)
+    ends = clear_tensions(follower, 2 * tries, rng)
+    t = np.linspace(0.0, 1.0, waypoints)[:, None]
+    motions = []
+    for k in range(tries):
+        a, b = ends[2 * k], ends[2 * k + 1]
+        motion = a + (b - a) * 0.5 * (1 - np.cos(2 * np.pi * t))     # out and back
+        step = np.max(np.abs(np.diff(motion, axis=0)))
+        if step / DT > rate_fraction * RATE_MAX:
+            motion = a + (motion - a) * rate_fraction * RATE_MAX * DT / step
+        if follower.verify_tensions(motion, DT, loads).success:
+            motions.append(motion)
+        if len(motions) == count:
+            break
+    return motions
+
+
+def _timed(call: Any, repeats: int) -> tuple[Any, float, float]:
+    start = time.perf_counter()
+    result = call()
+    first = time.perf_counter() - start
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = call()
+        times.append(time.perf_counter() - start)
+    return result, first, statistics.median(times) if times else first
+
+
+def bench_ik(robot: Any, scene: dict, targets: int, modes: list[str], repeats: int,
+             follower: Any, rng: np.random.Generator) -> list[dict[str, Any]]:
+    """IK rows, one per mode."""
+    from ..tasks.mechanics.ik import TensionIKSolver
+
+    tips = solve_statics(robot, clear_tensions(follower, targets, rng), PAYLOAD, None,
+                         GRAVITY).tip_position
+    solver = TensionIKSolver(robot, scene)
+    rows = []
+    for mode in modes:
+        result, first, median = _timed(
+            lambda mode=mode: solver.solve(tips, None, PAYLOAD, None, GRAVITY,
+                                           exact=mode == "exact"), repeats)
+        ok = result.success
+        rows.append({"mode": mode, "targets": len(tips), "success_pct": 100.0 * ok.mean(),
+                     "polished": int(sum(s == "polish" for s in result.stage)),
+                     "max_violation": float(np.nanmax(result.max_violation)),
+                     "min_clearance_mm": 1e3 * float(np.min(result.min_clearance)),
+                     "first_s": first, "median_s": median,
+                     "per_1000_s": 1000.0 * median / max(len(tips), 1)})
+    return rows
+
+
+def bench_follow(follower: Any, motions: list[np.ndarray], repeats: int) -> dict[str, Any]:
+    """The following row: every path traced by a clear, rate-feasible motion."""
+    paths = [solve_statics(follower.robot, m, PAYLOAD, None, GRAVITY).tip_position
+             for m in motions]
+    results, firsts, medians = [], [], []
+    for path in paths:
+        result, first, median = _timed(
+            lambda path=path: follower.follow(path, dt=DT, gravity=GRAVITY,
+                                              tip_force=PAYLOAD), repeats)
+        results.append(result)
+        firsts.append(first)
+        medians.append(median)
+    rate = max(float(np.max(np.abs(np.diff(r.tensions, axis=0)))) / DT for r in results)
+    return {"paths": len(paths), "waypoints": len(paths[0]) if paths else 0,
+            "verified": sum(bool(r.success) for r in results),
+            "max_error_mm": 1e3 * max(float(np.max(r.position_error)) for r in results),
+            "max_rate_n_s": rate,
+            "min_clearance_mm": 1e3 * min(r.min_clearance for r in results),
+            "median_s": statistics.median(medians) if medians else 0.0,
+            "first_s": max(firsts) if firsts else 0.0,
+            "stages": ", ".join(sorted({r.stage.value for r in results}))}
+
+
+def bench_plan(robot: Any, scene: dict, problems: int, repeats: int, follower: Any,
+               rng: np.random.Generator) -> dict[str, Any]:
+    """The planning row: refined plans against the search's on the same problems."""
+    from ..tasks.mechanics.trajectory import TensionPlanner
+
+    ends = clear_tensions(follower, 2 * problems, rng)
+    starts, goals = ends[:problems], ends[problems:]
+    planner = TensionPlanner(robot, scene)
+    search = TensionPlanner(robot, scene, dataclasses.replace(planner.config,
+                                                              chain_iterations=0))
+    loads = static_loads(1, planner.length, PAYLOAD, None, GRAVITY)
+    results, first, median = _timed(
+        lambda: planner.plan(starts, goals, gravity=GRAVITY, tip_force=PAYLOAD), repeats)
+    searched = search.plan(starts, goals, gravity=GRAVITY, tip_force=PAYLOAD)
+    ratio = [planner.tip_path(r.tensions, loads) / planner.tip_path(s.tensions, loads)
+             for r, s in zip(results, searched, strict=True) if r.success and s.success]
+    return {"problems": problems,
+            "success_pct": 100.0 * np.mean([r.success for r in results]),
+            "search_success_pct": 100.0 * np.mean([s.success for s in searched]),
+            "refined_pct": 100.0 * np.mean([r.stage.value == "refine" for r in results]),
+            "tip_path_ratio": statistics.median(ratio) if ratio else float("nan"),
+            "min_clearance_mm": 1e3 * min(r.min_clearance for r in results),
+            "per_problem_s": median / max(problems, 1), "first_s": first}
+
+
+IK_COLUMNS = [
+    Column("mode", "mode"), Column("targets", "targets"),
+    Column("success_pct", "verified (%)", fixed(1)), Column("polished", "polished"),
+    Column("max_violation", "max violation", lambda v: f"{v:.1e}"),
+    Column("min_clearance_mm", "min clearance (mm)", fixed(1)),
+    Column("per_1000_s", "s per 1000 targets", fixed(2)),
+    Column("first_s", "first call (s)", fixed(1)),
+]
+FOLLOW_COLUMNS = [
+    Column("paths", "paths"), Column("waypoints", "waypoints"),
+    Column("verified", "verified"), Column("max_error_mm", "max error (mm)", fixed(4)),
+    Column("max_rate_n_s", f"max rate (N/s, limit {RATE_MAX:g})", fixed(1)),
+    Column("min_clearance_mm", "min clearance (mm)", fixed(1)),
+    Column("median_s", "median s per path", fixed(2)),
+    Column("first_s", "first call (s)", fixed(1)), Column("stages", "stage"),
+]
+PLAN_COLUMNS = [
+    Column("problems", "problems"), Column("success_pct", "verified (%)", fixed(1)),
+    Column("search_success_pct", "search alone (%)", fixed(1)),
+    Column("refined_pct", "refined kept (%)", fixed(1)),
+    Column("tip_path_ratio", "median tip path / search's", fixed(2)),
+    Column("min_clearance_mm", "min clearance (mm)", fixed(1)),
+    Column("per_problem_s", "s per problem", fixed(3)),
+    Column("first_s", "first call (s)", fixed(1)),
+]
+
+
+def run_tension_clutter_benchmark(robot: str = "tdcr2_rao2021", targets: int = 200,
+                                  paths: int = 6, waypoints: int = 60, problems: int = 20,
+                                  modes: tuple[str, ...] = ("penalty",), repeats: int = 2,
+                                  seed: int = 0, rate_fraction: float = 0.7,
+                                  out: str | Path | None = None) -> dict[str, Any]:
+    """All three rows in the clutter scene, printed and written to ``out``."""
+    from ..tasks.mechanics.follow import TensionFollowConfig, TensionFollower
+
+    rob = load_robot(robot)
+    scene = clutter_scene(rob, seed)
+    rng = np.random.default_rng(seed)
+    follower = TensionFollower(rob, scene, TensionFollowConfig(tension_rate_max=RATE_MAX))
+    motions = clear_motions(follower, paths, waypoints, rate_fraction, rng)
+    ik = bench_ik(rob, scene, targets, list(modes), repeats, follower, rng)
+    follow = bench_follow(follower, motions, repeats)
+    plan = bench_plan(rob, scene, problems, repeats, follower, rng)
+    env = environment()
+    report = (f"## Mechanics tasks in clutter under load, {robot}\n\n"
+              f"Gravity and a 5 g tip payload, {len(scene['obstacles'])} spheres and boxes "
+              "through the loaded workspace (seed "
+              f"{seed}); success by each task's verdict (fresh statics, python-fcl); steady "
+              f"state is the median of {repeats} runs after the first call.\n\n"
+              + markdown_table(ik, IK_COLUMNS) + "\n\n"
+              + markdown_table([follow], FOLLOW_COLUMNS) + "\n\n"
+              + markdown_table([plan], PLAN_COLUMNS) + "\n\n" + environment_markdown(env))
+    write_report("tension_clutter", report, out,
+                 tables={"ik": ik, "follow": [follow], "plan": [plan]}, env=env,
+                 settings={"robot": robot, "repeats": repeats, "seed": seed,
+                           "rate_fraction": rate_fraction})
+    return {"ik": ik, "follow": follow, "plan": plan}
