@@ -176,8 +176,14 @@ def tensions_of_unknowns(terms: TensionTerms, z: np.ndarray) -> np.ndarray:
     if terms.groups is None:
         return np.clip(z[:, :terms.robot.n_tendons], 0.0, 1.0) * terms.tension_max
     with jax.enable_x64(True):
-        return np.asarray(jax.vmap(lambda row: tensions_of(terms, row))(jnp.asarray(z)),
-                          dtype=float)
+        return np.asarray(_tension_map(terms)(jnp.asarray(z)), dtype=float)
+
+
+@cached(maxsize=32)
+def _tension_map(terms: TensionTerms) -> Any:
+    """``tensions_of`` over a batch, compiled once per settings (op by op it took tens of
+    milliseconds, the whole of a live update)."""
+    return jax.jit(jax.vmap(partial(tensions_of, terms)))
 
 
 def world_points(robot: Robot, positions: jax.Array) -> jax.Array:

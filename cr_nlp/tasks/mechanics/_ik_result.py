@@ -64,6 +64,9 @@ class TensionIKResult(ResultIO):
     exact_mode: str = EXACT_MODE
     """The exact stage's formulation where it ran (``stages.polish``'s tension-IK
     ``EXACT_MODE``), else why there was none."""
+    base_moment: np.ndarray | None = None
+    """(B, 3) moment at the base of each solved rod, N·m, world frame (the verdict's
+    statics; a warm start for the next solve). Not written to RESULT.json."""
 
     def __post_init__(self) -> None:
         count = len(self.tensions)

@@ -138,6 +138,7 @@ class TensionIKSolver:
         self.length = float(sum(s.length_min for s in self.robot.segments))
         self._pools: dict[bytes, TensionPool] = {}
         self._pool_clear: dict[int, np.ndarray] = {}
+        self._on_device: dict[str, SceneArrays] = {}
         self._arrays = (None if self.scene is None or not self.scene.parts
                         else scene_arrays(self.scene, as_numpy=True))
         weight = config.clearance_weight if self._arrays is not None else 0.0
@@ -199,7 +200,8 @@ class TensionIKSolver:
         finite = np.all(np.isfinite(positions), axis=1)
         if not finite.all():  # such rows are reported, not solved
             return self._solve_finite(finite, positions, wxyz, tip_force, tip_moment, gravity,
-                                      distributed_force, point_loads)
+                                      distributed_force, point_loads, exact=exact,
+                                      time_limit=time_limit)
         if wxyz is None:
             quats = np.full((count, 4), np.nan)
         else:
@@ -305,7 +307,8 @@ class TensionIKSolver:
                 result.notes[i].append(polish_note(outcome))
 
     def _solve_finite(self, finite: np.ndarray, positions: np.ndarray, wxyz: Any,
-                      *loads: Any) -> TensionIKResult:
+                      *loads: Any, exact: bool = False,
+                      time_limit: float | None = None) -> TensionIKResult:
         """``solve`` on the rows with finite positions; the others failed, with a reason."""
         count = len(positions)
 
@@ -319,12 +322,13 @@ class TensionIKSolver:
         if points is not None and len(points) == count and not isinstance(points[0], dict):
             points = [p for p, keep in zip(points, finite, strict=True) if keep]
         part = self.solve(positions[finite], rows(wxyz, 4), *(rows(v, 3) for v in loads[:3]),
-                          distributed_force=rows(loads[3], 3), point_loads=points)
+                          distributed_force=rows(loads[3], 3), point_loads=points,
+                          exact=exact, time_limit=time_limit)
         full = self.solve(np.zeros((0, 3)))
         for name in ("tensions", "target_position", "target_wxyz", "position", "wxyz",
                      "pose_error", "position_error", "rotation_error", "min_clearance",
                      "max_violation", "success", "tip_force", "tip_moment", "gravity",
-                     "distributed_force", "tendon_displacements"):
+                     "distributed_force", "tendon_displacements", "base_moment"):
             values = getattr(part, name)
             out = (np.zeros(count, bool) if values.dtype == bool
                    else np.full((count, *values.shape[1:]), np.nan))
@@ -332,8 +336,11 @@ class TensionIKSolver:
             setattr(full, name, out)
         full.target_position = positions
         full.reason = ["the target has non-finite coordinates"] * count
-        full.stage = [Stage.REFINE if ok else Stage.NONE for ok in finite.tolist()]
+        full.stage = [Stage.NONE] * count
         full.notes = [[] for _ in range(count)]
+        for i, j in zip(np.flatnonzero(finite).tolist(), range(len(part)), strict=True):
+            full.stage[i], full.notes[i] = part.stage[j], part.notes[j]
+        full.exact_mode = part.exact_mode
         full.point_loads = [[] for _ in range(count)]   # a refused target: none solved for
         for i, j in zip(np.flatnonzero(finite).tolist(), range(len(part)), strict=True):
             full.point_loads[i] = part.point_loads[j]
@@ -385,6 +392,15 @@ class TensionIKSolver:
         """``stages.refine``'s ``waypoint_params`` for this solver's robot."""
         return waypoint_params(self.robot, positions, quats, loads, tip_weight)
 
+    def _device_scene(self, dtype: Any) -> SceneArrays | None:
+        """The scene's arrays on the device in ``dtype`` (made once per dtype)."""
+        if self._arrays is None:
+            return None
+        key = np.dtype(dtype).name
+        if key not in self._on_device:
+            self._on_device[key] = SceneArrays(*(jnp.asarray(a, dtype) for a in self._arrays))
+        return self._on_device[key]
+
     def lm_config(self) -> LMConfig:
         """The refine stage's LM rules for this solver's tolerance."""
         return LMConfig(jacobian=self.config.jacobian, linear_solver="unrolled",
@@ -392,22 +408,24 @@ class TensionIKSolver:
                         stall_tolerance=1e-6)
 
     def _lm(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,
-            loads: StaticLoads) -> np.ndarray:
-        """LM from the given tensions; returns the answer's tensions (B, n), N."""
+            loads: StaticLoads, base_moment: np.ndarray | None = None,
+            smallest: int = 16) -> np.ndarray:
+        """LM from the given tensions (and M(0) (B, 3) N·m, base frame, where known: a warm
+        start); returns the answer's tensions (B, n), N. The batch is padded to a power of
+        two, at least ``smallest`` (a few compiled programs for every batch size)."""
         cfg = self.config
         dtype = np.float64 if cfg.statics.dtype == "float64" else np.float32
         shoot, params, moment = self.waypoint_params(positions, quats, loads)
         terms = self._terms[shoot]
-        z0 = unknowns_of(terms, tensions, moment)
-        size = max(16, 1 << (len(z0) - 1).bit_length())
+        z0 = unknowns_of(terms, tensions, moment if base_moment is None else base_moment)
+        size = max(smallest, 1 << (len(z0) - 1).bit_length())
         pad = size - len(z0)
 
         def padded(a: np.ndarray) -> jax.Array:
             return jnp.asarray(np.concatenate([a, np.repeat(a[:1], pad, axis=0)]), dtype)
 
         with jax.enable_x64(dtype == np.float64):
-            shared = (None if self._arrays is None
-                      else SceneArrays(*(jnp.asarray(a, dtype) for a in self._arrays)))
+            shared = self._device_scene(dtype)
             z, _, _ = lm_solve(self._residuals[shoot], self._project, padded(z0),
                                jax.tree_util.tree_map(padded, params), shared,
                                jnp.ones(z0.shape[1], dtype), jnp.asarray(cfg.iterations),
@@ -458,7 +476,7 @@ class TensionIKSolver:
             distributed_force=loads.distributed_force,
             point_loads=loads.point_load_lists(),
             tendon_displacements=np.array(statics.tendon_displacements), timing=timing,
-            violations=dict(verdicts.violations))
+            violations=dict(verdicts.violations), base_moment=np.array(statics.base_moment))
 
 
 def _replace_rows(result: TensionIKResult, other: TensionIKResult, rows: np.ndarray,
@@ -466,7 +484,9 @@ def _replace_rows(result: TensionIKResult, other: TensionIKResult, rows: np.ndar
     """Rows ``rows`` of ``result`` from rows ``from_rows`` of ``other`` (same targets)."""
     for name in ("tensions", "position", "wxyz", "pose_error", "position_error",
                  "rotation_error", "min_clearance", "max_violation", "success",
-                 "tendon_displacements"):
+                 "tendon_displacements", "base_moment"):
+        if getattr(result, name) is None or getattr(other, name) is None:
+            continue
         values = np.array(getattr(result, name))
         values[rows] = getattr(other, name)[from_rows]
         setattr(result, name, values)

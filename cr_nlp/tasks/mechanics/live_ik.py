@@ -1,0 +1,118 @@
+"""Live tension-space IK: one target at a time on the Cosserat rod, warm-started from the
+current tensions (the viewer's dragged target under gravity), as ``tasks.live_ik`` does
+for the PCC model.
+
+Each update runs the refine stage of ``tasks.mechanics.ik`` (its LM rows: tip,
+equilibrium, backbone clearance; forward-difference Jacobians) on one target from the
+current tensions and the current moment at the base (so the first LM step starts at an
+equilibrium), a program compiled once for a batch of one. Where the warm start misses
+(a jump across the workspace), the batched solver answers from its seed pool
+(``search``). Every answer is judged by the tension IK's one verdict: a fresh forward
+statics solve of its tensions, the tension bounds, and python-fcl on the solved backbone.
+Units: metres, radians, newtons, N·m, seconds.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ...model import Robot
+from ...model.loads import static_loads
+from ...stages.refine import base_frame
+from ...world.scene import Scene
+from .._result import Stage
+from .._timing import StageTiming
+from .ik import TensionIKConfig, TensionIKSolver
+
+
+@dataclass(frozen=True)
+class TensionLiveResult:
+    """One live answer, judged by the verdict (float64). Units: N, m, N·m, s."""
+
+    tensions: np.ndarray
+    """(n,) tensions, N."""
+    position: np.ndarray
+    """(3,) tip of the fresh statics solve, m."""
+    position_error: float
+    """Distance of that tip from the target, m."""
+    min_clearance: float
+    """python-fcl obstacle distance of the solved backbone, m (inf without a scene)."""
+    success: bool
+    """The verdict accepts the answer."""
+    reason: str
+    """"" on success, else why not."""
+    stage: Stage
+    """``Stage.REFINE`` (warm-started LM) or ``Stage.SEARCH`` (the pool's seeds)."""
+    base_moment: np.ndarray
+    """(3,) moment at the base of the solved rod, N·m, world frame: the next warm start."""
+    seconds: float
+    """Wall time of the update, verdict included."""
+
+
+class TensionLiveIK:
+    """Single-target tension IK warm-started from the current tensions; reuse it.
+
+    The loads are fixed per solver (``tip_force``, ``gravity``, … as for
+    ``TensionIKSolver.solve``, world frame). ``solve(tensions, position)`` returns a
+    ``TensionLiveResult``; the first call compiles (seconds, cached on disk).
+    """
+
+    def __init__(self, robot: Robot | str | dict, scene: Scene | str | None = None,
+                 config: TensionIKConfig | None = None, **loads: Any) -> None:
+        self.ik = TensionIKSolver(robot, scene, config or TensionIKConfig())
+        self.robot = self.ik.robot
+        self.loads = static_loads(1, self.ik.length, **loads)
+        self._moment: tuple[bytes, np.ndarray] | None = None
+
+    def solve(self, tensions: Any, position: Any, wxyz: Any = None, *,
+              search: bool = True) -> TensionLiveResult:
+        """Move the robot's tip from the equilibrium of ``tensions`` (n,) N to ``position``
+        (3,) m, world frame (``wxyz``: (4,) orientation, or None: free).
+
+        Args:
+            tensions: the current tensions, e.g. the previous answer's.
+            position: the target tip position, m.
+            wxyz: the target orientation (unit quaternion w, x, y, z) or None.
+            search: where the warm start misses, answer from the pool's seeds (the batched
+                solver: tens of milliseconds).
+
+        Raises:
+            ValueError: tensions of the wrong size, a non-finite target.
+        """
+        start = time.perf_counter()
+        current = np.asarray(tensions, dtype=float).reshape(1, -1)
+        if current.shape[1] != self.robot.n_tendons or not np.all(np.isfinite(current)):
+            raise ValueError(f"tensions: expected {self.robot.n_tendons} finite numbers, N")
+        target = np.asarray(position, dtype=float).reshape(1, 3)
+        if not np.all(np.isfinite(target)):
+            raise ValueError("position: expected 3 finite numbers, m")
+        quats = (np.full((1, 4), np.nan) if wxyz is None
+                 else np.asarray(wxyz, dtype=float).reshape(1, 4))
+        moment = self._warm_moment(current)
+        answer = self.ik._lm(current, target, quats, self.loads, moment, smallest=1)
+        judged = self.ik._verdict(answer, target, quats, self.loads, StageTiming())
+        stage = Stage.REFINE
+        if search and not judged.success[0]:
+            seeds = self.ik._seeds(target, self.loads, 0)
+            again = self.ik._lm(seeds, target, quats, self.loads, smallest=1)
+            other = self.ik._verdict(again, target, quats, self.loads, StageTiming())
+            if other.success[0] or other.pose_error[0] < judged.pose_error[0]:
+                answer, judged, stage = again, other, Stage.SEARCH
+        self._moment = (answer.tobytes(), base_frame(self.robot, judged.base_moment))
+        return TensionLiveResult(
+            tensions=answer[0], position=judged.position[0],
+            position_error=float(judged.position_error[0]),
+            min_clearance=float(judged.min_clearance[0]), success=bool(judged.success[0]),
+            reason=judged.reason[0], stage=stage, base_moment=judged.base_moment[0],
+            seconds=time.perf_counter() - start)
+
+    def _warm_moment(self, current: np.ndarray) -> np.ndarray | None:
+        """M(0) (1, 3) N·m, base frame, of ``current`` where it is the last answer (its
+        equilibrium is known), else None (the LM starts from the tip moments)."""
+        if self._moment is not None and self._moment[0] == current.tobytes():
+            return self._moment[1]
+        return None

@@ -1,0 +1,46 @@
+"""Live tension IK (``tasks.mechanics.live_ik``): one target at a time under gravity and a
+payload, warm-started from the current tensions; every answer replayed by a fresh statics
+solve."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cr_nlp.model import load_robot
+from cr_nlp.model.statics import solve_statics
+from cr_nlp.tasks._result import Stage
+from cr_nlp.tasks.mechanics.ik import TensionIKConfig
+from cr_nlp.tasks.mechanics.live_ik import TensionLiveIK
+
+RAO = load_robot("tdcr2_rao2021")
+GRAVITY = [0.0, 0.0, -9.81]
+PAYLOAD = [0.0, 0.0, -0.005 * 9.81]
+
+
+@pytest.fixture(scope="module")
+def live() -> TensionLiveIK:
+    return TensionLiveIK(RAO, None, TensionIKConfig(pool_size=1024), gravity=GRAVITY,
+                         tip_force=PAYLOAD)
+
+
+def test_a_dragged_target_is_followed_from_the_current_tensions(live: TensionLiveIK) -> None:
+    t = np.linspace(0.0, 1.0, 6)[:, None]
+    motion = np.concatenate([1 + 2 * t, 0 * t, 0.5 * t, 1 - t, t, 0 * t], axis=1)
+    tips = solve_statics(RAO, motion, PAYLOAD, None, GRAVITY).tip_position
+    current = motion[0]
+    for target in tips[1:]:
+        answer = live.solve(current, target)
+        assert answer.success, answer.reason
+        assert answer.stage == Stage.REFINE        # the warm start reached it
+        again = solve_statics(RAO, answer.tensions[None], PAYLOAD, None, GRAVITY)
+        assert np.linalg.norm(again.tip_position[0] - target) < 1e-4
+        assert np.allclose(again.tip_position[0], answer.position, atol=1e-9)
+        current = answer.tensions
+
+
+def test_bad_inputs_are_named(live: TensionLiveIK) -> None:
+    with pytest.raises(ValueError, match="tensions: expected 6"):
+        live.solve(np.zeros(5), [0.0, 0.0, 0.4])
+    with pytest.raises(ValueError, match="position"):
+        live.solve(np.zeros(6), [np.nan, 0.0, 0.4])
