@@ -153,17 +153,18 @@ class TensionFollower:
         report = self.verify_tensions(chained, reference.dt, loads)
         timing.verify = time.perf_counter() - start
         stage, notes = Stage.REFINE, ["banded LM over the whole motion"]
-        if not report.success:  # the per-waypoint repair, and the better verified answer
+        missed = np.linalg.norm(report.tip_position - positions, axis=1) > self.config.tolerance
+        if not report.success or missed.any():  # the per-waypoint repair; the better motion
             start = time.perf_counter()
             smoothed = self._smooth(tensions, reference.dt, positions, quats, loads)
             timing.explore += time.perf_counter() - start
             start = time.perf_counter()
             other = self.verify_tensions(smoothed, reference.dt, loads)
-            if _better(other, report):
+            if _better(other, report, positions, self.config.tolerance):
+                why = report.reason or f"{int(missed.sum())} waypoints missed"
                 chained, report = smoothed, other
                 stage, notes = Stage.EXPLORE, [
-                    "per-waypoint answers (the motion refined as a whole did not verify: "
-                    f"{report.reason or 'a larger violation'})"]
+                    f"per-waypoint answers (the motion refined as a whole was worse: {why})"]
             timing.verify += time.perf_counter() - start
         result = self._result(chained, reference, quats, loads, report, stage, notes)
         result.timing = timing
@@ -312,11 +313,18 @@ class TensionFollower:
         return result
 
 
-def _better(a: TensionMotionVerification, b: TensionMotionVerification) -> bool:
-    """Whether motion check ``a`` beats ``b``: verified first, then the smaller largest
-    violation."""
-    if a.success != b.success:
-        return a.success
+def _better(a: TensionMotionVerification, b: TensionMotionVerification,
+            positions: np.ndarray, tolerance: float) -> bool:
+    """Whether motion check ``a`` beats ``b`` on the path ``positions`` (T, 3) m: verified
+    and every waypoint within ``tolerance`` first, then more waypoints reached, then the
+    smaller largest violation (position only: a check of a fresh solve's tips)."""
+    reached = [int(np.sum(np.linalg.norm(r.tip_position - positions, axis=1) <= tolerance))
+               for r in (a, b)]
+    whole = [r.success and n == len(positions) for r, n in zip((a, b), reached, strict=True)]
+    if whole[0] != whole[1]:
+        return whole[0]
+    if reached[0] != reached[1]:
+        return reached[0] > reached[1]
     return a.max_violation < b.max_violation
 
 
