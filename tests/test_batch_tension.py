@@ -15,6 +15,7 @@ from cr_nlp import load_result, load_results
 from cr_nlp.batch import MANIFEST, RESULTS, BatchError, chunk_file, read_chunk, run_batch
 from cr_nlp.model import load_robot
 from cr_nlp.model.statics import solve_statics
+from cr_nlp.stages.polish import POLISH_EXACT_MODE
 from cr_nlp.tasks.mechanics.ik import TensionIKConfig, TensionIKResult, TensionIKSolver
 from cr_nlp.tasks.mechanics.trajectory import (
     TensionPlanConfig,
@@ -156,10 +157,12 @@ def test_cli_batch_ik_cosserat_with_the_load_options(client, positions, tmp_path
     argv = ["batch", "ik", "--model", "cosserat", "--robot", "tdcr2_rao2021", "--targets",
             str(targets), "--gravity", "0,0,-9.81", "--tip-force", "0,0,-0.049", "--out",
             str(out), "--scheduler", client.scheduler.address, "--chunk", "1",
-            "--no-progress"]
+            "--no-progress", "--exact", "--time-limit", "5"]
     assert main(argv) == 0
     data = json.loads((out / RESULTS).read_text())
     assert data["kind"] == "tension_ik" and all(data["success"])
+    assert data["exact_mode"] == POLISH_EXACT_MODE  # --exact reached the solver
+    assert json.loads((out / MANIFEST).read_text())["time_limit"] == 5.0
     assert data["tip_force"] == [LOADS["tip_force"]] * 2
     assert main([*argv, "--resume"]) == 0  # nothing missing: solves nothing
     assert json.loads((out / MANIFEST).read_text())["runs"][-1]["solved"] == []

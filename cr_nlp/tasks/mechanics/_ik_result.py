@@ -175,7 +175,7 @@ class TensionIKResult(ResultIO):
                 "notes": np.asarray([json.dumps(n) for n in self.notes], dtype=str).reshape(-1),
                 "point_loads": np.asarray([json.dumps(p) for p in self.point_loads],
                                           dtype=str).reshape(-1),
-                "exact_mode": np.full(len(self), self.exact_mode, dtype=str),
+                "exact_mode": np.asarray([self.exact_mode] * len(self), dtype=str).reshape(-1),
                 **{f"violation_{k}": self.violations[k] for k in FAMILIES}}
 
     @classmethod
