@@ -1,5 +1,5 @@
 """Offline batch jobs on Dask distributed: many IK targets or planning problems over a
-cluster, written to disk chunk by chunk, resumable.
+cluster, on the PCC or the Cosserat model, written to disk chunk by chunk, resumable.
 
 ``run_batch(kind, robot, inputs, out_dir=...)`` splits the inputs into chunks; each chunk
 is one Dask task that solves its problems with the single-process solver
@@ -30,7 +30,12 @@ What lands in ``out_dir``:
   ``tasks.load_result``; its ``timing`` is the worker seconds summed over the chunks.
 
 What differs between the kinds of job (solver, inputs, a chunk's answers, the results)
-is in one adapter per kind (``_IKJobs``, ``_PlanJobs``).
+is in one adapter per kind and model (``_batch_kinds``). ``model="cosserat"`` runs the
+tension tasks on the Cosserat rod (``TensionIKSolver.solve``, ``TensionPlanner.plan``)
+under one load case (``loads``): chunks, files and resume as above, the manifest also
+records the model and the loads (a resume under other loads is refused), and the results
+are the ``cr-nlp ik|plan --model cosserat`` files (kinds "tension_ik",
+"tension_trajectory").
 
 This module is an interface (beside ``cli/``): it imports ``tasks/``, nothing imports it
 but the CLI and the benchmarks.
@@ -46,7 +51,6 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -68,36 +72,21 @@ from ._batch_files import RESULTS as RESULTS
 from ._batch_files import BatchError as BatchError
 from ._batch_files import chunk_file as chunk_file
 from ._batch_files import chunk_ranges as chunk_ranges
-from ._batch_files import digest, open_manifest, plain_rows, read_chunks, write_json
+from ._batch_files import digest, open_manifest, read_chunks, write_json
 from ._batch_files import read_chunk as read_chunk
 from ._batch_files import solver_key as solver_key
 from ._batch_files import write_chunk as write_chunk
+from ._batch_kinds import KINDS as KINDS
+from ._batch_kinds import MODELS as MODELS
+from ._batch_kinds import JobSpec as JobSpec
+from ._batch_kinds import adapter
 from .runtime import register
 
 # ================================================================ the job
 
 
-@dataclass(frozen=True)
-class JobSpec:
-    """What every chunk of a job needs on the worker (pickled with each task)."""
-
-    kind: str
-    """"ik" or "plan"."""
-    robot: Any
-    """The ``Robot``."""
-    scene: Any
-    """The ``Scene`` or None."""
-    config: Any
-    """``IKConfig`` (ik) or ``TrajectoryConfig`` (plan)."""
-    exact: bool
-    """Polish with Ipopt (the single-process solvers' ``exact``)."""
-    init: str
-    """Planning only: "roadmap" or "straight" (``TrajectoryPlanner.plan``)."""
-    key: str
-    """Digest of (kind, robot, scene, config): the worker's solver cache key."""
-
-
-def default_chunk(kind: str, count: int, slots: int, exact: bool = True) -> int:
+def default_chunk(kind: str, count: int, slots: int, exact: bool = True,
+                  model: str = "pcc") -> int:
     """Problems per chunk. Exact-mode IK: about two chunks per worker thread, at most 256
     targets; each chunk pays the solver's fixed costs per call, which outweighed finer
     load balancing (1000 exact tdcr3 targets on 2 workers, medians of 7, interleaved:
@@ -105,15 +94,18 @@ def default_chunk(kind: str, count: int, slots: int, exact: bool = True) -> int:
     Planning: about four chunks per worker thread (seconds per problem, more uneven), at
     most 8 problems. Penalty-mode IK (milliseconds per target, batched in JAX): one chunk
     per worker thread of at most 4096 targets (a chunk of 125 targets cost ~50 ms more
-    than its share of one 1000-target call). The caps bound what a dying worker loses."""
-    per_slot, largest = _ADAPTERS[kind].chunking(exact)
+    than its share of one 1000-target call). The caps bound what a dying worker loses.
+    Cosserat (``model``): IK about two chunks per worker thread of at most 256 targets
+    (tenths of a second per target), planning as on PCC."""
+    per_slot, largest = adapter(kind, model).chunking(exact)
     return int(min(largest, max(1, math.ceil(count / max(per_slot * slots, 1)))))
 
 
-def _inputs_hash(kind: str, inputs: tuple[Any, Any], problems: Sequence[str] | None) -> str:
+def _inputs_hash(spec: JobSpec, inputs: tuple[Any, Any],
+                 problems: Sequence[str] | None) -> str:
     # No reasons and all-empty reasons are the same job (the API's None, the CLI's list).
     marks = [str(p) for p in problems] if problems and any(problems) else []
-    return _ADAPTERS[kind].inputsdigest(inputs, marks)
+    return spec.jobs.inputsdigest(inputs, marks)
 
 
 # ================================================================ on the worker
@@ -141,168 +133,31 @@ def _worker_solver(spec: JobSpec) -> Any:
         solver = _SOLVERS.get(spec.key)
         if solver is None:
             prepare_worker_process()
-            solver = _ADAPTERS[spec.kind].solver(spec)
+            solver = spec.jobs.solver(spec)
             _SOLVERS[spec.key] = solver
     return solver
 
 
-# ================================================================ the kinds of job
-
-
-class _IKJobs:
-    """IK targets: inputs (positions (T, 3) m, wxyz (T, 4)); a chunk's answers are the
-    ``IKResult`` columns as arrays (``IKResult.columns``)."""
-
-    answers = "columns"
-    uses_init = False
-
-    @staticmethod
-    def chunking(exact: bool) -> tuple[int, int]:
-        return (2, 256) if exact else (1, 4096)
-
-    @staticmethod
-    def default_config() -> Any:
-        from .tasks.ik import IKConfig
-
-        return IKConfig()
-
-    @staticmethod
-    def solver(spec: JobSpec) -> Any:
-        from .tasks.ik import IKSolver
-
-        return IKSolver(spec.robot, spec.scene, spec.config)
-
-    @staticmethod
-    def normalise(first: Any, second: Any) -> tuple[Any, Any]:
-        first = np.asarray(first, dtype=float).reshape(-1, 3)
-        second = np.asarray(second, dtype=float).reshape(-1, 4)
-        if len(first) != len(second):
-            raise BatchError(f"{len(first)} positions but {len(second)} orientations")
-        return first, second
-
-    @staticmethod
-    def inputsdigest(inputs: tuple[Any, Any], marks: list[str]) -> str:
-        # The float64 bytes: hashing their JSON text cost ~5 ms per 1000.
-        arrays = [np.ascontiguousarray(x, dtype="<f8") for x in inputs]
-        return digest(b"".join([json.dumps([[a.shape for a in arrays], marks]).encode(),
-                                 *(a.tobytes() for a in arrays)]))
-
-    @staticmethod
-    def solve(spec: JobSpec, solver: Any, first: Any, second: Any) -> tuple[Any, dict]:
-        result = solver.solve(first, second, exact=spec.exact)
-        return result.columns(), result.timing.as_dict()
-
-    @staticmethod
-    def failed(spec: JobSpec, count: int, reason: str) -> Any:
-        from .tasks.ik import IKResult
-
-        nan = np.full(count, np.nan)
-        return IKResult(
-            spec.robot, np.full((count, spec.robot.dof), np.nan), np.full((count, 3), np.nan),
-            np.full((count, 4), np.nan), nan, nan, nan, nan, nan,
-            collision_free=np.zeros(count, bool), success=np.zeros(count, bool),
-            stage=["none"] * count, reason=[reason] * count).columns()
-
-    @staticmethod
-    def join(parts: list[Any]) -> Any:
-        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-
-    @staticmethod
-    def assemble(spec: JobSpec, answers: list[Any], timing: dict[str, float],
-                 problems: Sequence[str] | None) -> tuple[Any, dict[str, Any]]:
-        from .tasks.ik import IKResult
-
-        result = IKResult.from_columns(spec.robot, _IKJobs.join(answers), timing,
-                                       has_scene=spec.scene is not None)
-        for i, problem in enumerate(problems or []):
-            if problem:
-                result.reason[i] = problem
-        return result, result.to_dict()
-
-
-class _PlanJobs:
-    """Planning problems: inputs (starts, goals), raw rows θ, φ, L validated per problem
-    on the worker; a chunk's answers are RESULT.json entries (``TrajectoryResult.entry``)."""
-
-    answers = "rows"
-    uses_init = True
-
-    @staticmethod
-    def chunking(exact: bool) -> tuple[int, int]:
-        return (4, 8)
-
-    @staticmethod
-    def default_config() -> Any:
-        from .tasks.trajectory import TrajectoryConfig
-
-        return TrajectoryConfig()
-
-    @staticmethod
-    def solver(spec: JobSpec) -> Any:
-        from .tasks.trajectory import TrajectoryPlanner
-
-        return TrajectoryPlanner(spec.robot, spec.scene, spec.config)
-
-    @staticmethod
-    def normalise(first: Any, second: Any) -> tuple[Any, Any]:
-        first, second = list(first), list(second)
-        if len(first) != len(second):
-            raise BatchError(f"{len(first)} starts but {len(second)} goals")
-        return first, second
-
-    @staticmethod
-    def inputsdigest(inputs: tuple[Any, Any], marks: list[str]) -> str:
-        # Raw rows, possibly ragged or malformed: validated per problem on the worker.
-        return digest(json.dumps([[plain_rows(inputs[0]), plain_rows(inputs[1])], marks]).encode())
-
-    @staticmethod
-    def solve(spec: JobSpec, solver: Any, first: Any, second: Any) -> tuple[Any, dict]:
-        results = solver.plan(list(first), list(second), exact=spec.exact, init=spec.init)
-        return [r.entry() for r in results], solver.last_timing.as_dict()
-
-    @staticmethod
-    def failed(spec: JobSpec, count: int, reason: str) -> Any:
-        from .tasks.trajectory import TrajectoryResult
-
-        return [TrajectoryResult(spec.robot, None, spec.config.dt, False, reason,
-                                 "error").entry() for _ in range(count)]
-
-    @staticmethod
-    def join(parts: list[Any]) -> Any:
-        return [row for part in parts for row in part]
-
-    @staticmethod
-    def assemble(spec: JobSpec, answers: list[Any], timing: dict[str, float],
-                 problems: Sequence[str] | None) -> tuple[Any, dict[str, Any]]:
-        from .tasks.trajectory import TrajectoryResult, trajectories_to_dict
-
-        results = [TrajectoryResult.from_entry(spec.robot, row)
-                   for row in _PlanJobs.join(answers)]
-        return results, trajectories_to_dict(results, timing)
-
-
-_ADAPTERS: dict[str, Any] = {"ik": _IKJobs, "plan": _PlanJobs}
-"""Job kind → what differs between kinds: solver, inputs, answers, results."""
-KINDS = tuple(_ADAPTERS)
-"""The job kinds: IK targets, start/goal planning problems."""
-
-
 def solve_chunk(spec: JobSpec, index: int, first: Any, second: Any) -> dict[str, Any]:
     """Solve one chunk on this worker: IK targets (``first`` positions (k, 3) m, ``second``
-    wxyz (k, 4)) or planning problems (``first`` starts, ``second`` goals, rad and m).
+    wxyz (k, 4)) or planning problems (``first`` starts, ``second`` goals: rad and m on
+    PCC, tensions in N on the Cosserat rod).
 
     Returns the chunk's record: the answers in input order (IK: ``"columns"``, the
-    ``IKResult`` fields as arrays, ``IKResult.columns``; planning: ``"rows"``, RESULT.json
-    entries, ``TrajectoryResult.entry``), the solver's stage seconds, the worker's address
-    and pid. The solver's random generator is reseeded from (seed, chunk index), so a
+    ``IKResult`` / ``TensionIKResult`` fields as arrays, their ``columns``; planning:
+    ``"rows"``, RESULT.json entries, ``TrajectoryResult.entry`` /
+    ``TensionTrajectoryResult.entry``), the solver's stage seconds, the worker's address
+    and pid. A PCC solver's random generator is reseeded from (seed, chunk index) (the
+    Cosserat solvers have none: their seed pools come from the config's seed), so a
     chunk re-run after a failure or on resume gives the same answers. A problem that
     raises becomes a failed answer with its reason; the chunk itself raises only where
     Dask should retry it.
     """
     t0 = time.perf_counter()
     solver = _worker_solver(spec)
-    solver._rng = np.random.default_rng([spec.config.seed, index])
-    kind = _ADAPTERS[spec.kind]
+    if hasattr(solver, "_rng"):
+        solver._rng = np.random.default_rng([spec.config.seed, index])
+    kind = spec.jobs
     try:
         answers, timing = kind.solve(spec, solver, first, second)
     except Exception:  # one problem's error must not sink its neighbours: solve one by one
@@ -336,41 +191,38 @@ def solve_chunk(spec: JobSpec, index: int, first: Any, second: Any) -> dict[str,
 # ================================================================ the job on the client
 
 
-def run_batch(
-    kind: str,
-    robot: Any,
-    inputs: tuple[Any, Any],
-    *,
-    out_dir: str | Path,
-    scene: Any = None,
-    exact: bool = False,
-    config: Any = None,
-    init: str = "roadmap",
-    problems: Sequence[str] | None = None,
-    client: Any = None,
-    workers: int | None = None,
-    scheduler: str | None = None,
-    host: str | None = None,
-    chunk: int | None = None,
-    resume: bool = False,
-    progress: bool = True,
-    retries: int = 2,
-) -> Any:
+def run_batch(kind: str, robot: Any, inputs: tuple[Any, Any], *, out_dir: str | Path,
+              scene: Any = None, exact: bool = False, config: Any = None, init: str = "roadmap",
+              problems: Sequence[str] | None = None, model: str = "pcc",
+              loads: dict[str, Any] | None = None, time_limit: float | None = None,
+              client: Any = None, workers: int | None = None, scheduler: str | None = None,
+              host: str | None = None, chunk: int | None = None, resume: bool = False,
+              progress: bool = True, retries: int = 2) -> Any:
     """Solve many IK targets or planning problems on Dask, chunk by chunk, into ``out_dir``.
 
     Args:
         kind: "ik" or "plan".
         robot: a ``Robot``, robot file or bundled name.
-        inputs: ik: (positions (T, 3) m, wxyz (T, 4) unit quaternions); plan: (starts,
-            goals), rows θ, φ, L (rad, rad, m; fixed lengths may be omitted; a bad row
-            is a failed result).
+        inputs: ik: (positions (T, 3) m, wxyz (T, 4) unit quaternions; Cosserat: NaN rows
+            or None for position-only targets); plan: (starts, goals), PCC: rows θ, φ, L
+            (rad, rad, m; fixed lengths may be omitted; a bad row is a failed result),
+            Cosserat: (B, n) tensions in N.
         out_dir: folder of the manifest, the chunk files and ``results.json``.
         scene: a ``Scene``, scene file or bundled name, or None.
         exact: polish every answer with Ipopt (as ``cr-nlp ik/plan --exact``).
-        config: ``IKConfig`` / ``TrajectoryConfig`` (default: the solver's defaults).
+        config: ``IKConfig`` / ``TrajectoryConfig``, Cosserat ``TensionIKConfig`` /
+            ``TensionPlanConfig`` (default: the solver's defaults).
         init: planning: "roadmap" or "straight".
         problems: ik: a reason per target read badly from its file ("" where fine), as
             ``read_targets`` returns; it replaces the solver's reason in the results.
+        model: "pcc" (configurations θ, φ, L) or "cosserat" (tendon tensions on the
+            Cosserat rod, ``TensionIKSolver.solve`` / ``TensionPlanner.plan``: a robot with
+            a ``mechanics`` block; ``exact`` for ik only).
+        loads: Cosserat: the one load case of every problem, the solvers' keyword
+            arguments (tip_force N, tip_moment N·m, gravity m/s², distributed_force N/m,
+            world frame; point_loads ``[{"s": m, "force": [N], "moment": [N·m]}]``).
+        time_limit: Cosserat ik with ``exact``: seconds of polishing per target (PCC:
+            the config's ``polish_time_limit``).
         client: a ``distributed.Client`` to run on. Else ``scheduler`` (the address of a
             running Dask scheduler), else a new ``LocalCluster`` of ``workers`` processes
             (default one per core), closed at the end.
@@ -386,15 +238,18 @@ def run_batch(
             the scheduler regardless).
 
     Returns:
-        ik: an ``IKResult`` over all targets; plan: a list of ``TrajectoryResult``; in
-        input order, the same objects as the single-process solvers return.
+        ik: an ``IKResult`` (Cosserat: ``TensionIKResult``) over all targets; plan: a list
+        of ``TrajectoryResult`` (``TensionTrajectoryResult``); in input order, the same
+        objects as the single-process solvers return.
 
     Raises:
         BatchError: ``out_dir`` holds another job, or chunks failed after their retries
-            (those written are kept: rerun with ``resume=True``).
+            (those written are kept: rerun with ``resume=True``), or the job cannot run
+            (a Cosserat job for a robot without mechanics, ``exact`` for Cosserat plans).
     """
     spec, first, second = _job_spec(kind, robot, inputs, scene, exact, config, init, problems,
-                                    client, workers, scheduler, host)
+                                    (model, loads, time_limit), client, workers, scheduler,
+                                    host)
     job = _job_entry(spec, first, second, problems)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -408,7 +263,7 @@ def run_batch(
             client = own_client = _new_client(scheduler, workers, progress, host)
         if not manifest:
             slots = max(sum(client.nthreads().values()), 1)
-            size = int(chunk or default_chunk(kind, job["count"], slots, exact))
+            size = int(chunk or default_chunk(kind, job["count"], slots, exact, model))
             manifest = {**job, "chunk": size, "chunks": len(chunk_ranges(job["count"], size)),
                         "runs": []}
         _run_chunks(client, spec, out, manifest, first, second, progress, retries)
@@ -430,22 +285,24 @@ def _new_client(scheduler: str | None, workers: int | None, progress: bool,
 
 
 def _job_spec(kind: str, robot: Any, inputs: tuple[Any, Any], scene: Any, exact: bool,
-              config: Any, init: str, problems: Sequence[str] | None, client: Any,
+              config: Any, init: str, problems: Sequence[str] | None,
+              mechanics: tuple[str, dict[str, Any] | None, float | None], client: Any,
               workers: int | None, scheduler: str | None,
               host: str | None) -> tuple[JobSpec, Any, Any]:
     """``run_batch``'s arguments checked (``BatchError`` where they cannot run) and
-    loaded: the job's ``JobSpec`` and its inputs, normalised by the kind's adapter."""
+    loaded: the job's ``JobSpec`` and its inputs, normalised by the kind's adapter
+    (``mechanics``: the model, the loads and the Cosserat time limit)."""
     from .model import load_robot
     from .world import load_scene
 
-    if kind not in KINDS:
-        raise BatchError(f"kind must be one of {KINDS}, got {kind!r}")
+    model, loads, time_limit = mechanics
+    jobs = adapter(kind, model)
     if sum(x is not None for x in (client, workers, scheduler)) > 1:
         raise BatchError("give at most one of client, workers and scheduler")
     if host is not None and (client is not None or scheduler is not None):
         raise BatchError("host is where a new local cluster listens: not with client or scheduler")
-    jobs = _ADAPTERS[kind]
     robot = load_robot(robot)
+    loads = jobs.settings(robot, exact, loads, time_limit)
     scene = load_scene(scene) if isinstance(scene, (str, Path, dict)) else scene
     try:
         first, second = inputs
@@ -460,8 +317,10 @@ def _job_spec(kind: str, robot: Any, inputs: tuple[Any, Any], scene: Any, exact:
         config = jobs.default_config()
     if init not in ("roadmap", "straight"):
         raise BatchError(f"init must be 'roadmap' or 'straight', got {init!r}")
-    key = solver_key(kind, robot, scene, config)
-    return JobSpec(kind, robot, scene, config, bool(exact), init, key), first, second
+    key = solver_key(f"{model}:{kind}" if model != "pcc" else kind, robot, scene, config)
+    spec = JobSpec(kind, robot, scene, config, bool(exact), init, key, model, loads,
+                   None if time_limit is None else float(time_limit))
+    return spec, first, second
 
 
 def _job_entry(spec: JobSpec, first: Any, second: Any,
@@ -473,11 +332,12 @@ def _job_entry(spec: JobSpec, first: Any, second: Any,
         "robot": spec.robot.name,
         "scene": getattr(spec.scene, "name", None),
         "exact": spec.exact,
-        "init": spec.init if _ADAPTERS[spec.kind].uses_init else None,
+        "init": spec.init if spec.jobs.uses_init else None,
         "config": json.loads(json.dumps(dataclasses.asdict(spec.config))),
         "settings": digest((spec.key, spec.init)),  # robot, scene and config contents
         "count": len(first),
-        "inputs": _inputs_hash(spec.kind, (first, second), problems),
+        "inputs": _inputs_hash(spec, (first, second), problems),
+        **spec.jobs.manifest_fields(spec),  # Cosserat: the model and the loads
     }
 
 
@@ -587,7 +447,7 @@ def _assemble(
     """Read every chunk file, in input order, into the single-process result objects and
     write ``results.json``."""
     records, timing = read_chunks(out, manifest)
-    kind = _ADAPTERS[spec.kind]
+    kind = spec.jobs
     result, data = kind.assemble(spec, [r[kind.answers] for r in records], timing, problems)
     write_json(out / RESULTS, data)
     return result

@@ -2,7 +2,9 @@
 written chunk by chunk to ``--out DIR`` and resumable (``cr_nlp.batch``; thin front end).
 
 The input files are those of ``cr-nlp ik`` (``--targets``) and ``cr-nlp plan``
-(``--problems``); ``DIR/results.json`` has the schema of their ``--out`` files.
+(``--problems``); ``DIR/results.json`` has the schema of their ``--out`` files. With
+``--model cosserat`` the tension tasks run instead, with the load options of ``cr-nlp ik
+--model cosserat`` (``_tension_ik``).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import sys
 import warnings
 from pathlib import Path
 
+from . import _tension_ik
 from ._io import (
     Stopped,
     UsageError,
@@ -48,6 +51,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "...]} or bundled name (tdcr3_lattice)",
     )
     ik.add_argument("--scene", help="scene JSON file or bundled name (obstacles)")
+    _model_option(ik, "tendon tensions on the Cosserat-rod model (results kind tension_ik)")
+    _tension_ik.add_options(ik)
     _common(ik)
 
     plan = kinds.add_parser(
@@ -68,7 +73,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         default="roadmap",
         help="initial trajectories (as cr-nlp plan; default roadmap)",
     )
+    _model_option(plan, "tension trajectories on the Cosserat-rod model, --problems "
+                        '{"problems": [{"start": [N…], "goal": [N…]}]} (results kind '
+                        "tension_trajectory; no --exact)")
+    _tension_ik.add_load_options(plan)
     _common(plan)
+
+
+def _model_option(p: argparse.ArgumentParser, cosserat: str) -> None:
+    p.add_argument("--model", choices=("pcc", "cosserat"), default="pcc",
+                   help="pcc (default): configurations of the constant-curvature model; "
+                        f"cosserat: {cosserat}, robots with a 'mechanics' block")
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -154,68 +169,108 @@ def _solve(args: argparse.Namespace) -> int:
     """The job of ``run``: its exit status."""
     from ..batch import BatchError, run_batch
 
-    time_limit = time_limit_arg(args)
     robot = load_robot_arg(args.robot)
-    scene = load_scene_arg(args.scene)
-    options = dict(
-        out_dir=args.out,
-        scene=scene,
-        exact=args.exact,
-        workers=args.workers,
-        scheduler=args.scheduler,
-        host=args.host,
-        chunk=args.chunk,
-        resume=args.resume,
-        progress=not args.no_progress,
-    )
+    if args.model == "cosserat":
+        _tension_ik.needs_mechanics(robot, args.exact, args.kind)
+        inputs, options = _tension_job(args, robot)
+    elif args.kind == "ik":
+        inputs, options = _ik_job(args)
+    else:
+        inputs, options = _plan_job(args)
     try:
-        if args.kind == "ik":
-            from ..tasks.ik import IKConfig, read_targets
-
-            try:
-                positions, wxyz, problems = read_targets(
-                    resolve(args.targets, "targets", "--targets")
-                )
-            except ValueError as exc:
-                raise UsageError(f"--targets: {exc}") from None
-            result = run_batch(
-                "ik",
-                robot,
-                (positions, wxyz),
-                config=IKConfig(seed=args.seed, polish_time_limit=time_limit),
-                problems=problems,
-                **options,
-            )
-            summary = result.summary()
-            print(
-                f"{robot.name}: {summary['targets']} targets, "
-                f"{100 * summary['success_rate']:.1f} % success, mean pose error "
-                f"{fmt(summary['mean_pose_error_success'])} (successes), max violation "
-                f"{fmt(summary['max_violation'])}; wrote {args.out}/results.json",
-                file=sys.stderr,
-            )
-            return 0
-        from ..tasks.trajectory import TrajectoryConfig, with_horizon
-
-        starts, goals, horizon, dt = read_problems(resolve(args.problems, "problems", "--problems"))
-        config = with_horizon(
-            TrajectoryConfig(seed=args.seed, polish_time_limit=time_limit),
-            None if horizon is None else horizon + 1,
-            dt,
+        result = run_batch(
+            args.kind,
+            robot,
+            inputs,
+            out_dir=args.out,
+            scene=load_scene_arg(args.scene),
+            exact=args.exact,
+            workers=args.workers,
+            scheduler=args.scheduler,
+            host=args.host,
+            chunk=args.chunk,
+            resume=args.resume,
+            progress=not args.no_progress,
+            **options,
         )
-        # None entries (a problem without "start"/"goal") fail validation with a reason.
-        starts = [s if s is not None else [] for s in starts]
-        goals = [g if g is not None else [] for g in goals]
-        results = run_batch(
-            "plan", robot, (starts, goals), config=config, init=args.init, **options
-        )
-        ok = sum(r.success for r in results)
-        print(
-            f"{robot.name}: {len(results)} problems, "
-            f"{100 * ok / max(len(results), 1):.1f} % success; wrote "
-            f"{args.out}/results.json",
-            file=sys.stderr,
-        )
-        return 0
     except BatchError as exc:
         raise UsageError(str(exc)) from None
+    print(f"{_summary(args, result, robot.name)}; wrote {args.out}/results.json",
+          file=sys.stderr)
+    return 0
+
+
+def _targets(args: argparse.Namespace) -> tuple:
+    """``--targets``: positions (T, 3) m, wxyz (T, 4) and a reason per bad target."""
+    from ..tasks.ik import read_targets
+
+    try:
+        return read_targets(resolve(args.targets, "targets", "--targets"))
+    except ValueError as exc:
+        raise UsageError(f"--targets: {exc}") from None
+
+
+def _ik_job(args: argparse.Namespace) -> tuple[tuple, dict]:
+    """PCC IK: ``run_batch``'s inputs and its options of this kind."""
+    from ..tasks.ik import IKConfig
+
+    positions, wxyz, problems = _targets(args)
+    config = IKConfig(seed=args.seed, polish_time_limit=time_limit_arg(args))
+    return (positions, wxyz), {"config": config, "problems": problems}
+
+
+def _plan_job(args: argparse.Namespace) -> tuple[tuple, dict]:
+    """PCC planning: ``run_batch``'s inputs and its options of this kind."""
+    from ..tasks.trajectory import TrajectoryConfig, with_horizon
+
+    starts, goals, horizon, dt = read_problems(resolve(args.problems, "problems", "--problems"))
+    config = with_horizon(
+        TrajectoryConfig(seed=args.seed, polish_time_limit=time_limit_arg(args)),
+        None if horizon is None else horizon + 1,
+        dt,
+    )
+    # None entries (a problem without "start"/"goal") fail validation with a reason.
+    starts = [s if s is not None else [] for s in starts]
+    goals = [g if g is not None else [] for g in goals]
+    return (starts, goals), {"config": config, "init": args.init}
+
+
+def _tension_job(args: argparse.Namespace, robot: object) -> tuple[tuple, dict]:
+    """``--model cosserat``: ``run_batch``'s inputs and options, the loads from the
+    options of ``cr-nlp ik --model cosserat`` (``_tension_ik.loads_from_args``)."""
+    length = float(sum(s.length_min for s in robot.segments))
+    loads = _tension_ik.loads_from_args(args, length)
+    options = {"model": "cosserat", "loads": loads}
+    if args.kind == "ik":
+        from ..tasks.mechanics.ik import TensionIKConfig
+
+        positions, wxyz, problems = _targets(args)
+        return (positions, wxyz if args.orientation else None), {
+            **options, "config": TensionIKConfig(seed=args.seed), "problems": problems,
+            "time_limit": time_limit_arg(args)}
+    from ..tasks.mechanics.trajectory import TensionPlanConfig, read_tension_problems
+
+    try:
+        starts, goals = read_tension_problems(robot, resolve(args.problems, "problems",
+                                                             "--problems"))
+    except ValueError as exc:
+        raise UsageError(f"--problems: {exc}") from None
+    return (starts, goals), {**options, "config": TensionPlanConfig(seed=args.seed)}
+
+
+def _summary(args: argparse.Namespace, result: object, name: str) -> str:
+    """One line on the job's answers."""
+    if args.kind == "plan":
+        ok = sum(r.success for r in result)
+        model = " (Cosserat)" if args.model == "cosserat" else ""
+        return (f"{name}{model}: {len(result)} problems, "
+                f"{100 * ok / max(len(result), 1):.1f} % success")
+    summary = result.summary()
+    if args.model == "cosserat":
+        return (f"{name} (Cosserat): {summary['targets']} targets, "
+                f"{100 * summary['success_rate']:.1f} % success, median position error "
+                f"{fmt(summary['median_position_error_mm'])} mm")
+    return (f"{name}: {summary['targets']} targets, "
+            f"{100 * summary['success_rate']:.1f} % success, mean pose error "
+            f"{fmt(summary['mean_pose_error_success'])} (successes), max violation "
+            f"{fmt(summary['max_violation'])}")

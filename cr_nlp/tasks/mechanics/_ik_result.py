@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -17,6 +18,10 @@ from ._motion import EXACT_MODE
 
 FAMILIES = ("limits", "clearance", "self_clearance")
 """The violation families of tension IK (``world.verdict.judge_many``)."""
+ARRAYS = ("tensions", "target_position", "target_wxyz", "position", "wxyz", "pose_error",
+          "position_error", "rotation_error", "min_clearance", "max_violation", "tip_force",
+          "tip_moment", "gravity", "distributed_force", "tendon_displacements")
+"""The float columns of ``TensionIKResult.columns`` (the per-target arrays)."""
 
 
 @dataclass
@@ -161,6 +166,38 @@ class TensionIKResult(ResultIO):
                         for k, v in data.get("violations", {}).items()},
             stage=[stage for stage, _ in stages], notes=[notes for _, notes in stages],
             exact_mode=str(data.get("exact_mode", EXACT_MODE)))
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """The per-target fields as arrays: ``ARRAYS`` (SI units), success, reason, stage,
+        ``violation_<family>``, and per target its point loads, notes and exact mode as
+        JSON text or strings: the compact form a batch job's chunk files hold."""
+        return {**{k: np.asarray(getattr(self, k), dtype=float) for k in ARRAYS},
+                "success": np.asarray(self.success, dtype=bool),
+                "reason": np.asarray(self.reason, dtype=str).reshape(-1),
+                "stage": np.asarray([Stage(s).value for s in self.stage], dtype=str).reshape(-1),
+                "notes": np.asarray([json.dumps(n) for n in self.notes], dtype=str).reshape(-1),
+                "point_loads": np.asarray([json.dumps(p) for p in self.point_loads],
+                                          dtype=str).reshape(-1),
+                "exact_mode": np.asarray([self.exact_mode] * len(self), dtype=str).reshape(-1),
+                **{f"violation_{k}": self.violations[k] for k in FAMILIES}}
+
+    @classmethod
+    def from_columns(cls, robot: Robot, columns: dict[str, np.ndarray],
+                     timing: StageTiming | dict[str, float] | None = None) -> TensionIKResult:
+        """The result of ``columns()`` (of one result, or concatenated over many); the
+        exact mode is the one a polish ran with where any row has it."""
+        if not isinstance(timing, StageTiming):
+            timing = StageTiming.from_dict(timing)
+        modes = {str(m) for m in columns["exact_mode"]} - {EXACT_MODE}
+        return cls(robot=robot, **{k: np.asarray(columns[k], dtype=float) for k in ARRAYS},
+                   success=np.asarray(columns["success"], dtype=bool),
+                   reason=[str(x) for x in columns["reason"]],
+                   stage=[str(x) for x in columns["stage"]],
+                   notes=[json.loads(str(x)) for x in columns["notes"]],
+                   point_loads=[json.loads(str(x)) for x in columns["point_loads"]],
+                   exact_mode=min(modes) if modes else EXACT_MODE, timing=timing,
+                   violations={k: np.asarray(columns[f"violation_{k}"], dtype=float)
+                               for k in FAMILIES})
 
     def save_csv(self, path: str | Path) -> Path:
         """One row per target: target x, y, z (m), the tensions t1…tN (N), the reached tip

@@ -149,7 +149,8 @@ class TensionTrajectoryResult(OneStage, ResultIO):
             "wxyz": array(data["wxyz"], 4, "wxyz"),
             "backbone": np.array([array(b, 3, f"backbone[{i}]")
                                   for i, b in enumerate(data["backbone"])]).reshape(
-                len(data["backbone"]), -1, 3),
+                len(data["backbone"]), -1, 3) if data["backbone"]
+            else np.zeros((0, 0, 3)),   # a motion that never ran (a failed batch chunk)
             "clearance": np.where(np.isnan(clearance), np.inf, clearance),
             "min_clearance": np.inf if data["min_clearance"] is None
             else float(data["min_clearance"]),
