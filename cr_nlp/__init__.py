@@ -59,6 +59,7 @@ _PUBLIC = {
     "TensionIKResult": ".tasks.mechanics.ik",
     "TensionIKSolver": ".tasks.mechanics.ik",
     "solve_tension_ik": ".tasks.mechanics.ik",
+    "TensionLiveIK": ".tasks.mechanics.live_ik",
     "TensionFollowConfig": ".tasks.mechanics.follow",
     "TensionFollower": ".tasks.mechanics.follow",
     "TensionFollowResult": ".tasks.mechanics.follow",
@@ -142,6 +143,7 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from .tasks.mechanics.ik import TensionIKResult as TensionIKResult
     from .tasks.mechanics.ik import TensionIKSolver as TensionIKSolver
     from .tasks.mechanics.ik import solve_tension_ik as solve_tension_ik
+    from .tasks.mechanics.live_ik import TensionLiveIK as TensionLiveIK
     from .tasks.mechanics.trajectory import TensionPlanConfig as TensionPlanConfig
     from .tasks.mechanics.trajectory import TensionPlanner as TensionPlanner
     from .tasks.mechanics.trajectory import TensionTrajectoryResult as TensionTrajectoryResult

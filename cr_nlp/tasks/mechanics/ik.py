@@ -215,16 +215,7 @@ class TensionIKSolver:
                              distributed_force, point_loads)
         timing = StageTiming()
         if count == 0:
-            nothing = np.zeros((0, self.robot.n_tendons))
-            empty = np.zeros(0)
-            return TensionIKResult(
-                robot=self.robot, tensions=nothing, target_position=positions,
-                target_wxyz=quats, position=positions, wxyz=quats, pose_error=empty,
-                position_error=empty, rotation_error=empty, min_clearance=empty,
-                max_violation=empty, success=np.zeros(0, bool), reason=[],
-                tip_force=loads.tip_force, tip_moment=loads.tip_moment,
-                gravity=loads.gravity, distributed_force=loads.distributed_force,
-                point_loads=[], tendon_displacements=nothing, timing=timing)
+            return self._empty(positions, quats, loads)
         start = time.perf_counter()
         tensions = self._seeds(positions, loads, 0)
         timing.explore = time.perf_counter() - start
@@ -305,6 +296,20 @@ class TensionIKSolver:
                 result.stage[i] = Stage.POLISH
             else:
                 result.notes[i].append(polish_note(outcome))
+
+    def _empty(self, positions: np.ndarray, quats: np.ndarray,
+               loads: StaticLoads) -> TensionIKResult:
+        """The result of no targets."""
+        nothing = np.zeros((0, self.robot.n_tendons))
+        empty = np.zeros(0)
+        return TensionIKResult(
+            robot=self.robot, tensions=nothing, target_position=positions,
+            target_wxyz=quats, position=positions, wxyz=quats, pose_error=empty,
+            position_error=empty, rotation_error=empty, min_clearance=empty,
+            max_violation=empty, success=np.zeros(0, bool), reason=[],
+            tip_force=loads.tip_force, tip_moment=loads.tip_moment,
+            gravity=loads.gravity, distributed_force=loads.distributed_force,
+            point_loads=[], tendon_displacements=nothing)
 
     def _solve_finite(self, finite: np.ndarray, positions: np.ndarray, wxyz: Any,
                       *loads: Any, exact: bool = False,
