@@ -32,7 +32,7 @@ from ...model.loads import StaticLoads
 from ...model.statics import solve_statics
 from ...runtime import cache_dir
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 """Bumped when the cached file's content or the build procedure changes."""
 
 _CACHE_STATS = {"hits": 0, "builds": 0}
@@ -53,6 +53,9 @@ class TensionPool:
     """(P, 3) tip positions of their equilibria, m, world frame."""
     backbones: np.ndarray
     """(P, S, 3) the solved backbones at the robot's points, base to tip, m."""
+    base_moments: np.ndarray
+    """(P, 3) moment at the base of each equilibrium, N·m, world frame (an LM started
+    from a pool set starts at its equilibrium)."""
     build_seconds: float
     """Seconds the build took (loaded from the cache: the original build's)."""
     loaded_from_cache: bool = False
@@ -107,7 +110,8 @@ def _build(robot: Robot, loads: StaticLoads, size: int, seed: int,
                            point_loads=one.point_load_lists())
     keep = np.asarray(solved.converged)
     return TensionPool(tensions[keep], np.asarray(solved.tip_position)[keep],
-                       np.asarray(solved.positions)[keep], time.perf_counter() - start)
+                       np.asarray(solved.positions)[keep], np.asarray(solved.base_moment)[keep],
+                       time.perf_counter() - start)
 
 
 def tension_pool_path(robot: Robot, loads: StaticLoads, size: int, seed: int = 0,
@@ -130,7 +134,8 @@ def tension_pool(robot: Robot, loads: StaticLoads, size: int, seed: int = 0,
         try:
             with np.load(path) as data:
                 pool = TensionPool(data["tensions"], data["tips"], data["backbones"],
-                                   float(data["build_seconds"]), loaded_from_cache=True)
+                                   data["base_moments"], float(data["build_seconds"]),
+                                   loaded_from_cache=True)
             _CACHE_STATS["hits"] += 1
             return pool
         except (OSError, KeyError, ValueError):
@@ -141,6 +146,6 @@ def tension_pool(robot: Robot, loads: StaticLoads, size: int, seed: int = 0,
         path.parent.mkdir(parents=True, exist_ok=True)
         buffer = io.BytesIO()
         np.savez(buffer, tensions=pool.tensions, tips=pool.tips, backbones=pool.backbones,
-                 build_seconds=pool.build_seconds)
+                 base_moments=pool.base_moments, build_seconds=pool.build_seconds)
         write_atomic(path, buffer.getvalue())   # a concurrent reader never sees half a file
     return pool

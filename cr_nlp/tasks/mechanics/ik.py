@@ -68,6 +68,7 @@ from ...stages.refine import (
     LMConfig,
     TensionTerms,
     WaypointParams,
+    base_frame,
     box_bounds,
     lm_solve,
     project_box,
@@ -217,10 +218,10 @@ class TensionIKSolver:
         if count == 0:
             return self._empty(positions, quats, loads)
         start = time.perf_counter()
-        tensions = self._seeds(positions, loads, 0)
+        tensions, moments = self._start(positions, loads, 0)
         timing.explore = time.perf_counter() - start
         start = time.perf_counter()
-        tensions = self._lm(tensions, positions, quats, loads)
+        tensions = self._lm(tensions, positions, quats, loads, moments)
         timing.refine = time.perf_counter() - start
         start = time.perf_counter()
         result = self._verdict(tensions, positions, quats, loads, timing)
@@ -231,8 +232,8 @@ class TensionIKSolver:
                 break
             start = time.perf_counter()
             part = loads.rows(failed)
-            retry = self._lm(self._seeds(positions[failed], part, k), positions[failed],
-                             quats[failed], part)
+            seeds, moments = self._start(positions[failed], part, k)
+            retry = self._lm(seeds, positions[failed], quats[failed], part, moments)
             timing.refine += time.perf_counter() - start
             start = time.perf_counter()
             again = self._verdict(retry, positions[failed], quats[failed], part, timing)
@@ -358,20 +359,29 @@ class TensionIKSolver:
         return full
 
     def _seeds(self, positions: np.ndarray, loads: StaticLoads, rank: int) -> np.ndarray:
-        """The pool tensions whose tip is the ``rank``-th nearest to each target, under the
-        target's loads when all targets share one load case, else without loads."""
+        """The pool tensions whose tip is the ``rank``-th nearest to each target (``_start``)."""
+        return self._start(positions, loads, rank)[0]
+
+    def _start(self, positions: np.ndarray, loads: StaticLoads,
+               rank: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """(tensions (B, n) N, their equilibria's M(0) (B, 3) N·m, base frame, or None): the
+        pool sets whose tips are the ``rank``-th nearest to each target, clear ones first
+        with a scene, under the targets' loads when all share one load case (then the LM
+        starts at an equilibrium), else from the unloaded pool (M(0) unknown: None)."""
         shared = all(np.all(v == v[:1]) for v in loads.arrays())
         case = (loads.rows(np.zeros(1, int)) if shared
                 else static_loads(1, self.length))
         pool = self.pool(case)
         if self._arrays is None:
-            return pool.tensions[pool.nearest(positions, rank)]
-        # Among the nearest sets, the clear ones first (in order of distance).
-        clear = self._clear_pool(pool)
-        k = min(len(pool.tensions), SEED_NEIGHBOURS + rank)
-        _, index = pool.tree.query(positions, k=k)
-        order = np.argsort(~clear[index], axis=1, kind="stable")
-        return pool.tensions[np.take_along_axis(index, order[:, rank:rank + 1], axis=1)[:, 0]]
+            pick = pool.nearest(positions, rank)
+        else:  # among the nearest sets, the clear ones first (in order of distance)
+            clear = self._clear_pool(pool)
+            k = min(len(pool.tensions), SEED_NEIGHBOURS + rank)
+            _, index = pool.tree.query(positions, k=k)
+            order = np.argsort(~clear[index], axis=1, kind="stable")
+            pick = np.take_along_axis(index, order[:, rank:rank + 1], axis=1)[:, 0]
+        moments = base_frame(self.robot, pool.base_moments[pick]) if shared else None
+        return pool.tensions[pick], moments
 
     def _clear_pool(self, pool: TensionPool) -> np.ndarray:
         """(P,) True where a pool set's backbone keeps δ + buffer from the scene (a quick
