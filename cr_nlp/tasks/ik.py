@@ -19,6 +19,7 @@ policy of ``stages.polish._accept``. Large batches stream through in parts of
 
 from __future__ import annotations
 
+import operator
 import time
 from dataclasses import dataclass
 from functools import partial
@@ -155,6 +156,15 @@ class _Checked:
     reason: str
     row: IKVerification | None
     """``verify``'s report on the answer alone (None: the result holds it)."""
+
+
+_STAGES = np.array([Stage.NONE, Stage.REFINE], dtype=object)
+"""A target's stage after the search by its validity (0: refused, 1: searched)."""
+
+
+def _valid(reasons: list[str]) -> np.ndarray:
+    """(T,) bool: the targets ``validate_targets`` gave no reason to refuse."""
+    return np.fromiter(map(operator.not_, reasons), bool, len(reasons))
 
 
 def _counter(name: str, doc: str) -> property:
@@ -312,7 +322,7 @@ class IKSolver:
         self._search.reset()
         self.stream_parts = []
         positions, wxyz, reasons = validate_targets(self.robot, positions, wxyz)
-        valid = np.array([not r for r in reasons], dtype=bool)
+        valid = _valid(reasons)
         q_out = np.full((len(positions), self.robot.dof), np.nan)
         own = np.full(len(positions), np.inf)
         beam = np.full((len(positions), self.config.beam_width, self.robot.dof), np.nan)
@@ -328,7 +338,7 @@ class IKSolver:
             q_out[part], found, own[part] = self._search.solve_part(
                 positions[part], matrix_from_wxyz(wxyz[part]), timing, accepts)
             beam[part, :found.shape[1]] = found
-        stage = [Stage.REFINE if ok else Stage.NONE for ok in valid.tolist()]
+        stage = _STAGES[valid.astype(np.int64)].tolist()
         self_checked = own if self._search.self_repair else None
         result = self._finish(q_out, positions, wxyz, reasons, stage, timing, self_checked)
         if exact and len(idx):
@@ -339,7 +349,7 @@ class IKSolver:
                 reasons: list[str], stage: list[Stage], timing: IKTiming,
                 self_clearance: np.ndarray | None = None) -> IKResult:
         t0 = time.perf_counter()
-        valid = np.array([not r for r in reasons], dtype=bool)
+        valid = _valid(reasons)
         n = len(q)
         fields = {k: np.full(n, np.nan) for k in PER_TARGET}
         result = IKResult(self.robot, q, np.full((n, 3), np.nan), np.full((n, 4), np.nan),

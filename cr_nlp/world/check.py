@@ -504,20 +504,22 @@ def check_chains(robot: Robot, scene: Scene | None, chains: Any,
                          f"{chains.shape}")
     fscene = fcl_scene(scene)
     pieces = chains.shape[1] - 1
-    width = max(len(fscene.objects), len(_far_pairs(pieces, pieces_per_segment)[0]), 1)
-    step = max(1, _BATCH_ELEMENTS // (pieces * width))
+    # (configuration, piece, part) entries of the obstacles, (configuration, far pair) of
+    # the self-distance: sized by the piece count of both, chunks were 30× too small
+    # without a scene (43 tdcr3 configurations, the Python of each chunk most of the time).
+    width = max(pieces * len(fscene.objects), len(_far_pairs(pieces, pieces_per_segment)[0]), 1)
+    step = max(1, _BATCH_ELEMENTS // width)
     parts = [_verdicts(robot, fscene, chains[s:s + step], pieces_per_segment)[:3]
              for s in range(0, len(chains), step)]
     obstacle, part, own = (np.concatenate([p[k] for p in parts]) if parts else
                            np.zeros(0, dtype=np.int64 if k == 1 else float) for k in range(3))
     min_distance = np.minimum(obstacle, own)
-    names = fscene.names
-    closest = tuple("self" if s < o else (names[p] if p >= 0 else "")
-                    for o, p, s in zip(obstacle.tolist(), part.tolist(), own.tolist(),
-                                       strict=True))
+    names = np.array([*fscene.names, ""], dtype=object)      # part −1 (none): ""
+    closest = names[part]
+    closest[own < obstacle] = "self"
     return CheckManyResult(collision=min_distance < 0.0, min_distance=min_distance,
                            self_collision=own < 0.0, obstacle_distance=obstacle,
-                           self_distance=own, closest=closest)
+                           self_distance=own, closest=tuple(closest.tolist()))
 
 
 @dataclass(frozen=True)
