@@ -325,6 +325,7 @@ class IKSolver:
         valid = _valid(reasons)
         q_out = np.full((len(positions), self.robot.dof), np.nan)
         own = np.full(len(positions), np.inf)
+        # The search's beams as bending vectors: made configurations only for a polish.
         beam = np.full((len(positions), self.config.beam_width, self.robot.dof), np.nan)
         idx = np.flatnonzero(valid)
         step = max(int(self.config.stream_size), 1)
@@ -368,10 +369,11 @@ class IKSolver:
                 idx: np.ndarray, beam: np.ndarray, timing: IKTiming, progress: bool) -> None:
         """Exact stage (``tasks._ik_polish``): polish every answer; where the polish fails
         or the verdict rejects it, polish the other candidates of the search's own beam
-        (``beam``: (T, width, 3n), best first) in turn, up to ``config.polish_attempts``
-        polishes in all. An accepted polish replaces the answer; otherwise the refined
-        answer stays with its own verdict (exact mode never succeeds less often than the
-        penalty stages). ``config.polish_time_limit`` bounds each target's polishes."""
+        (``beam``: (T, width, 3n) bending vectors, best first) in turn, up to
+        ``config.polish_attempts`` polishes in all. An accepted polish replaces the answer;
+        otherwise the refined answer stays with its own verdict (exact mode never succeeds
+        less often than the penalty stages). ``config.polish_time_limit`` bounds each
+        target's polishes."""
         from ..stages.polish._ik_nlp import IKPolisher, build_polisher
         from ._ik_polish import polish_answers
 
@@ -390,7 +392,8 @@ class IKSolver:
                              checked.take(np.array([j]))) for j in range(len(q))]
 
         accepted = polish_answers(
-            self._polisher, result.q[todo], beam[todo], result.pose_error[todo],
+            self._polisher, result.q[todo], self._search.beam_q(beam[todo]),
+            result.pose_error[todo],
             positions[todo], matrix_from_wxyz(wxyz[todo]),
             [_Checked(bool(result.success[i]), result.reason[i], None) for i in todo], judge,
             self.config.polish_attempts, progress, self._polish_pool,

@@ -359,7 +359,9 @@ class IKSearch:
 
         Returns:
             q (T, 3n) answers θ, φ, L (rad, rad, m) clipped to the limits; the refined
-            beam (T, width, 3n) best first; and, with ``self_repair``, the answers'
+            beam (T, width, 3n) best first as bending vectors (ux, uy rad, L m; ``beam_q``
+            makes them configurations, for the few targets that need them); and, with
+            ``self_repair``, the answers'
             self-clearance (T,) by ``world.check`` (m) for the verdict to reuse (+inf
             without: not measured here).
         """
@@ -377,15 +379,13 @@ class IKSearch:
                 s.plan, self._retry_plan(pool), self.sample, z_best[todo], cost[todo],
                 positions[todo], rotations[todo], todo, pool, timing)
         q = self._to_q(z_best)
-        beam = self._to_q(z_beam.reshape(-1, z_beam.shape[-1])).reshape(
-            *z_beam.shape[:2], -1)
         own = np.full(len(q), np.inf)
         if self.self_repair:
             t0 = time.perf_counter()
             own = check_many(self.robot, None, q).self_distance
             timing.verify += time.perf_counter() - t0
             self._repair(q, own, z_beam, positions, rotations, timing, accepts)
-        return q, beam, own
+        return q, z_beam, own
 
     def _repair(self, q: np.ndarray, own: np.ndarray, z_beam: np.ndarray,
                 positions: np.ndarray, rotations: np.ndarray, timing: Booking,
@@ -446,6 +446,14 @@ class IKSearch:
 
     def _to_q(self, z: np.ndarray) -> np.ndarray:
         return clip_to_limits(self.robot, z_to_q_numpy(z))
+
+    def beam_q(self, z: np.ndarray) -> np.ndarray:
+        """Beam members (…, n) as bending vectors (``solve_part``) → configurations θ, φ, L
+        (…, 3n; rad, rad, m) clipped to the limits, NaN rows (no member) kept NaN."""
+        z = np.asarray(z, dtype=float)
+        with np.errstate(invalid="ignore"):
+            q = self._to_q(z)
+        return np.where(np.isnan(z).any(axis=-1, keepdims=True), np.nan, q)
 
     def candidates(self, positions: np.ndarray, rotations: np.ndarray,
                    timing: Booking) -> tuple[np.ndarray, np.ndarray]:
