@@ -95,11 +95,6 @@ class ProgramStats:
     """Seconds spent reading and deserialising entries."""
     compile_seconds: float = 0.0
     """Seconds spent in XLA (compiling, or loading compiled code from its cache)."""
-    call_seconds: float = 0.0
-    """Seconds spent inside calls of compiled programs (launching them; on a CPU, XLA may
-    also run a program there): with the waits for their results, the time a solve spends
-    in compiled programs rather than in host Python (``bench ik --suite throughput``;
-    programs ``compile_program`` could not key are not counted)."""
 
 
 stats = ProgramStats()
@@ -412,10 +407,7 @@ class _Flat:
         self.executable, self.out_tree, self.movable = executable, out_tree, movable
 
     def __call__(self, *args: Any) -> Any:
-        t0 = time.perf_counter()
-        out = jax.tree.unflatten(self.out_tree, self.executable(*jax.tree.leaves(args)))
-        stats.call_seconds += time.perf_counter() - t0
-        return out
+        return jax.tree.unflatten(self.out_tree, self.executable(*jax.tree.leaves(args)))
 
 
 def _mesh() -> Any:

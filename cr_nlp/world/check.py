@@ -15,7 +15,11 @@ What is computed how, for a whole batch of configurations at once:
   fcl's penetration query (EPA), which was seen to never return for a sphere centre
   on a capsule's axis.
 - Self-collision: closed form (segment–segment distance minus 2r; negative when the
-  capsules overlap), vectorised over (configuration, far pair).
+  capsules overlap), vectorised over (configuration, far pair), one broadcast block per
+  pair of segments; the segment distance only for the pairs whose bound can hold the
+  minimum. A batch runs in chunks of ``_BATCH_ELEMENTS`` entries of its largest array
+  (configuration × piece × part, or configuration × far pair), so its Python is per
+  chunk, not per configuration.
 - Box, capsule, cylinder and mesh (convex) parts: python-fcl (``fcl_distance``), per
   configuration. Lower bounds are computed vectorised for the batch: the part's
   bounding sphere against the piece's segment, tightened by the part's face planes
