@@ -232,6 +232,8 @@ class IKSolver:
     self_repaired = _counter("self_repaired", "Targets searched again with the "
                              "self-clearance rows (no scene: their answer came closer than δ).")
     device_calls = _counter("device_calls", "Compiled programs launched: device round trips.")
+    device_launch = _counter("device_launch", "Seconds inside the calls that launch compiled "
+                             "programs (on a CPU, XLA may run a program there).")
     device_wait = _counter("device_wait", "Seconds waiting for device results with no host "
                            "work to overlap (the device's share of the wall time).")
 

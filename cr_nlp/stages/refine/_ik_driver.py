@@ -81,6 +81,9 @@ class SearchCounters:
     """Compiled programs launched (lookups and fused searches): device round trips."""
     device_wait: float = 0.0
     """Seconds spent waiting for device results with no host work to overlap."""
+    device_launch: float = 0.0
+    """Seconds inside the calls that launch compiled programs (on a CPU, XLA may run
+    the program there, e.g. one split over several host devices)."""
     self_repaired: int = 0
     """Targets whose first answer's segments came closer than δ and were searched again
     with the self-clearance rows."""
@@ -203,7 +206,9 @@ class ChunkRunner:
                                                      batched=self._batched(per_target, whole),
                                                      outputs=outputs)
                 timing.compile += time.perf_counter() - t1
+            t1 = time.perf_counter()
             runs.append((stop - start, chunk, self.compiled[key](*args)))
+            self.counters.device_launch += time.perf_counter() - t1
             self.counters.device_calls += 1
             start = stop
         wait(self.counters, (out for _, _, out in runs))
@@ -291,6 +296,7 @@ class IKSearch:
         self.counters.retried = [0] * self.settings.retry.rounds
         self.counters.device_calls = 0
         self.counters.device_wait = 0.0
+        self.counters.device_launch = 0.0
         self.counters.self_repaired = 0
 
     # ------------------------------------------------------------ explore
@@ -324,12 +330,14 @@ class IKSearch:
         pool = self.seed_pool(timing)
         t0 = time.perf_counter()
         c0, waited, calls = pool.compile_seconds, pool.wait_seconds, pool.calls
+        launched = pool.launch_seconds
         found = pool.nearest(positions, rotations, k)
         compiled = pool.compile_seconds - c0
         timing.compile += compiled
         timing.explore += time.perf_counter() - t0 - compiled
         self.counters.device_wait += pool.wait_seconds - waited
         self.counters.device_calls += pool.calls - calls
+        self.counters.device_launch += pool.launch_seconds - launched
         return found
 
     # ------------------------------------------------------------ the search
