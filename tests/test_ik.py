@@ -1,6 +1,8 @@
 """IK round trips (sample q → FK → IK → independent check) and bad input."""
 
 import json
+from collections import Counter
+from importlib import import_module
 from pathlib import Path
 
 import numpy as np
@@ -11,8 +13,9 @@ from cr_nlp.cli import main
 from cr_nlp.model import Robot, tip_pose
 from cr_nlp.model.limits import limit_violation_q
 from cr_nlp.model.rotations import wxyz_from_matrix
+from cr_nlp.tasks import _result
 from cr_nlp.tasks.ik import IKConfig, IKSolver
-from cr_nlp.world import check_many, load_scene
+from cr_nlp.world import check_many, load_scene, verdict
 
 from .conftest import MODELS
 
@@ -125,6 +128,42 @@ def test_seed_pool_and_compiled_code_are_reused_between_calls(solver3: IKSolver)
     again = solver3.solve(positions, wxyz)
     assert search.pool is pool and search.main.compiled == compiled
     assert again.timing.compile == 0.0
+
+
+def test_host_work_is_per_batch_not_per_target(solver3: IKSolver,
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 53: the result's stage and status typing, the verdict's wording and the
+    collision check's chunks cost a few Python calls per batch, not one per target."""
+    calls: Counter[str] = Counter()
+
+    def count(module: object, name: str) -> None:
+        original = getattr(module, name)
+
+        def counted(*args: object, **kwargs: object) -> object:
+            calls[name] += 1
+            return original(*args, **kwargs)
+        monkeypatch.setattr(module, name, counted)
+
+    for module, name in ((_result, "split_stage"), (_result, "stage_text"),
+                         (verdict, "judge"),
+                         (import_module("cr_nlp.world.check"), "_verdicts")):
+        count(module, name)
+    rng = np.random.default_rng(11)
+    lo, hi = TDCR3.q_bounds()
+    q = rng.uniform(lo, hi, (300, TDCR3.dof))
+    q = q[check_many(TDCR3, None, q).self_distance >= 0.002][:200]
+    positions, wxyz = targets_from(TDCR3, q)
+    positions[7] = [10.0, 0.0, 0.0]         # refused: out of reach
+    calls.clear()
+    result = solver3.solve(positions, wxyz)
+    assert [result.status, result.stage_text] and len(result) == 200
+    assert result.stage[7] == "none" and result.status[7] == "rejected"
+    assert result.stage_text[0] == "refine" and result.success.sum() >= 190
+    assert calls["split_stage"] <= 2            # once per distinct stage: refine, none
+    assert calls["stage_text"] == 0             # no answer carries notes
+    # Words only for the answers the verdict rejects (the self-repair's too).
+    assert calls["judge"] <= (~result.success).sum() - 1 + 2 * solver3.self_repaired
+    assert calls["_verdicts"] <= 6              # each check_many of the solve in one chunk
 
 
 # ------------------------------------------------------------------ CLI

@@ -282,13 +282,15 @@ def measure_throughput(robot: Robot, sizes: Sequence[int], repeats: int, seed: i
         result = solver.solve(case.positions, case.wxyz)
         first = time.perf_counter() - start
         compile_s = result.timing.compile
-        walls, stages, waits = [], [], []
+        walls, stages, waits, outside = [], [], [], []
         for _ in range(repeats):
             start = time.perf_counter()
             result = solver.solve(case.positions, case.wxyz)
             walls.append(time.perf_counter() - start)
             stages.append(result.timing.as_dict())
             waits.append(solver.device_wait)
+            outside.append(walls[-1] - solver.device_wait - solver.device_launch
+                           - result.timing.compile)
         row = _quality(result.pose_error, result.success, result.max_violation,
                        result.collision_free, False)
         row["answers"] = RowAnswers(result.q, case.positions, case.wxyz, result.success)
@@ -298,6 +300,7 @@ def measure_throughput(robot: Robot, sizes: Sequence[int], repeats: int, seed: i
         row["device_wait_s"] = statistics.median(waits)
         row["host_s"] = statistics.median(w - d for w, d in zip(walls, waits, strict=True))
         row["host_pct"] = 100.0 * row["host_s"] / max(row["total_s"], 1e-12)
+        row["host_per_1e5_s"] = statistics.median(outside) * 1e5 / max(size, 1)
         row["targets_per_s"] = size / max(row["total_s"], 1e-12)
         row["stream_parts"] = len(solver.stream_parts)
         rows.append({"suite": "throughput", "robot": robot.name, "scene": "none",
@@ -481,7 +484,8 @@ CSV_KEYS = ("suite", "robot", "scene", "method", "targets", "success_pct",
             "collision_free_pct", "mean_pose_error", "median_pose_error", "max_violation",
             "total_s", "per_target_ms", "min_s", "max_s", "runs", "first_call_s", "compile_s",
             "explore_s", "refine_s", "polish_s", "verify_s", "polished_pct", "polish_ms",
-            "targets_per_s", "device_wait_s", "host_s", "host_pct", "stream_parts", "notes")
+            "targets_per_s", "device_wait_s", "host_s", "host_pct", "host_per_1e5_s",
+            "stream_parts", "notes")
 """The columns of ``ik.csv``, in order."""
 
 TABLE_COLUMNS = (
@@ -512,6 +516,7 @@ THROUGHPUT_COLUMNS = (
     Column("device_wait_s", "device wait s"),
     Column("host_s", "host s"),
     Column("host_pct", "host %", fixed(1)),
+    Column("host_per_1e5_s", "host s / 10⁵ targets"),
     Column("first_call_s", "first call s"),
     Column("compile_s", "compile s"),
     Column("stream_parts", "parts"),
@@ -583,8 +588,11 @@ def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str],
         "is the time the host blocked on device results (`IKSolver.device_wait`: device "
         "work nothing on the host overlapped); host s = wall − device wait, the time the "
         "device may have idled (on a CPU the device is the host: XLA may run a program "
-        "inside the call that launches it, so there host s includes computing); parts: the "
-        "stream's parts (`IKConfig.stream_size`).",
+        "inside the call that launches it, so there host s includes computing); host s / "
+        "10⁵ targets: the wall time outside compiled programs (less the device wait, the "
+        "calls that launch programs, `IKSolver.device_launch`, and any compile), scaled to "
+        "100 000 targets: the host Python and numpy around the programs, the float64 "
+        "verdict included; parts: the stream's parts (`IKConfig.stream_size`).",
     ])]
     parts += ["## Environment", environment_markdown(env)]
     return "\n\n".join(parts)

@@ -33,6 +33,7 @@ import numpy as np
 from ._ops import CASADI, JAX, NUMPY, Ops
 from .lie import (
     Transform,
+    Vec,
     bend_coefficients,
     rot_from_quat,
     se3_log,
@@ -66,6 +67,13 @@ def model_segment_transform(ops: Ops, ux: Any, uy: Any, length: Any) -> Transfor
     return rot, (length * b * ux, length * b * uy, length * a)
 
 
+def _segment_point(ops: Ops, ux: Any, uy: Any, length: Any) -> Vec:
+    """The translation of ``model_segment_transform`` alone (the same numbers, m)."""
+    t = ux * ux + uy * uy
+    a, b, _, _, _ = bend_coefficients(ops, t)
+    return length * b * ux, length * b * uy, length * a
+
+
 def model_base(robot: Robot) -> Transform:
     return rot_from_quat(robot.base_wxyz), robot.base_position
 
@@ -97,8 +105,10 @@ def model_backbone(ops: Ops, robot: Robot, z: list[Any],
     frames = model_segment_frames(ops, robot, z) if frames is None else frames
     k = robot.points_per_segment
     s = ops.fractions(np.arange(1, k + 1) / k)
-    _, local = model_segment_transform(
-        ops, *(ops.per_point(v, s) for v in _segment_axis(ops, z)))
+    per_point = tuple(ops.per_point(v, s) for v in _segment_axis(ops, z))
+    # numpy computes what it is asked for (JAX drops the unused rotation): positions only.
+    local = (_segment_point(ops, *per_point) if ops.name == "numpy"
+             else model_segment_transform(ops, *per_point)[1])
     per_segment = []
     for i in range(robot.n_segments):
         rot, pos = frames[i]

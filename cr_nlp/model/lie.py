@@ -13,6 +13,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._ops import JAX, Ops, safe_where
 
@@ -73,12 +74,34 @@ def bend_coefficients(ops: Ops, t: Any, slopes: bool = False) -> Bend:
     a = sinc_h * cos_h  # sin θ/θ = sin(θ/2)·cos(θ/2)/(θ/2)
     b = 0.5 * sinc_h * sinc_h  # (1 − cos θ)/θ² = ½·sinc²(θ/2): no cancellation
     exact = [a, b, (1.0 - a) / safe]
-    series = [_polynomial(t, _SINC), _polynomial(t, _VERSINE), _polynomial(t, _DEFICIT)]
+    tables = [_SINC, _VERSINE, _DEFICIT]
+    # numpy evaluates every entry it is given (no dead-code elimination, no fusion): it
+    # evaluates the series only where they are used (``_numpy_series_where``).
+    lazy = ops.name == "numpy" and np.ndim(series_below) > 0
+    series = [] if lazy else [_polynomial(t, c) for c in tables]
     if slopes:
         cos_theta = 1.0 - 2.0 * sin_h * sin_h
         exact += [(cos_theta - a) / (2.0 * safe), (a - 2.0 * b) / (2.0 * safe)]
-        series += [_polynomial(t, _SINC_SLOPE), _polynomial(t, _VERSINE_SLOPE)]
+        tables += [_SINC_SLOPE, _VERSINE_SLOPE]
+        series += [] if lazy else [_polynomial(t, c) for c in tables[3:]]
+    if lazy:
+        return Bend(*_numpy_series_where(series_below, t, tables, exact))
     return Bend(*(ops.where(series_below, s, e) for s, e in zip(series, exact, strict=True)))
+
+
+def _numpy_series_where(series_below: np.ndarray, t: Any, tables: list[tuple[float, ...]],
+                        exact: list[Any]) -> list[np.ndarray]:
+    """``np.where(series_below, _polynomial(t, table), exact)`` per table, each series
+    evaluated only on the entries below the switch: the same numbers (elementwise
+    arithmetic), a fraction of the work where most arcs bend past the series range."""
+    below = np.nonzero(series_below)
+    t_below = np.broadcast_to(t, series_below.shape)[below]
+    out = []
+    for table, value in zip(tables, exact, strict=True):
+        value = np.array(np.broadcast_to(value, series_below.shape), dtype=float)
+        value[below] = _polynomial(t_below, table)
+        out.append(value)
+    return out
 
 
 # ---------------------------------------------------------------- rotation algebra

@@ -24,13 +24,29 @@ def other_candidates(beam: np.ndarray, answer: np.ndarray,
                      apart: float = 1e-4) -> list[np.ndarray]:
     """A target's beam candidates (width, 3n), best first, that differ from its answer
     and from each other by more than ``apart`` (rad or m) in some variable, finite ones
-    only: the exact stage's next warm starts."""
-    kept: list[np.ndarray] = []
-    for q in beam:
-        if np.all(np.isfinite(q)) and all(np.max(np.abs(q - other)) > apart
-                                          for other in (answer, *kept)):
-            kept.append(q)
-    return kept
+    only: the exact stage's next warm starts (``candidate_order`` for one target)."""
+    order = candidate_order(beam[None], np.asarray(answer)[None], apart)[0]
+    return [beam[j] for j in order[order >= 0].tolist()]
+
+
+def candidate_order(beams: np.ndarray, answers: np.ndarray, apart: float = 1e-4) -> np.ndarray:
+    """For T targets' beams (T, width, 3n), best first, and answers (T, 3n): (T, width)
+    indices into each beam of its candidates that differ from the answer and from each
+    other by more than ``apart`` (rad or m) in some variable, finite ones only, in beam
+    order, then −1. In numpy over the targets, one step per beam member."""
+    count, width = beams.shape[:2]
+    finite = np.all(np.isfinite(beams), axis=2)
+    with np.errstate(invalid="ignore"):
+        # NaN differences (an answer with no value) never count as apart.
+        from_answer = np.max(np.abs(beams - answers[:, None]), axis=2) > apart
+        between = np.max(np.abs(beams[:, :, None] - beams[:, None]), axis=3) > apart
+    kept = np.zeros((count, width), dtype=bool)
+    for j in range(width):   # apart from every candidate kept before it
+        kept[:, j] = (finite[:, j] & from_answer[:, j]
+                      & np.all(between[:, j, :j] | ~kept[:, :j], axis=1))
+    rank = np.where(kept, np.arange(width), width)
+    order = np.sort(rank, axis=1)
+    return np.where(order < width, order, -1)
 
 
 def polish_answers(polisher: IKPolisher, answers: np.ndarray, beams: np.ndarray,
@@ -61,13 +77,16 @@ def polish_answers(polisher: IKPolisher, answers: np.ndarray, beams: np.ndarray,
         ``stages.polish._accept.Acceptance`` with one outcome per target (answer q (3n,)).
     """
     cfg = polisher.config
-    alternatives = [other_candidates(beams[i], answers[i]) for i in range(len(answers))]
+    order = candidate_order(beams, answers)
 
     def candidate(attempt: int, rows: np.ndarray) -> list[np.ndarray | None]:
         if attempt == 0:
             return list(answers[rows])
-        return [alternatives[i][attempt - 1] if attempt <= len(alternatives[i]) else None
-                for i in rows.tolist()]
+        if attempt > order.shape[1]:
+            return [None] * len(rows)
+        which = order[rows, attempt - 1]
+        return [beams[i, j] if j >= 0 else None
+                for i, j in zip(rows.tolist(), which.tolist(), strict=True)]
 
     def polish(starts: list[np.ndarray], rows: np.ndarray, attempt: int,
                budgets: np.ndarray) -> list[Polished[np.ndarray]]:

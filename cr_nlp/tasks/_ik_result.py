@@ -20,9 +20,9 @@ from ._result import (
     nums,
     read_stage,
     row_lists,
-    stage_text,
-    status_of,
-    typed_stage,
+    stage_texts,
+    statuses,
+    typed_stages,
 )
 from ._timing import StageTiming
 
@@ -142,10 +142,7 @@ class IKResult(ResultIO):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        notes = self.notes or [[] for _ in self.stage]
-        pairs = [typed_stage(s, n) for s, n in zip(self.stage, notes, strict=True)]
-        self.stage = [stage for stage, _ in pairs]
-        self.notes = [more for _, more in pairs]
+        self.stage, self.notes = typed_stages(self.stage, self.notes or None)
         self.violations = {k: np.asarray(self.violations[k], dtype=float)
                            if k in self.violations else np.full(len(self.q), np.nan)
                            for k in FAMILIES}
@@ -157,9 +154,11 @@ class IKResult(ResultIO):
             getattr(self, k)[rows] = getattr(checked, VERIFIED.get(k, k))
         for k in FAMILIES:
             self.violations[k][rows] = checked.violations[k]
-        for i, why in zip(np.arange(len(self))[rows].reshape(-1).tolist(),
-                          checked.reason.tolist(), strict=True):
-            self.reason[i] = str(why)
+        at = np.arange(len(self))[rows].reshape(-1).tolist()
+        why = list(map(str, checked.verdicts.reason))
+        if len(at) != len(why):
+            raise ValueError(f"{len(why)} verdicts for {len(at)} rows")
+        list(map(self.reason.__setitem__, at, why))     # no Python call per row
 
     def set_stage(self, i: int, stage: Stage, *notes: str) -> None:
         """Answer i was produced by ``stage``; ``notes`` say why (they replace any)."""
@@ -168,13 +167,13 @@ class IKResult(ResultIO):
     @property
     def stage_text(self) -> list[str]:
         """Per answer, the stage and its notes for people: "refine (polish failed: …)"."""
-        return [stage_text(s, n) for s, n in zip(self.stage, self.notes, strict=True)]
+        return stage_texts(self.stage, self.notes)
 
     @property
     def status(self) -> list[Status]:
         """Per answer, ``Status``: success, failed (solved, rejected by the verdict) or
         rejected (never solved)."""
-        return [status_of(bool(ok), s) for ok, s in zip(self.success, self.stage, strict=True)]
+        return statuses(self.success, self.stage)
 
     def __len__(self) -> int:
         return len(self.q)

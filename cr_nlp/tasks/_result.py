@@ -28,6 +28,8 @@ import enum
 import importlib
 import json
 import math
+from collections.abc import Callable, Sequence
+from operator import itemgetter
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -158,6 +160,56 @@ def typed_stage(stage: Stage | str, notes: list[str] | None) -> tuple[Stage, lis
     ("refine (roadmap)", the form schema 1 and older callers used), then ``notes``."""
     stage, more = split_stage(stage)
     return stage, [*more, *(notes or [])]
+
+
+def _per_object(values: Sequence[Any], fn: Callable[[Any], Any]) -> list[Any]:
+    """``fn`` of every entry of ``values``, called once per distinct object (by identity:
+    hashing a ``Stage`` runs ``Enum.__hash__``, a Python call per entry)."""
+    keys = list(map(id, values))
+    done = {key: fn(value) for key, value in dict(zip(keys, values, strict=True)).items()}
+    return list(map(done.__getitem__, keys))
+
+
+def _with_notes(notes: Sequence[Any]) -> list[int]:
+    """Indices of the entries of ``notes`` that are not empty."""
+    return np.flatnonzero(np.fromiter(map(bool, notes), bool, len(notes))).tolist()
+
+
+def typed_stages(stages: Sequence[Stage | str], notes: Sequence[list[str] | None] | None = None
+                 ) -> tuple[list[Stage], list[list[str]]]:
+    """``typed_stage`` over a batch of answers, called once per distinct stage object
+    rather than per answer (a solve of 10⁵ targets holds two or three): the stages as
+    ``Stage``s and each answer's notes (a new list each), those in parentheses in its
+    stage text first, then its entry of ``notes`` (None: none)."""
+    if notes is not None and len(notes) != len(stages):
+        raise ValueError(f"{len(notes)} notes for {len(stages)} stages")
+    pairs = _per_object(stages, lambda stage: typed_stage(stage, None))
+    out_notes = list(map(list, map(itemgetter(1), pairs)))
+    for i in _with_notes(notes or ()):
+        out_notes[i] += notes[i]        # type: ignore[index]
+    return list(map(itemgetter(0), pairs)), out_notes
+
+
+_STATUS_CHOICES = np.array([Status.FAILED, Status.REJECTED, Status.SUCCESS], dtype=object)
+
+
+def statuses(success: Any, stages: Sequence[Stage | str]) -> list[Status]:
+    """``status_of`` over a batch: (B,) ``success`` and B stages → B ``Status``es, in
+    numpy and one stage lookup per distinct stage object rather than a call per answer."""
+    success = np.asarray(success, dtype=bool).reshape(-1)
+    if len(stages) != len(success):
+        raise ValueError(f"{len(success)} success flags for {len(stages)} stages")
+    unsolved = np.array(_per_object(stages, lambda stage: Stage(stage) in _UNSOLVED), bool)
+    return _STATUS_CHOICES[np.where(success, 2, unsolved.reshape(-1).astype(np.int64))].tolist()
+
+
+def stage_texts(stages: Sequence[Stage | str], notes: Sequence[Sequence[str]]) -> list[str]:
+    """``stage_text`` over a batch: one call per distinct stage object and one per answer
+    that carries notes."""
+    texts = _per_object(stages, lambda stage: Stage(stage).value)
+    for i in _with_notes(notes):
+        texts[i] = stage_text(stages[i], notes[i])
+    return texts
 
 
 # ================================================================ JSON values

@@ -19,6 +19,7 @@ policy of ``stages.polish._accept``. Large batches stream through in parts of
 
 from __future__ import annotations
 
+import operator
 import time
 from dataclasses import dataclass
 from functools import partial
@@ -157,6 +158,15 @@ class _Checked:
     """``verify``'s report on the answer alone (None: the result holds it)."""
 
 
+_STAGES = np.array([Stage.NONE, Stage.REFINE], dtype=object)
+"""A target's stage after the search by its validity (0: refused, 1: searched)."""
+
+
+def _valid(reasons: list[str]) -> np.ndarray:
+    """(T,) bool: the targets ``validate_targets`` gave no reason to refuse."""
+    return np.fromiter(map(operator.not_, reasons), bool, len(reasons))
+
+
 def _counter(name: str, doc: str) -> property:
     """A read-only ``IKSolver`` attribute: one of its search's ``SearchCounters``."""
     return property(lambda solver: getattr(solver._search.counters, name), doc=doc)
@@ -222,6 +232,8 @@ class IKSolver:
     self_repaired = _counter("self_repaired", "Targets searched again with the "
                              "self-clearance rows (no scene: their answer came closer than δ).")
     device_calls = _counter("device_calls", "Compiled programs launched: device round trips.")
+    device_launch = _counter("device_launch", "Seconds inside the calls that launch compiled "
+                             "programs (on a CPU, XLA may run a program there).")
     device_wait = _counter("device_wait", "Seconds waiting for device results with no host "
                            "work to overlap (the device's share of the wall time).")
 
@@ -312,9 +324,10 @@ class IKSolver:
         self._search.reset()
         self.stream_parts = []
         positions, wxyz, reasons = validate_targets(self.robot, positions, wxyz)
-        valid = np.array([not r for r in reasons], dtype=bool)
+        valid = _valid(reasons)
         q_out = np.full((len(positions), self.robot.dof), np.nan)
         own = np.full(len(positions), np.inf)
+        # The search's beams as bending vectors: made configurations only for a polish.
         beam = np.full((len(positions), self.config.beam_width, self.robot.dof), np.nan)
         idx = np.flatnonzero(valid)
         step = max(int(self.config.stream_size), 1)
@@ -328,7 +341,7 @@ class IKSolver:
             q_out[part], found, own[part] = self._search.solve_part(
                 positions[part], matrix_from_wxyz(wxyz[part]), timing, accepts)
             beam[part, :found.shape[1]] = found
-        stage = [Stage.REFINE if ok else Stage.NONE for ok in valid.tolist()]
+        stage = _STAGES[valid.astype(np.int64)].tolist()
         self_checked = own if self._search.self_repair else None
         result = self._finish(q_out, positions, wxyz, reasons, stage, timing, self_checked)
         if exact and len(idx):
@@ -339,7 +352,7 @@ class IKSolver:
                 reasons: list[str], stage: list[Stage], timing: IKTiming,
                 self_clearance: np.ndarray | None = None) -> IKResult:
         t0 = time.perf_counter()
-        valid = np.array([not r for r in reasons], dtype=bool)
+        valid = _valid(reasons)
         n = len(q)
         fields = {k: np.full(n, np.nan) for k in PER_TARGET}
         result = IKResult(self.robot, q, np.full((n, 3), np.nan), np.full((n, 4), np.nan),
@@ -358,10 +371,11 @@ class IKSolver:
                 idx: np.ndarray, beam: np.ndarray, timing: IKTiming, progress: bool) -> None:
         """Exact stage (``tasks._ik_polish``): polish every answer; where the polish fails
         or the verdict rejects it, polish the other candidates of the search's own beam
-        (``beam``: (T, width, 3n), best first) in turn, up to ``config.polish_attempts``
-        polishes in all. An accepted polish replaces the answer; otherwise the refined
-        answer stays with its own verdict (exact mode never succeeds less often than the
-        penalty stages). ``config.polish_time_limit`` bounds each target's polishes."""
+        (``beam``: (T, width, 3n) bending vectors, best first) in turn, up to
+        ``config.polish_attempts`` polishes in all. An accepted polish replaces the answer;
+        otherwise the refined answer stays with its own verdict (exact mode never succeeds
+        less often than the penalty stages). ``config.polish_time_limit`` bounds each
+        target's polishes."""
         from ..stages.polish._ik_nlp import IKPolisher, build_polisher
         from ._ik_polish import polish_answers
 
@@ -380,7 +394,8 @@ class IKSolver:
                              checked.take(np.array([j]))) for j in range(len(q))]
 
         accepted = polish_answers(
-            self._polisher, result.q[todo], beam[todo], result.pose_error[todo],
+            self._polisher, result.q[todo], self._search.beam_q(beam[todo]),
+            result.pose_error[todo],
             positions[todo], matrix_from_wxyz(wxyz[todo]),
             [_Checked(bool(result.success[i]), result.reason[i], None) for i in todo], judge,
             self.config.polish_attempts, progress, self._polish_pool,

@@ -15,7 +15,11 @@ What is computed how, for a whole batch of configurations at once:
   fcl's penetration query (EPA), which was seen to never return for a sphere centre
   on a capsule's axis.
 - Self-collision: closed form (segment–segment distance minus 2r; negative when the
-  capsules overlap), vectorised over (configuration, far pair).
+  capsules overlap), vectorised over (configuration, far pair), one broadcast block per
+  pair of segments; the segment distance only for the pairs whose bound can hold the
+  minimum. A batch runs in chunks of ``_BATCH_ELEMENTS`` entries of its largest array
+  (configuration × piece × part, or configuration × far pair), so its Python is per
+  chunk, not per configuration.
 - Box, capsule, cylinder and mesh (convex) parts: python-fcl (``fcl_distance``), per
   configuration. Lower bounds are computed vectorised for the batch: the part's
   bounding sphere against the piece's segment, tightened by the part's face planes
@@ -387,22 +391,39 @@ def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
     return best
 
 
-def _self_distance(r: float, a: Xyz, b: Xyz, i: np.ndarray, j: np.ndarray) -> np.ndarray:
-    """Smallest signed distance (B,) between the capsules of pieces i and j (P,), for
-    pieces running a–b (coordinates (B, m) each). Exact: a pair whose bound (mid-point gap
-    minus both half lengths) exceeds the smallest mid-point gap (the distance of a real
-    pair of points) cannot hold the minimum; only the others get the segment distance."""
+def _self_distance(r: float, a: Xyz, b: Xyz, per_segment: int) -> np.ndarray:
+    """Smallest signed distance (B,) between the capsules of pieces of segments at least
+    two apart (``_far_pairs``), for pieces running a–b (coordinates (B, m) each), k =
+    ``per_segment`` pieces per segment. Exact: a pair whose bound (mid-point gap minus
+    both half lengths) exceeds the smallest mid-point gap (the distance of a real pair of
+    points) cannot hold the minimum; only the others get the segment distance. Each pair
+    of segments is one (B, k, k) block, by broadcasting rather than gathering pairs."""
     mid = tuple(0.5 * (p + q) for p, q in zip(a, b, strict=True))
     u = sub(b, a)
     half = 0.5 * np.sqrt(dot(u, u))
-    between = sub(tuple(c[:, i] for c in mid), tuple(c[:, j] for c in mid))
-    gap = np.sqrt(dot(between, between))
-    upper = gap.min(axis=1, keepdims=True)
-    rows, cols = np.nonzero(gap - half[:, i] - half[:, j] <= upper + 1e-9)
-    pi, pj = i[cols], j[cols]
+    count, pieces = half.shape
+    segments = pieces // per_segment
+    blocks = [(s, t) for s in range(segments) for t in range(s + 2, segments)]
+
+    def of(x: np.ndarray, segment: int) -> np.ndarray:
+        return x[:, segment * per_segment:(segment + 1) * per_segment]
+
+    gaps = []
+    for s, t in blocks:
+        between = sub(tuple(of(c, s)[:, :, None] for c in mid),
+                      tuple(of(c, t)[:, None, :] for c in mid))
+        gaps.append(np.sqrt(dot(between, between)))
+    upper = np.minimum.reduce([gap.min(axis=(1, 2)) for gap in gaps])[:, None, None]
+    found = [np.nonzero(gap - of(half, s)[:, :, None] - of(half, t)[:, None, :]
+                        <= upper + 1e-9) for (s, t), gap in zip(blocks, gaps, strict=True)]
+    rows = np.concatenate([row for row, _, _ in found])
+    pi = np.concatenate([i + s * per_segment for (s, _), (_, i, _) in zip(blocks, found,
+                                                                           strict=True)])
+    pj = np.concatenate([j + t * per_segment for (_, t), (_, _, j) in zip(blocks, found,
+                                                                           strict=True)])
     d = segment_segment(tuple(c[rows, pi] for c in a), tuple(c[rows, pi] for c in b),
-                         tuple(c[rows, pj] for c in a), tuple(c[rows, pj] for c in b))
-    own = np.full(len(half), np.inf)
+                        tuple(c[rows, pj] for c in a), tuple(c[rows, pj] for c in b))
+    own = np.full(count, np.inf)
     np.minimum.at(own, rows, d)
     return own - 2.0 * r
 
@@ -465,9 +486,8 @@ def _verdicts(robot: Robot, fscene: FclScene, chains: np.ndarray, per_segment: i
     elif len(fscene.other_index):
         _fcl_search(r, fscene, chains[:, :-1], chains[:, 1:], obstacle, part)
     best = min(best, float(obstacle.min()))
-    i, j = _far_pairs(chains.shape[1] - 1, per_segment)
-    if len(i) and robot.self_collision:
-        own = _self_distance(r, a, b, i, j)
+    if len(_far_pairs(chains.shape[1] - 1, per_segment)[0]) and robot.self_collision:
+        own = _self_distance(r, a, b, per_segment)
     return obstacle, part, own, best
 
 
@@ -504,20 +524,22 @@ def check_chains(robot: Robot, scene: Scene | None, chains: Any,
                          f"{chains.shape}")
     fscene = fcl_scene(scene)
     pieces = chains.shape[1] - 1
-    width = max(len(fscene.objects), len(_far_pairs(pieces, pieces_per_segment)[0]), 1)
-    step = max(1, _BATCH_ELEMENTS // (pieces * width))
+    # (configuration, piece, part) entries of the obstacles, (configuration, far pair) of
+    # the self-distance: sized by the piece count of both, chunks were 30× too small
+    # without a scene (43 tdcr3 configurations, the Python of each chunk most of the time).
+    width = max(pieces * len(fscene.objects), len(_far_pairs(pieces, pieces_per_segment)[0]), 1)
+    step = max(1, _BATCH_ELEMENTS // width)
     parts = [_verdicts(robot, fscene, chains[s:s + step], pieces_per_segment)[:3]
              for s in range(0, len(chains), step)]
     obstacle, part, own = (np.concatenate([p[k] for p in parts]) if parts else
                            np.zeros(0, dtype=np.int64 if k == 1 else float) for k in range(3))
     min_distance = np.minimum(obstacle, own)
-    names = fscene.names
-    closest = tuple("self" if s < o else (names[p] if p >= 0 else "")
-                    for o, p, s in zip(obstacle.tolist(), part.tolist(), own.tolist(),
-                                       strict=True))
+    names = np.array([*fscene.names, ""], dtype=object)      # part −1 (none): ""
+    closest = names[part]
+    closest[own < obstacle] = "self"
     return CheckManyResult(collision=min_distance < 0.0, min_distance=min_distance,
                            self_collision=own < 0.0, obstacle_distance=obstacle,
-                           self_distance=own, closest=closest)
+                           self_distance=own, closest=tuple(closest.tolist()))
 
 
 @dataclass(frozen=True)

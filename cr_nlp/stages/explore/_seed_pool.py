@@ -183,6 +183,8 @@ class SeedPool:
         self.wait_seconds = 0.0
         """Seconds the host has waited for lookup results so far (device busy time that
         no host work overlapped)."""
+        self.launch_seconds = 0.0
+        """Seconds inside the calls that launched lookup programs so far."""
 
     def __len__(self) -> int:
         return len(self.q)
@@ -223,7 +225,9 @@ class SeedPool:
                     partial(nearest_features, k=k), args, name="the seed lookup",
                     batched=(False, False, True))
                 self.compile_seconds += time.perf_counter() - t0
+            t0 = time.perf_counter()
             parts.append((stop - start, self._programs[chunk, k](*args)))
+            self.launch_seconds += time.perf_counter() - t0
             self.calls += 1
             start = stop
         # Every chunk is dispatched before the first result is waited for.
