@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import statistics
-import time
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +31,7 @@ from ..model import load_robot
 from ..model.loads import static_loads
 from ..model.statics import solve_statics
 from ._common import Column, environment, environment_markdown, fixed, markdown_table, write_report
-from .tension_motion import GRAVITY, PAYLOAD
+from .tension_motion import GRAVITY, PAYLOAD, timed
 
 RATE_MAX = 50.0
 """The tension-rate limit of the following rows, N/s."""
@@ -96,18 +95,6 @@ def clear_motions(follower: Any, count: int, waypoints: int, rate_fraction: floa
     return motions
 
 
-def _timed(call: Any, repeats: int) -> tuple[Any, float, float]:
-    start = time.perf_counter()
-    result = call()
-    first = time.perf_counter() - start
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        result = call()
-        times.append(time.perf_counter() - start)
-    return result, first, statistics.median(times) if times else first
-
-
 def bench_ik(robot: Any, scene: dict, targets: int, modes: list[str], repeats: int,
              follower: Any, rng: np.random.Generator) -> list[dict[str, Any]]:
     """IK rows, one per mode."""
@@ -118,7 +105,7 @@ def bench_ik(robot: Any, scene: dict, targets: int, modes: list[str], repeats: i
     solver = TensionIKSolver(robot, scene)
     rows = []
     for mode in modes:
-        result, first, median = _timed(
+        result, first, median = timed(
             lambda mode=mode: solver.solve(tips, None, PAYLOAD, None, GRAVITY,
                                            exact=mode == "exact"), repeats)
         ok = result.success
@@ -137,7 +124,7 @@ def bench_follow(follower: Any, motions: list[np.ndarray], repeats: int) -> dict
              for m in motions]
     results, firsts, medians = [], [], []
     for path in paths:
-        result, first, median = _timed(
+        result, first, median = timed(
             lambda path=path: follower.follow(path, dt=DT, gravity=GRAVITY,
                                               tip_force=PAYLOAD), repeats)
         results.append(result)
@@ -165,7 +152,7 @@ def bench_plan(robot: Any, scene: dict, problems: int, repeats: int, follower: A
     search = TensionPlanner(robot, scene, dataclasses.replace(planner.config,
                                                               chain_iterations=0))
     loads = static_loads(1, planner.length, PAYLOAD, None, GRAVITY)
-    results, first, median = _timed(
+    results, first, median = timed(
         lambda: planner.plan(starts, goals, gravity=GRAVITY, tip_force=PAYLOAD), repeats)
     searched = search.plan(starts, goals, gravity=GRAVITY, tip_force=PAYLOAD)
     ratio = [planner.tip_path(r.tensions, loads) / planner.tip_path(s.tensions, loads)

@@ -45,7 +45,7 @@ def loop_tensions(count: int) -> np.ndarray:
                            1 + t, 0 * t, 2 * t], axis=1)
 
 
-def _timed(call: Any, repeats: int) -> tuple[Any, float, float]:
+def timed(call: Any, repeats: int) -> tuple[Any, float, float]:
     """(result, first call s, median of ``repeats`` later calls s)."""
     start = time.perf_counter()
     result = call()
@@ -70,7 +70,7 @@ def bench_plan(robot: str, problems: int, repeats: int, seed: int) -> dict[str, 
     candidates[rng.random(candidates.shape) < 0.4] = 0.0
     clear = candidates[planner.clear(candidates, loads)][:2 * problems]
     starts, goals = clear[:problems], clear[problems:]
-    results, first, median = _timed(
+    results, first, median = timed(
         lambda: planner.plan(starts, goals, gravity=GRAVITY, tip_force=PAYLOAD), repeats)
     return {"problems": len(starts), "first_s": first, "median_batch_s": median,
             "per_problem_s": median / max(len(starts), 1),
@@ -86,7 +86,7 @@ def bench_follow(robot: str, waypoints: int, repeats: int) -> dict[str, Any]:
     rob = load_robot(robot)
     path = solve_statics(rob, loop_tensions(waypoints), PAYLOAD, None, GRAVITY).tip_position
     follower = TensionFollower(rob, SCENE)
-    result, first, median = _timed(
+    result, first, median = timed(
         lambda: follower.follow(path, dt=0.05, gravity=GRAVITY, tip_force=PAYLOAD), repeats)
     return {"waypoints": waypoints, "first_s": first, "median_s": median,
             "success": bool(result.success), "reached": int(result.reached.sum()),
