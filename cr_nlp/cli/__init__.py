@@ -1,7 +1,9 @@
 """The ``cr-nlp`` command: one module per subcommand, each a thin front end to the library.
 
-``main.py`` builds the parser from the subcommand modules (``fk``, ``ik``, ``plan``,
-``follow``, ``show``, ``bench``, ``demo``), listed in ``main.SUBCOMMANDS``; ``_io.py``
+``main.py`` builds the parser from the subcommand modules listed in ``main.SUBCOMMANDS``
+(``fk``, ``statics``, ``ik``, ``plan``, ``follow``, ``batch``, ``calibrate``, ``predict``,
+``show``, ``view``, ``bench``, ``demo``, ``warmup``; ``ik``, ``plan`` and ``follow`` hand
+``--model cosserat`` to ``_tension_ik``, ``_tension_plan`` and ``_tension_follow``); ``_io.py``
 holds what they share (``UsageError``, number and JSON input/output, the resolver of
 file-or-bundled-name arguments) and imports none of them.
 """

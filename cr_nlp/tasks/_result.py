@@ -1,4 +1,5 @@
-"""The one result protocol of the tasks (IK, trajectory, follow).
+"""The one result protocol of the tasks (``RESULT_KINDS``: PCC IK, trajectory and follow,
+and their tension-space twins of the mechanics family).
 
 Every result class mixes in ``ResultIO``: ``to_dict()`` / ``from_dict(data)`` (the
 RESULT.json form), ``save(path)`` (JSON), ``load(path)``, ``save_csv(path)``. Its JSON

@@ -1,11 +1,11 @@
 """Scenes, clearance and the independent collision verdict.
 
 - ``scene``: scene files, obstacles, mesh loading and the cached convex decomposition.
-- ``distances``: body sphere ↔ part signed distances, written once for JAX and CasADi.
+- ``_distances``: body sphere ↔ part signed distances, written once for JAX and CasADi.
 - ``clearance``: the differentiable clearance (JAX, batched) and per-pair CasADi functions.
 - ``check``: the python-fcl verdict that decides collision-free.
 - ``verdict``: the one success rule of every task (``Verdict``, ``judge``, ``judge_many``).
-- ``builders``: the bundled scenes and furniture meshes, as code.
+- ``_builders``: the bundled scenes and furniture meshes, as code.
 """
 
 from ._builders import lattice_scene as lattice_scene
