@@ -52,17 +52,14 @@ from ...model.mechanics import require_mechanics
 from ...model.rotations import matrix_from_wxyz
 from ...model.statics import solve_statics
 from ...runtime import configure
+from ...stages import polish as exact_stage
 from ...stages.explore import TensionPool, tension_pool
 from ...stages.polish import (
-    POLISH_EXACT_MODE,
-    SUCCESS_STATUSES,
-    TIME_LIMIT_STATUS,
     Polished,
     RowVerdict,
     check_time_limit,
     polish_and_accept,
     polish_note,
-    polish_tension_ik,
 )
 from ...stages.refine import (
     LMConfig,
@@ -250,7 +247,8 @@ class TensionIKSolver:
         """Exact mode: the rejected answers polished by Ipopt and judged by the verdict,
         through the one acceptance policy (``polish_and_accept``); ``result`` is updated in
         place (accepted rows: ``Stage.POLISH``; the others: a note why)."""
-        result.exact_mode = POLISH_EXACT_MODE
+        result.exact_mode = exact_stage.POLISH_EXACT_MODE   # imports CasADi (first use)
+        done = (*exact_stage.SUCCESS_STATUSES, exact_stage.TIME_LIMIT_STATUS)
         rows = np.flatnonzero(~result.success)
         if not rows.size:
             return
@@ -261,15 +259,16 @@ class TensionIKSolver:
                    budgets: np.ndarray) -> list[Polished]:
             del attempt
             limit = None if not np.all(np.isfinite(budgets)) else float(np.sum(budgets))
-            out = polish_tension_ik(self.robot, self.scene, np.stack(starts), positions[index],
-                                    quats[index] if oriented else None, loads.rows(index),
-                                    margin=self.config.safety_margin,
-                                    statics_config=self.config.statics, time_limit=limit)
+            out = exact_stage.polish_tension_ik(
+                self.robot, self.scene, np.stack(starts), positions[index],
+                quats[index] if oriented else None, loads.rows(index),
+                margin=self.config.safety_margin, statics_config=self.config.statics,
+                time_limit=limit)
             # Ipopt's answer is judged where it succeeded or ran out of time (its last
             # iterate may still pass the verdict); otherwise the status is the reason.
-            return [Polished(t if status in (*SUCCESS_STATUSES, TIME_LIMIT_STATUS) else None,
-                             "" if status in SUCCESS_STATUSES else f"Ipopt: {status}",
-                             float(sec), status == TIME_LIMIT_STATUS)
+            return [Polished(t if status in done else None,
+                             "" if status in done[:-1] else f"Ipopt: {status}",
+                             float(sec), status == done[-1])
                     for t, status, sec in zip(out.tensions, out.status, out.seconds,
                                               strict=True)]
 
