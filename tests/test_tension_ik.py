@@ -195,7 +195,8 @@ def test_result_file_round_trip(solver: TensionIKSolver, tmp_path) -> None:
     assert not result.success[3] and "non-finite" in result.reason[3]
     path = result.save(tmp_path / "R.json")
     written = json.loads(path.read_text())
-    assert written["kind"] == "tension_ik" and written["exact_mode"].startswith("none: CasADi")
+    assert written["kind"] == "tension_ik"
+    assert written["exact_mode"].startswith("none: no Ipopt stage ran")
     back = load_result(path)
     assert isinstance(back, TensionIKResult)
     np.testing.assert_array_equal(back.tensions[:3], result.tensions[:3])

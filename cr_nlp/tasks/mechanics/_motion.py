@@ -26,9 +26,11 @@ from ...world.check import CheckManyResult, check_chains
 from ...world.scene import Scene
 from ...world.verdict import VIOLATION_TOLERANCE, failure_reason, judge_many
 
-EXACT_MODE = ("none: CasADi has no graph of the Cosserat rod's shooting, so there is no Ipopt "
-              "stage; every answer is judged by a fresh forward statics solve and python-fcl")
-"""What a tension-space result says of exact mode (its ``exact_mode`` field)."""
+EXACT_MODE = ("none: no Ipopt stage ran (on the Cosserat rod it exists for IK only, with "
+              "exact=True); every answer is judged by a fresh forward statics solve and "
+              "python-fcl")
+"""What a tension-space result without a polish says of exact mode (its ``exact_mode``
+field); a polished IK result names the formulation instead."""
 
 MOTION_FAMILIES = ("limits", "clearance", "self_clearance", "tension_rate")
 """The violation families of a tension motion: tensions outside [0, τ_max] (N), clearance
