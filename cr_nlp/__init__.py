@@ -38,21 +38,21 @@ _PUBLIC = {
     "SCHEMA_VERSION": ".tasks._result",
     "load_result": ".tasks._result",
     "load_results": ".tasks._result",
-    "CalibrationConfig": ".tasks.calibrate",
-    "CalibrationResult": ".tasks.calibrate",
-    "calibrate": ".tasks.calibrate",
-    "read_measurements": ".tasks.measurements",
-    "follow_path": ".tasks.follow",
-    "FollowConfig": ".tasks.follow",
-    "FollowResult": ".tasks.follow",
-    "PathFollower": ".tasks.follow",
-    "IKConfig": ".tasks.ik",
-    "IKResult": ".tasks.ik",
-    "IKSolver": ".tasks.ik",
-    "solve_ik": ".tasks.ik",
-    "LiveIKConfig": ".tasks.live_ik",
-    "LiveIKResult": ".tasks.live_ik",
-    "LiveIKSolver": ".tasks.live_ik",
+    "CalibrationConfig": ".tasks.calibration.calibrate",
+    "CalibrationResult": ".tasks.calibration.calibrate",
+    "calibrate": ".tasks.calibration.calibrate",
+    "read_measurements": ".tasks.calibration.measurements",
+    "follow_path": ".tasks.geometry.follow",
+    "FollowConfig": ".tasks.geometry.follow",
+    "FollowResult": ".tasks.geometry.follow",
+    "PathFollower": ".tasks.geometry.follow",
+    "IKConfig": ".tasks.geometry.ik",
+    "IKResult": ".tasks.geometry.ik",
+    "IKSolver": ".tasks.geometry.ik",
+    "solve_ik": ".tasks.geometry.ik",
+    "LiveIKConfig": ".tasks.geometry.live_ik",
+    "LiveIKResult": ".tasks.geometry.live_ik",
+    "LiveIKSolver": ".tasks.geometry.live_ik",
     "ReferencePath": ".tasks.paths",
     "load_path": ".tasks.paths",
     "TensionIKConfig": ".tasks.mechanics.ik",
@@ -69,11 +69,11 @@ _PUBLIC = {
     "TensionTrajectoryResult": ".tasks.mechanics.trajectory",
     "plan_tensions": ".tasks.mechanics.trajectory",
     "replay_pcc_motion": ".tasks.mechanics.trajectory",
-    "TrajectoryConfig": ".tasks.trajectory",
-    "TrajectoryPlanner": ".tasks.trajectory",
-    "TrajectoryResult": ".tasks.trajectory",
-    "plan_trajectories": ".tasks.trajectory",
-    "save_results": ".tasks.trajectory",
+    "TrajectoryConfig": ".tasks.geometry.trajectory",
+    "TrajectoryPlanner": ".tasks.geometry.trajectory",
+    "TrajectoryResult": ".tasks.geometry.trajectory",
+    "plan_trajectories": ".tasks.geometry.trajectory",
+    "save_results": ".tasks.geometry.trajectory",
     "Scene": ".world",
     "check": ".world",
     "check_many": ".world",
@@ -120,21 +120,26 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from .tasks._result import SCHEMA_VERSION as SCHEMA_VERSION
     from .tasks._result import load_result as load_result
     from .tasks._result import load_results as load_results
-    from .tasks.calibrate import CalibrationConfig as CalibrationConfig
-    from .tasks.calibrate import CalibrationResult as CalibrationResult
-    from .tasks.calibrate import calibrate as calibrate
-    from .tasks.follow import FollowConfig as FollowConfig
-    from .tasks.follow import FollowResult as FollowResult
-    from .tasks.follow import PathFollower as PathFollower
-    from .tasks.follow import follow_path as follow_path
-    from .tasks.ik import IKConfig as IKConfig
-    from .tasks.ik import IKResult as IKResult
-    from .tasks.ik import IKSolver as IKSolver
-    from .tasks.ik import solve_ik as solve_ik
-    from .tasks.live_ik import LiveIKConfig as LiveIKConfig
-    from .tasks.live_ik import LiveIKResult as LiveIKResult
-    from .tasks.live_ik import LiveIKSolver as LiveIKSolver
-    from .tasks.measurements import read_measurements as read_measurements
+    from .tasks.calibration.calibrate import CalibrationConfig as CalibrationConfig
+    from .tasks.calibration.calibrate import CalibrationResult as CalibrationResult
+    from .tasks.calibration.calibrate import calibrate as calibrate
+    from .tasks.calibration.measurements import read_measurements as read_measurements
+    from .tasks.geometry.follow import FollowConfig as FollowConfig
+    from .tasks.geometry.follow import FollowResult as FollowResult
+    from .tasks.geometry.follow import PathFollower as PathFollower
+    from .tasks.geometry.follow import follow_path as follow_path
+    from .tasks.geometry.ik import IKConfig as IKConfig
+    from .tasks.geometry.ik import IKResult as IKResult
+    from .tasks.geometry.ik import IKSolver as IKSolver
+    from .tasks.geometry.ik import solve_ik as solve_ik
+    from .tasks.geometry.live_ik import LiveIKConfig as LiveIKConfig
+    from .tasks.geometry.live_ik import LiveIKResult as LiveIKResult
+    from .tasks.geometry.live_ik import LiveIKSolver as LiveIKSolver
+    from .tasks.geometry.trajectory import TrajectoryConfig as TrajectoryConfig
+    from .tasks.geometry.trajectory import TrajectoryPlanner as TrajectoryPlanner
+    from .tasks.geometry.trajectory import TrajectoryResult as TrajectoryResult
+    from .tasks.geometry.trajectory import plan_trajectories as plan_trajectories
+    from .tasks.geometry.trajectory import save_results as save_results
     from .tasks.mechanics.follow import TensionFollowConfig as TensionFollowConfig
     from .tasks.mechanics.follow import TensionFollower as TensionFollower
     from .tasks.mechanics.follow import TensionFollowResult as TensionFollowResult
@@ -151,11 +156,6 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from .tasks.mechanics.trajectory import replay_pcc_motion as replay_pcc_motion
     from .tasks.paths import ReferencePath as ReferencePath
     from .tasks.paths import load_path as load_path
-    from .tasks.trajectory import TrajectoryConfig as TrajectoryConfig
-    from .tasks.trajectory import TrajectoryPlanner as TrajectoryPlanner
-    from .tasks.trajectory import TrajectoryResult as TrajectoryResult
-    from .tasks.trajectory import plan_trajectories as plan_trajectories
-    from .tasks.trajectory import save_results as save_results
     from .world import Scene as Scene
     from .world import check as check
     from .world import check_many as check_many

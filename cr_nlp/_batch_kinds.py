@@ -98,13 +98,13 @@ class _IKJobs(_PCCSettings):
 
     @staticmethod
     def default_config() -> Any:
-        from .tasks.ik import IKConfig
+        from .tasks.geometry.ik import IKConfig
 
         return IKConfig()
 
     @staticmethod
     def solver(spec: JobSpec) -> Any:
-        from .tasks.ik import IKSolver
+        from .tasks.geometry.ik import IKSolver
 
         return IKSolver(spec.robot, spec.scene, spec.config)
 
@@ -125,7 +125,7 @@ class _IKJobs(_PCCSettings):
 
     @staticmethod
     def failed(spec: JobSpec, count: int, reason: str) -> Any:
-        from .tasks.ik import IKResult
+        from .tasks.geometry.ik import IKResult
 
         nan = np.full(count, np.nan)
         return IKResult(
@@ -141,7 +141,7 @@ class _IKJobs(_PCCSettings):
     @staticmethod
     def assemble(spec: JobSpec, answers: list[Any], timing: dict[str, float],
                  problems: Sequence[str] | None) -> tuple[Any, dict[str, Any]]:
-        from .tasks.ik import IKResult
+        from .tasks.geometry.ik import IKResult
 
         result = IKResult.from_columns(spec.robot, _IKJobs.join(answers), timing,
                                        has_scene=spec.scene is not None)
@@ -164,13 +164,13 @@ class _PlanJobs(_PCCSettings):
 
     @staticmethod
     def default_config() -> Any:
-        from .tasks.trajectory import TrajectoryConfig
+        from .tasks.geometry.trajectory import TrajectoryConfig
 
         return TrajectoryConfig()
 
     @staticmethod
     def solver(spec: JobSpec) -> Any:
-        from .tasks.trajectory import TrajectoryPlanner
+        from .tasks.geometry.trajectory import TrajectoryPlanner
 
         return TrajectoryPlanner(spec.robot, spec.scene, spec.config)
 
@@ -193,7 +193,7 @@ class _PlanJobs(_PCCSettings):
 
     @staticmethod
     def failed(spec: JobSpec, count: int, reason: str) -> Any:
-        from .tasks.trajectory import TrajectoryResult
+        from .tasks.geometry.trajectory import TrajectoryResult
 
         return [TrajectoryResult(spec.robot, None, spec.config.dt, False, reason,
                                  "error").entry() for _ in range(count)]
@@ -205,7 +205,7 @@ class _PlanJobs(_PCCSettings):
     @staticmethod
     def assemble(spec: JobSpec, answers: list[Any], timing: dict[str, float],
                  problems: Sequence[str] | None) -> tuple[Any, dict[str, Any]]:
-        from .tasks.trajectory import TrajectoryResult, trajectories_to_dict
+        from .tasks.geometry.trajectory import TrajectoryResult, trajectories_to_dict
 
         results = [TrajectoryResult.from_entry(spec.robot, row)
                    for row in _PlanJobs.join(answers)]

@@ -46,7 +46,7 @@ class DemoRow:
 
 def _ik(out: Path, exact: bool) -> DemoRow:
     from .model import load_robot
-    from .tasks.ik import IKSolver, read_targets
+    from .tasks.geometry.ik import IKSolver, read_targets
     from .viz import save_figure
     from .world import load_scene
 
@@ -69,7 +69,7 @@ def _ik(out: Path, exact: bool) -> DemoRow:
 
 
 def _plan(out: Path, exact: bool) -> DemoRow:
-    from .tasks.trajectory import TrajectoryPlanner, tendon_names
+    from .tasks.geometry.trajectory import TrajectoryPlanner, tendon_names
     from .viz import trajectory_figure
     from .viz._figures import write_figure
 
@@ -93,8 +93,8 @@ def _plan(out: Path, exact: bool) -> DemoRow:
 
 
 def _follow(out: Path, exact: bool) -> DemoRow:
-    from .tasks.follow import PathFollower
-    from .tasks.trajectory import tendon_names
+    from .tasks.geometry.follow import PathFollower
+    from .tasks.geometry.trajectory import tendon_names
     from .viz import follow_figure
     from .viz._figures import write_figure
 
@@ -132,7 +132,7 @@ def _compile_follow_ahead() -> threading.Thread:
     """Start the follow task's programs compiling on a thread (the ICRA path followed in
     penalty mode, no CasADi), so that they compile beside the IK and planning tasks rather
     than after them; the follow task joins the thread before it runs."""
-    from .tasks.follow import PathFollower
+    from .tasks.geometry.follow import PathFollower
 
     def run() -> None:
         try:

@@ -68,7 +68,7 @@ def warm_up(robot: Any, scene: Any = None, tasks: Sequence[str] = ("ik", "plan",
 
 def _ik(robot: Any, scene: Any, exact: bool, waypoints: int) -> str:
     from .bench.ik import free_case
-    from .tasks.ik import IKSolver
+    from .tasks.geometry.ik import IKSolver
 
     solver = IKSolver(robot, scene)
     case = free_case(robot, 1000, seed=0)
@@ -82,7 +82,7 @@ def _plan(robot: Any, scene: Any, exact: bool, waypoints: int) -> str:
     if scene is None:
         return "skipped: planning needs a scene (--scene)"
     from .bench.plan import plan_problems
-    from .tasks.trajectory import TrajectoryConfig, TrajectoryPlanner
+    from .tasks.geometry.trajectory import TrajectoryConfig, TrajectoryPlanner
 
     starts, goals = plan_problems(robot, scene, 4, TrajectoryConfig.safety_margin, seed=0)
     planner = TrajectoryPlanner(robot, scene)
@@ -95,7 +95,7 @@ def _follow(robot: Any, scene: Any, exact: bool, waypoints: int) -> str:
 
     from .model import tip_pose
     from .model.rotations import wxyz_from_matrix
-    from .tasks.follow import PathFollower
+    from .tasks.geometry.follow import PathFollower
     from .tasks.paths import ReferencePath
 
     lo, hi = robot.q_bounds()

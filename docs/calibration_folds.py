@@ -9,7 +9,7 @@ Model changes are chosen by this score; the validation file is not read.
                                      [--families pair12,tendon] [--history]
 
 Each fold is one ``cr-nlp calibrate`` fit (~35 s on 2 cores). ``--history``: the same folds
-score the history-aware models (``tasks.history``: none, play1, play2, play3), each fold's
+score the history-aware models (``tasks.calibration.history``: none, play1, play2, play3), each fold's
 static model calibrated on its own training rows (``cr-nlp calibrate --history auto`` keeps
 the static model fitted on all training rows instead, to stay within its time budget).
 """
@@ -23,8 +23,8 @@ import numpy as np
 
 from cr_nlp._resources import models_root
 from cr_nlp.model import load_robot
-from cr_nlp.tasks.calibrate import CalibrationConfig, calibrate, tip_errors
-from cr_nlp.tasks.measurements import Measurements, read_measurements
+from cr_nlp.tasks.calibration.calibrate import CalibrationConfig, calibrate, tip_errors
+from cr_nlp.tasks.calibration.measurements import Measurements, read_measurements
 
 FAMILIES = ("pair12", "pair13", "pair23", "tendon", "seg")
 """The training file's pattern families, as named in its ``pattern_label`` column."""
@@ -47,7 +47,7 @@ def family_labels(robot_name: str = "ftdcr_v6") -> np.ndarray:
 
 def history_fold_errors(config: CalibrationConfig, robot_name: str = "ftdcr_v6") -> dict:
     """The held-out errors (m) per model and family, each fold's static model refitted."""
-    from cr_nlp.tasks.history import fold_errors as history_folds
+    from cr_nlp.tasks.calibration.history import fold_errors as history_folds
 
     robot = load_robot(robot_name)
     path = models_root() / "data" / robot_name / f"{robot_name}_train.csv"

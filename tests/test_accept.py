@@ -121,8 +121,8 @@ def test_ik_polish_retries_from_the_search_beam_without_searching_again(monkeypa
 
     from cr_nlp.bench.ik import forward_kinematics
     from cr_nlp.model import load_robot
-    from cr_nlp.tasks import _ik_polish as ik_polish
-    from cr_nlp.tasks.ik import IKSolver
+    from cr_nlp.tasks.geometry import _ik_polish as ik_polish
+    from cr_nlp.tasks.geometry.ik import IKSolver
     from cr_nlp.world import check_many
 
     robot = load_robot("tdcr3")

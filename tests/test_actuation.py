@@ -295,7 +295,7 @@ def test_actuation_block_round_trips_and_is_validated(tmp_path) -> None:
 @pytest.mark.slow  # two IK compilations (API float64, CLI float32): ~50 s on a loaded CPU
 def test_ik_answers_carry_motor_commands_that_reproduce_them(tmp_path) -> None:
     from cr_nlp.cli import main
-    from cr_nlp.tasks.ik import IKConfig, IKSolver
+    from cr_nlp.tasks.geometry.ik import IKConfig, IKSolver
 
     robot = dataclasses.replace(_calibrated_like(load_robot("ftdcr_v6"), seed=5),
                                 base_position=(0.01, -0.02, 0.0))
@@ -330,8 +330,8 @@ def test_ik_answers_carry_motor_commands_that_reproduce_them(tmp_path) -> None:
 
 
 def test_results_of_a_calibrated_robot_carry_motor_commands(tmp_path) -> None:
-    from cr_nlp.tasks.ik import IKResult
-    from cr_nlp.tasks.trajectory import TrajectoryResult
+    from cr_nlp.tasks.geometry.ik import IKResult
+    from cr_nlp.tasks.geometry.trajectory import TrajectoryResult
 
     robot = _calibrated_like(load_robot("ftdcr_v6"), seed=6)
     q = np.array([[0.5, 0.3, 0.1, 0.4, 2.0, 0.1, 0.9, -1.0, 0.022],

@@ -112,7 +112,7 @@ def test_figures_and_npz_files_keep_the_names_their_libraries_give(tmp_path: Pat
     from matplotlib.figure import Figure
 
     from cr_nlp.model import load_robot
-    from cr_nlp.tasks.trajectory import TrajectoryResult
+    from cr_nlp.tasks.geometry.trajectory import TrajectoryResult
     from cr_nlp.viz._figures import write_figure
 
     figure = Figure()

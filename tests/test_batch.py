@@ -33,7 +33,7 @@ from cr_nlp.batch import (
 )
 from cr_nlp.bench.ik import forward_kinematics
 from cr_nlp.model import load_robot
-from cr_nlp.tasks.ik import IKConfig, IKResult, IKSolver
+from cr_nlp.tasks.geometry.ik import IKConfig, IKResult, IKSolver
 
 from .conftest import ROOT, random_q
 from .test_results import assert_same_result
@@ -377,7 +377,7 @@ def test_cli_batch_ik_writes_the_schema_of_cr_nlp_ik(client, targets, tmp_path):
 
 
 def test_batch_plan_results_pass_the_independent_check(robot, client, tmp_path):
-    from cr_nlp.tasks.trajectory import TrajectoryConfig, verify_trajectory
+    from cr_nlp.tasks.geometry.trajectory import TrajectoryConfig, verify_trajectory
     from cr_nlp.world import load_scene
 
     scene = load_scene("shelf")

@@ -27,7 +27,7 @@ from cr_nlp.bench.ik import (
 from cr_nlp.cli import build_parser
 from cr_nlp.model import Robot
 from cr_nlp.model.limits import limit_violation_q
-from cr_nlp.tasks.ik import IKSolver
+from cr_nlp.tasks.geometry.ik import IKSolver
 from cr_nlp.world import check_many, load_scene
 
 from .conftest import MODELS

@@ -47,7 +47,7 @@ def test_rrt_connect_solves_an_easy_problem_collision_free(robot):
 @pytest.mark.slow  # a benchmark run or a repeat of covered work: `pytest -m slow`
 def test_plan_benchmark_runs_on_a_tiny_size(tmp_path, monkeypatch):
     from cr_nlp.bench.plan import ROADMAP_OPT, RRT, STRAIGHT_OPT, run_plan_benchmark
-    from cr_nlp.tasks.trajectory import TrajectoryConfig
+    from cr_nlp.tasks.geometry.trajectory import TrajectoryConfig
 
     monkeypatch.setenv("CR_NLP_CACHE_DIR", str(tmp_path / "cache"))
     methods = (ROADMAP_OPT, STRAIGHT_OPT, RRT)

@@ -14,7 +14,7 @@ import pytest
 
 from cr_nlp.model import load_robot, q_to_z_numpy
 from cr_nlp.model._ops import NUMPY
-from cr_nlp.tasks.trajectory import TrajectoryConfig
+from cr_nlp.tasks.geometry.trajectory import TrajectoryConfig
 from cr_nlp.world import ConvexPart, Obstacle, Scene, load_scene, scene_arrays
 from cr_nlp.world._broad_phase import _part_box, cell_candidates, part_cells, reach_box
 from cr_nlp.world._clearance_groups import (

@@ -11,14 +11,14 @@ import pytest
 from cr_nlp.model import load_robot
 from cr_nlp.model.actuation import Actuation, predict_tip
 from cr_nlp.model.rotations import wxyz_from_matrix
-from cr_nlp.tasks.calibrate import (
+from cr_nlp.tasks.calibration.calibrate import (
     CalibrationConfig,
     ErrorStats,
     Repeatability,
     calibrate,
     tip_errors,
 )
-from cr_nlp.tasks.measurements import Measurements
+from cr_nlp.tasks.calibration.measurements import Measurements
 
 NOISE = 2e-4  # m per coordinate
 

@@ -13,7 +13,7 @@ import pytest
 from cr_nlp.cli import main
 from cr_nlp.model import load_robot
 from cr_nlp.model.actuation import predict_tip
-from cr_nlp.tasks.measurements import DataFileError, read_measurements
+from cr_nlp.tasks.calibration.measurements import DataFileError, read_measurements
 
 HEADER = ["t"] + [f"tendon_{i}" for i in range(1, 10)] + ["tip_x", "tip_y", "tip_z"]
 
@@ -112,7 +112,7 @@ def test_calibrate_writes_a_robot_file_every_command_accepts(tmp_path, capsys) -
 ])
 def test_axial_compression_option_reaches_the_fit(tmp_path, monkeypatch, option, fitted,
                                                   shortens) -> None:
-    import cr_nlp.tasks.calibrate as calibrate_module
+    import cr_nlp.tasks.calibration.calibrate as calibrate_module
 
     class Stop(Exception):
         pass

@@ -13,7 +13,7 @@ from cr_nlp.bench.ik import free_case
 from cr_nlp.model import CasadiModel
 from cr_nlp.model.limits import limit_violation_q
 from cr_nlp.stages.polish._trajectory_nlp import TrajectoryPolishConfig, TrajectoryPolisher
-from cr_nlp.tasks.trajectory import interpolate_trajectory, verify_trajectory
+from cr_nlp.tasks.geometry.trajectory import interpolate_trajectory, verify_trajectory
 from cr_nlp.world import check_many
 from cr_nlp.world.scene import load_scene
 from cr_nlp.world.verdict import failure_reason

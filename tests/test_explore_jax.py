@@ -17,7 +17,7 @@ from cr_nlp.stages.explore._seed_pool import (
     select_beam_device,
     sobol_configurations,
 )
-from cr_nlp.tasks.ik import IKConfig, IKSolver
+from cr_nlp.tasks.geometry.ik import IKConfig, IKSolver
 
 from .conftest import MODELS
 

@@ -18,11 +18,12 @@ from cr_nlp import SCHEMA_VERSION, FollowResult, load_result
 from cr_nlp.cli import main
 from cr_nlp.model import load_robot, tip_pose_z, z_to_q_numpy
 from cr_nlp.model.rotations import wxyz_from_matrix
-from cr_nlp.tasks import follow as F
-from cr_nlp.tasks.follow import FollowConfig, PathFollower, unreached_stretches
-from cr_nlp.tasks.ik import IKConfig
+from cr_nlp.tasks.geometry import follow as F
+from cr_nlp.tasks.geometry._follow_result import unreached_stretches
+from cr_nlp.tasks.geometry.follow import FollowConfig, PathFollower
+from cr_nlp.tasks.geometry.ik import IKConfig
+from cr_nlp.tasks.geometry.trajectory import tendon_series
 from cr_nlp.tasks.paths import ReferencePath, checked_path
-from cr_nlp.tasks.trajectory import tendon_series
 from cr_nlp.world import load_scene, scene_arrays
 from cr_nlp.world._clearance_groups import clearance_group_jacobian
 
@@ -65,7 +66,7 @@ def followed(follower):
 
 def test_obstacle_is_near_the_reference_body() -> None:
     # The test below means something only if the obstacle is close to the motion.
-    from cr_nlp.tasks.trajectory import interpolate_trajectory
+    from cr_nlp.tasks.geometry.trajectory import interpolate_trajectory
     from cr_nlp.world import check_many
 
     s = np.linspace(0.0, 1.0, WAYPOINTS)[:, None]

@@ -11,10 +11,10 @@ import pytest
 
 from cr_nlp.model import load_robot, q_to_z, tip_pose_z
 from cr_nlp.model.rotations import wxyz_from_matrix
-from cr_nlp.tasks.follow import FollowConfig, PathFollower
-from cr_nlp.tasks.ik import IKConfig
+from cr_nlp.tasks.geometry.follow import FollowConfig, PathFollower
+from cr_nlp.tasks.geometry.ik import IKConfig
+from cr_nlp.tasks.geometry.trajectory import tendon_series, verify_trajectory
 from cr_nlp.tasks.paths import ReferencePath
-from cr_nlp.tasks.trajectory import tendon_series, verify_trajectory
 
 WAYPOINTS = 12
 Q_A = np.array([0.6, 0.3, 1.0, 0.5, 1.2, 1.0, 0.4, -0.6, 1.0])

@@ -34,7 +34,7 @@ from cr_nlp.cli.statics import _cases_from_file
 from cr_nlp.model import ModelFileError, Robot, load_robot
 from cr_nlp.tasks._result import ResultFileError, read_json
 from cr_nlp.tasks._targets import read_targets
-from cr_nlp.tasks.measurements import DataFileError, read_measurements
+from cr_nlp.tasks.calibration.measurements import DataFileError, read_measurements
 from cr_nlp.tasks.paths import ReferencePath
 from cr_nlp.world.scene import Scene
 

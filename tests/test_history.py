@@ -20,7 +20,7 @@ from cr_nlp.model.hysteresis import (
     effective_commands,
     predict_tip_series,
 )
-from cr_nlp.tasks.history import (
+from cr_nlp.tasks.calibration.history import (
     HistoryConfig,
     compensate_plan,
     fit_history,
@@ -28,7 +28,7 @@ from cr_nlp.tasks.history import (
     time_blocks,
     with_history,
 )
-from cr_nlp.tasks.measurements import Measurements
+from cr_nlp.tasks.calibration.measurements import Measurements
 
 NOISE = 2e-4  # m per coordinate
 NOISE_MEAN = NOISE * np.sqrt(8 / np.pi)   # mean length of a 3-D normal vector
@@ -129,7 +129,7 @@ def test_compensated_commands_reproduce_the_planned_tip_path(tmp_path, capsys) -
     plan = compensate_plan(robot, q)
     assert plan.error_uncompensated.max() > 1e-3
     assert plan.error_compensated.max() < 1e-6
-    from cr_nlp.tasks.ik import IKResult
+    from cr_nlp.tasks.geometry.ik import IKResult
 
     rows = len(q)
     result = IKResult(robot, q, np.zeros((rows, 3)), np.tile([1.0, 0, 0, 0], (rows, 1)),
@@ -172,7 +172,7 @@ def test_predict_history_none_is_the_static_model(tmp_path) -> None:
 
 
 def test_rows_out_of_time_order_are_named(tmp_path) -> None:
-    from cr_nlp.tasks.measurements import DataFileError, read_measurements
+    from cr_nlp.tasks.calibration.measurements import DataFileError, read_measurements
 
     path = tmp_path / "late.csv"
     path.write_text("timestamp,tendon_1,tip_x,tip_y,tip_z\n1,0,0,0,0\n2,0,0,0,0\n1.5,0,0,0,0\n")

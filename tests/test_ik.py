@@ -14,7 +14,7 @@ from cr_nlp.model import Robot, tip_pose
 from cr_nlp.model.limits import limit_violation_q
 from cr_nlp.model.rotations import wxyz_from_matrix
 from cr_nlp.tasks import _result
-from cr_nlp.tasks.ik import IKConfig, IKSolver
+from cr_nlp.tasks.geometry.ik import IKConfig, IKSolver
 from cr_nlp.world import check_many, load_scene, verdict
 
 from .conftest import MODELS
@@ -246,7 +246,7 @@ def test_exact_mode_repairs_penalty_answers_that_break_the_margin() -> None:
 @pytest.mark.parametrize("count", [1, 127, 128, 129, 300, 1200, 3000, 12000])
 @pytest.mark.parametrize("largest", [1024, 256, 1000])
 def test_chunk_plan_covers_every_problem_with_little_padding(count: int, largest: int) -> None:
-    from cr_nlp.tasks.ik import SMALLEST_CHUNK, chunk_plan
+    from cr_nlp.tasks.geometry.ik import SMALLEST_CHUNK, chunk_plan
 
     plan = chunk_plan(count, largest)
     assert sum(plan) >= count

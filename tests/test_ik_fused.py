@@ -10,7 +10,7 @@ import pytest
 from cr_nlp.model.limits import limit_violation_q
 from cr_nlp.stages.refine._ik_program import SearchPlan, search_targets
 from cr_nlp.stages.refine._lm import LMConfig
-from cr_nlp.tasks.ik import IKConfig, IKSolver
+from cr_nlp.tasks.geometry.ik import IKConfig, IKSolver
 
 from .test_ik import LATTICE, TDCR3, TDCR4, free_configurations, targets_from
 

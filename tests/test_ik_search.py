@@ -6,7 +6,7 @@ import pytest
 
 from cr_nlp.bench.ik import free_case
 from cr_nlp.stages.refine._ik_driver import REPAIR_CHUNK, ChunkRunner
-from cr_nlp.tasks.ik import IKSolver
+from cr_nlp.tasks.geometry.ik import IKSolver
 
 from .test_ik import TDCR3
 from .test_verdict import fcl_self_clearance

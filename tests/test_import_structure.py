@@ -24,7 +24,7 @@ PACKAGE = "cr_nlp"
 # Lowest first. A top-level module or package not named here (cli, bench, demo, viz,
 # batch, view, …) is an interface; the package __init__ re-exports the public API.
 LAYERS = {"_resources": 0, "runtime": 0, "_programs": 0, "_fingerprint": 0, "_files": 0,
-          "model": 1, "world": 2, "stages": 3, "tasks": 4}
+          "_moved": 0, "model": 1, "world": 2, "stages": 3, "tasks": 4}
 INTERFACE = 5
 FACADE = 6
 LAYER_NAMES = {0: "base (_resources, runtime, _programs, _fingerprint, _files)", 1: "model",
@@ -184,7 +184,7 @@ def graph() -> dict[str, set[str]]:
 
 
 def test_cr_nlp_has_no_import_circle(graph: dict[str, set[str]]) -> None:
-    assert "cr_nlp.model.kinematics" in graph and graph["cr_nlp.tasks.ik"]
+    assert "cr_nlp.model.kinematics" in graph and graph["cr_nlp.tasks.geometry.ik"]
     found = cycles(graph)
     assert not found, "import circles in cr_nlp:\n" + "\n".join(" ↔ ".join(c) for c in found)
 
@@ -236,8 +236,8 @@ def test_the_checker_finds_a_stage_importing_a_later_stage(tmp_path: Path) -> No
 def test_stages_are_three_packages_that_import_only_downward(
         graph: dict[str, set[str]]) -> None:
     stages = ROOT / "stages"
-    loose = sorted(p.name for p in stages.glob("*.py") if p.name not in ("__init__.py",
-                                                                        "_chunks.py"))
+    loose = sorted(p.name for p in stages.glob("*.py") if p.name not in (
+        "__init__.py", "_chunks.py", "_faces.py"))
     assert not loose, f"modules of stages/ outside explore/, refine/, polish/: {loose}"
     assert sorted(p.name for p in stages.iterdir() if p.is_dir()
                   and p.name != "__pycache__") == sorted(STAGE_PACKAGES)
@@ -273,24 +273,39 @@ def test_internal_modules_are_private_by_name() -> None:
 
 
 def family_private_imports(graph: dict[str, set[str]]) -> list[str]:
-    """'a imports b' where b is a private module of a task family that a is not in: the
-    mechanics family (``tasks.mechanics``) and the geometry (PCC) family (the rest of
-    ``tasks``) share only ``tasks._result``, ``tasks._timing`` and the public modules."""
-    shared = {"cr_nlp.tasks._result", "cr_nlp.tasks._timing"}
+    """'a imports b' where b is a private module of a task family that a is not in. The
+    families are the packages under ``tasks`` (``geometry``, ``mechanics``,
+    ``calibration``); they share only the modules directly in ``tasks`` (``_result``,
+    ``_timing``, ``paths``, ``readers``)."""
 
     def family(name: str) -> str | None:
         parts = name.split(".")
-        if len(parts) < 3 or parts[1] != "tasks":
-            return None
-        return "mechanics" if parts[2] == "mechanics" else "geometry"
+        return parts[2] if len(parts) >= 4 and parts[1] == "tasks" else None
 
     found = []
     for a in sorted(graph):
         for b in sorted(graph[a]):
-            private = b.rpartition(".")[2].startswith("_") and b not in shared
-            if private and family(b) and family(a) and family(a) != family(b):
+            private = b.rpartition(".")[2].startswith("_")
+            if private and family(b) and family(a) != family(b) and a.startswith("cr_nlp.tasks"):
                 found.append(f"{a} ({family(a)}) imports {b} ({family(b)})")
     return found
+
+
+def stage_private_imports(graph: dict[str, set[str]]) -> list[str]:
+    """'a imports b' where a is in ``tasks`` and b is a private module of ``stages``: the
+    tasks reach the stages through the packages' public faces only."""
+    return [f"{a} imports {b}" for a in sorted(graph) if a.startswith("cr_nlp.tasks.")
+            for b in sorted(graph[a]) if b.startswith("cr_nlp.stages.")
+            and any(part.startswith("_") for part in b.split(".")[2:])]
+
+
+def test_tasks_import_the_stages_through_their_public_faces(
+        graph: dict[str, set[str]]) -> None:
+    assert graph["cr_nlp.tasks.geometry.ik"] & {"cr_nlp.stages.refine", "cr_nlp.stages.polish"}
+    found = stage_private_imports(graph)
+    assert not found, "tasks importing a private stage module:\n" + "\n".join(found)
+    assert stage_private_imports({"cr_nlp.tasks.geometry.ik": {"cr_nlp.stages.refine._lm"}}) \
+        == ["cr_nlp.tasks.geometry.ik imports cr_nlp.stages.refine._lm"]
 
 
 def test_task_families_import_no_private_module_of_another(
@@ -302,9 +317,9 @@ def test_task_families_import_no_private_module_of_another(
 
 
 def test_the_family_check_finds_a_private_import() -> None:
-    graph = {"cr_nlp.tasks.mechanics.follow": {"cr_nlp.tasks._follow_result",
+    graph = {"cr_nlp.tasks.mechanics.follow": {"cr_nlp.tasks.geometry._follow_result",
                                                "cr_nlp.tasks._result"},
-             "cr_nlp.tasks.ik": {"cr_nlp.tasks.mechanics.ik"}}
+             "cr_nlp.tasks.geometry.ik": {"cr_nlp.tasks.mechanics.ik"}}
     assert family_private_imports(graph) == [
-        "cr_nlp.tasks.mechanics.follow (mechanics) imports cr_nlp.tasks._follow_result "
+        "cr_nlp.tasks.mechanics.follow (mechanics) imports cr_nlp.tasks.geometry._follow_result "
         "(geometry)"]

@@ -1,4 +1,4 @@
-"""Live IK (``tasks.live_ik``): warm-started single-target IK, judged in float64."""
+"""Live IK (``tasks.geometry.live_ik``): warm-started single-target IK, judged in float64."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from cr_nlp.model import load_robot
 from cr_nlp.model._ops import NUMPY
 from cr_nlp.model.kinematics import model_q_to_z, model_segment_frames
 from cr_nlp.model.rotations import wxyz_from_matrix
-from cr_nlp.tasks.live_ik import LiveIKConfig, LiveIKSolver
+from cr_nlp.tasks.geometry.live_ik import LiveIKConfig, LiveIKSolver
 
 
 def _tip(robot, q):

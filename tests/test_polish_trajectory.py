@@ -11,7 +11,7 @@ import pytest
 from cr_nlp.model import CasadiModel, load_robot
 from cr_nlp.stages.polish import _trajectory_nlp as module
 from cr_nlp.stages.polish._trajectory_nlp import TrajectoryPolishConfig, TrajectoryPolisher
-from cr_nlp.tasks.trajectory import tendon_series, verify_trajectory
+from cr_nlp.tasks.geometry.trajectory import tendon_series, verify_trajectory
 from cr_nlp.world import load_scene
 
 from .conftest import MODELS

@@ -34,14 +34,14 @@ from cr_nlp.tasks._result import (
     status_of,
 )
 from cr_nlp.tasks._timing import StageTiming
-from cr_nlp.tasks.follow import tracking_errors
-from cr_nlp.tasks.ik import IKSolver
-from cr_nlp.tasks.paths import sine_path
-from cr_nlp.tasks.trajectory import (
+from cr_nlp.tasks.geometry._follow_result import tracking_errors
+from cr_nlp.tasks.geometry.ik import IKSolver
+from cr_nlp.tasks.geometry.trajectory import (
     trajectories_from_dict,
     trajectories_to_dict,
     verify_trajectory,
 )
+from cr_nlp.tasks.paths import sine_path
 from cr_nlp.world import load_scene
 
 from .conftest import random_q
@@ -228,8 +228,8 @@ def test_the_public_api_is_one_import_line() -> None:
          "TrajectoryResult, PathFollower, FollowConfig, FollowResult, LiveIKSolver, run_batch, "
          "load_path", namespace)
     from cr_nlp.batch import run_batch
-    from cr_nlp.tasks.follow import PathFollower
-    from cr_nlp.tasks.live_ik import LiveIKSolver
+    from cr_nlp.tasks.geometry.follow import PathFollower
+    from cr_nlp.tasks.geometry.live_ik import LiveIKSolver
 
     assert namespace["run_batch"] is run_batch and namespace["PathFollower"] is PathFollower
     assert namespace["LiveIKSolver"] is LiveIKSolver

@@ -11,7 +11,7 @@ from cr_nlp.bench.plan import plan_problems
 from cr_nlp.model import load_robot, q_to_z_numpy
 from cr_nlp.stages.explore._roadmap import Roadmap, RoadmapConfig, polyline_length, resolved_margin
 from cr_nlp.stages.explore._roadmap_search import neighbour_table, shortest_paths
-from cr_nlp.tasks.trajectory import TrajectoryConfig, TrajectoryPlanner
+from cr_nlp.tasks.geometry.trajectory import TrajectoryConfig, TrajectoryPlanner
 from cr_nlp.world import load_scene
 
 from .conftest import MODELS

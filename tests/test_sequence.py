@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from cr_nlp.model import Robot, q_to_z
 from cr_nlp.stages.explore._sequence import smoothest_choice, smoothest_sequence
-from cr_nlp.tasks.ik import IKSolver
+from cr_nlp.tasks.geometry.ik import IKSolver
 from cr_nlp.tasks.paths import SHAPES
 
 from .conftest import MODELS

@@ -129,7 +129,7 @@ def ik_case():
 
 
 def test_exact_ik_out_of_time_keeps_the_verified_penalty_answer(ik_case) -> None:
-    from cr_nlp.tasks.ik import IKConfig, IKSolver
+    from cr_nlp.tasks.geometry.ik import IKConfig, IKSolver
 
     robot, positions, wxyz = ik_case
     # A limit too short for any Ipopt iteration: every target runs out of time at once.
@@ -160,8 +160,8 @@ def test_exact_ik_out_of_time_keeps_the_verified_penalty_answer(ik_case) -> None
 def test_a_trajectory_polish_out_of_time_keeps_the_lm_answer_marked() -> None:
     from cr_nlp.model import load_robot
     from cr_nlp.stages.polish._trajectory_nlp import TrajectoryPolisher
-    from cr_nlp.tasks._trajectory_polish import polish_trajectories
-    from cr_nlp.tasks.trajectory import verify_trajectory
+    from cr_nlp.tasks.geometry._trajectory_polish import polish_trajectories
+    from cr_nlp.tasks.geometry.trajectory import verify_trajectory
 
     from .test_exact_verdict import cut_between_waypoints
 
@@ -190,8 +190,8 @@ def test_a_trajectory_polish_out_of_time_keeps_the_lm_answer_marked() -> None:
 
 def test_a_path_polish_out_of_time_keeps_the_lm_answer_marked() -> None:
     from cr_nlp.stages.polish._trajectory_nlp import TrajectoryPolishResult
-    from cr_nlp.tasks._follow_polish import polish_follow
     from cr_nlp.tasks._timing import StageTiming
+    from cr_nlp.tasks.geometry._follow_polish import polish_follow
 
     identity = np.tile([1.0, 0.0, 0.0, 0.0], (3, 1))
     lm = SimpleNamespace(q=np.zeros((3, 9)), max_violation=0.5, collision_free=False,

@@ -15,7 +15,7 @@ import pytest
 from cr_nlp import SCHEMA_VERSION, load_results
 from cr_nlp.cli import plan as plan_command
 from cr_nlp.model import load_robot
-from cr_nlp.tasks.trajectory import (
+from cr_nlp.tasks.geometry.trajectory import (
     TrajectoryConfig,
     TrajectoryPlanner,
     TrajectoryResult,
@@ -155,7 +155,7 @@ def test_cli_rejects_a_malformed_file(tmp_path):
 
 
 def test_results_json_and_npz_round_trip(tmp_path, shelf_planner):
-    from cr_nlp.tasks.trajectory import save_results
+    from cr_nlp.tasks.geometry.trajectory import save_results
 
     results = shelf_planner.plan([SHELF_START], [SHELF_GOAL], init="roadmap")
     save_results(results, tmp_path / "r.json", shelf_planner.last_timing.as_dict())
@@ -209,7 +209,7 @@ def test_one_verdict_a_margin_violation_is_a_failure_in_both_modes(shelf_planner
     # to the shelf than δ (still collision-free) fails that verdict in both modes, and
     # the reason says which check failed by how much.
     from cr_nlp.stages.polish._trajectory_nlp import TrajectoryPolisher
-    from cr_nlp.tasks import trajectory as T
+    from cr_nlp.tasks.geometry import trajectory as T
     from cr_nlp.world.verdict import failure_reason
 
     class Failed:

@@ -18,7 +18,7 @@ from cr_nlp.stages.refine._banded_lm import (
     chain_jacobians,
     normal_equations,
 )
-from cr_nlp.tasks.trajectory import (
+from cr_nlp.tasks.geometry.trajectory import (
     TrajectoryConfig,
     TrajectoryPlanner,
     trajectory_residual,

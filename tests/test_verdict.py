@@ -14,8 +14,8 @@ import pytest
 from cr_nlp import ModelFileError
 from cr_nlp.bench.ik import forward_kinematics
 from cr_nlp.model import Robot
-from cr_nlp.tasks.ik import IKConfig, IKSolver
-from cr_nlp.tasks.trajectory import verify_trajectory
+from cr_nlp.tasks.geometry.ik import IKConfig, IKSolver
+from cr_nlp.tasks.geometry.trajectory import verify_trajectory
 from cr_nlp.world import body_chain, check_many
 from cr_nlp.world.scene import rotation_z_to
 from cr_nlp.world.verdict import VIOLATION_TOLERANCE, judge, judge_many

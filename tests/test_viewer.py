@@ -172,7 +172,7 @@ def test_a_150_waypoint_follow_result_scrubs_without_solving() -> None:
 
 def test_live_ik_reaches_a_moved_target() -> None:
     viewer = _viewer_module()
-    from cr_nlp.tasks.ik import IKSolver
+    from cr_nlp.tasks.geometry.ik import IKSolver
     from cr_nlp.world.check import check
 
     robot = load_robot("tdcr3")

@@ -58,7 +58,7 @@ from ..batch import (
 )
 from ..model import load_robot
 from ..runtime import use_host_devices
-from ..tasks.ik import IKConfig, IKSolver
+from ..tasks.geometry.ik import IKConfig, IKSolver
 from ._common import Column, environment, environment_markdown, markdown_table, write_report
 from .ik import free_case
 from .suites import BATCH_MODES

@@ -100,7 +100,7 @@ def run_follow_benchmark(shapes: Sequence[str] = SHAPES, modes: Sequence[str] = 
     bundled name (its scene is ``follow_<name>``) or a path file (followed without
     obstacles). ``config``: a ``FollowConfig`` (default settings when None). ``dt``:
     seconds between waypoints instead of each path file's."""
-    from ..tasks.follow import FollowConfig, PathFollower
+    from ..tasks.geometry.follow import FollowConfig, PathFollower
 
     rows = []
     jobs = [(s, m) for s in shapes for m in modes]
@@ -113,7 +113,7 @@ def run_follow_benchmark(shapes: Sequence[str] = SHAPES, modes: Sequence[str] = 
                                      dt=dt)
         rows.append(row)
         if out is not None:
-            from ..tasks.trajectory import tendon_names
+            from ..tasks.geometry.trajectory import tendon_names
             from ..viz import follow_figure
             from ..viz._figures import write_figure
 

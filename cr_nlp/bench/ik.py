@@ -47,7 +47,7 @@ from ..model._ops import NUMPY
 from ..model.kinematics import model_q_to_z, model_segment_frames
 from ..model.rotations import wxyz_from_matrix
 from ..runtime import use_host_devices
-from ..tasks.ik import IKConfig, IKSolver, IKVerification
+from ..tasks.geometry.ik import IKConfig, IKSolver, IKVerification
 from ..world import Scene, check_many, load_scene
 from ._baselines import DampedNewtonConfig, ScipyConfig, damped_newton_ik, scipy_ik
 from ._common import Column, environment, environment_markdown, fixed, markdown_table, write_report

@@ -10,7 +10,7 @@ Rows: ``TrajectoryPlanner`` with the roadmap initial guess ("roadmap+opt"), with
 straight line and its perturbations only ("straight-line+opt"), with the exact Ipopt
 polish ("roadmap+opt+exact"), and the RRT-Connect baseline (``bench._baselines_plan``,
 no shortcutting, resampled to the same waypoints and Δt). Every answer is judged by the
-same float64 verdict, ``tasks.trajectory.verify_trajectory`` (python-fcl along the
+same float64 verdict, ``tasks.geometry.trajectory.verify_trajectory`` (python-fcl along the
 interpolated motion, limits, tendon speed and acceleration over Δt).
 
 Times: the planner rows first run a warm-up on the first ``WARMUP_PAIRS`` problems
@@ -37,7 +37,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..model import Robot, load_robot, q_to_z, tip_pose
-from ..tasks.trajectory import TrajectoryConfig, TrajectoryPlanner, verify_trajectory
+from ..tasks.geometry.trajectory import TrajectoryConfig, TrajectoryPlanner, verify_trajectory
 from ..world import Scene, check_many, clearance_z, load_scene, scene_arrays
 from ._baselines_plan import RRTConnect, RRTConnectConfig
 from ._common import (

@@ -82,7 +82,7 @@ def _write_targets(folder: Path, robot: Any, seed: int) -> None:
 
 
 def _write_problems(folder: Path, robot: Any, seed: int) -> None:
-    from ..tasks.ik import IKConfig
+    from ..tasks.geometry.ik import IKConfig
     from ..world import load_scene
     from .plan import plan_problems
 

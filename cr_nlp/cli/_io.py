@@ -20,7 +20,7 @@ if TYPE_CHECKING:
     import numpy as np
 
     from ..model import Robot
-    from ..tasks.measurements import Measurements
+    from ..tasks.calibration.measurements import Measurements
     from ..world import Scene
 
 
@@ -312,7 +312,7 @@ def read_data_arg(robot: Robot, value: str, args: Any, *,
     recording's name such as ``ftdcr_v6_train``); ``require_tip=False``: a file without
     the tip columns gives commands only."""
     from .._resources import resolve_data_file
-    from ..tasks.measurements import DataFileError, read_measurements
+    from ..tasks.calibration.measurements import DataFileError, read_measurements
 
     try:
         path = resolve_data_file(value)

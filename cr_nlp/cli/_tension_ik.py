@@ -98,7 +98,7 @@ def needs_mechanics(robot: object, exact: bool, task: str = "ik") -> None:
 def run(args: argparse.Namespace, robot: object) -> int:
     """Solve in tension space, write RESULT.json (kind ``tension_ik``) and, with ``--csv``,
     the tensions; print a one-line summary on stderr."""
-    from ..tasks.ik import read_targets
+    from ..tasks.geometry.ik import read_targets
     from ..tasks.mechanics.ik import TensionIKConfig, TensionIKSolver
 
     needs_mechanics(robot, args.exact)

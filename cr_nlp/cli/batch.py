@@ -202,7 +202,7 @@ def _solve(args: argparse.Namespace) -> int:
 
 def _targets(args: argparse.Namespace) -> tuple:
     """``--targets``: positions (T, 3) m, wxyz (T, 4) and a reason per bad target."""
-    from ..tasks.ik import read_targets
+    from ..tasks.geometry.ik import read_targets
 
     try:
         return read_targets(resolve(args.targets, "targets", "--targets"))
@@ -212,7 +212,7 @@ def _targets(args: argparse.Namespace) -> tuple:
 
 def _ik_job(args: argparse.Namespace) -> tuple[tuple, dict]:
     """PCC IK: ``run_batch``'s inputs and its options of this kind."""
-    from ..tasks.ik import IKConfig
+    from ..tasks.geometry.ik import IKConfig
 
     positions, wxyz, problems = _targets(args)
     config = IKConfig(seed=args.seed, polish_time_limit=time_limit_arg(args))
@@ -221,7 +221,7 @@ def _ik_job(args: argparse.Namespace) -> tuple[tuple, dict]:
 
 def _plan_job(args: argparse.Namespace) -> tuple[tuple, dict]:
     """PCC planning: ``run_batch``'s inputs and its options of this kind."""
-    from ..tasks.trajectory import TrajectoryConfig, with_horizon
+    from ..tasks.geometry.trajectory import TrajectoryConfig, with_horizon
 
     starts, goals, horizon, dt = read_problems(resolve(args.problems, "problems", "--problems"))
     config = with_horizon(

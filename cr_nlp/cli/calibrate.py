@@ -13,12 +13,12 @@ from ._io import UsageError, add_data_options, load_robot_arg, read_data_arg
 
 if TYPE_CHECKING:
     from ..model import Robot
-    from ..tasks.calibrate import ErrorStats
-    from ..tasks.history import HistoryCalibration
-    from ..tasks.measurements import Measurements
+    from ..tasks.calibration.calibrate import ErrorStats
+    from ..tasks.calibration.history import HistoryCalibration
+    from ..tasks.calibration.measurements import Measurements
 
 HISTORY_NAMES = ("play1", "play2", "play3")
-"""The named history models (``tasks.history.VARIANTS``; here without importing JAX)."""
+"""The named history models (``tasks.calibration.history.VARIANTS``; here without importing JAX)."""
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -55,7 +55,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Fit, write the calibrated robot file (and the report), print the errors."""
-    from ..tasks.calibrate import CalibrationConfig, calibrate
+    from ..tasks.calibration.calibrate import CalibrationConfig, calibrate
 
     robot = load_robot_arg(args.robot)
     train = read_data_arg(robot, args.data, args)
@@ -120,9 +120,10 @@ def _print_row(label: str, stats: ErrorStats) -> None:
 def _fit_history(args: argparse.Namespace, static: Robot, train: Measurements,
                  val: Measurements | None) -> HistoryCalibration:
     """The history model of ``--history`` on the calibrated static robot
-    (``tasks.history.calibrate_history``), folds by ``--fold-column``/``--fold-pattern``."""
-    from ..tasks.history import calibrate_history, families_of, time_blocks
-    from ..tasks.measurements import read_labels
+    (``tasks.calibration.history.calibrate_history``), folds by ``--fold-column`` /
+    ``--fold-pattern``."""
+    from ..tasks.calibration.history import calibrate_history, families_of, time_blocks
+    from ..tasks.calibration.measurements import read_labels
 
     labels = read_labels(train.source, args.fold_column) if args.history == "auto" else None
     try:

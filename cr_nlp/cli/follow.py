@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     """Follow the path, write RESULT and print a one-line summary on stderr."""
     import math
 
-    from ..tasks.follow import FollowConfig, PathFollower
+    from ..tasks.geometry.follow import FollowConfig, PathFollower
     from ..tasks.paths import load_path
 
     time_limit = time_limit_arg(args)

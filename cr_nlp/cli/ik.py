@@ -47,7 +47,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Solve, write RESULT.json and print a one-line summary on stderr."""
-    from ..tasks.ik import IKConfig, IKSolver, read_targets
+    from ..tasks.geometry.ik import IKConfig, IKSolver, read_targets
 
     time_limit = time_limit_arg(args)
     robot = load_robot_arg(args.robot)
@@ -83,7 +83,7 @@ def _write_commands(path: str, robot: object, displacements: object) -> None:
     import csv
 
     from .._files import atomic_open
-    from ..tasks.trajectory import tendon_names
+    from ..tasks.geometry.trajectory import tendon_names
 
     if displacements is None:
         raise UsageError(f"--csv: {robot.name} has no actuation block (no calibrated zero); "

@@ -68,7 +68,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Plan, write RESULT.json (and the CSVs) and print a one-line summary on stderr."""
-    from ..tasks.trajectory import (
+    from ..tasks.geometry.trajectory import (
         TrajectoryConfig,
         TrajectoryPlanner,
         save_results,

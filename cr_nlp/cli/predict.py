@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ..model.hysteresis import history_of, predict_tip_series
-    from ..tasks.measurements import write_tip_csv
+    from ..tasks.calibration.measurements import write_tip_csv
 
     if (args.data is None) == (args.compensate is None):
         raise UsageError("give exactly one of --data (commands to predict) or --compensate "
@@ -70,8 +70,8 @@ def _compensate(robot: Robot, args: argparse.Namespace) -> int:
 
     from .._files import atomic_open
     from ..tasks._result import ResultFileError, load_results
-    from ..tasks.history import compensate_plan
-    from ..tasks.measurements import UNITS
+    from ..tasks.calibration.history import compensate_plan
+    from ..tasks.calibration.measurements import UNITS
 
     if args.history == "none":
         raise UsageError("--compensate needs the history-aware model (not --history none)")

@@ -43,7 +43,7 @@ class History:
     """95th-percentile tip error (m) of the history-aware model on the same rows."""
     fold_score: float | None = None
     """Mean held-out tip error (m) over the leave-one-family-out folds of the training rows
-    that chose this model (``tasks.history``), None when it was not chosen by folds."""
+    that chose this model (``tasks.calibration.history``), None when it was not chosen by folds."""
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form of the ``history`` block (round-trips through ``parse_history``)."""

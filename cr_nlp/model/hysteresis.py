@@ -18,7 +18,7 @@ shape. Rows are in time order; the operators need only that order, not the time 
 
 Public functions take numpy and return float64 numpy; ``play_outputs`` and
 ``effective_commands_jax`` are the traceable JAX forms (``jax.lax.scan`` over time) that the
-fit (``tasks.history``) differentiates.
+fit (``tasks.calibration.history``) differentiates.
 """
 
 from __future__ import annotations

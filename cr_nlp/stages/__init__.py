@@ -10,5 +10,9 @@ earlier one, never the reverse, ``tests/test_import_structure.py``):
 - ``polish``: the exact stage: Ipopt NLPs for IK and trajectories, their clearance rows
   and compiled C functions, the process pool, and the one acceptance policy.
 
-``_chunks`` (batch chunk sizes) serves all three.
+``_chunks`` (batch chunk sizes) serves all three; ``_faces`` loads the packages' public
+faces on first use.
 """
+
+from ._chunks import SMALLEST_CHUNK as SMALLEST_CHUNK
+from ._chunks import chunk_plan as chunk_plan

@@ -51,9 +51,9 @@ READS = (1, SCHEMA_VERSION)
 ``violations``)."""
 
 RESULT_KINDS: dict[str, str] = {
-    "ik": "cr_nlp.tasks.ik:IKResult",
-    "trajectory": "cr_nlp.tasks.trajectory:TrajectoryResult",
-    "follow": "cr_nlp.tasks.follow:FollowResult",
+    "ik": "cr_nlp.tasks.geometry.ik:IKResult",
+    "trajectory": "cr_nlp.tasks.geometry.trajectory:TrajectoryResult",
+    "follow": "cr_nlp.tasks.geometry.follow:FollowResult",
     "tension_ik": "cr_nlp.tasks.mechanics.ik:TensionIKResult",
     "tension_follow": "cr_nlp.tasks.mechanics.follow:TensionFollowResult",
     "tension_trajectory": "cr_nlp.tasks.mechanics.trajectory:TensionTrajectoryResult",

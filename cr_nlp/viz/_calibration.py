@@ -9,7 +9,7 @@ import numpy as np
 
 from ..model import Robot
 from ..model.actuation import predict_tip
-from ..tasks.measurements import Measurements
+from ..tasks.calibration.measurements import Measurements
 
 
 def write_report_figures(robot: Robot, train: Measurements, validation: Measurements | None,

@@ -293,7 +293,7 @@ def _motion(
 ) -> Motion:
     """The motion of a trajectory or follow result, its verdict, ``detail`` and the
     minimum clearance as the summary."""
-    from ..tasks.trajectory import tendon_names
+    from ..tasks.geometry.trajectory import tendon_names
 
     return Motion(
         label=label,
@@ -333,7 +333,7 @@ def precompute(motion: Motion, mesh: RobotMesh, scene: Scene | None) -> None:
 def targets_of(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Target poses of a targets file (``cr-nlp ik --targets``): positions (T, 3) m and
     wxyz (T, 4)."""
-    from ..tasks.ik import read_targets
+    from ..tasks.geometry.ik import read_targets
 
     positions, wxyz, _ = read_targets(path)
     return positions, wxyz

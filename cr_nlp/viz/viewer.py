@@ -3,7 +3,7 @@
 
 Everything a replay shows is computed once when the viewer starts (the robot's tube and
 tendons at every waypoint, the closest obstacle point, tendon speeds); scrubbing only
-sends precomputed geometry. Live IK re-solves with ``tasks.live_ik.LiveIKSolver``,
+sends precomputed geometry. Live IK re-solves with ``tasks.geometry.live_ik.LiveIKSolver``,
 warm-started from the answer on screen. Lengths in metres, angles in radians, times in
 seconds.
 """
@@ -133,7 +133,7 @@ class Viewer:
         )
         """The configuration on screen (3n; rad, rad, m)."""
         self.last_live: Any = None
-        """The last live-IK answer (``tasks.live_ik.LiveIKResult``), None before."""
+        """The last live-IK answer (``tasks.geometry.live_ik.LiveIKResult``), None before."""
 
         with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: we print the url
             self.server = viser.ViserServer(
@@ -478,10 +478,10 @@ class Viewer:
                     self._live_update(*pose)
 
     def solver(self) -> Any:
-        """The live-IK solver (``tasks.live_ik.LiveIKSolver``), built on first use."""
+        """The live-IK solver (``tasks.geometry.live_ik.LiveIKSolver``), built on first use."""
         with self._solver_lock:
             if self._live_solver is None:
-                from ..tasks.live_ik import LiveIKSolver
+                from ..tasks.geometry.live_ik import LiveIKSolver
 
                 self._live_solver = LiveIKSolver(self.robot, self.scene)
             return self._live_solver

@@ -6,7 +6,7 @@ rad, m), one row per waypoint. Two objectives share the constraints:
 
 - ``"path"`` (trajectory planning): start and goal fixed (``lbx = ubx``),
   ``f = w_path·Σ‖p(z_{k+1}) − p(z_k)‖² + w_smooth·Σ‖z_{k+1} − z_k‖²``, the LM stage's
-  objective (``tasks.trajectory.trajectory_residual``);
+  objective (``tasks.geometry.trajectory.trajectory_residual``);
 - ``"tracking"`` (path following): every waypoint free,
   ``f = ½Σ_k (w_v‖v_k‖² + w_ω‖ω_k‖²) + w_smooth·Σ‖z_{k+1} − z_k‖²`` with
   ``(v_k, ω_k) = log(T_tip(z_k)⁻¹·T_target_k)`` (m, rad).

@@ -1,9 +1,15 @@
 """Stage 2, refine: batched penalty LM in JAX.
 
 The public face (what ``tasks/`` imports): the dense LM (``lm_solve``, ``LMConfig``), the
-banded LM of chains (``banded_lm_solve``), and the mechanics family's rows on the Cosserat
-rod for one waypoint and for a motion (``_tension_lm``)."""
+banded LM of chains (``banded_lm_solve``, ``ChainResidual``), and the mechanics family's
+rows on the Cosserat rod for one waypoint and for a motion (``_tension_lm``); loaded on
+first use, the PCC family's machinery: the fused IK search (``IKSearch``,
+``SearchSettings``, ``SearchPlan``, ``RetryPlan``), the chain stream (``ChainBatchLM``),
+trajectory guess selection (``select_guesses``), path continuation
+(``BranchContinuation``, ``ContinuationSettings``) and the tendon-limit penalties
+(``tendon_speed_excess``, ``tendon_accel_excess``)."""
 
+from .._faces import lazy_face
 from ._banded_lm import ChainResidual as ChainResidual
 from ._banded_lm import banded_lm_solve as banded_lm_solve
 from ._lm import LMConfig as LMConfig
@@ -20,3 +26,16 @@ from ._tension_lm import tensions_of_unknowns as tensions_of_unknowns
 from ._tension_lm import unknowns_of as unknowns_of
 from ._tension_lm import waypoint_params as waypoint_params
 from ._tension_lm import waypoint_residual as waypoint_residual
+
+_LAZY = {"IKSearch": ("._ik_driver", "IKSearch"),
+         "SearchSettings": ("._ik_driver", "SearchSettings"),
+         "SearchPlan": ("._ik_program", "SearchPlan"),
+         "RetryPlan": ("._ik_program", "RetryPlan"),
+         "ChainBatchLM": ("._chain_stream", "ChainBatchLM"),
+         "select_guesses": ("._trajectory_select", "select_guesses"),
+         "BranchContinuation": ("._path_continuation", "BranchContinuation"),
+         "ContinuationSettings": ("._path_continuation", "ContinuationSettings"),
+         "tendon_speed_excess": ("._tendon_penalty", "tendon_speed_excess"),
+         "tendon_accel_excess": ("._tendon_penalty", "tendon_accel_excess")}
+
+__getattr__ = lazy_face(__name__, _LAZY)

@@ -11,7 +11,7 @@ branch jumps (a tendon would have to move faster than it can). This stage:
    from the previous waypoint's answer plus the chain's last step, so a chain stays on
    one branch); the chains from both sides meet in the middle;
    the chains may minimise a cheaper residual than the one that scores the table (the
-   pose alone, for a robot whose answers are isolated: ``tasks.follow``);
+   pose alone, for a robot whose answers are isolated: ``tasks.geometry.follow``);
 2. writes every chain's answers into a candidate table (R waypoints × K slots) and picks
    the sequence with the smallest configuration jumps
    (``stages.explore._sequence.smoothest_choice``)
@@ -25,7 +25,7 @@ branch jumps (a tendon would have to move faster than it can). This stage:
    steps again, so it is not bridged (``walked_speeds``).
 
 The problem enters only as the residual of one waypoint (``WaypointResidual``); the task
-(``tasks.follow``) owns it. Configurations are bending vectors z (rad, rad, m).
+(``tasks.geometry.follow``) owns it. Configurations are bending vectors z (rad, rad, m).
 """
 
 from __future__ import annotations
@@ -62,7 +62,7 @@ Candidates = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 @dataclass(frozen=True)
 class ContinuationSettings:
-    """Settings of the branch-keeping stage (``tasks.follow.FollowConfig`` fills them)."""
+    """Settings of the branch-keeping stage (``tasks.geometry.follow.FollowConfig`` fills them)."""
 
     iterations: int = 6
     """LM iterations per waypoint of a continuation chain."""

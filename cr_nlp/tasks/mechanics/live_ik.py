@@ -1,5 +1,5 @@
 """Live tension-space IK: one target at a time on the Cosserat rod, warm-started from the
-current tensions (the viewer's dragged target under gravity), as ``tasks.live_ik`` does
+current tensions (the viewer's dragged target under gravity), as ``tasks.geometry.live_ik`` does
 for the PCC model.
 
 Each update runs the refine stage of ``tasks.mechanics.ik`` (its LM rows: tip,

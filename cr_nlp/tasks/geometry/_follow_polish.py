@@ -10,16 +10,15 @@ from typing import Any
 
 import numpy as np
 
-from ..model import Robot
-from ..model.limits import clip_to_limits
-from ..model.rotations import matrix_from_wxyz
-from ..stages.polish._accept import Polished, accept_first, polish_note
-from ..stages.polish._trajectory_nlp import describe_polish
-from ..world.verdict import VIOLATION_TOLERANCE, Verdict
+from ...model import Robot
+from ...model.limits import clip_to_limits
+from ...model.rotations import matrix_from_wxyz
+from ...stages.polish import Polished, accept_first, describe_polish, polish_note
+from ...world.verdict import VIOLATION_TOLERANCE, Verdict
+from .._result import Stage
+from .._timing import StageTiming
+from ..paths import ReferencePath
 from ._follow_result import FollowResult, PathVerification, tracking_cost
-from ._result import Stage
-from ._timing import StageTiming
-from .paths import ReferencePath
 
 
 def polish_follow(robot: Robot, polisher: Callable[[int], Any], lm: FollowResult,
@@ -47,11 +46,11 @@ def polish_follow(robot: Robot, polisher: Callable[[int], Any], lm: FollowResult
             stays with the note "polish out of time: …".
     """
     try:
-        from ..stages.polish import _trajectory_nlp  # noqa: F401 — only whether it is available
+        from ...stages.polish import polish_one  # noqa: F401 — only whether it is available
     except ImportError:
         lm.stage, lm.notes = Stage.REFINE, [
-            "polish failed: the Ipopt trajectory stage "
-            "cr_nlp.stages.polish._trajectory_nlp is not available"]
+            "polish failed: the Ipopt trajectory stage (stages.polish.polish_one) is not "
+            "available"]
         return lm
     if lm.max_violation <= VIOLATION_TOLERANCE and lm.collision_free and \
             bool(np.all(lm.reached)):

@@ -10,11 +10,11 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from .._files import atomic_open
-from ..model import Robot
-from ..model.routing import routing_of
-from ..world._motion import MotionVerification
-from ._result import (
+from ..._files import atomic_open
+from ...model import Robot
+from ...model.routing import routing_of
+from ...world._motion import MotionVerification
+from .._result import (
     SCHEMA_VERSION,
     OneStage,
     ResultFileError,
@@ -28,7 +28,7 @@ from ._result import (
     write_json,
     write_series_csv,
 )
-from ._timing import StageTiming
+from .._timing import StageTiming
 
 
 @dataclass

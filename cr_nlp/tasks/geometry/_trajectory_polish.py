@@ -18,12 +18,18 @@ from typing import Any
 
 import numpy as np
 
-from ..model import Robot
-from ..stages.polish._accept import Acceptance, Judged, Polished, polish_and_accept, polish_note
-from ..stages.polish._trajectory_nlp import polish_one
-from ..world._motion import MotionVerification
-from ..world.verdict import Verdict
-from ._result import Stage
+from ...model import Robot
+from ...stages.polish import (
+    Acceptance,
+    Judged,
+    Polished,
+    polish_and_accept,
+    polish_note,
+    polish_one,
+)
+from ...world._motion import MotionVerification
+from ...world.verdict import Verdict
+from .._result import Stage
 from ._trajectory_result import TrajectoryResult, result_from_verdict
 
 

@@ -16,8 +16,14 @@ from typing import Any
 
 import numpy as np
 
-from ..stages.polish._accept import Acceptance, Judged, Polished, polish_and_accept
-from ..stages.polish._ik_nlp import IKPolisher, polish_many
+from ...stages.polish import (
+    Acceptance,
+    IKPolisher,
+    Judged,
+    Polished,
+    polish_and_accept,
+    polish_many,
+)
 
 
 def other_candidates(beam: np.ndarray, answer: np.ndarray,

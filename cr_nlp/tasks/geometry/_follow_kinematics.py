@@ -17,12 +17,12 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from ..model import Robot
-from ..model._ops import JAX
-from ..model.derivatives import kinematics_jacobians_z
-from ..model.kinematics import model_backbone, model_segment_frames
-from ..model.lie import rotation_log, so3_right_jacobian_inverse
-from ..world._clearance_groups import body_centres_from
+from ...model import Robot
+from ...model._ops import JAX
+from ...model.derivatives import kinematics_jacobians_z
+from ...model.kinematics import model_backbone, model_segment_frames
+from ...model.lie import rotation_log, so3_right_jacobian_inverse
+from ...world._clearance_groups import body_centres_from
 
 
 def waypoint_kinematics(robot: Robot, z: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:

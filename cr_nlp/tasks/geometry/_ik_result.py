@@ -9,10 +9,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from .._files import atomic_open
-from ..model import Robot
-from ..world.verdict import Verdicts
-from ._result import (
+from ..._files import atomic_open
+from ...model import Robot
+from ...world.verdict import Verdicts
+from .._result import (
     ResultIO,
     Stage,
     Status,
@@ -24,7 +24,7 @@ from ._result import (
     statuses,
     typed_stages,
 )
-from ._timing import StageTiming
+from .._timing import StageTiming
 
 
 @dataclass(frozen=True)

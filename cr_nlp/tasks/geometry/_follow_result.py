@@ -10,12 +10,12 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from .._files import atomic_open
-from ..model import Robot
-from ..model.kinematics import pose_error, tip_pose
-from ..model.rotations import matrix_from_wxyz, wxyz_from_matrix
-from ..world._motion import MotionVerification
-from ._result import (
+from ..._files import atomic_open
+from ...model import Robot
+from ...model.kinematics import pose_error, tip_pose
+from ...model.rotations import matrix_from_wxyz, wxyz_from_matrix
+from ...world._motion import MotionVerification
+from .._result import (
     OneStage,
     ResultFileError,
     ResultIO,
@@ -27,9 +27,9 @@ from ._result import (
     read_stage,
     write_series_csv,
 )
-from ._timing import StageTiming
+from .._timing import StageTiming
+from ..paths import ReferencePath
 from ._trajectory_result import controller_columns, tendon_names
-from .paths import ReferencePath
 
 
 def tracking_errors(robot: Robot, q: np.ndarray, positions: np.ndarray,
