@@ -41,7 +41,7 @@ _PUBLIC = {
     "CalibrationConfig": ".tasks.calibration.calibrate",
     "CalibrationResult": ".tasks.calibration.calibrate",
     "calibrate": ".tasks.calibration.calibrate",
-    "read_measurements": ".tasks.calibration.measurements",
+    "read_measurements": ".tasks.readers",
     "follow_path": ".tasks.geometry.follow",
     "FollowConfig": ".tasks.geometry.follow",
     "FollowResult": ".tasks.geometry.follow",
@@ -54,7 +54,7 @@ _PUBLIC = {
     "LiveIKResult": ".tasks.geometry.live_ik",
     "LiveIKSolver": ".tasks.geometry.live_ik",
     "ReferencePath": ".tasks.paths",
-    "load_path": ".tasks.paths",
+    "load_path": ".tasks.readers",
     "TensionIKConfig": ".tasks.mechanics.ik",
     "TensionIKResult": ".tasks.mechanics.ik",
     "TensionIKSolver": ".tasks.mechanics.ik",
@@ -123,7 +123,6 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from .tasks.calibration.calibrate import CalibrationConfig as CalibrationConfig
     from .tasks.calibration.calibrate import CalibrationResult as CalibrationResult
     from .tasks.calibration.calibrate import calibrate as calibrate
-    from .tasks.calibration.measurements import read_measurements as read_measurements
     from .tasks.geometry.follow import FollowConfig as FollowConfig
     from .tasks.geometry.follow import FollowResult as FollowResult
     from .tasks.geometry.follow import PathFollower as PathFollower
@@ -155,7 +154,8 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from .tasks.mechanics.trajectory import plan_tensions as plan_tensions
     from .tasks.mechanics.trajectory import replay_pcc_motion as replay_pcc_motion
     from .tasks.paths import ReferencePath as ReferencePath
-    from .tasks.paths import load_path as load_path
+    from .tasks.readers import load_path as load_path
+    from .tasks.readers import read_measurements as read_measurements
     from .world import Scene as Scene
     from .world import check as check
     from .world import check_many as check_many

@@ -108,6 +108,14 @@ class UnreadableJSON(ValueError):
     (the loader that reads it names the file)."""
 
 
+class InputFileError(ValueError):
+    """An input file cr_nlp reads (robot, scene, targets, problems, path, recording,
+    result) that is missing, unreadable or not of its format; the message names the file
+    and what is wrong. The readers' own error types (``ModelFileError``,
+    ``ResultFileError``, ``DataFileError``) are kinds of it, so one ``except`` catches every
+    bad input file."""
+
+
 def read_json_or(path: str | os.PathLike, fail: Callable[[str], Exception]) -> Any:
     """``read_json_file(path)`` with each failure raised as ``fail(reason)``, the reason
     being "file not found", "cannot read: …" or "not UTF-8 text: …" / "not valid JSON:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib
 import sys
 import warnings
+from typing import Any
 
 
 def moved_module(old: str, new: str, until: str = "0.2") -> None:
@@ -14,3 +15,18 @@ def moved_module(old: str, new: str, until: str = "0.2") -> None:
     warnings.warn(f"{old} moved to {new}; the old name goes in cr_nlp {until}",
                   DeprecationWarning, stacklevel=3)
     sys.modules[old] = importlib.import_module(new)
+
+
+def moved_names(module: str, names: dict[str, str], until: str = "0.2") -> Any:
+    """A module ``__getattr__`` for names that moved out of ``module``: ``names[name]`` is
+    the new module; using the old address warns (DeprecationWarning) and returns the
+    object from its new one."""
+
+    def attribute(name: str) -> Any:
+        if name not in names:
+            raise AttributeError(f"module {module!r} has no attribute {name!r}")
+        warnings.warn(f"{module}.{name} moved to {names[name]}.{name}; the old name goes in "
+                      f"cr_nlp {until}", DeprecationWarning, stacklevel=2)
+        return getattr(importlib.import_module(names[name]), name)
+
+    return attribute

@@ -46,7 +46,8 @@ class DemoRow:
 
 def _ik(out: Path, exact: bool) -> DemoRow:
     from .model import load_robot
-    from .tasks.geometry.ik import IKSolver, read_targets
+    from .tasks.geometry.ik import IKSolver
+    from .tasks.readers import read_targets
     from .viz import save_figure
     from .world import load_scene
 

@@ -24,7 +24,8 @@ import numpy as np
 from cr_nlp._resources import models_root
 from cr_nlp.model import load_robot
 from cr_nlp.tasks.calibration.calibrate import CalibrationConfig, calibrate, tip_errors
-from cr_nlp.tasks.calibration.measurements import Measurements, read_measurements
+from cr_nlp.tasks.calibration.measurements import Measurements
+from cr_nlp.tasks.readers import read_measurements
 
 FAMILIES = ("pair12", "pair13", "pair23", "tendon", "seg")
 """The training file's pattern families, as named in its ``pattern_label`` column."""

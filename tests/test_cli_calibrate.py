@@ -13,7 +13,8 @@ import pytest
 from cr_nlp.cli import main
 from cr_nlp.model import load_robot
 from cr_nlp.model.actuation import predict_tip
-from cr_nlp.tasks.calibration.measurements import DataFileError, read_measurements
+from cr_nlp.tasks.calibration.measurements import DataFileError
+from cr_nlp.tasks.readers import read_measurements
 
 HEADER = ["t"] + [f"tendon_{i}" for i in range(1, 10)] + ["tip_x", "tip_y", "tip_z"]
 

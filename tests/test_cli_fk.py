@@ -113,8 +113,8 @@ def test_the_resolver_finds_every_kind_of_bundled_file(
 
 def test_plan_and_ik_inputs_take_bundled_names(tmp_path: Path,
                                                monkeypatch: pytest.MonkeyPatch) -> None:
-    from cr_nlp.cli._io import read_problems, resolve
-    from cr_nlp.tasks.geometry.ik import read_targets
+    from cr_nlp.cli._io import resolve
+    from cr_nlp.tasks.readers import read_problems, read_targets
 
     monkeypatch.chdir(tmp_path)
     starts, goals, _, _ = read_problems(resolve("tdcr3_shelf", "problems", "--problems"))

@@ -23,7 +23,8 @@ from cr_nlp.tasks.geometry._follow_result import unreached_stretches
 from cr_nlp.tasks.geometry.follow import FollowConfig, PathFollower
 from cr_nlp.tasks.geometry.ik import IKConfig
 from cr_nlp.tasks.geometry.trajectory import tendon_series
-from cr_nlp.tasks.paths import ReferencePath, checked_path
+from cr_nlp.tasks.paths import ReferencePath
+from cr_nlp.tasks.readers import checked_path
 from cr_nlp.world import load_scene, scene_arrays
 from cr_nlp.world._clearance_groups import clearance_group_jacobian
 

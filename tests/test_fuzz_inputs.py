@@ -28,14 +28,15 @@ import pytest
 from hypothesis import HealthCheck, currently_in_test_context, event, example, given, settings
 from hypothesis import strategies as st
 
+from cr_nlp._files import InputFileError
 from cr_nlp.cli import main as cli_main
-from cr_nlp.cli._io import UsageError, read_problems
+from cr_nlp.cli._io import UsageError
 from cr_nlp.cli.statics import _cases_from_file
 from cr_nlp.model import ModelFileError, Robot, load_robot
 from cr_nlp.tasks._result import ResultFileError, read_json
-from cr_nlp.tasks._targets import read_targets
-from cr_nlp.tasks.calibration.measurements import DataFileError, read_measurements
+from cr_nlp.tasks.calibration.measurements import DataFileError
 from cr_nlp.tasks.paths import ReferencePath
+from cr_nlp.tasks.readers import read_measurements, read_problems, read_targets
 from cr_nlp.world.scene import Scene
 
 from .conftest import MODELS, ROOT
@@ -337,7 +338,7 @@ TDCR3 = load_robot("tdcr3")
 def _check_problems(data: bytes, what: str, path: list[Any], file: Path) -> Exception | None:
     from cr_nlp.world._motion import check_ends
 
-    read, exc = _load(read_problems, data, file, (UsageError,))
+    read, exc = _load(read_problems, data, file, (InputFileError,))
     if read is None:
         return exc
     starts, goals, horizon, dt = read

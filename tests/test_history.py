@@ -172,7 +172,8 @@ def test_predict_history_none_is_the_static_model(tmp_path) -> None:
 
 
 def test_rows_out_of_time_order_are_named(tmp_path) -> None:
-    from cr_nlp.tasks.calibration.measurements import DataFileError, read_measurements
+    from cr_nlp.tasks.calibration.measurements import DataFileError
+    from cr_nlp.tasks.readers import read_measurements
 
     path = tmp_path / "late.csv"
     path.write_text("timestamp,tendon_1,tip_x,tip_y,tip_z\n1,0,0,0,0\n2,0,0,0,0\n1.5,0,0,0,0\n")

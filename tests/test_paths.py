@@ -10,7 +10,8 @@ import pytest
 from cr_nlp.model import ModelFileError, Robot
 from cr_nlp.model.rotations import matrix_from_wxyz
 from cr_nlp.tasks.geometry.ik import IKSolver
-from cr_nlp.tasks.paths import SHAPES, ReferencePath, load_path, resample_polyline
+from cr_nlp.tasks.paths import SHAPES, ReferencePath, resample_polyline
+from cr_nlp.tasks.readers import load_path
 from cr_nlp.world import load_scene
 
 from .conftest import MODELS

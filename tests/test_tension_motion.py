@@ -206,7 +206,7 @@ def test_a_plan_replayed_through_fresh_statics_keeps_its_clearance(planner) -> N
     ({"start": [0] * 6, "goal": [0] * 6, "via": [0] * 6}, "problem 0: unknown key 'via'"),
 ])
 def test_bad_problems_name_the_problem_and_key(problem: dict, words: str) -> None:
-    from cr_nlp.tasks.mechanics.trajectory import read_tension_problems
+    from cr_nlp.tasks.readers import read_tension_problems
 
     with pytest.raises(ValueError, match=words):
         read_tension_problems(RAO, {"problems": [problem]})

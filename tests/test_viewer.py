@@ -463,7 +463,8 @@ def test_tip_pose_is_the_model_tip() -> None:
 
 def test_a_follow_result_carries_its_reference_path_or_takes_another() -> None:
     viewer = _viewer_module()
-    from cr_nlp.tasks.paths import ReferencePath, load_path
+    from cr_nlp.tasks.paths import ReferencePath
+    from cr_nlp.tasks.readers import load_path
 
     robot = load_robot("tdcr3")
     data = json.loads(FOLLOW.read_text())

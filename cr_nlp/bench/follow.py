@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from ..tasks.paths import load_path
+from ..tasks.readers import load_path
 from ._common import (
     Column,
     environment,

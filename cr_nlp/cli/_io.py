@@ -13,7 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .._files import atomic_open, read_json_or
+from .._files import InputFileError, atomic_open, read_json_or
 from .._resources import resolve_file
 
 if TYPE_CHECKING:
@@ -127,60 +127,16 @@ def read_json(path: str | Path, what: str) -> Any:
     return read_json_or(path, lambda reason: UsageError(f"{what}: {path}: {reason}"))
 
 
-def read_problems(path: str | Path) -> tuple[list[Any], list[Any], int | None, float | None]:
-    """Starts, goals (raw rows, validated later per problem), horizon and dt.
+def read_problems_arg(value: str) -> tuple[list[Any], list[Any], int | None, float | None]:
+    """``tasks.readers.read_problems`` of ``--problems`` (a file or a bundled name); a
+    file that is not a problems file is a usage error naming the option, the file and the
+    field."""
+    from ..tasks.readers import read_problems
 
-    Raises:
-        UsageError: naming the file and the field: not of the problems file's shape, an
-            unknown key, or a horizon (an integer 2…``MAX_HORIZON``) or dt (seconds,
-            positive and finite) out of range.
-    """
-    data = read_json(path, "--problems")
-    if not isinstance(data, dict) or not isinstance(data.get("problems"), list):
-        raise UsageError(f'--problems: {path} must hold {{"problems": [{{"start": [...], '
-                         f'"goal": [...]}}, ...]}}')
-    unknown = sorted(set(data) - _PROBLEMS_KEYS)
-    if unknown:
-        raise UsageError(f"--problems: {path}: field {unknown[0]!r}: unknown key (allowed: "
-                         f"{', '.join(sorted(_PROBLEMS_KEYS))})")
-    horizon, dt = data.get("horizon"), data.get("dt")
-    if horizon is not None and (isinstance(horizon, bool) or not isinstance(horizon, int)
-                                or not 2 <= horizon <= MAX_HORIZON):
-        raise UsageError(f"--problems: {path}: field 'horizon': must be an integer from 2 "
-                         f"to {MAX_HORIZON}, got {_short(horizon)}")
-    seconds = (_as_float(dt) if isinstance(dt, (int, float)) and not isinstance(dt, bool)
-               else math.nan)
-    if dt is not None and not 0 < seconds < math.inf:
-        raise UsageError(f"--problems: {path}: field 'dt': must be a positive, finite number "
-                         f"of seconds, got {_short(dt)}")
-    starts, goals = [], []
-    for i, entry in enumerate(data["problems"]):
-        ok = isinstance(entry, dict)
-        unknown = sorted(set(entry) - {"start", "goal"}) if ok else []
-        if unknown:
-            raise UsageError(f"--problems: {path}: field 'problems[{i}].{unknown[0]}': "
-                             f"unknown key (allowed: goal, start)")
-        starts.append(entry.get("start") if ok else None)
-        goals.append(entry.get("goal") if ok else None)
-    return starts, goals, horizon, (seconds if dt is not None else None)
-
-
-def _as_float(value: int | float) -> float:
     try:
-        return float(value)
-    except OverflowError:  # an integer past float's range
-        return math.inf
-
-
-def _short(value: Any) -> str:
-    """``repr`` of a file's value, cut to 40 characters."""
-    text = repr(value)
-    return text if len(text) <= 40 else f"{text[:37]}..."
-
-
-MAX_HORIZON = 10_000
-"""Most trajectory steps a problems file may ask for (the default plan has 23)."""
-_PROBLEMS_KEYS = {"problems", "horizon", "dt", "description", "robot", "scene", "name"}
+        return read_problems(resolve(value, "problems", "--problems"))
+    except InputFileError as exc:
+        raise UsageError(f"--problems: {exc}") from None
 
 
 def write_json(data: Any, path: str | None) -> None:
@@ -312,7 +268,8 @@ def read_data_arg(robot: Robot, value: str, args: Any, *,
     recording's name such as ``ftdcr_v6_train``); ``require_tip=False``: a file without
     the tip columns gives commands only."""
     from .._resources import resolve_data_file
-    from ..tasks.calibration.measurements import DataFileError, read_measurements
+    from ..tasks.calibration.measurements import DataFileError
+    from ..tasks.readers import read_measurements
 
     try:
         path = resolve_data_file(value)

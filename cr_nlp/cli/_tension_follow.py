@@ -23,7 +23,7 @@ def run(args: argparse.Namespace, robot: object) -> int:
     from dataclasses import replace
 
     from ..tasks.mechanics.follow import TensionFollowConfig, TensionFollower
-    from ..tasks.paths import load_path
+    from ..tasks.readers import load_path
 
     needs_mechanics(robot, args.exact, "follow")
     config = TensionFollowConfig()

@@ -98,8 +98,8 @@ def needs_mechanics(robot: object, exact: bool, task: str = "ik") -> None:
 def run(args: argparse.Namespace, robot: object) -> int:
     """Solve in tension space, write RESULT.json (kind ``tension_ik``) and, with ``--csv``,
     the tensions; print a one-line summary on stderr."""
-    from ..tasks.geometry.ik import read_targets
     from ..tasks.mechanics.ik import TensionIKConfig, TensionIKSolver
+    from ..tasks.readers import read_targets
 
     needs_mechanics(robot, args.exact)
     time_limit = time_limit_arg(args)

@@ -23,11 +23,8 @@ def run(args: argparse.Namespace, robot: object) -> int:
     """Plan in tension space, write RESULT.json (kind ``tension_trajectory``, one entry per
     problem) and, with ``--csv``, one time series per problem; print a summary."""
     from ..tasks.mechanics._motion_result import tension_trajectories_to_dict
-    from ..tasks.mechanics.trajectory import (
-        TensionPlanConfig,
-        TensionPlanner,
-        read_tension_problems,
-    )
+    from ..tasks.mechanics.trajectory import TensionPlanConfig, TensionPlanner
+    from ..tasks.readers import read_tension_problems
 
     needs_mechanics(robot, args.exact, "plan")
     config = TensionPlanConfig(seed=args.seed)

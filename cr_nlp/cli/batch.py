@@ -23,7 +23,7 @@ from ._io import (
     fmt,
     load_robot_arg,
     load_scene_arg,
-    read_problems,
+    read_problems_arg,
     resolve,
     stop_on_signals,
     time_limit_arg,
@@ -202,7 +202,7 @@ def _solve(args: argparse.Namespace) -> int:
 
 def _targets(args: argparse.Namespace) -> tuple:
     """``--targets``: positions (T, 3) m, wxyz (T, 4) and a reason per bad target."""
-    from ..tasks.geometry.ik import read_targets
+    from ..tasks.readers import read_targets
 
     try:
         return read_targets(resolve(args.targets, "targets", "--targets"))
@@ -223,7 +223,7 @@ def _plan_job(args: argparse.Namespace) -> tuple[tuple, dict]:
     """PCC planning: ``run_batch``'s inputs and its options of this kind."""
     from ..tasks.geometry.trajectory import TrajectoryConfig, with_horizon
 
-    starts, goals, horizon, dt = read_problems(resolve(args.problems, "problems", "--problems"))
+    starts, goals, horizon, dt = read_problems_arg(args.problems)
     config = with_horizon(
         TrajectoryConfig(seed=args.seed, polish_time_limit=time_limit_arg(args)),
         None if horizon is None else horizon + 1,
@@ -248,7 +248,8 @@ def _tension_job(args: argparse.Namespace, robot: object) -> tuple[tuple, dict]:
         return (positions, wxyz if args.orientation else None), {
             **options, "config": TensionIKConfig(seed=args.seed), "problems": problems,
             "time_limit": time_limit_arg(args)}
-    from ..tasks.mechanics.trajectory import TensionPlanConfig, read_tension_problems
+    from ..tasks.mechanics.trajectory import TensionPlanConfig
+    from ..tasks.readers import read_tension_problems
 
     try:
         starts, goals = read_tension_problems(robot, resolve(args.problems, "problems",

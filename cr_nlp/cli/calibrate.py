@@ -123,7 +123,7 @@ def _fit_history(args: argparse.Namespace, static: Robot, train: Measurements,
     (``tasks.calibration.history.calibrate_history``), folds by ``--fold-column`` /
     ``--fold-pattern``."""
     from ..tasks.calibration.history import calibrate_history, families_of, time_blocks
-    from ..tasks.calibration.measurements import read_labels
+    from ..tasks.readers import read_labels
 
     labels = read_labels(train.source, args.fold_column) if args.history == "auto" else None
     try:

@@ -64,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     import math
 
     from ..tasks.geometry.follow import FollowConfig, PathFollower
-    from ..tasks.paths import load_path
+    from ..tasks.readers import load_path
 
     time_limit = time_limit_arg(args)
     robot = load_robot_arg(args.robot)

@@ -47,7 +47,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Solve, write RESULT.json and print a one-line summary on stderr."""
-    from ..tasks.geometry.ik import IKConfig, IKSolver, read_targets
+    from ..tasks.geometry.ik import IKConfig, IKSolver
+    from ..tasks.readers import read_targets
 
     time_limit = time_limit_arg(args)
     robot = load_robot_arg(args.robot)

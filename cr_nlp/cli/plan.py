@@ -25,8 +25,7 @@ from ._io import (
     load_robot_arg,
     load_scene_arg,
     model_margin,
-    read_problems,
-    resolve,
+    read_problems_arg,
     time_limit_arg,
 )
 
@@ -80,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     if args.model == "cosserat":
         return _tension_plan.run(args, robot)
     scene = load_scene_arg(args.scene)
-    starts, goals, horizon, dt = read_problems(resolve(args.problems, "problems", "--problems"))
+    starts, goals, horizon, dt = read_problems_arg(args.problems)
     config = TrajectoryConfig(seed=args.seed)
     if horizon is not None:
         config = TrajectoryConfig(waypoints=horizon + 1, seed=args.seed)

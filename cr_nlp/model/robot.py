@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
-from .._files import read_json_or
+from .._files import InputFileError, read_json_or
 from .._resources import resolve_file
 from ._actuation_block import parse_actuation
 from .mechanics import Mechanics, parse_mechanics
@@ -26,7 +26,7 @@ if TYPE_CHECKING:
 Routing = Literal["shared", "per_segment"]
 
 
-class ModelFileError(ValueError):
+class ModelFileError(InputFileError):
     """A robot or scene file (or an in-memory dict) that does not follow the schema."""
 
     def __init__(self, source: str, field_path: str, problem: str) -> None:

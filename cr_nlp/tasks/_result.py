@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from .._files import atomic_open, read_json_or
+from .._files import InputFileError, atomic_open, read_json_or
 from ..model.actuation import planned_displacements
 
 if TYPE_CHECKING:
@@ -61,7 +61,7 @@ RESULT_KINDS: dict[str, str] = {
 """kind → "module:class" of its result class (imported on first use)."""
 
 
-class ResultFileError(ValueError):
+class ResultFileError(InputFileError):
     """A RESULT.json (or its dict) that is not a result this version reads; the message
     names the file and the field."""
 

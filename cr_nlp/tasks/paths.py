@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 
 from .._files import atomic_open
-from .._resources import models_root, resolve_file
-from ..model.robot import ModelFileError, _Checker, read_model_file
+from .._resources import models_root
+from ..model.robot import _Checker, read_model_file
 
 PLANE_X = 1.5
 """The drawing plane of the benchmark shapes, metres."""
@@ -85,49 +85,6 @@ class ReferencePath:
         name = d.get("name", Path(source).stem if source else "path")
         return cls(str(name), np.array(positions), np.array(quats), dt, np.array(pen, bool))
 
-
-def load_path(path: str | Path | ReferencePath) -> ReferencePath:
-    """A ``ReferencePath`` from a file, or a bundled path name ("square", "sine", "icra")."""
-    if isinstance(path, ReferencePath):
-        return path
-    try:
-        candidate = resolve_file(path, "paths")
-    except FileNotFoundError as exc:
-        raise ModelFileError(str(path), "<file>",
-                             str(exc).removeprefix(f"{path}: ")) from None
-    return ReferencePath.from_file(candidate)
-
-
-
-def checked_path(path: str | Path | ReferencePath, dt: float | None = None) -> ReferencePath:
-    """``load_path``, then the checks a follower needs: at least 2 waypoints, finite
-    reference poses, unit quaternions (|‖wxyz‖ − 1| ≤ 1e-6) and a positive, finite time
-    step. ``dt``: seconds between waypoints replacing the path's own (None: keep it).
-
-    Raises:
-        ValueError: naming the first bad waypoint, or the bad ``dt``.
-    """
-    path = load_path(path)
-    dt = float(path.dt if dt is None else dt)
-    if not dt > 0 or not math.isfinite(dt):
-        raise ValueError(f"dt must be a positive number of seconds, got {dt}")
-    positions = np.asarray(path.positions, dtype=np.float64)
-    wxyz = np.asarray(path.wxyz, dtype=np.float64)
-    if len(positions) < 2:
-        raise ValueError(f"a path needs at least 2 waypoints, got {len(positions)}")
-    bad = np.flatnonzero(~np.isfinite(positions).all(1) | ~np.isfinite(wxyz).all(1))
-    if len(bad):
-        raise ValueError(f"waypoint {bad[0]}: the reference pose is not finite")
-    norms = np.linalg.norm(wxyz, axis=1)
-    bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-6)
-    if len(bad):
-        raise ValueError(f"waypoint {bad[0]}: wxyz is not a unit quaternion "
-                         f"(norm {norms[bad[0]]:.6g})")
-    if dt != path.dt:
-        path = ReferencePath(path.name, positions, wxyz, dt, path.pen_down)
-    return path
-
-# ---------------------------------------------------------------- the benchmark shapes
 
 def resample_polyline(points: np.ndarray, count: int,
                       pen_down: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -210,3 +167,8 @@ def write_bundled_paths(root: str | Path | None = None) -> list[Path]:
 if __name__ == "__main__":
     for written in write_bundled_paths():
         print(written)
+
+from .._moved import moved_names  # noqa: E402 — the old addresses, for one release (CHANGELOG 2026-12-02)
+
+__getattr__ = moved_names(__name__, {"load_path": "cr_nlp.tasks.readers",
+                                     "checked_path": "cr_nlp.tasks.readers"})

@@ -272,7 +272,7 @@ def _trajectory_motions(robot: Robot, results: list[Any], **_: Any) -> list[Moti
 
 
 def _follow_motion(robot: Robot, results: list[Any], path: Any = None, **_: Any) -> list[Motion]:
-    from ..tasks.paths import load_path
+    from ..tasks.readers import load_path
 
     (result,) = results
     reference = np.asarray(result.path.positions, dtype=float)
@@ -333,7 +333,7 @@ def precompute(motion: Motion, mesh: RobotMesh, scene: Scene | None) -> None:
 def targets_of(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Target poses of a targets file (``cr-nlp ik --targets``): positions (T, 3) m and
     wxyz (T, 4)."""
-    from ..tasks.geometry.ik import read_targets
+    from ..tasks.readers import read_targets
 
     positions, wxyz, _ = read_targets(path)
     return positions, wxyz

@@ -10,19 +10,18 @@ Every problem raises one ``DataFileError`` naming the file, the column and the r
 from __future__ import annotations
 
 import csv
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..._files import atomic_open
+from ..._files import InputFileError, atomic_open
 
 UNITS = {"m": 1.0, "mm": 1e-3}
 """Length units a data file may use, with their size in metres."""
 
 
-class DataFileError(ValueError):
+class DataFileError(InputFileError):
     """A measurement file that cannot be used; the message names file, column and row."""
 
 
@@ -52,108 +51,6 @@ def default_tendon_columns(n_tendons: int) -> list[str]:
 DEFAULT_TIP_COLUMNS = ("tip_x", "tip_y", "tip_z")
 
 
-def read_measurements(path: str | Path, n_tendons: int, *,
-                      tendon_columns: list[str] | None = None,
-                      tip_columns: list[str] | tuple[str, ...] | None = DEFAULT_TIP_COLUMNS,
-                      units: str = "m", require_tip: bool = True,
-                      time_column: str | None = None) -> Measurements:
-    """Read a measurement CSV (see the module docstring) into metres.
-
-    Args:
-        path: the CSV file.
-        n_tendons: the robot's tendon count; ``tendon_columns`` must name that many.
-        tendon_columns: command columns in the robot file's tendon order (default
-            ``tendon_1 … tendon_N``).
-        tip_columns: the three measured-tip columns, or None to read commands only.
-        units: "m" or "mm", for commands and tips alike.
-        time_column: a column of times (s) to read where the file has it; the rows must
-            be in time order (the history-aware model runs through them in that order).
-
-    Raises:
-        DataFileError: missing file or column, wrong tendon count, an empty file, a cell
-            that is not a finite number (naming file, column and data row, 1-based), a
-            time earlier than the row before.
-    """
-    source = str(path)
-    if units not in UNITS:
-        raise DataFileError(f"{source}: units must be one of {sorted(UNITS)}, got {units!r}")
-    columns = list(tendon_columns) if tendon_columns is not None else \
-        default_tendon_columns(n_tendons)
-    if len(columns) != n_tendons:
-        raise DataFileError(f"{source}: {len(columns)} tendon columns given "
-                            f"({', '.join(columns)}), the robot has {n_tendons} tendons")
-    tips = list(tip_columns) if tip_columns is not None else []
-    if tip_columns is not None and len(tips) != 3:
-        raise DataFileError(f"{source}: the tip needs 3 columns (x, y, z), got {tips}")
-    try:
-        with open(path, newline="") as handle:
-            rows = list(csv.reader(handle))
-    except FileNotFoundError:
-        raise DataFileError(f"{source}: file not found") from None
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise DataFileError(f"{source}: cannot read: {exc}") from None
-    if not rows:
-        raise DataFileError(f"{source}: the file is empty (a header row is needed)")
-    header = [h.strip() for h in rows[0]]
-    index = {name: i for i, name in enumerate(header)}
-    if not require_tip and not any(name in index for name in tips):
-        tips = []
-    for name in columns + tips:
-        if name not in index:
-            kind = "tip" if name in tips else "tendon"
-            raise DataFileError(f"{source}: {kind} column {name!r} not found "
-                                f"(columns: {', '.join(header)})")
-    body = [(k + 1, r) for k, r in enumerate(rows[1:]) if any(cell.strip() for cell in r)]
-    if not body:
-        raise DataFileError(f"{source}: no data rows after the header")
-    clock = [time_column] if time_column and time_column in index else []
-    wanted = columns + tips + clock
-    values = np.empty((len(body), len(wanted)))
-    for out, (row_number, row) in enumerate(body):
-        if len(row) != len(header):
-            raise DataFileError(f"{source}: row {row_number} has {len(row)} cells, the "
-                                f"header has {len(header)}")
-        for k, name in enumerate(wanted):
-            cell = row[index[name]].strip()
-            try:
-                x = float(cell)
-            except ValueError:
-                raise DataFileError(f"{source}: column {name!r}, row {row_number}: not a "
-                                    f"number: {cell!r}") from None
-            if not math.isfinite(x):
-                raise DataFileError(f"{source}: column {name!r}, row {row_number}: "
-                                    f"{cell!r} is not a finite number")
-            values[out, k] = x
-    times = _in_time_order(values[:, -1], [k for k, _ in body], source, clock[0]) \
-        if clock else None
-    values = values[:, :len(columns) + len(tips)] * UNITS[units]
-    commands = values[:, :n_tendons]
-    tip = values[:, n_tendons:] if tips else None
-    return Measurements(commands, tip, source, times)
-
-
-def _in_time_order(times: np.ndarray, row_numbers: list[int], source: str,
-                   column: str) -> np.ndarray:
-    """``times`` (s), after checking that no row is earlier than the one before."""
-    late = np.flatnonzero(np.diff(times) < 0)
-    if late.size:
-        raise DataFileError(f"{source}: column {column!r}, row {row_numbers[late[0] + 1]}: "
-                            f"earlier than the row before (rows must be in time order)")
-    return times.copy()
-
-
-def read_labels(path: str | Path, column: str) -> np.ndarray | None:
-    """(N,) the text of ``column`` in each data row of a measurement CSV (rows as
-    ``read_measurements`` reads them), None when the file has no such column."""
-    with open(path, newline="") as handle:
-        rows = list(csv.reader(handle))
-    header = [h.strip() for h in rows[0]] if rows else []
-    if column not in header:
-        return None
-    k = header.index(column)
-    return np.array([r[k].strip() for r in rows[1:] if any(cell.strip() for cell in r)])
-
-
 def write_tip_csv(path: str | Path, tip: np.ndarray, units: str = "m",
                   columns: tuple[str, ...] | list[str] = DEFAULT_TIP_COLUMNS,
                   extra: dict[str, np.ndarray] | None = None) -> None:
@@ -167,3 +64,8 @@ def write_tip_csv(path: str | Path, tip: np.ndarray, units: str = "m",
         cols = [np.asarray(v) for v in extra.values()]
         for i, row in enumerate(np.asarray(tip) * scale):
             writer.writerow([repr(float(c[i])) for c in cols] + [repr(float(v)) for v in row])
+
+from ..._moved import moved_names  # noqa: E402 — the old addresses, for one release (CHANGELOG 2026-12-02)
+
+__getattr__ = moved_names(__name__, {"read_measurements": "cr_nlp.tasks.readers",
+                                     "read_labels": "cr_nlp.tasks.readers"})

@@ -31,9 +31,8 @@ Stages:
    that fails, or that the independent check rejects, returns the stage-2 answer,
    marked in ``FollowResult.stage`` (``tasks.geometry._follow_polish``).
 
-The per-waypoint tracking error with its closed-form Jacobians is in
-``tasks.geometry._follow_kinematics``; the reference-path checks are
-``tasks.paths.checked_path``.
+The tracking error with its closed-form Jacobians is ``tasks.geometry._follow_kinematics``;
+the reference-path checks are ``tasks.readers.checked_path``.
 
 Every answer is judged in float64 independently of the optimisers:
 ``world._motion.verify_trajectory`` (python-fcl along the interpolated motion, limits,
@@ -85,7 +84,8 @@ from ...world._motion import verify_trajectory
 from ...world.clearance import SceneArrays, body_gap_tolerance
 from .._result import Stage
 from .._timing import StageTiming, compile_seconds
-from ..paths import ReferencePath, checked_path
+from ..paths import ReferencePath
+from ..readers import checked_path
 from ._follow_kinematics import tracking_error as tracking_error
 from ._follow_kinematics import tracking_from, tracking_jacobian, waypoint_jacobians
 from ._follow_kinematics import waypoint_kinematics as waypoint_kinematics
@@ -538,7 +538,7 @@ class PathFollower:
 
         Raises:
             ValueError: a reference pose that is not finite or not a unit quaternion,
-                a non-positive ``dt``, or fewer than 2 waypoints (``tasks.paths.checked_path``).
+                a non-positive ``dt``, or fewer than 2 waypoints (``tasks.readers.checked_path``).
         """
         path = checked_path(path, dt)
         dt = float(path.dt)

@@ -43,7 +43,6 @@ from ...world._penalty import sphere_clearances_z
 from ...world.clearance import body_gap_tolerance
 from ...world.verdict import judge_many
 from .._result import Stage
-from .._targets import read_targets as read_targets
 from .._targets import validate_targets as validate_targets
 from .._timing import StageTiming
 from ._ik_result import COLUMNS as COLUMNS
@@ -414,3 +413,7 @@ def solve_ik(robot: Robot | str | dict, positions: Any, wxyz: Any,
              exact: bool = False) -> IKResult:
     """One-call IK: see ``IKSolver.solve`` (positions in metres, wxyz unit quaternions)."""
     return IKSolver(robot, scene, config).solve(positions, wxyz, exact=exact)
+
+from ..._moved import moved_names  # noqa: E402 — the old addresses, for one release (CHANGELOG 2026-12-02)
+
+__getattr__ = moved_names(__name__, {"read_targets": "cr_nlp.tasks.readers"})

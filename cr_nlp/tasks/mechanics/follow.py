@@ -49,7 +49,8 @@ from ...stages.refine import (
 from ...world.scene import Scene
 from .._result import Stage
 from .._timing import StageTiming
-from ..paths import ReferencePath, checked_path
+from ..paths import ReferencePath
+from ..readers import checked_path
 from ._motion import TensionMotionVerification, verify_tension_motion
 from ._motion_result import TensionFollowResult as TensionFollowResult
 from .ik import TensionIKConfig, TensionIKSolver

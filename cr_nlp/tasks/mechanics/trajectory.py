@@ -33,11 +33,9 @@ Units: newtons, N/s, seconds, metres.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -140,38 +138,6 @@ def check_tensions(robot: Robot, values: Any, where: str) -> np.ndarray:
     return out
 
 
-def read_tension_problems(robot: Robot, source: str | Path | dict) -> tuple[np.ndarray,
-                                                                          np.ndarray]:
-    """(starts (B, n), goals (B, n)) N from ``{"problems": [{"start": [N…], "goal":
-    [N…]}]}`` (a file or its content), every entry checked.
-
-    Raises:
-        ValueError: one error naming the problem and the key.
-    """
-    data = source
-    if not isinstance(source, dict):
-        try:
-            data = json.loads(Path(source).read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ValueError(f"{source}: not a readable JSON file ({exc})") from None
-    if not isinstance(data, dict) or set(data) != {"problems"} or not isinstance(
-            data["problems"], list):
-        raise ValueError('expected {"problems": [{"start": [N…], "goal": [N…]}, …]}')
-    starts, goals = [], []
-    for i, problem in enumerate(data["problems"]):
-        if not isinstance(problem, dict):
-            raise ValueError(f"problem {i}: expected an object with 'start' and 'goal'")
-        unknown = sorted(set(problem) - set(PROBLEM_KEYS))
-        if unknown:
-            raise ValueError(f"problem {i}: unknown key {unknown[0]!r} (a problem has "
-                             f"'start' and 'goal', tensions in N)")
-        for key in PROBLEM_KEYS:
-            if key not in problem:
-                raise ValueError(f"problem {i}: missing {key!r}")
-        starts.append(check_tensions(robot, problem["start"], f"problem {i}: start"))
-        goals.append(check_tensions(robot, problem["goal"], f"problem {i}: goal"))
-    n = robot.n_tendons
-    return np.reshape(starts, (-1, n)), np.reshape(goals, (-1, n))
 
 
 class TensionPlanner:
@@ -512,3 +478,7 @@ def replay_pcc_motion(robot: Robot | str | dict, motion: Any, scene: Scene | str
     (T, 3S), rad and m) replayed through the mechanics model under loads (N, N·m, m/s²,
     N/m), judged like a tension plan (see ``TensionPlanner.replay``); dt in seconds."""
     return TensionPlanner(robot, scene).replay(motion, dt, **loads)
+
+from ..._moved import moved_names  # noqa: E402 — the old addresses, for one release (CHANGELOG 2026-12-02)
+
+__getattr__ = moved_names(__name__, {"read_tension_problems": "cr_nlp.tasks.readers"})
