@@ -1,5 +1,5 @@
 """The three solver stages, each a package (lowest first; a later one may import an
-earlier one, never the reverse, ``tests/test_import_structure.py``):
+earlier one, never the reverse, ``tests/system/test_import_structure.py``):
 
 - ``explore``: where to start: the Sobol seed pool and its nearest-pose lookup and beam,
   the roadmap (PRM) and its batched shortest paths, initial trajectory guesses, the

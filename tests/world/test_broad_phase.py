@@ -1,0 +1,217 @@
+"""The broad-phase table (``world._broad_phase``): a body sphere's cell row holds its
+nearest part whenever that part is within the cutoff, checked against brute force over
+every part, on the bundled scenes and on a scene of every part kind; and the grouped
+clearance terms built on it against autodiff of the penalty distances."""
+
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cr_nlp.model import load_robot, q_to_z_numpy
+from cr_nlp.model._ops import NUMPY
+from cr_nlp.tasks.geometry.trajectory import TrajectoryConfig
+from cr_nlp.world import ConvexPart, Obstacle, Scene, load_scene, scene_arrays
+from cr_nlp.world._broad_phase import _part_box, cell_candidates, part_cells, reach_box
+from cr_nlp.world._clearance_groups import (
+    body_centres_jacobian_z,
+    body_centres_z,
+    clearance_group_values,
+    grouped_shortfalls,
+)
+from cr_nlp.world.clearance import body_gap_tolerance, kind_distances, self_pairs
+
+from ..conftest import MODELS
+
+ROBOT = load_robot(MODELS / "robots" / "tdcr3.json")
+CUTOFF = 0.1
+
+
+def mixed_scene() -> Scene:
+    """Spheres, a rotated box, a capsule, a cylinder and two convex blobs, near each other
+    and within tdcr3's reach."""
+    primitives = load_scene({"name": "primitives", "obstacles": [
+        {"type": "sphere", "center": [0.5, 0.2, 1.0], "radius": 0.2},
+        {"type": "sphere", "center": [0.7, 0.3, 1.3], "radius": 0.1},
+        {"type": "box", "center": [-0.5, 0.3, 1.2], "size": [0.3, 0.4, 0.5],
+         "wxyz": [0.9, 0.1, 0.3, 0.3]},
+        {"type": "capsule", "a": [0.0, -0.6, 0.5], "b": [0.4, -0.5, 1.5], "radius": 0.1},
+        {"type": "cylinder", "a": [-0.4, -0.4, 0.8], "b": [-0.2, -0.7, 1.6], "radius": 0.15},
+    ]})
+    rng = np.random.default_rng(3)
+    blobs = tuple(Obstacle(f"blob{i}", "mesh", (ConvexPart.from_points(
+        rng.normal(size=(30, 3)) * 0.2 + centre),), {})
+        for i, centre in enumerate([(0.3, 0.5, 2.0), (0.1, 0.2, 1.6)]))
+    return Scene("mixed", primitives.obstacles + blobs)
+
+
+def scene_named(name: str) -> Scene:
+    return mixed_scene() if name == "mixed" else load_scene(name)
+
+
+def sample_points(scene: Scene, count: int, seed: int) -> np.ndarray:
+    """(2·count, 3) points, m: uniform in tdcr3's reach box, and uniform in the box of the
+    points within the body radius plus the cutoff of a random part (many within it)."""
+    rng = np.random.default_rng(seed)
+    lo, hi = reach_box(ROBOT)
+    boxes = [_part_box(p, ROBOT.backbone_radius + CUTOFF) for p in scene.parts]
+    pick = rng.integers(len(boxes), size=count)
+    near_lo = np.array([boxes[i][0] for i in pick])
+    near_hi = np.array([boxes[i][1] for i in pick])
+    return np.concatenate([rng.uniform(lo, hi, (count, 3)), rng.uniform(near_lo, near_hi)])
+
+
+def row_and_true_minimum(scene: Scene, cells, points: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Float64 distances (M,) m of body spheres at ``points``: the minimum over their cell
+    rows (looked up in float32, as the optimisers do) and over every part."""
+    arrays = scene_arrays(scene, as_numpy=True)
+    blocks = kind_distances(ROBOT.backbone_radius, arrays, points, 0.0, NUMPY)
+    rows = cell_candidates(cells, jnp.asarray(points, jnp.float32))
+    assert len(rows) == len(blocks)
+    row_min = np.min([np.take_along_axis(b, np.asarray(r), axis=1).min(axis=1)
+                      for b, r in zip(blocks, rows, strict=True)], axis=0)
+    true_min = np.min([b.min(axis=1) for b in blocks], axis=0)
+    return row_min, true_min
+
+
+@pytest.mark.parametrize("name", ["shelf", "cabinet", "random_27", "mixed"])
+def test_cell_rows_hold_the_nearest_part_within_the_cutoff(name):
+    """With no row cut short, a sphere's row minimum is the brute-force nearest distance
+    (float64, to the bit) wherever that is below the cutoff, and above the cutoff
+    elsewhere: 4000 points in the reach box and 4000 around the parts."""
+    scene = scene_named(name)
+    cells = part_cells(scene, ROBOT.backbone_radius, reach_box(ROBOT), CUTOFF, near=64)
+    assert cells.truncated == 0 and cells.cell_size == pytest.approx(0.05)
+    assert cells.table.nbytes < 16e6
+    row_min, true_min = row_and_true_minimum(scene, cells, sample_points(scene, 4000, 1))
+    within = true_min < CUTOFF
+    assert within.sum() > 1000 and (~within).sum() > 1000
+    np.testing.assert_array_equal(row_min[within], true_min[within])
+    assert np.all(row_min[~within] >= CUTOFF)
+
+
+def test_a_sharp_convex_part_is_kept_as_far_as_its_face_planes_reach():
+    """A convex part's distance is its largest face-plane value, which stays below the
+    cutoff far beyond a sharp tip (much farther than the body radius plus the cutoff from
+    the part): on the line through a needle's tip the rows still hold it there."""
+    tip = np.array([0.3, -0.2, 1.2])
+    needle = ConvexPart.from_points(np.array(
+        [[0.0, 0.0, 0.0], [0.03, 0.0, 0.0], [0.0, 0.03, 0.0], [0.0, 0.0, 0.8]]) + tip - [0, 0, 0.8])
+    scene = Scene("needle", (Obstacle("needle", "mesh", (needle,), {}),))
+    cells = part_cells(scene, ROBOT.backbone_radius, reach_box(ROBOT), CUTOFF)
+    points = tip + np.linspace(0.0, 1.5, 600)[:, None] * [0.001, 0.001, 1.0]
+    row_min, true_min = row_and_true_minimum(scene, cells, points)
+    within = true_min < CUTOFF
+    beyond = np.linalg.norm(points - tip, axis=1) > ROBOT.backbone_radius + CUTOFF + 0.1
+    assert np.any(within & beyond)
+    np.testing.assert_array_equal(row_min[within], true_min[within])
+
+
+def test_the_planners_tables_are_exact_on_the_bundled_scenes():
+    """With the trajectory planner's settings (cutoff = its sphere-body margin, at most 16
+    parts per kind, automatic 0.05 m cells) no row of the bundled scenes is cut, and the
+    widest row (the work per body sphere) is at most 12 convex parts, or 4 spheres."""
+    planner_margin = TrajectoryConfig().safety_margin + body_gap_tolerance(ROBOT)
+    widths = {}
+    for name in ("shelf", "cabinet", "random_27"):
+        cells = part_cells(load_scene(name), ROBOT.backbone_radius, reach_box(ROBOT),
+                           planner_margin, near=TrajectoryConfig().near_parts)
+        assert cells.truncated == 0
+        widths[name] = max(cells.widths)
+    assert widths["random_27"] == 4 and max(widths["shelf"], widths["cabinet"]) <= 12
+
+
+def test_a_cut_row_is_never_nearer_than_the_truth():
+    """Truncation (one part per row) may miss the nearest part of a cell; what it
+    measures is then farther than the truth, never nearer (every entry is a real part)."""
+    scene = load_scene("shelf")
+    cells = part_cells(scene, ROBOT.backbone_radius, reach_box(ROBOT), CUTOFF, near=1)
+    assert cells.truncated > 0 and cells.widths == (0, 0, 0, 0, 1)
+    row_min, true_min = row_and_true_minimum(scene, cells, sample_points(scene, 2000, 2))
+    assert np.all(row_min >= true_min)
+    assert np.any(row_min[true_min < CUTOFF] > true_min[true_min < CUTOFF])
+
+
+def test_a_scene_out_of_reach_gets_one_cell():
+    """Parts beyond the reach box plus the cutoff: one cell, and every sphere measured
+    beyond the cutoff."""
+    far = load_scene({"name": "far", "obstacles": [
+        {"type": "sphere", "center": [9.0, 0.0, 0.0], "radius": 0.5},
+        {"type": "box", "center": [0.0, -9.0, 0.0], "size": [1.0, 1.0, 1.0]}]})
+    cells = part_cells(far, ROBOT.backbone_radius, reach_box(ROBOT), CUTOFF)
+    assert cells.table.shape[:3] == (1, 1, 1) and cells.widths == (1, 1, 0, 0, 0)
+    row_min, true_min = row_and_true_minimum(far, cells, sample_points(far, 500, 3)[:500])
+    assert np.all(true_min > CUTOFF) and np.all(row_min >= true_min)
+
+
+def test_bad_table_settings_are_refused():
+    scene = load_scene("random_27")
+    with pytest.raises(ValueError, match="near"):
+        part_cells(scene, 0.1, reach_box(ROBOT), CUTOFF, near=0)
+    with pytest.raises(ValueError, match="cell_size"):
+        part_cells(scene, 0.1, reach_box(ROBOT), CUTOFF, cell_size=0.0)
+
+
+@pytest.mark.usefixtures("float64")
+@pytest.mark.parametrize(("name", "margin"), [
+    ("mixed", 1.5), pytest.param("mixed", 0.05, marks=pytest.mark.slow),
+    pytest.param("shelf", 0.05, marks=pytest.mark.slow),
+    pytest.param("shelf", 1.5, marks=pytest.mark.slow)])
+def test_group_jacobians_equal_autodiff_of_the_penalty_distances(name, margin):
+    """``grouped_shortfalls`` with the closed-form centre Jacobians (per-sphere distance
+    gradients collected per group, one contraction) against forward-mode autodiff of
+    ``clearance_group_values`` (``world._penalty``'s distances), float64, at 40 random
+    tdcr3 configurations, with the broad-phase table and without: a 1.5 m margin (every
+    sphere and the self pairs active) and a 0.05 m one (some spheres in contact)."""
+    scene = scene_named(name)
+    arrays = scene_arrays(scene, dtype=jnp.float64)
+    rng = np.random.default_rng(5)
+    z = rng.uniform(-1.2, 1.2, (40, ROBOT.dof))
+    z[:, 2::3] = 1.0
+    z = jnp.asarray(z)
+    values, auto = jax.jit(jax.vmap(lambda x: (
+        clearance_group_values(ROBOT, margin, arrays, x),
+        jax.jacfwd(partial(clearance_group_values, ROBOT, margin, arrays))(x))))(z)
+    active = np.asarray(values) > 0
+    assert active.sum() >= 10 and (margin < 1 or active[:, -1].all())
+    cells = part_cells(scene, ROBOT.backbone_radius, reach_box(ROBOT), margin, near=64,
+                       dtype=jnp.float64)
+    for table in (None, cells):
+        got = jax.jit(jax.vmap(lambda x, t=table: grouped_shortfalls(
+            ROBOT, margin, arrays, *body_centres_jacobian_z(ROBOT, x), t)))(z)
+        np.testing.assert_allclose(got[0], values, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(got[1], auto, rtol=0, atol=1e-9)
+
+
+@pytest.mark.usefixtures("float64")
+@pytest.mark.parametrize("margin", [1.0, 0.3])
+def test_self_pair_blocks_give_the_group_jacobian_of_every_pair(margin):
+    """The self group of ``grouped_shortfalls`` (pairs taken block by block, each block's
+    pulls summed back onto its spheres) against forward-mode autodiff of a plain sum over
+    ``clearance.self_pairs`` (one gathered pair at a time), float64, on a 4-segment robot
+    whose self pairs form three blocks, with a margin of 1 m and of 0.3 m."""
+    robot = load_robot(MODELS / "robots" / "tdcr4_ext.json")
+    pairs = self_pairs(robot)
+    rng = np.random.default_rng(11)
+    lo, hi = robot.q_bounds()
+    z = jnp.asarray(q_to_z_numpy(rng.uniform(lo, hi, (30, robot.dof))))
+
+    def reference(x):
+        centres = body_centres_z(robot, x)
+        diff = centres[pairs[:, 0]] - centres[pairs[:, 1]]
+        short = jnp.maximum(margin + 2 * robot.backbone_radius
+                            - jnp.linalg.norm(diff, axis=-1), 0.0)
+        return jnp.sqrt(jnp.sum(short ** 2) + 1e-18)[None] - 1e-9
+
+    expected = jax.jit(jax.vmap(reference))(z)
+    expected_jac = jax.jit(jax.vmap(jax.jacfwd(reference)))(z)
+    values, jac = jax.jit(jax.vmap(lambda x: grouped_shortfalls(
+        robot, margin, None, *body_centres_jacobian_z(robot, x))))(z)
+    active = np.asarray(expected[:, 0]) > 0
+    assert active.sum() >= 5
+    np.testing.assert_allclose(values, expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(jac, expected_jac, rtol=0, atol=1e-9)
