@@ -125,6 +125,7 @@ class _IKJobs(_PCCSettings):
 
     @staticmethod
     def failed(spec: JobSpec, count: int, reason: str) -> Any:
+        from .tasks._result import Stage
         from .tasks.geometry.ik import IKResult
 
         nan = np.full(count, np.nan)
@@ -132,7 +133,7 @@ class _IKJobs(_PCCSettings):
             spec.robot, np.full((count, spec.robot.dof), np.nan), np.full((count, 3), np.nan),
             np.full((count, 4), np.nan), nan, nan, nan, nan, nan,
             collision_free=np.zeros(count, bool), success=np.zeros(count, bool),
-            stage=["none"] * count, reason=[reason] * count).columns()
+            stage=[Stage.ERROR] * count, reason=[reason] * count).columns()
 
     @staticmethod
     def join(parts: list[Any]) -> Any:
@@ -311,7 +312,7 @@ class _TensionIKJobs(_TensionSettings):
             position_error=nan(), rotation_error=nan(), min_clearance=nan(),
             max_violation=nan(), success=np.zeros(count, bool), reason=[reason] * count,
             **loads, point_loads=[list(spec.loads["point_loads"]) for _ in range(count)],
-            tendon_displacements=nan(tendons), stage=[Stage.NONE] * count).columns()
+            tendon_displacements=nan(tendons), stage=[Stage.ERROR] * count).columns()
 
     join = staticmethod(_IKJobs.join)
 

@@ -70,7 +70,8 @@ def _ik(out: Path, exact: bool) -> DemoRow:
 
 
 def _plan(out: Path, exact: bool) -> DemoRow:
-    from .tasks.geometry.trajectory import TrajectoryPlanner, tendon_names
+    from .model.routing import tendon_names
+    from .tasks.geometry.trajectory import TrajectoryPlanner
     from .viz import trajectory_figure
     from .viz._figures import write_figure
 
@@ -94,8 +95,8 @@ def _plan(out: Path, exact: bool) -> DemoRow:
 
 
 def _follow(out: Path, exact: bool) -> DemoRow:
+    from .model.routing import tendon_names
     from .tasks.geometry.follow import PathFollower
-    from .tasks.geometry.trajectory import tendon_names
     from .viz import follow_figure
     from .viz._figures import write_figure
 

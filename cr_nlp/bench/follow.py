@@ -113,7 +113,7 @@ def run_follow_benchmark(shapes: Sequence[str] = SHAPES, modes: Sequence[str] = 
                                      dt=dt)
         rows.append(row)
         if out is not None:
-            from ..tasks.geometry.trajectory import tendon_names
+            from ..model.routing import tendon_names
             from ..viz import follow_figure
             from ..viz._figures import write_figure
 

@@ -108,7 +108,7 @@ def parse_vector3(text: str | None, what: str) -> list[float] | None:
     return values
 
 
-def parse_point_loads(values: list[str] | None) -> list[dict]:
+def point_loads_arg(values: list[str] | None) -> list[dict]:
     """``--point-load S,FX,FY,FZ[,MX,MY,MZ]`` options (arc length m, force N, moment N·m)
     as point-load objects ``{"s", "force", "moment"}``."""
     out = []

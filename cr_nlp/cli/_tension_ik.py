@@ -14,8 +14,8 @@ from ._io import (
     fmt,
     load_scene_arg,
     model_margin,
-    parse_point_loads,
     parse_vector3,
+    point_loads_arg,
     read_json,
     resolve,
     time_limit_arg,
@@ -62,7 +62,7 @@ def loads_from_args(args: argparse.Namespace, length: float) -> dict:
              "tip_moment": parse_vector3(args.tip_moment, "--tip-moment"),
              "gravity": parse_vector3(args.gravity, "--gravity"),
              "distributed_force": parse_vector3(args.distributed_force, "--distributed-force"),
-             "point_loads": parse_point_loads(args.point_load)}
+             "point_loads": point_loads_arg(args.point_load)}
     where = "the load options"
     if getattr(args, "loads", None):
         where = f"--loads: {args.loads}"

@@ -84,7 +84,7 @@ def _write_commands(path: str, robot: object, displacements: object) -> None:
     import csv
 
     from .._files import atomic_open
-    from ..tasks.geometry.trajectory import tendon_names
+    from ..model.routing import tendon_names
 
     if displacements is None:
         raise UsageError(f"--csv: {robot.name} has no actuation block (no calibrated zero); "

@@ -38,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     tip error summary when the file has measured tips."""
     import numpy as np
 
-    from ..model.hysteresis import history_of, predict_tip_series
+    from ..model.history import history_of, predict_tip_series
     from ..tasks.calibration.measurements import write_tip_csv
 
     if (args.data is None) == (args.compensate is None):

@@ -10,8 +10,8 @@ from ._io import (
     UsageError,
     load_robot_arg,
     parse_numbers,
-    parse_point_loads,
     parse_vector3,
+    point_loads_arg,
     read_json,
     write_json,
 )
@@ -170,7 +170,7 @@ def run(args: argparse.Namespace) -> int:
             [tensions], [parse_vector3(args.tip_force, "--tip-force") or [0.0, 0.0, 0.0]],
             [parse_vector3(args.tip_moment, "--tip-moment") or [0.0, 0.0, 0.0]], [None],
             [parse_vector3(args.distributed_force, "--distributed-force") or [0.0] * 3],
-            [parse_point_loads(args.point_load)])
+            [point_loads_arg(args.point_load)])
     try:
         result = solve_statics(
             robot, cases.tensions, cases.tip_force, cases.tip_moment,

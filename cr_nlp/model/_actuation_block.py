@@ -21,13 +21,13 @@ without ``axial_stiffness_ratio`` has incompressible segments."""
 @dataclass(frozen=True)
 class History:
     """The history-aware part of the actuation model (the ``actuation.history`` block,
-    ``model.hysteresis``): each tendon's command passes through K play (backlash)
+    ``model.history``): each tendon's command passes through K play (backlash)
     operators of widths r_k before the static model, as a Prandtl–Ishlinskii sum
 
         d_eff_j(t) = d_j(t) + Σ_k w_jk · (play_{r_k}(d_j)(t) − d_j(t)),
 
     with w_jk ≥ 0 and Σ_k w_jk < 1, so d_eff rises strictly with d (the operator is
-    invertible: ``model.hysteresis.compensate_commands``)."""
+    invertible: ``model.history.compensate_commands``)."""
 
     widths: tuple[float, ...]
     """Play widths r_k shared by every tendon, m (> 0, increasing)."""

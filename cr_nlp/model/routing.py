@@ -93,6 +93,12 @@ def routing_of(robot: Robot) -> TendonRouting:
     return TendonRouting(**arrays, shared=shared)
 
 
+def tendon_names(robot: Robot) -> list[str]:
+    """The tendons' names in the robot file's order (``tendon_lengths``' columns, the CSV
+    headers of every tendon series)."""
+    return routing_of(robot).names()
+
+
 def tendon_angles(robot: Robot) -> np.ndarray:
     """(T, n) angle α of each tendon inside each segment, rad (the robot's offsets)."""
     return routing_of(robot).angles(robot.tendons.offsets)

@@ -83,12 +83,18 @@ class Stage(enum.StrEnum):
     """The batched penalty LM (stage 2)."""
     POLISH = "polish"
     """Ipopt with the constraints as constraints (stage 3), accepted by the verdict."""
-    NONE = "none"
-    """IK: no answer; the target was refused before solving (``reason`` says why)."""
     REJECTED = "rejected"
-    """Trajectory: the problem was refused before planning (``reason`` says why)."""
+    """Every task: the input (a target, a problem) was refused before solving (``reason``
+    says why)."""
     ERROR = "error"
     """A batch job's chunk failed before solving (``cr_nlp.batch``)."""
+    NONE = "rejected"
+    """Deprecated alias of ``REJECTED`` (IK's refused targets were ``"none"`` until
+    2026-12-02; files that say so still read as ``REJECTED``)."""
+
+    @classmethod
+    def _missing_(cls, value: object) -> Stage | None:
+        return cls.REJECTED if value == "none" else None
 
 
 class Status(enum.StrEnum):
@@ -102,7 +108,7 @@ class Status(enum.StrEnum):
     """Never solved: the input was refused or its chunk failed (``reason`` says why)."""
 
 
-_UNSOLVED = (Stage.NONE, Stage.REJECTED, Stage.ERROR)
+_UNSOLVED = (Stage.REJECTED, Stage.ERROR)
 
 
 def status_of(success: bool, stage: Stage | str) -> Status:

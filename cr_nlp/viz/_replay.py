@@ -293,7 +293,7 @@ def _motion(
 ) -> Motion:
     """The motion of a trajectory or follow result, its verdict, ``detail`` and the
     minimum clearance as the summary."""
-    from ..tasks.geometry.trajectory import tendon_names
+    from ..model.routing import tendon_names
 
     return Motion(
         label=label,

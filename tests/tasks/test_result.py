@@ -110,7 +110,7 @@ def ik_result() -> IKResult:
     for name in ("pose_error", "position_error", "rotation_error", "max_violation",
                  "min_clearance"):
         getattr(result, name)[2] = np.nan
-    result.success[2], result.reason[2], result.stage[2] = False, "target is out of reach", "none"
+    result.success[2], result.reason[2], result.stage[2] = False, "target is out of reach", "rejected"
     return result
 
 
@@ -274,7 +274,7 @@ def test_results_of_schema_1_are_read_with_stage_and_notes_apart():
 
 
 def test_split_stage_and_stage_text_are_inverse():
-    for text in ("polish", "none", "refine (feasible: polish not needed)",
+    for text in ("polish", "rejected", "refine (feasible: polish not needed)",
                  "refine (straight) (polish failed: from refine (straight): Ipopt: "
                  "Infeasible_Problem_Detected)"):
         stage, notes = split_stage(text)
@@ -284,4 +284,6 @@ def test_split_stage_and_stage_text_are_inverse():
     with pytest.raises(ValueError, match="unbalanced"):
         split_stage("refine (polish failed")
     assert status_of(False, "rejected") == Status.REJECTED == status_of(False, Stage.NONE)
+    # One word for a refused input in every task; IK files of before 2026-12-02 said "none".
+    assert Stage("none") is Stage.REJECTED is Stage.NONE
     assert status_of(False, "polish") == Status.FAILED and status_of(True, "refine") == "success"

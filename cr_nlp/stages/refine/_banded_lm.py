@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg
 import numpy as np
 
-from ._lm import LMConfig, difference_jacobian, judge_step
+from ._lm import LMConfig, difference_jacobian, lm_step_rule
 
 UnaryResidual = Callable[[jax.Array, Any, Any], jax.Array]
 """r(z_t, params_t, shared) → (m₁,): depends on one waypoint z_t (d,)."""
@@ -394,7 +394,7 @@ def banded_lm_trip(terms: ChainResidual, project: Callable[[jax.Array], jax.Arra
 
     first = it < 0
     h_new, g_new, cost_new = step_system(z_trial)
-    verdict = judge_step(config, cost, cost_new, predicted, lam, nu, done, it + 1, first)
+    verdict = lm_step_rule(config, cost, cost_new, predicted, lam, nu, done, it + 1, first)
     keep = partial(jnp.where, verdict.accept)
     z, h, g = keep(z_trial, z), jax.tree_util.tree_map(keep, h_new, h), keep(g_new, g)
     cost, done, lam, nu = verdict.cost, verdict.done, verdict.damping, verdict.growth

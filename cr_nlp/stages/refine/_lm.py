@@ -123,7 +123,7 @@ def gave_up(config: LMConfig, judged: jax.Array, cost: jax.Array) -> jax.Array |
 
 
 class Judgement(NamedTuple):
-    """``judge_step``'s verdict on one trial step (per problem)."""
+    """``lm_step_rule``'s verdict on one trial step (per problem)."""
 
     accept: jax.Array
     """Whether the trial point replaces the iterate."""
@@ -137,7 +137,7 @@ class Judgement(NamedTuple):
     """ν, the factor λ grows by after the next rejection."""
 
 
-def judge_step(config: LMConfig, cost: jax.Array, cost_new: jax.Array, predicted: jax.Array,
+def lm_step_rule(config: LMConfig, cost: jax.Array, cost_new: jax.Array, predicted: jax.Array,
                damping: jax.Array, growth: jax.Array, done: jax.Array, judged: jax.Array,
                first: jax.Array | bool = False) -> Judgement:
     """The one step rule of both LMs (this dense one and ``stages.refine._banded_lm``).
@@ -241,7 +241,7 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
         z, h, g, cost, z_trial, predicted, lam, nu, done, it = state
         first = it < 0
         h_new, g_new, cost_new = normal_equations(z_trial)
-        verdict = judge_step(config, cost, cost_new, predicted, lam, nu, done, it + 1, first)
+        verdict = lm_step_rule(config, cost, cost_new, predicted, lam, nu, done, it + 1, first)
         accept = verdict.accept
         z = jnp.where(accept[:, None], z_trial, z)
         h = jnp.where(accept[:, None, None], h_new, h)

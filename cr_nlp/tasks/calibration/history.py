@@ -1,4 +1,4 @@
-"""Calibration of the history-aware actuation model (issue 42; ``model.hysteresis``).
+"""Calibration of the history-aware actuation model (issue 42; ``model.history``).
 
 The static model (``tasks.calibration.calibrate``) is fitted first and kept; the history fit then
 finds the play widths r_k (shared by the tendons) and the per-tendon weights w_jk that
@@ -31,7 +31,7 @@ from scipy.optimize import least_squares
 
 from ...model import Robot
 from ...model.actuation import actuation_of, measured_point, params_of
-from ...model.hysteresis import History, effective_commands_jax, predict_tip_series
+from ...model.history import History, effective_commands_jax, predict_tip_series
 from ...runtime import configure
 from .calibrate import ErrorStats, robot_length
 from .measurements import Measurements
@@ -322,7 +322,7 @@ def compensate_plan(robot: Robot, q: Any) -> Compensation:
     with the predicted tip error of both (m). Raises ValueError without a history block or
     with rows of q that are not finite (an IK target without an answer)."""
     from ...model.actuation import commands_for_configuration, predict_tip
-    from ...model.hysteresis import compensate_commands, history_of
+    from ...model.history import compensate_commands, history_of
 
     history = history_of(robot)
     if history is None:

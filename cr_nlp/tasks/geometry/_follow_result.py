@@ -14,6 +14,7 @@ from ..._files import atomic_open
 from ...model import Robot
 from ...model.kinematics import pose_error, tip_pose
 from ...model.rotations import matrix_from_wxyz, wxyz_from_matrix
+from ...model.routing import tendon_names
 from ...world._motion import MotionVerification
 from .._result import (
     OneStage,
@@ -29,7 +30,7 @@ from .._result import (
 )
 from .._timing import StageTiming
 from ..paths import ReferencePath
-from ._trajectory_result import controller_columns, tendon_names
+from ._trajectory_result import controller_columns
 
 
 def tracking_errors(robot: Robot, q: np.ndarray, positions: np.ndarray,
@@ -285,7 +286,7 @@ class FollowResult(OneStage, ResultIO):
 
     def save_csv(self, path: str | Path) -> Path:
         """The tendon-length series for a controller: ``time_s``, then one column per
-        tendon (``trajectory.tendon_names``), lengths in metres, one row per waypoint."""
+        tendon (``model.routing.tendon_names``), lengths in metres, one row per waypoint."""
         return write_series_csv(path, self.times, *controller_columns(
             self.robot, self.tendon_lengths, self.tendon_displacements))
 

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..._files import atomic_open
 from ...model import Robot
-from ...model.routing import routing_of
+from ...model.routing import tendon_names
 from ...world._motion import MotionVerification
 from .._result import (
     SCHEMA_VERSION,
@@ -187,11 +187,6 @@ def controller_columns(robot: Robot, lengths: np.ndarray,
         return tendon_names(robot), lengths
     return ([*tendon_names(robot), *(f"{name}_displacement" for name in tendon_names(robot))],
             np.hstack([lengths, displacements]))
-
-
-def tendon_names(robot: Robot) -> list[str]:
-    """Column names of the tendon-length series (CSV), in ``tendon_lengths`` order."""
-    return routing_of(robot).names()
 
 
 def _trajectories_fields(results: list[TrajectoryResult],

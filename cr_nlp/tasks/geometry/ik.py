@@ -155,7 +155,7 @@ class _Checked:
     """``verify``'s report on the answer alone (None: the result holds it)."""
 
 
-_STAGES = np.array([Stage.NONE, Stage.REFINE], dtype=object)
+_STAGES = np.array([Stage.REJECTED, Stage.REFINE], dtype=object)
 """A target's stage after the search by its validity (0: refused, 1: searched)."""
 
 

@@ -76,7 +76,6 @@ from ._trajectory_result import TrajectoryResult as TrajectoryResult
 from ._trajectory_result import controller_columns as controller_columns
 from ._trajectory_result import result_from_verdict
 from ._trajectory_result import save_results as save_results
-from ._trajectory_result import tendon_names as tendon_names
 from ._trajectory_result import trajectories_from_dict as trajectories_from_dict
 from ._trajectory_result import trajectories_to_dict as trajectories_to_dict
 
@@ -558,3 +557,7 @@ def with_horizon(config: TrajectoryConfig, waypoints: int | None,
     if dt is not None:
         changes["dt"] = float(dt)
     return replace(config, **changes)
+
+from ..._moved import moved_names  # noqa: E402 — the old address, for one release
+
+__getattr__ = moved_names(__name__, {"tendon_names": "cr_nlp.model.routing"})

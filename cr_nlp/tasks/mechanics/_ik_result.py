@@ -62,7 +62,7 @@ class TensionIKResult(ResultIO):
     judged."""
     stage: list[Stage] = field(default_factory=list)
     """Per answer: ``Stage.REFINE`` (the LM in tension space), ``Stage.POLISH`` (exact
-    mode: Ipopt's answer, accepted by the verdict), or ``Stage.NONE`` for a target refused
+    mode: Ipopt's answer, accepted by the verdict), or ``Stage.REJECTED`` for a target refused
     before solving."""
     notes: list[list[str]] = field(default_factory=list)
     """Per answer, free text qualifying its stage (why a polish was not accepted)."""

@@ -341,7 +341,7 @@ class TensionIKSolver:
             setattr(full, name, out)
         full.target_position = positions
         full.reason = ["the target has non-finite coordinates"] * count
-        full.stage = [Stage.NONE] * count
+        full.stage = [Stage.REJECTED] * count
         full.notes = [[] for _ in range(count)]
         for i, j in zip(np.flatnonzero(finite).tolist(), range(len(part)), strict=True):
             full.stage[i], full.notes[i] = part.stage[j], part.notes[j]

@@ -1,16 +1,16 @@
-"""The one LM step rule (``stages.refine._lm.judge_step``) that the dense and banded LMs share,
+"""The one LM step rule (``stages.refine._lm.lm_step_rule``) that the dense and banded LMs share,
 against Nielsen's rule worked by hand."""
 
 import jax.numpy as jnp
 import numpy as np
 
-from cr_nlp.stages.refine._lm import LMConfig, judge_step
+from cr_nlp.stages.refine._lm import LMConfig, lm_step_rule
 
 CONFIG = LMConfig(give_up=((5, 1.0),))
 
 
 def judge(cost, cost_new, predicted, damping=0.1, growth=2.0, judged=1, first=False):
-    out = judge_step(CONFIG, jnp.asarray(cost), jnp.asarray(cost_new), jnp.asarray(predicted),
+    out = lm_step_rule(CONFIG, jnp.asarray(cost), jnp.asarray(cost_new), jnp.asarray(predicted),
                      jnp.asarray(damping), jnp.asarray(growth), jnp.asarray(False),
                      jnp.asarray(judged), first)
     return tuple(np.asarray(v).item() for v in out)

@@ -14,7 +14,7 @@ import pytest
 from cr_nlp.cli import main
 from cr_nlp.model import ModelFileError, Robot, load_robot
 from cr_nlp.model.actuation import configuration_from_commands, predict_tip
-from cr_nlp.model.hysteresis import (
+from cr_nlp.model.history import (
     History,
     compensate_commands,
     effective_commands,

@@ -157,7 +157,7 @@ def test_host_work_is_per_batch_not_per_target(solver3: IKSolver,
     calls.clear()
     result = solver3.solve(positions, wxyz)
     assert [result.status, result.stage_text] and len(result) == 200
-    assert result.stage[7] == "none" and result.status[7] == "rejected"
+    assert result.stage[7] == "rejected" and result.status[7] == "rejected"
     assert result.stage_text[0] == "refine" and result.success.sum() >= 190
     assert calls["split_stage"] <= 2            # once per distinct stage: refine, none
     assert calls["stage_text"] == 0             # no answer carries notes
