@@ -1,4 +1,5 @@
-"""``cr-nlp bench ik|plan|follow|clearance|batch|statics|tension``: benchmarks that print tables.
+"""``cr-nlp bench ik|plan|follow|clearance|batch|statics|tension|startup|calibration``:
+benchmarks that print tables.
 
 Every benchmark gets the same options from ``add_common_options`` (``--out`` folder,
 ``--repeats``, ``--robot``, ``--seed``, ``--devices``, ``--no-progress``, ``--markdown``) and
@@ -385,6 +386,39 @@ def _run_startup(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_calibration(group: argparse._SubParsersAction) -> None:
+    from ..bench.calibration import FAMILIES
+
+    p = group.add_parser("calibration", help="the train-only fold score of a calibration: "
+                                             "each family of patterns held out in turn")
+    p.add_argument("--families", default=",".join(FAMILIES),
+                   help=f"comma-separated families to hold out (default: all, "
+                        f"{','.join(FAMILIES)})")
+    p.add_argument("--axial-compression", nargs="?", const="segments",
+                   choices=("segments", "tendons"),
+                   help="fit the axial compliance (as cr-nlp calibrate's option)")
+    p.add_argument("--history", action="store_true",
+                   help="score the history-aware models (each fold refits the static one)")
+    add_common_options(p, "calibration", robot=False)
+    p.add_argument("--robot", default="ftdcr_v6",
+                   help="bundled robot with a training recording (default ftdcr_v6)")
+    p.set_defaults(run=_run_calibration)
+
+
+def _run_calibration(args: argparse.Namespace) -> int:
+    from ..bench.calibration import run_calibration_benchmark
+
+    try:
+        run_calibration_benchmark(robot=args.robot, families=tuple(args.families.split(",")),
+                                  axial_compression=args.axial_compression,
+                                  history=args.history, out=args.out,
+                                  progress=not args.no_progress)
+    except ValueError as exc:
+        raise UsageError(f"--families: {exc}") from None
+    _wrote(args, "calibration")
+    return 0
+
+
 BENCHMARKS = [_add_ik, _add_plan, _add_follow, _add_clearance, _add_batch, _add_statics,
-              _add_tension, _add_startup]
+              _add_tension, _add_startup, _add_calibration]
 """The ``cr-nlp bench`` benchmarks, in ``--help`` order."""

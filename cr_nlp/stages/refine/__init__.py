@@ -1,6 +1,7 @@
 """Stage 2, refine: batched penalty LM in JAX.
 
-The public face (what ``tasks/`` imports): the dense LM (``lm_solve``, ``LMConfig``), the
+The public face (what ``tasks/`` imports): the dense LM (``lm_solve``, ``LMConfig``, its
+``LMSolution`` with why each problem stopped, ``STOP_REASONS``), the
 banded LM of chains (``banded_lm_solve``, ``ChainResidual``), and the mechanics family's
 rows on the Cosserat rod for one waypoint and for a motion (``_tension_lm``); loaded on
 first use, the PCC family's machinery: the fused IK search (``IKSearch``,
@@ -12,7 +13,9 @@ trajectory guess selection (``select_guesses``), path continuation
 from .._faces import lazy_face
 from ._banded_lm import ChainResidual as ChainResidual
 from ._banded_lm import banded_lm_solve as banded_lm_solve
+from ._lm import STOP_REASONS as STOP_REASONS
 from ._lm import LMConfig as LMConfig
+from ._lm import LMSolution as LMSolution
 from ._lm import lm_solve as lm_solve
 from ._tension_lm import MotionTerms as MotionTerms
 from ._tension_lm import TensionTerms as TensionTerms

@@ -90,7 +90,7 @@ def _lm_on_active(residual: Residual, project: Projection, plan: SearchPlan, z: 
         # it iterates exactly as that row, so it never holds the block's loop back.
         idx = jnp.where(live, jax.lax.dynamic_slice_in_dim(order, b * block, block), first)
         block_params = jax.tree.map(lambda p: p[target_of[idx]], params)
-        z_b, c_b, it = lm_solve(residual, project, z[idx], block_params, shared, free,
+        z_b, c_b, it, _ = lm_solve(residual, project, z[idx], block_params, shared, free,
                                 iterations, config=plan.lm)
         write = jnp.where(live, idx, rows)  # out of range: dropped
         z = z.at[write].set(z_b, mode="drop")

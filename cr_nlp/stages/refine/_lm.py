@@ -122,6 +122,31 @@ def gave_up(config: LMConfig, judged: jax.Array, cost: jax.Array) -> jax.Array |
     return out
 
 
+STOP_REASONS = ("running", "converged", "stalled", "damping cap", "gave up",
+                "out of iterations")
+"""Why an LM problem stopped, by code (``LMSolution.reason``, ``Judgement.stop``): still
+running (a loop's state only), its cost below ``cost_tolerance``, an accepted step that
+gained less than ``stall_tolerance``, λ past 1e10, the give-up rule
+(``LMConfig.give_up``), or the iteration budget spent first."""
+
+
+class LMSolution(NamedTuple):
+    """``lm_solve``'s answer: per problem, and the loop's trips."""
+
+    z: jax.Array
+    """(B, n) the last accepted iterates."""
+    cost: jax.Array
+    """(B,) their cost ½‖r‖²."""
+    iterations: jax.Array
+    """The loop's trips (a scalar: the batch iterates together)."""
+    reason: jax.Array
+    """(B,) int8, why each problem stopped: an index of ``STOP_REASONS`` (1–5)."""
+
+    def reasons(self) -> list[str]:
+        """``reason`` in words (host side)."""
+        return [STOP_REASONS[int(k)] for k in jax.device_get(self.reason)]
+
+
 class Judgement(NamedTuple):
     """``lm_step_rule``'s verdict on one trial step (per problem)."""
 
@@ -135,6 +160,9 @@ class Judgement(NamedTuple):
     """λ for the next step."""
     growth: jax.Array
     """ν, the factor λ grows by after the next rejection."""
+    stop: jax.Array
+    """int8, why this step ended the problem (an index of ``STOP_REASONS``; 0 where it
+    did not, or where the problem was done before)."""
 
 
 def lm_step_rule(config: LMConfig, cost: jax.Array, cost_new: jax.Array, predicted: jax.Array,
@@ -153,21 +181,25 @@ def lm_step_rule(config: LMConfig, cost: jax.Array, cost_new: jax.Array, predict
     rho = (cost - cost_new) / jnp.maximum(predicted, 1e-30)
     accept = first | ((cost_new < cost) & jnp.isfinite(cost_new))
     stalled = ~first & accept & (cost - cost_new < config.stall_tolerance * cost)
-    done = done | stalled | (cost_new < config.cost_tolerance) | (damping > 1e10)
+    converged = cost_new < config.cost_tolerance
+    capped = damping > 1e10
     cost = jnp.where(accept, cost_new, cost)
-    done = done | gave_up(config, judged, cost)  # still deep in a penalty
+    given_up = gave_up(config, judged, cost)  # still deep in a penalty
+    stop = jnp.select([done, converged, stalled, capped, jnp.asarray(given_up) & ~first],
+                      [0, 1, 2, 3, 4], 0).astype(jnp.int8)
+    done = done | stalled | converged | capped | given_up
     shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * jnp.clip(rho, 0.0, 1.0) - 1.0) ** 3)
     stepped = jnp.clip(jnp.where(accept, damping * shrink, damping * growth), 1e-12, 1e12)
     dtype = damping.dtype
     return Judgement(accept, cost, done, jnp.where(first, damping, stepped).astype(dtype),
-                     jnp.where(first, growth, jnp.where(accept, 2.0, growth * 2.0)).astype(dtype))
+                     jnp.where(first, growth, jnp.where(accept, 2.0, growth * 2.0)).astype(dtype),
+                     stop)
 
 
 @partial(jax.jit, static_argnames=("residual", "project", "config"))
 def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any, shared: Any,
              free: jax.Array, iterations: jax.Array, config: LMConfig = LMConfig(),
-             bounds: tuple[jax.Array, jax.Array] | None = None
-             ) -> tuple[jax.Array, jax.Array, jax.Array]:
+             bounds: tuple[jax.Array, jax.Array] | None = None) -> LMSolution:
     """Run projected LM on a batch.
 
     Long: one traced while_loop whose step helpers close over residual, bounds and config.
@@ -188,7 +220,8 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
             others is not spoiled by a clipped one.
 
     Returns:
-        z (B, n), final cost ½‖r‖² (B,), iterations used (scalar).
+        ``LMSolution``: z (B, n), final cost ½‖r‖² (B,), iterations used (scalar) and why
+        each problem stopped (``STOP_REASONS``).
     """
     dtype = z0.dtype
     free = free.astype(dtype)
@@ -238,7 +271,7 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
         # One evaluation per trip, at the trial point (z0 on the first trip, which is
         # always accepted): the residual and its Jacobian are traced once, and a
         # rejected step costs no new Jacobian at the point it came from.
-        z, h, g, cost, z_trial, predicted, lam, nu, done, it = state
+        z, h, g, cost, z_trial, predicted, lam, nu, done, why, it = state
         first = it < 0
         h_new, g_new, cost_new = normal_equations(z_trial)
         verdict = lm_step_rule(config, cost, cost_new, predicted, lam, nu, done, it + 1, first)
@@ -247,8 +280,9 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
         h = jnp.where(accept[:, None, None], h_new, h)
         g = jnp.where(accept[:, None], g_new, g)
         cost, done, lam, nu = verdict.cost, verdict.done, verdict.damping, verdict.growth
+        why = jnp.where(why == 0, verdict.stop, why)
         z_trial, predicted = trial(z, h, g, lam)
-        return z, h, g, cost, z_trial, predicted, lam, nu, done, it + 1
+        return z, h, g, cost, z_trial, predicted, lam, nu, done, why, it + 1
 
     def running(state: tuple) -> jax.Array:
         *_, done, it = state
@@ -260,6 +294,8 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
     lam0 = zero + jnp.asarray(config.initial_damping, dtype)
     nu0 = zero + jnp.asarray(2.0, dtype)
     state = (z0, jnp.zeros_like(z0[:, :, None] * z0[:, None, :]), jnp.zeros_like(z0),
-             zero + jnp.inf, z0, zero, lam0, nu0, zero > 0, jnp.int32(-1))
-    z, _, _, cost, *_, it = jax.lax.while_loop(running, body, state)
-    return z, cost, it
+             zero + jnp.inf, z0, zero, lam0, nu0, zero > 0, (zero > 0).astype(jnp.int8),
+             jnp.int32(-1))
+    z, _, _, cost, *_, why, it = jax.lax.while_loop(running, body, state)
+    out_of_iterations = jnp.asarray(STOP_REASONS.index("out of iterations"), jnp.int8)
+    return LMSolution(z, cost, it, jnp.where(why == 0, out_of_iterations, why))

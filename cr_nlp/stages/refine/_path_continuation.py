@@ -117,7 +117,7 @@ def continue_chains(residual: WaypointResidual, score: WaypointResidual | None,
         # so a few LM steps finish it. A chain that holds still tracks nothing (switch 0),
         # so that it never keeps the batch's LM loop running.
         held = (positions[at], rotations[at], jnp.where(moving[:, 0], track[at], 0.0))
-        solved, cost, _ = lm_solve(residual, project, z + velocity, held, shared, free,
+        solved, cost, *_ = lm_solve(residual, project, z + velocity, held, shared, free,
                                    jnp.int32(iterations), config=config)
         z_out = jnp.where(moving, solved, z)
         velocity = jnp.where(moving, z_out - z, velocity)

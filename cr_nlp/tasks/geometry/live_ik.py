@@ -142,7 +142,7 @@ class LiveIKSolver:
             jnp.asarray(position[None], self.dtype),
             jnp.asarray(rotation.reshape(1, 9), self.dtype),
         )
-        z, _, _ = lm_solve(
+        z = lm_solve(
             self._residual,
             self._project,
             jnp.asarray(z0, self.dtype),

@@ -218,7 +218,7 @@ class TensionIKSolver:
         tensions, moments = self._start(positions, loads, 0)
         timing.explore = time.perf_counter() - start
         start = time.perf_counter()
-        tensions = self._lm(tensions, positions, quats, loads, moments)
+        tensions, stopped = self._lm_stopped(tensions, positions, quats, loads, moments)
         timing.refine = time.perf_counter() - start
         start = time.perf_counter()
         result = self._verdict(tensions, positions, quats, loads, timing)
@@ -230,13 +230,17 @@ class TensionIKSolver:
             start = time.perf_counter()
             part = loads.rows(failed)
             seeds, moments = self._start(positions[failed], part, k)
-            retry = self._lm(seeds, positions[failed], quats[failed], part, moments)
+            retry, why = self._lm_stopped(seeds, positions[failed], quats[failed], part,
+                                          moments)
             timing.refine += time.perf_counter() - start
             start = time.perf_counter()
             again = self._verdict(retry, positions[failed], quats[failed], part, timing)
             better = again.success | (again.pose_error < result.pose_error[failed])
             _replace_rows(result, again, failed[better], np.flatnonzero(better))
+            stopped[failed[better]] = why[better]
             timing.verify += time.perf_counter() - start
+        for i in np.flatnonzero(~result.success):   # why the LM left a rejected answer
+            result.notes[i].append(f"refine: the LM {stopped[i]}")
         if exact:
             self._polish(result, positions, quats, loads, time_limit, timing)
         result.timing = timing
@@ -427,6 +431,13 @@ class TensionIKSolver:
         """LM from the given tensions (and M(0) (B, 3) N·m, base frame, where known: a warm
         start); returns the answer's tensions (B, n), N. The batch is padded to a power of
         two, at least ``smallest`` (a few compiled programs for every batch size)."""
+        return self._lm_stopped(tensions, positions, quats, loads, base_moment, smallest)[0]
+
+    def _lm_stopped(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,
+                    loads: StaticLoads, base_moment: np.ndarray | None = None,
+                    smallest: int = 16) -> tuple[np.ndarray, np.ndarray]:
+        """``_lm`` and why the LM stopped on each target ((B,) words of
+        ``stages.refine.STOP_REASONS``)."""
         cfg = self.config
         dtype = np.float64 if cfg.statics.dtype == "float64" else np.float32
         shoot, params, moment = self.waypoint_params(positions, quats, loads)
@@ -440,12 +451,13 @@ class TensionIKSolver:
 
         with jax.enable_x64(dtype == np.float64):
             shared = self._device_scene(dtype)
-            z, _, _ = lm_solve(self._residuals[shoot], self._project, padded(z0),
-                               jax.tree_util.tree_map(padded, params), shared,
-                               jnp.ones(z0.shape[1], dtype), jnp.asarray(cfg.iterations),
-                               self.lm_config(), bounds=box_bounds(terms, dtype))
-            z = np.asarray(z, dtype=float)[:len(z0)]
-        return tensions_of_unknowns(terms, z)
+            solution = lm_solve(self._residuals[shoot], self._project, padded(z0),
+                                jax.tree_util.tree_map(padded, params), shared,
+                                jnp.ones(z0.shape[1], dtype), jnp.asarray(cfg.iterations),
+                                self.lm_config(), bounds=box_bounds(terms, dtype))
+            z = np.asarray(solution.z, dtype=float)[:len(z0)]
+        return (tensions_of_unknowns(terms, z),
+                np.array(solution.reasons()[:len(z0)], dtype=object))
 
     def _verdict(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,
                  loads: StaticLoads, timing: StageTiming) -> TensionIKResult:

@@ -4,6 +4,7 @@ against Nielsen's rule worked by hand."""
 import jax.numpy as jnp
 import numpy as np
 
+from cr_nlp.stages.refine import STOP_REASONS, lm_solve
 from cr_nlp.stages.refine._lm import LMConfig, lm_step_rule
 
 CONFIG = LMConfig(give_up=((5, 1.0),))
@@ -13,7 +14,7 @@ def judge(cost, cost_new, predicted, damping=0.1, growth=2.0, judged=1, first=Fa
     out = lm_step_rule(CONFIG, jnp.asarray(cost), jnp.asarray(cost_new), jnp.asarray(predicted),
                      jnp.asarray(damping), jnp.asarray(growth), jnp.asarray(False),
                      jnp.asarray(judged), first)
-    return tuple(np.asarray(v).item() for v in out)
+    return tuple(np.asarray(v).item() for v in out[:5])   # the stop code: tested below
 
 
 def test_a_step_that_gains_what_the_model_predicted_shrinks_the_damping_threefold() -> None:
@@ -52,3 +53,38 @@ def test_a_first_trip_is_accepted_and_keeps_damping_and_growth() -> None:
     assert accept and cost == 3.0 and not done
     np.testing.assert_allclose(damping, 0.1)
     assert growth == 2.0
+
+
+def _cubic(z, params, shared):
+    """r = ((z − a)³, c) for z ∈ R: Gauss–Newton shrinks z − a by ⅓ per step; with c = 0 the
+    cost reaches zero (converged), with c = 1 it stays above ½ and its gains fade (stalled)."""
+    return jnp.concatenate([(z - params[0]) ** 3, params[1]])
+
+
+def _line(z, params, shared):
+    """r = (z − a, z − b): least squares at (a + b)/2, reached in one step."""
+    return jnp.concatenate([z - params[0], z - params[1]])
+
+
+def test_lm_solve_says_why_each_problem_stopped() -> None:
+    # One batch: a zero-cost root (converged) and a cost floor (stalled); with one
+    # iteration, both out of iterations.
+    params = (jnp.asarray([[1.0], [1.0]]), jnp.asarray([[0.0], [1.0]]))
+    z0 = jnp.asarray([[5.0], [5.0]])
+    free = jnp.ones(1)
+    solved = lm_solve(_cubic, lambda z: z, z0, params, None, free, jnp.int32(200))
+    assert solved.reasons() == ["converged", "stalled"]
+    np.testing.assert_allclose(np.asarray(solved.z)[:, 0], [1.0, 1.0], atol=0.1)
+    assert solved.reason.dtype == jnp.int8 and set(solved.reasons()) <= set(STOP_REASONS)
+    short = lm_solve(_cubic, lambda z: z, z0, params, None, free, jnp.int32(1))
+    assert short.reasons() == ["out of iterations"] * 2
+    # A linear least-squares problem with a cost floor: solved in one step, after which
+    # every trial is rejected until the damping passes its cap.
+    line = (jnp.asarray([[0.0]]), jnp.asarray([[2.0]]))
+    capped = lm_solve(_line, lambda z: z, z0[:1], line, None, free, jnp.int32(200))
+    assert capped.reasons() == ["damping cap"]
+    params = (jnp.asarray([[1.0], [0.0]]), jnp.asarray([[1.0], [2.0]]))
+    # The give-up rule: still above a cost of 1e-9 after 2 judged steps.
+    stubborn = LMConfig(give_up=((2, 1e-9),), stall_tolerance=0.0)
+    gave = lm_solve(_line, lambda z: z, z0, params, None, free, jnp.int32(50), config=stubborn)
+    assert gave.reasons()[1] == "gave up"

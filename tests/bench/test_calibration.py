@@ -1,0 +1,32 @@
+"""``cr-nlp bench calibration`` (the train-only fold score): the families of the bundled
+recording and the refusals; the fits themselves are benchmark runs, not tests."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from cr_nlp.bench.calibration import FAMILIES, family_labels, family_of, run_calibration_benchmark
+
+
+def test_every_training_row_belongs_to_one_family() -> None:
+    labels = family_labels("ftdcr_v6")
+    names, counts = np.unique(labels, return_counts=True)
+    assert sorted(names) == sorted(FAMILIES) and counts.min() > 0
+    assert family_of("rep1_pair12_opp_dir0") == "pair12"
+    with pytest.raises(ValueError, match="belongs to no family"):
+        family_of("rep1_circle_dir0")
+
+
+def test_bad_families_are_refused_before_any_fit() -> None:
+    with pytest.raises(ValueError, match="unknown family 'pairs'"):
+        run_calibration_benchmark(families=("pairs",))
+    with pytest.raises(ValueError, match="no subset"):
+        run_calibration_benchmark(families=("seg",), history=True)
+    run = subprocess.run([sys.executable, "-m", "cr_nlp.cli", "bench", "calibration",
+                          "--families", "seg,nope"], capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 2 and "--families: unknown family 'nope'" in run.stderr
