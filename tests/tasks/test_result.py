@@ -110,7 +110,8 @@ def ik_result() -> IKResult:
     for name in ("pose_error", "position_error", "rotation_error", "max_violation",
                  "min_clearance"):
         getattr(result, name)[2] = np.nan
-    result.success[2], result.reason[2], result.stage[2] = False, "target is out of reach", "rejected"
+    result.success[2], result.stage[2] = False, "rejected"
+    result.reason[2] = "target is out of reach"
     return result
 
 
