@@ -1,18 +1,18 @@
 """Stage 1, explore: starting points for the LM (seed pool, roadmap, guesses, sequences).
 
-The public face (what ``tasks/`` imports): the mechanics family's tension seed pool,
-cached on disk per robot and load case (``tension_pool``, ``TensionPool``); loaded on
-first use, the PCC planner's roadmap (``Roadmap``, ``RoadmapConfig``) and initial
-trajectory guesses (``initial_guesses``)."""
+The public face (what ``tasks/`` imports), every name loaded on first use (a PCC task
+does not import the rod): the mechanics family's tension seed pool, cached on disk per
+robot and load case (``tension_pool``, ``TensionPool``), the PCC planner's roadmap
+(``Roadmap``, ``RoadmapConfig``) and initial trajectory guesses (``initial_guesses``)."""
 
 from .._faces import lazy_face
-from ._tension_pool import TensionPool as TensionPool
-from ._tension_pool import random_tensions as random_tensions
-from ._tension_pool import tension_pool as tension_pool
-from ._tension_pool import tension_pool_cache_stats as tension_pool_cache_stats
-from ._tension_pool import tension_pool_path as tension_pool_path
 
-_LAZY = {"Roadmap": ("._roadmap", "Roadmap"),
+_LAZY = {"TensionPool": ("._tension_pool", "TensionPool"),
+         "random_tensions": ("._tension_pool", "random_tensions"),
+         "tension_pool": ("._tension_pool", "tension_pool"),
+         "tension_pool_cache_stats": ("._tension_pool", "tension_pool_cache_stats"),
+         "tension_pool_path": ("._tension_pool", "tension_pool_path"),
+         "Roadmap": ("._roadmap", "Roadmap"),
          "RoadmapConfig": ("._roadmap", "RoadmapConfig"),
          "initial_guesses": ("._trajectory_guesses", "initial_guesses")}
 

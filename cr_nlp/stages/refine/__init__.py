@@ -1,14 +1,14 @@
 """Stage 2, refine: batched penalty LM in JAX.
 
 The public face (what ``tasks/`` imports): the dense LM (``lm_solve``, ``LMConfig``, its
-``LMSolution`` with why each problem stopped, ``STOP_REASONS``), the
-banded LM of chains (``banded_lm_solve``, ``ChainResidual``), and the mechanics family's
-rows on the Cosserat rod for one waypoint and for a motion (``_tension_lm``); loaded on
-first use, the PCC family's machinery: the fused IK search (``IKSearch``,
-``SearchSettings``, ``SearchPlan``, ``RetryPlan``), the chain stream (``ChainBatchLM``),
-trajectory guess selection (``select_guesses``), path continuation
-(``BranchContinuation``, ``ContinuationSettings``) and the tendon-limit penalties
-(``tendon_speed_excess``, ``tendon_accel_excess``)."""
+``LMSolution`` with why each problem stopped, ``STOP_REASONS``) and the banded LM of
+chains (``banded_lm_solve``, ``ChainResidual``); loaded on first use (a PCC task does not
+import the rod, nor a mechanics task the PCC search): the mechanics family's rows on the
+Cosserat rod for one waypoint and for a motion (``_tension_lm``), and the PCC family's
+fused IK search (``IKSearch``, ``SearchSettings``, ``SearchPlan``, ``RetryPlan``), chain
+stream (``ChainBatchLM``), trajectory guess selection (``select_guesses``), path
+continuation (``BranchContinuation``, ``ContinuationSettings``) and tendon-limit
+penalties (``tendon_speed_excess``, ``tendon_accel_excess``)."""
 
 from .._faces import lazy_face
 from ._banded_lm import ChainResidual as ChainResidual
@@ -17,20 +17,20 @@ from ._lm import STOP_REASONS as STOP_REASONS
 from ._lm import LMConfig as LMConfig
 from ._lm import LMSolution as LMSolution
 from ._lm import lm_solve as lm_solve
-from ._tension_lm import MotionTerms as MotionTerms
-from ._tension_lm import TensionTerms as TensionTerms
-from ._tension_lm import WaypointParams as WaypointParams
-from ._tension_lm import base_frame as base_frame
-from ._tension_lm import box_bounds as box_bounds
-from ._tension_lm import chain_length as chain_length
-from ._tension_lm import project_box as project_box
-from ._tension_lm import solve_motion as solve_motion
-from ._tension_lm import tensions_of_unknowns as tensions_of_unknowns
-from ._tension_lm import unknowns_of as unknowns_of
-from ._tension_lm import waypoint_params as waypoint_params
-from ._tension_lm import waypoint_residual as waypoint_residual
 
-_LAZY = {"IKSearch": ("._ik_driver", "IKSearch"),
+_LAZY = {"MotionTerms": ("._tension_lm", "MotionTerms"),
+         "TensionTerms": ("._tension_lm", "TensionTerms"),
+         "WaypointParams": ("._tension_lm", "WaypointParams"),
+         "base_frame": ("._tension_lm", "base_frame"),
+         "box_bounds": ("._tension_lm", "box_bounds"),
+         "chain_length": ("._tension_lm", "chain_length"),
+         "project_box": ("._tension_lm", "project_box"),
+         "solve_motion": ("._tension_lm", "solve_motion"),
+         "tensions_of_unknowns": ("._tension_lm", "tensions_of_unknowns"),
+         "unknowns_of": ("._tension_lm", "unknowns_of"),
+         "waypoint_params": ("._tension_lm", "waypoint_params"),
+         "waypoint_residual": ("._tension_lm", "waypoint_residual"),
+         "IKSearch": ("._ik_driver", "IKSearch"),
          "SearchSettings": ("._ik_driver", "SearchSettings"),
          "SearchPlan": ("._ik_program", "SearchPlan"),
          "RetryPlan": ("._ik_program", "RetryPlan"),
