@@ -1,9 +1,9 @@
 """The clearance rows of a solved Cosserat backbone in a tension-space exact stage (IK and
-motions): body spheres of ``backbone_radius`` at the rod's grid points and at the
-midpoints of its chords (the capsule chain the verdict checks), one row ``d ≥ δ'`` per
-(sphere, nearby obstacle part) pair and per nearby self pair (spheres on segments at least
-two apart), in the pair slots of ``stages.polish._clearance_rows``. δ' is the margin plus
-the most the capsule chain can come nearer than its spheres. Units: metres.
+motions): body spheres of ``backbone_radius`` at the rod's grid points and along its
+chords (the capsule chain the verdict checks: IK the midpoints, a motion more), one row
+``d ≥ δ'`` per (sphere, nearby obstacle part) pair and per nearby self pair (spheres on
+segments at least two apart), in the pair slots of ``stages.polish._clearance_rows``. δ' is
+the margin plus the most the capsule chain can come nearer than its spheres. Units: metres.
 
 One ``RodClearance`` serves one rod; a motion's NLP calls ``rows`` once per rod (each call
 makes its own slot parameters) and selects each rod's slots from its own distances.
@@ -24,18 +24,21 @@ from ...world.scene import Scene
 from ._clearance_rows import SlotGroup, make_slot_groups, select_slots, slot_distance
 
 
-def _bodies(s: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+def _bodies(s: np.ndarray, per_step: int = 2) -> tuple[np.ndarray, np.ndarray, float]:
     """For grid points at arc lengths ``s`` (S+1,) m: (the body matrix A (N × (S+1)) giving
-    the sphere centres from the points: the points, then their chords' midpoints; each
-    sphere's arc length (N,) m; the largest spacing of neighbouring spheres, m, at most
-    half the longest step)."""
+    the sphere centres from the points: the points, then ``per_step − 1`` evenly spaced
+    points inside each chord, chord after chord (2: the chords' midpoints); each sphere's
+    arc length (N,) m; the largest spacing of neighbouring spheres, m)."""
     count = len(s)
-    a = np.zeros((2 * count - 1, count))
+    inner = np.arange(1, per_step) / per_step
+    a = np.zeros((count + (count - 1) * len(inner), count))
     a[np.arange(count), np.arange(count)] = 1.0
-    mid = np.arange(count - 1)
-    a[count + mid, mid] = a[count + mid, mid + 1] = 0.5
-    arc = np.concatenate([s, 0.5 * (s[:-1] + s[1:])])
-    return a, arc, float(np.max(np.diff(s))) / 2.0
+    rows = count + np.arange((count - 1) * len(inner))
+    chord = np.repeat(np.arange(count - 1), len(inner))
+    fraction = np.tile(inner, count - 1)
+    a[rows, chord], a[rows, chord + 1] = 1.0 - fraction, fraction
+    arc = a @ s
+    return a, arc, float(np.max(np.diff(s))) / per_step
 
 
 def _self_table(robot: Robot, arc: np.ndarray) -> np.ndarray:
@@ -65,15 +68,18 @@ class RodClearance:
         max_pairs: slots per group (per part kind, and for self pairs).
         near_margin: pairs farther than this (m) at the start get no slot.
         face_smoothing: μ of the max over a convex part's faces, m.
+        per_step: spheres per chord of the grid (its start point and ``per_step − 1``
+            inside it): the more, the nearer δ' is to δ.
     """
 
     def __init__(self, robot: Robot, scene: Scene | None, arc_length: np.ndarray,
                  margin: float, max_pairs: int, near_margin: float,
-                 face_smoothing: float) -> None:
+                 face_smoothing: float, per_step: int = 2) -> None:
         from ...model.rotations import matrix_from_wxyz
 
         self.robot, self.near_margin, self.smoothing = robot, near_margin, face_smoothing
-        self.body_matrix, arc, spacing = _bodies(np.asarray(arc_length, dtype=float))
+        self.body_matrix, arc, spacing = _bodies(np.asarray(arc_length, dtype=float),
+                                                 per_step)
         r = robot.backbone_radius
         # How much nearer the capsule chain can come than its spheres (world.clearance).
         gap = max(math.sqrt(r * r + spacing ** 2 / 4) - r,
