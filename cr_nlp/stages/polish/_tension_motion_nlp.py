@@ -461,6 +461,23 @@ class TensionMotionPolisher:
         return x, status, iterations
 
 
+def _checked(robot: Robot, tensions0: Any, dt: float, rate_max: float, samples_between: int,
+             targets: Any) -> tuple[np.ndarray, np.ndarray | None]:
+    """(tensions (T, n) N, targets (T, 3) m or None), their shapes checked."""
+    tensions0 = np.atleast_2d(np.asarray(tensions0, dtype=float))
+    count = len(tensions0)
+    if tensions0.shape[1:] != (robot.n_tendons,) or count < 2:
+        raise ValueError(f"polish_tension_motion needs tensions0 (T ≥ 2, {robot.n_tendons}) "
+                         f"N, got {tensions0.shape}")
+    if not (dt > 0 and rate_max > 0) or samples_between < 0:
+        raise ValueError(f"polish_tension_motion needs dt > 0 s, rate_max > 0 N/s and "
+                         f"samples_between ≥ 0, got {dt}, {rate_max}, {samples_between}")
+    aims = None if targets is None else np.asarray(targets, dtype=float).reshape(-1, 3)
+    if aims is not None and len(aims) != count:
+        raise ValueError(f"polish_tension_motion: {len(aims)} targets for {count} waypoints")
+    return tensions0, aims
+
+
 @cached(maxsize=8)
 def tension_motion_polisher(robot: Robot, scene: Scene | None, statics: StaticsConfig,
                             point_s: tuple[float, ...], count: int, samples_between: int,
@@ -509,17 +526,8 @@ def polish_tension_motion(robot: Robot, scene: Scene | None, tensions0: Any,
     Raises:
         ValueError: shapes that do not match the robot, a bad dt, rate or sample count.
     """
-    tensions0 = np.atleast_2d(np.asarray(tensions0, dtype=float))
+    tensions0, aims = _checked(robot, tensions0, dt, rate_max, samples_between, targets)
     count = len(tensions0)
-    if tensions0.shape[1:] != (robot.n_tendons,) or count < 2:
-        raise ValueError(f"polish_tension_motion needs tensions0 (T ≥ 2, {robot.n_tendons}) "
-                         f"N, got {tensions0.shape}")
-    if not (dt > 0 and rate_max > 0) or samples_between < 0:
-        raise ValueError(f"polish_tension_motion needs dt > 0 s, rate_max > 0 N/s and "
-                         f"samples_between ≥ 0, got {dt}, {rate_max}, {samples_between}")
-    aims = None if targets is None else np.asarray(targets, dtype=float).reshape(-1, 3)
-    if aims is not None and len(aims) != count:
-        raise ValueError(f"polish_tension_motion: {len(aims)} targets for {count} waypoints")
     began = time.perf_counter()
     if time_limit is not None and time_limit <= 0:
         return TensionMotionPolish(tensions0.copy(), TIME_LIMIT_STATUS, 0.0, 0)
