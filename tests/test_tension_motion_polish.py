@@ -125,6 +125,26 @@ def test_the_result_file_keeps_the_exact_stage(exact, tmp_path) -> None:
     np.testing.assert_array_equal(back.tensions, exact.tensions)
 
 
+def test_cli_follow_exact_writes_the_polished_motion(case: dict, tmp_path) -> None:
+    """``cr-nlp follow --model cosserat --exact`` (no longer refused) on the same path."""
+    from cr_nlp.cli.main import main
+
+    path, scene, out = tmp_path / "path.json", tmp_path / "scene.json", tmp_path / "R.json"
+    path.write_text(json.dumps({"dt": DT, "poses": [
+        {"position": p.tolist(), "wxyz": [1, 0, 0, 0]} for p in case["path"]]}))
+    scene.write_text(json.dumps({"obstacles": [
+        {"name": "ball", "type": "sphere", "radius": 0.01,
+         "center": case["scene"].parts[0].center.tolist()}]}))
+    code = main(["follow", "--model", "cosserat", "--robot", "tdcr2_rao2021", "--path",
+                 str(path), "--scene", str(scene), "--gravity", "0,0,-9.81", "--tip-force",
+                 f"0,0,{PAYLOAD[2]}", "--tension-rate-max", repr(case["rate"]), "--exact",
+                 "--time-limit", "300", "--out", str(out)])
+    assert code == 0
+    result = load_result(out)
+    assert result.success and result.stage == "polish", (result.reason, result.notes)
+    assert "multiple shooting" in result.exact_mode
+
+
 # ---------------------------------------------------------------- planning
 
 SCENE = {"obstacles": [
