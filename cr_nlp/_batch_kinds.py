@@ -231,9 +231,13 @@ class _TensionSettings:
         if getattr(robot, "mechanics", None) is None:
             raise BatchError(f"model='cosserat': {robot.name} has no 'mechanics' block (the "
                              f"rod's stiffness and tension limit); see models/README.md")
+        if time_limit is not None and not (isinstance(time_limit, (int, float))
+                                           and 0 < time_limit < float("inf")):
+            raise BatchError(f"time_limit must be a positive number of seconds, got "
+                             f"{time_limit!r}")
         if (exact or time_limit is not None) and not cls.has_exact:
-            raise BatchError(f"exact: the Cosserat model has an exact (Ipopt) stage for ik "
-                             f"only, not yet for {cls.kind}")
+            raise BatchError(f"exact: the Cosserat model has no exact (Ipopt) stage for "
+                             f"{cls.kind}")
         loads = dict(loads or {})
         unknown = sorted(set(loads) - set(LOAD_KEYS))
         if unknown:
@@ -336,6 +340,7 @@ class _TensionPlanJobs(_TensionSettings):
     answers = "rows"
     uses_init = False
     kind = "plan"
+    has_exact = True
 
     @staticmethod
     def chunking(exact: bool) -> tuple[int, int]:
@@ -368,7 +373,8 @@ class _TensionPlanJobs(_TensionSettings):
 
     @staticmethod
     def solve(spec: JobSpec, solver: Any, first: Any, second: Any) -> tuple[Any, dict]:
-        results = solver.plan(first, second, **spec.loads)
+        results = solver.plan(first, second, **spec.loads, exact=spec.exact,
+                              time_limit=spec.time_limit)
         timing: dict[str, float] = {}
         for result in results:
             for key, value in result.timing.as_dict().items():

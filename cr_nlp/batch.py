@@ -217,11 +217,11 @@ def run_batch(kind: str, robot: Any, inputs: tuple[Any, Any], *, out_dir: str | 
             ``read_targets`` returns; it replaces the solver's reason in the results.
         model: "pcc" (configurations θ, φ, L) or "cosserat" (tendon tensions on the
             Cosserat rod, ``TensionIKSolver.solve`` / ``TensionPlanner.plan``: a robot with
-            a ``mechanics`` block; ``exact`` for ik only).
+            a ``mechanics`` block; ``exact`` for ik and plan).
         loads: Cosserat: the one load case of every problem, the solvers' keyword
             arguments (tip_force N, tip_moment N·m, gravity m/s², distributed_force N/m,
             world frame; point_loads ``[{"s": m, "force": [N], "moment": [N·m]}]``).
-        time_limit: Cosserat ik with ``exact``: seconds of polishing per target (PCC:
+        time_limit: Cosserat with ``exact``: seconds of polishing per target or problem (PCC:
             the config's ``polish_time_limit``).
         client: a ``distributed.Client`` to run on. Else ``scheduler`` (the address of a
             running Dask scheduler), else a new ``LocalCluster`` of ``workers`` processes

@@ -5,8 +5,11 @@ payload, in a scene of 14 spheres and 2 boxes placed through the loaded workspac
 (``clutter_scene``: centres on the solved backbones of random tension sets, so every
 obstacle is somewhere the robot goes). Rows:
 
+One row per mode (penalty; with ``exact`` in the modes, exact: the answers the verdict
+rejects polished by Ipopt on the rod's equations):
+
 - IK: ``targets`` tip positions of random tension sets whose backbones are clear, solved
-  by ``TensionIKSolver`` (penalty, and with ``exact`` in the modes, exact);
+  by ``TensionIKSolver``;
 - following: ``paths`` tip paths of ``waypoints`` waypoints, each traced by a smooth
   tension motion that is clear of the scene (verified) and keeps ``rate_fraction`` of the
   tension-rate limit, followed by ``TensionFollower``;
@@ -118,32 +121,38 @@ def bench_ik(robot: Any, scene: dict, targets: int, modes: list[str], repeats: i
     return rows
 
 
-def bench_follow(follower: Any, motions: list[np.ndarray], repeats: int) -> dict[str, Any]:
-    """The following row: every path traced by a clear, rate-feasible motion."""
+def bench_follow(follower: Any, motions: list[np.ndarray], repeats: int,
+                 mode: str = "penalty") -> dict[str, Any]:
+    """The following row of one mode: every path traced by a clear, rate-feasible motion
+    (``exact``: the motions the verdict rejects polished by Ipopt)."""
     paths = [solve_statics(follower.robot, m, PAYLOAD, None, GRAVITY).tip_position
              for m in motions]
     results, firsts, medians = [], [], []
     for path in paths:
         result, first, median = timed(
-            lambda path=path: follower.follow(path, dt=DT, gravity=GRAVITY,
-                                              tip_force=PAYLOAD), repeats)
+            lambda path=path: follower.follow(path, dt=DT, gravity=GRAVITY, tip_force=PAYLOAD,
+                                              exact=mode == "exact"), repeats)
         results.append(result)
         firsts.append(first)
         medians.append(median)
     rate = max(float(np.max(np.abs(np.diff(r.tensions, axis=0)))) / DT for r in results)
-    return {"paths": len(paths), "waypoints": len(paths[0]) if paths else 0,
+    return {"mode": mode, "paths": len(paths), "waypoints": len(paths[0]) if paths else 0,
             "verified": sum(bool(r.success) for r in results),
+            "polished": sum(r.stage.value == "polish" for r in results),
             "max_error_mm": 1e3 * max(float(np.max(r.position_error)) for r in results),
             "max_rate_n_s": rate,
             "min_clearance_mm": 1e3 * min(r.min_clearance for r in results),
             "median_s": statistics.median(medians) if medians else 0.0,
+            "polish_s": max(r.timing.polish for r in results),
             "first_s": max(firsts) if firsts else 0.0,
             "stages": ", ".join(sorted({r.stage.value for r in results}))}
 
 
 def bench_plan(robot: Any, scene: dict, problems: int, repeats: int, follower: Any,
-               rng: np.random.Generator) -> dict[str, Any]:
-    """The planning row: refined plans against the search's on the same problems."""
+               rng: np.random.Generator, modes: tuple[str, ...] = ("penalty",)
+               ) -> list[dict[str, Any]]:
+    """The planning rows, one per mode: plans against the search's on the same problems
+    (``exact``: the motions the verdict rejects polished by Ipopt)."""
     from ..tasks.mechanics.trajectory import TensionPlanner
 
     ends = clear_tensions(follower, 2 * problems, rng)
@@ -152,18 +161,24 @@ def bench_plan(robot: Any, scene: dict, problems: int, repeats: int, follower: A
     search = TensionPlanner(robot, scene, dataclasses.replace(planner.config,
                                                               chain_iterations=0))
     loads = static_loads(1, planner.length, PAYLOAD, None, GRAVITY)
-    results, first, median = timed(
-        lambda: planner.plan(starts, goals, gravity=GRAVITY, tip_force=PAYLOAD), repeats)
     searched = search.plan(starts, goals, gravity=GRAVITY, tip_force=PAYLOAD)
-    ratio = [planner.tip_path(r.tensions, loads) / planner.tip_path(s.tensions, loads)
-             for r, s in zip(results, searched, strict=True) if r.success and s.success]
-    return {"problems": problems,
+    rows = []
+    for mode in modes:
+        results, first, median = timed(
+            lambda mode=mode: planner.plan(starts, goals, gravity=GRAVITY, tip_force=PAYLOAD,
+                                           exact=mode == "exact"), repeats)
+        ratio = [planner.tip_path(r.tensions, loads) / planner.tip_path(s.tensions, loads)
+                 for r, s in zip(results, searched, strict=True) if r.success and s.success]
+        rows.append({
+            "mode": mode, "problems": problems,
             "success_pct": 100.0 * np.mean([r.success for r in results]),
             "search_success_pct": 100.0 * np.mean([s.success for s in searched]),
             "refined_pct": 100.0 * np.mean([r.stage.value == "refine" for r in results]),
+            "polished": sum(r.stage.value == "polish" for r in results),
             "tip_path_ratio": statistics.median(ratio) if ratio else float("nan"),
             "min_clearance_mm": 1e3 * min(r.min_clearance for r in results),
-            "per_problem_s": median / max(problems, 1), "first_s": first}
+            "per_problem_s": median / max(problems, 1), "first_s": first})
+    return rows
 
 
 IK_COLUMNS = [
@@ -175,17 +190,20 @@ IK_COLUMNS = [
     Column("first_s", "first call (s)", fixed(1)),
 ]
 FOLLOW_COLUMNS = [
-    Column("paths", "paths"), Column("waypoints", "waypoints"),
-    Column("verified", "verified"), Column("max_error_mm", "max error (mm)", fixed(4)),
+    Column("mode", "mode"), Column("paths", "paths"), Column("waypoints", "waypoints"),
+    Column("verified", "verified"), Column("polished", "polished"),
+    Column("max_error_mm", "max error (mm)", fixed(4)),
     Column("max_rate_n_s", f"max rate (N/s, limit {RATE_MAX:g})", fixed(1)),
     Column("min_clearance_mm", "min clearance (mm)", fixed(1)),
     Column("median_s", "median s per path", fixed(2)),
+    Column("polish_s", "largest polish (s)", fixed(1)),
     Column("first_s", "first call (s)", fixed(1)), Column("stages", "stage"),
 ]
 PLAN_COLUMNS = [
-    Column("problems", "problems"), Column("success_pct", "verified (%)", fixed(1)),
+    Column("mode", "mode"), Column("problems", "problems"),
+    Column("success_pct", "verified (%)", fixed(1)),
     Column("search_success_pct", "search alone (%)", fixed(1)),
-    Column("refined_pct", "refined kept (%)", fixed(1)),
+    Column("refined_pct", "refined kept (%)", fixed(1)), Column("polished", "polished"),
     Column("tip_path_ratio", "median tip path / search's", fixed(2)),
     Column("min_clearance_mm", "min clearance (mm)", fixed(1)),
     Column("per_problem_s", "s per problem", fixed(3)),
@@ -207,8 +225,8 @@ def run_tension_clutter_benchmark(robot: str = "tdcr2_rao2021", targets: int = 2
     follower = TensionFollower(rob, scene, TensionFollowConfig(tension_rate_max=RATE_MAX))
     motions = clear_motions(follower, paths, waypoints, rate_fraction, rng)
     ik = bench_ik(rob, scene, targets, list(modes), repeats, follower, rng)
-    follow = bench_follow(follower, motions, repeats)
-    plan = bench_plan(rob, scene, problems, repeats, follower, rng)
+    follow = [bench_follow(follower, motions, repeats, mode) for mode in modes]
+    plan = bench_plan(rob, scene, problems, repeats, follower, rng, tuple(modes))
     env = environment()
     report = (f"## Mechanics tasks in clutter under load, {robot}\n\n"
               f"Gravity and a 5 g tip payload, {len(scene['obstacles'])} spheres and boxes "
@@ -216,10 +234,10 @@ def run_tension_clutter_benchmark(robot: str = "tdcr2_rao2021", targets: int = 2
               f"{seed}); success by each task's verdict (fresh statics, python-fcl); steady "
               f"state is the median of {repeats} runs after the first call.\n\n"
               + markdown_table(ik, IK_COLUMNS) + "\n\n"
-              + markdown_table([follow], FOLLOW_COLUMNS) + "\n\n"
-              + markdown_table([plan], PLAN_COLUMNS) + "\n\n" + environment_markdown(env))
+              + markdown_table(follow, FOLLOW_COLUMNS) + "\n\n"
+              + markdown_table(plan, PLAN_COLUMNS) + "\n\n" + environment_markdown(env))
     write_report("tension_clutter", report, out,
-                 tables={"ik": ik, "follow": [follow], "plan": [plan]}, env=env,
+                 tables={"ik": ik, "follow": follow, "plan": plan}, env=env,
                  settings={"robot": robot, "repeats": repeats, "seed": seed,
                            "rate_fraction": rate_fraction})
     return {"ik": ik, "follow": follow, "plan": plan}

@@ -6,7 +6,14 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ._io import UsageError, load_scene_arg, model_margin, resolve, write_path_result
+from ._io import (
+    UsageError,
+    load_scene_arg,
+    model_margin,
+    resolve,
+    time_limit_arg,
+    write_path_result,
+)
 from ._tension_ik import loads_from_args, needs_mechanics
 
 
@@ -18,14 +25,16 @@ def add_options(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace, robot: object) -> int:
-    """Follow in tension space, write RESULT.json (kind ``tension_follow``) and, with
+    """Follow in tension space (with ``--exact``, Ipopt polishes a motion the verdict
+    rejects, ``--time-limit`` seconds), write RESULT.json (kind ``tension_follow``) and, with
     ``--csv``, the time series; print a one-line summary on stderr."""
     from dataclasses import replace
 
     from ..tasks.mechanics.follow import TensionFollowConfig, TensionFollower
     from ..tasks.readers import load_path
 
-    needs_mechanics(robot, args.exact, "follow")
+    needs_mechanics(robot)
+    time_limit = time_limit_arg(args)
     config = TensionFollowConfig()
     config = replace(config, safety_margin=config.safety_margin
                      + model_margin(robot, args.model_margin),
@@ -39,7 +48,8 @@ def run(args: argparse.Namespace, robot: object) -> int:
     follower = TensionFollower(robot, load_scene_arg(args.scene), config)
     loads = loads_from_args(args, follower.ik.length)
     try:
-        result = follower.follow(path, dt=args.dt, orientation=args.orientation, **loads)
+        result = follower.follow(path, dt=args.dt, orientation=args.orientation, **loads,
+                                 exact=args.exact, time_limit=time_limit)
     except ValueError as exc:
         raise UsageError(f"--path: {exc}") from None
     write_path_result(result, args.out, args.csv)

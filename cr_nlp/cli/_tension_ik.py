@@ -83,16 +83,12 @@ def loads_from_args(args: argparse.Namespace, length: float) -> dict:
     return loads
 
 
-def needs_mechanics(robot: object, exact: bool, task: str = "ik") -> None:
-    """Refuse ``--model cosserat`` for a robot without mechanics, and ``--exact`` for a
-    task (``plan``, ``follow``) whose exact stage on the rod does not exist yet."""
+def needs_mechanics(robot: object) -> None:
+    """Refuse ``--model cosserat`` for a robot without mechanics (every tension task, ik,
+    plan and follow, has its exact stage on the rod: ``--exact`` is not refused)."""
     if getattr(robot, "mechanics", None) is None:
         raise UsageError(f"--model cosserat: {robot.name} has no 'mechanics' block (the rod's "
                          f"stiffness and tension limit); see models/README.md")
-    if exact and task != "ik":
-        raise UsageError(f"--exact: the Cosserat model has an exact (Ipopt) stage for ik only,"
-                         f" not yet for {task}; its answers are checked by an independent "
-                         "forward statics solve")
 
 
 def run(args: argparse.Namespace, robot: object) -> int:
@@ -101,7 +97,7 @@ def run(args: argparse.Namespace, robot: object) -> int:
     from ..tasks.mechanics.ik import TensionIKConfig, TensionIKSolver
     from ..tasks.readers import read_targets
 
-    needs_mechanics(robot, args.exact)
+    needs_mechanics(robot)
     time_limit = time_limit_arg(args)
     try:
         positions, wxyz, problems = read_targets(resolve(args.targets, "targets", "--targets"))

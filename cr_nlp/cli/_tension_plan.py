@@ -9,7 +9,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from ._io import UsageError, load_scene_arg, model_margin, resolve
+from ._io import UsageError, load_scene_arg, model_margin, resolve, time_limit_arg
 from ._tension_ik import loads_from_args, needs_mechanics
 
 
@@ -20,13 +20,16 @@ def add_options(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace, robot: object) -> int:
-    """Plan in tension space, write RESULT.json (kind ``tension_trajectory``, one entry per
-    problem) and, with ``--csv``, one time series per problem; print a summary."""
+    """Plan in tension space (with ``--exact``, Ipopt polishes the motions the verdict
+    rejects, ``--time-limit`` seconds per problem), write RESULT.json (kind
+    ``tension_trajectory``, one entry per problem) and, with ``--csv``, one time series per
+    problem; print a summary."""
     from ..tasks.mechanics._motion_result import tension_trajectories_to_dict
     from ..tasks.mechanics.trajectory import TensionPlanConfig, TensionPlanner
     from ..tasks.readers import read_tension_problems
 
-    needs_mechanics(robot, args.exact, "plan")
+    needs_mechanics(robot)
+    time_limit = time_limit_arg(args)
     config = TensionPlanConfig(seed=args.seed)
     config = replace(config, safety_margin=config.safety_margin
                      + model_margin(robot, args.model_margin))
@@ -42,7 +45,7 @@ def run(args: argparse.Namespace, robot: object) -> int:
         raise UsageError(f"--problems: {exc}") from None
     planner = TensionPlanner(robot, load_scene_arg(args.scene), config)
     loads = loads_from_args(args, planner.length)
-    results = planner.plan(starts, goals, **loads)
+    results = planner.plan(starts, goals, **loads, exact=args.exact, time_limit=time_limit)
     data = tension_trajectories_to_dict(results, None, robot)
     if args.out == "-":
         print(json.dumps(data, indent=2))

@@ -171,7 +171,7 @@ def _solve(args: argparse.Namespace) -> int:
 
     robot = load_robot_arg(args.robot)
     if args.model == "cosserat":
-        _tension_ik.needs_mechanics(robot, args.exact, args.kind)
+        _tension_ik.needs_mechanics(robot)
         inputs, options = _tension_job(args, robot)
     elif args.kind == "ik":
         inputs, options = _ik_job(args)

@@ -291,7 +291,8 @@ def _add_tension(group: argparse._SubParsersAction) -> None:
                    help="clutter: IK targets (default 200)")
     p.add_argument("--paths", type=int, default=6, help="clutter: followed paths (default 6)")
     p.add_argument("--modes", nargs="+", choices=("penalty", "exact"), default=["penalty"],
-                   help="clutter: IK modes (default penalty)")
+                   help="clutter: modes of every row, IK, following and planning "
+                        "(default penalty)")
     add_common_options(p, "tension", repeats=3, robot=False, seed=True)
     p.add_argument("--robot", default="tdcr2_rao2021",
                    help="robot with a mechanics block and 2×3 tendons (default tdcr2_rao2021)")

@@ -39,7 +39,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", help="scene JSON file or bundled scene name (obstacles)")
     p.add_argument("--exact", action="store_true",
                    help="polish with Ipopt, the constraints as constraints (falls back to "
-                        "the LM answer, marked in 'stage', if the polish fails)")
+                        "the LM answer, marked in 'stage', if the polish fails; --model "
+                        "cosserat: a motion the verdict rejects, on the rod's equations)")
     add_time_limit_option(p)
     p.add_argument("--dt", type=float, help="seconds between waypoints (default: the file's)")
     p.add_argument("--seed", type=int, default=0, help="seed of the IK stage (default 0)")

@@ -42,7 +42,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--exact", action="store_true",
                    help="polish every trajectory with Ipopt, tendon limits and clearance "
                         "as hard constraints (stage 'polish'; the LM answer is kept, "
-                        "marked, where the polish fails)")
+                        "marked, where the polish fails; --model cosserat: the motions "
+                        "the verdict rejects, on the rod's equations)")
     add_time_limit_option(p)
     p.add_argument("--init", choices=("roadmap", "straight"), default="roadmap",
                    help="initial trajectories: roadmap path + straight + perturbed (default), "

@@ -173,8 +173,8 @@ def test_cli_batch_ik_cosserat_with_the_load_options(client, positions, tmp_path
 
 @pytest.mark.parametrize(("kind", "robot", "extra", "words"), [
     ("ik", "tdcr3", [], "--model cosserat: tdcr3 has no 'mechanics' block"),
-    ("plan", "tdcr2_rao2021", ["--exact"],
-     "--exact: the Cosserat model has an exact (Ipopt) stage for ik only, not yet for plan"),
+    ("plan", "tdcr2_rao2021", ["--time-limit", "5"],
+     "--time-limit bounds the exact stage (Ipopt): give it with --exact"),
     ("ik", "tdcr2_rao2021", ["--gravity", "0,-9.81"], "--gravity: expected 3 numbers"),
 ])
 def test_cli_bad_cosserat_input_is_named(kind, robot, extra, words, tmp_path, capsys) -> None:
@@ -191,9 +191,9 @@ def test_api_bad_cosserat_input_is_named(tmp_path) -> None:
     with pytest.raises(BatchError, match="tdcr3 has no 'mechanics' block"):
         run_batch("ik", "tdcr3", (np.zeros((1, 3)), None), out_dir=tmp_path / "a",
                   model="cosserat")
-    with pytest.raises(BatchError, match="exact.*for ik only, not yet for plan"):
+    with pytest.raises(BatchError, match="time_limit must be a positive number"):
         run_batch("plan", RAO, (np.zeros((1, 6)), np.zeros((1, 6))), out_dir=tmp_path / "b",
-                  model="cosserat", exact=True)
+                  model="cosserat", exact=True, time_limit=-1.0)
     with pytest.raises(BatchError, match="loads: gravity"):
         run_batch("ik", RAO, (np.zeros((1, 3)), None), out_dir=tmp_path / "c",
                   model="cosserat", loads={"gravity": [0.0, 9.81]})

@@ -5,8 +5,10 @@ The public face (what ``tasks/`` imports): the one acceptance policy (``polish_a
 ``check_time_limit``), Ipopt's status words, the PCC IK polish (``IKPolisher``,
 ``build_polisher``, ``polish_many``) and trajectory polish (``TrajectoryPolisher``,
 ``trajectory_polisher``, ``polish_one``, ``describe_polish``, ``TrajectoryPolishConfig``),
-their process pool (``PolishPool``), and the tension-space IK polish on the Cosserat rod
-(``polish_tension_ik``, its formulation ``POLISH_EXACT_MODE``). Everything beyond the
+their process pool (``PolishPool``), and on the Cosserat rod the tension-space IK polish
+(``polish_tension_ik``, its formulation ``POLISH_EXACT_MODE``) and that of tension
+motions, plans and followed paths (``polish_tension_motion``, ``MOTION_EXACT_MODE``,
+``TensionMotionPolishConfig``). Everything beyond the
 acceptance is imported on first use: importing this package (as every task does for the
 acceptance) does not load CasADi."""
 
@@ -23,6 +25,9 @@ from ._accept import polish_note as polish_note
 _LAZY = {"SUCCESS_STATUSES": ("._ipopt", "SUCCESS_STATUSES"),
          "TIME_LIMIT_STATUS": ("._ipopt", "TIME_LIMIT_STATUS"),
          "POLISH_EXACT_MODE": ("._tension_ik_nlp", "EXACT_MODE"),
+         "MOTION_EXACT_MODE": ("._tension_motion_nlp", "EXACT_MODE"),
+         "TensionMotionPolishConfig": ("._tension_motion_nlp", "TensionMotionPolishConfig"),
+         "polish_tension_motion": ("._tension_motion_nlp", "polish_tension_motion"),
          "TensionPolishConfig": ("._tension_ik_nlp", "TensionPolishConfig"),
          "polish_tension_ik": ("._tension_ik_nlp", "polish_tension_ik"),
          "IKPolisher": ("._ik_nlp", "IKPolisher"),

@@ -146,3 +146,12 @@ class ShootingRows:
                            np.ones(len(used)))
             total += ca.mtimes([select.T, block[used.tolist(), used.tolist()], select])
         return total
+
+
+def states_function(rod: CasadiRod) -> ca.Function:
+    """(τ (T) N, M(0) (3) N·m, loads (``flat_loads``)) → every grid point's state
+    (15 × (S'+1)) of one integration pass: the start of a polish's unknowns."""
+    n, load_column = rod.n_tendons, RodLoads.symbols("load", rod.n_points)
+    tension, base_moment = ca.MX.sym("tension", n), ca.MX.sym("base_moment", 3)
+    path = rod.integrate(tension, base_moment, load_column[0])["states"]
+    return ca.Function("rod_states", [tension, base_moment, load_column[1]], [path]).expand()

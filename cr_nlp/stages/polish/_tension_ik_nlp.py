@@ -38,15 +38,12 @@ import casadi as ca
 import numpy as np
 
 from ...model import Robot
-from ...model._ops import NUMPY
 from ...model.cosserat import CasadiRod, RodLoads, StaticsConfig, flat_loads, moment_scale
 from ...model.loads import StaticLoads, static_loads
 from ...model.rotations import matrix_from_wxyz
 from ...model.statics import solve_statics
 from ...runtime import cached
-from ...world.clearance import kind_distances, scene_arrays
 from ...world.scene import Scene
-from ._clearance_rows import SlotGroup, make_slot_groups, select_slots, slot_distance
 from ._compiled_functions import pending
 from ._ipopt import (
     SUCCESS_STATUSES,
@@ -58,7 +55,8 @@ from ._ipopt import (
     ipopt_options,
     run_solver,
 )
-from ._rod_shooting import STATE, ShootingRows
+from ._rod_clearance import RodClearance
+from ._rod_shooting import STATE, ShootingRows, states_function
 
 EXACT_MODE = "cosserat multiple shooting"
 """The formulation of the tension-space exact stage (a result's ``exact_mode``)."""
@@ -107,36 +105,6 @@ class TensionPolish(NamedTuple):
     """(B,) Ipopt iterations per row."""
 
 
-def _bodies(s: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """For grid points at arc lengths ``s`` (S+1,) m: (the body matrix A (N × (S+1)) giving
-    the sphere centres from the points: the points, then their chords' midpoints; each
-    sphere's arc length (N,) m; the largest spacing of neighbouring spheres, m, at most
-    half the longest step)."""
-    count = len(s)
-    a = np.zeros((2 * count - 1, count))
-    a[np.arange(count), np.arange(count)] = 1.0
-    mid = np.arange(count - 1)
-    a[count + mid, mid] = a[count + mid, mid + 1] = 0.5
-    arc = np.concatenate([s, 0.5 * (s[:-1] + s[1:])])
-    return a, arc, float(np.max(np.diff(s))) / 2.0
-
-
-def _self_table(robot: Robot, arc: np.ndarray) -> np.ndarray:
-    """(M, 2) sphere pairs on segments at least two apart, a sphere at a junction counted
-    on both of its segments (as ``world.clearance.self_pairs`` counts the PCC body: the
-    verdict's pieces of segments two apart end there); none when the robot file turns
-    self-collision off."""
-    if not robot.has_self_pairs:
-        return np.zeros((0, 2), dtype=np.int64)
-    ends = np.cumsum([0.0] + [seg.length_min for seg in robot.segments])
-    lo = np.searchsorted(ends, arc - 1e-12, side="right") - 1   # first segment holding it
-    hi = np.searchsorted(ends, arc + 1e-12, side="left") - 1    # last one
-    lo, hi = np.clip(lo, 0, len(robot.segments) - 1), np.clip(hi, 0, len(robot.segments) - 1)
-    i, j = np.triu_indices(len(arc), 1)
-    far = (hi[j] - lo[i] >= 2) | (hi[i] - lo[j] >= 2)
-    return np.stack([i[far], j[far]], axis=1).astype(np.int64)
-
-
 class TensionIKPolisher:
     """The Ipopt polish of tension-space IK answers for one robot, scene and load layout.
 
@@ -162,56 +130,16 @@ class TensionIKPolisher:
         self.tension_max = tension_max
         self.tension_scale = tension_max if math.isfinite(tension_max) else 1.0
         self._state_scale = np.r_[[self.length] * 3, [1.0] * 9, [self.moment_scale] * 3]
-        self._body_matrix, arc, spacing = _bodies(rod.layout.arc_length)
-        r = robot.backbone_radius
-        # How much nearer the capsule chain can come than its spheres (world.clearance).
-        gap = max(math.sqrt(r * r + spacing ** 2 / 4) - r,
-                  math.sqrt(4 * r * r + spacing ** 2 / 2) - 2 * r)
-        self.row_margin = self.margin + gap
-        self._n_bodies = len(arc)
-        self._self_table = _self_table(robot, arc)
-        groups, _ = make_slot_groups(robot, scene, config.max_pairs, include_self=False)
-        self._groups = [SlotGroup(g.kind, min(config.max_pairs, len(g.table) * self._n_bodies),
-                                  g.first, g.table, g.faces) for g in groups]
-        if len(self._self_table):
-            self._groups.append(SlotGroup("self", min(config.max_pairs, len(self._self_table)),
-                                          0, np.zeros((0, 0))))
-        self._arrays = scene_arrays(scene, as_numpy=True) if scene is not None else None
-        self._base_rot = matrix_from_wxyz(np.asarray(robot.base_wxyz))
-        self._base_pos = np.asarray(robot.base_position, dtype=float)
+        self._clear = RodClearance(robot, scene, rod.layout.arc_length, self.margin,
+                                   config.max_pairs, config.near_margin, config.face_smoothing)
+        self.row_margin = self._clear.row_margin
         self._deadline = Deadline()
         self._shooting = ShootingRows(rod, self._state_scale, self.tension_scale, config.compile)
         self._solvers: dict[bool, ca.Function] = {}
-        self._states = self._states_function()
+        self._states = states_function(rod)
         self._solver(config.warm_start)
 
     # ------------------------------------------------------------ building
-
-    def _centres(self, positions: Any) -> Any:
-        """Sphere centres (N × 3, world frame, m) of the robot's grid points (3 × (S+1),
-        base frame, m), symbolic or numeric."""
-        world = ca.mtimes(ca.DM(self._base_rot), ca.mtimes(positions,
-                                                             ca.DM(self._body_matrix.T)))
-        return (world + ca.repmat(ca.DM(self._base_pos), 1, self._n_bodies)).T
-
-    def _clearance_rows(self, centres: Any) -> tuple[Any, list[Any]]:
-        """The slot rows (m) of ``centres`` and the slot parameters: per group the one-hot
-        rows choosing each slot's sphere(s) (capacity × N) and its part rows."""
-        rows, parameters = [], []
-        smoothing = self.config.face_smoothing
-        for group in self._groups:
-            spheres = 2 if group.kind == "self" else 1
-            pick = [ca.MX.sym(f"pick_{group.kind}_{k}", group.capacity, self._n_bodies)
-                    for k in range(spheres)]
-            part = ca.MX.sym(f"part_{group.kind}", group.capacity, group.width - spheres)
-            centre = [ca.SX.sym(f"centre_{k}", 3) for k in range(spheres)]
-            part_sx = ca.SX.sym("part", group.width - spheres)
-            distance = ca.Function(f"slot_{group.kind}", [*centre, part_sx], [slot_distance(
-                group, centre, part_sx, self.robot.backbone_radius, smoothing)])
-            chosen = [ca.mtimes(p, centres).T for p in pick]
-            rows.append(distance.map(group.capacity)(*chosen, part.T).T)
-            parameters += [*pick, part]
-        return (ca.vertcat(*rows) if rows else ca.MX(0, 1)), parameters
 
     def _tip_rows(self, tip: Any, target: Any, target_rot: Any, loads: RodLoads) -> list[Any]:
         """The boundary rows at the tip's scaled state ``tip`` (15): M(L) = M_tip (scaled
@@ -224,15 +152,6 @@ class TensionIKPolisher:
             rows.append(0.5 * ca.vertcat(rel[2, 1] - rel[1, 2], rel[0, 2] - rel[2, 0],
                                          rel[1, 0] - rel[0, 1]))
         return rows
-
-    def _states_function(self) -> ca.Function:
-        """(τ N, M(0) N·m, loads) → every grid point's state (15 × (S'+1)) of one
-        integration pass (the start's states)."""
-        n, load_column = self.rod.n_tendons, RodLoads.symbols("load", self.rod.n_points)
-        tension, base_moment = ca.MX.sym("tension", n), ca.MX.sym("base_moment", 3)
-        path = self.rod.integrate(tension, base_moment, load_column[0])["states"]
-        return ca.Function("rod_states", [tension, base_moment, load_column[1]],
-                           [path]).expand()
 
     def _build(self, warm: bool) -> ca.Function:
         """The Ipopt solver (``warm``: with the warm-start settings). Parameters: target
@@ -250,7 +169,7 @@ class TensionIKPolisher:
         inputs = shooting.step_inputs(loads)
         everywhere = [ca.DM.zeros(3)] + [x[:3] * self.length for x in states]
         points = ca.horzcat(*[everywhere[int(i)] for i in rod.grid.robot_points])
-        clearance, slots = self._clearance_rows(self._centres(points))
+        clearance, slots = self._clear.rows(self._clear.centres(points))
         others = ca.vertcat(*self._tip_rows(states[-1], target, target_rot, loads), clearance)
         defects = shooting.defects(tension, base_moment, states, inputs)
         objective = ca.sumsqr(tension - reference / self.tension_scale)
@@ -286,35 +205,6 @@ class TensionIKPolisher:
 
     # ------------------------------------------------------------ per solve
 
-    def _distances(self, positions: np.ndarray) -> np.ndarray:
-        """(N·P + M,) pair distances (m) of the robot's grid points (S+1, 3, base frame):
-        every sphere to every part (body-major), then the self pairs."""
-        centres = np.asarray(self._centres(ca.DM(positions.T)))
-        blocks = ([] if self._arrays is None else
-                  kind_distances(self.robot.backbone_radius, self._arrays, centres,
-                                 self.config.face_smoothing, NUMPY))
-        obstacle = (np.concatenate(blocks, axis=1).reshape(-1) if blocks else np.zeros(0))
-        i, j = self._self_table.T
-        own = (np.linalg.norm(centres[i] - centres[j], axis=1) - 2 * self.robot.backbone_radius
-               if len(self._self_table) else np.zeros(0))
-        return np.concatenate([obstacle, own])
-
-    def _slot_parameters(self, distances: np.ndarray) -> tuple[list[np.ndarray], np.ndarray,
-                                                                np.ndarray]:
-        """(the slot parameters in ``_build``'s order, lbg of the slot rows, the chosen
-        pairs' indices) for the pairs nearer than ``near_margin``."""
-        selection = select_slots(self._groups, self._n_bodies, self._self_table,
-                                 self.config.near_margin, self.row_margin, distances)
-        out = []
-        for group, rows in zip(self._groups, selection.parameters, strict=True):
-            spheres = 2 if group.kind == "self" else 1
-            for k in range(spheres):
-                pick = np.zeros((group.capacity, self._n_bodies))
-                pick[np.arange(group.capacity), rows[:, k].astype(int)] = 1.0
-                out.append(pick)
-            out.append(rows[:, spheres:])
-        return out, selection.lower, selection.chosen
-
     def _solver(self, warm: bool) -> ca.Function:
         """The Ipopt solver with the warm-start settings or Ipopt's own (built on first use;
         rebuilt on the compiled step functions once they are there)."""
@@ -338,7 +228,7 @@ class TensionIKPolisher:
         own (a warm start there was seen to end in Ipopt's restoration phase, "infeasible");
         a failed solve is tried again with the other settings."""
         states = np.asarray(self._states(tension0, base_moment0, loads))       # 15 × (S'+1)
-        near = self._distances(states[:3, self.rod.grid.robot_points].T)
+        near = self._clear.distances(states[:3, self.rod.grid.robot_points].T)
         x0 = np.concatenate([tension0 / self.tension_scale, base_moment0 / self.moment_scale,
                              (states[:, 1:] / self._state_scale[:, None]).T.reshape(-1)])
         rotation = np.eye(3) if target_rotation is None else target_rotation
@@ -365,7 +255,7 @@ class TensionIKPolisher:
         ubx = np.r_[np.full(n, upper), np.full(len(x0) - n, np.inf)]
         iterations, status, x = 0, "not run", x0
         for again in range(2):
-            slots, lower, chosen = self._slot_parameters(near)
+            slots, lower, chosen = self._clear.slot_parameters(near)
             parameters = np.concatenate([fixed, *[s.ravel(order="F") for s in slots]])
             run = run_solver(solver, x, self._deadline, p=parameters, lbx=lbx, ubx=ubx,
                              lbg=np.r_[np.zeros(self._equalities), lower],
@@ -374,10 +264,10 @@ class TensionIKPolisher:
             if not np.all(np.isfinite(run.x)):
                 return x0, status, iterations
             x = run.x
-            if again or run.out_of_time or not self._groups:
+            if again or run.out_of_time or not self._clear.groups:
                 break
             solved = x[n + 3:].reshape(-1, STATE)[:, :3] * self.length
-            after = self._distances(np.vstack([np.zeros((1, 3)), solved])[
+            after = self._clear.distances(np.vstack([np.zeros((1, 3)), solved])[
                 self.rod.grid.robot_points])
             unslotted = np.ones(after.shape, bool)
             unslotted[chosen] = False

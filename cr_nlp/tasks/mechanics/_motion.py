@@ -26,11 +26,11 @@ from ...world.check import CheckManyResult, check_chains
 from ...world.scene import Scene
 from ...world.verdict import VIOLATION_TOLERANCE, failure_reason, judge_many
 
-EXACT_MODE = ("none: no Ipopt stage ran (on the Cosserat rod it exists for IK only, with "
-              "exact=True); every answer is judged by a fresh forward statics solve and "
-              "python-fcl")
-"""What a tension-space result without a polish says of exact mode (its ``exact_mode``
-field); a polished IK result names the formulation instead."""
+EXACT_MODE = ("none: no Ipopt stage ran (exact=False; with exact=True the Cosserat tasks "
+              "polish on the rod's multiple shooting); every answer is judged by a fresh "
+              "forward statics solve and python-fcl")
+"""What a tension-space result without exact mode says of it (its ``exact_mode`` field);
+a result of exact mode names the formulation instead."""
 
 MOTION_FAMILIES = ("limits", "clearance", "self_clearance", "tension_rate")
 """The violation families of a tension motion: tensions outside [0, τ_max] (N), clearance

@@ -59,12 +59,16 @@ class TensionTrajectoryResult(OneStage, ResultIO):
     violations: dict[str, float] = field(default_factory=dict)
     """Per family (``MOTION_FAMILIES``), the largest violation along the motion."""
     stage: Stage = Stage.REFINE
-    """``Stage.REFINE`` (the banded LM over the whole motion answered), ``Stage.EXPLORE``
+    """``Stage.POLISH`` (exact mode: Ipopt's motion, accepted by the verdict),
+    ``Stage.REFINE`` (the banded LM over the whole motion answered), ``Stage.EXPLORE``
     (a plan: the straight-leg search's motion, kept where the refined one did not verify
     or was not better; following: the per-waypoint answers, kept the same way; ``notes``
     say why) or ``Stage.REJECTED`` for a problem refused before solving."""
     notes: list[str] = field(default_factory=list)
     timing: StageTiming = field(default_factory=StageTiming)
+    exact_mode: str = EXACT_MODE
+    """The exact stage's formulation where exact mode ran (``stages.polish``'s
+    ``MOTION_EXACT_MODE``), else ``EXACT_MODE``'s words: none ran."""
 
     def __post_init__(self) -> None:
         if self.tendon_displacements is None:
@@ -134,7 +138,8 @@ class TensionTrajectoryResult(OneStage, ResultIO):
             "tendon_displacements": row_lists(self.tendon_displacements),
             "violations": {k: num(v) for k, v in self.violations.items()},
             "stage": self.stage.value, "notes": self.notes, "status": self.status.value,
-            "exact_mode": EXACT_MODE, "timing": self.timing.as_dict(), "summary": self.summary(),
+            "exact_mode": self.exact_mode, "timing": self.timing.as_dict(),
+            "summary": self.summary(),
         }
 
     @classmethod
@@ -164,6 +169,7 @@ class TensionTrajectoryResult(OneStage, ResultIO):
                                           "tendon_displacements"),
             "violations": {k: float(array([v])[0]) for k, v in data["violations"].items()},
             "stage": stage, "notes": notes, "timing": StageTiming.from_dict(data.get("timing")),
+            "exact_mode": str(data.get("exact_mode", EXACT_MODE)),
         }
 
     @classmethod

@@ -22,8 +22,13 @@ fresh forward statics solve at every waypoint and at ``samples_between`` interpo
 tension sets between each pair, converged; the tensions within [0, τ_max]; their rates
 within ``tension_rate_max``; python-fcl clearance of every solved backbone; and every
 waypoint's tip within ``tolerance``. A path that needs a faster change or passes through
-an obstacle fails the verdict, naming where; it is not retimed. There is no exact (Ipopt)
-stage yet for this model.
+an obstacle fails the verdict, naming where; it is not retimed.
+
+Exact mode (``exact=True``): a motion the verdict rejects is polished by Ipopt on the
+rod's own discrete equations (``stages.polish``'s ``polish_tension_motion``: every
+waypoint's and checked sample's equilibrium, every tip at its target, the tension bounds,
+the rate and the clearance as constraints, the smoothest motion as the objective), and a
+polish the verdict accepts is kept (``_motion_polish``).
 
 Units: metres, radians, seconds, newtons, N·m, m/s².
 """
@@ -39,6 +44,7 @@ import numpy as np
 from ...model import Robot
 from ...model.loads import StaticLoads, static_loads
 from ...model.statics import solve_statics
+from ...stages.polish import check_time_limit
 from ...stages.refine import (
     MotionTerms,
     base_frame,
@@ -52,6 +58,7 @@ from .._timing import StageTiming
 from ..paths import ReferencePath
 from ..readers import checked_path
 from ._motion import TensionMotionVerification, verify_tension_motion
+from ._motion_polish import polish_motion
 from ._motion_result import TensionFollowResult as TensionFollowResult
 from .ik import TensionIKConfig, TensionIKSolver
 
@@ -86,6 +93,10 @@ class TensionFollowConfig:
     """h of the chain's rate hinge rows h·max(0, |Δτ| − κ·τ̇_max·dt)/τ_max (m)."""
     rate_margin: float = 0.9
     """κ: the chain aims at this fraction of ``tension_rate_max``."""
+    polish_accepted: bool = False
+    """Exact mode: also polish a motion the verdict accepts (kept where the polish verifies)."""
+    polish: Any = None
+    """Exact mode's ``stages.polish.TensionMotionPolishConfig`` (None: its defaults)."""
     ik: TensionIKConfig = field(default_factory=lambda: TensionIKConfig(
         tolerance=1e-4, pool_size=4096, retry_seeds=0))
     """The per-waypoint tension IK (its pool seeds the first waypoint; its clearance rows
@@ -116,8 +127,8 @@ class TensionFollower:
 
     def follow(self, path: Any, *, dt: float | None = None, orientation: bool = False,
                tip_force: Any = None, tip_moment: Any = None, gravity: Any = None,
-               distributed_force: Any = None,
-               point_loads: Any = None) -> TensionFollowResult:
+               distributed_force: Any = None, point_loads: Any = None,
+               exact: bool = False, time_limit: float | None = None) -> TensionFollowResult:
         """Tensions for every waypoint of ``path``, judged as one motion.
 
         Args:
@@ -128,6 +139,11 @@ class TensionFollower:
             tip_force, tip_moment, gravity, distributed_force: (3,) loads throughout the
                 motion, world frame: N, N·m, m/s², N/m (default none).
             point_loads: ``[{"s": m, "force": [N], "moment": [N·m]}]``, world frame.
+            exact: polish a motion the verdict rejects with Ipopt (every waypoint's and
+                sample's equilibrium, the tips at their targets, the bounds, the rate and
+                the clearance as constraints; ``stages.polish``'s ``polish_tension_motion``)
+                and keep a polish the verdict accepts (``Stage.POLISH``).
+            time_limit: with ``exact``, seconds of polishing (None: no limit).
 
         Returns:
             ``TensionFollowResult``: tensions (T, n) N, the verdict's tip, backbone and
@@ -136,6 +152,7 @@ class TensionFollower:
         Raises:
             ValueError: a malformed path or load (naming the waypoint or key).
         """
+        check_time_limit(time_limit, "time_limit")
         start = time.perf_counter()
         reference = _reference(path, dt)
         count = len(reference)
@@ -154,6 +171,7 @@ class TensionFollower:
         report = self.verify_tensions(chained, reference.dt, loads)
         timing.verify = time.perf_counter() - start
         stage, notes = Stage.REFINE, ["banded LM over the whole motion"]
+        alternative = None
         missed = np.linalg.norm(report.tip_position - positions, axis=1) > self.config.tolerance
         if not report.success or missed.any():  # the per-waypoint repair; the better motion
             start = time.perf_counter()
@@ -163,13 +181,48 @@ class TensionFollower:
             other = self.verify_tensions(smoothed, reference.dt, loads)
             if _better(other, report, positions, self.config.tolerance):
                 why = report.reason or f"{int(missed.sum())} waypoints missed"
-                chained, report = smoothed, other
+                alternative, chained, report = chained, smoothed, other
                 stage, notes = Stage.EXPLORE, [
                     f"per-waypoint answers (the motion refined as a whole was worse: {why})"]
+            else:
+                alternative = smoothed
             timing.verify += time.perf_counter() - start
         result = self._result(chained, reference, quats, loads, report, stage, notes)
         result.timing = timing
+        if exact:
+            result = self._polish(result, alternative, reference, quats, loads, timing,
+                                  time_limit)
         return result
+
+    def _polish(self, result: TensionFollowResult, alternative: np.ndarray | None,
+                reference: ReferencePath, quats: np.ndarray, loads: StaticLoads,
+                timing: StageTiming, time_limit: float | None) -> TensionFollowResult:
+        """Exact mode (``_motion_polish.polish_motion``): the motion, then the other
+        motion the refine stage made (the per-waypoint repair or the chain), polished with
+        every waypoint's tip at its target."""
+        from ...stages.polish import TensionMotionPolishConfig, polish_tension_motion
+
+        cfg = self.config
+        candidates = [(result.tensions, f"the {result.stage.value} stage's motion")]
+        if alternative is not None and not np.array_equal(alternative, result.tensions):
+            candidates.append((alternative, "the other refine-stage motion"))
+        oriented = not np.any(np.isnan(quats))
+
+        def polish(tensions: np.ndarray, budget: float | None) -> Any:
+            return polish_tension_motion(
+                self.robot, self.scene, tensions, loads, dt=reference.dt,
+                rate_max=cfg.tension_rate_max, margin=cfg.safety_margin,
+                samples_between=cfg.samples_between, targets=reference.positions,
+                wxyz=quats if oriented else None, statics_config=cfg.ik.statics,
+                time_limit=budget, config=cfg.polish or TensionMotionPolishConfig())
+
+        def remake(tensions: np.ndarray) -> TensionFollowResult:
+            report = self.verify_tensions(tensions, reference.dt, loads)
+            return self._result(tensions, reference, quats, loads, report,
+                                notes=list(result.notes))
+
+        return polish_motion(result, candidates, polish, remake, timing, time_limit,
+                             self.config.polish_accepted)
 
     def _chain(self, tensions: np.ndarray, dt: float, positions: np.ndarray,
                quats: np.ndarray, loads: StaticLoads) -> np.ndarray:

@@ -24,9 +24,14 @@ a smoothness term and a hinge on the tension rate (``stages.refine``'s ``MotionT
 The refined motion is kept where it verifies and its tip path (fresh statics along the
 motion) is no longer, else the search's (``Stage.EXPLORE``; the notes say why).
 
+Exact mode (``exact=True``) polishes the motions the verdict rejects with Ipopt on the
+rod's own discrete equations (``stages.polish``'s ``polish_tension_motion``: every
+waypoint's and checked sample's equilibrium, the tension bounds, the rate between
+waypoints and the clearance as constraints, start and goal fixed, the smoothest motion as
+the objective) and keeps a polish the verdict accepts (``_motion_polish``).
+
 The verdict is the one of every tension motion (``tasks.mechanics._motion``): a fresh
-solve at every checked sample, independent of the screening's and of the LM. There is no
-exact (Ipopt) stage yet for planning on this model.
+solve at every checked sample, independent of the screening's, the LM's and Ipopt's.
 
 Units: newtons, N/s, seconds, metres.
 """
@@ -46,6 +51,7 @@ from ...model.loads import StaticLoads, static_loads
 from ...model.mechanics import require_mechanics
 from ...model.statics import solve_statics
 from ...model.tendon_groups import tensions_of_configuration
+from ...stages.polish import check_time_limit
 from ...stages.refine import (
     LMConfig,
     MotionTerms,
@@ -61,6 +67,7 @@ from ...world.scene import Scene, load_scene
 from .._result import Stage
 from .._timing import StageTiming
 from ._motion import interpolated, solve_and_check, verify_tension_motion
+from ._motion_polish import polish_motion
 from ._motion_result import TensionTrajectoryResult as TensionTrajectoryResult
 
 PROBLEM_KEYS = ("start", "goal")
@@ -108,6 +115,10 @@ class TensionPlanConfig:
     path's 1: 10 let the shortened motions cut through obstacles)."""
     clearance_buffer: float = 0.002
     """The refine keeps the backbone's spheres this far beyond δ, m."""
+    polish_accepted: bool = False
+    """Exact mode: also polish a motion the verdict accepts (kept where the polish verifies)."""
+    polish: Any = None
+    """Exact mode's ``stages.polish.TensionMotionPolishConfig`` (None: its defaults)."""
 
 
 def check_tensions(robot: Robot, values: Any, where: str) -> np.ndarray:
@@ -197,7 +208,8 @@ class TensionPlanner:
 
     def plan(self, starts: Any, goals: Any, *, tip_force: Any = None, tip_moment: Any = None,
              gravity: Any = None, distributed_force: Any = None,
-             point_loads: Any = None) -> list[TensionTrajectoryResult]:
+             point_loads: Any = None, exact: bool = False,
+             time_limit: float | None = None) -> list[TensionTrajectoryResult]:
         """A tension trajectory for every (start, goal) pair.
 
         Args:
@@ -205,6 +217,11 @@ class TensionPlanner:
             tip_force, tip_moment, gravity, distributed_force: (3,) loads throughout, world
                 frame: N, N·m, m/s², N/m (default none).
             point_loads: ``[{"s": m, "force": [N], "moment": [N·m]}]``, world frame.
+            exact: polish the motions the verdict rejects with Ipopt (every waypoint's and
+                sample's equilibrium, the bounds, the rate and the clearance as constraints,
+                start and goal fixed; ``stages.polish``'s ``polish_tension_motion``) and
+                keep a polish the verdict accepts (``Stage.POLISH``).
+            time_limit: with ``exact``, seconds of polishing per problem (None: no limit).
 
         Returns:
             One ``TensionTrajectoryResult`` per problem, in order; a start or goal in
@@ -216,6 +233,7 @@ class TensionPlanner:
         Long: the search's three steps (endpoints, direct legs, via points) and the
         verdict, in order, over the whole batch.
         """
+        check_time_limit(time_limit, "time_limit")
         begin = time.perf_counter()
         starts, goals = (np.atleast_2d(np.asarray(v, dtype=float)) for v in (starts, goals))
         if starts.shape != goals.shape:
@@ -244,18 +262,49 @@ class TensionPlanner:
             timing = StageTiming(explore=explore)
             searched = self._result(i, starts[i], goals[i], ends_clear[:, i], plans[i],
                                     notes[i], loads, stage=Stage.EXPLORE)
-            results.append(searched if plans[i] is None
-                           else self._refined(i, searched, loads, timing))
-            results[-1].timing = timing
+            result, refined = ((searched, None) if plans[i] is None
+                               else self._refined(i, searched, loads, timing))
+            result.timing = timing
+            if exact:
+                result = self._polish(result, refined, loads, timing, time_limit)
+            results.append(result)
         return results
 
+    def _polish(self, result: TensionTrajectoryResult, refined: np.ndarray | None,
+                loads: StaticLoads, timing: StageTiming,
+                time_limit: float | None) -> TensionTrajectoryResult:
+        """Exact mode on one plan (``_motion_polish.polish_motion``): its motion, then the
+        refined one where the search's was kept, polished with the start and goal fixed."""
+        from ...stages.polish import TensionMotionPolishConfig, polish_tension_motion
+
+        cfg = self.config
+        candidates = [(result.tensions, f"the {result.stage.value} stage's motion")]
+        if refined is not None and not np.array_equal(refined, result.tensions):
+            candidates.append((refined, "the refined motion"))
+
+        def polish(tensions: np.ndarray, budget: float | None) -> Any:
+            return polish_tension_motion(
+                self.robot, self.scene, tensions, loads, dt=cfg.dt,
+                rate_max=cfg.tension_rate_max, margin=cfg.safety_margin,
+                samples_between=cfg.samples_between, fixed_ends=True,
+                statics_config=cfg.statics, time_limit=budget,
+                config=cfg.polish or TensionMotionPolishConfig())
+
+        def remake(tensions: np.ndarray) -> TensionTrajectoryResult:
+            return self._result(0, tensions[0], tensions[-1], np.ones(2, bool), tensions,
+                                list(result.notes), loads)
+
+        return polish_motion(result, candidates, polish, remake, timing, time_limit,
+                             cfg.polish_accepted)
+
     def _refined(self, index: int, searched: TensionTrajectoryResult, loads: StaticLoads,
-                 timing: StageTiming) -> TensionTrajectoryResult:
+                 timing: StageTiming) -> tuple[TensionTrajectoryResult, np.ndarray | None]:
         """The searched motion refined by the banded LM (``refine_motion``), kept where it
         verifies and is no worse (verified, then the shorter tip path), else the search's
-        (``Stage.EXPLORE``, the note says why); ``timing`` gets the seconds."""
+        (``Stage.EXPLORE``, the note says why); ``timing`` gets the seconds. Also the
+        refined tensions (None: no refine)."""
         if self.config.chain_iterations <= 0:
-            return searched
+            return searched, None
         start = time.perf_counter()
         tensions = self.refine_motion(searched.tensions, loads)
         timing.refine = time.perf_counter() - start
@@ -266,11 +315,11 @@ class TensionPlanner:
         length, before = (self.tip_path(r.tensions, loads) for r in (refined, searched))
         if refined.success and (not searched.success or length <= before):
             refined.notes.append(f"tip path {1e3 * length:.1f} mm (searched {1e3 * before:.1f})")
-            return refined
+            return refined, tensions
         why = (refined.reason if not refined.success else
                f"its tip path {1e3 * length:.1f} mm is not shorter than {1e3 * before:.1f}")
         searched.notes.append(f"the refined motion was not kept: {why}")
-        return searched
+        return searched, tensions
 
     def tip_path(self, tensions: np.ndarray, loads: StaticLoads, samples: int = 64) -> float:
         """The length of the tip's path (m) along a motion (T, n) N, from fresh statics

@@ -129,7 +129,7 @@ def test_self_pairs_are_spheres_two_segments_apart() -> None:
     import json
     from pathlib import Path
 
-    from cr_nlp.stages.polish._tension_ik_nlp import _bodies, _self_table
+    from cr_nlp.stages.polish._rod_clearance import _bodies, _self_table
 
     data = json.loads((Path(__file__).resolve().parents[3] / "models" / "robots"
                        / "tdcr2_rao2021.json").read_text())
