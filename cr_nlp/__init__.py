@@ -59,15 +59,21 @@ _PUBLIC = {
     "TensionIKResult": ".tasks.mechanics.ik",
     "TensionIKSolver": ".tasks.mechanics.ik",
     "solve_tension_ik": ".tasks.mechanics.ik",
-    "TensionLiveIK": ".tasks.mechanics.live_ik",
-    "TensionFollowConfig": ".tasks.mechanics.follow",
+    "TensionLiveIKSolver": ".tasks.mechanics.live_ik",
+    "TensionLiveIK": ".tasks.mechanics.live_ik",           # deprecated names (0.2 drops them)
     "TensionFollower": ".tasks.mechanics.follow",
-    "TensionFollowResult": ".tasks.mechanics.follow",
     "follow_tensions": ".tasks.mechanics.follow",
     "TensionPlanConfig": ".tasks.mechanics.trajectory",
     "TensionPlanner": ".tasks.mechanics.trajectory",
-    "TensionTrajectoryResult": ".tasks.mechanics.trajectory",
     "plan_tensions": ".tasks.mechanics.trajectory",
+    "TensionFollowConfig": ".tasks.mechanics.follow",
+    "TensionPathFollower": ".tasks.mechanics.follow",
+    "TensionFollowResult": ".tasks.mechanics.follow",
+    "follow_tension_path": ".tasks.mechanics.follow",
+    "TensionTrajectoryConfig": ".tasks.mechanics.trajectory",
+    "TensionTrajectoryPlanner": ".tasks.mechanics.trajectory",
+    "TensionTrajectoryResult": ".tasks.mechanics.trajectory",
+    "plan_tension_trajectories": ".tasks.mechanics.trajectory",
     "replay_pcc_motion": ".tasks.mechanics.trajectory",
     "TrajectoryConfig": ".tasks.geometry.trajectory",
     "TrajectoryPlanner": ".tasks.geometry.trajectory",
@@ -140,18 +146,18 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from .tasks.geometry.trajectory import plan_trajectories as plan_trajectories
     from .tasks.geometry.trajectory import save_results as save_results
     from .tasks.mechanics.follow import TensionFollowConfig as TensionFollowConfig
-    from .tasks.mechanics.follow import TensionFollower as TensionFollower
     from .tasks.mechanics.follow import TensionFollowResult as TensionFollowResult
-    from .tasks.mechanics.follow import follow_tensions as follow_tensions
+    from .tasks.mechanics.follow import TensionPathFollower as TensionPathFollower
+    from .tasks.mechanics.follow import follow_tension_path as follow_tension_path
     from .tasks.mechanics.ik import TensionIKConfig as TensionIKConfig
     from .tasks.mechanics.ik import TensionIKResult as TensionIKResult
     from .tasks.mechanics.ik import TensionIKSolver as TensionIKSolver
     from .tasks.mechanics.ik import solve_tension_ik as solve_tension_ik
-    from .tasks.mechanics.live_ik import TensionLiveIK as TensionLiveIK
-    from .tasks.mechanics.trajectory import TensionPlanConfig as TensionPlanConfig
-    from .tasks.mechanics.trajectory import TensionPlanner as TensionPlanner
+    from .tasks.mechanics.live_ik import TensionLiveIKSolver as TensionLiveIKSolver
+    from .tasks.mechanics.trajectory import TensionTrajectoryConfig as TensionTrajectoryConfig
+    from .tasks.mechanics.trajectory import TensionTrajectoryPlanner as TensionTrajectoryPlanner
     from .tasks.mechanics.trajectory import TensionTrajectoryResult as TensionTrajectoryResult
-    from .tasks.mechanics.trajectory import plan_tensions as plan_tensions
+    from .tasks.mechanics.trajectory import plan_tension_trajectories as plan_tension_trajectories
     from .tasks.mechanics.trajectory import replay_pcc_motion as replay_pcc_motion
     from .tasks.paths import ReferencePath as ReferencePath
     from .tasks.readers import load_path as load_path

@@ -35,7 +35,7 @@ class JobSpec:
     """The ``Scene`` or None."""
     config: Any
     """``IKConfig`` / ``TrajectoryConfig`` (pcc), ``TensionIKConfig`` /
-    ``TensionPlanConfig`` (cosserat)."""
+    ``TensionTrajectoryConfig`` (cosserat)."""
     exact: bool
     """Polish with Ipopt (the single-process solvers' ``exact``)."""
     init: str
@@ -348,15 +348,15 @@ class _TensionPlanJobs(_TensionSettings):
 
     @staticmethod
     def default_config() -> Any:
-        from .tasks.mechanics.trajectory import TensionPlanConfig
+        from .tasks.mechanics.trajectory import TensionTrajectoryConfig
 
-        return TensionPlanConfig()
+        return TensionTrajectoryConfig()
 
     @staticmethod
     def solver(spec: JobSpec) -> Any:
-        from .tasks.mechanics.trajectory import TensionPlanner
+        from .tasks.mechanics.trajectory import TensionTrajectoryPlanner
 
-        return TensionPlanner(spec.robot, spec.scene, spec.config)
+        return TensionTrajectoryPlanner(spec.robot, spec.scene, spec.config)
 
     @staticmethod
     def normalise(first: Any, second: Any) -> tuple[Any, Any]:

@@ -18,15 +18,18 @@ def moved_module(old: str, new: str, until: str = "0.2") -> None:
 
 
 def moved_names(module: str, names: dict[str, str], until: str = "0.2") -> Any:
-    """A module ``__getattr__`` for names that moved out of ``module``: ``names[name]`` is
-    the new module; using the old address warns (DeprecationWarning) and returns the
-    object from its new one."""
+    """A module ``__getattr__`` for names that moved out of ``module`` or were renamed:
+    ``names[name]`` is the new module, ``"module:new_name"``, or ``":new_name"`` (renamed
+    in ``module`` itself); using the old address
+    warns (DeprecationWarning) and returns the object from its new one."""
 
     def attribute(name: str) -> Any:
         if name not in names:
             raise AttributeError(f"module {module!r} has no attribute {name!r}")
-        warnings.warn(f"{module}.{name} moved to {names[name]}.{name}; the old name goes in "
+        where, _, new = names[name].partition(":")
+        where = where or module
+        warnings.warn(f"{module}.{name} is now {where}.{new or name}; the old name goes in "
                       f"cr_nlp {until}", DeprecationWarning, stacklevel=2)
-        return getattr(importlib.import_module(names[name]), name)
+        return getattr(importlib.import_module(where), new or name)
 
     return attribute

@@ -31,7 +31,7 @@ What lands in ``out_dir``:
 
 What differs between the kinds of job (solver, inputs, a chunk's answers, the results)
 is in one adapter per kind and model (``_batch_kinds``). ``model="cosserat"`` runs the
-tension tasks on the Cosserat rod (``TensionIKSolver.solve``, ``TensionPlanner.plan``)
+tension tasks on the Cosserat rod (``TensionIKSolver.solve``, ``TensionTrajectoryPlanner.plan``)
 under one load case (``loads``): chunks, files and resume as above, the manifest also
 records the model and the loads (a resume under other loads is refused), and the results
 are the ``cr-nlp ik|plan --model cosserat`` files (kinds "tension_ik",
@@ -211,13 +211,13 @@ def run_batch(kind: str, robot: Any, inputs: tuple[Any, Any], *, out_dir: str | 
         scene: a ``Scene``, scene file or bundled name, or None.
         exact: polish every answer with Ipopt (as ``cr-nlp ik/plan --exact``).
         config: ``IKConfig`` / ``TrajectoryConfig``, Cosserat ``TensionIKConfig`` /
-            ``TensionPlanConfig`` (default: the solver's defaults).
+            ``TensionTrajectoryConfig`` (default: the solver's defaults).
         init: planning: "roadmap" or "straight".
         problems: ik: a reason per target read badly from its file ("" where fine), as
             ``read_targets`` returns; it replaces the solver's reason in the results.
         model: "pcc" (configurations θ, φ, L) or "cosserat" (tendon tensions on the
-            Cosserat rod, ``TensionIKSolver.solve`` / ``TensionPlanner.plan``: a robot with
-            a ``mechanics`` block; ``exact`` for ik and plan).
+            Cosserat rod, ``TensionIKSolver.solve`` / ``TensionTrajectoryPlanner.plan``: a
+            robot with a ``mechanics`` block; ``exact`` for ik and plan).
         loads: Cosserat: the one load case of every problem, the solvers' keyword
             arguments (tip_force N, tip_moment N·m, gravity m/s², distributed_force N/m,
             world frame; point_loads ``[{"s": m, "force": [N], "moment": [N·m]}]``).

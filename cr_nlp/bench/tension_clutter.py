@@ -12,9 +12,9 @@ rejects polished by Ipopt on the rod's equations):
   by ``TensionIKSolver``;
 - following: ``paths`` tip paths of ``waypoints`` waypoints, each traced by a smooth
   tension motion that is clear of the scene (verified) and keeps ``rate_fraction`` of the
-  tension-rate limit, followed by ``TensionFollower``;
+  tension-rate limit, followed by ``TensionPathFollower``;
 - planning: ``problems`` start/goal pairs of clear random tension sets, planned by
-  ``TensionPlanner`` and by its search alone (``chain_iterations=0``), with the median
+  ``TensionTrajectoryPlanner`` and by its search alone (``chain_iterations=0``), with the median
   ratio of the tip paths (fresh statics along each motion).
 
 Success is every task's own verdict (fresh statics, python-fcl); times are the first
@@ -64,10 +64,10 @@ def clutter_scene(robot: Any, seed: int = 0, spheres: int = 14, boxes: int = 2) 
 def clear_tensions(follower: Any, count: int, rng: np.random.Generator) -> np.ndarray:
     """(count, n) random tension sets whose equilibria keep δ from the scene, N."""
     from ..stages.explore import random_tensions
-    from ..tasks.mechanics.trajectory import TensionPlanner
+    from ..tasks.mechanics.trajectory import TensionTrajectoryPlanner
 
     loads = static_loads(1, follower.ik.length, PAYLOAD, None, GRAVITY)
-    screen = TensionPlanner(follower.robot, follower.scene)
+    screen = TensionTrajectoryPlanner(follower.robot, follower.scene)
     found: list[np.ndarray] = []
     while sum(len(f) for f in found) < count:
         candidates = 0.6 * random_tensions(follower.robot, 4 * count,
@@ -153,12 +153,12 @@ def bench_plan(robot: Any, scene: dict, problems: int, repeats: int, follower: A
                ) -> list[dict[str, Any]]:
     """The planning rows, one per mode: plans against the search's on the same problems
     (``exact``: the motions the verdict rejects polished by Ipopt)."""
-    from ..tasks.mechanics.trajectory import TensionPlanner
+    from ..tasks.mechanics.trajectory import TensionTrajectoryPlanner
 
     ends = clear_tensions(follower, 2 * problems, rng)
     starts, goals = ends[:problems], ends[problems:]
-    planner = TensionPlanner(robot, scene)
-    search = TensionPlanner(robot, scene, dataclasses.replace(planner.config,
+    planner = TensionTrajectoryPlanner(robot, scene)
+    search = TensionTrajectoryPlanner(robot, scene, dataclasses.replace(planner.config,
                                                               chain_iterations=0))
     loads = static_loads(1, planner.length, PAYLOAD, None, GRAVITY)
     searched = search.plan(starts, goals, gravity=GRAVITY, tip_force=PAYLOAD)
@@ -217,12 +217,12 @@ def run_tension_clutter_benchmark(robot: str = "tdcr2_rao2021", targets: int = 2
                                   seed: int = 0, rate_fraction: float = 0.7,
                                   out: str | Path | None = None) -> dict[str, Any]:
     """All three rows in the clutter scene, printed and written to ``out``."""
-    from ..tasks.mechanics.follow import TensionFollowConfig, TensionFollower
+    from ..tasks.mechanics.follow import TensionFollowConfig, TensionPathFollower
 
     rob = load_robot(robot)
     scene = clutter_scene(rob, seed)
     rng = np.random.default_rng(seed)
-    follower = TensionFollower(rob, scene, TensionFollowConfig(tension_rate_max=RATE_MAX))
+    follower = TensionPathFollower(rob, scene, TensionFollowConfig(tension_rate_max=RATE_MAX))
     motions = clear_motions(follower, paths, waypoints, rate_fraction, rng)
     ik = bench_ik(rob, scene, targets, list(modes), repeats, follower, rng)
     follow = [bench_follow(follower, motions, repeats, mode) for mode in modes]

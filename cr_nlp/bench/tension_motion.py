@@ -4,8 +4,8 @@ targets).
 ``cr-nlp bench tension`` on a robot with a ``mechanics`` block (default
 ``tdcr2_rao2021``) under gravity and a 5 g payload at the tip, among the spheres and boxes
 of ``SCENE`` (both rows): ``problems`` planning problems between random collision-free
-start and goal tensions (``TensionPlanner``), and a ``waypoints``-waypoint path
-(``TensionFollower``) traced by the tip of a smooth loop of tensions (so every waypoint is
+start and goal tensions (``TensionTrajectoryPlanner``), and a ``waypoints``-waypoint path
+(``TensionPathFollower``) traced by the tip of a smooth loop of tensions (so every waypoint is
 reachable). Success is the planners' own verdict (fresh statics at every checked sample,
 python-fcl); the first call (compiles, seed and via pools) is reported apart from the
 steady state (the median of ``repeats`` timed runs after it).
@@ -60,9 +60,9 @@ def timed(call: Any, repeats: int) -> tuple[Any, float, float]:
 
 def bench_plan(robot: str, problems: int, repeats: int, seed: int) -> dict[str, Any]:
     """Plan ``problems`` random collision-free problems; success and seconds."""
-    from ..tasks.mechanics.trajectory import TensionPlanner
+    from ..tasks.mechanics.trajectory import TensionTrajectoryPlanner
 
-    planner = TensionPlanner(robot, SCENE)
+    planner = TensionTrajectoryPlanner(robot, SCENE)
     rob = planner.robot
     loads = static_loads(1, planner.length, PAYLOAD, None, GRAVITY)
     rng = np.random.default_rng(seed)
@@ -81,11 +81,11 @@ def bench_plan(robot: str, problems: int, repeats: int, seed: int) -> dict[str, 
 
 def bench_follow(robot: str, waypoints: int, repeats: int) -> dict[str, Any]:
     """Follow a ``waypoints``-waypoint loop under load; error (fresh statics) and time."""
-    from ..tasks.mechanics.follow import TensionFollower
+    from ..tasks.mechanics.follow import TensionPathFollower
 
     rob = load_robot(robot)
     path = solve_statics(rob, loop_tensions(waypoints), PAYLOAD, None, GRAVITY).tip_position
-    follower = TensionFollower(rob, SCENE)
+    follower = TensionPathFollower(rob, SCENE)
     result, first, median = timed(
         lambda: follower.follow(path, dt=0.05, gravity=GRAVITY, tip_force=PAYLOAD), repeats)
     return {"waypoints": waypoints, "first_s": first, "median_s": median,

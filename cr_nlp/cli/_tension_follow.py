@@ -30,7 +30,7 @@ def run(args: argparse.Namespace, robot: object) -> int:
     ``--csv``, the time series; print a one-line summary on stderr."""
     from dataclasses import replace
 
-    from ..tasks.mechanics.follow import TensionFollowConfig, TensionFollower
+    from ..tasks.mechanics.follow import TensionFollowConfig, TensionPathFollower
     from ..tasks.readers import load_path
 
     needs_mechanics(robot)
@@ -45,7 +45,7 @@ def run(args: argparse.Namespace, robot: object) -> int:
                              f"{args.tension_rate_max}")
         config = replace(config, tension_rate_max=args.tension_rate_max)
     path = load_path(resolve(args.path, "paths", "--path"))
-    follower = TensionFollower(robot, load_scene_arg(args.scene), config)
+    follower = TensionPathFollower(robot, load_scene_arg(args.scene), config)
     loads = loads_from_args(args, follower.ik.length)
     try:
         result = follower.follow(path, dt=args.dt, orientation=args.orientation, **loads,

@@ -25,12 +25,12 @@ def run(args: argparse.Namespace, robot: object) -> int:
     ``tension_trajectory``, one entry per problem) and, with ``--csv``, one time series per
     problem; print a summary."""
     from ..tasks.mechanics._motion_result import tension_trajectories_to_dict
-    from ..tasks.mechanics.trajectory import TensionPlanConfig, TensionPlanner
+    from ..tasks.mechanics.trajectory import TensionTrajectoryConfig, TensionTrajectoryPlanner
     from ..tasks.readers import read_tension_problems
 
     needs_mechanics(robot)
     time_limit = time_limit_arg(args)
-    config = TensionPlanConfig(seed=args.seed)
+    config = TensionTrajectoryConfig(seed=args.seed)
     config = replace(config, safety_margin=config.safety_margin
                      + model_margin(robot, args.model_margin))
     for name, value in (("dt", args.dt), ("tension_rate_max", args.tension_rate_max)):
@@ -43,7 +43,7 @@ def run(args: argparse.Namespace, robot: object) -> int:
                                                              "--problems"))
     except ValueError as exc:
         raise UsageError(f"--problems: {exc}") from None
-    planner = TensionPlanner(robot, load_scene_arg(args.scene), config)
+    planner = TensionTrajectoryPlanner(robot, load_scene_arg(args.scene), config)
     loads = loads_from_args(args, planner.length)
     results = planner.plan(starts, goals, **loads, exact=args.exact, time_limit=time_limit)
     data = tension_trajectories_to_dict(results, None, robot)

@@ -248,7 +248,7 @@ def _tension_job(args: argparse.Namespace, robot: object) -> tuple[tuple, dict]:
         return (positions, wxyz if args.orientation else None), {
             **options, "config": TensionIKConfig(seed=args.seed), "problems": problems,
             "time_limit": time_limit_arg(args)}
-    from ..tasks.mechanics.trajectory import TensionPlanConfig
+    from ..tasks.mechanics.trajectory import TensionTrajectoryConfig
     from ..tasks.readers import read_tension_problems
 
     try:
@@ -256,7 +256,7 @@ def _tension_job(args: argparse.Namespace, robot: object) -> tuple[tuple, dict]:
                                                              "--problems"))
     except ValueError as exc:
         raise UsageError(f"--problems: {exc}") from None
-    return (starts, goals), {**options, "config": TensionPlanConfig(seed=args.seed)}
+    return (starts, goals), {**options, "config": TensionTrajectoryConfig(seed=args.seed)}
 
 
 def _summary(args: argparse.Namespace, result: object, name: str) -> str:

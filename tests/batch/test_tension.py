@@ -18,15 +18,15 @@ from cr_nlp.model.statics import solve_statics
 from cr_nlp.stages.polish import POLISH_EXACT_MODE
 from cr_nlp.tasks.mechanics.ik import TensionIKConfig, TensionIKResult, TensionIKSolver
 from cr_nlp.tasks.mechanics.trajectory import (
-    TensionPlanConfig,
-    TensionPlanner,
+    TensionTrajectoryConfig,
+    TensionTrajectoryPlanner,
     TensionTrajectoryResult,
 )
 
 RAO = load_robot("tdcr2_rao2021")
 LOADS = {"gravity": [0.0, 0.0, -9.81], "tip_force": [0.0, 0.0, -0.049]}  # a 5 g payload
 IK_CONFIG = TensionIKConfig(pool_size=4096)
-PLAN_CONFIG = TensionPlanConfig(via_pool=64)
+PLAN_CONFIG = TensionTrajectoryConfig(via_pool=64)
 TARGETS = 6
 CHUNK = 3
 
@@ -134,7 +134,7 @@ def test_cosserat_plan_batch_gives_the_direct_planner_answers(client, tmp_path) 
                         loads=LOADS, config=PLAN_CONFIG, client=client, chunk=1,
                         progress=False)
     assert len(list(out.glob("chunk_*.npz"))) == 2
-    planner = TensionPlanner(RAO, None, PLAN_CONFIG)
+    planner = TensionTrajectoryPlanner(RAO, None, PLAN_CONFIG)
     for i, result in enumerate(results):
         direct = planner.plan(starts[i], goals[i], **LOADS)[0]
         np.testing.assert_allclose(result.tensions, direct.tensions, rtol=0, atol=1e-9)

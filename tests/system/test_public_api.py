@@ -11,7 +11,7 @@ import cr_nlp
 
 ROOT = Path(__file__).resolve().parents[2]
 TASK_FUNCTIONS = ("solve_ik", "plan_trajectories", "follow_path", "solve_tension_ik",
-                  "solve_statics", "calibrate", "follow_tensions", "plan_tensions")
+                  "solve_statics", "calibrate", "follow_tension_path", "plan_tension_trajectories")
 
 
 def test_every_public_name_resolves_and_each_task_has_its_function() -> None:
@@ -41,3 +41,29 @@ def test_every_name_the_readme_and_notebooks_import_is_public() -> None:
     modules = {"viz", "runtime"}
     assert names and not (names - set(cr_nlp.__all__) - modules), sorted(
         names - set(cr_nlp.__all__) - modules)
+
+
+def test_renamed_and_moved_names_warn_and_return_the_new_object() -> None:
+    """The mechanics names mirror the geometry ones (TensionTrajectoryPlanner beside
+    TrajectoryPlanner, …) and old module addresses moved into packages; the old names
+    work for one release, each with a DeprecationWarning naming the new one."""
+    import importlib
+    import warnings
+
+    old_new = {"TensionPlanner": "TensionTrajectoryPlanner",
+               "TensionPlanConfig": "TensionTrajectoryConfig",
+               "plan_tensions": "plan_tension_trajectories",
+               "TensionFollower": "TensionPathFollower", "follow_tensions": "follow_tension_path",
+               "TensionLiveIK": "TensionLiveIKSolver"}
+    for old, new in old_new.items():
+        module = importlib.import_module(cr_nlp._PUBLIC[old], "cr_nlp")
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            assert getattr(module, old) is getattr(cr_nlp, new)
+        assert any(issubclass(w.category, DeprecationWarning) and new in str(w.message)
+                   for w in seen), old
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        old_module = importlib.import_module("cr_nlp.tasks.calibrate")
+    assert old_module is importlib.import_module("cr_nlp.tasks.calibration.calibrate")
+    assert any("cr_nlp.tasks.calibration.calibrate" in str(w.message) for w in seen)

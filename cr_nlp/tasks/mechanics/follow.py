@@ -80,7 +80,7 @@ class TensionFollowConfig:
     """Waypoints solved together, each warm-started from the waypoint before the block."""
     smooth_passes: int = 16
     """Passes that re-solve the waypoint after a too-fast tension change from the one
-    before it (``TensionFollower._smooth``)."""
+    before it (``TensionPathFollower._smooth``)."""
     retry_seeds: int = 2
     """Waypoints that fail are solved again from their predecessor, then from this many
     further pool seeds."""
@@ -116,7 +116,7 @@ def _reference(path: Any, dt: float | None) -> ReferencePath:
     return checked_path(path, dt)
 
 
-class TensionFollower:
+class TensionPathFollower:
     """Tension-space path following of a robot with a ``mechanics`` block (numpy in/out)."""
 
     def __init__(self, robot: Robot | str | dict, scene: Scene | str | None = None,
@@ -382,9 +382,14 @@ def _better(a: TensionMotionVerification, b: TensionMotionVerification,
     return a.max_violation < b.max_violation
 
 
-def follow_tensions(robot: Robot | str | dict, path: Any, scene: Scene | str | None = None,
+def follow_tension_path(robot: Robot | str | dict, path: Any, scene: Scene | str | None = None,
                     **options: Any) -> TensionFollowResult:
     """One-call tension-space path following with the default config (see
-    ``TensionFollower.follow``): a path of tip positions in metres (or poses), loads in N,
+    ``TensionPathFollower.follow``): a path of tip positions in metres (or poses), loads in N,
     N·m, m/s², N/m; returns tensions per waypoint in N."""
-    return TensionFollower(robot, scene).follow(path, **options)
+    return TensionPathFollower(robot, scene).follow(path, **options)
+
+from ..._moved import moved_names  # noqa: E402 — the old names, for one release
+
+__getattr__ = moved_names(__name__, {"TensionFollower": ":TensionPathFollower",
+                                     "follow_tensions": ":follow_tension_path"})

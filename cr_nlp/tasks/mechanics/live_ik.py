@@ -30,7 +30,7 @@ from .ik import TensionIKConfig, TensionIKSolver
 
 
 @dataclass(frozen=True)
-class TensionLiveResult:
+class TensionLiveIKResult:
     """One live answer, judged by the verdict (float64). Units: N, m, N·m, s."""
 
     tensions: np.ndarray
@@ -53,12 +53,12 @@ class TensionLiveResult:
     """Wall time of the update, verdict included."""
 
 
-class TensionLiveIK:
+class TensionLiveIKSolver:
     """Single-target tension IK warm-started from the current tensions; reuse it.
 
     The loads are fixed per solver (``tip_force``, ``gravity``, … as for
     ``TensionIKSolver.solve``, world frame). ``solve(tensions, position)`` returns a
-    ``TensionLiveResult``; the first call compiles (seconds, cached on disk).
+    ``TensionLiveIKResult``; the first call compiles (seconds, cached on disk).
     """
 
     def __init__(self, robot: Robot | str | dict, scene: Scene | str | None = None,
@@ -69,7 +69,7 @@ class TensionLiveIK:
         self._moment: tuple[bytes, np.ndarray] | None = None
 
     def solve(self, tensions: Any, position: Any, wxyz: Any = None, *,
-              search: bool = True) -> TensionLiveResult:
+              search: bool = True) -> TensionLiveIKResult:
         """Move the robot's tip from the equilibrium of ``tensions`` (n,) N to ``position``
         (3,) m, world frame (``wxyz``: (4,) orientation, or None: free).
 
@@ -103,7 +103,7 @@ class TensionLiveIK:
             if other.success[0] or other.pose_error[0] < judged.pose_error[0]:
                 answer, judged, stage = again, other, Stage.SEARCH
         self._moment = (answer.tobytes(), base_frame(self.robot, judged.base_moment))
-        return TensionLiveResult(
+        return TensionLiveIKResult(
             tensions=answer[0], position=judged.position[0],
             position_error=float(judged.position_error[0]),
             min_clearance=float(judged.min_clearance[0]), success=bool(judged.success[0]),
@@ -116,3 +116,8 @@ class TensionLiveIK:
         if self._moment is not None and self._moment[0] == current.tobytes():
             return self._moment[1]
         return None
+
+from ..._moved import moved_names  # noqa: E402 — the old names, for one release
+
+__getattr__ = moved_names(__name__, {"TensionLiveIK": ":TensionLiveIKSolver",
+                                     "TensionLiveResult": ":TensionLiveIKResult"})

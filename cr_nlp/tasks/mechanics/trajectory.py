@@ -75,7 +75,7 @@ PROBLEM_KEYS = ("start", "goal")
 
 
 @dataclass(frozen=True)
-class TensionPlanConfig:
+class TensionTrajectoryConfig:
     """Settings of tension-space trajectory planning."""
 
     dt: float = 0.05
@@ -151,11 +151,11 @@ def check_tensions(robot: Robot, values: Any, where: str) -> np.ndarray:
 
 
 
-class TensionPlanner:
+class TensionTrajectoryPlanner:
     """Tension-space trajectory planning of a robot with a ``mechanics`` block."""
 
     def __init__(self, robot: Robot | str | dict, scene: Scene | str | None = None,
-                 config: TensionPlanConfig = TensionPlanConfig()) -> None:
+                 config: TensionTrajectoryConfig = TensionTrajectoryConfig()) -> None:
         self.robot = load_robot(robot)
         require_mechanics(self.robot, "tension-space planning")
         self.scene = None if scene is None else load_scene(scene)
@@ -511,23 +511,26 @@ def _seconds(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.max(np.abs(np.asarray(b) - np.asarray(a)), axis=-1)
 
 
-def plan_tensions(robot: Robot | str | dict, starts: Any, goals: Any,
+def plan_tension_trajectories(robot: Robot | str | dict, starts: Any, goals: Any,
                   scene: Scene | str | None = None,
                   **loads: Any) -> list[TensionTrajectoryResult]:
     """One-call tension-space planning with the default config (see
-    ``TensionPlanner.plan``): start and goal tensions in newtons, loads in N, N·m, m/s²,
+    ``TensionTrajectoryPlanner.plan``): start and goal tensions in newtons, loads in N, N·m, m/s²,
     N/m (clearance in metres);
     returns one trajectory of tensions (N) per problem."""
-    return TensionPlanner(robot, scene).plan(starts, goals, **loads)
+    return TensionTrajectoryPlanner(robot, scene).plan(starts, goals, **loads)
 
 
 def replay_pcc_motion(robot: Robot | str | dict, motion: Any, scene: Scene | str | None = None,
                       dt: float | None = None, **loads: Any) -> TensionTrajectoryResult:
     """A PCC plan or path (``TrajectoryResult``, ``FollowResult`` or configurations
     (T, 3S), rad and m) replayed through the mechanics model under loads (N, N·m, m/s²,
-    N/m), judged like a tension plan (see ``TensionPlanner.replay``); dt in seconds."""
-    return TensionPlanner(robot, scene).replay(motion, dt, **loads)
+    N/m), judged like a tension plan (see ``TensionTrajectoryPlanner.replay``); dt in seconds."""
+    return TensionTrajectoryPlanner(robot, scene).replay(motion, dt, **loads)
 
-from ..._moved import moved_names  # noqa: E402 — the old addresses, for one release (CHANGELOG 2026-12-02)
+from ..._moved import moved_names  # noqa: E402 — old names, for one release
 
-__getattr__ = moved_names(__name__, {"read_tension_problems": "cr_nlp.tasks.readers"})
+__getattr__ = moved_names(__name__, {"TensionPlanConfig": ":TensionTrajectoryConfig",
+                                     "TensionPlanner": ":TensionTrajectoryPlanner",
+                                     "plan_tensions": ":plan_tension_trajectories",
+                                     "read_tension_problems": "cr_nlp.tasks.readers"})

@@ -1,5 +1,5 @@
 """The exact stage of tension motions (``stages.polish._tension_motion_nlp``, through
-``TensionFollower.follow`` and ``TensionPlanner.plan`` with ``exact=True``): answers
+``TensionPathFollower.follow`` and ``TensionTrajectoryPlanner.plan`` with ``exact=True``): answers
 replayed by fresh JAX statics and python-fcl, never judged by the polish's own numbers.
 Robot ``tdcr2_rao2021`` under gravity and a 5 g tip payload; one 8-waypoint path and one
 planning problem shared by the tests (each motion's NLP is built once per process)."""
@@ -11,7 +11,12 @@ import json
 import numpy as np
 import pytest
 
-from cr_nlp import TensionFollower, TensionPlanConfig, TensionPlanner, load_result
+from cr_nlp import (
+    TensionPathFollower,
+    TensionTrajectoryConfig,
+    TensionTrajectoryPlanner,
+    load_result,
+)
 from cr_nlp.model import load_robot
 from cr_nlp.model.loads import static_loads
 from cr_nlp.model.statics import solve_statics
@@ -70,7 +75,7 @@ def case() -> dict:
     from cr_nlp.tasks.mechanics.follow import TensionFollowConfig
 
     return {"path": truth.tip_position, "rate": rate, "scene": load_scene(scene),
-            "follower": TensionFollower(RAO, scene, TensionFollowConfig(tension_rate_max=rate))}
+            "follower": TensionPathFollower(RAO, scene, TensionFollowConfig(tension_rate_max=rate))}
 
 
 @pytest.fixture(scope="module")
@@ -154,14 +159,15 @@ START, GOAL = np.array([0, 0, 0, 0, 0, 3.0]), np.array([0, 6.0, 0, 0, 0, 3.0])
 
 
 @pytest.fixture(scope="module")
-def planner() -> TensionPlanner:
+def planner() -> TensionTrajectoryPlanner:
     """Exact mode on every motion, also the ones the verdict accepts (its straight leg
     passes through the ball: the plan goes through a via)."""
-    return TensionPlanner(RAO, SCENE, TensionPlanConfig(via_pool=128, polish_accepted=True))
+    return TensionTrajectoryPlanner(RAO, SCENE, TensionTrajectoryConfig(via_pool=128,
+                                                                         polish_accepted=True))
 
 
 def test_an_exact_plan_replayed_by_fresh_statics_and_fcl_keeps_its_constraints(
-        planner: TensionPlanner) -> None:
+        planner: TensionTrajectoryPlanner) -> None:
     result = planner.plan(START, GOAL, gravity=GRAVITY, tip_force=PAYLOAD, exact=True)[0]
     assert result.success and result.stage == "polish", (result.reason, result.notes)
     np.testing.assert_array_equal(result.tensions[[0, -1]], np.stack([START, GOAL]))
@@ -201,7 +207,7 @@ def test_bad_inputs_are_named(case: dict, tmp_path, capsys) -> None:
     with pytest.raises(ValueError, match="time_limit"):
         case["follower"].follow(case["path"], dt=DT, exact=True, time_limit=-1.0)
     with pytest.raises(ValueError, match="time_limit"):
-        TensionPlanner(RAO).plan(START, GOAL, exact=True, time_limit=0.0)
+        TensionTrajectoryPlanner(RAO).plan(START, GOAL, exact=True, time_limit=0.0)
     code = main(["plan", "--model", "cosserat", "--robot", "tdcr2_rao2021", "--problems",
                  str(tmp_path / "none.json"), "--time-limit", "5", "--out",
                  str(tmp_path / "R.json")])

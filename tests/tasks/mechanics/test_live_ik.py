@@ -11,7 +11,7 @@ from cr_nlp.model import load_robot
 from cr_nlp.model.statics import solve_statics
 from cr_nlp.tasks._result import Stage
 from cr_nlp.tasks.mechanics.ik import TensionIKConfig
-from cr_nlp.tasks.mechanics.live_ik import TensionLiveIK
+from cr_nlp.tasks.mechanics.live_ik import TensionLiveIKSolver
 
 RAO = load_robot("tdcr2_rao2021")
 GRAVITY = [0.0, 0.0, -9.81]
@@ -19,12 +19,12 @@ PAYLOAD = [0.0, 0.0, -0.005 * 9.81]
 
 
 @pytest.fixture(scope="module")
-def live() -> TensionLiveIK:
-    return TensionLiveIK(RAO, None, TensionIKConfig(pool_size=1024), gravity=GRAVITY,
+def live() -> TensionLiveIKSolver:
+    return TensionLiveIKSolver(RAO, None, TensionIKConfig(pool_size=1024), gravity=GRAVITY,
                          tip_force=PAYLOAD)
 
 
-def test_a_dragged_target_is_followed_from_the_current_tensions(live: TensionLiveIK) -> None:
+def test_a_dragged_target_is_followed_from_the_current_tensions(live: TensionLiveIKSolver) -> None:
     t = np.linspace(0.0, 1.0, 6)[:, None]
     motion = np.concatenate([1 + 2 * t, 0 * t, 0.5 * t, 1 - t, t, 0 * t], axis=1)
     tips = solve_statics(RAO, motion, PAYLOAD, None, GRAVITY).tip_position
@@ -39,7 +39,7 @@ def test_a_dragged_target_is_followed_from_the_current_tensions(live: TensionLiv
         current = answer.tensions
 
 
-def test_bad_inputs_are_named(live: TensionLiveIK) -> None:
+def test_bad_inputs_are_named(live: TensionLiveIKSolver) -> None:
     with pytest.raises(ValueError, match="tensions: expected 6"):
         live.solve(np.zeros(5), [0.0, 0.0, 0.4])
     with pytest.raises(ValueError, match="position"):

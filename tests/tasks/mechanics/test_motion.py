@@ -12,7 +12,7 @@ import sys
 import numpy as np
 import pytest
 
-from cr_nlp import TensionFollower, TensionFollowResult, load_result
+from cr_nlp import TensionFollowResult, TensionPathFollower, load_result
 from cr_nlp.model import load_robot
 from cr_nlp.model.statics import solve_statics
 from cr_nlp.world.check import check_chains
@@ -37,12 +37,12 @@ def path() -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def follower() -> TensionFollower:
-    return TensionFollower(RAO)
+def follower() -> TensionPathFollower:
+    return TensionPathFollower(RAO)
 
 
 @pytest.fixture(scope="module")
-def followed(follower: TensionFollower, path: np.ndarray) -> TensionFollowResult:
+def followed(follower: TensionPathFollower, path: np.ndarray) -> TensionFollowResult:
     return follower.follow(path, dt=0.05, gravity=GRAVITY, tip_force=PAYLOAD)
 
 
@@ -57,12 +57,12 @@ def test_followed_tips_by_fresh_statics_are_on_the_path(followed: TensionFollowR
     assert rate.max() <= followed.tension_rate_max
 
 
-def test_an_obstacle_on_the_motion_fails_the_verdict(follower: TensionFollower,
+def test_an_obstacle_on_the_motion_fails_the_verdict(follower: TensionPathFollower,
                                                      followed: TensionFollowResult) -> None:
     middle = followed.backbone[12, 15]      # a point of the body at waypoint 12
     scene = {"obstacles": [{"name": "ball", "type": "sphere", "center": middle.tolist(),
                             "radius": 0.01}]}
-    blocked = TensionFollower(RAO, scene, follower.config)
+    blocked = TensionPathFollower(RAO, scene, follower.config)
     report = blocked.verify(followed)
     assert not report.success and "collision" in report.reason
     # python-fcl on an independent solve of the same tensions agrees.
@@ -75,13 +75,13 @@ def test_an_obstacle_on_the_motion_fails_the_verdict(follower: TensionFollower,
     ({"point_loads": [{"s": 0.1, "force": [0, 0, -1], "mass": 1}]}, "mass"),
     ({"point_loads": [{"s": 0.9, "force": [0, 0, -1]}]}, "outside the robot"),
 ])
-def test_bad_loads_name_the_key(follower: TensionFollower, path: np.ndarray,
+def test_bad_loads_name_the_key(follower: TensionPathFollower, path: np.ndarray,
                                 options: dict, words: str) -> None:
     with pytest.raises(ValueError, match=words):
         follower.follow(path[:3], **options)
 
 
-def test_bad_path_names_the_waypoint(follower: TensionFollower, path: np.ndarray) -> None:
+def test_bad_path_names_the_waypoint(follower: TensionPathFollower, path: np.ndarray) -> None:
     bad = path[:4].copy()
     bad[2, 1] = np.nan
     with pytest.raises(ValueError, match="waypoint 2"):
@@ -91,7 +91,7 @@ def test_bad_path_names_the_waypoint(follower: TensionFollower, path: np.ndarray
 
 
 def test_verdict_rejects_a_negative_tension_and_a_fast_change(
-        follower: TensionFollower, followed: TensionFollowResult) -> None:
+        follower: TensionPathFollower, followed: TensionFollowResult) -> None:
     from cr_nlp.model.loads import static_loads
 
     loads = static_loads(1, follower.ik.length, PAYLOAD, None, GRAVITY)
@@ -173,9 +173,9 @@ SCENE = {"obstacles": [
 
 @pytest.fixture(scope="module")
 def planner():
-    from cr_nlp import TensionPlanConfig, TensionPlanner
+    from cr_nlp import TensionTrajectoryConfig, TensionTrajectoryPlanner
 
-    return TensionPlanner(RAO, SCENE, TensionPlanConfig(via_pool=128))
+    return TensionTrajectoryPlanner(RAO, SCENE, TensionTrajectoryConfig(via_pool=128))
 
 
 def test_a_plan_replayed_through_fresh_statics_keeps_its_clearance(planner) -> None:
@@ -309,9 +309,9 @@ DENSE_SCENE = {"obstacles": SCENE["obstacles"] + [
 
 
 def test_a_problem_no_single_via_solves_gets_two() -> None:
-    from cr_nlp import TensionPlanner
+    from cr_nlp import TensionTrajectoryPlanner
 
-    planner = TensionPlanner(RAO, DENSE_SCENE)
+    planner = TensionTrajectoryPlanner(RAO, DENSE_SCENE)
     start = np.array([0.077, 0.0, 0.0, 4.965, 0.662, 0.345])
     goal = np.array([0.0, 5.596, 2.12, 0.0, 1.314, 5.639])
     result = planner.plan(start, goal, gravity=GRAVITY, tip_force=PAYLOAD)[0]
@@ -362,7 +362,7 @@ def test_a_path_through_a_narrow_gap_keeps_the_rate_limit_and_the_margin() -> No
         {"name": f"ball_{i}", "type": "sphere", "radius": 0.005,
          "center": (truth.positions[m, k] + sign * offset * across).tolist()}
         for i, sign in enumerate((1.0, -1.0))]}
-    follower = TensionFollower(RAO, scene, TensionFollowConfig(tension_rate_max=rate_max))
+    follower = TensionPathFollower(RAO, scene, TensionFollowConfig(tension_rate_max=rate_max))
     loads = static_loads(1, follower.ik.length, PAYLOAD, None, GRAVITY)
     traced = verify_tension_motion(RAO, follower.scene, motion, dt, loads, margin=0.002,
                                    rate_max=rate_max)
