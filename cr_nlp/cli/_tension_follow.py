@@ -14,7 +14,7 @@ from ._io import (
     time_limit_arg,
     write_path_result,
 )
-from ._tension_ik import loads_from_args, needs_mechanics
+from ._loads import loads_from_args, needs_mechanics
 
 
 def add_options(p: argparse.ArgumentParser) -> None:

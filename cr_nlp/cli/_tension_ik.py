@@ -14,13 +14,11 @@ from ._io import (
     fmt,
     load_scene_arg,
     model_margin,
-    parse_vector3,
-    point_loads_arg,
-    read_json,
     resolve,
     time_limit_arg,
     write_result,
 )
+from ._loads import add_load_options, loads_from_args, needs_mechanics
 
 
 def add_options(p: argparse.ArgumentParser) -> None:
@@ -29,66 +27,6 @@ def add_options(p: argparse.ArgumentParser) -> None:
                    help="--model cosserat: also reach the targets' wxyz (robots with the "
                         "freedom for it); default: positions only")
     add_load_options(p)
-
-
-def add_load_options(p: argparse.ArgumentParser) -> None:
-    """The load options of ``--model cosserat`` (those of ``cr-nlp statics``)."""
-    p.add_argument("--tip-force", help="--model cosserat: fx,fy,fz force on the tip, N, "
-                                       "world frame")
-    p.add_argument("--tip-moment", help="--model cosserat: mx,my,mz moment on the tip, N·m")
-    p.add_argument("--gravity", help="--model cosserat: gx,gy,gz gravity, m/s², world frame")
-    p.add_argument("--distributed-force", help="--model cosserat: wx,wy,wz force per metre "
-                                               "along the backbone, N/m, world frame")
-    p.add_argument("--point-load", action="append", metavar="S,FX,FY,FZ[,MX,MY,MZ]",
-                   help="--model cosserat: a wrench at arc length S (m from the base), N and "
-                        "N·m, world frame; repeat for more")
-    p.add_argument("--loads", metavar="LOADS.json",
-                   help="--model cosserat: the loads as a file, {\"gravity\": [m/s²], "
-                        "\"tip_force\": [N], \"tip_moment\": [N·m], \"distributed_force\": "
-                        "[N/m], \"point_loads\": [{\"s\": m, \"force\": [N], \"moment\": "
-                        "[N·m]}]} (any of them; not also given as an option)")
-
-
-def loads_from_args(args: argparse.Namespace, length: float) -> dict:
-    """The load options and the ``--loads`` file as keyword arguments of the tension
-    solvers (N, N·m, m/s², N/m), checked against the robot's ``length`` (m).
-
-    Raises:
-        UsageError: naming the option, or the file and the key.
-    """
-    from ..model.loads import LOAD_KEYS, static_loads
-
-    loads = {"tip_force": parse_vector3(args.tip_force, "--tip-force"),
-             "tip_moment": parse_vector3(args.tip_moment, "--tip-moment"),
-             "gravity": parse_vector3(args.gravity, "--gravity"),
-             "distributed_force": parse_vector3(args.distributed_force, "--distributed-force"),
-             "point_loads": point_loads_arg(args.point_load)}
-    where = "the load options"
-    if getattr(args, "loads", None):
-        where = f"--loads: {args.loads}"
-        data = read_json(args.loads, "--loads")
-        if not isinstance(data, dict):
-            raise UsageError(f"{where}: expected an object with any of {', '.join(LOAD_KEYS)}")
-        for key, value in data.items():
-            if key not in LOAD_KEYS:
-                raise UsageError(f"{where}: {key}: unknown key (a loads file has "
-                                 f"{', '.join(LOAD_KEYS)})")
-            if loads[key]:
-                raise UsageError(f"{where}: {key} is also given as --{key.replace('_', '-')}")
-            loads[key] = value
-    try:
-        static_loads(1, length, **loads)
-    except ValueError as exc:
-        raise UsageError(f"{where}: {str(exc).removeprefix('case 0: ')}") from None
-    return loads
-
-
-def needs_mechanics(robot: object) -> None:
-    """Refuse ``--model cosserat`` for a robot without mechanics (every tension task, ik,
-    plan and follow, has its exact stage on the rod: ``--exact`` is not refused)."""
-    if getattr(robot, "mechanics", None) is None:
-        raise UsageError(f"--model cosserat: {robot.name} has no 'mechanics' block (the rod's "
-                         f"stiffness and tension limit); see models/README.md")
 
 
 def run(args: argparse.Namespace, robot: object) -> int:

@@ -10,7 +10,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from ._io import UsageError, load_scene_arg, model_margin, resolve, time_limit_arg
-from ._tension_ik import loads_from_args, needs_mechanics
+from ._loads import loads_from_args, needs_mechanics
 
 
 def add_options(p: argparse.ArgumentParser) -> None:

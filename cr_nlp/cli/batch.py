@@ -15,7 +15,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from . import _tension_ik
+from . import _loads, _tension_ik
 from ._io import (
     Stopped,
     UsageError,
@@ -76,7 +76,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     _model_option(plan, "tension trajectories on the Cosserat-rod model, --problems "
                         '{"problems": [{"start": [N…], "goal": [N…]}]} (results kind '
                         "tension_trajectory; no --exact)")
-    _tension_ik.add_load_options(plan)
+    _loads.add_load_options(plan)
     _common(plan)
 
 
@@ -171,7 +171,7 @@ def _solve(args: argparse.Namespace) -> int:
 
     robot = load_robot_arg(args.robot)
     if args.model == "cosserat":
-        _tension_ik.needs_mechanics(robot)
+        _loads.needs_mechanics(robot)
         inputs, options = _tension_job(args, robot)
     elif args.kind == "ik":
         inputs, options = _ik_job(args)
@@ -237,9 +237,9 @@ def _plan_job(args: argparse.Namespace) -> tuple[tuple, dict]:
 
 def _tension_job(args: argparse.Namespace, robot: object) -> tuple[tuple, dict]:
     """``--model cosserat``: ``run_batch``'s inputs and options, the loads from the
-    options of ``cr-nlp ik --model cosserat`` (``_tension_ik.loads_from_args``)."""
+    options of ``cr-nlp ik --model cosserat`` (``_loads.loads_from_args``)."""
     length = float(sum(s.length_min for s in robot.segments))
-    loads = _tension_ik.loads_from_args(args, length)
+    loads = _loads.loads_from_args(args, length)
     options = {"model": "cosserat", "loads": loads}
     if args.kind == "ik":
         from ..tasks.mechanics.ik import TensionIKConfig

@@ -18,7 +18,7 @@ import json
 import sys
 from pathlib import Path
 
-from . import _tension_follow, _tension_ik, _tension_plan
+from . import _loads, _tension_follow, _tension_plan
 from ._io import (
     add_model_margin_option,
     add_time_limit_option,
@@ -59,7 +59,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         'loads, problems {"problems": [{"start": [N…], "goal": [N…]}]} '
                         "(robot files with a mechanics block), result kind "
                         "tension_trajectory")
-    _tension_ik.add_load_options(p)
+    _loads.add_load_options(p)
     _tension_follow.add_options(p)
     _tension_plan.add_options(p)
     add_model_margin_option(p)

@@ -6,19 +6,8 @@ import argparse
 import math
 from typing import Any, NamedTuple
 
-from ._io import (
-    UsageError,
-    load_robot_arg,
-    parse_numbers,
-    parse_vector3,
-    point_loads_arg,
-    read_json,
-    write_json,
-)
-
-CASE_KEYS = ("tensions", "tip_force", "tip_moment", "gravity", "distributed_force",
-             "point_loads")
-"""The keys of one case in a ``--cases`` file."""
+from ._io import UsageError, load_robot_arg, parse_numbers, parse_vector3, read_json, write_json
+from ._loads import add_load_options, case_keys, loads_from_args, needs_mechanics
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -36,15 +25,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--robot", required=True, help="robot JSON file or bundled name "
                                                   "(tdcr2_rao2021)")
     p.add_argument("--tensions", help="t1,...,tN tendon tensions in N (robot file's order)")
-    p.add_argument("--tip-force", help="fx,fy,fz force on the tip, N, world frame")
-    p.add_argument("--tip-moment", help="mx,my,mz moment on the tip, N·m, world frame")
-    p.add_argument("--gravity", help="gx,gy,gz gravity, m/s², world frame (default none; "
-                                     "with --cases: for the cases without their own)")
-    p.add_argument("--distributed-force", help="wx,wy,wz force per metre along the whole "
-                                               "backbone, N/m, world frame")
-    p.add_argument("--point-load", action="append", metavar="S,FX,FY,FZ[,MX,MY,MZ]",
-                   help="a wrench at arc length S (m from the base): force N and moment N·m, "
-                        "world frame; repeat for more")
+    add_load_options(p, note="", gravity_note=" (default none; with --cases: for the cases "
+                                              "without their own)")
     p.add_argument("--cases", help='JSON file {"cases": [{"tensions": [...], "tip_force": '
                                    '[...], "tip_moment": [...], "gravity": [...], '
                                    '"distributed_force": [...], "point_loads": [{"s": m, '
@@ -80,10 +62,10 @@ def _cases_from_file(path: str, n_tendons: int, length: float = math.inf) -> Sta
     for i, case in enumerate(cases):
         if not isinstance(case, dict) or "tensions" not in case:
             raise UsageError(f"{path}: cases[{i}]: needs a 'tensions' list")
-        unknown = sorted(set(case) - set(CASE_KEYS))
+        unknown = sorted(set(case) - set(case_keys()))
         if unknown:
             raise UsageError(f"{path}: cases[{i}].{unknown[0]}: unknown key (a case has "
-                             f"{', '.join(CASE_KEYS)})")
+                             f"{', '.join(case_keys())})")
         t = case["tensions"]
         if not isinstance(t, list) or len(t) != n_tendons:
             raise UsageError(f"{path}: cases[{i}].tensions: expected {n_tendons} numbers")
@@ -149,28 +131,26 @@ def run(args: argparse.Namespace) -> int:
     from ..model.statics import solve_statics
 
     robot = load_robot_arg(args.robot)
-    if robot.mechanics is None:
-        raise UsageError(f"--robot: {robot.name} has no 'mechanics' block (see "
-                         "models/README.md)")
+    needs_mechanics(robot, "--robot")
     if (args.cases is None) == (args.tensions is None):
         raise UsageError("give either --tensions or --cases")
     length = sum(seg.length_min for seg in robot.segments)
     gravity = parse_vector3(args.gravity, "--gravity") or [0.0, 0.0, 0.0]
     if args.cases is not None:
-        if args.point_load or args.distributed_force:
-            raise UsageError("--point-load and --distributed-force go with --tensions; in a "
-                             "--cases file give them per case")
+        if args.point_load or args.distributed_force or args.loads:
+            raise UsageError("--point-load, --distributed-force and --loads go with "
+                             "--tensions; in a --cases file give them per case")
         cases = _cases_from_file(args.cases, robot.n_tendons, length)
     else:
         tensions = parse_numbers(args.tensions, "--tensions")
         if len(tensions) != robot.n_tendons:
             raise UsageError(f"--tensions: {robot.name} has {robot.n_tendons} tendons, got "
                              f"{len(tensions)} numbers")
-        cases = StaticsCases(
-            [tensions], [parse_vector3(args.tip_force, "--tip-force") or [0.0, 0.0, 0.0]],
-            [parse_vector3(args.tip_moment, "--tip-moment") or [0.0, 0.0, 0.0]], [None],
-            [parse_vector3(args.distributed_force, "--distributed-force") or [0.0] * 3],
-            [point_loads_arg(args.point_load)])
+        loads = loads_from_args(args, length)
+        gravity = loads["gravity"] or gravity
+        cases = StaticsCases([tensions], [loads["tip_force"] or [0.0, 0.0, 0.0]],
+                             [loads["tip_moment"] or [0.0, 0.0, 0.0]], [None],
+                             [loads["distributed_force"] or [0.0] * 3], [loads["point_loads"]])
     try:
         result = solve_statics(
             robot, cases.tensions, cases.tip_force, cases.tip_moment,

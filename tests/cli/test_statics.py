@@ -124,10 +124,16 @@ def test_statics_bad_case_names_the_case_and_key(tmp_path: Path, case: dict, mes
     assert message in err and err.count("\n") == 1, err
 
 
-def test_statics_point_load_option_is_the_tip_force(capsys: pytest.CaptureFixture[str]) -> None:
+def test_statics_point_load_option_is_the_tip_force(tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
     base = ["statics", "--robot", "tdcr2_rao2021", "--tensions", "1,0,0,0,0.5,0", "--json"]
     assert main([*base, "--tip-force", "0.02,0,0"]) == 0
     tip = json.loads(capsys.readouterr().out)
     assert main([*base, "--point-load", "0.4,0.02,0,0"]) == 0
     point = json.loads(capsys.readouterr().out)
     np.testing.assert_allclose(point["position"], tip["position"], atol=1e-9)
+    # The same wrench from a loads file (the option set every command on the rod shares).
+    loads = tmp_path / "loads.json"
+    loads.write_text(json.dumps({"tip_force": [0.02, 0, 0]}))
+    assert main([*base, "--loads", str(loads)]) == 0
+    assert json.loads(capsys.readouterr().out)["position"] == tip["position"]

@@ -136,34 +136,6 @@ def test_cli_follow_model_cosserat(path: np.ndarray, tmp_path) -> None:
     assert len(table.read_text().splitlines()) == 9
 
 
-@pytest.mark.parametrize(("content", "words"), [
-    ({"tip_force": [0, 0, -0.1], "payload": 1}, r"payload: unknown key"),
-    ({"gravity": [0, 0, -9.81]}, r"gravity is also given as --gravity"),
-    ({"point_loads": [{"s": 0.5, "force": [0, 0, -1]}]},
-     r"point_loads\[0\]\.s: 0\.5 m lies outside"),
-    ({"distributed_force": [0, "x", 0]}, r"distributed_force: expected 3 numbers"),
-    ([1, 2], r"expected an object"),
-])
-def test_a_bad_loads_file_names_the_file_and_key(tmp_path, content, words: str) -> None:
-    import argparse
-
-    from cr_nlp.cli._io import UsageError
-    from cr_nlp.cli._tension_ik import add_load_options, loads_from_args
-
-    parser = argparse.ArgumentParser()
-    add_load_options(parser)
-    file = tmp_path / "loads.json"
-    file.write_text(json.dumps(content))
-    args = parser.parse_args(["--gravity", "0,0,-9.81", "--loads", str(file)])
-    with pytest.raises(UsageError, match=words) as caught:
-        loads_from_args(args, 0.4)
-    assert str(file) in str(caught.value)
-    good = parser.parse_args(["--loads", str(file)]) if content == {
-        "gravity": [0, 0, -9.81]} else None
-    if good is not None:
-        assert loads_from_args(good, 0.4)["gravity"] == [0, 0, -9.81]
-
-
 # ---------------------------------------------------------------- planning
 
 SCENE = {"obstacles": [
