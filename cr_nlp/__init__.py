@@ -117,9 +117,9 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from .model import tip_pose as tip_pose
     from .model.cosserat import StaticsConfig as StaticsConfig
     from .model.cosserat import StaticsResult as StaticsResult
+    from .model.cosserat import solve_statics as solve_statics
     from .model.rotations import matrix_from_wxyz as matrix_from_wxyz
     from .model.rotations import wxyz_from_matrix as wxyz_from_matrix
-    from .model.statics import solve_statics as solve_statics
     from .runtime import clear_caches as clear_caches
     from .runtime import configure as configure
     from .runtime import use_host_devices as use_host_devices

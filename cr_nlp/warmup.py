@@ -113,7 +113,7 @@ def _statics(robot: Any, scene: Any, exact: bool, waypoints: int) -> str:
         return "skipped: the robot file has no mechanics block"
     import numpy as np
 
-    from .model.statics import solve_statics
+    from .model.cosserat import solve_statics
 
     solve_statics(robot, np.zeros((1, robot.n_tendons)))
     return "1 case"

@@ -19,8 +19,7 @@ from typing import Any
 import numpy as np
 
 from ..model import load_robot
-from ..model.cosserat import StaticsConfig
-from ..model.statics import solve_statics
+from ..model.cosserat import StaticsConfig, solve_statics
 from ._common import Column, environment, environment_markdown, fixed, markdown_table, write_report
 from .suites import STATICS_SETS
 

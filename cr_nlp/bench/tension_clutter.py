@@ -31,8 +31,8 @@ from typing import Any
 import numpy as np
 
 from ..model import load_robot
+from ..model.cosserat import solve_statics
 from ..model.loads import static_loads
-from ..model.statics import solve_statics
 from ._common import Column, environment, environment_markdown, fixed, markdown_table, write_report
 from .tension_motion import GRAVITY, PAYLOAD, timed
 

@@ -128,7 +128,7 @@ def _record(result: Any, i: int, every: bool) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     """Solve and print the tip pose and convergence (text), or JSON with ``--json`` or
     ``--cases``."""
-    from ..model.statics import solve_statics
+    from ..model.cosserat import solve_statics
 
     robot = load_robot_arg(args.robot)
     needs_mechanics(robot, "--robot")

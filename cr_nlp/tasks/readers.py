@@ -141,24 +141,6 @@ def _short(value: Any) -> str:
     return text if len(text) <= 40 else f"{text[:37]}..."
 
 
-MAX_HORIZON = 10_000
-"""Most trajectory steps a problems file may ask for (the default plan has 23)."""
-_PROBLEMS_KEYS = {"problems", "horizon", "dt", "description", "robot", "scene", "name"}
-
-
-def _as_float(value: int | float) -> float:
-    try:
-        return float(value)
-    except OverflowError:  # an integer past float's range
-        return math.inf
-
-
-def _short(value: Any) -> str:
-    """``repr`` of a file's value, cut to 40 characters."""
-    text = repr(value)
-    return text if len(text) <= 40 else f"{text[:37]}..."
-
-
 def read_tension_problems(robot: Robot, source: str | Path | dict) -> tuple[np.ndarray,
                                                                           np.ndarray]:
     """A planning problems file of the mechanics family, ``{"problems": [{"start": [N…],

@@ -14,7 +14,7 @@ import pytest
 from cr_nlp import load_result, load_results
 from cr_nlp.batch import MANIFEST, RESULTS, BatchError, chunk_file, read_chunk, run_batch
 from cr_nlp.model import load_robot
-from cr_nlp.model.statics import solve_statics
+from cr_nlp.model.cosserat import solve_statics
 from cr_nlp.stages.polish import POLISH_EXACT_MODE
 from cr_nlp.tasks.mechanics.ik import TensionIKConfig, TensionIKResult, TensionIKSolver
 from cr_nlp.tasks.mechanics.trajectory import (

@@ -10,7 +10,7 @@ import pytest
 
 from cr_nlp.cli.main import main
 from cr_nlp.model import load_robot
-from cr_nlp.model.statics import solve_statics
+from cr_nlp.model.cosserat import solve_statics
 
 
 def test_statics_json_matches_the_library(capsys: pytest.CaptureFixture[str]) -> None:

@@ -11,8 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cr_nlp.model import ModelFileError, Robot, load_robot, tendon_lengths, tip_pose
-from cr_nlp.model.cosserat import StaticsConfig, statics_single
-from cr_nlp.model.statics import solve_statics
+from cr_nlp.model.cosserat import StaticsConfig, solve_statics, statics_single
 
 RAO = load_robot("tdcr2_rao2021")
 

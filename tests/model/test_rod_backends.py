@@ -15,11 +15,10 @@ import numpy as np
 import pytest
 
 from cr_nlp.model import load_robot
-from cr_nlp.model._rod import CaseLoads, _integrate, _layout
-from cr_nlp.model.cosserat import CasadiRod, RodLoads, StaticsConfig
+from cr_nlp.model.cosserat import CasadiRod, RodLoads, StaticsConfig, solve_statics
+from cr_nlp.model.cosserat._rod import CaseLoads, _integrate, _layout
 from cr_nlp.model.loads import static_loads
 from cr_nlp.model.rotations import matrix_from_wxyz
-from cr_nlp.model.statics import solve_statics
 
 RAO = load_robot("tdcr2_rao2021")
 ROBOT_FILE = Path(__file__).resolve().parents[2] / "models" / "robots" / "tdcr2_rao2021.json"

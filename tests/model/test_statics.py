@@ -8,10 +8,12 @@ import pytest
 from scipy.optimize import brentq
 from scipy.special import ellipe, ellipk
 
-from cr_nlp.model import load_robot, statics
+from cr_nlp.model import load_robot
+from cr_nlp.model.cosserat import StaticsConfig, solve_statics
+from cr_nlp.model.cosserat import _statics as statics
+from cr_nlp.model.cosserat._statics import small_step
 from cr_nlp.model.loads import static_loads
 from cr_nlp.model.rotations import matrix_from_wxyz
-from cr_nlp.model.statics import StaticsConfig, small_step, solve_statics
 
 RAO = load_robot("tdcr2_rao2021")
 EI = RAO.mechanics.bending_stiffness

@@ -27,9 +27,8 @@ from scipy.spatial import cKDTree
 
 from ..._files import write_atomic
 from ...model import Robot
-from ...model._rod import StaticsConfig
+from ...model.cosserat import StaticsConfig, solve_statics
 from ...model.loads import StaticLoads
-from ...model.statics import solve_statics
 from ...runtime import cache_dir
 
 FORMAT_VERSION = 2

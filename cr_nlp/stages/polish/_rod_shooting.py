@@ -26,7 +26,7 @@ import casadi as ca
 import numpy as np
 
 from ...model.cosserat import CasadiRod, RodLoads
-from ._compiled_functions import compiled
+from ._compiled_functions import compiled, pending
 
 STATE = 15
 """Entries of a step's state: position (3), rotation (9, row-major), moment (3)."""
@@ -155,3 +155,21 @@ def states_function(rod: CasadiRod) -> ca.Function:
     tension, base_moment = ca.MX.sym("tension", n), ca.MX.sym("base_moment", 3)
     path = rod.integrate(tension, base_moment, load_column[0])["states"]
     return ca.Function("rod_states", [tension, base_moment, load_column[1]], [path]).expand()
+
+
+class ShootingSolvers:
+    """What the rod's polishers share: their Ipopt solvers, one per warm-start setting,
+    built on first use from the shooting rows (``self._build(warm)``), and built again on
+    the compiled step functions once those are there. A subclass sets ``rod``,
+    ``_state_scale``, ``tension_scale``, ``config`` (``compile``), ``_shooting`` and
+    ``_solvers`` ({} at first)."""
+
+    def _solver(self, warm: bool) -> ca.Function:
+        """The Ipopt solver with the warm-start settings or Ipopt's own."""
+        if self._shooting.interpreted and not pending():
+            self._shooting = ShootingRows(self.rod, self._state_scale, self.tension_scale,
+                                          self.config.compile)
+            self._solvers.clear()
+        if warm not in self._solvers:
+            self._solvers[warm] = self._build(warm)
+        return self._solvers[warm]

@@ -38,13 +38,18 @@ import casadi as ca
 import numpy as np
 
 from ...model import Robot
-from ...model.cosserat import CasadiRod, RodLoads, StaticsConfig, flat_loads, moment_scale
+from ...model.cosserat import (
+    CasadiRod,
+    RodLoads,
+    StaticsConfig,
+    flat_loads,
+    moment_scale,
+    solve_statics,
+)
 from ...model.loads import StaticLoads, static_loads
 from ...model.rotations import matrix_from_wxyz
-from ...model.statics import solve_statics
 from ...runtime import cached
 from ...world.scene import Scene
-from ._compiled_functions import pending
 from ._ipopt import (
     SUCCESS_STATUSES,
     TIME_LIMIT_STATUS,
@@ -56,7 +61,7 @@ from ._ipopt import (
     run_solver,
 )
 from ._rod_clearance import RodClearance
-from ._rod_shooting import STATE, ShootingRows, states_function
+from ._rod_shooting import STATE, ShootingRows, ShootingSolvers, states_function
 
 EXACT_MODE = "cosserat multiple shooting"
 """The formulation of the tension-space exact stage (a result's ``exact_mode``)."""
@@ -105,7 +110,7 @@ class TensionPolish(NamedTuple):
     """(B,) Ipopt iterations per row."""
 
 
-class TensionIKPolisher:
+class TensionIKPolisher(ShootingSolvers):
     """The Ipopt polish of tension-space IK answers for one robot, scene and load layout.
 
     Args:
@@ -204,17 +209,6 @@ class TensionIKPolisher:
             "g": ca.vertcat(*defects, others)}, options, self._deadline)
 
     # ------------------------------------------------------------ per solve
-
-    def _solver(self, warm: bool) -> ca.Function:
-        """The Ipopt solver with the warm-start settings or Ipopt's own (built on first use;
-        rebuilt on the compiled step functions once they are there)."""
-        if self._shooting.interpreted and not pending():
-            self._shooting = ShootingRows(self.rod, self._state_scale, self.tension_scale,
-                                          self.config.compile)
-            self._solvers.clear()
-        if warm not in self._solvers:
-            self._solvers[warm] = self._build(warm)
-        return self._solvers[warm]
 
     def solve(self, tension0: np.ndarray, base_moment0: np.ndarray, target: np.ndarray,
               target_rotation: np.ndarray | None, loads: np.ndarray,

@@ -51,7 +51,6 @@ from ...model.loads import StaticLoads
 from ...model.rotations import matrix_from_wxyz
 from ...runtime import cached
 from ...world.scene import Scene
-from ._compiled_functions import pending
 from ._ipopt import (
     SUCCESS_STATUSES,
     TIME_LIMIT_STATUS,
@@ -63,7 +62,7 @@ from ._ipopt import (
     run_solver,
 )
 from ._rod_clearance import RodClearance
-from ._rod_shooting import STATE, ShootingRows, states_function
+from ._rod_shooting import STATE, ShootingRows, ShootingSolvers, states_function
 from ._tension_ik_nlp import _start_moments
 
 EXACT_MODE = ("cosserat multiple shooting over the motion (every waypoint and the "
@@ -148,7 +147,7 @@ def _triplets(shape: tuple[int, int], rows: list[int], cols: list[int],
     return ca.DM.triplet(rows, cols, ca.DM(values), shape[0], shape[1])
 
 
-class TensionMotionPolisher:
+class TensionMotionPolisher(ShootingSolvers):
     """The Ipopt polish of tension motions of ``count`` waypoints for one robot, scene,
     load layout and target kind.
 
@@ -335,17 +334,6 @@ class TensionMotionPolisher:
             callbacks=callbacks)
         return build_solver(f"tension_motion_polish_{self.robot.name}", {
             "x": unknowns, "p": parameters, "f": objective, "g": g}, options, self._deadline)
-
-    def _solver(self, warm: bool) -> ca.Function:
-        """The Ipopt solver with the warm-start settings or Ipopt's own (built on first use;
-        rebuilt on the compiled step functions once they are there)."""
-        if self._shooting.interpreted and not pending():
-            self._shooting = ShootingRows(self.rod, self._state_scale, self.tension_scale,
-                                          self.config.compile)
-            self._solvers.clear()
-        if warm not in self._solvers:
-            self._solvers[warm] = self._build(warm)
-        return self._solvers[warm]
 
     # ------------------------------------------------------------ per solve
 

@@ -19,9 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...model import Robot
-from ...model.cosserat import StaticsConfig, StaticsResult
+from ...model.cosserat import StaticsConfig, StaticsResult, solve_statics
 from ...model.loads import StaticLoads
-from ...model.statics import solve_statics
 from ...world.check import CheckManyResult, check_chains
 from ...world.scene import Scene
 from ...world.verdict import VIOLATION_TOLERANCE, failure_reason, judge_many

@@ -42,8 +42,8 @@ from typing import Any
 import numpy as np
 
 from ...model import Robot
+from ...model.cosserat import solve_statics
 from ...model.loads import StaticLoads, static_loads
-from ...model.statics import solve_statics
 from ...stages.polish import check_time_limit
 from ...stages.refine import (
     MotionTerms,

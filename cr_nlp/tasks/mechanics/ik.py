@@ -46,11 +46,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ...model import Robot, load_robot
-from ...model.cosserat import StaticsConfig, StaticsResult
+from ...model.cosserat import StaticsConfig, StaticsResult, solve_statics
 from ...model.loads import StaticLoads, static_loads
 from ...model.mechanics import require_mechanics
 from ...model.rotations import matrix_from_wxyz
-from ...model.statics import solve_statics
 from ...runtime import configure
 from ...stages import polish as exact_stage
 from ...stages.explore import TensionPool, tension_pool

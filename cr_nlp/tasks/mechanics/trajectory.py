@@ -46,10 +46,9 @@ from typing import Any
 import numpy as np
 
 from ...model import Robot, load_robot
-from ...model.cosserat import StaticsConfig
+from ...model.cosserat import StaticsConfig, solve_statics
 from ...model.loads import StaticLoads, static_loads
 from ...model.mechanics import require_mechanics
-from ...model.statics import solve_statics
 from ...model.tendon_groups import tensions_of_configuration
 from ...stages.polish import check_time_limit
 from ...stages.refine import (

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from cr_nlp.model import load_robot
+from cr_nlp.model.cosserat import solve_statics
 from cr_nlp.model.loads import static_loads
-from cr_nlp.model.statics import solve_statics
 from cr_nlp.stages.explore import tension_pool, tension_pool_cache_stats, tension_pool_path
 
 RAO = load_robot("tdcr2_rao2021")

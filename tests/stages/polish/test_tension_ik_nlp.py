@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from cr_nlp.model import load_robot
+from cr_nlp.model.cosserat import solve_statics
 from cr_nlp.model.loads import static_loads
-from cr_nlp.model.statics import solve_statics
 from cr_nlp.stages.polish._ipopt import SUCCESS_STATUSES, TIME_LIMIT_STATUS
 from cr_nlp.stages.polish._tension_ik_nlp import (
     EXACT_MODE,

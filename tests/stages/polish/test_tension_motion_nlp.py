@@ -18,8 +18,8 @@ from cr_nlp import (
     load_result,
 )
 from cr_nlp.model import load_robot
+from cr_nlp.model.cosserat import solve_statics
 from cr_nlp.model.loads import static_loads
-from cr_nlp.model.statics import solve_statics
 from cr_nlp.world.check import check_chains
 from cr_nlp.world.scene import load_scene
 

@@ -13,8 +13,8 @@ import pytest
 
 from cr_nlp import load_result
 from cr_nlp.model import load_robot
+from cr_nlp.model.cosserat import solve_statics
 from cr_nlp.model.loads import static_loads
-from cr_nlp.model.statics import solve_statics
 from cr_nlp.model.tendon_groups import moments_from_tensions, tendon_groups, tensions_from_moments
 from cr_nlp.tasks._result import Stage
 from cr_nlp.tasks.mechanics.ik import TensionIKConfig, TensionIKResult, TensionIKSolver

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cr_nlp.model import load_robot
-from cr_nlp.model.statics import solve_statics
+from cr_nlp.model.cosserat import solve_statics
 from cr_nlp.tasks._result import Stage
 from cr_nlp.tasks.mechanics.ik import TensionIKConfig
 from cr_nlp.tasks.mechanics.live_ik import TensionLiveIKSolver

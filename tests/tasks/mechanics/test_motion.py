@@ -14,7 +14,7 @@ import pytest
 
 from cr_nlp import TensionFollowResult, TensionPathFollower, load_result
 from cr_nlp.model import load_robot
-from cr_nlp.model.statics import solve_statics
+from cr_nlp.model.cosserat import solve_statics
 from cr_nlp.world.check import check_chains
 
 RAO = load_robot("tdcr2_rao2021")

@@ -19,9 +19,9 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from ._ops import CASADI
+from .._ops import CASADI
+from ..robot import Robot
 from ._rod import RK4_STAGES, StaticsConfig, _grid_with_points, _Layout, _layout, rk4_step
-from .robot import Robot
 
 STATE_SIZE = 15
 """Entries of a step's state: position p (3, m), rotation R (9, row-major), moment M (3, N·m)."""

@@ -1,29 +1,7 @@
-"""Cosserat-rod statics of a tendon-driven robot, batched in JAX.
-
-The model is Rucker & Webster's (IEEE T-RO 2011; the rod and its integration:
-``model._rod``): an elastic backbone with strains v (shear, extension) and u (bending,
-torsion), each tendon a frictionless string routed parallel to the backbone at ``r_i`` in
-the disks' frame, pulling with tension τ_i ≥ 0 and ending at the end of its segment
-(per-segment routing) or at the tip (shared routing).
-
-How it is solved. Cut the robot at arc length s and take everything distal of the cut,
-tendons included: the force N and moment M that cross the cut obey the plain rod
-equations with the external loads only, so N(s) is known in closed form and the only
-unknown is M(0) (3 numbers), found by shooting on ``M(L) = M_tip`` (``_shooting``).
-Without an external force N ≡ 0, so M(0) = M_tip plus the point moments, with no
-iteration.
-
-Which equilibrium. Past a buckling load one set of loads has several equilibria. The
-shooting continues in a load factor λ that scales the external loads, and in the loading
-path the tensions too, from 0 (M(0) = 0 exactly) to 1, following the branch; where the
-branch ends in a fold before λ = 1 (a snap-through) it stops and records λ. The batched
-driver, ``model.statics.solve_statics``, decides which start a case needs, tests each
-answer's stability (``model._equilibria``) and counts the equilibria it finds.
-
-The solution M(0) is differentiated implicitly (``jax.lax.custom_root``): derivatives of
-the shape with respect to tensions and loads cost one 3×3 solve, not the unrolled
-iterations. Units: metres, radians, newtons, N·m, kg, m/s².
-"""
+"""The shooting of one load case on the Cosserat rod (``_rod``): the Newton iteration on
+the base moment M(0) continued in a load factor, its implicit derivative
+(``jax.lax.custom_root``), the equilibrium's shape and the result types. The batched
+driver over many cases is ``_statics``. Units: metres, radians, newtons, N·m."""
 
 from __future__ import annotations
 
@@ -35,14 +13,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..robot import Robot
+from ..rotations import wxyz_from_matrix
 from ._rod import CaseLoads, StaticsConfig, _integrate, _Layout, _layout, _solve3
-from ._rod_casadi import CasadiRod, RodLoads, flat_loads
-from .robot import Robot
-from .rotations import wxyz_from_matrix
-
-__all__ = ["CasadiRod", "CaseLoads", "Equilibrium", "RodLoads", "StaticsConfig",
-           "StaticsResult", "backbone_equilibrium", "case_loads", "flat_loads", "moment_scale",
-           "statics_single", "tip_equilibrium"]
 
 
 @dataclass(frozen=True)

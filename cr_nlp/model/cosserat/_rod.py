@@ -26,11 +26,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..runtime import cached
-from ._ops import JAX, Ops
-from .mechanics import require_mechanics
-from .robot import Robot
-from .routing import routing_of
+from ...runtime import cached
+from .._ops import JAX, Ops
+from ..mechanics import require_mechanics
+from ..robot import Robot
+from ..routing import routing_of
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,441 @@
+"""The batched Cosserat statics (``solve_statics``): rounds of the shooting, the branch
+check and the stability test over a batch of load cases (numpy in, numpy out).
+
+The per-case rod and its shooting are ``model.cosserat`` (and ``model._rod``). Here a batch
+is split into the cases that need no shooting (no external force: M(0) is known), the
+direct continuation of the others (tensions whole, loads ramped: cheap, and the loading
+path's answer wherever the equilibrium is unique), and, for the doubtful ones, the
+loading path itself (tensions and loads together from rest) and more starts
+(``_check``). Units: metres, radians, newtons, N·m, kg, m/s².
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..._programs import CachedProgram
+from ...runtime import cached, configure
+from ..loads import static_loads
+from ..robot import Robot
+from ..rotations import matrix_from_wxyz
+from ._equilibria import DOUBTFUL, distinct, jacobi_margin, load_parameter
+from ._rod import CaseLoads, StaticsConfig, _layout
+from ._shooting import Equilibrium, StaticsResult, _finish, _Newton, _run, _shooting
+
+# Newton iterations every case of a batch gets; the few cases that need more continue in
+# a smaller batch, so that they do not hold the whole batch in the loop.
+_FIRST_ROUND = 10
+
+
+@cached(maxsize=64)
+def _programs(robot: Robot, config: StaticsConfig) -> tuple[Any, Any, Any, Any]:
+    """(first round, further rounds, finish, stability): jitted and vmapped over cases;
+    jit keeps one compiled program per padded batch size."""
+    lay, coarse = _layout(robot, config), _layout(robot, config, coarse=True)
+
+    def first(tension: jax.Array, loads: CaseLoads, x0: jax.Array, lam0: jax.Array,
+              mode: jax.Array) -> _Newton:
+        start, iterate, done = _shooting(lay, coarse, config, tension, loads, mode)
+        return _run(iterate, done, start(x0, lam0), min(_FIRST_ROUND, config.max_iterations))
+
+    def further(tension: jax.Array, loads: CaseLoads, mode: jax.Array,
+                state: _Newton) -> _Newton:
+        _, iterate, done = _shooting(lay, coarse, config, tension, loads, mode)
+        return _run(iterate, done, state, max(0, config.max_iterations - _FIRST_ROUND))
+
+    def finish(base_moment: jax.Array, tension: jax.Array,
+               loads: CaseLoads) -> dict[str, jax.Array]:
+        return _finish(lay, config, base_moment, tension, loads)
+
+    def stability(base_moment: jax.Array, tension: jax.Array, loads: CaseLoads) -> jax.Array:
+        return jacobi_margin(lay, config, base_moment, tension, loads)
+
+    return (_split(jax.vmap(first), 5), _split(jax.vmap(further), 4),
+            _split(jax.vmap(finish), 3), _split(jax.vmap(stability), 3))
+
+
+def _split(fn: Any, arguments: int) -> Any:
+    """``fn`` jitted, its batch split over the JAX devices (one per CPU core when the
+    process asked for host devices) when the batch divides evenly, else on one."""
+    programs: dict[tuple, Any] = {}
+
+    def call(*args: Any) -> Any:
+        key = tuple(np.shape(leaf) for leaf in jax.tree_util.tree_leaves(args))
+        if key not in programs:
+            programs[key] = CachedProgram(fn, name="the Cosserat shooting",
+                                          batched=(True,) * arguments)
+        return programs[key](*args)
+
+    return call
+
+
+def _padded(rows: Any, edge: bool = False) -> Any:
+    """Rows (an array or a pytree of arrays with the same first axis) padded to 16, 64 or
+    256 rows, then 512 or 1024, then a multiple of 512, so that a few compiled programs
+    serve every batch size: with zero rows (no load: done at once) or copies of the first
+    row. (Padding rows still iterate in the vmapped loop: 3333 loaded rows of 10 000 mixed
+    cases cost 10–15 % less padded to 3584 than to 4096. Below 256 rows a solve is cheap
+    and each program size costs ~2–5 s of compiling: skipping 32 and 128 cut the compiling
+    of notebook 07's tension plan from 34 to 21 s, its steady state unchanged.)"""
+    leaves, tree = jax.tree_util.tree_flatten(rows)
+    count = len(leaves[0])
+    size = max(16, 1 << (count - 1).bit_length())
+    if size < 256:
+        size = 1 << (2 * math.ceil(math.log2(size) / 2))
+    if size > 1024:
+        size = -(-count // 512) * 512
+
+    def pad(a: np.ndarray) -> np.ndarray:
+        a = np.asarray(a)
+        fill = (np.repeat(a[:1], size - count, axis=0) if edge
+                else np.zeros((size - count, *a.shape[1:]), a.dtype))
+        return np.concatenate([a, fill])
+
+    return jax.tree_util.tree_unflatten(tree, [pad(a) for a in leaves])
+
+
+def _device(rows: Any, dtype: Any) -> Any:
+    return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), rows)
+
+
+class _Solved(NamedTuple):
+    """Shooting answers of some rows (numpy)."""
+
+    x: np.ndarray           # (R, 3) M(0), N·m
+    iterations: np.ndarray  # (R,)
+    converged: np.ndarray   # (R,) the loop's own test
+    stall: np.ndarray       # (R,) load factor of a fold, −1: none
+
+
+def _solve_rows(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads: CaseLoads,
+                x0: np.ndarray, lam0: np.ndarray, mode: np.ndarray, dtype: Any,
+                further_round: Any = True) -> _Solved:
+    """Shoot the given rows from M(0) = ``x0`` at load factor ``lam0`` with ``mode``
+    (R, 2) (see ``_shooting``): every row gets ``_FIRST_ROUND`` iterations, then the
+    unfinished ones among ``further_round`` (True: all; or a (R,) mask) continue in a
+    smaller batch."""
+    first, further, _, _ = _programs(robot, config)
+    count = len(tension)
+    rows = (tension, loads)
+    state = first(*_device(_padded((*rows, x0, lam0, mode)), dtype))
+    x, its = np.array(state.x)[:count], np.array(state.it)[:count]
+    stall = np.array(state.stall)[:count]
+    limit = min(_FIRST_ROUND, config.max_iterations)
+    tol = config.resolved_tolerance() * _layout(robot, config).moment_scale
+
+    def finished(s: _Newton, n: int) -> np.ndarray:
+        return ((np.asarray(s.lam)[:n] >= 1.0)
+                & (np.linalg.norm(np.asarray(s.r)[:n], axis=1) <= tol))
+
+    ok = finished(state, count)
+    left = np.flatnonzero(~ok & (its >= limit) & further_round)
+    if left.size and config.max_iterations > limit:
+        # Padded with copies of the first unfinished case (zero rows would have no state).
+        def pick(a: Any) -> Any:
+            return _padded(np.asarray(a)[left], edge=True)
+
+        more = further(*_device(jax.tree_util.tree_map(pick, (*rows, mode)), dtype),
+                       jax.tree_util.tree_map(lambda a: jnp.asarray(pick(a)), state))
+        x[left], its[left] = np.asarray(more.x)[:left.size], np.asarray(more.it)[:left.size]
+        stall[left] = np.asarray(more.stall)[:left.size]
+        ok[left] = finished(more, left.size)
+    return _Solved(x, its, ok, stall)
+
+
+def _stable(robot: Robot, config: StaticsConfig, x: np.ndarray, tension: np.ndarray,
+            loads: CaseLoads, dtype: Any) -> np.ndarray:
+    """(R,) True where M(0) = ``x`` gives a stable equilibrium (``model._equilibria``)."""
+    stability = _programs(robot, config)[3]
+    det = stability(*_device(_padded((x, tension, loads)), dtype))
+    return np.asarray(det)[:len(x)] > 0.0
+
+
+def _rows(value: Any, index: np.ndarray) -> Any:
+    return jax.tree_util.tree_map(lambda a: np.asarray(a)[index], value)
+
+
+# Other starts of a doubtful case, beside the direct continuation's answer: Newton under
+# the full loads from the mirror image of that answer's M(0) (solved with the loading path,
+# in one batch). A failed or unstable path answer (and every case with ``all_equilibria``)
+# also gets Newton from M(0) = 0 and from four pushes sideways, and the loading path again
+# in small steps (``small_step``).
+_SEARCH_STARTS = 5
+
+
+def small_step(config: StaticsConfig) -> float:
+    """Largest load increment of the loading path's second try: small steps follow the
+    branch past a bifurcation (an imperfect column buckles towards its imperfection).
+
+    A third of the iteration budget (1/8 with the default 24 iterations): λ reaches 1
+    after 1/step accepted steps, which leaves room for one rejected step in two. (A fixed
+    1/32 never reached λ = 1 within 24 iterations: the second try always failed.)"""
+    return 1.0 / max(1, config.max_iterations // 3)
+
+
+def _starts(x: np.ndarray, push: np.ndarray) -> np.ndarray:
+    """(R, 5, 3) M(0) starts for Newton under the full loads around the path's answers
+    ``x`` (R, 3): zero and four pushes sideways of size ``push`` (R,), N·m."""
+    sideways = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]], float)
+    return np.concatenate([np.zeros((len(x), 1, 3)),
+                           x[:, None] + push[:, None, None] * sideways[None]], axis=1)
+
+
+class _Check(NamedTuple):
+    """What the branch check of some rows found."""
+
+    base: np.ndarray        # (R, 3) the reported M(0)
+    stable: np.ndarray      # (R,)
+    equilibria: np.ndarray  # (R,)
+    replaced: np.ndarray    # (R,) the loading path's answer was unstable or failed
+    found: list             # per row: [(M(0), stable, reported)]
+
+
+def _check(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads: CaseLoads,
+           push: np.ndarray, known: list[tuple[_Solved, np.ndarray]], search: np.ndarray,
+           dtype: Any) -> _Check:
+    """Count the distinct equilibria among the answers already ``known`` (the path's
+    first, each with its stability) and, where ``search``, those of more starts; where the
+    path's answer is not stable take the small-step path's if that is, else the stable
+    equilibrium nearest to it."""
+    rows = len(tension)
+    scale = _layout(robot, config).moment_scale
+    # columns: the path, the small-step path, the known others, the search starts
+    columns = 2 + len(known) - 1 + (_SEARCH_STARTS if search.any() else 0)
+    moments = np.zeros((rows, columns, 3))
+    valid = np.zeros((rows, columns), bool)
+    stable = np.zeros((rows, columns), bool)
+    for k, (solved, solved_stable) in enumerate(known):
+        col = 0 if k == 0 else k + 1
+        moments[:, col], valid[:, col], stable[:, col] = (solved.x, solved.converged,
+                                                          solved_stable)
+    careful = np.flatnonzero(search)
+    if careful.size:
+        # One batch: the small-step path from rest, then Newton under the full loads from
+        # the search starts, which get the first round only (one that needs more is
+        # rarely the answer).
+        x0 = _starts(moments[careful, 0], push[careful]).reshape(-1, 3)
+        r = np.concatenate([careful, np.repeat(careful, _SEARCH_STARTS)])
+        path_rows = np.arange(len(r)) < careful.size
+        solved = _solve_rows(robot, config, tension[r], _rows(loads, r),
+                             np.concatenate([np.zeros((careful.size, 3)), x0]),
+                             np.where(path_rows, 0.0, 1.0),
+                             np.where(path_rows[:, None], [1.0, small_step(config)],
+                                      [0.0, 1.0]), dtype, further_round=path_rows)
+        c = np.concatenate([np.ones(careful.size, int),
+                            np.tile(np.arange(_SEARCH_STARTS), careful.size)
+                            + 1 + len(known)])
+        x, converged = solved.x, solved.converged
+        stable_extra = np.zeros(len(r), bool)
+        if converged.any():
+            good = np.flatnonzero(converged)
+            stable_extra[good] = _stable(robot, config, x[good], tension[r[good]],
+                                         _rows(loads, r[good]), dtype)
+        moments[r, c], valid[r, c], stable[r, c] = x, converged, stable_extra
+    first = distinct(moments, valid, scale)
+    chosen = np.zeros(rows, int)
+    for i in np.flatnonzero(~(valid[:, 0] & stable[:, 0])):
+        if valid[i, 1] & stable[i, 1]:  # the small-step path
+            chosen[i] = 1
+            continue
+        options = np.flatnonzero(valid[i] & stable[i])
+        if options.size:  # the stable equilibrium nearest to where the path ended
+            gaps = np.linalg.norm(moments[i, options] - moments[i, 0], axis=1)
+            chosen[i] = options[np.argmin(gaps)]
+    found = []
+    for i in range(rows):
+        entries = list(np.flatnonzero(first[i]))
+        # the chosen one stands for its group even when an equal answer came first
+        same = np.linalg.norm(moments[i, entries] - moments[i, chosen[i]], axis=1)
+        entries = [k for k, gap in zip(entries, same, strict=True) if gap > 1e-6 * scale]
+        found.append([(moments[i, chosen[i]], bool(stable[i, chosen[i]]), True)]
+                     + [(moments[i, k], bool(stable[i, k]), False) for k in entries])
+    pick = np.arange(rows)
+    return _Check(moments[pick, chosen], stable[pick, chosen], first.sum(axis=1),
+                  chosen > 1, found)
+
+
+def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment: Any = None,
+                  gravity: Any = None, config: StaticsConfig = StaticsConfig(), *,
+                  distributed_force: Any = None, point_loads: Any = None,
+                  all_equilibria: bool = False) -> StaticsResult:
+    """Equilibrium shapes for a batch of tendon tensions and loads (numpy in, numpy out).
+
+    The answer is the equilibrium reached by loading the robot from rest (tensions and
+    loads scaled together from zero, the branch followed; see the module), with its
+    stability and the number of distinct equilibria found for the same loads.
+
+    Args:
+        robot: a robot with a ``mechanics`` block and fixed segment lengths.
+        tensions: (n_tendons,) or (B, n_tendons) tendon tensions, newtons, ≥ 0, in the
+            robot file's tendon order.
+        tip_force: (3,) or (B, 3) force on the tip, N, world frame (default none).
+        tip_moment: (3,) or (B, 3) moment on the tip, N·m, world frame (default none).
+        gravity: (3,) or (B, 3) gravitational acceleration, m/s², world frame (default none).
+        config: discretisation, tolerance and dtype.
+        distributed_force: (3,) or (B, 3) force per metre along the whole backbone, N/m,
+            world frame (default none).
+        point_loads: wrenches at arc lengths, world frame: a list of
+            ``{"s": m from the base, "force": [N], "moment": [N·m]}`` for every case, or
+            one such list per case (``model.loads``).
+        all_equilibria: solve every loaded case from several starts and return the
+            distinct equilibria found in ``StaticsResult.all_equilibria``.
+
+    Returns:
+        ``StaticsResult`` in the world frame; a case that did not converge is marked in
+        ``converged`` (a value, not an exception).
+
+    Raises:
+        ValueError: wrong shapes, negative or non-finite tensions or loads, an unknown key
+            or a point load off the robot (naming the case and the key), a robot without
+            mechanics.
+
+    Long: the public entry documents every load argument; its body is the ~55 lines of
+    checks and the branch check's call, in order.
+    """
+    configure()
+    t = np.atleast_2d(np.asarray(tensions, dtype=float))
+    if t.ndim != 2 or t.shape[1] != robot.n_tendons:
+        raise ValueError(f"tensions: {robot.name} has {robot.n_tendons} tendons, got shape "
+                         f"{np.shape(tensions)}")
+    if not np.all(np.isfinite(t)) or np.any(t < 0):
+        bad = np.argwhere(~np.isfinite(t) | (t < 0))[0]
+        raise ValueError(f"case {bad[0]}: tensions: tendon {bad[1] + 1}: a tension must be "
+                         f"a finite number ≥ 0 N, got {t[tuple(bad)]}")
+    if config.dtype not in ("float64", "float32"):
+        raise ValueError(f"dtype: 'float64' or 'float32', got {config.dtype!r}")
+    lay = _layout(robot, config)
+    length = float(lay.arc_length[-1])
+    if len(t) == 1:  # one tension set under every load case
+        t = np.repeat(t, _load_batch(tip_force, tip_moment, gravity, distributed_force,
+                                     point_loads), axis=0)
+    batch = t.shape[0]
+    world = static_loads(batch, length, tip_force, tip_moment, gravity, distributed_force,
+                         point_loads)
+    base_rot = matrix_from_wxyz(np.asarray(robot.base_wxyz))
+    base_pos = np.asarray(robot.base_position)
+    frame = world.in_base_frame(base_rot)
+    loads = _case_loads(frame)
+    dtype = np.float64 if config.dtype == "float64" else np.float32
+    # Without an external force N ≡ 0: M is constant between the point moments.
+    base = frame.tip_moment + frame.point_moment.sum(axis=1)
+    iterations = np.zeros(batch, dtype=int)
+    stable, equilibria = np.ones(batch, bool), np.ones(batch, int)
+    snap_load = np.full(batch, np.nan)
+    found: list = [[(base[i], True, True)] for i in range(batch)]
+    shot = np.flatnonzero(frame.has_force())
+    # float64 without touching the process-wide flag (the batched stages keep theirs).
+    with jax.enable_x64(config.dtype == "float64"):
+        if shot.size:
+            part, tension = _rows(loads, shot), t[shot]
+            # The direct continuation (tensions whole, the loads ramped) first: where the
+            # equilibrium is unique it is the loading path's, and it is the cheaper one.
+            direct = _solve_rows(robot, config, tension, part, np.zeros((shot.size, 3)),
+                                 np.zeros(shot.size), np.tile([0.0, 1.0], (shot.size, 1)),
+                                 dtype)
+            direct_stable = _stable(robot, config, direct.x, tension, part, dtype)
+            base[shot], iterations[shot] = direct.x, direct.iterations
+            stable[shot] = direct_stable
+            for i in shot:
+                found[i] = [(base[i], bool(stable[i]), True)]
+            ei = robot.mechanics.bending_stiffness
+            doubtful = (all_equilibria | ~direct_stable | ~direct.converged
+                        | ((direct.iterations > _FIRST_ROUND)
+                           & (load_parameter(lay, frame.rows(shot), ei) >= DOUBTFUL)))
+            if doubtful.any():
+                d = np.flatnonzero(doubtful)
+                rows, sub_tension, sub_loads = shot[d], tension[d], _rows(part, d)
+                # the loading path and Newton from the direct answer's mirror, one batch
+                both = np.concatenate([d, d])
+                solved = _solve_rows(
+                    robot, config, tension[both], _rows(part, both),
+                    np.concatenate([np.zeros((d.size, 3)), -direct.x[d]]),
+                    np.concatenate([np.zeros(d.size), np.ones(d.size)]),
+                    np.concatenate([np.ones((d.size, 2)), np.tile([0.0, 1.0], (d.size, 1))]),
+                    dtype, further_round=np.arange(2 * d.size) < d.size)
+                path = _Solved(*_rows(solved, np.arange(d.size)))
+                mirror = _Solved(*_rows(solved, np.arange(d.size, 2 * d.size)))
+                answers = np.flatnonzero(solved.converged)
+                solved_stable = np.zeros(2 * d.size, bool)
+                solved_stable[answers] = _stable(robot, config, solved.x[answers],
+                                                 tension[both[answers]],
+                                                 _rows(part, both[answers]), dtype)
+                path_stable = solved_stable[:d.size]
+                search = all_equilibria | ~(path.converged & path_stable)
+                force_size = (np.linalg.norm(frame.tip_force[rows], axis=1)
+                              + np.linalg.norm(frame.point_force[rows], axis=2).sum(1)
+                              + np.linalg.norm(frame.distributed_force[rows], axis=1)
+                              * length
+                              + np.linalg.norm(frame.gravity[rows], axis=1)
+                              * float(lay.total_mass_moment[0]))
+                push = np.maximum(0.5 * length * force_size, lay.moment_scale)
+                check = _check(robot, config, sub_tension, sub_loads, push,
+                               [(path, path_stable), (_Solved(*_rows(direct, d)),
+                                                      direct_stable[d]),
+                                (mirror, solved_stable[d.size:])], search, dtype)
+                base[rows], stable[rows] = check.base, check.stable
+                equilibria[rows], iterations[rows] = check.equilibria, path.iterations
+                folded = path.stall >= 0
+                snap_load[rows[folded]] = path.stall[folded]
+                snap_load[rows[check.replaced & np.isnan(snap_load[rows])]] = 1.0
+                for i, entries in zip(rows, check.found, strict=True):
+                    found[i] = entries
+        finish = _programs(robot, config)[2]
+        out = finish(*_device(_padded((base, t, loads)), dtype))
+        out = {k: np.asarray(v)[:batch] for k, v in out.items()}
+        shapes = None
+        if all_equilibria:
+            shapes = _shapes(robot, config, found, t, loads, base_rot, base_pos, dtype)
+    positions = out["positions"].astype(float) @ base_rot.T + base_pos
+    rotations = np.einsum("ij,bpjk->bpik", base_rot, out["rotations"].astype(float))
+    return StaticsResult(
+        positions=positions, rotations=rotations, arc_length=lay.arc_length,
+        tendon_displacements=out["tendon_displacements"].astype(float),
+        converged=out["converged"].astype(bool), residual=out["residual"].astype(float),
+        iterations=iterations,
+        base_moment=out["base_moment"].astype(float) @ base_rot.T,
+        base_force=out["base_force"].astype(float) @ base_rot.T,
+        stable=stable, equilibria=equilibria, snap_load=snap_load, all_equilibria=shapes)
+
+
+def _case_loads(frame: Any) -> CaseLoads:
+    """The programs' loads of a ``StaticLoads``; without a force per metre in any case its
+    array is (B, 0), which selects the smaller program."""
+    arrays = list(frame.arrays())
+    if not np.any(arrays[3]):
+        arrays[3] = np.zeros((len(arrays[3]), 0))
+    return CaseLoads(*arrays)
+
+
+def _load_batch(*loads: Any) -> int:
+    """The number of cases the loads give (1 when every load is one row)."""
+    sizes = [len(v) for v in loads[:4] if v is not None and np.ndim(v) == 2]
+    points = loads[4]
+    if points is not None and len(points) and not isinstance(points[0], dict):
+        sizes.append(len(points))
+    return max(sizes, default=1)
+
+
+def _shapes(robot: Robot, config: StaticsConfig, found: list, tension: np.ndarray,
+            loads: CaseLoads, base_rot: np.ndarray, base_pos: np.ndarray,
+            dtype: Any) -> list[list[Equilibrium]]:
+    """The shapes of every equilibrium found, per case, the reported one first."""
+    case = np.array([i for i, entries in enumerate(found) for _ in entries], int)
+    flat = [e for entries in found for e in entries]
+    x = np.array([e[0] for e in flat]).reshape(-1, 3)
+    out = _programs(robot, config)[2](*_device(_padded((x, tension[case],
+                                                         _rows(loads, case))), dtype))
+    positions = np.asarray(out["positions"], float)[:len(x)] @ base_rot.T + base_pos
+    rotations = np.einsum("ij,bpjk->bpik", base_rot,
+                          np.asarray(out["rotations"], float)[:len(x)])
+    shapes: list[list[Equilibrium]] = [[] for _ in found]
+    for k, (i, (moment, stable, reached)) in enumerate(zip(case, flat, strict=True)):
+        shapes[i].append(Equilibrium(positions[k], rotations[k], moment @ base_rot.T,
+                                     stable, reached))
+    for entries in shapes:
+        entries.sort(key=lambda e: not e.reached)
+    return shapes
