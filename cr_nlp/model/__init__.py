@@ -1,4 +1,7 @@
-"""The robot model: files, PCC kinematics, tendons and pose error (one source, two backends)."""
+"""The robot model: robot files, PCC kinematics on three backends (JAX, CasADi, numpy),
+tendons and their routing, limits, pose error, the actuation model from motor commands
+(``actuation``, ``history``), loads (``loads``) and the Cosserat rod (``cosserat``: its
+statics, the model that is right under load). Units: metres, radians, newtons."""
 
 from .actuation import Actuation as Actuation
 from .actuation import commands_for_configuration as commands_for_configuration
