@@ -318,9 +318,6 @@ class TensionMotionPolisher:
             hessians.append(curvature(*arguments, lam_g[starts[r]:starts[r + 1]]))
         linear = ca.mtimes(ca.DM(a_matrix), unknowns)
         g = ca.vertcat(*alone, linear)
-        self._rows = sizes
-        self.rows_function = ca.Function("motion_rows", [unknowns, parameters], [g])
-        """(unknowns, parameters) → every row of the NLP (a check of a start or answer)."""
         callbacks = {
             "grad_f": ca.Function("grad_f", [unknowns, parameters],
                                   [objective, ca.gradient(objective, unknowns)],
@@ -441,8 +438,7 @@ class TensionMotionPolisher:
             lower = [np.full(c[1].shape, -np.inf) if r in loose else c[1]
                      for r, c in enumerate(chosen)]
             lbg, ubg = self._row_bounds(lower, step, tolerance)
-            self.last_problem = (x, np.concatenate([fixed, *slots]), lbg, ubg)
-            run = run_solver(solver, x, self._deadline, p=self.last_problem[1],
+            run = run_solver(solver, x, self._deadline, p=np.concatenate([fixed, *slots]),
                              lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
             iterations, status = iterations + run.iterations, run.status
             if not np.all(np.isfinite(run.x)):
