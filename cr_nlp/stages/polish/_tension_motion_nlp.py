@@ -196,11 +196,11 @@ class TensionMotionPolisher(ShootingSolvers):
     def _aims(self, r: int) -> bool:
         return self.targets != "none" and r in set(self.waypoint_rods.tolist())
 
-    def _rod_function(self, aim: bool) -> tuple[ca.Function, ca.Function, int]:
-        """One rod's (rows, their Jacobian over its unknowns) and (the Hessian of λᵀrows)
-        as functions of (unknowns, loads, target (3), target rotation (3 × 3), slots...
-        [, λ]), and its count of equality rows (the steps, the moment balance, the
-        target's)."""
+    def _rod_function(self, aim: bool) -> tuple[tuple[ca.Function, ...], int]:
+        """One rod's functions of (unknowns, loads, target (3), target rotation (3 × 3),
+        slots... [, λ]): (its rows and their Jacobian over its unknowns, the Hessian of
+        λᵀrows, its rows alone), and its count of equality rows (the steps, the moment
+        balance, the target's)."""
         rod, shooting, steps = self.rod, self._shooting, self.rod.steps
         tension, base_moment = ca.MX.sym("tension", self.n), ca.MX.sym("base_moment", 3)
         states = [ca.MX.sym(f"state_{k + 1}", STATE) for k in range(steps)]
@@ -230,7 +230,10 @@ class TensionMotionPolisher(ShootingSolvers):
                            [ca.vertcat(values, other), ca.vertcat(jacobian,
                                                                   ca.jacobian(other, z))])
         curvature = ca.Function(f"motion_rod_{int(aim)}_hessian", [*arguments, lam], [hessian])
-        return rows, curvature, values.size1() + other.size1() - clearance.size1()
+        # The rows alone (Ipopt's line search asks for them without the Jacobian).
+        alone = ca.Function(f"motion_rod_{int(aim)}_rows", arguments, [ca.vertcat(
+            *shooting.defects(tension, base_moment, states, inputs), other)])
+        return (rows, curvature, alone), values.size1() + other.size1() - clearance.size1()
 
     def _linear_rows(self) -> tuple[ca.DM, ca.DM]:
         """(A, D): the constant rows over the unknowns: A the samples' interpolation rows
@@ -275,7 +278,7 @@ class TensionMotionPolisher(ShootingSolvers):
         and rotations (T × 3 × 3), the reference tensions (T·n, scaled), then every
         rod's slots."""
         functions = {aim: self._rod_function(aim) for aim in {False, self.targets != "none"}}
-        self._equalities = {aim: f[2] for aim, f in functions.items()}
+        self._equalities = {aim: f[1] for aim, f in functions.items()}
         load_column = ca.MX.sym("loads", 12 + 6 * self.rod.n_points)
         zs = [ca.MX.sym(f"rod_{r}", self.block) for r in range(self.rods)]
         unknowns = ca.vertcat(*zs)
@@ -284,7 +287,7 @@ class TensionMotionPolisher(ShootingSolvers):
         target_symbols = []
         for r in range(self.rods):
             aim = self._aims(r)
-            function = functions[aim][0]
+            function = functions[aim][0][0]
             slots = [ca.MX.sym(f"slot_{r}_{i}", function.size_in(4 + i))
                      for i in range(function.n_in() - 4)]
             slot_parameters += [ca.vec(s) for s in slots]
@@ -294,7 +297,7 @@ class TensionMotionPolisher(ShootingSolvers):
                 target_symbols += [target, ca.vec(rotation)]
             else:
                 target, rotation = ca.DM.zeros(3), ca.DM.eye(3)
-            calls.append((functions[aim][:2], [zs[r], load_column, target, rotation, *slots]))
+            calls.append((functions[aim][0], [zs[r], load_column, target, rotation, *slots]))
         parameters = ca.vertcat(load_column, *target_symbols, reference, *slot_parameters)
         a_matrix, d_matrix = self._linear_rows()
         self._linear = a_matrix.size1()
@@ -303,25 +306,24 @@ class TensionMotionPolisher(ShootingSolvers):
             offset = offset - reference
         objective = ca.sumsqr(offset)
         hessian_f = 2.0 * ca.mtimes(d_matrix.T, d_matrix)
-        sizes = [functions[self._aims(r)][0].size_out(0)[0] for r in range(self.rods)]
+        sizes = [functions[self._aims(r)][0][0].size_out(0)[0] for r in range(self.rods)]
         lam_f = ca.MX.sym("lam_f")
         lam_g = ca.MX.sym("lam_g", sum(sizes) + self._linear)
         starts = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
-        values, jacobians, hessians = [], [], []
-        for r, ((rows, curvature), arguments) in enumerate(calls):
+        values, alone, jacobians, hessians = [], [], [], []
+        for r, ((rows, curvature, only), arguments) in enumerate(calls):
             value, jacobian = rows(*arguments)
-            values.append(value), jacobians.append(jacobian)
+            values.append(value), jacobians.append(jacobian), alone.append(only(*arguments))
             hessians.append(curvature(*arguments, lam_g[starts[r]:starts[r + 1]]))
-        g = ca.vertcat(*values, ca.mtimes(ca.DM(a_matrix), unknowns))
-        self._rows = sizes
-        self.rows_function = ca.Function("motion_rows", [unknowns, parameters], [g])
-        """(unknowns, parameters) → every row of the NLP (a check of a start or answer)."""
+        linear = ca.mtimes(ca.DM(a_matrix), unknowns)
+        g = ca.vertcat(*alone, linear)
         callbacks = {
             "grad_f": ca.Function("grad_f", [unknowns, parameters],
                                   [objective, ca.gradient(objective, unknowns)],
                                   ["x", "p"], ["f", "grad_f_x"]),
             "jac_g": ca.Function("jac_g", [unknowns, parameters],
-                                 [g, ca.vertcat(ca.diagcat(*jacobians), ca.DM(a_matrix))],
+                                 [ca.vertcat(*values, linear),
+                                  ca.vertcat(ca.diagcat(*jacobians), ca.DM(a_matrix))],
                                  ["x", "p"], ["g", "jac_g_x"]),
             "hess_lag": ca.Function("hess_lag", [unknowns, parameters, lam_f, lam_g],
                                     [ca.triu(ca.diagcat(*hessians) + lam_f * hessian_f)],
@@ -424,8 +426,7 @@ class TensionMotionPolisher(ShootingSolvers):
             lower = [np.full(c[1].shape, -np.inf) if r in loose else c[1]
                      for r, c in enumerate(chosen)]
             lbg, ubg = self._row_bounds(lower, step, tolerance)
-            self.last_problem = (x, np.concatenate([fixed, *slots]), lbg, ubg)
-            run = run_solver(solver, x, self._deadline, p=self.last_problem[1],
+            run = run_solver(solver, x, self._deadline, p=np.concatenate([fixed, *slots]),
                              lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
             iterations, status = iterations + run.iterations, run.status
             if not np.all(np.isfinite(run.x)):

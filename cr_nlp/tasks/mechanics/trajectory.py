@@ -396,7 +396,7 @@ class TensionTrajectoryPlanner:
         """(a, b): pool indices of the cheapest clear start → a → b → goal, a among the
         ``via_candidates`` sets nearest the start, b among those nearest the goal (legs
         screened one by one, the middle legs only between clear ends), or None."""
-        count = self.config.via_candidates
+        count = min(self.config.via_candidates, len(vias))   # a small pool has fewer
         near_start = np.argsort(_seconds(vias, start))[:count]
         near_goal = np.argsort(_seconds(goal, vias))[:count]
         ends = self._screen([self._legs([start, vias[a]]) for a in near_start]

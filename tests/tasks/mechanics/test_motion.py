@@ -172,6 +172,18 @@ def test_a_plan_replayed_through_fresh_statics_keeps_its_clearance(planner) -> N
         assert checked.obstacle_distance.min() >= planner.config.safety_margin
 
 
+def test_a_via_pool_smaller_than_the_candidates_gives_a_failed_plan_not_an_error() -> None:
+    """One via candidate (not clear): no via, no chain of two (the chain search asked for
+    16 candidates of the 1 and raised before), so the direct legs, judged in collision."""
+    from cr_nlp import TensionPlanConfig, TensionPlanner
+
+    planner = TensionPlanner(RAO, SCENE, TensionPlanConfig(via_pool=1, chain_iterations=0))
+    result = planner.plan([0, 0, 0, 0, 0, 3.0], [0, 6.0, 0, 0, 0, 3.0], gravity=GRAVITY,
+                          tip_force=PAYLOAD)[0]
+    assert not result.success and "collision" in result.reason, result.reason
+    assert result.notes[0].startswith("no clear via among the 1 cheapest of 1")
+
+
 @pytest.mark.parametrize(("problem", "words"), [
     ({"start": [1, 0, 0, 0, 0, -1], "goal": [0] * 6}, r"problem 0: start\[5\].*≥ 0 N"),
     ({"start": [1, 0, 0], "goal": [0] * 6}, "problem 0: start: expected 6 tensions"),
