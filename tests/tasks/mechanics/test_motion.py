@@ -177,7 +177,8 @@ def test_a_via_pool_smaller_than_the_candidates_gives_a_failed_plan_not_an_error
     16 candidates of the 1 and raised before), so the direct legs, judged in collision."""
     from cr_nlp import TensionTrajectoryConfig, TensionTrajectoryPlanner
 
-    planner = TensionTrajectoryPlanner(RAO, SCENE, TensionTrajectoryConfig(via_pool=1, chain_iterations=0))
+    planner = TensionTrajectoryPlanner(RAO, SCENE,
+                                       TensionTrajectoryConfig(via_pool=1, chain_iterations=0))
     result = planner.plan([0, 0, 0, 0, 0, 3.0], [0, 6.0, 0, 0, 0, 3.0], gravity=GRAVITY,
                           tip_force=PAYLOAD)[0]
     assert not result.success and "collision" in result.reason, result.reason
