@@ -24,9 +24,9 @@ from ..tasks.calibration.calibrate import CalibrationConfig, calibrate, tip_erro
 from ..tasks.calibration.measurements import Measurements
 from ..tasks.readers import read_measurements
 from ._common import Column, environment, environment_markdown, fixed, markdown_table, write_report
+from .suites import CALIBRATION_FAMILIES
 
-FAMILIES = ("pair12", "pair13", "pair23", "tendon", "seg")
-"""The FTDCR v6 training file's pattern families, as its ``pattern_label`` column names them."""
+FAMILIES = CALIBRATION_FAMILIES
 
 
 def family_of(label: str, families: tuple[str, ...] = FAMILIES) -> str:

@@ -75,3 +75,10 @@ BATCH_MODES = ("penalty", "exact")
 STARTUP_ENTRIES = ("import", "ik", "plan", "follow", "statics", "calibrate", "predict",
                    "demo")
 """The entry points that ``cr-nlp bench startup`` times as whole processes."""
+
+
+# ================================================================ calibration
+
+CALIBRATION_FAMILIES = ("pair12", "pair13", "pair23", "tendon", "seg")
+"""The FTDCR v6 training file's pattern families, as its ``pattern_label`` column names them
+(``cr-nlp bench calibration --families``)."""

@@ -388,7 +388,7 @@ def _run_startup(args: argparse.Namespace) -> int:
 
 
 def _add_calibration(group: argparse._SubParsersAction) -> None:
-    from ..bench.calibration import FAMILIES
+    from ..bench.suites import CALIBRATION_FAMILIES as FAMILIES
 
     p = group.add_parser("calibration", help="the train-only fold score of a calibration: "
                                              "each family of patterns held out in turn")

@@ -100,8 +100,8 @@ def test_banded_lm_takes_the_dense_lm_steps() -> None:
     free = jnp.ones(d).at[2].set(0.0)        # one fixed variable per waypoint
     for budget in (1, 30):
         zb, cb, ib = banded_lm_solve(TERMS, lambda x: x, z, p, None, free, jnp.int32(budget))
-        zd, cd, idd = lm_solve(flat, lambda x: x, z.reshape(1, -1), p[None], None,
-                               jnp.tile(free, t), jnp.int32(budget))
+        zd, cd, idd, _ = lm_solve(flat, lambda x: x, z.reshape(1, -1), p[None], None,
+                                  jnp.tile(free, t), jnp.int32(budget))
         np.testing.assert_allclose(np.asarray(zb).reshape(-1), np.asarray(zd[0]), atol=1e-10)
         assert float(cb) == pytest.approx(float(cd[0]), rel=1e-10)
         assert int(ib) == int(idd)
@@ -124,14 +124,14 @@ def test_lm_give_up_ends_the_loop_but_not_the_other_problems_steps() -> None:
                         config=config)
 
     base = LMConfig(stall_tolerance=0.0)
-    _, _, it_off = solve(z0, base)
-    z_near, _, it_near = solve(z0[:1], base)
-    z, cost, it = solve(z0, replace(base, give_up=((2, 1.0),)))
+    _, _, it_off, _ = solve(z0, base)
+    z_near, _, it_near, _ = solve(z0[:1], base)
+    z, cost, it, _ = solve(z0, replace(base, give_up=((2, 1.0),)))
     assert int(it) == max(int(it_near), 2) < int(it_off)
     np.testing.assert_array_equal(np.asarray(z[0]), np.asarray(z_near[0]))
     assert float(cost[1]) > 1.0
     # A give-up cost above the far problem's start: the rule never fires.
-    _, _, it_high = solve(z0, replace(base, give_up=((2, 1e12),)))
+    _, _, it_high, _ = solve(z0, replace(base, give_up=((2, 1e12),)))
     assert int(it_high) == int(it_off)
 
 
