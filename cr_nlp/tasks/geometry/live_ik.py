@@ -151,7 +151,7 @@ class LiveIKSolver:
             self._free,
             jnp.int32(self.config.iterations),
             config=self._lm_config,
-        )
+        ).z
         return clip_to_limits(self.robot, z_to_q_numpy(np.asarray(z[0], dtype=float)))
 
     def _verify(self, q: np.ndarray, position: np.ndarray, wxyz: np.ndarray) -> IKVerification:
