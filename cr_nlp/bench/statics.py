@@ -83,6 +83,29 @@ def bench_statics(robot: str = "tdcr2_rao2021", cases: int = 1000, load_set: str
                            min(times), float(result.converged.mean()))
 
 
+
+def bench_displacement_statics(robot: str = "tdcr2_rao2021", cases: int = 10_000,
+                               tendon_stiffness: float = 5000.0, repeats: int = 3,
+                               seed: int = 0) -> StaticsBenchRow:
+    """Time ``solve_displacement_statics`` under gravity on ``cases`` random commands: 1–2
+    tendons of each segment pulled by U[0, 3] mm, the others at their zeros (taut on the
+    straight robot), tendons of ``tendon_stiffness`` N/m (compile apart, median of
+    repeats)."""
+    from ..model.cosserat import solve_displacement_statics
+
+    rob = load_robot(robot)
+    d, _, _ = statics_cases(rob.n_tendons, rob.tendons.per_segment, cases, "tensions", seed,
+                            tension_max=0.003)
+    times = []
+    for _ in range(repeats + 1):
+        start = time.perf_counter()
+        result = solve_displacement_statics(rob, d, gravity=[0.0, 0.0, -9.81],
+                                            tendon_stiffness=tendon_stiffness)
+        times.append(time.perf_counter() - start)
+    return StaticsBenchRow(cases, "commands + gravity", "float64", times[0],
+                           statistics.median(times[1:]), min(times[1:]),
+                           float(result.converged.mean()))
+
 COLUMNS = [
     Column("cases", "cases"),
     Column("load_set", "loads"),

@@ -14,7 +14,8 @@ from typing import Any
 
 _MECHANICS_KEYS = {"youngs_modulus", "poisson_ratio", "backbone_outer_radius",
                    "backbone_inner_radius", "linear_density", "disks_per_segment",
-                   "disk_mass", "tension_max"}
+                   "disk_mass", "tension_max", "segment_stiffness", "tendon_stiffness",
+                   "calibration_gravity"}
 MAX_DISKS_PER_SEGMENT = 1000
 """Most spacer disks per segment a ``mechanics`` block may list (each is a point load)."""
 _REQUIRED = {"youngs_modulus", "poisson_ratio", "backbone_outer_radius"}
@@ -53,6 +54,20 @@ class Mechanics:
     """Mass of one disk, kg (gravity only)."""
     tension_max: float
     """Largest tension a tendon may carry, newtons (inf: unlimited)."""
+    segment_stiffness: tuple[float, ...] = ()
+    """Per segment, a factor on every stiffness of its cross-section (E·I, E·A, G·A, G·J;
+    dimensionless, > 0): segments of one backbone that bend unlike the nominal section
+    (``cr-nlp calibrate --model cosserat`` fits it). Empty: 1 for every segment."""
+    tendon_stiffness: tuple[float, ...] = ()
+    """Per segment, the axial stiffness k of each tendon anchored there, N/m (tension per
+    metre of stretch beyond its free length): what makes the rod follow commanded tendon
+    displacements (``model.cosserat.solve_displacement_statics``). Empty: not given (tension-driven
+    statics only)."""
+    calibration_gravity: tuple[float, ...] = ()
+    """The gravitational acceleration (3,) in the robot file's world (measurement) frame
+    that ``cr-nlp calibrate --model cosserat`` found, m/s²; its size also carries the
+    fitted scale of the masses (only the product of mass and g acts). ``predict --model
+    cosserat`` applies it; other commands take loads from their options. Empty: none."""
 
     # ------------------------------------------------------------ section properties
     @property
@@ -94,7 +109,17 @@ class Mechanics:
         }
         if math.isfinite(self.tension_max):
             out["tension_max"] = self.tension_max
+        if self.segment_stiffness:
+            out["segment_stiffness"] = list(self.segment_stiffness)
+        if self.tendon_stiffness:
+            out["tendon_stiffness"] = list(self.tendon_stiffness)
+        if self.calibration_gravity:
+            out["calibration_gravity"] = list(self.calibration_gravity)
         return out
+
+    def stiffness_factors(self, n_segments: int) -> tuple[float, ...]:
+        """(n,) the segments' stiffness factors (1 where the block gives none)."""
+        return self.segment_stiffness or (1.0,) * n_segments
 
 
 def parse_mechanics(c: Any, raw: Any, n_segments: int) -> Mechanics:
@@ -128,4 +153,22 @@ def parse_mechanics(c: Any, raw: Any, n_segments: int) -> Mechanics:
     disk_mass = c.number(d.get("disk_mass", 0.0), "mechanics.disk_mass", nonnegative=True)
     tension_max = (c.number(d["tension_max"], "mechanics.tension_max", positive=True)
                    if "tension_max" in d else math.inf)
-    return Mechanics(e, nu, outer, inner, density, disks, disk_mass, tension_max)
+    factors = _per_segment(c, d, "segment_stiffness", n_segments)
+    tendon_k = _per_segment(c, d, "tendon_stiffness", n_segments)
+    gravity = (c.vector(d["calibration_gravity"], "mechanics.calibration_gravity", 3)
+               if "calibration_gravity" in d else ())
+    return Mechanics(e, nu, outer, inner, density, disks, disk_mass, tension_max, factors,
+                     tendon_k, tuple(float(v) for v in gravity))
+
+
+def _per_segment(c: Any, d: dict, key: str, n_segments: int) -> tuple[float, ...]:
+    """An optional positive per-segment list (one number stands for every segment)."""
+    if key not in d:
+        return ()
+    raw = d[key]
+    if isinstance(raw, (int, float)) and not isinstance(raw, bool):
+        raw = [raw] * n_segments
+    values = c.vector(raw, f"mechanics.{key}", n_segments)
+    if any(not v > 0 or not math.isfinite(v) for v in values):
+        raise c.fail(f"mechanics.{key}", f"must be finite and positive, got {list(values)}")
+    return tuple(float(v) for v in values)

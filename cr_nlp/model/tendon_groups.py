@@ -85,13 +85,17 @@ def bending_per_tension(robot: Robot) -> np.ndarray:
 
     Closed form (parallel routing, no loads): tension τ_j pulls its tendon by d = A u
     (A = ∂d/∂u, m/rad, exact from the PCC tendon lengths), so by virtual work it loads the
-    bending vectors with the moments Aᵀτ (N·m), and segment i resists with EI / L_i; the
-    Cosserat rod agrees to its axial compression (micrometres, notebook 04)."""
-    stiffness = require_mechanics(robot, "the tensions of a configuration").bending_stiffness
+    bending vectors with the moments Aᵀτ (N·m), and segment i resists with EI_i / L_i (E I
+    times its stiffness factor); the Cosserat rod agrees to its axial compression
+    (micrometres, notebook 04)."""
+    mech = require_mechanics(robot, "the tensions of a configuration")
     from .kinematics import tendon_lengths, z_to_q_numpy
 
     lengths = np.array([s.length_min for s in robot.segments])
     count = len(lengths)
+    # E I of each segment (its stiffness factor), once per bending component
+    stiffness = np.repeat(mech.bending_stiffness
+                          * np.asarray(mech.stiffness_factors(count), float), 2)[:, None]
 
     def configuration(u: np.ndarray) -> np.ndarray:
         return z_to_q_numpy(np.insert(u.reshape(count, 2), 2, lengths, axis=1).reshape(-1))

@@ -28,12 +28,17 @@ The public face: ``solve_statics`` (batched, numpy in, float64 numpy out), its s
 ``StaticsConfig`` and its result ``StaticsResult`` (with ``Equilibrium``). For the solver
 stages on the rod: the one-case programs (``tip_equilibrium``, ``backbone_equilibrium``,
 ``statics_single``, ``case_loads``, ``CaseLoads``, ``moment_scale``) and the same RK4 steps
-for CasADi (``CasadiRod``, ``RodLoads``, ``flat_loads``; ``_casadi``).
+for CasADi (``CasadiRod``, ``RodLoads``, ``flat_loads``; ``_casadi``). Driven by motor
+commands instead of tensions: ``solve_displacement_statics`` and its
+``DisplacementStaticsResult`` (``_displacement``: the tensions that make each tendon's path
+match its command, slack tendons carrying none).
 """
 
 from ._casadi import CasadiRod as CasadiRod
 from ._casadi import RodLoads as RodLoads
 from ._casadi import flat_loads as flat_loads
+from ._displacement import DisplacementStaticsResult as DisplacementStaticsResult
+from ._displacement import solve_displacement_statics as solve_displacement_statics
 from ._rod import CaseLoads as CaseLoads
 from ._rod import StaticsConfig as StaticsConfig
 from ._shooting import Equilibrium as Equilibrium

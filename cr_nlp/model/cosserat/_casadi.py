@@ -21,7 +21,15 @@ import numpy as np
 
 from .._ops import CASADI
 from ..robot import Robot
-from ._rod import RK4_STAGES, StaticsConfig, _grid_with_points, _Layout, _layout, rk4_step
+from ._rod import (
+    RK4_STAGES,
+    StaticsConfig,
+    _grid_with_points,
+    _Layout,
+    _layout,
+    rk4_step,
+    step_stiffness,
+)
 
 STATE_SIZE = 15
 """Entries of a step's state: position p (3, m), rotation R (9, row-major), moment M (3, N·m)."""
@@ -80,15 +88,20 @@ class CasadiRod:
         self.grid = rod_grid(lay, point_s)
         self.n_tendons = lay.active.shape[1]
         self.n_points = int(np.asarray(point_s).size)
-        patterns = {tuple(row) for row in self.grid.active.tolist()}
-        self._functions = {pattern: self._step_function(pattern) for pattern in patterns}
+        # a step's constants: its tendons and its segment's stiffness factor
+        self._stiffness = step_stiffness(lay, self.grid.step_length, lay.stiffness)
+        patterns = {self._key(k) for k in range(self.steps)}
+        self._functions = {key: self._step_function(*key) for key in patterns}
 
     @property
     def steps(self) -> int:
         """S', the number of RK4 steps."""
         return len(self.grid.step_length)
 
-    def _step_function(self, act: tuple[float, ...]) -> ca.Function:
+    def _key(self, k: int) -> tuple[tuple[float, ...], float]:
+        return tuple(self.grid.active[k].tolist()), float(self._stiffness[k])
+
+    def _step_function(self, act: tuple[float, ...], stiffness: float) -> ca.Function:
         """SX ``(x (15), tension (T), h, mass (3), length (3), force (3), gravity (3),
         distributed (3), jump (3)) -> (x at the step's end (15), tendon length gained
         (T))`` for the tendons ``act`` (constants: a slack tendon's terms vanish)."""
@@ -104,7 +117,8 @@ class CasadiRod:
                  tuple(zero for _ in range(self.n_tendons)))
         new = rk4_step(CASADI, self.layout, self.config, state, h, mass, length, act,
                        [tension[i] for i in range(self.n_tendons)], _entries(force),
-                       _entries(gravity), _entries(distributed), _entries(jump), _stages)
+                       _entries(gravity), _entries(distributed), _entries(jump), _stages,
+                       stiffness)
         return ca.Function("rod_step", [x, tension, h, mass, length, force, gravity,
                                         distributed, jump],
                            [ca.vertcat(*new[0], *new[1], *new[2]), ca.vertcat(*new[3])],
@@ -117,7 +131,7 @@ class CasadiRod:
         g = self.grid
         force = loads.tip_force + ca.mtimes(loads.point_force.T, ca.DM(g.distal[k]))
         jump = ca.mtimes(loads.point_moment.T, ca.DM(g.ends_here[k]))
-        function = self._functions[tuple(g.active[k].tolist())]
+        function = self._functions[self._key(k)]
         return function(x, tension, g.step_length[k], g.mass[k], g.length[k], force,
                         loads.gravity, loads.distributed, jump)
 

@@ -77,6 +77,8 @@ class _Layout(NamedTuple):
     linear_density: float     # kg/m
     disk_mass: float          # kg
     tendon_end: np.ndarray    # (T,) arc length where each tendon ends, m
+    segment_end: np.ndarray   # (n,) arc length where each segment ends, m
+    stiffness: np.ndarray     # (n,) the segments' stiffness factors (mechanics block)
 
 
 @cached(maxsize=64)
@@ -127,7 +129,18 @@ def _layout(robot: Robot, config: StaticsConfig, coarse: bool = False) -> _Layou
     kse, kbt = mech.stiffness_diagonals()
     return _Layout(h, mass, np.asarray(active), routing, arc, distal(arc, False), kse, kbt,
                    mech.bending_stiffness / total, disk_s, float(mech.linear_density),
-                   float(mech.disk_mass), np.asarray(tendon_end, dtype=float))
+                   float(mech.disk_mass), np.asarray(tendon_end, dtype=float),
+                   np.asarray(ends, dtype=float),
+                   np.asarray(mech.stiffness_factors(robot.n_segments), dtype=float))
+
+
+def step_stiffness(lay: _Layout, step_length: Any, factors: Any, xp: Any = np) -> Any:
+    """(S',) the stiffness factor of each step of a grid with steps ``step_length`` (S',)
+    m: the factor (n,) of the segment that holds the step's middle."""
+    ends = xp.cumsum(step_length)
+    middle = ends - 0.5 * step_length
+    segment = xp.searchsorted(xp.asarray(lay.segment_end[:-1]), middle)
+    return xp.asarray(factors)[segment]
 
 
 class CaseLoads(NamedTuple):
@@ -284,7 +297,7 @@ def _solve3(a: jax.Array, b: jax.Array) -> jax.Array:
 # ---------------------------------------------------------------- the rod equations
 
 def _strains(ops: Ops, lay: _Layout, n_body: Vec, m_body: Vec, tension: list[Any],
-             iterations: int) -> tuple[Vec, Vec, list[Any]]:
+             iterations: int, stiffness: Any = 1.0) -> tuple[Vec, Vec, list[Any]]:
     """Strains (u, v) from the cut's force and moment in the disk frame, and the tendons'
     stretch factors |v + u × r_i|.
 
@@ -293,9 +306,12 @@ def _strains(ops: Ops, lay: _Layout, n_body: Vec, m_body: Vec, tension: list[Any
     segment). The first pass takes every tendon parallel to the backbone (t_i = e3, exact
     for a bend without torsion or shear). Each further sweep fixes c_i at the current
     strains and solves the then linear equations: u from a 2×2 + 1×1 system (r_i lies in
-    the disk plane), v from a diagonal one.
+    the disk plane), v from a diagonal one. ``stiffness`` scales Kse and Kbt (the
+    segment's factor; a Python 1.0 leaves the program as it was).
     """
     (gax, gay, eaz), (ei, _, gj) = lay.kse, lay.kbt
+    if not (isinstance(stiffness, float) and stiffness == 1.0):
+        gax, gay, eaz, ei, gj = (k * stiffness for k in (gax, gay, eaz, ei, gj))
     rs = [(float(x), float(y)) for x, y, _ in lay.routing]
     # r_i × (τ_i e3) = τ_i (r_y, −r_x, 0)
     u = ((m_body[0] - sum(t * ry for t, (_, ry) in zip(tension, rs, strict=True))) / ei,
@@ -332,11 +348,11 @@ def _strains(ops: Ops, lay: _Layout, n_body: Vec, m_body: Vec, tension: list[Any
 
 
 def _derivative(ops: Ops, lay: _Layout, config: StaticsConfig, rotation: Rot, moment: Vec,
-                force: Vec, tension: list[Any]) -> tuple:
+                force: Vec, tension: list[Any], stiffness: Any = 1.0) -> tuple:
     """d/ds of (p, R, M, tendon lengths) at one point; N (``force``) is given."""
     u, v, stretch = _strains(ops, lay, _rmatvec(rotation, force),
                              _rmatvec(rotation, moment), tension,
-                             config.constitutive_iterations)
+                             config.constitutive_iterations, stiffness)
     dp = _matvec(rotation, v)
     dm = _cross(dp, force)
     return dp, _rot_times_hat(rotation, u), (-dm[0], -dm[1], -dm[2]), tuple(stretch)
@@ -344,7 +360,8 @@ def _derivative(ops: Ops, lay: _Layout, config: StaticsConfig, rotation: Rot, mo
 
 def rk4_step(ops: Ops, lay: _Layout, config: StaticsConfig, state: State, h: Any,
              mass: Any, length: Any, act: Any, tension: list[Any], force: Vec, gravity: Vec,
-             distributed: Vec | None, moment_jump: Vec | None, stages: Any) -> State:
+             distributed: Vec | None, moment_jump: Vec | None, stages: Any,
+             stiffness: Any = 1.0) -> State:
     """One RK4 step of the rod over a step of length ``h`` (m) from ``state``.
 
     ``mass`` and ``length``: the kg and m of backbone distal of the step's start, middle
@@ -354,6 +371,7 @@ def rk4_step(ops: Ops, lay: _Layout, config: StaticsConfig, state: State, h: Any
     ``moment_jump`` (N·m, None: none): a point moment at the step's end. ``stages`` runs
     ``body(inner, (shift, weight, point))`` over ``RK4_STAGES`` and returns the last inner
     value: a ``lax.scan`` on JAX (a small program), a Python loop on CasADi.
+    ``stiffness``: the factor on the section's stiffnesses over this step (its segment's).
     """
     active = [t * act[i] for i, t in enumerate(tension)]
 
@@ -364,7 +382,7 @@ def rk4_step(ops: Ops, lay: _Layout, config: StaticsConfig, state: State, h: Any
         n = tuple(f + g * mass[point] for f, g in zip(force, gravity, strict=True))
         if distributed is not None:  # the force per metre distal of the stage's point
             n = tuple(a + w * length[point] for a, w in zip(n, distributed, strict=True))
-        dp, drot, dmom, dl = _derivative(ops, lay, config, rot, mom, n, active)
+        dp, drot, dmom, dl = _derivative(ops, lay, config, rot, mom, n, active, stiffness)
         k = (dp, drot, dmom, tuple(s * act[i] for i, s in enumerate(dl)))
         return k, _axpy(total, weight, k)
 
@@ -378,8 +396,11 @@ def rk4_step(ops: Ops, lay: _Layout, config: StaticsConfig, state: State, h: Any
 
 
 def _integrate(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
-               tension: jax.Array, loads: CaseLoads, keep_path: bool) -> tuple:
-    """RK4 from the base (disk frame = base frame) with M(0) = ``base_moment``.
+               tension: jax.Array, loads: CaseLoads, keep_path: bool,
+               stiffness: Any = None) -> tuple:
+    """RK4 from the base (disk frame = base frame) with M(0) = ``base_moment``;
+    ``stiffness`` (n,): the segments' stiffness factors (traced values allowed), None: the
+    mechanics block's.
 
     Returns (M at the tip (3,), tendon lengths (T,), then with ``keep_path`` the positions
     (S+1, 3), rotations (S+1, 3, 3) and moments M (S+1, 3) at the robot's grid points, else
@@ -392,6 +413,11 @@ def _integrate(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
     spread = loads.distributed.shape[0] > 0
     xs = tuple(jnp.asarray(a, dtype) for a in (grid.step_length, grid.mass, grid.length,
                                                  grid.active))
+    if stiffness is None and np.any(lay.stiffness != 1.0):
+        stiffness = lay.stiffness
+    if stiffness is not None:
+        xs += (step_stiffness(lay, jnp.asarray(grid.step_length, dtype),
+                              jnp.asarray(stiffness, dtype), jnp),)
     if points:
         xs += (grid.point_force, grid.moment_jump)
     # Start values made from the inputs (not fresh constants): when the batch is split over
@@ -412,11 +438,16 @@ def _integrate(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
     gravity = _vec(loads.gravity)
     distributed = _vec(loads.distributed) if spread else None
 
+    scaled = stiffness is not None
+
     def step(carry: tuple, x: tuple) -> tuple:
         h, mass, length, act = x[:4]
-        force = _vec(loads.force + x[4] if points else loads.force)
+        factor = x[4] if scaled else 1.0
+        x = x[5:] if scaled else x[4:]
+        force = _vec(loads.force + x[0] if points else loads.force)
         new = rk4_step(JAX, lay, config, carry, h, mass, length, act, tension_list, force,
-                       gravity, distributed, _vec(x[5]) if points else None, stages)
+                       gravity, distributed, _vec(x[1]) if points else None, stages,
+                       factor)
         return new, ((_array(new[0]), _array(new[1]).reshape(3, 3), _array(new[2]))
                      if keep_path else None)
 

@@ -1,0 +1,100 @@
+"""Displacement-driven Cosserat statics: the tensions it finds meet the commands on the
+tension statics' own shapes, slack tendons carry nothing, bad inputs are named; the
+per-segment stiffness of the mechanics block."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from cr_nlp.model import ModelFileError, Robot, load_robot
+from cr_nlp.model.cosserat import solve_displacement_statics, solve_statics
+
+RAO = load_robot("tdcr2_rao2021")
+K = 4000.0  # N/m
+ROBOT = replace(RAO, mechanics=replace(RAO.mechanics, tendon_stiffness=(K, 2 * K)))
+GRAVITY = [0.0, 0.0, -9.81]
+COMMANDS = np.array([
+    [0.002, 0.0, 0.0, 0.0, 0.0, 0.0],            # one tendon pulled: its antagonists engage
+    [0.003, -0.002, -0.002, 0.0, 0.0015, 0.0],   # two tendons released by 2 mm
+    [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],              # at the zeros: gravity alone, all slack
+    [0.001, 0.001, 0.001, 0.002, 0.0, 0.0],      # a common pull on segment 1
+])
+
+
+@pytest.fixture(scope="module")
+def solved() -> tuple:
+    return solve_displacement_statics(ROBOT, COMMANDS, gravity=GRAVITY), \
+        np.array([K, K, K, 2 * K, 2 * K, 2 * K])
+
+
+def test_tensions_meet_the_commands_on_the_tension_statics_shape(solved: tuple) -> None:
+    result, k = solved
+    assert result.converged.all() and result.stable.all()
+    check = solve_statics(ROBOT, result.tensions, gravity=GRAVITY)
+    assert np.abs(check.positions - result.positions).max() <= 1e-6
+    # the tension statics' own tendon shortening: τ = k · max(0, pull − shortening)
+    stretch = COMMANDS - check.tendon_displacements
+    np.testing.assert_allclose(result.tensions, k * np.maximum(0.0, stretch), atol=1e-9 * K)
+    assert (result.tensions[[0, 1, 3]].max(axis=1) > 0.1).all()
+
+
+def test_a_slack_tendon_carries_no_tension(solved: tuple) -> None:
+    result, _ = solved
+    assert result.slack[1, 1] and result.slack[1, 2]
+    assert result.tensions[1, 1] == 0.0 and result.tensions[1, 2] == 0.0
+    assert (result.tensions[2] == 0.0).all() and result.slack[2].all()
+    # gravity alone sags the robot along the base axis; nothing bends it sideways
+    assert np.abs(result.tip_position[2, :2]).max() < 1e-9
+    assert (result.tensions >= 0.0).all()
+
+
+def test_pulling_a_tendon_bends_the_tip_towards_it(solved: tuple) -> None:
+    result, _ = solved
+    # tendon 1 sits at 90° (the offset): +y
+    assert result.tip_position[0, 1] > 0.02 and abs(result.tip_position[0, 0]) < 1e-9
+
+
+def test_bad_inputs_are_named() -> None:
+    with pytest.raises(ValueError, match="6 tendons"):
+        solve_displacement_statics(ROBOT, np.zeros((2, 5)))
+    with pytest.raises(ValueError, match="case 1: displacements: tendon 3"):
+        solve_displacement_statics(ROBOT, np.array([[0.0] * 6, [0, 0, np.nan, 0, 0, 0]]))
+    with pytest.raises(ValueError, match="mechanics"):
+        solve_displacement_statics(load_robot("tdcr3"), np.zeros(9))
+    with pytest.raises(ValueError, match="mechanics.tendon_stiffness"):
+        solve_displacement_statics(RAO, np.zeros(6))
+    with pytest.raises(ValueError, match="tendon_stiffness"):
+        solve_displacement_statics(ROBOT, np.zeros(6), tendon_stiffness=[1.0, -1.0])
+
+
+def test_segment_stiffness_scales_the_bending_of_its_segment() -> None:
+    data = RAO.to_dict()
+    data["segments"] = data["segments"][:1]
+    data["tendons"]["offsets"] = data["tendons"]["offsets"][:1]
+    data["mechanics"]["disks_per_segment"] = [10]
+    data["mechanics"]["segment_stiffness"] = [2.0]
+    robot = Robot.from_dict(data)
+    ei = robot.mechanics.bending_stiffness
+    result = solve_statics(robot, np.zeros(3), tip_moment=[0.2 * ei, 0.0, 0.0])
+    # a pure moment M bends an arc of curvature M / (2 E I): 0.02 rad over 0.2 m
+    kappa = 0.1
+    s = result.arc_length
+    arc = np.stack([0 * s, -(1 - np.cos(kappa * s)) / kappa, np.sin(kappa * s) / kappa], -1)
+    np.testing.assert_allclose(result.positions[0], arc, atol=1e-9)
+
+
+@pytest.mark.parametrize("field, value", [("segment_stiffness", [1.0, 0.0]),
+                                          ("tendon_stiffness", [1.0])])
+def test_mechanics_stiffness_fields_are_checked_and_round_trip(field: str,
+                                                               value: object) -> None:
+    data = RAO.to_dict()
+    data["mechanics"][field] = value
+    with pytest.raises(ModelFileError, match=f"mechanics.{field}"):
+        Robot.from_dict(data)
+    data["mechanics"][field] = 3.0  # one number stands for every segment
+    robot = Robot.from_dict(data)
+    assert getattr(robot.mechanics, field) == (3.0, 3.0)
+    assert Robot.from_dict(robot.to_dict()) == robot
