@@ -31,6 +31,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--validate", help="VAL.csv: rows the fit never sees, for the errors")
     p.add_argument("--out", required=True, help="CALIBRATED.json: the fitted robot file")
     p.add_argument("--report", help="folder for report.json and the figures")
+    p.add_argument("--model", choices=("pcc", "cosserat"), default="pcc",
+                   help="pcc (default): the geometric actuation model; cosserat: fit a "
+                        "mechanics block (segment stiffness ratios, tendon stiffness, zero "
+                        "offsets, gains, gravity, base pose, marker) to the Cosserat rod "
+                        "driven by the commands (slow: minutes)")
+    p.add_argument("--start", choices=("pcc", "pcc-geometry", "nominal"), default="pcc",
+                   help="with --model cosserat: start the base pose, marker, zeros and "
+                        "gains from a geometric calibration of the same rows (default; "
+                        "pcc-geometry also keeps its segment lengths, tendon radius and "
+                        "segment angle offsets) or from the robot file")
     p.add_argument("--axial-compression", nargs="?", const="segments",
                    choices=("segments", "tendons"),
                    help="also fit the segments' axial compliance under the taut tendons: "
@@ -60,6 +70,8 @@ def run(args: argparse.Namespace) -> int:
     robot = load_robot_arg(args.robot)
     train = read_data_arg(robot, args.data, args)
     val = read_data_arg(robot, args.validate, args) if args.validate else None
+    if args.model == "cosserat":
+        return _run_mechanics(args, robot, train, val)
     result = calibrate(robot, train, val,
                        CalibrationConfig(
                            axial_compression=args.axial_compression is not None,
@@ -150,3 +162,58 @@ def _print_history(history: HistoryCalibration) -> None:
     _print_row("history (train)", history.train)
     if history.validation is not None:
         _print_row("history (valid.)", history.validation)
+
+
+def _run_mechanics(args: argparse.Namespace, robot: Robot, train: Measurements,
+                   val: Measurements | None) -> int:
+    """``--model cosserat``: fit the mechanics model, write the robot file and the report."""
+    from ..tasks.calibration.mechanics import MechanicsCalibrationConfig, calibrate_mechanics
+
+    if args.axial_compression is not None or args.history != "none":
+        raise UsageError("--model cosserat: --axial-compression and --history belong to the "
+                         "geometric model")
+    try:
+        result = calibrate_mechanics(robot, train, val,
+                                     MechanicsCalibrationConfig(
+                                         start=args.start.split("-")[0], progress=True,
+                                         pcc_geometry=args.start == "pcc-geometry"))
+    except ValueError as exc:
+        raise UsageError(f"--model cosserat: {exc}") from None
+    calibrated = result.robot.to_dict()
+    calibrated["description"] = (f"{robot.name} calibrated by cr-nlp calibrate --model "
+                                 f"cosserat on {Path(train.source).name} ({len(train)} rows; "
+                                 "validation error in actuation.model_error_*; gravity of "
+                                 "the recording in mechanics.calibration_gravity)")
+    with atomic_open(args.out) as handle:
+        handle.write(json.dumps(calibrated, indent=2) + "\n")
+    report = result.report()
+    report["train_file"], report["validation_file"] = train.source, val.source if val else None
+    print(f"calibrated the Cosserat model of {robot.name} on {len(train)} rows in "
+          f"{result.seconds:.1f} s ({result.evaluations} evaluations, {result.status}) → "
+          f"{args.out}")
+    print(f"{'rows':<16}{'n':>6}{'mean':>9}{'median':>9}{'p95':>9}{'max':>9}{'rmse':>9}"
+          f"{'aligned':>9}   (mm; % of length)")
+    for label, stats in (("start (train)", result.nominal_train), ("train", result.train),
+                         ("validation", result.validation)):
+        if stats is not None:
+            _print_row(label, stats)
+    if result.unconverged:
+        print(f"{result.unconverged} rows did not converge (left out of the errors' fit)")
+    mech = result.robot.mechanics
+    gravity = ",".join(f"{v:.4g}" for v in mech.calibration_gravity)
+    print(f"segment stiffness {', '.join(f'{v:.3g}' for v in mech.segment_stiffness)}; "
+          f"tendon stiffness {', '.join(f'{v:.4g}' for v in mech.tendon_stiffness)} N/m; "
+          f"gravity of the recording {gravity} m/s² (pass --gravity {gravity} to statics, "
+          f"ik, plan and follow --model cosserat)")
+    if args.report:
+        from ..model.cosserat import predict_marker
+        from ..viz._calibration import write_report_figures
+
+        folder = Path(args.report)
+        folder.mkdir(parents=True, exist_ok=True)
+        with atomic_open(folder / "report.json") as handle:
+            handle.write(json.dumps(report, indent=2) + "\n")
+        written = write_report_figures(result.robot, train, val, folder,
+                                       lambda c: predict_marker(result.robot, c)[0])
+        print(f"report → {folder / 'report.json'}, " + ", ".join(p.name for p in written))
+    return 0

@@ -9,6 +9,8 @@ from typing import TYPE_CHECKING
 from ._io import UsageError, add_data_options, load_robot_arg, read_data_arg
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from ..model import Robot
 
 
@@ -25,6 +27,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="auto (default): the robot file's actuation.history model where it "
                         "has one, rows taken as a time series (--time-column); none: the "
                         "static model, each row on its own")
+    p.add_argument("--model", choices=("pcc", "cosserat"), default="pcc",
+                   help="pcc (default): the geometric actuation model; cosserat: the "
+                        "Cosserat rod driven by the commands (a robot file with a mechanics "
+                        "block, e.g. from calibrate --model cosserat; under its "
+                        "calibration_gravity)")
     p.add_argument("--compensate", metavar="RESULT.json",
                    help="instead of --data: a plan, follow or IK result (its configurations "
                         "in order); writes the compensated and uncompensated motor commands "
@@ -47,10 +54,13 @@ def run(args: argparse.Namespace) -> int:
     robot = load_robot_arg(args.robot)
     if args.compensate is not None:
         return _compensate(robot, args)
-    if history_of(robot) is None:
+    if history_of(robot) is None or args.model == "cosserat":
         args.history = "none"      # a static robot file reads and predicts as before
     data = read_data_arg(robot, args.data, args, require_tip=False)
-    tip = predict_tip_series(robot, data.commands, history=args.history != "none")
+    if args.model == "cosserat":
+        tip = _predict_mechanics(robot, data.commands)
+    else:
+        tip = predict_tip_series(robot, data.commands, history=args.history != "none")
     write_tip_csv(args.out, tip, args.units, ("pred_x", "pred_y", "pred_z"),
                   {"row": np.arange(1, len(tip) + 1)})
     print(f"{len(tip)} rows predicted → {args.out} ({args.units})")
@@ -101,3 +111,19 @@ def _compensate(robot: Robot, args: argparse.Namespace) -> int:
     print(f"{len(plan.compensated)} steps → {args.out} (tendon_* compensated, "
           f"uncompensated_* static; {args.units})")
     return 0
+
+
+def _predict_mechanics(robot: Robot, commands: np.ndarray) -> np.ndarray:
+    """The Cosserat rod's predicted points of the commands; unconverged rows are named."""
+    import numpy as np
+
+    from ..model.cosserat import predict_marker
+
+    try:
+        tip, converged = predict_marker(robot, commands)
+    except ValueError as exc:
+        raise UsageError(f"--model cosserat: {exc}") from None
+    if not converged.all():
+        rows = ", ".join(str(i + 1) for i in np.flatnonzero(~converged)[:10])
+        print(f"{int((~converged).sum())} rows did not converge (rows {rows}…)")
+    return tip

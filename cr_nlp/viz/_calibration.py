@@ -3,6 +3,7 @@ tip paths (matplotlib, written as PNG)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -13,9 +14,12 @@ from ..tasks.calibration.measurements import Measurements
 
 
 def write_report_figures(robot: Robot, train: Measurements, validation: Measurements | None,
-                         folder: Path) -> list[Path]:
+                         folder: Path,
+                         predict: Callable[[np.ndarray], np.ndarray] | None = None
+                         ) -> list[Path]:
     """``errors.png`` (histogram of tip errors, mm) and ``tip_paths.png`` (x, y, z of the
-    predicted and measured tip per row, mm) in ``folder``; returns the paths written."""
+    predicted and measured tip per row, mm) in ``folder``; returns the paths written.
+    ``predict``: commands (N, T) m → tips (N, 3) m (default: the geometric model's)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -24,7 +28,8 @@ def write_report_figures(robot: Robot, train: Measurements, validation: Measurem
     from ._figures import write_figure
 
     sets = [("train", train)] + ([("validation", validation)] if validation else [])
-    predicted = {name: predict_tip(robot, d.commands) for name, d in sets}
+    predict = predict or (lambda commands: predict_tip(robot, commands))
+    predicted = {name: predict(d.commands) for name, d in sets}
     errors = {name: 1e3 * np.linalg.norm(predicted[name] - d.tip, axis=1) for name, d in sets}
 
     fig, ax = plt.subplots(figsize=(6, 3.5))

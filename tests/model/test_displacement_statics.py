@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cr_nlp.model import ModelFileError, Robot, load_robot
-from cr_nlp.model.cosserat import solve_displacement_statics, solve_statics
+from cr_nlp.model.cosserat import motor_commands, solve_displacement_statics, solve_statics
 
 RAO = load_robot("tdcr2_rao2021")
 K = 4000.0  # N/m
@@ -39,6 +39,15 @@ def test_tensions_meet_the_commands_on_the_tension_statics_shape(solved: tuple) 
     stretch = COMMANDS - check.tendon_displacements
     np.testing.assert_allclose(result.tensions, k * np.maximum(0.0, stretch), atol=1e-9 * K)
     assert (result.tensions[[0, 1, 3]].max(axis=1) > 0.1).all()
+
+
+def test_motor_commands_invert_the_solve(solved: tuple) -> None:
+    result, _ = solved
+    commands = motor_commands(ROBOT, result.tensions, result.tendon_displacements)
+    taut = ~result.slack
+    np.testing.assert_allclose(commands[taut], COMMANDS[taut], atol=1e-9)
+    # a slack tendon's command leaves it just taut: at least what was commanded
+    assert (commands[~taut] >= COMMANDS[~taut]).all()
 
 
 def test_a_slack_tendon_carries_no_tension(solved: tuple) -> None:
@@ -98,3 +107,33 @@ def test_mechanics_stiffness_fields_are_checked_and_round_trip(field: str,
     robot = Robot.from_dict(data)
     assert getattr(robot.mechanics, field) == (3.0, 3.0)
     assert Robot.from_dict(robot.to_dict()) == robot
+
+
+def test_a_tension_motion_of_a_displacement_driven_robot_writes_its_commands(
+        solved: tuple, tmp_path) -> None:
+    from cr_nlp.tasks.mechanics.trajectory import TensionTrajectoryResult
+
+    result, _ = solved
+    rows = len(COMMANDS)
+    motion = TensionTrajectoryResult(
+        robot=ROBOT, tensions=result.tensions, dt=0.1, position=result.tip_position,
+        wxyz=np.tile([1.0, 0, 0, 0], (rows, 1)), backbone=result.positions,
+        clearance=np.full(rows, np.inf), min_clearance=np.inf, max_violation=0.0,
+        success=True, reason="", tip_force=np.zeros(3), tip_moment=np.zeros(3),
+        gravity=np.array(GRAVITY), distributed_force=np.zeros(3), point_loads=[],
+        tension_rate_max=10.0, tendon_displacements=result.tendon_displacements)
+    table = np.genfromtxt(motion.save_csv(tmp_path / "motion.csv"), delimiter=",",
+                          names=True)
+    written = np.stack([table[f"command_{j + 1}_m"] for j in range(6)], axis=1)
+    taut = ~result.slack
+    np.testing.assert_allclose(written[taut], COMMANDS[taut], atol=2e-9)
+
+
+def test_cases_left_after_the_first_round_continue_where_they_were(
+        solved: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    from cr_nlp.model.cosserat import _displacement as displacement_statics
+
+    monkeypatch.setattr(displacement_statics, "_FIRST_ROUND", 1)
+    again = solve_displacement_statics(ROBOT, COMMANDS[[0, 3]], gravity=GRAVITY)
+    assert again.converged.all() and (again.iterations > 1).all()
+    np.testing.assert_allclose(again.tensions, solved[0].tensions[[0, 3]], atol=1e-9)

@@ -31,13 +31,18 @@ stages on the rod: the one-case programs (``tip_equilibrium``, ``backbone_equili
 for CasADi (``CasadiRod``, ``RodLoads``, ``flat_loads``; ``_casadi``). Driven by motor
 commands instead of tensions: ``solve_displacement_statics`` and its
 ``DisplacementStaticsResult`` (``_displacement``: the tensions that make each tendon's path
-match its command, slack tendons carrying none).
+match its command, slack tendons carrying none), its inverse ``motor_commands`` and, for
+the calibration, ``predict_marker``, ``displacement_pass`` and ``displacement_solver``.
 """
 
 from ._casadi import CasadiRod as CasadiRod
 from ._casadi import RodLoads as RodLoads
 from ._casadi import flat_loads as flat_loads
 from ._displacement import DisplacementStaticsResult as DisplacementStaticsResult
+from ._displacement import displacement_pass as displacement_pass
+from ._displacement import displacement_solver as displacement_solver
+from ._displacement import motor_commands as motor_commands
+from ._displacement import predict_marker as predict_marker
 from ._displacement import solve_displacement_statics as solve_displacement_statics
 from ._rod import CaseLoads as CaseLoads
 from ._rod import StaticsConfig as StaticsConfig

@@ -48,7 +48,7 @@ from ._statics import _case_loads, _device, _load_batch, _padded, _stable, solve
 from ._statics import _programs as _statics_programs
 
 __all__ = ["DisplacementStaticsResult", "commanded_pull", "displacement_pass",
-           "displacement_solver", "predict_marker", "solve_displacement_statics",
+           "displacement_solver", "motor_commands", "predict_marker", "solve_displacement_statics",
            "tension_scale", "tendon_stiffness_of"]
 
 DISPLACEMENT_TOLERANCE = 1e-9
@@ -299,12 +299,13 @@ def _program(robot: Robot, config: StaticsConfig, iterations: int) -> Any:
 
 
 def _solve_rows(robot: Robot, config: StaticsConfig, rows: tuple) -> tuple[np.ndarray, ...]:
-    """(y, solved) of the cases ``rows`` = (pull, k, stiffness, loads): a first round of
-    ``_FIRST_ROUND`` iterations for all, then the unfinished ones from where they were."""
+    """(y, solved, iterations) of the cases ``rows`` = (pull, k, stiffness, loads): a first
+    round of ``_FIRST_ROUND`` iterations for all, then the unfinished ones from where they
+    were."""
     batch = len(rows[0])
     size = 3 + rows[0].shape[1]
     start = (np.zeros((batch, size)), np.zeros(batch))
-    y, solved, _, _, lam = (np.asarray(a)[:batch] for a in _program(robot, config, _FIRST_ROUND)(
+    y, solved, its, _, lam = (np.array(a)[:batch] for a in _program(robot, config, _FIRST_ROUND)(
         *_device(_padded((*rows, *start), edge=True), np.float64)))
     left = np.flatnonzero(~solved)
     if left.size:
@@ -313,8 +314,8 @@ def _solve_rows(robot: Robot, config: StaticsConfig, rows: tuple) -> tuple[np.nd
 
         more = _program(robot, config, config.max_iterations + 16)(*_device(
             _padded((*pick(rows), y[left], lam[left]), edge=True), np.float64))
-        y[left], solved[left] = (np.asarray(a)[:left.size] for a in more[:2])
-    return y, solved
+        y[left], solved[left], its[left] = (np.asarray(a)[:left.size] for a in more[:3])
+    return y, solved, its
 
 
 def solve_displacement_statics(robot: Robot, displacements: Any, tip_force: Any = None,
@@ -365,12 +366,12 @@ def solve_displacement_statics(robot: Robot, displacements: Any, tip_force: Any 
     scales = _scales(lay)
     with jax.enable_x64(True):
         # padded with copies of a row: a zero k has no solution
-        y, solved = _solve_rows(robot, config, (pull, np.broadcast_to(k, pull.shape),
+        y, solved, iterations = _solve_rows(robot, config, (pull, np.broadcast_to(k, pull.shape),
                                                 np.broadcast_to(lay.stiffness,
                                                                 (batch, robot.n_segments)),
                                                 loads))
         tensions = np.maximum(0.0, y[:, 3:] * scales[1])
-        result = _verdict(robot, config, y[:, :3] * scales[0], tensions, loads)
+        result = _verdict(robot, config, y[:, :3] * scales[0], tensions, loads, iterations)
     doubtful = np.flatnonzero(~(solved & result.stable & result.converged))
     if doubtful.size:  # the tension statics' own branch check and stability test
         part = world.rows(doubtful)
@@ -387,10 +388,10 @@ def solve_displacement_statics(robot: Robot, displacements: Any, tip_force: Any 
 
 
 def _verdict(robot: Robot, config: StaticsConfig, base_moment: np.ndarray,
-             tensions: np.ndarray, loads: CaseLoads) -> StaticsResult:
+             tensions: np.ndarray, loads: CaseLoads, iterations: np.ndarray) -> StaticsResult:
     """The tension statics' result fields of the equilibria with M(0) = ``base_moment``
     (base frame, N·m): one finishing pass and the stability test (the tension statics'
-    programs), in the world frame."""
+    programs), in the world frame; ``iterations``: the Newton iterations that found them."""
     _, _, finish, _ = _statics_programs(robot, config)
     batch = len(tensions)
     out = finish(*_device(_padded((base_moment, tensions, loads)), np.float64))
@@ -404,7 +405,7 @@ def _verdict(robot: Robot, config: StaticsConfig, base_moment: np.ndarray,
         arc_length=_layout(robot, config).arc_length,
         tendon_displacements=out["tendon_displacements"].astype(float),
         converged=out["converged"].astype(bool), residual=out["residual"].astype(float),
-        iterations=np.zeros(batch, int),
+        iterations=np.asarray(iterations, int),
         base_moment=out["base_moment"].astype(float) @ base_rot.T,
         base_force=out["base_force"].astype(float) @ base_rot.T,
         stable=stable, equilibria=np.ones(batch, int), snap_load=np.full(batch, np.nan))
@@ -438,3 +439,15 @@ def predict_marker(robot: Robot, displacements: Any, gravity: Any = None,
     act = robot.actuation or Actuation.nominal(robot.n_tendons, robot.n_segments)
     marker = result.tip_position + result.tip_rotation @ np.asarray(act.tip_marker, float)
     return marker, result.converged
+
+
+def motor_commands(robot: Robot, tensions: Any, shortening: Any) -> np.ndarray:
+    """(B, n_tendons) the commanded displacements d, m, that hold tensions (B, n_tendons) N
+    on a solved rod whose tendon paths are shorter than straight by ``shortening`` (B,
+    n_tendons) m (``StaticsResult.tendon_displacements``): the pull p = s + τ/k, d = d0 +
+    p/g (the inverse of ``solve_displacement_statics``; a tendon without tension gets the
+    command that leaves it just taut, and any smaller one gives the same shape)."""
+    k = tendon_stiffness_of(robot)
+    act = robot.actuation or Actuation.nominal(robot.n_tendons, robot.n_segments)
+    pull = np.asarray(shortening, float) + np.asarray(tensions, float) / k
+    return np.asarray(act.zero_offsets) + pull / np.asarray(act.gains)

@@ -1,3 +1,5 @@
-"""Calibration of a robot's actuation model from a recording: the static fit (``calibrate``),
-the history-aware fit (``history``, play operators of ``model.history``) and the
-recording's rows (``measurements``). Units: metres, radians."""
+"""Calibration of a robot's models from a recording of motor commands and tip positions:
+the static geometric (PCC) fit (``calibrate``), the history-aware fit (``history``, play
+operators of ``model.history``), the Cosserat rod driven by the commands (``mechanics``,
+``cr-nlp calibrate --model cosserat``) and the recording's rows (``measurements``).
+Units: metres, radians, newtons."""

@@ -12,6 +12,7 @@ import numpy as np
 
 from ..._files import atomic_open
 from ...model import Robot
+from ...model.cosserat import motor_commands
 from .._result import ResultIO, Stage, Status, array, nums, read_stage, row_lists, status_of
 from .._timing import StageTiming
 from ._motion import EXACT_MODE
@@ -201,18 +202,26 @@ class TensionIKResult(ResultIO):
 
     def save_csv(self, path: str | Path) -> Path:
         """One row per target: target x, y, z (m), the tensions t1…tN (N), the reached tip
-        x, y, z (m), position error (m), success."""
+        x, y, z (m), position error (m), success; for a robot whose mechanics block has
+        ``tendon_stiffness`` also the motor commands ``command_<j>_m`` (m, the
+        displacements that make the displacement-driven rod hold these tensions)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         n = self.robot.n_tendons
+        mech = self.robot.mechanics
+        commands = (motor_commands(self.robot, self.tensions, self.tendon_displacements)
+                    if mech is not None and mech.tendon_stiffness and len(self)
+                    else np.zeros((len(self), 0)))
         with atomic_open(path, newline="") as handle:
             writer = csv.writer(handle)
             writer.writerow(["target_x", "target_y", "target_z",
                              *(f"tension_{i + 1}_N" for i in range(n)),
-                             "tip_x", "tip_y", "tip_z", "position_error", "success"])
+                             "tip_x", "tip_y", "tip_z", "position_error", "success",
+                             *(f"command_{i + 1}_m" for i in range(commands.shape[1]))])
             for i in range(len(self)):
                 writer.writerow([*(f"{v:.9f}" for v in self.target_position[i]),
                                  *(f"{v:.6f}" for v in self.tensions[i]),
                                  *(f"{v:.9f}" for v in self.position[i]),
-                                 f"{self.position_error[i]:.3e}", int(self.success[i])])
+                                 f"{self.position_error[i]:.3e}", int(self.success[i]),
+                                 *(f"{v:.9f}" for v in commands[i])])
         return path

@@ -13,6 +13,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from ...model import Robot
+from ...model.cosserat import motor_commands
 from .._result import (
     SCHEMA_VERSION,
     OneStage,
@@ -181,12 +182,21 @@ class TensionTrajectoryResult(OneStage, ResultIO):
         n = self.robot.n_tendons
         names = [*(f"tension_{i + 1}_N" for i in range(n)), "tip_x", "tip_y", "tip_z",
                  *(f"displacement_{i + 1}_m" for i in range(n))]
-        return names, np.concatenate([self.tensions, self.position,
-                                      self.tendon_displacements], axis=1)
+        values = [self.tensions, self.position, self.tendon_displacements]
+        mech = self.robot.mechanics
+        if mech is not None and mech.tendon_stiffness:
+            # a robot driven by displacements (calibrate --model cosserat): its commands
+            names += [f"command_{i + 1}_m" for i in range(n)]
+            values.append(motor_commands(self.robot, self.tensions,
+                                         self.tendon_displacements))
+        return names, np.concatenate(values, axis=1)
 
     def save_csv(self, path: str | Path) -> Path:
         """The time series for a controller: ``time_s``, the tensions (N), the solved tip
-        x, y, z (m) and the tendon displacements (m), one row per waypoint."""
+        x, y, z (m) and the tendon displacements (m), one row per waypoint; for a robot
+        whose mechanics block has ``tendon_stiffness`` also the motor commands
+        ``command_<j>_m`` (m, the actuation block's zeros and gains: the displacements
+        that make the displacement-driven rod hold these tensions)."""
         names, values = self._series()
         return write_series_csv(path, np.arange(len(self)) * self.dt, names, values)
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -206,6 +207,13 @@ def test_result_file_round_trip(solver: TensionIKSolver, tmp_path) -> None:
     np.testing.assert_array_equal(again.position[:3], result.position[:3])
     header = result.save_csv(tmp_path / "t.csv").read_text().splitlines()[0]
     assert header.split(",")[3:9] == [f"tension_{i}_N" for i in range(1, 7)]
+    # a displacement-driven robot's answers also carry its motor commands
+    driven = replace(RAO, mechanics=replace(RAO.mechanics, tendon_stiffness=(4000.0,) * 2))
+    table = np.genfromtxt(replace(result, robot=driven).save_csv(tmp_path / "c.csv"),
+                          delimiter=",", names=True)
+    written = np.stack([table[f"command_{i}_m"] for i in range(1, 7)], axis=1)[:3]
+    np.testing.assert_allclose(written, result.tendon_displacements[:3]
+                               + result.tensions[:3] / 4000.0, atol=2e-9)
 
 
 def test_cli_ik_model_cosserat(tmp_path) -> None:
