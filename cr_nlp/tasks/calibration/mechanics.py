@@ -1,15 +1,15 @@
 """Calibration of the mechanics model: fit a robot's Cosserat rod to measured commands.
 
-The model of a row: the commanded displacements d (m) pull each tendon by
-``p = g (d − d0)``; the rod takes the displacement-driven equilibrium
+The model of a row: the commanded displacements d (m) pull each tendon by ``p = g (d −
+d0)``; the rod takes the displacement-driven equilibrium
 (``model.cosserat.solve_displacement_statics``: tensions k·max(0, p − s), the rod's own
-weight under the fitted gravity), and the measured point is the tip plus a marker
-offset, seen from a fitted base pose. The fitted parameters
-(``MechanicsCalibrationConfig.priors``): the base pose in the measurement frame, the marker, zero offsets d0 and gains g per tendon, each
-segment's stiffness factor relative to the first (the unit: with commands alone only
-ratios of stiffnesses, tendon stiffnesses and weights are seen), the tendon stiffness k
-of each segment's tendons, and the gravity vector in the measurement frame (its size
-stands for the masses' scale: only m·g acts).
+weight under the fitted gravity), and the measured point is the tip plus a marker offset,
+seen from a fitted base pose. The fitted parameters
+(``MechanicsCalibrationConfig.priors``): the base pose in the measurement frame, the
+marker, zero offsets d0 and gains g per tendon, each segment's stiffness factor relative
+to the first (the unit: with commands alone only ratios of stiffnesses, tendon stiffnesses
+and weights are seen), the tendon stiffness k of each segment's tendons, and the gravity
+vector in the measurement frame (its size stands for the masses' scale: only m·g acts).
 
 The fit is scipy's bounded trust-region least squares over the tip errors of the training
 rows plus prior rows, as the geometric calibration's (``tasks.calibrate``). Every
