@@ -175,14 +175,16 @@ class Repeatability:
 
 
 @dataclass
-class CalibrationResult:
-    """The calibrated robot with its errors on the training (and validation) rows.
+class FitResult:
+    """What every calibration returns: the calibrated robot with its errors on the training
+    (and validation) rows, m.
 
     Outside ``tasks._result.ResultIO`` on purpose: a fit gives one robot file and error
     statistics, not an answer per input with a verdict; it is saved as that robot file."""
 
     robot: Robot
-    """The calibrated robot (geometry, base pose and ``actuation`` block)."""
+    """The calibrated robot (geometry, base pose, ``actuation`` and, for the rod,
+    ``mechanics`` blocks)."""
     nominal: Robot
     """The robot the fit started from."""
     train: ErrorStats
@@ -194,9 +196,6 @@ class CalibrationResult:
     repeatability: Repeatability
     """Rows of the training and validation data with the same commands and their tips'
     gaps: the floor under any model of the commands alone."""
-    zero_sensitivity: np.ndarray
-    """(training rows,) the calibrated tip's motion per unit tendon zero error, m/m
-    (``model.actuation.zero_sensitivity``)."""
     seconds: float
     evaluations: int
     status: str
@@ -210,13 +209,25 @@ class CalibrationResult:
             "nominal_train": self.nominal_train.to_dict(),
             "parameters": self.parameters,
             "repeatability": self.repeatability.to_dict(),
-            "zero_sensitivity_mm_per_mm": {
-                "median": float(np.median(self.zero_sensitivity)),
-                "p90": float(np.percentile(self.zero_sensitivity, 90))},
             "seconds": self.seconds,
             "evaluations": self.evaluations,
             "status": self.status,
         }
+
+
+@dataclass
+class CalibrationResult(FitResult):
+    """The geometric (PCC) calibration's ``FitResult``."""
+
+    zero_sensitivity: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    """(training rows,) the calibrated tip's motion per unit tendon zero error, m/m
+    (``model.actuation.zero_sensitivity``)."""
+
+    def report(self) -> dict[str, Any]:
+        """The JSON report (``cr-nlp calibrate --report``)."""
+        return {**super().report(), "zero_sensitivity_mm_per_mm": {
+            "median": float(np.median(self.zero_sensitivity)),
+            "p90": float(np.percentile(self.zero_sensitivity, 90))}}
 
 
 def tip_residuals(robot: Robot, data: Measurements) -> np.ndarray:

@@ -47,6 +47,7 @@ from ...runtime import cached, configure
 from .calibrate import (
     CalibrationConfig,
     ErrorStats,
+    FitResult,
     Prior,
     Repeatability,
     _Packing,
@@ -115,35 +116,15 @@ class MechanicsCalibrationConfig:
 
 
 @dataclass
-class MechanicsCalibrationResult:
-    """The calibrated robot (``mechanics`` and ``actuation`` blocks) and its errors."""
+class MechanicsCalibrationResult(FitResult):
+    """The Cosserat rod's ``FitResult`` (``mechanics`` and ``actuation`` blocks)."""
 
-    robot: Robot
-    nominal: Robot
-    train: ErrorStats
-    validation: ErrorStats | None
-    nominal_train: ErrorStats
-    """Errors of the starting model on the training rows."""
-    parameters: dict[str, Any]
-    repeatability: Repeatability
-    seconds: float
-    evaluations: int
-    status: str
-    unconverged: int
+    unconverged: int = 0
     """Rows (training and validation) whose equilibrium did not converge."""
 
     def report(self) -> dict[str, Any]:
         """The JSON report (``cr-nlp calibrate --model cosserat --report``)."""
-        return {
-            "robot": self.robot.name, "model": "cosserat",
-            "train": self.train.to_dict(),
-            "validation": self.validation.to_dict() if self.validation else None,
-            "nominal_train": self.nominal_train.to_dict(),
-            "parameters": self.parameters,
-            "repeatability": self.repeatability.to_dict(),
-            "seconds": self.seconds, "evaluations": self.evaluations,
-            "status": self.status, "unconverged_rows": self.unconverged,
-        }
+        return {**super().report(), "model": "cosserat", "unconverged_rows": self.unconverged}
 
 
 def _rotvec_matrix(w: jax.Array) -> jax.Array:
