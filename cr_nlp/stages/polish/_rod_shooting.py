@@ -53,10 +53,13 @@ class ShootingRows:
         self.scale = np.asarray(state_scale, dtype=float)
         self.tension_scale = float(tension_scale)
         functions, self._names = [], {}
-        for pattern, step in sorted(rod._functions.items()):
-            tag = "".join("1" if a else "0" for a in pattern)
+        # One function per distinct step: its tendons and its segment's stiffness factor
+        # (the rod's key of a step); the tag names the tendons and the key's place.
+        for place, (key, step) in enumerate(sorted(rod._functions.items())):
+            tendons, _ = key
+            tag = "".join("1" if a else "0" for a in tendons) + f"_{place}"
             functions += self._derivatives(step, tag)
-            self._names[pattern] = tag
+            self._names[key] = tag
         done, self.interpreted = compiled(functions, compile, flags=FLAGS)
         self._functions = {f.name(): f for f in done}
 
@@ -76,7 +79,7 @@ class ShootingRows:
                             [hessian])]
 
     def _call(self, k: int, kind: str, *args: Any) -> Any:
-        tag = self._names[tuple(self.rod.grid.active[k].tolist())]
+        tag = self._names[self.rod._key(k)]
         return self._functions[f"rod_step_{tag}{kind}"](*args)
 
     def step_inputs(self, loads: RodLoads) -> list[Any]:
