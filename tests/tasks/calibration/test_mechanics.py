@@ -16,13 +16,13 @@ from cr_nlp.cli.main import main
 from cr_nlp.model import Robot, load_robot
 from cr_nlp.model.actuation import Actuation
 from cr_nlp.model.cosserat import predict_marker
-from cr_nlp.tasks.calibrate import Prior
+from cr_nlp.tasks.calibration.calibrate import Prior
+from cr_nlp.tasks.calibration.measurements import Measurements
 from cr_nlp.tasks.calibration.mechanics import (
     MechanicsCalibrationConfig,
     _default_priors,
     calibrate_mechanics,
 )
-from cr_nlp.tasks.measurements import Measurements
 
 RAO = load_robot("tdcr2_rao2021")
 MARKER = (0.0, 0.0, 0.01)
