@@ -80,6 +80,7 @@ from ._batch_kinds import KINDS as KINDS
 from ._batch_kinds import MODELS as MODELS
 from ._batch_kinds import JobSpec as JobSpec
 from ._batch_kinds import adapter
+from ._signals import signals_held
 from .runtime import register
 
 # ================================================================ the job
@@ -395,13 +396,15 @@ def _run_chunks(
                 run["failed"].append(i)
             else:
                 record.update(start=start, stop=stop, run=run_id)
-                write_chunk(chunk_file(out, i), record)
+                with signals_held():  # a stop waits for the file (a half-written zip hides it)
+                    write_chunk(chunk_file(out, i), record)
                 run["solved"].append(i)
                 done += 1
             future.release()
             run["seconds"] = time.perf_counter() - t0
             # The run log only (resume reads the chunk files): atomic, not flushed to disk.
-            write_json(out / MANIFEST, manifest, sync=False)
+            with signals_held():
+                write_json(out / MANIFEST, manifest, sync=False)
             bar.update(stop - start)
             bar.set_postfix_str(f"chunks {done}/{len(missing)}")
     except KeyboardInterrupt:  # a stop (Ctrl-C, SIGTERM): the chunk files stay for resume

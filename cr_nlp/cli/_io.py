@@ -4,17 +4,15 @@ of file-or-bundled-name arguments, the stop on SIGINT and SIGTERM. Imports no su
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
-import signal
-import threading
-from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from .._files import InputFileError, atomic_open, read_json_or
 from .._resources import resolve_file
+from .._signals import Stopped as Stopped
+from .._signals import stop_on_signals as stop_on_signals
 
 if TYPE_CHECKING:
     import numpy as np
@@ -26,41 +24,6 @@ if TYPE_CHECKING:
 
 class UsageError(Exception):
     """Bad command-line input: printed as one line, exit status 2."""
-
-
-class Stopped(KeyboardInterrupt):
-    """SIGINT or SIGTERM arrived while a command ran under ``stop_on_signals``. A
-    ``KeyboardInterrupt``, so that every ``finally`` and ``except KeyboardInterrupt`` on
-    the way out runs (the viewer stops its server, a batch closes its cluster)."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signal.Signals(signum).name)
-        self.signum = signum
-        """The signal's number: the command exits with 128 + signum when it fails."""
-        self.name = signal.Signals(signum).name
-        """"SIGINT" or "SIGTERM"."""
-
-
-@contextlib.contextmanager
-def stop_on_signals() -> Iterator[None]:
-    """Raise ``Stopped`` in the main thread on SIGINT and SIGTERM while the block runs,
-    whatever this process inherited: a shell starts a background job with SIGINT
-    ignored (Python then leaves it ignored), and SIGTERM's default ends the process
-    without running any cleanup. The previous handlers are restored afterwards; outside
-    the main thread (where Python cannot set handlers) this does nothing."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def stop(signum: int, frame: Any) -> None:
-        raise Stopped(signum)
-
-    previous = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, signal.SIG_DFL if handler is None else handler)
 
 
 def resolve(value: str, kind: str, option: str) -> Path:
