@@ -238,8 +238,8 @@ def bending_from_pull(pull: jax.Array, c: jax.Array, b: jax.Array, kappa: jax.Ar
                                solve, tangent_solve)
 
 
-def _rotation(params: dict[str, Any]) -> jax.Array:
-    """Base rotation: the stored matrix times exp(hat(base_rotvec)) where a fit adds the
+def base_rotation(params: dict[str, Any]) -> jax.Array:
+    """Base rotation (3×3): the stored matrix times exp(hat(base_rotvec)) where a fit adds the
     rotation vector ``base_rotvec`` (rad); the matrix alone otherwise."""
     r = params["base_rotation"]
     if "base_rotvec" not in params:
@@ -307,7 +307,7 @@ def _marker_at(robot: Robot, params: dict[str, Any], u: jax.Array,
                     actuation=None)
     pos, rot = tip_pose_z(local, z)
     marker = pos + jnp.einsum("...ij,j->...i", rot, params["marker"])
-    return marker @ _rotation(params).T + params["base_position"]
+    return marker @ base_rotation(params).T + params["base_position"]
 
 
 @partial(cached_jit, static_argnums=(0, 3), name="the tip prediction")

@@ -43,6 +43,23 @@ _TOP_KEYS = {"poses", "description", "name"}
 _POSE_KEYS = {"position", "wxyz"}
 
 
+def _read_top(path: str | Path, key: str, allowed: set[str], shape: str) -> dict[str, Any]:
+    """A JSON file's object holding the list ``key`` and no keys outside ``allowed``
+    (``shape``: the form the error shows).
+
+    Raises:
+        InputFileError: naming the file (and the unknown field).
+    """
+    data = read_json_or(path, lambda reason: InputFileError(f"{path}: {reason}"))
+    if not isinstance(data, dict) or not isinstance(data.get(key), list):
+        raise InputFileError(f"{path} must hold {shape}")
+    unknown = sorted(set(data) - allowed)
+    if unknown:
+        raise InputFileError(f"{path}: field {unknown[0]!r}: unknown key "
+                             f"(allowed: {', '.join(sorted(allowed))})")
+    return data
+
+
 def read_targets(path: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Target poses from a file ``{"poses": [{"position": [x, y, z], "wxyz": [w, x, y, z]},
     ...]}`` (positions in metres, unit quaternions; ``wxyz`` defaults to the identity).
@@ -54,14 +71,8 @@ def read_targets(path: str | Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     Raises:
         InputFileError: the file is missing, not JSON, or not of that shape.
     """
-    data = read_json_or(path, lambda reason: InputFileError(f"{path}: {reason}"))
-    if not isinstance(data, dict) or not isinstance(data.get("poses"), list):
-        raise InputFileError(f"{path} must hold {{\"poses\": [{{\"position\": [x, y, z], "
-                         f"\"wxyz\": [w, x, y, z]}}, ...]}}")
-    unknown = sorted(set(data) - _TOP_KEYS)
-    if unknown:
-        raise InputFileError(f"{path}: field {unknown[0]!r}: unknown key "
-                         f"(allowed: {', '.join(sorted(_TOP_KEYS))})")
+    data = _read_top(path, "poses", _TOP_KEYS,
+                     '{"poses": [{"position": [x, y, z], "wxyz": [w, x, y, z]}, ...]}')
     poses = data["poses"]
     positions = np.full((len(poses), 3), np.nan)
     wxyz = np.full((len(poses), 4), np.nan)
@@ -98,14 +109,8 @@ def read_problems(path: str | Path) -> tuple[list[Any], list[Any], int | None, f
             unknown key, or a horizon (an integer 2…``MAX_HORIZON``) or dt (seconds,
             positive and finite) out of range.
     """
-    data = read_json_or(path, lambda reason: InputFileError(f"{path}: {reason}"))
-    if not isinstance(data, dict) or not isinstance(data.get("problems"), list):
-        raise InputFileError(f'{path} must hold {{"problems": [{{"start": [...], '
-                         f'"goal": [...]}}, ...]}}')
-    unknown = sorted(set(data) - _PROBLEMS_KEYS)
-    if unknown:
-        raise InputFileError(f"{path}: field {unknown[0]!r}: unknown key (allowed: "
-                         f"{', '.join(sorted(_PROBLEMS_KEYS))})")
+    data = _read_top(path, "problems", _PROBLEMS_KEYS,
+                     '{"problems": [{"start": [...], "goal": [...]}, ...]}')
     horizon, dt = data.get("horizon"), data.get("dt")
     if horizon is not None and (isinstance(horizon, bool) or not isinstance(horizon, int)
                                 or not 2 <= horizon <= MAX_HORIZON):

@@ -30,9 +30,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from ...model import Robot
-from ...model.actuation import Actuation, actuation_of
+from ...model.actuation import Actuation, actuation_of, base_rotation
 from ...model.cosserat import (
     StaticsConfig,
     case_loads,
@@ -127,18 +128,6 @@ class MechanicsCalibrationResult(FitResult):
         return {**super().report(), "model": "cosserat", "unconverged_rows": self.unconverged}
 
 
-def _rotvec_matrix(w: jax.Array) -> jax.Array:
-    """exp(hat(w)) for a rotation vector w (rad), smooth at 0."""
-    angle2 = jnp.sum(w * w)
-    small = angle2 < 1e-12
-    safe = jnp.where(small, 1.0, angle2)
-    angle = jnp.sqrt(safe)
-    a = jnp.where(small, 1.0 - angle2 / 6.0, jnp.sin(angle) / angle)
-    b = jnp.where(small, 0.5 - angle2 / 24.0, (1.0 - jnp.cos(angle)) / safe)
-    k = jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]], w.dtype)
-    return jnp.eye(3, dtype=w.dtype) + a * k + b * (k @ k)
-
-
 @cached(maxsize=8)
 def _programs(robot: Robot, config: StaticsConfig) -> tuple[Any, Any]:
     """(solve, sensitivity), jitted and vmapped over rows, for rows' inputs q = (pull (T)
@@ -199,7 +188,7 @@ class _Model:
         rows = pull.shape[0]
         log_k = jnp.broadcast_to(params["log_tendon_stiffness"][self.anchor], (rows, self.t))
         stiff = params["log_stiffness"] - params["log_stiffness"][0]
-        rotation = params["base_rotation"] @ _rotvec_matrix(params["base_rotvec"])
+        rotation = base_rotation(params)
         gravity_base = rotation.T @ params["gravity"]
         return jnp.concatenate([pull, log_k, jnp.broadcast_to(stiff, (rows, self.n)),
                                 jnp.broadcast_to(gravity_base, (rows, 3))], axis=1)
@@ -207,7 +196,7 @@ class _Model:
     @staticmethod
     def marker(params: dict[str, jax.Array], tip: jax.Array) -> jax.Array:
         """(N, 3) measured points of tip vectors (N, 12) (position, rotation row-major)."""
-        rotation = params["base_rotation"] @ _rotvec_matrix(params["base_rotvec"])
+        rotation = base_rotation(params)
         local = tip[:, :3] + tip[:, 3:].reshape(-1, 3, 3) @ params["marker"]
         return local @ rotation.T + params["base_position"]
 
@@ -337,8 +326,7 @@ def _start(robot: Robot, train: Measurements, config: MechanicsCalibrationConfig
 def _robot_with(robot: Robot, params: dict[str, np.ndarray],
                 error: tuple[float | None, float | None] = (None, None)) -> Robot:
     """``robot`` carrying the fitted parameters in its mechanics and actuation blocks."""
-    rotation = params["base_rotation"] @ np.asarray(_rotvec_matrix(
-        jnp.asarray(params["base_rotvec"])))
+    rotation = params["base_rotation"] @ Rotation.from_rotvec(params["base_rotvec"]).as_matrix()
     wxyz = wxyz_from_matrix(rotation)
     stiff = np.exp(params["log_stiffness"] - params["log_stiffness"][0])
     mech = replace(robot.mechanics, segment_stiffness=tuple(float(v) for v in stiff),
