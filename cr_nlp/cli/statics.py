@@ -1,4 +1,5 @@
-"""``cr-nlp statics``: Cosserat-rod equilibrium shape for tendon tensions and loads."""
+"""``cr-nlp statics``: Cosserat-rod equilibrium shape for tendon tensions (or commanded
+displacements) and loads."""
 
 from __future__ import annotations
 
@@ -25,6 +26,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--robot", required=True, help="robot JSON file or bundled name "
                                                   "(tdcr2_rao2021)")
     p.add_argument("--tensions", help="t1,...,tN tendon tensions in N (robot file's order)")
+    p.add_argument("--displacements",
+                   help="d1,...,dN commanded tendon displacements in m (robot file's order, "
+                        "positive = pulled; its actuation gains and zero offsets apply): "
+                        "the tensions are found from the tendons' stiffness (the mechanics "
+                        "block's tendon_stiffness, e.g. from calibrate --model cosserat), a "
+                        "slack tendon carries none")
     add_load_options(p, note="", gravity_note=" (default none; with --cases: for the cases "
                                               "without their own)")
     p.add_argument("--cases", help='JSON file {"cases": [{"tensions": [...], "tip_force": '
@@ -116,6 +123,8 @@ def _record(result: Any, i: int, every: bool) -> dict[str, Any]:
         "equilibria": int(result.equilibria[i]),
         "snap_load": None if math.isnan(snap) else snap,
         "tendon_displacements": result.tendon_displacements[i].tolist(),
+        **({"tensions": result.tensions[i].tolist(), "slack": result.slack[i].tolist()}
+           if hasattr(result, "slack") else {}),
         "backbone": result.positions[i].tolist(),
     }
     if every:
@@ -128,12 +137,16 @@ def _record(result: Any, i: int, every: bool) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     """Solve and print the tip pose and convergence (text), or JSON with ``--json`` or
     ``--cases``."""
-    from ..model.cosserat import solve_statics
+    from ..model.cosserat import solve_displacement_statics, solve_statics
 
     robot = load_robot_arg(args.robot)
     needs_mechanics(robot, "--robot")
-    if (args.cases is None) == (args.tensions is None):
-        raise UsageError("give either --tensions or --cases")
+    given = [o for o, v in (("--tensions", args.tensions), ("--displacements",
+                                                              args.displacements),
+                             ("--cases", args.cases)) if v is not None]
+    if len(given) != 1:
+        raise UsageError("give one of --tensions, --displacements or --cases"
+                         + (f", not {' and '.join(given)}" if given else ""))
     length = sum(seg.length_min for seg in robot.segments)
     gravity = parse_vector3(args.gravity, "--gravity") or [0.0, 0.0, 0.0]
     if args.cases is not None:
@@ -142,23 +155,31 @@ def run(args: argparse.Namespace) -> int:
                              "--tensions; in a --cases file give them per case")
         cases = _cases_from_file(args.cases, robot.n_tendons, length)
     else:
-        tensions = parse_numbers(args.tensions, "--tensions")
+        option = "--tensions" if args.tensions is not None else "--displacements"
+        tensions = parse_numbers(args.tensions or args.displacements, option)
         if len(tensions) != robot.n_tendons:
-            raise UsageError(f"--tensions: {robot.name} has {robot.n_tendons} tendons, got "
+            raise UsageError(f"{option}: {robot.name} has {robot.n_tendons} tendons, got "
                              f"{len(tensions)} numbers")
         loads = loads_from_args(args, length)
         gravity = loads["gravity"] or gravity
         cases = StaticsCases([tensions], [loads["tip_force"] or [0.0, 0.0, 0.0]],
                              [loads["tip_moment"] or [0.0, 0.0, 0.0]], [None],
                              [loads["distributed_force"] or [0.0] * 3], [loads["point_loads"]])
+    loads = {"tip_force": cases.tip_force, "tip_moment": cases.tip_moment,
+             "gravity": [gravity if g is None else g for g in cases.gravity],
+             "distributed_force": cases.distributed_force, "point_loads": cases.point_loads}
     try:
-        result = solve_statics(
-            robot, cases.tensions, cases.tip_force, cases.tip_moment,
-            [gravity if g is None else g for g in cases.gravity],
-            distributed_force=cases.distributed_force, point_loads=cases.point_loads,
-            all_equilibria=args.all_equilibria)
+        if args.displacements is not None:
+            if args.all_equilibria:
+                raise UsageError("--all-equilibria goes with --tensions (the displacement "
+                                 "statics reports the equilibrium it reaches)")
+            result = solve_displacement_statics(robot, cases.tensions, **loads)
+        else:
+            result = solve_statics(robot, cases.tensions, **loads,
+                                   all_equilibria=args.all_equilibria)
     except ValueError as exc:
-        raise UsageError(str(exc)) from None
+        raise UsageError(f"{robot.name}: {exc}" if "tendon_stiffness" in str(exc)
+                         else str(exc)) from None
     records = [_record(result, i, args.all_equilibria) for i in range(len(cases.tensions))]
     if args.cases is not None:
         write_json(records, None)
@@ -176,6 +197,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"stable         {rec['stable']} ({rec['equilibria']} equilibria found{snap})")
     disp = ", ".join(f"{v:.9f}" for v in rec["tendon_displacements"])
     print(f"displacements  [{disp}] m")
+    if "tensions" in rec:
+        tensions = ", ".join(f"{v:.6f}" for v in rec["tensions"])
+        slack = [k + 1 for k, s in enumerate(rec["slack"]) if s]
+        print(f"tensions       [{tensions}] N"
+              + (f" (slack: tendon {', '.join(map(str, slack))})" if slack else ""))
     for k, e in enumerate(rec.get("all_equilibria", [])):
         print("equilibrium {}  tip [{:.6f}, {:.6f}, {:.6f}] m, {}{}".format(
             k + 1, *e["position"], "stable" if e["stable"] else "unstable",

@@ -51,7 +51,11 @@ def test_statics_cases_file_keeps_the_input_order(tmp_path: Path,
     (["--tensions", "1,2"], "6 tendons"),
     (["--tensions", "1,0,0,0,0,0", "--tip-force", "1,2"], "--tip-force: expected 3"),
     (["--tensions=-1,0,0,0,0,0"], "≥ 0 N"),
-    ([], "either --tensions or --cases"),
+    ([], "give one of --tensions, --displacements or --cases"),
+    (["--tensions", "0,0,0,0,0,0", "--displacements", "0,0,0,0,0,0"],
+     "not --tensions and --displacements"),
+    (["--displacements", "0.001,0,0,0,0,0"], "tendon_stiffness"),  # the robot has none
+    (["--displacements", "0.001,0"], "--displacements: tdcr2_rao2021 has 6 tendons"),
 ])
 def test_statics_bad_input_is_a_usage_error(args: list[str], message: str,
                                             capsys: pytest.CaptureFixture[str]) -> None:
@@ -137,3 +141,26 @@ def test_statics_point_load_option_is_the_tip_force(tmp_path: Path,
     loads.write_text(json.dumps({"tip_force": [0.02, 0, 0]}))
     assert main([*base, "--loads", str(loads)]) == 0
     assert json.loads(capsys.readouterr().out)["position"] == tip["position"]
+
+
+def test_statics_displacements_finds_the_tensions_tension_statics_agrees_with(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--displacements`` on a robot file whose mechanics block has tendon stiffnesses:
+    the tensions printed, fed to the tension statics, give the same backbone; the
+    released tendons are slack and carry nothing."""
+    data = load_robot("tdcr2_rao2021").to_dict()
+    data["mechanics"]["tendon_stiffness"] = [4000.0, 8000.0]          # N/m per segment
+    path = tmp_path / "robot.json"
+    path.write_text(json.dumps(data))
+    command = [0.003, -0.002, -0.002, 0.0, 0.0015, 0.0]                # m
+    assert main(["statics", "--robot", str(path), "--displacements",
+                 ",".join(map(str, command)), "--gravity", "0,0,-9.81", "--json"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert record["converged"] and record["slack"][1] and record["slack"][2]
+    assert record["tensions"][1] == 0.0 == record["tensions"][2]
+    assert record["tensions"][0] > 0.1
+    check = solve_statics(load_robot(str(path)), record["tensions"], gravity=[0, 0, -9.81])
+    assert np.abs(check.positions[0] - np.array(record["backbone"])).max() <= 1e-6
+    assert main(["statics", "--robot", str(path), "--displacements",
+                 ",".join(map(str, command)), "--gravity", "0,0,-9.81"]) == 0
+    assert "(slack: tendon 2, 3)" in capsys.readouterr().out
