@@ -118,3 +118,22 @@ def test_calibrate_cosserat_then_predict_end_to_end(recordings: tuple, tmp_path:
                  str(tmp_path / "train.csv"), "--units", "mm", "--model", "cosserat",
                  "--history", "auto", "--out", str(tmp_path / "x.json")]) == 2
     assert "--history belong to the geometric model" in capsys.readouterr().err
+
+
+def test_the_bundled_cosserat_fit_predicts_the_held_out_rows_at_its_stated_error() -> None:
+    """``ftdcr_v6_cosserat`` (``calibrate --model cosserat`` on the bundled training rows):
+    a fresh prediction of the 274 validation rows it never saw gives the error its file
+    states, and beats the uncalibrated geometric model on them."""
+    from cr_nlp._resources import resolve_data_file
+    from cr_nlp.model.actuation import predict_tip
+    from cr_nlp.tasks.readers import read_measurements
+
+    robot = load_robot("ftdcr_v6_cosserat")
+    val = read_measurements(resolve_data_file("ftdcr_v6_val"), robot.n_tendons, units="mm")
+    marker, converged = predict_marker(robot, val.commands)
+    assert converged.all()
+    error = np.linalg.norm(marker - val.tip, axis=1)
+    assert abs(error.mean() - robot.actuation.model_error_mean) < 2e-4   # m
+    assert abs(np.percentile(error, 95) - robot.actuation.model_error_p95) < 5e-4
+    nominal = np.linalg.norm(predict_tip(load_robot("ftdcr_v6"), val.commands) - val.tip, axis=1)
+    assert error.mean() < 0.5 * nominal.mean()
