@@ -1,5 +1,5 @@
-"""Test-wide settings: a persistent JAX compilation cache and the ``float64`` fixture;
-helpers shared by the world tests.
+"""Test-wide settings: the persistent JAX compilation cache (cr_nlp's own) and the
+``float64`` fixture; helpers shared by the world tests.
 
 The tests run in a user's numeric configuration: ``import cr_nlp`` leaves JAX's x64 off,
 so JAX arrays default to float32 and the batched stages run their float32 paths. A test
@@ -21,7 +21,7 @@ import jax
 import numpy as np
 import pytest
 
-from cr_nlp.runtime import use_host_devices
+from cr_nlp.runtime import enable_compilation_cache, use_host_devices
 
 if TYPE_CHECKING:  # the world and model modules are imported lazily, after the settings
     from cr_nlp.model import Robot
@@ -31,9 +31,10 @@ ROOT = Path(__file__).resolve().parent.parent
 MODELS = ROOT / "models"
 
 use_host_devices()  # the solvers' sharded path runs in the tests as it does in the CLI
-jax.config.update("jax_compilation_cache_dir",
-                  os.environ.get("CR_NLP_JAX_CACHE", str(ROOT / ".jax_cache")))
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+# The cache the CLI and every cr_nlp process use ($CR_NLP_JAX_CACHE, else the cr_nlp cache
+# folder's jax/), every program in it: the commands the tests start, the notebooks'
+# kernels and the other worker load what one process compiled.
+enable_compilation_cache()
 SESSION_X64 = bool(jax.config.jax_enable_x64)  # off, unless $JAX_ENABLE_X64 asks for it
 
 
