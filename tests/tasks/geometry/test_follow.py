@@ -362,9 +362,11 @@ def test_far_chains_take_the_same_jacobians_without_body_points(centre, near: bo
     blocks_whole = jax.jit(partial(chain_jacobians, whole))(z, params, shared)
     for (k, r, j), (k_whole, r_whole, j_whole) in zip(blocks, blocks_whole, strict=True):
         assert k == k_whole
-        # equal up to float32 rounding (a few units in the last place of the larger rows)
+        # Equal up to float32 rounding: a few units in the last place of the residuals; the
+        # Jacobians (entries up to ~20, sums of tens of float32 products) to 1e-5. A row
+        # missing or wrong differs by O(1).
         np.testing.assert_allclose(np.asarray(r), np.asarray(r_whole), rtol=1e-6, atol=1e-7)
-        np.testing.assert_allclose(np.asarray(j), np.asarray(j_whole), rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(j), np.asarray(j_whole), rtol=1e-5, atol=1e-5)
 
 
 @pytest.mark.usefixtures("float64")  # closed-form Jacobians against autodiff at 1e-12
