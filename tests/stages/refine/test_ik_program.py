@@ -55,12 +55,21 @@ def test_fused_search_finds_both_roots_and_leaves_padding_alone() -> None:
 
 def test_fused_search_answer_does_not_depend_on_the_block_size() -> None:
     """Compaction into blocks is bookkeeping: one row per block, a few, or one block for
-    the whole batch give the same refined beam."""
-    _, _, valid, (z_ref, c_ref, _, _) = _toy_search(block=1 << 20)
+    the whole batch give the same refined beam (as a set: the two roots of a target cost
+    the same, so their order in the beam is a tie that rounding may break either way)."""
+
+    def beams(block: int) -> tuple[np.ndarray, np.ndarray]:
+        _, _, valid, (z, cost, _, _) = _toy_search(block=block)
+        order = np.argsort(z[valid, :, 0], axis=1)
+        return (np.take_along_axis(z[valid], order[..., None], axis=1),
+                np.take_along_axis(cost[valid], order, axis=1))
+
+    z_ref, c_ref = beams(1 << 20)
     for block in (1, 3, 16):
-        _, _, _, (z, cost, _, _) = _toy_search(block=block)
-        np.testing.assert_allclose(z[valid], z_ref[valid], atol=1e-9)
-        np.testing.assert_allclose(cost[valid], c_ref[valid], atol=1e-16)
+        z, cost = beams(block)
+        np.testing.assert_allclose(z, z_ref, atol=1e-9)
+        # converged costs are float32 round-off of squared residuals below 1e-7: ≤ 1e-13
+        np.testing.assert_allclose(cost, c_ref, atol=1e-13)
 
 
 @pytest.mark.usefixtures("float64")  # the toy roots to 1e-8, costs below 1e-16
