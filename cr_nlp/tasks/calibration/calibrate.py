@@ -372,9 +372,9 @@ def calibrate(robot: Robot, train: Measurements, validation: Measurements | None
 
 
 def _rotation_of(params: dict[str, Any]) -> jax.Array:
-    from ...model.actuation import _rotation
+    from ...model.actuation import base_rotation
 
-    return _rotation({k: jnp.asarray(v) for k, v in params.items()})
+    return base_rotation({k: jnp.asarray(v) for k, v in params.items()})
 
 
 def _best_yaw(nominal: dict[str, np.ndarray], tips: Any, measured: jax.Array,

@@ -326,7 +326,8 @@ def _start(robot: Robot, train: Measurements, config: MechanicsCalibrationConfig
 def _robot_with(robot: Robot, params: dict[str, np.ndarray],
                 error: tuple[float | None, float | None] = (None, None)) -> Robot:
     """``robot`` carrying the fitted parameters in its mechanics and actuation blocks."""
-    rotation = params["base_rotation"] @ Rotation.from_rotvec(params["base_rotvec"]).as_matrix()
+    turn = Rotation.from_rotvec(np.array(params["base_rotvec"], float)).as_matrix()
+    rotation = params["base_rotation"] @ turn
     wxyz = wxyz_from_matrix(rotation)
     stiff = np.exp(params["log_stiffness"] - params["log_stiffness"][0])
     mech = replace(robot.mechanics, segment_stiffness=tuple(float(v) for v in stiff),
