@@ -21,12 +21,33 @@ from ._io import (
 from ._loads import add_load_options, loads_from_args, needs_mechanics
 
 
-def add_options(p: argparse.ArgumentParser) -> None:
-    """The options ``cr-nlp ik`` and ``follow`` take for ``--model cosserat``."""
+def add_options(p: argparse.ArgumentParser, pool: bool = False) -> None:
+    """The options ``cr-nlp ik`` and ``follow`` take for ``--model cosserat`` (``pool``:
+    also ``--pool-size``, for the IK commands)."""
     p.add_argument("--orientation", action="store_true",
                    help="--model cosserat: also reach the targets' wxyz (robots with the "
                         "freedom for it); default: positions only")
+    if pool:
+        p.add_argument("--pool-size", type=int,
+                       help="--model cosserat: random tension sets whose tips seed the "
+                            "search (default: TensionIKConfig.pool_size): one batch of forward "
+                            "statics per robot and load case, kept in the cache folder; a "
+                            "smaller pool starts faster under new loads and seeds fewer far "
+                            "targets")
     add_load_options(p)
+
+
+def pool_options(args: argparse.Namespace) -> dict[str, int]:
+    """``TensionIKConfig`` keywords of ``--pool-size`` (none: the config's default).
+
+    Raises:
+        UsageError: a pool of fewer than 16 tension sets.
+    """
+    if args.pool_size is None:
+        return {}
+    if args.pool_size < 16:
+        raise UsageError(f"--pool-size: must be at least 16, got {args.pool_size}")
+    return {"pool_size": args.pool_size}
 
 
 def run(args: argparse.Namespace, robot: object) -> int:
@@ -41,7 +62,7 @@ def run(args: argparse.Namespace, robot: object) -> int:
         positions, wxyz, problems = read_targets(resolve(args.targets, "targets", "--targets"))
     except ValueError as exc:
         raise UsageError(f"--targets: {exc}") from None
-    config = TensionIKConfig(seed=args.seed)
+    config = TensionIKConfig(seed=args.seed, **pool_options(args))
     config = replace(config, safety_margin=config.safety_margin
                      + model_margin(robot, args.model_margin))
     solver = TensionIKSolver(robot, load_scene_arg(args.scene), config)

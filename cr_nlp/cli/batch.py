@@ -52,7 +52,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     ik.add_argument("--scene", help="scene JSON file or bundled name (obstacles)")
     _model_option(ik, "tendon tensions on the Cosserat-rod model (results kind tension_ik)")
-    _tension_ik.add_options(ik)
+    _tension_ik.add_options(ik, pool=True)
     _common(ik)
 
     plan = kinds.add_parser(
@@ -246,7 +246,8 @@ def _tension_job(args: argparse.Namespace, robot: object) -> tuple[tuple, dict]:
 
         positions, wxyz, problems = _targets(args)
         return (positions, wxyz if args.orientation else None), {
-            **options, "config": TensionIKConfig(seed=args.seed), "problems": problems,
+            **options, "config": TensionIKConfig(seed=args.seed, **_tension_ik.pool_options(args)),
+            "problems": problems,
             "time_limit": time_limit_arg(args)}
     from ..tasks.mechanics.trajectory import TensionTrajectoryConfig
     from ..tasks.readers import read_tension_problems

@@ -40,7 +40,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="pcc (default): configurations of the constant-curvature model; "
                         "cosserat: tendon tensions on the Cosserat-rod model (robot files "
                         "with a mechanics block), written to --out and --csv")
-    tension_ik.add_options(p)
+    tension_ik.add_options(p, pool=True)
     add_model_margin_option(p)
     p.set_defaults(run=run)
 

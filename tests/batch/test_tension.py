@@ -157,7 +157,9 @@ def test_cli_batch_ik_cosserat_with_the_load_options(client, positions, tmp_path
     argv = ["batch", "ik", "--model", "cosserat", "--robot", "tdcr2_rao2021", "--targets",
             str(targets), "--gravity", "0,0,-9.81", "--tip-force", "0,0,-0.049", "--out",
             str(out), "--scheduler", client.scheduler.address, "--chunk", "1",
-            "--no-progress", "--exact", "--time-limit", "5"]
+            "--no-progress", "--exact", "--time-limit", "5",
+            # the module's pool (built for the job fixture), not 16 384 more forward solves
+            "--pool-size", str(IK_CONFIG.pool_size)]
     assert main(argv) == 0
     data = json.loads((out / RESULTS).read_text())
     assert data["kind"] == "tension_ik" and all(data["success"])
@@ -176,6 +178,7 @@ def test_cli_batch_ik_cosserat_with_the_load_options(client, positions, tmp_path
     ("plan", "tdcr2_rao2021", ["--time-limit", "5"],
      "--time-limit bounds the exact stage (Ipopt): give it with --exact"),
     ("ik", "tdcr2_rao2021", ["--gravity", "0,-9.81"], "--gravity: expected 3 numbers"),
+    ("ik", "tdcr2_rao2021", ["--pool-size", "8"], "--pool-size: must be at least 16"),
 ])
 def test_cli_bad_cosserat_input_is_named(kind, robot, extra, words, tmp_path, capsys) -> None:
     from cr_nlp.cli.main import main

@@ -81,11 +81,14 @@ def test_statics_cases_with_loads_anywhere(tmp_path: Path,
     assert main(["statics", "--robot", "tdcr2_rao2021", "--cases", str(path)]) == 0
     records = json.loads(capsys.readouterr().out)
     robot = load_robot("tdcr2_rao2021")
-    expected = [solve_statics(robot, [1.0, 0, 0, 0, 0.5, 0], gravity=[0, 0, -9.81]),
-                solve_statics(robot, np.zeros(6), point_loads=point),
-                solve_statics(robot, np.zeros(6), distributed_force=[0.05, 0, 0])]
-    for record, result in zip(records, expected, strict=True):
-        np.testing.assert_allclose(record["position"], result.tip_position[0], atol=1e-12)
+    # The library on the same cases, given as its own arguments (one batch, as the command
+    # solves them; a batch equals its cases one by one: tests/model/test_cosserat.py).
+    expected = solve_statics(robot, [c["tensions"] for c in cases],
+                             gravity=[[0, 0, -9.81], [0, 0, 0], [0, 0, 0]],
+                             point_loads=[[], point, []],
+                             distributed_force=[[0, 0, 0], [0, 0, 0], [0.05, 0, 0]])
+    for record, tip in zip(records, expected.tip_position, strict=True):
+        np.testing.assert_allclose(record["position"], tip, atol=1e-12)
         assert record["stable"] is True and record["equilibria"] == 1
         assert record["snap_load"] is None
     assert records[2]["position"][0] > 1e-3  # the force per metre bends it towards +x

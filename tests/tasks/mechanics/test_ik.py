@@ -224,7 +224,8 @@ def test_cli_ik_model_cosserat(tmp_path) -> None:
     out, table = tmp_path / "R.json", tmp_path / "t.csv"
     run = subprocess.run([sys.executable, "-m", "cr_nlp.cli", "ik", "--model", "cosserat",
                           "--robot", "tdcr2_rao2021", "--targets", str(targets),
-                          "--out", str(out), "--csv", str(table)],
+                          "--out", str(out), "--csv", str(table),
+                          "--pool-size", "4096"],  # the solver fixture's pool, on disk
                          capture_output=True, text=True, timeout=900)
     assert run.returncode == 0, run.stderr
     assert "Cosserat" in run.stderr
