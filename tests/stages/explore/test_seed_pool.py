@@ -147,7 +147,7 @@ def _stream_check(count: int, part: int) -> None:
 
 
 def test_a_batch_is_streamed_in_parts_without_growing_memory() -> None:
-    _stream_check(count=2000, part=500)
+    _stream_check(count=1000, part=250)
 
 
 @pytest.mark.slow  # a benchmark-sized run: `pytest -m slow`

@@ -73,23 +73,10 @@ def test_round_trip_tensions_statics_ik_statics(solver: TensionIKSolver) -> None
                                atol=1e-12)
 
 
-def test_round_trip_under_a_tip_force(solver: TensionIKSolver) -> None:
-    force = np.array([0.03, -0.02, 0.0])
-    truth = solve_statics(RAO, _random_tensions(12, seed=3), force)
-    result = solver.solve(truth.tip_position, tip_force=force)
-    assert result.success.mean() >= 11 / 12, [r for r in result.reason if r]
-    again = solve_statics(RAO, result.tensions, force)
-    error = np.linalg.norm(again.tip_position - truth.tip_position, axis=1)
-    assert np.all(error[result.success] < 1e-4)
-    # Without the force in the model the same tensions miss: the load was solved for.
-    unloaded = solve_statics(RAO, result.tensions)
-    assert np.median(np.linalg.norm(unloaded.tip_position - truth.tip_position, axis=1)) > 1e-3
-
-
 def test_round_trip_under_a_payload_held_mid_body(solver: TensionIKSolver, tmp_path) -> None:
-    """A 20 g payload held at 0.25 m from the base, and gravity on the backbone; the
-    result file keeps the loads it was solved under."""
-    loads = {"gravity": [0.0, 0.0, -9.81],
+    """A 20 g payload held at 0.25 m from the base, a sideways force on the tip and gravity
+    on the backbone; the result file keeps the loads it was solved under."""
+    loads = {"gravity": [0.0, 0.0, -9.81], "tip_force": [0.03, -0.02, 0.0],
              "point_loads": [{"s": 0.25, "force": [0.0, 0.0, -0.196]}]}
     truth = solve_statics(RAO, _random_tensions(12, seed=4), **loads)
     result = solver.solve(truth.tip_position, **loads)
@@ -97,14 +84,18 @@ def test_round_trip_under_a_payload_held_mid_body(solver: TensionIKSolver, tmp_p
     again = solve_statics(RAO, result.tensions, **loads)
     error = np.linalg.norm(again.tip_position - truth.tip_position, axis=1)
     assert np.all(error[result.success] < 1e-4)
-    # Without the payload in the model the same tensions miss: the load was solved for.
-    unloaded = solve_statics(RAO, result.tensions, gravity=loads["gravity"])
-    assert np.median(np.linalg.norm(unloaded.tip_position - truth.tip_position, axis=1)) > 1e-3
+    # Without the payload, or without the tip force, in the model the same tensions miss:
+    # each load was solved for.
+    for dropped in ("point_loads", "tip_force"):
+        fewer = solve_statics(RAO, result.tensions, **{k: v for k, v in loads.items()
+                                                       if k != dropped})
+        assert np.median(np.linalg.norm(fewer.tip_position - truth.tip_position, axis=1)) > 1e-3
     back = load_result(result.save(tmp_path / "R.json"))
     assert back.point_loads == [[{**loads["point_loads"][0], "moment": [0.0, 0.0, 0.0]}]] * 12
     np.testing.assert_array_equal(back.gravity, np.tile(loads["gravity"], (12, 1)))
     np.testing.assert_array_equal(back.distributed_force, np.zeros((12, 3)))
-    replayed = solve_statics(RAO, back.tensions, gravity=back.gravity,
+    np.testing.assert_array_equal(back.tip_force, np.tile(loads["tip_force"], (12, 1)))
+    replayed = solve_statics(RAO, back.tensions, back.tip_force, gravity=back.gravity,
                              point_loads=back.point_loads)
     np.testing.assert_allclose(replayed.tip_position, again.tip_position, atol=1e-12)
 
