@@ -32,9 +32,12 @@ MODELS = ROOT / "models"
 
 use_host_devices()  # the solvers' sharded path runs in the tests as it does in the CLI
 # The cache the CLI and every cr_nlp process use ($CR_NLP_JAX_CACHE, else the cr_nlp cache
-# folder's jax/), every program in it: the commands the tests start, the notebooks'
-# kernels and the other worker load what one process compiled.
+# folder's jax/): the commands the tests start, the notebooks' kernels and the other
+# worker load what one process compiled. The test processes store only programs that
+# took 0.5 s or more: test_programs' tiny programs must compile in each test, not load
+# (a loaded program cannot be moved to another device).
 enable_compilation_cache()
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 SESSION_X64 = bool(jax.config.jax_enable_x64)  # off, unless $JAX_ENABLE_X64 asks for it
 
 
