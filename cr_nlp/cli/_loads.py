@@ -6,6 +6,7 @@ robot has a ``mechanics`` block. Units: N, N·m, m/s², N/m, m."""
 from __future__ import annotations
 
 import argparse
+import sys
 
 from ._io import UsageError, parse_vector3, point_loads_arg, read_json
 
@@ -39,9 +40,12 @@ def add_load_options(p: argparse.ArgumentParser, note: str = "--model cosserat: 
                         "[N·m]}]} (any of them; not also given as an option)")
 
 
-def loads_from_args(args: argparse.Namespace, length: float) -> dict:
+def loads_from_args(args: argparse.Namespace, length: float, robot: object = None) -> dict:
     """The load options and the ``--loads`` file as keyword arguments of the tension
-    solvers (N, N·m, m/s², N/m), checked against the robot's ``length`` (m).
+    solvers (N, N·m, m/s², N/m), checked against the robot's ``length`` (m). Without a
+    gravity given, a ``robot`` fitted to a recording (``mechanics.calibration_gravity``,
+    from ``calibrate --model cosserat``) gets that recording's gravity, as ``predict``
+    does, and a line on stderr says so.
 
     Raises:
         UsageError: naming the option, or the file and the key.
@@ -66,6 +70,12 @@ def loads_from_args(args: argparse.Namespace, length: float) -> dict:
             if loads[key]:
                 raise UsageError(f"{where}: {key} is also given as --{key.replace('_', '-')}")
             loads[key] = value
+    fitted = getattr(getattr(robot, "mechanics", None), "calibration_gravity", ())
+    if not loads["gravity"] and fitted:
+        loads["gravity"] = [float(g) for g in fitted]
+        print(f"cr-nlp: gravity {loads['gravity']} m/s², the recording's that "
+              f"{robot.name} was fitted to (mechanics.calibration_gravity); --gravity "
+              "overrides it", file=sys.stderr)
     try:
         static_loads(1, length, **loads)
     except ValueError as exc:

@@ -46,7 +46,7 @@ def run(args: argparse.Namespace, robot: object) -> int:
         config = replace(config, tension_rate_max=args.tension_rate_max)
     path = load_path(resolve(args.path, "paths", "--path"))
     follower = TensionPathFollower(robot, load_scene_arg(args.scene), config)
-    loads = loads_from_args(args, follower.ik.length)
+    loads = loads_from_args(args, follower.ik.length, robot)
     try:
         result = follower.follow(path, dt=args.dt, orientation=args.orientation, **loads,
                                  exact=args.exact, time_limit=time_limit)

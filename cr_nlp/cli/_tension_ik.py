@@ -66,7 +66,7 @@ def run(args: argparse.Namespace, robot: object) -> int:
     config = replace(config, safety_margin=config.safety_margin
                      + model_margin(robot, args.model_margin))
     solver = TensionIKSolver(robot, load_scene_arg(args.scene), config)
-    loads = loads_from_args(args, solver.length)
+    loads = loads_from_args(args, solver.length, robot)
     try:
         result = solver.solve(positions, wxyz if args.orientation else None, **loads,
                               exact=args.exact, time_limit=time_limit)

@@ -44,7 +44,7 @@ def run(args: argparse.Namespace, robot: object) -> int:
     except ValueError as exc:
         raise UsageError(f"--problems: {exc}") from None
     planner = TensionTrajectoryPlanner(robot, load_scene_arg(args.scene), config)
-    loads = loads_from_args(args, planner.length)
+    loads = loads_from_args(args, planner.length, robot)
     results = planner.plan(starts, goals, **loads, exact=args.exact, time_limit=time_limit)
     data = tension_trajectories_to_dict(results, None, robot)
     if args.out == "-":

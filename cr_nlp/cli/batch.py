@@ -239,7 +239,7 @@ def _tension_job(args: argparse.Namespace, robot: object) -> tuple[tuple, dict]:
     """``--model cosserat``: ``run_batch``'s inputs and options, the loads from the
     options of ``cr-nlp ik --model cosserat`` (``_loads.loads_from_args``)."""
     length = float(sum(s.length_min for s in robot.segments))
-    loads = _loads.loads_from_args(args, length)
+    loads = _loads.loads_from_args(args, length, robot)
     options = {"model": "cosserat", "loads": loads}
     if args.kind == "ik":
         from ..tasks.mechanics.ik import TensionIKConfig

@@ -160,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
         if len(tensions) != robot.n_tendons:
             raise UsageError(f"{option}: {robot.name} has {robot.n_tendons} tendons, got "
                              f"{len(tensions)} numbers")
-        loads = loads_from_args(args, length)
+        loads = loads_from_args(args, length, robot)
         gravity = loads["gravity"] or gravity
         cases = StaticsCases([tensions], [loads["tip_force"] or [0.0, 0.0, 0.0]],
                              [loads["tip_moment"] or [0.0, 0.0, 0.0]], [None],

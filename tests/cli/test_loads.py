@@ -46,3 +46,22 @@ def test_every_command_on_the_rod_takes_the_same_load_options() -> None:
     for command in ("statics", "ik", "plan", "follow"):
         options = {o for a in sub.choices[command]._actions for o in a.option_strings}
         assert wanted <= options, (command, wanted - options)
+
+
+def test_a_fitted_robot_gets_its_recordings_gravity_unless_one_is_given(capsys) -> None:
+    """``ftdcr_v6_cosserat`` (``calibrate --model cosserat``): without ``--gravity`` the
+    tension tasks run under the gravity of the recording it was fitted to, as ``predict``
+    predicts; ``--gravity`` or a loads file's gravity wins; a robot without a fitted
+    gravity gets none."""
+    from cr_nlp.model import load_robot
+
+    fitted = load_robot("ftdcr_v6_cosserat")
+    parser = argparse.ArgumentParser()
+    add_load_options(parser)
+    loads = loads_from_args(parser.parse_args([]), 0.222, fitted)
+    assert loads["gravity"] == list(fitted.mechanics.calibration_gravity)
+    assert "calibration_gravity" in capsys.readouterr().err
+    given = loads_from_args(parser.parse_args(["--gravity", "0,0,-9.81"]), 0.222, fitted)
+    assert given["gravity"] == [0.0, 0.0, -9.81]
+    assert loads_from_args(parser.parse_args([]), 0.4, load_robot("tdcr2_rao2021"))[
+        "gravity"] is None
