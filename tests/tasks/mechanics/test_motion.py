@@ -136,6 +136,46 @@ def test_cli_follow_model_cosserat(path: np.ndarray, tmp_path) -> None:
     assert len(table.read_text().splitlines()) == 9
 
 
+
+@pytest.mark.slow  # a 3-segment, 9-tendon rod of its own (about a minute of compiling);
+# the default run covers its parts: the follow command's --csv (above), motor commands
+# from tensions (test_ik's result file) and their inverse (test_displacement_statics).
+def test_the_fitted_robot_follows_a_path_under_its_gravity_and_its_commands_replay_it(
+        tmp_path) -> None:
+    """``ftdcr_v6_cosserat`` (``calibrate --model cosserat`` on the bundled recording):
+    ``follow --model cosserat`` runs under the recording's gravity without a --gravity,
+    and the motor commands it writes, replayed through the displacement-driven statics
+    (not the tension statics the follower solved), put the tip on the path."""
+    from cr_nlp.model.cosserat import solve_displacement_statics
+
+    robot = load_robot("ftdcr_v6_cosserat")
+    gravity = list(robot.mechanics.calibration_gravity)
+    s = np.linspace(0.0, 1.0, 12)[:, None]
+    tensions = (s * [1.0, 0, 0, 0.5, 0, 0, 0.3, 0, 0]
+                + (1 - s) * [0, 0.8, 0, 0, 0.4, 0, 0, 0, 0.2])           # N
+    truth = solve_statics(robot, tensions, gravity=gravity)
+    file = tmp_path / "path.json"
+    file.write_text(json.dumps({"dt": 0.1, "poses": [
+        {"position": p.tolist(), "wxyz": w.tolist()}
+        for p, w in zip(truth.tip_position, truth.tip_wxyz, strict=True)]}))
+    out, table = tmp_path / "R.json", tmp_path / "t.csv"
+    run = subprocess.run([sys.executable, "-m", "cr_nlp.cli", "follow", "--model", "cosserat",
+                          "--robot", "ftdcr_v6_cosserat", "--path", str(file), "--out",
+                          str(out), "--csv", str(table)],
+                         capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0, run.stderr
+    assert "calibration_gravity" in run.stderr
+    result = load_result(out)
+    assert result.success, result.reason
+    np.testing.assert_array_equal(result.gravity, gravity)
+    columns = np.genfromtxt(table, delimiter=",", names=True)
+    commands = np.stack([columns[f"command_{j}_m"] for j in range(1, 10)], axis=1)
+    replay = solve_displacement_statics(robot, commands, gravity=gravity)
+    assert replay.converged.all()
+    error = np.linalg.norm(replay.tip_position - truth.tip_position, axis=1)
+    assert error.max() <= result.tolerance + 1e-6, error.max()
+
+
 # ---------------------------------------------------------------- planning
 
 SCENE = {"obstacles": [
