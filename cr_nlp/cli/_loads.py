@@ -70,17 +70,26 @@ def loads_from_args(args: argparse.Namespace, length: float, robot: object = Non
             if loads[key]:
                 raise UsageError(f"{where}: {key} is also given as --{key.replace('_', '-')}")
             loads[key] = value
-    fitted = getattr(getattr(robot, "mechanics", None), "calibration_gravity", ())
-    if not loads["gravity"] and fitted:
-        loads["gravity"] = [float(g) for g in fitted]
-        print(f"cr-nlp: gravity {loads['gravity']} m/s², the recording's that "
-              f"{robot.name} was fitted to (mechanics.calibration_gravity); --gravity "
-              "overrides it", file=sys.stderr)
+    if not loads["gravity"]:
+        loads["gravity"] = fitted_gravity(robot)
     try:
         static_loads(1, length, **loads)
     except ValueError as exc:
         raise UsageError(f"{where}: {str(exc).removeprefix('case 0: ')}") from None
     return loads
+
+
+def fitted_gravity(robot: object) -> list[float] | None:
+    """The gravity (m/s², world frame) of the recording ``robot`` was fitted to
+    (``mechanics.calibration_gravity``, from ``calibrate --model cosserat``), announced on
+    stderr; None for a robot without one."""
+    fitted = getattr(getattr(robot, "mechanics", None), "calibration_gravity", ())
+    if not fitted:
+        return None
+    gravity = [float(g) for g in fitted]
+    print(f"cr-nlp: gravity {gravity} m/s², the recording's that {robot.name} was fitted "
+          "to (mechanics.calibration_gravity); --gravity overrides it", file=sys.stderr)
+    return gravity
 
 
 def needs_mechanics(robot: object, option: str = "--model cosserat") -> None:

@@ -8,7 +8,13 @@ import math
 from typing import Any, NamedTuple
 
 from ._io import UsageError, load_robot_arg, parse_numbers, parse_vector3, read_json, write_json
-from ._loads import add_load_options, case_keys, loads_from_args, needs_mechanics
+from ._loads import (
+    add_load_options,
+    case_keys,
+    fitted_gravity,
+    loads_from_args,
+    needs_mechanics,
+)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -32,8 +38,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "the tensions are found from the tendons' stiffness (the mechanics "
                         "block's tendon_stiffness, e.g. from calibrate --model cosserat), a "
                         "slack tendon carries none")
-    add_load_options(p, note="", gravity_note=" (default none; with --cases: for the cases "
-                                              "without their own)")
+    add_load_options(p, note="", gravity_note=" (default none, or a fitted robot's "
+                                              "mechanics.calibration_gravity; with --cases: "
+                                              "for the cases without their own)")
     p.add_argument("--cases", help='JSON file {"cases": [{"tensions": [...], "tip_force": '
                                    '[...], "tip_moment": [...], "gravity": [...], '
                                    '"distributed_force": [...], "point_loads": [{"s": m, '
@@ -148,12 +155,13 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("give one of --tensions, --displacements or --cases"
                          + (f", not {' and '.join(given)}" if given else ""))
     length = sum(seg.length_min for seg in robot.segments)
-    gravity = parse_vector3(args.gravity, "--gravity") or [0.0, 0.0, 0.0]
     if args.cases is not None:
         if args.point_load or args.distributed_force or args.loads:
             raise UsageError("--point-load, --distributed-force and --loads go with "
                              "--tensions; in a --cases file give them per case")
         cases = _cases_from_file(args.cases, robot.n_tendons, length)
+        gravity = (parse_vector3(args.gravity, "--gravity") or fitted_gravity(robot)
+                   or [0.0, 0.0, 0.0])
     else:
         option = "--tensions" if args.tensions is not None else "--displacements"
         tensions = parse_numbers(args.tensions or args.displacements, option)
@@ -161,25 +169,25 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"{option}: {robot.name} has {robot.n_tendons} tendons, got "
                              f"{len(tensions)} numbers")
         loads = loads_from_args(args, length, robot)
-        gravity = loads["gravity"] or gravity
+        gravity = loads["gravity"] or [0.0, 0.0, 0.0]
         cases = StaticsCases([tensions], [loads["tip_force"] or [0.0, 0.0, 0.0]],
                              [loads["tip_moment"] or [0.0, 0.0, 0.0]], [None],
                              [loads["distributed_force"] or [0.0] * 3], [loads["point_loads"]])
-    loads = {"tip_force": cases.tip_force, "tip_moment": cases.tip_moment,
-             "gravity": [gravity if g is None else g for g in cases.gravity],
-             "distributed_force": cases.distributed_force, "point_loads": cases.point_loads}
+    case_loads = {"tip_force": cases.tip_force, "tip_moment": cases.tip_moment,
+                  "gravity": [gravity if g is None else g for g in cases.gravity],
+                  "distributed_force": cases.distributed_force,
+                  "point_loads": cases.point_loads}
     try:
         if args.displacements is not None:
             if args.all_equilibria:
                 raise UsageError("--all-equilibria goes with --tensions (the displacement "
                                  "statics reports the equilibrium it reaches)")
-            result = solve_displacement_statics(robot, cases.tensions, **loads)
+            result = solve_displacement_statics(robot, cases.tensions, **case_loads)
         else:
-            result = solve_statics(robot, cases.tensions, **loads,
+            result = solve_statics(robot, cases.tensions, **case_loads,
                                    all_equilibria=args.all_equilibria)
     except ValueError as exc:
-        raise UsageError(f"{robot.name}: {exc}" if "tendon_stiffness" in str(exc)
-                         else str(exc)) from None
+        raise UsageError(str(exc)) from None
     records = [_record(result, i, args.all_equilibria) for i in range(len(cases.tensions))]
     if args.cases is not None:
         write_json(records, None)

@@ -10,7 +10,7 @@ import json
 import pytest
 
 from cr_nlp.cli._io import UsageError
-from cr_nlp.cli._loads import add_load_options, loads_from_args
+from cr_nlp.cli._loads import add_load_options, fitted_gravity, loads_from_args
 
 
 @pytest.mark.parametrize(("content", "words"), [
@@ -65,3 +65,6 @@ def test_a_fitted_robot_gets_its_recordings_gravity_unless_one_is_given(capsys) 
     assert given["gravity"] == [0.0, 0.0, -9.81]
     assert loads_from_args(parser.parse_args([]), 0.4, load_robot("tdcr2_rao2021"))[
         "gravity"] is None
+    # the one default, also for the cases of a statics --cases file
+    assert fitted_gravity(fitted) == list(fitted.mechanics.calibration_gravity)
+    assert fitted_gravity(load_robot("tdcr2_rao2021")) is None
