@@ -1,5 +1,6 @@
 """``cr-nlp view``: the interactive 3-D viewer in the browser (viser) for a robot, a scene
-and a result of ``cr-nlp ik``, ``plan`` or ``follow``; live IK by dragging a target."""
+and a result of ``cr-nlp ik``, ``plan`` or ``follow``; live IK by dragging a target (with
+``--model cosserat``: tendon tensions on the Cosserat rod under the load options)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ._io import Stopped, UsageError, load_robot_arg, load_scene_arg, resolve, stop_on_signals
+from ._loads import add_load_options, loads_from_args, needs_mechanics
 
 if TYPE_CHECKING:
     from ..viz.viewer import Viewer
@@ -44,6 +46,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="no target gizmo (live IK compiles a solver in the background)",
     )
+    p.add_argument(
+        "--model",
+        choices=("pcc", "cosserat"),
+        default="pcc",
+        help="live IK on the PCC model (default) or for tendon tensions on the Cosserat rod "
+        "(a robot with a mechanics block, no --result): drag the target under the loads",
+    )
+    add_load_options(p)
     p.set_defaults(run=run)
 
 
@@ -76,6 +86,12 @@ def _start(args: argparse.Namespace) -> Viewer:
     scene = load_scene_arg(args.scene)
     if args.result and not Path(args.result).is_file():
         raise UsageError(f"--result: file not found: {args.result}")
+    loads = None
+    if args.model == "cosserat":
+        needs_mechanics(robot)
+        if args.result:
+            raise UsageError("--model cosserat: the viewer shows the rod's live IK, not a --result")
+        loads = loads_from_args(args, sum(s.length_min for s in robot.segments), robot)
     targets = None
     if args.targets:
         try:
@@ -92,6 +108,8 @@ def _start(args: argparse.Namespace) -> Viewer:
             targets=targets,
             path=resolve(args.path, "paths", "--path") if args.path else None,
             live_ik=not args.no_live_ik,
+            model=args.model,
+            loads=loads,
         )
     except ValueError as exc:
         raise UsageError(f"--result: {exc}") from None

@@ -57,8 +57,9 @@ def view(
         result: a RESULT.json path of ``cr-nlp ik``, ``plan`` or ``follow`` (or its
             loaded content), or None.
         port: TCP port; None picks a free one.
-        options: ``host``, ``targets`` (an ik result's target poses), ``live_ik``, ``q``
-            (see ``viewer.Viewer``).
+        options: ``host``, ``targets`` (an ik result's target poses), ``live_ik``, ``q``,
+            ``model="cosserat"`` with ``loads={"gravity": [0, 0, -9.81], …}`` (live IK of
+            tendon tensions on the Cosserat rod; see ``viewer.Viewer``).
 
     Raises:
         ImportError: viser is not installed (``pip install 'cr_nlp[viewer]'``).

@@ -56,10 +56,15 @@ class RobotMesh:
         """Tube vertices (V, 3), tendon line segments (S, 2, 3) and the backbone points
         (1 + n·SAMPLES, 3), metres, for q (3n; rad, rad, m)."""
         pos, rot = backbone_frames(self.robot, q, samples=SAMPLES)
+        return (*self.tube(pos, rot), pos)
+
+    def tube(self, pos: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Tube vertices (V, 3) and tendon line segments (S, 2, 3), metres, around the
+        backbone frames ``pos`` (1 + n·SAMPLES, 3) m and ``rot`` (…, 3, 3)."""
         x, y, z = tube_grid(pos, rot, self.robot.backbone_radius, around=AROUND)
         vertices = np.stack([x, y, z], -1).reshape(-1, 3)
         lines = [np.stack([p[:-1], p[1:]], 1) for p in tendon_paths(self.robot, pos, rot, SAMPLES)]
-        return vertices, np.concatenate(lines), pos
+        return vertices, np.concatenate(lines)
 
 
 def tip_pose(robot: Robot, q: Any) -> tuple[np.ndarray, np.ndarray]:

@@ -6,6 +6,7 @@ Lengths in metres.
 
 from __future__ import annotations
 
+import socket
 from typing import Any
 
 import numpy as np
@@ -19,6 +20,7 @@ from ..world.scene import (
     ConvexPart,
     CylinderPart,
     SpherePart,
+    bounding_sphere,
     rotation_z_to,
 )
 
@@ -128,3 +130,31 @@ def add_part(scene_api: Any, name: str, part: Any) -> float:
         )
         return float(np.min(part.vertices[:, 2]))
     raise TypeError(f"not a scene part: {type(part).__name__}")
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port nobody listens on now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def camera_aim(robot: Robot, scene: Scene | None) -> tuple[tuple, tuple]:
+    """The first camera's look-at point and position (m): the robot's reach, and the
+    scene's parts where there are some."""
+    reach = robot.total_length_max
+    centre = np.asarray(robot.base_position, float) + np.array([0.4 * reach / 3.0, 0.0,
+                                                                0.35 * reach])
+    if scene is not None and scene.parts:
+        centre = 0.5 * (centre + np.mean([bounding_sphere(p)[0] for p in scene.parts], axis=0))
+    return tuple(centre), tuple(centre + np.array([-1.5, -2.0, 1.0]) * reach * 0.6)
+
+
+def live_text(answer: Any) -> str:
+    """The page's lines on a live-IK answer (``LiveIKResult``): verdict, time, pose error
+    and clearance."""
+    verdict = "**reached**" if answer.success else f"**not reached**: {answer.reason}"
+    clearance = ("" if not np.isfinite(answer.min_clearance)
+                 else f"  \nclearance {answer.min_clearance:.4f} m (python-fcl)")
+    return (f"{verdict}  \nsolve {1e3 * answer.seconds:.1f} ms ({answer.stage})  \n"
+            f"pose error {answer.pose_error:.2e} (m/rad){clearance}")

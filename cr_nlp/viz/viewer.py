@@ -4,15 +4,15 @@
 Everything a replay shows is computed once when the viewer starts (the robot's tube and
 tendons at every waypoint, the closest obstacle point, tendon speeds); scrubbing only
 sends precomputed geometry. Live IK re-solves with ``tasks.geometry.live_ik.LiveIKSolver``,
-warm-started from the answer on screen. Lengths in metres, angles in radians, times in
-seconds.
+warm-started from the answer on screen; with ``model="cosserat"`` the target is solved
+for tendon tensions on the Cosserat rod under the given loads (``_tension_live``) and the
+rod's equilibrium is drawn. Lengths in metres, angles in radians, times in seconds.
 """
 
 from __future__ import annotations
 
 import contextlib
 import io
-import socket
 import sys
 import threading
 import time
@@ -29,7 +29,6 @@ except ImportError as exc:  # the optional extra
 from ..model import Robot, load_robot
 from ..tasks._result import read_json
 from ..world import Scene, load_scene
-from ..world.scene import bounding_sphere
 from ._replay import (
     Answers,
     Motion,
@@ -40,6 +39,7 @@ from ._replay import (
     targets_of,
     tip_pose,
 )
+from ._tension_live import TensionLive
 from ._viewer_scene import (
     CLOSEST_RGB,
     PALETTE,
@@ -48,6 +48,9 @@ from ._viewer_scene import (
     TENDON_RGB,
     TRACE_RGB,
     add_scene,
+    camera_aim,
+    free_port,
+    live_text,
 )
 
 __all__ = [
@@ -62,13 +65,6 @@ __all__ = [
 ]
 
 # ================================================================ the viewer
-
-
-def free_port(host: str = "127.0.0.1") -> int:
-    """A TCP port nobody listens on now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
-        return int(s.getsockname()[1])
 
 
 class Viewer:
@@ -87,6 +83,11 @@ class Viewer:
             ``ReferencePath``) when the result's path name does not resolve.
         live_ik: offer live IK (a target gizmo; re-solves on every move).
         q: the configuration to show without a result (default straight).
+        model: "pcc" (live IK of configurations) or "cosserat": live IK of tendon tensions
+            on the Cosserat rod (a robot with a ``mechanics`` block, no result), the rod's
+            equilibrium under ``loads`` drawn.
+        loads: with "cosserat", the loads as keyword arguments of ``TensionIKSolver.solve``
+            (``gravity`` m/s², ``tip_force`` N, …, world frame).
     """
 
     def __init__(
@@ -101,6 +102,8 @@ class Viewer:
         path: Any = None,
         live_ik: bool = True,
         q: Any = None,
+        model: str = "pcc",
+        loads: dict[str, Any] | None = None,
     ) -> None:
         self.robot = load_robot(robot if not isinstance(robot, Path) else str(robot))
         self.scene = (
@@ -119,6 +122,7 @@ class Viewer:
         self.motions: list[Motion] = content if isinstance(content, list) else []
         self.answers: Answers | None = content if isinstance(content, Answers) else None
         self._mesh = RobotMesh(self.robot)
+        self._tension = self._tension_live(model, loads, result)
         for motion in self.motions:
             precompute(motion, self._mesh, self.scene)
         straight = np.ravel([[0.0, 0.0, s.length_min] for s in self.robot.segments])
@@ -167,6 +171,18 @@ class Viewer:
         self._warming = threading.Thread(target=self._warm_up) if live_ik else None
         if self._warming is not None:
             self._warming.start()
+
+    def _tension_live(self, model: str, loads: Any, result: Any) -> TensionLive | None:
+        """The rod's live IK for ``model="cosserat"`` (None for "pcc")."""
+        if model not in ("pcc", "cosserat"):
+            raise ValueError(f"model: expected 'pcc' or 'cosserat', got {model!r}")
+        if model == "pcc":
+            return None
+        if self.robot.mechanics is None:
+            raise ValueError(f"model 'cosserat': {self.robot.name} has no 'mechanics' block")
+        if result is not None:
+            raise ValueError("model 'cosserat': the viewer shows the rod's live IK, no result")
+        return TensionLive(self.robot, self.scene, self._mesh, loads or {})
 
     def _build_page(self, live_ik: bool) -> None:
         """The scene, the robot, the controls and the camera."""
@@ -233,16 +249,8 @@ class Viewer:
             )
 
     def _aim_camera(self) -> None:
-        reach = self.robot.total_length_max
-        base = np.asarray(self.robot.base_position, float)
-        centre = base + np.array([0.4 * reach / 3.0, 0.0, 0.35 * reach])
-        if self.scene is not None and self.scene.parts:
-            centre = 0.5 * (
-                centre + np.mean([bounding_sphere(p)[0] for p in self.scene.parts], axis=0)
-            )
         camera = self.server.initial_camera
-        camera.look_at = tuple(centre)
-        camera.position = tuple(centre + np.array([-1.5, -2.0, 1.0]) * reach * 0.6)
+        camera.look_at, camera.position = camera_aim(self.robot, self.scene)
 
     # ------------------------------------------------------------ GUI
     def _add_gui(self, live_ik: bool) -> None:
@@ -299,7 +307,8 @@ class Viewer:
                     self._live_on,
                     hint="a gizmo at the tip; moving it re-solves from the answer shown",
                 )
-                self._exact_box = gui.add_checkbox("exact (Ipopt polish)", False)
+                if self._tension is None:  # no live Ipopt stage on the rod
+                    self._exact_box = gui.add_checkbox("exact (Ipopt polish)", False)
                 self._live_text = gui.add_markdown("")
 
             @self._live_box.on_update
@@ -415,7 +424,9 @@ class Viewer:
 
     def _show_q(self, q: np.ndarray) -> None:
         self.q = np.asarray(q, dtype=float)
-        vertices, lines, _ = self._mesh.geometry(self.q)
+        self._show_geometry(*self._mesh.geometry(self.q)[:2])
+
+    def _show_geometry(self, vertices: np.ndarray, lines: np.ndarray) -> None:
         with self.server.atomic():
             self._body.vertices = vertices.astype(np.float32)
             self._tendons.points = lines.astype(np.float32)
@@ -456,7 +467,8 @@ class Viewer:
                 self.show_answer(int(self._answer.value))
 
     def _place_gizmo(self) -> None:
-        position, wxyz = tip_pose(self.robot, self.q)
+        tension = self._tension
+        position, wxyz = tip_pose(self.robot, self.q) if tension is None else tension.tip()
         self._live_gizmo.position, self._live_gizmo.wxyz = tuple(position), tuple(wxyz)
 
     def target_moved(self, position: Any, wxyz: Any, final: bool) -> None:
@@ -478,7 +490,10 @@ class Viewer:
                     self._live_update(*pose)
 
     def solver(self) -> Any:
-        """The live-IK solver (``tasks.geometry.live_ik.LiveIKSolver``), built on first use."""
+        """The live-IK solver (``tasks.geometry.live_ik.LiveIKSolver``, or on the rod
+        ``tasks.mechanics.live_ik.TensionLiveIKSolver``), built on first use."""
+        if self._tension is not None:
+            return self._tension.solver()
         with self._solver_lock:
             if self._live_solver is None:
                 from ..tasks.geometry.live_ik import LiveIKSolver
@@ -491,8 +506,15 @@ class Viewer:
         with self._solve_lock:
             self._live_text.content = "compiling the live-IK solver (once, cached on disk)…"
             try:
-                position, wxyz = tip_pose(self.robot, self.q)
-                seconds = self.solver().solve(self.q, position, wxyz, search=False).seconds
+                if self._tension is not None:
+                    seconds = self._tension.warm()
+                    if self.last_live is None:  # the rest shape under the loads
+                        self._show_geometry(*self._tension.geometry())
+                        if self._live_gizmo is not None:
+                            self._place_gizmo()
+                else:
+                    position, wxyz = tip_pose(self.robot, self.q)
+                    seconds = self.solver().solve(self.q, position, wxyz, search=False).seconds
             except Exception as exc:  # shown, never fatal: the replay works without it
                 if not self._stop.is_set():
                     self._live_text.content = f"live IK unavailable: {exc}"
@@ -505,7 +527,8 @@ class Viewer:
     ) -> Any:
         """What moving the gizmo does: re-solve IK for the target pose from the answer
         on screen, show the new answer and its verdict; returns the ``LiveIKResult``
-        (None for an invalid target, reported on the page).
+        (on the rod: the ``TensionLiveIKResult``, the orientation not a target; None for
+        an invalid target, reported on the page).
 
         Args:
             position: (3,) target tip position, m.
@@ -525,24 +548,25 @@ class Viewer:
         if exact is None:
             exact = bool(getattr(self, "_exact_box", None) and self._exact_box.value)
         try:
-            answer = self.solver().solve(self.q, position, wxyz, exact=exact, search=search)
+            if self._tension is not None:
+                if exact:
+                    raise ValueError("the rod's live IK has no exact stage")
+                answer = self._tension.solve(position, search)
+            else:
+                answer = self.solver().solve(self.q, position, wxyz, exact=exact, search=search)
         except ValueError as exc:  # an unreachable or invalid target: say so, keep the robot
             if hasattr(self, "_live_text"):
                 self._live_text.content = f"target rejected: {exc}"
             return None
         self.last_live = answer
+        if self._tension is not None:
+            self._show_geometry(*self._tension.geometry())
+            if hasattr(self, "_live_text"):
+                self._live_text.content = self._tension.text(answer)
+            return answer
         self._show_q(answer.q)
-        verdict = "**reached**" if answer.success else f"**not reached**: {answer.reason}"
-        clearance = (
-            ""
-            if not np.isfinite(answer.min_clearance)
-            else f"  \nclearance {answer.min_clearance:.4f} m (python-fcl)"
-        )
         if hasattr(self, "_live_text"):
-            self._live_text.content = (
-                f"{verdict}  \nsolve {1e3 * answer.seconds:.1f} ms ({answer.stage})  \n"
-                f"pose error {answer.pose_error:.2e} (m/rad){clearance}"
-            )
+            self._live_text.content = live_text(answer)
         return answer
 
     # ------------------------------------------------------------ lifetime

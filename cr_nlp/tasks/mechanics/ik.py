@@ -462,11 +462,20 @@ class TensionIKSolver:
                  loads: StaticLoads, timing: StageTiming) -> TensionIKResult:
         """The independent check: a fresh forward statics solve of the answer's tensions,
         the bounds, and with a scene python-fcl clearance of the solved backbone."""
+        return self._judge(self._forward(tensions, loads), tensions, positions, quats, loads,
+                           timing)
+
+    def _forward(self, tensions: np.ndarray, loads: StaticLoads) -> StaticsResult:
+        """The verdict's fresh forward statics of ``tensions`` under ``loads``."""
+        return solve_statics(self.robot, tensions, loads.tip_force, loads.tip_moment,
+                             loads.gravity, self.config.statics,
+                             distributed_force=loads.distributed_force,
+                             point_loads=loads.point_load_lists())
+
+    def _judge(self, statics: StaticsResult, tensions: np.ndarray, positions: np.ndarray,
+               quats: np.ndarray, loads: StaticLoads, timing: StageTiming) -> TensionIKResult:
+        """The verdict on the forward statics ``statics`` of ``tensions``."""
         cfg = self.config
-        statics: StaticsResult = solve_statics(
-            self.robot, tensions, loads.tip_force, loads.tip_moment, loads.gravity,
-            cfg.statics, distributed_force=loads.distributed_force,
-            point_loads=loads.point_load_lists())
         position_error = np.linalg.norm(statics.tip_position - positions, axis=1)
         oriented = ~np.any(np.isnan(quats), axis=1)
         rotation_error = np.full(len(positions), np.nan)

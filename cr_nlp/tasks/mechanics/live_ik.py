@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from ...model import Robot
+from ...model.cosserat import StaticsResult
 from ...model.loads import static_loads
 from ...stages.refine import base_frame
 from ...world.scene import Scene
@@ -51,6 +52,11 @@ class TensionLiveIKResult:
     """(3,) moment at the base of the solved rod, N·m, world frame: the next warm start."""
     seconds: float
     """Wall time of the update, verdict included."""
+    backbone: np.ndarray
+    """(P, 3) the solved rod's backbone points from the base to the tip, m (the verdict's
+    fresh statics)."""
+    backbone_rotations: np.ndarray
+    """(P, 3, 3) its frames at the same points (columns: the disk's x, y, z axes)."""
 
 
 class TensionLiveIKSolver:
@@ -94,21 +100,34 @@ class TensionLiveIKSolver:
                  else np.asarray(wxyz, dtype=float).reshape(1, 4))
         moment = self._warm_moment(current)
         answer = self.ik._lm(current, target, quats, self.loads, moment, smallest=1)
-        judged = self.ik._verdict(answer, target, quats, self.loads, StageTiming())
+        shape = self.ik._forward(answer, self.loads)
+        judged = self.ik._judge(shape, answer, target, quats, self.loads, StageTiming())
         stage = Stage.REFINE
         if search and not judged.success[0]:
             seeds = self.ik._seeds(target, self.loads, 0)
             again = self.ik._lm(seeds, target, quats, self.loads, smallest=1)
-            other = self.ik._verdict(again, target, quats, self.loads, StageTiming())
+            other_shape = self.ik._forward(again, self.loads)
+            other = self.ik._judge(other_shape, again, target, quats, self.loads,
+                                   StageTiming())
             if other.success[0] or other.pose_error[0] < judged.pose_error[0]:
-                answer, judged, stage = again, other, Stage.SEARCH
+                answer, judged, shape, stage = again, other, other_shape, Stage.SEARCH
         self._moment = (answer.tobytes(), base_frame(self.robot, judged.base_moment))
         return TensionLiveIKResult(
             tensions=answer[0], position=judged.position[0],
             position_error=float(judged.position_error[0]),
             min_clearance=float(judged.min_clearance[0]), success=bool(judged.success[0]),
             reason=judged.reason[0], stage=stage, base_moment=judged.base_moment[0],
-            seconds=time.perf_counter() - start)
+            seconds=time.perf_counter() - start, backbone=shape.positions[0],
+            backbone_rotations=shape.rotations[0])
+
+    def equilibrium(self, tensions: Any) -> StaticsResult:
+        """The shape the rod takes under ``tensions`` (n,) N and the solver's loads: a
+        one-case forward statics solve (the verdict's), e.g. the rest shape to show
+        before the first target."""
+        current = np.asarray(tensions, dtype=float).reshape(1, -1)
+        if current.shape[1] != self.robot.n_tendons or not np.all(np.isfinite(current)):
+            raise ValueError(f"tensions: expected {self.robot.n_tendons} finite numbers, N")
+        return self.ik._forward(current, self.loads)
 
     def _warm_moment(self, current: np.ndarray) -> np.ndarray | None:
         """M(0) (1, 3) N·m, base frame, of ``current`` where it is the last answer (its

@@ -36,6 +36,8 @@ def test_a_dragged_target_is_followed_from_the_current_tensions(live: TensionLiv
         again = solve_statics(RAO, answer.tensions[None], PAYLOAD, None, GRAVITY)
         assert np.linalg.norm(again.tip_position[0] - target) < 1e-4
         assert np.allclose(again.tip_position[0], answer.position, atol=1e-9)
+        np.testing.assert_allclose(answer.backbone, again.positions[0], atol=1e-9)
+        np.testing.assert_allclose(answer.backbone_rotations, again.rotations[0], atol=1e-9)
         current = answer.tensions
 
 
@@ -44,3 +46,5 @@ def test_bad_inputs_are_named(live: TensionLiveIKSolver) -> None:
         live.solve(np.zeros(5), [0.0, 0.0, 0.4])
     with pytest.raises(ValueError, match="position"):
         live.solve(np.zeros(6), [np.nan, 0.0, 0.4])
+    with pytest.raises(ValueError, match="tensions: expected 6"):
+        live.equilibrium([1.0, np.inf, 0.0, 0.0, 0.0, 0.0])
