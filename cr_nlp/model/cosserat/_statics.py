@@ -100,7 +100,7 @@ def _padded(rows: Any, edge: bool = False) -> Any:
 
 
 def _device(rows: Any, dtype: Any) -> Any:
-    return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), rows)
+    return jax.device_put(jax.tree_util.tree_map(lambda a: np.asarray(a, dtype), rows))
 
 
 class _Solved(NamedTuple):
