@@ -6,7 +6,10 @@ segments), calibrates on the other families and measures the mean tip error on t
 left out; the score is the mean over the families. Model changes are chosen by this score;
 the validation file is never read. With ``history``, the same folds score the
 history-aware models (none, play1, play2, play3), each fold's static model calibrated on
-its own rows. Each fold is one ``cr-nlp calibrate`` fit (~35 s on 2 cores). Errors in mm.
+its own rows. With ``model="cosserat"`` each fold is a ``cr-nlp calibrate --model cosserat``
+fit of the Cosserat rod driven by the commands (~10 min on 2 cores; the geometric fit of
+the same rows is its start). Each geometric fold is one ``cr-nlp calibrate`` fit (~35 s on
+2 cores). Errors in mm.
 """
 
 from __future__ import annotations
@@ -54,18 +57,25 @@ def family_labels(robot_name: str = "ftdcr_v6") -> np.ndarray:
 
 def _static_folds(robot: Robot, data: Measurements, family: np.ndarray,
                   families: tuple[str, ...], config: CalibrationConfig,
-                  progress: bool) -> list[dict[str, Any]]:
+                  progress: bool, model: str = "pcc") -> list[dict[str, Any]]:
     rows = []
     for name in families:
         keep, left_out = family != name, family == name
         start = time.perf_counter()
-        fit = calibrate(robot, Measurements(data.commands[keep], data.tip[keep], data.source),
-                        None, config)
+        train = Measurements(data.commands[keep], data.tip[keep], data.source)
         held_out = Measurements(data.commands[left_out], data.tip[left_out], data.source)
-        rows.append({"model": "static", "held_out": name, "fitted_rows": int(keep.sum()),
+        if model == "cosserat":
+            from ..tasks.calibration.mechanics import calibrate_mechanics
+
+            fit = calibrate_mechanics(robot, train, held_out)  # the fit never reads held_out
+            held_out_mm = 1e3 * fit.validation.mean
+        else:
+            fit = calibrate(robot, train, None, config)
+            held_out_mm = 1e3 * float(tip_errors(fit.robot, held_out).mean())
+        rows.append({"model": "cosserat" if model == "cosserat" else "static",
+                     "held_out": name, "fitted_rows": int(keep.sum()),
                      "held_out_rows": int(left_out.sum()),
-                     "train_mm": 1e3 * fit.train.mean,
-                     "held_out_mm": 1e3 * float(tip_errors(fit.robot, held_out).mean()),
+                     "train_mm": 1e3 * fit.train.mean, "held_out_mm": held_out_mm,
                      "fit_s": time.perf_counter() - start})
         if progress:
             print(f"{name}: {rows[-1]['held_out_mm']:.2f} mm held out", flush=True)
@@ -91,8 +101,8 @@ def _history_folds(robot: Robot, robot_name: str,
 
 def run_calibration_benchmark(robot: str = "ftdcr_v6", families: tuple[str, ...] = FAMILIES,
                               axial_compression: str | None = None, history: bool = False,
-                              out: str | Path | None = None,
-                              progress: bool = True) -> list[dict[str, Any]]:
+                              out: str | Path | None = None, progress: bool = True,
+                              model: str = "pcc") -> list[dict[str, Any]]:
     """The fold table (one row per model and held-out family, mm) and its score; writes
     ``calibration.md``, ``folds.csv`` and ``environment.json`` to ``out``.
 
@@ -104,23 +114,31 @@ def run_calibration_benchmark(robot: str = "ftdcr_v6", families: tuple[str, ...]
             (``cr-nlp calibrate --axial-compression``); None: not fitted.
         history: score the history-aware models instead of the static one (every family:
             the play operators run over all rows in time order).
+        model: "pcc" (the geometric calibration) or "cosserat" (the rod driven by the
+            commands, ``calibrate_mechanics`` with its defaults).
 
     Raises:
-        ValueError: an unknown family, or a subset of families with ``history``.
+        ValueError: an unknown family, a subset of families with ``history``, or history
+            or axial compression with ``model="cosserat"``.
     """
     unknown = sorted(set(families) - set(FAMILIES))
     if unknown:
         raise ValueError(f"unknown family {unknown[0]!r} (the families: {', '.join(FAMILIES)})")
     if history and set(families) != set(FAMILIES):
         raise ValueError("history folds hold out every family in turn; no subset")
+    if model not in ("pcc", "cosserat"):
+        raise ValueError(f"model: expected 'pcc' or 'cosserat', got {model!r}")
+    if model == "cosserat" and (history or axial_compression):
+        raise ValueError("model 'cosserat': no history or axial compression folds")
     config = CalibrationConfig(axial_compression=axial_compression is not None,
                                axial_shortens_segments=axial_compression != "tendons")
-    model = load_robot(robot)
+    model_kind, model = model, load_robot(robot)
     if history:
         rows = _history_folds(model, robot, config)
     else:
         data = read_measurements(training_file(robot), model.n_tendons, units="mm")
-        rows = _static_folds(model, data, family_labels(robot), families, config, progress)
+        rows = _static_folds(model, data, family_labels(robot), families, config, progress,
+                             model_kind)
     scores = {name: float(np.mean([r["held_out_mm"] for r in rows if r["model"] == name]))
               for name in dict.fromkeys(r["model"] for r in rows)}
     columns = [Column("model", "model"), Column("held_out", "held out"),
@@ -133,10 +151,12 @@ def run_calibration_benchmark(robot: str = "ftdcr_v6", families: tuple[str, ...]
                             for name, score in scores.items())
     env = environment()
     report = (f"# Calibration folds: {robot}\n\nEach family of the training recording held "
-              f"out in turn; the validation file is not read. Axial compliance: "
-              f"{axial_compression or 'not fitted'}.\n\n{markdown_table(rows, columns)}\n\n"
+              f"out in turn; the validation file is not read. Model: {model_kind}; axial "
+              f"compliance: {axial_compression or 'not fitted'}.\n\n"
+              f"{markdown_table(rows, columns)}\n\n"
               f"{score_lines}\n\n{environment_markdown(env)}\n")
     write_report("calibration", report, out, {"folds": rows}, env,
-                 {"robot": robot, "families": list(families), "history": history,
+                 {"robot": robot, "model": model_kind, "families": list(families),
+                  "history": history,
                   "axial_compression": axial_compression, "scores": scores})
     return rows

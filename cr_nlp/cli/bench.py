@@ -400,6 +400,9 @@ def _add_calibration(group: argparse._SubParsersAction) -> None:
                    help="fit the axial compliance (as cr-nlp calibrate's option)")
     p.add_argument("--history", action="store_true",
                    help="score the history-aware models (each fold refits the static one)")
+    p.add_argument("--model", choices=("pcc", "cosserat"), default="pcc",
+                   help="the geometric calibration (default) or the Cosserat rod driven by "
+                        "the commands (calibrate --model cosserat: ~10 min per fold)")
     add_common_options(p, "calibration", robot=False)
     p.add_argument("--robot", default="ftdcr_v6",
                    help="bundled robot with a training recording (default ftdcr_v6)")
@@ -413,9 +416,10 @@ def _run_calibration(args: argparse.Namespace) -> int:
         run_calibration_benchmark(robot=args.robot, families=tuple(args.families.split(",")),
                                   axial_compression=args.axial_compression,
                                   history=args.history, out=args.out,
-                                  progress=not args.no_progress)
+                                  progress=not args.no_progress, model=args.model)
     except ValueError as exc:
-        raise UsageError(f"--families: {exc}") from None
+        option = "--model" if str(exc).startswith("model") else "--families"
+        raise UsageError(f"{option}: {exc}") from None
     _wrote(args, "calibration")
     return 0
 

@@ -27,3 +27,8 @@ def test_bad_families_are_refused_before_any_fit(capsys: pytest.CaptureFixture[s
         run_calibration_benchmark(families=("seg",), history=True)
     assert main(["bench", "calibration", "--families", "seg,nope"]) == 2
     assert "--families: unknown family 'nope'" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="no history or axial compression folds"):
+        run_calibration_benchmark(families=("seg",), model="cosserat",
+                                  axial_compression="segments")
+    assert main(["bench", "calibration", "--model", "cosserat", "--history"]) == 2
+    assert "--model: model 'cosserat': no history" in capsys.readouterr().err
