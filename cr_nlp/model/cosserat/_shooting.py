@@ -90,7 +90,7 @@ class StaticsResult:
     @property
     def tip_wxyz(self) -> np.ndarray:
         """(B, 4) tip orientation as a unit quaternion (w, x, y, z)."""
-        return np.array([wxyz_from_matrix(r) for r in self.tip_rotation]).reshape(-1, 4)
+        return wxyz_from_matrix(self.tip_rotation).reshape(-1, 4)
 
 
 
