@@ -50,6 +50,27 @@ class TensionLive:
         self._solver: Any = None
         self._lock = threading.Lock()
 
+    @classmethod
+    def of(cls, model: str, loads: dict[str, Any] | None, result: Any, robot: Robot,
+           scene: Scene | None, mesh: RobotMesh) -> TensionLive | None:
+        """The viewer's live IK on the rod for ``model="cosserat"`` (a robot with a
+        ``mechanics`` block, no result; ``loads`` as keyword arguments of
+        ``TensionIKSolver.solve``: ``gravity`` m/s², ``tip_force`` N, …, world frame),
+        None for "pcc" (live IK of configurations).
+
+        Raises:
+            ValueError: another model, a robot without mechanics, or a result given.
+        """
+        if model not in ("pcc", "cosserat"):
+            raise ValueError(f"model: expected 'pcc' or 'cosserat', got {model!r}")
+        if model == "pcc":
+            return None
+        if robot.mechanics is None:
+            raise ValueError(f"model 'cosserat': {robot.name} has no 'mechanics' block")
+        if result is not None:
+            raise ValueError("model 'cosserat': the viewer shows the rod's live IK, no result")
+        return cls(robot, scene, mesh, loads or {})
+
     def solver(self) -> Any:
         """The ``TensionLiveIKSolver`` under the viewer's loads."""
         with self._lock:

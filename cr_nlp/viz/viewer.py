@@ -83,11 +83,8 @@ class Viewer:
             ``ReferencePath``) when the result's path name does not resolve.
         live_ik: offer live IK (a target gizmo; re-solves on every move).
         q: the configuration to show without a result (default straight).
-        model: "pcc" (live IK of configurations) or "cosserat": live IK of tendon tensions
-            on the Cosserat rod (a robot with a ``mechanics`` block, no result), the rod's
-            equilibrium under ``loads`` drawn.
-        loads: with "cosserat", the loads as keyword arguments of ``TensionIKSolver.solve``
-            (``gravity`` m/s², ``tip_force`` N, …, world frame).
+        model, loads: "pcc", or "cosserat": live IK of tendon tensions on the rod under
+            ``loads`` (``TensionLive.of``).
     """
 
     def __init__(
@@ -114,15 +111,12 @@ class Viewer:
         source = ""
         if isinstance(result, str | Path):
             source, result = str(result), read_json(result)
-        content = (
-            read_result(self.robot, result, targets, path, source=source)
-            if result is not None
-            else None
-        )
+        content = None if result is None else read_result(self.robot, result, targets, path,
+                                                          source=source)
         self.motions: list[Motion] = content if isinstance(content, list) else []
         self.answers: Answers | None = content if isinstance(content, Answers) else None
         self._mesh = RobotMesh(self.robot)
-        self._tension = self._tension_live(model, loads, result)
+        self._tension = TensionLive.of(model, loads, result, self.robot, self.scene, self._mesh)
         for motion in self.motions:
             precompute(motion, self._mesh, self.scene)
         straight = np.ravel([[0.0, 0.0, s.length_min] for s in self.robot.segments])
@@ -171,18 +165,6 @@ class Viewer:
         self._warming = threading.Thread(target=self._warm_up) if live_ik else None
         if self._warming is not None:
             self._warming.start()
-
-    def _tension_live(self, model: str, loads: Any, result: Any) -> TensionLive | None:
-        """The rod's live IK for ``model="cosserat"`` (None for "pcc")."""
-        if model not in ("pcc", "cosserat"):
-            raise ValueError(f"model: expected 'pcc' or 'cosserat', got {model!r}")
-        if model == "pcc":
-            return None
-        if self.robot.mechanics is None:
-            raise ValueError(f"model 'cosserat': {self.robot.name} has no 'mechanics' block")
-        if result is not None:
-            raise ValueError("model 'cosserat': the viewer shows the rod's live IK, no result")
-        return TensionLive(self.robot, self.scene, self._mesh, loads or {})
 
     def _build_page(self, live_ik: bool) -> None:
         """The scene, the robot, the controls and the camera."""
