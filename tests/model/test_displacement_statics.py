@@ -137,3 +137,19 @@ def test_cases_left_after_the_first_round_continue_where_they_were(
     again = solve_displacement_statics(ROBOT, COMMANDS[[0, 3]], gravity=GRAVITY)
     assert again.converged.all() and (again.iterations > 1).all()
     np.testing.assert_allclose(again.tensions, solved[0].tensions[[0, 3]], atol=1e-9)
+
+
+def test_the_newton_steps_linear_solve_pivots_like_lapack(float64) -> None:
+    import jax
+    import jax.numpy as jnp
+
+    from cr_nlp.model.cosserat._displacement import pivoted_solve
+
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(64, 12, 12))
+    a[:, 0, 0] = 0.0           # no elimination without a row swap
+    a[:8] *= np.logspace(0, 6, 12)  # badly scaled columns
+    b = rng.normal(size=(64, 12))
+    x = np.asarray(jax.jit(jax.vmap(pivoted_solve))(jnp.asarray(a), jnp.asarray(b)))
+    want = np.linalg.solve(a, b[..., None])[..., 0]
+    np.testing.assert_allclose(x, want, rtol=1e-9, atol=1e-12)

@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._programs import CachedProgram
 from ...runtime import cached, configure
 from .._actuation_block import Actuation
 from ..loads import static_loads
@@ -217,7 +218,7 @@ def _continuation(lay: _Layout, coarse: _Layout, config: StaticsConfig, pull: ja
             jac = jnp.concatenate([jf[:3], (jnp.diag(tension_columns)[3:]
                                             + taut[:, None] * jf[3:]) / scales[2]])
             rows = _rows(y, predicted_f, target, pull, k, scales, taut)
-            dy = -jnp.linalg.solve(jac, rows)
+            dy = -pivoted_solve(jac, rows)
             # the tendons the linear model stretches after the step: the next active set
             return (stretch - jf[3:] @ dy > 0.0).astype(dtype), (dy, rows)
 
@@ -293,9 +294,41 @@ _FIRST_ROUND = 6
 smaller batch (a vmapped loop runs until its slowest case is done)."""
 
 
+def pivoted_solve(a: jax.Array, b: jax.Array) -> jax.Array:
+    """Solve A x = b for one small square A (n, n), b (n,): Gaussian elimination with
+    partial pivoting in plain array operations (a loop over the columns, then over the
+    rows back). No LAPACK call, so a vmapped batch of them can be split over the CPU
+    devices (a sharded batched ``jnp.linalg.solve`` never returned with jax 0.10 on 2
+    host devices, ``runtime.split_over_devices``)."""
+    n = a.shape[0]
+    rows = jnp.arange(n)
+
+    def eliminate(k: jax.Array, ab: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, ...]:
+        a, b = ab
+        column = jnp.take(a, k, axis=1)
+        pivot = jnp.argmax(jnp.where(rows >= k, jnp.abs(column), -1.0))
+        order = jnp.where(rows == k, pivot, jnp.where(rows == pivot, k, rows))
+        a, b = a[order], b[order]
+        top, column = a[k], jnp.take(a, k, axis=1)
+        factor = jnp.where(rows > k, column / top[k], 0.0)
+        return a - factor[:, None] * top[None, :], b - factor * b[k]
+
+    a, b = jax.lax.fori_loop(0, n, eliminate, (a, b))
+
+    def substitute(i: jax.Array, x: jax.Array) -> jax.Array:
+        k = n - 1 - i
+        return x.at[k].set((b[k] - a[k] @ x) / a[k, k])
+
+    return jax.lax.fori_loop(0, n, substitute, jnp.zeros_like(b))
+
+
 @cached(maxsize=16)
 def _program(robot: Robot, config: StaticsConfig, iterations: int) -> Any:
-    return jax.jit(jax.vmap(displacement_solver(robot, config, iterations)))
+    """The Newton loop of ``iterations`` over a batch of cases, split over the devices
+    (one per CPU core in the CLI) where the batch divides evenly."""
+    return CachedProgram(jax.vmap(displacement_solver(robot, config, iterations)),
+                         name="the displacement-driven statics", batched=(True,) * 6,
+                         outputs=5)
 
 
 def _solve_rows(robot: Robot, config: StaticsConfig, rows: tuple) -> tuple[np.ndarray, ...]:
