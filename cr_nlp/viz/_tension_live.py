@@ -95,14 +95,11 @@ class TensionLive:
         answer = self.solver().solve(self.tensions, self.frames[0][-1], search=False)
         return float(answer.seconds)
 
-    def tip(self) -> tuple[np.ndarray, np.ndarray]:
-        """The tip position (3,) m and orientation (4,) wxyz on screen (the base frame's
-        top before the rest shape is known)."""
+    def tip(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The tip position (3,) m and orientation (4,) wxyz on screen; None before the
+        rest shape is known (the viewer shows the straight robot until then)."""
         if self.frames is None:
-            from ._replay import tip_pose
-
-            return tip_pose(self.robot, np.ravel([[0.0, 0.0, s.length_min]
-                                                  for s in self.robot.segments]))
+            return None
         return self.frames[0][-1], wxyz_from_matrix(self.frames[1][-1][None])[0]
 
     def geometry(self) -> tuple[np.ndarray, np.ndarray]:

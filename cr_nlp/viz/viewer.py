@@ -449,8 +449,8 @@ class Viewer:
                 self.show_answer(int(self._answer.value))
 
     def _place_gizmo(self) -> None:
-        tension = self._tension
-        position, wxyz = tip_pose(self.robot, self.q) if tension is None else tension.tip()
+        rod_tip = None if self._tension is None else self._tension.tip()
+        position, wxyz = tip_pose(self.robot, self.q) if rod_tip is None else rod_tip
         self._live_gizmo.position, self._live_gizmo.wxyz = tuple(position), tuple(wxyz)
 
     def target_moved(self, position: Any, wxyz: Any, final: bool) -> None:
