@@ -113,8 +113,8 @@ def chain_jacobians(terms: ChainResidual, z: jax.Array, params: Any,
     """Per-window residuals and Jacobians: a list of (k, r (W, m), J (W, m, k, d)) for
     each term present, k its window size and W = T − k + 1 its window count; J[w, :, a]
     is the derivative with respect to waypoint w + a. With ``differences`` the unary
-    term's Jacobian is taken by forward differences (``LMConfig.jacobian``), the others
-    by forward mode."""
+    term's Jacobian is taken by forward differences (``LMConfig.jacobian`` other than
+    ``"forward"``: the chain has no Broyden updates), the others by forward mode."""
     t, d = z.shape
 
     def window_jacobians(fn: Callable, k: int) -> tuple[jax.Array, jax.Array]:
@@ -372,7 +372,7 @@ def banded_lm_trip(terms: ChainResidual, project: Callable[[jax.Array], jax.Arra
 
     def step_system(z: jax.Array) -> tuple[BandedMatrix, jax.Array, jax.Array]:
         blocks = chain_jacobians(terms, z, params, shared,
-                                 differences=config.jacobian == "differences")
+                                 differences=config.jacobian != "forward")
         h, g = normal_equations(blocks, t)
         g = g * free
         # Fixed variables: zero coupling, unit diagonal, zero gradient (a zero step).

@@ -59,14 +59,21 @@ class LMConfig:
     ``"differences"`` (forward differences: n + 1 residual evaluations in one vectorised
     call, steps √ε·max(|z|, 1), so z should be scaled to order one). Differences serve
     residuals whose forward-mode derivative XLA compiles poorly, such as an ODE
-    integration with inner fixed-point sweeps (the Cosserat rod)."""
+    integration with inner fixed-point sweeps (the Cosserat rod). ``"broyden"``: forward
+    differences every ``refresh`` trips and Broyden's rank-one secant update in between,
+    one residual evaluation per trip instead of n + 1 (for expensive residuals started
+    near their answer; the loop keeps J (B, m, n), so not for very large batches)."""
+    refresh: int = 4
+    """(``jacobian="broyden"``) trips between two difference Jacobians."""
 
     def __post_init__(self) -> None:
+        if self.refresh < 1:
+            raise ValueError(f"refresh must be at least 1, got {self.refresh}")
         if self.linear_solver not in ("unrolled", "cholesky"):
             raise ValueError(f"linear_solver must be 'unrolled' or 'cholesky', "
                              f"got {self.linear_solver!r}")
-        if self.jacobian not in ("forward", "differences"):
-            raise ValueError(f"jacobian must be 'forward' or 'differences', "
+        if self.jacobian not in ("forward", "differences", "broyden"):
+            raise ValueError(f"jacobian must be 'forward', 'differences' or 'broyden', "
                              f"got {self.jacobian!r}")
 
 
@@ -223,9 +230,11 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
         ``LMSolution``: z (B, n), final cost ½‖r‖² (B,), iterations used (scalar) and why
         each problem stopped (``STOP_REASONS``).
     """
+    if config.jacobian == "broyden":
+        return _broyden_solve(residual, project, z0, params, shared, free, iterations,
+                              config, bounds)
     dtype = z0.dtype
     free = free.astype(dtype)
-    fixed_diag = jnp.diag(1.0 - free)
     z0 = project(z0)
     solve = solve_spd_cholesky if config.linear_solver == "cholesky" else solve_spd
 
@@ -247,25 +256,7 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
 
     def trial(z: jax.Array, h: jax.Array, g: jax.Array,
               lam: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """The damped step's trial point and the reduction the model predicts for it."""
-        if bounds is None:
-            h = h + fixed_diag              # JᵀJ is zero off the free variables already
-        else:
-            tight = 1e-12 * (1.0 + jnp.abs(z))
-            held = (((z <= bounds[0] + tight) & (g > 0))
-                    | ((z >= bounds[1] - tight) & (g < 0)))
-            moving = free * (1.0 - held.astype(dtype))                      # (B, n)
-            g = g * moving
-            h = (h * moving[:, :, None] * moving[:, None, :]
-                 + jax.vmap(jnp.diag)(1.0 - moving))
-        diag = jnp.diagonal(h, axis1=-2, axis2=-1)
-        # Marquardt scaling with a floor so a vanishing column still gets damped.
-        scale = jnp.maximum(diag, 1e-9 * jnp.max(diag, axis=-1, keepdims=True) + 1e-12)
-        z_new = project(z + solve(h + lam[:, None, None] * jax.vmap(jnp.diag)(scale), -g))
-        actual = z_new - z
-        predicted = -(jnp.sum(g * actual, -1)
-                      + 0.5 * jnp.einsum("bi,bij,bj->b", actual, h, actual))
-        return z_new, predicted
+        return damped_trial(z, h, g, lam, free, project, solve, bounds)
 
     def body(state: tuple) -> tuple:
         # One evaluation per trip, at the trial point (z0 on the first trip, which is
@@ -296,6 +287,93 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
     state = (z0, jnp.zeros_like(z0[:, :, None] * z0[:, None, :]), jnp.zeros_like(z0),
              zero + jnp.inf, z0, zero, lam0, nu0, zero > 0, (zero > 0).astype(jnp.int8),
              jnp.int32(-1))
+    z, _, _, cost, *_, why, it = jax.lax.while_loop(running, body, state)
+    out_of_iterations = jnp.asarray(STOP_REASONS.index("out of iterations"), jnp.int8)
+    return LMSolution(z, cost, it, jnp.where(why == 0, out_of_iterations, why))
+
+
+def damped_trial(z: jax.Array, h: jax.Array, g: jax.Array, lam: jax.Array, free: jax.Array,
+                 project: Projection, solve: Callable,
+                 bounds: tuple[jax.Array, jax.Array] | None) -> tuple[jax.Array, jax.Array]:
+    """The damped step's trial point (B, n) from JᵀJ ``h`` and Jᵀr ``g`` and the reduction
+    the Gauss–Newton model predicts for it (B,) (see ``lm_solve``'s ``bounds``)."""
+    dtype = z.dtype
+    if bounds is None:
+        h = h + jnp.diag(1.0 - free)        # JᵀJ is zero off the free variables already
+    else:
+        tight = 1e-12 * (1.0 + jnp.abs(z))
+        held = (((z <= bounds[0] + tight) & (g > 0))
+                | ((z >= bounds[1] - tight) & (g < 0)))
+        moving = free * (1.0 - held.astype(dtype))                          # (B, n)
+        g = g * moving
+        h = (h * moving[:, :, None] * moving[:, None, :]
+             + jax.vmap(jnp.diag)(1.0 - moving))
+    diag = jnp.diagonal(h, axis1=-2, axis2=-1)
+    # Marquardt scaling with a floor so a vanishing column still gets damped.
+    scale = jnp.maximum(diag, 1e-9 * jnp.max(diag, axis=-1, keepdims=True) + 1e-12)
+    z_new = project(z + solve(h + lam[:, None, None] * jax.vmap(jnp.diag)(scale), -g))
+    actual = z_new - z
+    predicted = -(jnp.sum(g * actual, -1)
+                  + 0.5 * jnp.einsum("bi,bij,bj->b", actual, h, actual))
+    return z_new, predicted
+
+
+def _broyden_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any,
+                   shared: Any, free: jax.Array, iterations: jax.Array, config: LMConfig,
+                   bounds: tuple[jax.Array, jax.Array] | None) -> LMSolution:
+    """``lm_solve`` with ``jacobian="broyden"``: the loop keeps J and r of the current
+    iterate; a trip evaluates the trial point's residual only and updates J by Broyden's
+    rule J += (r_t − r − J s) sᵀ / sᵀs along the step s (accepted or not: the secant
+    holds either way), except every ``config.refresh`` trips, where the whole batch takes
+    a difference Jacobian at its trial point. Same step rule, stops and answer."""
+    dtype = z0.dtype
+    free = free.astype(dtype)
+    z0 = project(z0)
+    solve = solve_spd_cholesky if config.linear_solver == "cholesky" else solve_spd
+    each = jax.vmap(residual, in_axes=(0, 0, None))
+
+    def fresh(z_t: jax.Array, *_: Any) -> tuple[jax.Array, jax.Array]:
+        return difference_jacobian(residual, z_t, params, shared)
+
+    def secant(z_t: jax.Array, z: jax.Array, j: jax.Array,
+               r: jax.Array) -> tuple[jax.Array, jax.Array]:
+        r_t = each(z_t, params, shared)
+        s = z_t - z
+        ss = jnp.sum(s * s, axis=-1)
+        miss = r_t - r - jnp.einsum("bmn,bn->bm", j, s)
+        update = miss[:, :, None] * s[:, None, :] / jnp.where(ss > 0, ss, 1.0)[:, None, None]
+        return jnp.where((ss > 0)[:, None, None], j + update, j), r_t
+
+    def body(state: tuple) -> tuple:
+        z, j, r, cost, z_trial, predicted, lam, nu, done, why, it = state
+        first = it < 0
+        j_t, r_t = jax.lax.cond(first | ((it + 1) % config.refresh == 0), fresh, secant,
+                                z_trial, z, j, r)
+        j_t = j_t * free
+        cost_new = 0.5 * jnp.sum(r_t * r_t, axis=-1)
+        verdict = lm_step_rule(config, cost, cost_new, predicted, lam, nu, done, it + 1, first)
+        accept = verdict.accept
+        z = jnp.where(accept[:, None], z_trial, z)
+        r = jnp.where(accept[:, None], r_t, r)
+        j = j_t      # the secant along a rejected step still describes the residual
+        cost, done, lam, nu = verdict.cost, verdict.done, verdict.damping, verdict.growth
+        why = jnp.where(why == 0, verdict.stop, why)
+        z_trial, predicted = damped_trial(z, jnp.einsum("bmi,bmj->bij", j, j),
+                                          jnp.einsum("bmi,bm->bi", j, r), lam, free,
+                                          project, solve, bounds)
+        return z, j, r, cost, z_trial, predicted, lam, nu, done, why, it + 1
+
+    def running(state: tuple) -> jax.Array:
+        *_, done, it = state
+        more = (~jnp.all(done) | (it < 0)) if config.stop_when_converged else True
+        return (it < iterations) & more
+
+    zero = jnp.zeros_like(z0[:, 0])
+    r0 = jax.eval_shape(lambda: each(z0, params, shared))
+    j0 = jnp.zeros((*r0.shape, z0.shape[1]), dtype) + zero[:, None, None]
+    state = (z0, j0, jnp.zeros(r0.shape, dtype) + zero[:, None], zero + jnp.inf, z0, zero,
+             zero + jnp.asarray(config.initial_damping, dtype), zero + jnp.asarray(2.0, dtype),
+             zero > 0, (zero > 0).astype(jnp.int8), jnp.int32(-1))
     z, _, _, cost, *_, why, it = jax.lax.while_loop(running, body, state)
     out_of_iterations = jnp.asarray(STOP_REASONS.index("out of iterations"), jnp.int8)
     return LMSolution(z, cost, it, jnp.where(why == 0, out_of_iterations, why))

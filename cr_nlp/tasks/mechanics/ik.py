@@ -37,7 +37,7 @@ safety margin. Units: metres, radians, newtons, N·m, m/s².
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import Any
 
@@ -94,8 +94,15 @@ class TensionIKConfig:
     pool_size: int = 16384
     """Random tension sets whose tips seed the search (one forward statics batch, once per
     solver and load case)."""
-    iterations: int = 20
+    iterations: int = 24
     """LM iterations at most."""
+    round_iterations: int = 6
+    """The LM runs in rounds of this many iterations; after each round only the targets
+    still running go on (0: one round)."""
+    initial_damping: float = 1e-6
+    """The LM's starting λ relative to the diagonal of JᵀJ. From a pool seed the
+    Gauss–Newton step is good: at 1e-2 the first steps were cut short and the median
+    target needed 10 iterations to 1e-7 m instead of 5 (docs/benchmarks.md)."""
     retry_seeds: int = 6
     """Targets that fail the verdict are solved again from their next-nearest pool
     entries, this many (0: no retry)."""
@@ -107,12 +114,16 @@ class TensionIKConfig:
     clearance_weight: float = 10.0
     """Weight of the clearance rows of the solved backbone in the LM (with a scene): a
     sphere 1 mm inside the band costs as much as 1 cm of tip error."""
-    clearance_buffer: float = 0.002
+    clearance_buffer: float = 0.0005
     """The LM keeps the backbone's spheres this far beyond δ (m): the verdict checks
-    capsules between the points, which can come closer than the spheres."""
-    jacobian: str = "differences"
-    """How the LM differentiates the rod (``LMConfig.jacobian``): ``"differences"``
-    (forward differences over the unknowns) or ``"forward"`` (forward mode)."""
+    capsules between the points, which can come closer than the spheres. A target whose
+    only clear answers keep less than δ plus this is pulled off by the rows: at 2 mm,
+    1.9 % of clear targets in clutter failed, at 0.5 mm 0–0.1 % (docs/benchmarks.md)."""
+    jacobian: str = "broyden"
+    """How the LM differentiates the rod (``LMConfig.jacobian``): ``"broyden"`` (forward
+    differences at the start of each round, Broyden's secant updates within it: one pass
+    of the rod per iteration instead of one per unknown and one), ``"differences"``
+    (forward differences every iteration) or ``"forward"`` (forward mode)."""
     statics: StaticsConfig = field(default_factory=StaticsConfig)
     """The rod discretisation (shared by the LM and the verdict's solve) and its dtype."""
 
@@ -420,7 +431,7 @@ class TensionIKSolver:
 
     def lm_config(self) -> LMConfig:
         """The refine stage's LM rules for this solver's tolerance."""
-        return LMConfig(jacobian=self.config.jacobian, linear_solver="unrolled",
+        return LMConfig(jacobian=self.config.jacobian, refresh=8, linear_solver="unrolled",
                         cost_tolerance=0.5 * (1e-3 * self.config.tolerance) ** 2,
                         stall_tolerance=1e-6)
 
@@ -436,12 +447,32 @@ class TensionIKSolver:
                     loads: StaticLoads, base_moment: np.ndarray | None = None,
                     smallest: int = 16) -> tuple[np.ndarray, np.ndarray]:
         """``_lm`` and why the LM stopped on each target ((B,) words of
-        ``stages.refine.STOP_REASONS``)."""
+        ``stages.refine.STOP_REASONS``).
+
+        The LM runs in rounds of ``TensionIKConfig.round_iterations``: after each, only the
+        targets still running go on, from where they stopped, in a batch padded to their
+        own count (most converge in the first round; a batch's loop runs until its last
+        problem stops, so the stragglers no longer keep the whole batch iterating)."""
         cfg = self.config
-        dtype = np.float64 if cfg.statics.dtype == "float64" else np.float32
         shoot, params, moment = self.waypoint_params(positions, quats, loads)
         terms = self._terms[shoot]
-        z0 = unknowns_of(terms, tensions, moment if base_moment is None else base_moment)
+        z = unknowns_of(terms, tensions, moment if base_moment is None else base_moment)
+        why = np.full(len(z), "out of iterations", dtype=object)
+        going = np.arange(len(z))
+        left = cfg.iterations
+        while left > 0 and going.size:
+            trips = min(left, cfg.round_iterations) if cfg.round_iterations > 0 else left
+            part = jax.tree_util.tree_map(lambda a, rows=going: np.asarray(a)[rows], params)
+            z[going], why[going] = self._lm_round(terms, z[going], part, trips, smallest)
+            going = going[why[going] == "out of iterations"]
+            left -= trips
+        return tensions_of_unknowns(terms, z), why
+
+    def _lm_round(self, terms: TensionTerms, z0: np.ndarray, params: WaypointParams,
+                  iterations: int, smallest: int) -> tuple[np.ndarray, np.ndarray]:
+        """One round of the LM from unknowns ``z0`` (B, size): (z, why each stopped). The
+        batch is padded to a power of two, at least ``smallest``."""
+        dtype = np.float64 if self.config.statics.dtype == "float64" else np.float32
         size = max(smallest, 1 << (len(z0) - 1).bit_length())
         pad = size - len(z0)
 
@@ -449,14 +480,15 @@ class TensionIKSolver:
             return jnp.asarray(np.concatenate([a, np.repeat(a[:1], pad, axis=0)]), dtype)
 
         with jax.enable_x64(dtype == np.float64):
-            shared = self._device_scene(dtype)
-            solution = lm_solve(self._residuals[shoot], self._project, padded(z0),
-                                jax.tree_util.tree_map(padded, params), shared,
-                                jnp.ones(z0.shape[1], dtype), jnp.asarray(cfg.iterations),
-                                self.lm_config(), bounds=box_bounds(terms, dtype))
+            solution = lm_solve(self._residuals[terms.shoot], self._project, padded(z0),
+                                jax.tree_util.tree_map(padded, params),
+                                self._device_scene(dtype), jnp.ones(z0.shape[1], dtype),
+                                jnp.asarray(iterations),
+                                replace(self.lm_config(),
+                                        initial_damping=self.config.initial_damping),
+                                bounds=box_bounds(terms, dtype))
             z = np.asarray(solution.z, dtype=float)[:len(z0)]
-        return (tensions_of_unknowns(terms, z),
-                np.array(solution.reasons()[:len(z0)], dtype=object))
+        return z, np.array(solution.reasons()[:len(z0)], dtype=object)
 
     def _verdict(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,
                  loads: StaticLoads, timing: StageTiming) -> TensionIKResult:

@@ -15,7 +15,7 @@ Units: metres, radians, newtons, N·m, seconds.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -69,7 +69,9 @@ class TensionLiveIKSolver:
 
     def __init__(self, robot: Robot | str | dict, scene: Scene | str | None = None,
                  config: TensionIKConfig | None = None, **loads: Any) -> None:
-        self.ik = TensionIKSolver(robot, scene, config or TensionIKConfig())
+        # One target: the LM in one round (rounds only shrink a batch's stragglers).
+        self.ik = TensionIKSolver(robot, scene,
+                                  replace(config or TensionIKConfig(), round_iterations=0))
         self.robot = self.ik.robot
         self.loads = static_loads(1, self.ik.length, **loads)
         self._moment: tuple[bytes, np.ndarray] | None = None

@@ -88,3 +88,43 @@ def test_lm_solve_says_why_each_problem_stopped() -> None:
     stubborn = LMConfig(give_up=((2, 1e-9),), stall_tolerance=0.0)
     gave = lm_solve(_line, lambda z: z, z0, params, None, free, jnp.int32(50), config=stubborn)
     assert gave.reasons()[1] == "gave up"
+
+
+def _rosenbrock(z, params, shared):
+    """Rosenbrock's residuals (10(y − x²), 1 − x), scaled by a per-problem factor: the
+    root is (1, 1) whatever the start."""
+    return params[0] * jnp.stack([10.0 * (z[1] - z[0] ** 2), 1.0 - z[0]])
+
+
+def test_broyden_updates_reach_the_same_root_as_difference_jacobians() -> None:
+    starts = jnp.asarray([[-1.2, 1.0], [0.5, -0.5], [2.0, 3.0], [1.1, 1.3]])
+    params = (jnp.asarray([1.0, 2.0, 0.5, 1.0]),)
+    free = jnp.ones(2)
+    for jacobian, refresh in (("differences", 4), ("broyden", 4), ("broyden", 100)):
+        config = LMConfig(jacobian=jacobian, refresh=refresh, initial_damping=1e-3)
+        solved = lm_solve(_rosenbrock, lambda z: z, starts, params, None, free,
+                          jnp.int32(200), config)
+        assert solved.reasons() == ["converged"] * 4, (jacobian, refresh)
+        np.testing.assert_allclose(np.asarray(solved.z), 1.0, atol=1e-5)
+
+
+def test_broyden_on_a_linear_residual_converges_in_the_first_steps() -> None:
+    # The difference Jacobian of a linear residual is exact and the secant updates keep
+    # it so: one Gauss–Newton step reaches the least-squares answer (a + b)/2.
+    import jax
+
+    config = LMConfig(jacobian="broyden", initial_damping=1e-12)
+    with jax.enable_x64(True):
+        params = (jnp.asarray([[1.0], [-3.0]]), jnp.asarray([[3.0], [5.0]]))
+        solved = lm_solve(_line, lambda z: z, jnp.asarray([[0.0], [10.0]]), params, None,
+                          jnp.ones(1), jnp.int32(2), config)
+        np.testing.assert_allclose(np.asarray(solved.z)[:, 0], [2.0, 1.0], atol=1e-9)
+
+
+def test_bad_jacobian_settings_are_named() -> None:
+    import pytest
+
+    with pytest.raises(ValueError, match="refresh"):
+        LMConfig(jacobian="broyden", refresh=0)
+    with pytest.raises(ValueError, match="broyden"):
+        LMConfig(jacobian="secant")
