@@ -114,7 +114,10 @@ def chain_jacobians(terms: ChainResidual, z: jax.Array, params: Any,
     each term present, k its window size and W = T − k + 1 its window count; J[w, :, a]
     is the derivative with respect to waypoint w + a. With ``differences`` the unary
     term's Jacobian is taken by forward differences (``LMConfig.jacobian`` other than
-    ``"forward"``: the chain has no Broyden updates), the others by forward mode."""
+    ``"forward"``), the others by forward mode. The chain has no Broyden updates: tried
+    per waypoint block (a fresh Jacobian every 2–8 trips and after each rejected step),
+    they cut a plan's refine 0.16 → 0.05–0.11 s but left one of 8 refined plans in
+    collision and one of 6 followed paths 3 µm inside δ, where differences kept both."""
     t, d = z.shape
 
     def window_jacobians(fn: Callable, k: int) -> tuple[jax.Array, jax.Array]:
