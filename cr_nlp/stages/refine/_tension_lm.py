@@ -322,9 +322,10 @@ def _chain_projection(terms: TensionTerms) -> Any:
 
 
 def chain_length(count: int) -> int:
-    """The padded waypoint count of a chain of ``count``: a multiple of 16 (a few compiled
+    """The padded waypoint count of a chain of ``count``: 8 up to 8 waypoints (most plans:
+    3–9 waypoints after the refine's resampling), else a multiple of 16 (a few compiled
     programs for all path lengths)."""
-    return max(16, -(-count // 16) * 16)
+    return 8 if count <= 8 else -(-count // 16) * 16
 
 
 def solve_motion(terms: MotionTerms, z0: np.ndarray, params: WaypointParams,
