@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..runtime import cached
 from .mechanics import require_mechanics
 from .robot import Robot
 from .routing import routing_of
@@ -33,6 +34,7 @@ class TendonGroups(NamedTuple):
     pairs: np.ndarray   # (m, 2)
 
 
+@cached(maxsize=64)
 def tendon_groups(robot: Robot) -> TendonGroups | None:
     """The tendon groups of ``robot``, None if a group has fewer than three tendons (their
     moments then do not cover the plane)."""

@@ -476,8 +476,9 @@ class TensionIKSolver:
         size = max(smallest, 1 << (len(z0) - 1).bit_length())
         pad = size - len(z0)
 
-        def padded(a: np.ndarray) -> jax.Array:
-            return jnp.asarray(np.concatenate([a, np.repeat(a[:1], pad, axis=0)]), dtype)
+        def padded(a: np.ndarray) -> np.ndarray:  # the compiled call moves it (cheaper)
+            a = np.asarray(a, dtype)
+            return np.concatenate([a, np.repeat(a[:1], pad, axis=0)]) if pad else a
 
         with jax.enable_x64(dtype == np.float64):
             solution = lm_solve(self._residuals[terms.shoot], self._project, padded(z0),
