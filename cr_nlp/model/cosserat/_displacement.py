@@ -45,7 +45,7 @@ from ..rotations import matrix_from_wxyz
 from ..routing import routing_of
 from ._rod import CaseLoads, StaticsConfig, _integrate, _Layout, _layout
 from ._shooting import StaticsResult
-from ._statics import _case_loads, _device, _load_batch, _padded, _stable, solve_statics
+from ._statics import _case_loads, _load_batch, _padded, _stable, _typed, solve_statics
 from ._statics import _programs as _statics_programs
 
 __all__ = ["DisplacementStaticsResult", "commanded_pull", "displacement_pass",
@@ -339,13 +339,13 @@ def _solve_rows(robot: Robot, config: StaticsConfig, rows: tuple) -> tuple[np.nd
     size = 3 + rows[0].shape[1]
     start = (np.zeros((batch, size)), np.zeros(batch))
     y, solved, its, _, lam = (np.array(a)[:batch] for a in _program(robot, config, _FIRST_ROUND)(
-        *_device(_padded((*rows, *start), edge=True), np.float64)))
+        *_typed(_padded((*rows, *start), edge=True), np.float64)))
     left = np.flatnonzero(~solved)
     if left.size:
         def pick(a: Any) -> Any:
             return jax.tree_util.tree_map(lambda v: np.asarray(v)[left], a)
 
-        more = _program(robot, config, config.max_iterations + 16)(*_device(
+        more = _program(robot, config, config.max_iterations + 16)(*_typed(
             _padded((*pick(rows), y[left], lam[left]), edge=True), np.float64))
         y[left], solved[left], its[left] = (np.asarray(a)[:left.size] for a in more[:3])
     return y, solved, its
@@ -427,7 +427,7 @@ def _verdict(robot: Robot, config: StaticsConfig, base_moment: np.ndarray,
     programs), in the world frame; ``iterations``: the Newton iterations that found them."""
     _, _, finish, _ = _statics_programs(robot, config)
     batch = len(tensions)
-    out = finish(*_device(_padded((base_moment, tensions, loads)), np.float64))
+    out = finish(*_typed(_padded((base_moment, tensions, loads)), np.float64))
     out = {key: np.asarray(v)[:batch] for key, v in out.items()}
     stable = _stable(robot, config, base_moment, tensions, loads, np.float64)
     base_rot = matrix_from_wxyz(np.asarray(robot.base_wxyz))

@@ -100,7 +100,7 @@ def _padded(rows: Any, edge: bool = False) -> Any:
     return jax.tree_util.tree_unflatten(tree, [pad(a) for a in leaves])
 
 
-def _device(rows: Any, dtype: Any) -> Any:
+def _typed(rows: Any, dtype: Any) -> Any:
     """The rows as ``dtype`` numpy arrays for a compiled program, which moves them to its
     devices itself (30 µs for ten small arrays, against 180 µs for ``jax.device_put`` of
     the tree first: a one-case solve makes five such calls)."""
@@ -126,7 +126,7 @@ def _solve_rows(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads:
     first, further, _, _ = _programs(robot, config)
     count = len(tension)
     rows = (tension, loads)
-    state = first(*_device(_padded((*rows, x0, lam0, mode)), dtype))
+    state = first(*_typed(_padded((*rows, x0, lam0, mode)), dtype))
     x, its = np.array(state.x)[:count], np.array(state.it)[:count]
     stall = np.array(state.stall)[:count]
     limit = min(_FIRST_ROUND, config.max_iterations)
@@ -143,7 +143,7 @@ def _solve_rows(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads:
         def pick(a: Any) -> Any:
             return _padded(np.asarray(a)[left], edge=True)
 
-        more = further(*_device(jax.tree_util.tree_map(pick, (*rows, mode)), dtype),
+        more = further(*_typed(jax.tree_util.tree_map(pick, (*rows, mode)), dtype),
                        jax.tree_util.tree_map(lambda a: jnp.asarray(pick(a)), state))
         x[left], its[left] = np.asarray(more.x)[:left.size], np.asarray(more.it)[:left.size]
         stall[left] = np.asarray(more.stall)[:left.size]
@@ -155,7 +155,7 @@ def _stable(robot: Robot, config: StaticsConfig, x: np.ndarray, tension: np.ndar
             loads: CaseLoads, dtype: Any) -> np.ndarray:
     """(R,) True where M(0) = ``x`` gives a stable equilibrium (``model._equilibria``)."""
     stability = _programs(robot, config)[3]
-    det = stability(*_device(_padded((x, tension, loads)), dtype))
+    det = stability(*_typed(_padded((x, tension, loads)), dtype))
     return np.asarray(det)[:len(x)] > 0.0
 
 
@@ -389,7 +389,7 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
                 for i, entries in zip(rows, check.found, strict=True):
                     found[i] = entries
         finish = _programs(robot, config)[2]
-        out = finish(*_device(_padded((base, t, loads)), dtype))
+        out = finish(*_typed(_padded((base, t, loads)), dtype))
         out = {k: np.asarray(v)[:batch] for k, v in out.items()}
         shapes = None
         if all_equilibria:
@@ -431,7 +431,7 @@ def _shapes(robot: Robot, config: StaticsConfig, found: list, tension: np.ndarra
     case = np.array([i for i, entries in enumerate(found) for _ in entries], int)
     flat = [e for entries in found for e in entries]
     x = np.array([e[0] for e in flat]).reshape(-1, 3)
-    out = _programs(robot, config)[2](*_device(_padded((x, tension[case],
+    out = _programs(robot, config)[2](*_typed(_padded((x, tension[case],
                                                          _rows(loads, case))), dtype))
     positions = np.asarray(out["positions"], float)[:len(x)] @ base_rot.T + base_pos
     rotations = np.einsum("ij,bpjk->bpik", base_rot,

@@ -275,10 +275,7 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
         z_trial, predicted = trial(z, h, g, lam)
         return z, h, g, cost, z_trial, predicted, lam, nu, done, why, it + 1
 
-    def running(state: tuple) -> jax.Array:
-        *_, done, it = state
-        more = (~jnp.all(done) | (it < 0)) if config.stop_when_converged else True
-        return (it < iterations) & more
+    running = partial(_running, config, iterations)
 
     # Derived from z0 (not jnp.full) so that under shard_map they vary per shard too.
     zero = jnp.zeros_like(z0[:, 0])
@@ -290,6 +287,15 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
     z, _, _, cost, *_, why, it = jax.lax.while_loop(running, body, state)
     out_of_iterations = jnp.asarray(STOP_REASONS.index("out of iterations"), jnp.int8)
     return LMSolution(z, cost, it, jnp.where(why == 0, out_of_iterations, why))
+
+
+def _running(config: LMConfig, iterations: jax.Array, state: tuple) -> jax.Array:
+    """Whether the LM loop takes another trip (both loops' states end with done, it):
+    fewer than ``iterations`` trips and, with ``stop_when_converged``, some problem still
+    running (always the first trip)."""
+    *_, done, it = state
+    more = (~jnp.all(done) | (it < 0)) if config.stop_when_converged else True
+    return (it < iterations) & more
 
 
 def damped_trial(z: jax.Array, h: jax.Array, g: jax.Array, lam: jax.Array, free: jax.Array,
@@ -363,10 +369,7 @@ def _broyden_solve(residual: Residual, project: Projection, z0: jax.Array, param
                                           project, solve, bounds)
         return z, j, r, cost, z_trial, predicted, lam, nu, done, why, it + 1
 
-    def running(state: tuple) -> jax.Array:
-        *_, done, it = state
-        more = (~jnp.all(done) | (it < 0)) if config.stop_when_converged else True
-        return (it < iterations) & more
+    running = partial(_running, config, iterations)
 
     zero = jnp.zeros_like(z0[:, 0])
     r0 = jax.eval_shape(lambda: each(z0, params, shared))

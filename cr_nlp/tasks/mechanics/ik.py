@@ -121,8 +121,9 @@ class TensionIKConfig:
     1.9 % of clear targets in clutter failed, at 0.5 mm 0–0.1 % (docs/benchmarks.md)."""
     jacobian: str = "broyden"
     """How the LM differentiates the rod (``LMConfig.jacobian``): ``"broyden"`` (forward
-    differences at the start of each round, Broyden's secant updates within it: one pass
-    of the rod per iteration instead of one per unknown and one), ``"differences"``
+    differences at the start of each round and every 8 iterations within one, Broyden's
+    secant updates in between: one pass of the rod per iteration instead of one per
+    unknown and one), ``"differences"``
     (forward differences every iteration) or ``"forward"`` (forward mode)."""
     statics: StaticsConfig = field(default_factory=StaticsConfig)
     """The rod discretisation (shared by the LM and the verdict's solve) and its dtype."""
