@@ -108,6 +108,36 @@ def test_a_column_past_its_buckling_load_has_two_equilibria_and_buckles() -> Non
     assert mirror and not any(e.stable for e in mirror)
 
 
+def test_a_slow_motion_continued_from_its_last_equilibrium_keeps_the_shapes() -> None:
+    """``start_moment``: Newton from the previous step's equilibrium lands on the shape
+    the loading path from rest finds (one equilibrium here) in fewer iterations."""
+    gravity, payload = [0.0, 0.0, -9.81], [0.0, 0.0, -0.005 * 9.81]
+    phase = np.linspace(0.0, 1.0, 25)[:, None] * 2 * np.pi - [0.0, 2.1, 4.2]
+    tensions = np.concatenate([1.2 + 0.15 * np.cos(phase), 0.4 + 0.1 * np.cos(2 * phase)], 1)
+    rest = solve_statics(RAO, tensions, payload, None, gravity)
+    assert rest.converged.all() and (rest.equilibria == 1).all()
+    continued = solve_statics(RAO, tensions[1:], payload, None, gravity,
+                              start_moment=rest.base_moment[:-1])
+    np.testing.assert_allclose(continued.positions, rest.positions[1:], atol=1e-9)
+    assert continued.stable.all()
+    assert continued.iterations.mean() < 0.7 * rest.iterations[1:].mean()
+
+
+def test_an_unstable_start_moment_falls_back_to_the_loading_path() -> None:
+    """Newton from the mirror image of a buckled column converges to that mirror image,
+    which is unstable: the answer is the loading path's, buckled towards the nudge."""
+    load = 2.0 * np.pi ** 2 * EI / (4 * LENGTH ** 2)
+    force = [1e-4 * load, 0, -load]
+    every = solve_statics(RAO, NO_TENSION, force, all_equilibria=True)
+    mirror = [e for e in every.all_equilibria[0] if e.tip_position[0] < 0]
+    assert mirror and not mirror[0].stable
+    answer = solve_statics(RAO, NO_TENSION, force, start_moment=mirror[0].base_moment)
+    assert answer.stable[0] and answer.tip_position[0, 0] > 0
+    np.testing.assert_allclose(answer.positions, every.positions, atol=1e-9)
+    with pytest.raises(ValueError, match=r"start_moment: expected \(3,\) or \(1, 3\)"):
+        solve_statics(RAO, NO_TENSION, force, start_moment=[0.0, np.nan, 0.0])
+
+
 def test_the_small_step_loading_path_reaches_the_full_loads(float64) -> None:
     """The branch check's second try, loading from rest in increments of at most
     ``small_step``, ends at the full loads within the iteration budget, at the one

@@ -33,19 +33,22 @@ _FIRST_ROUND = 10
 
 
 @cached(maxsize=64)
-def _programs(robot: Robot, config: StaticsConfig) -> tuple[Any, Any, Any, Any]:
-    """(first round, further rounds, finish, stability): jitted and vmapped over cases;
-    jit keeps one compiled program per padded batch size."""
+def _programs(robot: Robot, config: StaticsConfig, alone: bool = False
+              ) -> tuple[Any, Any, Any, Any]:
+    """(first round, further rounds, finish, stability): jitted and vmapped over cases
+    (jit keeps one compiled program per padded batch size); ``alone``: the same for a
+    batch of one case, not vmapped, where the shooting skips work the vmapped loop
+    cannot (``_shooting``)."""
     lay, coarse = _layout(robot, config), _layout(robot, config, coarse=True)
 
     def first(tension: jax.Array, loads: CaseLoads, x0: jax.Array, lam0: jax.Array,
               mode: jax.Array) -> _Newton:
-        start, iterate, done = _shooting(lay, coarse, config, tension, loads, mode)
+        start, iterate, done = _shooting(lay, coarse, config, tension, loads, mode, alone)
         return _run(iterate, done, start(x0, lam0), min(_FIRST_ROUND, config.max_iterations))
 
     def further(tension: jax.Array, loads: CaseLoads, mode: jax.Array,
                 state: _Newton) -> _Newton:
-        _, iterate, done = _shooting(lay, coarse, config, tension, loads, mode)
+        _, iterate, done = _shooting(lay, coarse, config, tension, loads, mode, alone)
         return _run(iterate, done, state, max(0, config.max_iterations - _FIRST_ROUND))
 
     def finish(base_moment: jax.Array, tension: jax.Array,
@@ -55,8 +58,37 @@ def _programs(robot: Robot, config: StaticsConfig) -> tuple[Any, Any, Any, Any]:
     def stability(base_moment: jax.Array, tension: jax.Array, loads: CaseLoads) -> jax.Array:
         return jacobi_margin(lay, config, base_moment, tension, loads)
 
-    return (_split(jax.vmap(first), 5), _split(jax.vmap(further), 4),
-            _split(jax.vmap(finish), 3), _split(jax.vmap(stability), 3))
+    batch = _one if alone else jax.vmap
+    return (_split(batch(first), 5), _split(batch(further), 4),
+            _split(batch(finish), 3), _split(batch(stability), 3))
+
+
+@cached(maxsize=64)
+def _settle_program(robot: Robot, config: StaticsConfig) -> Any:
+    """One case's Newton under the full loads from a given M(0) (one round), its
+    stability and its shape, in one program of a batch of one (a live update's verdict:
+    one call instead of three)."""
+    lay, coarse = _layout(robot, config), _layout(robot, config, coarse=True)
+
+    def settle(tension: jax.Array, loads: CaseLoads, x0: jax.Array
+               ) -> tuple[_Newton, jax.Array, dict[str, jax.Array]]:
+        mode = jnp.asarray([0.0, 1.0], tension.dtype)
+        start, iterate, done = _shooting(lay, coarse, config, tension, loads, mode, True)
+        state = _run(iterate, done, start(x0, 1 + 0 * x0[0]),
+                     min(_FIRST_ROUND, config.max_iterations))
+        return (state, jacobi_margin(lay, config, state.x, tension, loads),
+                _finish(lay, config, state.x, tension, loads))
+
+    return _split(_one(settle), 3)
+
+
+def _one(fn: Any) -> Any:
+    """``fn`` of one case as a function of a batch of one (no vmap)."""
+    def call(*args: Any) -> Any:
+        out = fn(*jax.tree_util.tree_map(lambda a: a[0], args))
+        return jax.tree_util.tree_map(lambda a: a[None], out)
+
+    return call
 
 
 def _split(fn: Any, arguments: int) -> Any:
@@ -123,8 +155,8 @@ def _solve_rows(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads:
     (R, 2) (see ``_shooting``): every row gets ``_FIRST_ROUND`` iterations, then the
     unfinished ones among ``further_round`` (True: all; or a (R,) mask) continue in a
     smaller batch."""
-    first, further, _, _ = _programs(robot, config)
     count = len(tension)
+    first, further, _, _ = _programs(robot, config, count == 1)
     rows = (tension, loads)
     state = first(*_typed(_padded((*rows, x0, lam0, mode)), dtype))
     x, its = np.array(state.x)[:count], np.array(state.it)[:count]
@@ -154,7 +186,7 @@ def _solve_rows(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads:
 def _stable(robot: Robot, config: StaticsConfig, x: np.ndarray, tension: np.ndarray,
             loads: CaseLoads, dtype: Any) -> np.ndarray:
     """(R,) True where M(0) = ``x`` gives a stable equilibrium (``model._equilibria``)."""
-    stability = _programs(robot, config)[3]
+    stability = _programs(robot, config, len(x) == 1)[3]
     det = stability(*_typed(_padded((x, tension, loads)), dtype))
     return np.asarray(det)[:len(x)] > 0.0
 
@@ -266,7 +298,7 @@ def _check(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads: Case
 def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment: Any = None,
                   gravity: Any = None, config: StaticsConfig = StaticsConfig(), *,
                   distributed_force: Any = None, point_loads: Any = None,
-                  all_equilibria: bool = False) -> StaticsResult:
+                  all_equilibria: bool = False, start_moment: Any = None) -> StaticsResult:
     """Equilibrium shapes for a batch of tendon tensions and loads (numpy in, numpy out).
 
     The answer is the equilibrium reached by loading the robot from rest (tensions and
@@ -288,6 +320,12 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
             one such list per case (``model.loads``).
         all_equilibria: solve every loaded case from several starts and return the
             distinct equilibria found in ``StaticsResult.all_equilibria``.
+        start_moment: (3,) or (B, 3) moments at the base of nearby equilibria, N·m, world
+            frame (e.g. the previous step's ``base_moment`` of a slow motion). A case is
+            then solved by Newton under its full loads from there, the equilibrium a robot
+            moving slowly from that one stays on, where that converges within one round
+            and is stable (3–4 iterations from a neighbour, against 7–10 from rest);
+            elsewhere by the loading path from rest, as without it.
 
     Returns:
         ``StaticsResult`` in the world frame; a case that did not converge is marked in
@@ -298,8 +336,9 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
             or a point load off the robot (naming the case and the key), a robot without
             mechanics.
 
-    Long: the public entry documents every load argument; its body is the ~55 lines of
-    checks and the branch check's call, in order.
+    Long: the public entry documents every load argument; its body (~110 lines) is the
+    checks, the continued start, the direct continuation and the branch check's call, in
+    order, on shared per-case arrays.
     """
     configure()
     t = np.atleast_2d(np.asarray(tensions, dtype=float))
@@ -332,8 +371,18 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
     snap_load = np.full(batch, np.nan)
     found: list = [[(base[i], True, True)] for i in range(batch)]
     shot = np.flatnonzero(frame.has_force())
+    out = None
     # float64 without touching the process-wide flag (the batched stages keep theirs).
     with jax.enable_x64(config.dtype == "float64"):
+        if shot.size and start_moment is not None:
+            near = _start_moments(start_moment, batch) @ base_rot
+            kept = _continued(robot, config, t[shot], _rows(loads, shot), near[shot], dtype)
+            out = kept.shape
+            base[shot[kept.any]] = kept.x
+            iterations[shot[kept.any]] = kept.iterations
+            for i in shot[kept.any]:
+                found[i] = [(base[i], True, True)]
+            shot = shot[~kept.any]
         if shot.size:
             part, tension = _rows(loads, shot), t[shot]
             # The direct continuation (tensions whole, the loads ramped) first: where the
@@ -388,9 +437,10 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
                 snap_load[rows[check.replaced & np.isnan(snap_load[rows])]] = 1.0
                 for i, entries in zip(rows, check.found, strict=True):
                     found[i] = entries
-        finish = _programs(robot, config)[2]
-        out = finish(*_typed(_padded((base, t, loads)), dtype))
-        out = {k: np.asarray(v)[:batch] for k, v in out.items()}
+        if out is None:  # (a one-case continued answer has its shape already)
+            finish = _programs(robot, config, batch == 1)[2]
+            out = finish(*_typed(_padded((base, t, loads)), dtype))
+            out = {k: np.asarray(v)[:batch] for k, v in out.items()}
         shapes = None
         if all_equilibria:
             shapes = _shapes(robot, config, found, t, loads, base_rot, base_pos, dtype)
@@ -404,6 +454,46 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
         base_moment=out["base_moment"].astype(float) @ base_rot.T,
         base_force=out["base_force"].astype(float) @ base_rot.T,
         stable=stable, equilibria=equilibria, snap_load=snap_load, all_equilibria=shapes)
+
+
+class _Continued(NamedTuple):
+    any: np.ndarray         # (R,) the rows answered
+    x: np.ndarray           # their M(0), base frame
+    iterations: np.ndarray
+    shape: dict | None      # one row answered: its ``_finish`` (numpy)
+
+
+def _continued(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads: CaseLoads,
+               near: np.ndarray, dtype: Any) -> _Continued:
+    """Newton under the full loads from M(0) = ``near`` (R, 3), base frame, one round:
+    the rows whose answer converged and is stable."""
+    rows = len(tension)
+    if rows == 1:
+        state, margin, shape = _settle_program(robot, config)(
+            *_typed((tension, loads, near), dtype))
+        x, it = np.array(state.x), np.asarray(state.it)
+        tol = config.resolved_tolerance() * _layout(robot, config).moment_scale
+        ok = ((np.asarray(state.lam) >= 1.0) & (np.linalg.norm(np.asarray(state.r), axis=1)
+                                                 <= tol) & (np.asarray(margin) > 0.0))
+        return _Continued(ok, x[ok], it[ok],
+                          {k: np.asarray(v) for k, v in shape.items()} if ok[0] else None)
+    solved = _solve_rows(robot, config, tension, loads, near, np.ones(rows),
+                         np.tile([0.0, 1.0], (rows, 1)), dtype, further_round=False)
+    ok = solved.converged.copy()
+    if ok.any():
+        good = np.flatnonzero(ok)
+        ok[good] = _stable(robot, config, solved.x[good], tension[good],
+                           _rows(loads, good), dtype)
+    return _Continued(ok, solved.x[ok], solved.iterations[ok], None)
+
+
+def _start_moments(value: Any, batch: int) -> np.ndarray:
+    """``start_moment`` as (B, 3) N·m, checked."""
+    m = np.asarray(value, dtype=float)
+    if m.shape not in ((3,), (batch, 3)) or not np.all(np.isfinite(m)):
+        raise ValueError(f"start_moment: expected (3,) or ({batch}, 3) finite moments, "
+                         f"N·m, got shape {m.shape}")
+    return np.broadcast_to(m, (batch, 3))
 
 
 def _case_loads(frame: Any) -> CaseLoads:

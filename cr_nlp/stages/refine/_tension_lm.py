@@ -248,13 +248,14 @@ def project_box(terms: TensionTerms, z: jax.Array) -> jax.Array:
     return z.at[..., :n].set(jnp.clip(z[..., :n], 0.0, 1.0))
 
 
-def box_bounds(terms: TensionTerms, dtype: Any) -> tuple[jax.Array, jax.Array] | None:
-    """The LM's active-set box of one waypoint's unknowns, or None (group moments)."""
+def box_bounds(terms: TensionTerms, dtype: Any) -> tuple[np.ndarray, np.ndarray] | None:
+    """The LM's active-set box of one waypoint's unknowns, or None (group moments); numpy
+    (the compiled LM moves them itself: a live update's host time)."""
     if terms.groups is not None:
         return None
     n, extra = terms.robot.n_tendons, terms.size - terms.robot.n_tendons
-    return (jnp.asarray(np.r_[np.zeros(n), np.full(extra, -np.inf)], dtype),
-            jnp.asarray(np.r_[np.ones(n), np.full(extra, np.inf)], dtype))
+    return (np.r_[np.zeros(n), np.full(extra, -np.inf)].astype(dtype),
+            np.r_[np.ones(n), np.full(extra, np.inf)].astype(dtype))
 
 
 # ---------------------------------------------------------------- motions (chains)

@@ -484,7 +484,7 @@ class TensionIKSolver:
         with jax.enable_x64(dtype == np.float64):
             solution = lm_solve(self._residuals[terms.shoot], self._project, padded(z0),
                                 jax.tree_util.tree_map(padded, params),
-                                self._device_scene(dtype), jnp.ones(z0.shape[1], dtype),
+                                self._device_scene(dtype), np.ones(z0.shape[1], dtype),
                                 jnp.asarray(iterations),
                                 replace(self.lm_config(),
                                         initial_damping=self.config.initial_damping),
@@ -499,12 +499,14 @@ class TensionIKSolver:
         return self._judge(self._forward(tensions, loads), tensions, positions, quats, loads,
                            timing)
 
-    def _forward(self, tensions: np.ndarray, loads: StaticLoads) -> StaticsResult:
-        """The verdict's fresh forward statics of ``tensions`` under ``loads``."""
+    def _forward(self, tensions: np.ndarray, loads: StaticLoads,
+                 start_moment: np.ndarray | None = None) -> StaticsResult:
+        """The verdict's fresh forward statics of ``tensions`` under ``loads`` (from
+        ``start_moment``, world frame, where given: ``solve_statics``)."""
         return solve_statics(self.robot, tensions, loads.tip_force, loads.tip_moment,
                              loads.gravity, self.config.statics,
                              distributed_force=loads.distributed_force,
-                             point_loads=loads.point_load_lists())
+                             point_loads=loads.point_load_lists(), start_moment=start_moment)
 
     def _judge(self, statics: StaticsResult, tensions: np.ndarray, positions: np.ndarray,
                quats: np.ndarray, loads: StaticLoads, timing: StageTiming) -> TensionIKResult:

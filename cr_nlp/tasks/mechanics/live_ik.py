@@ -9,6 +9,10 @@ equilibrium), a program compiled once for a batch of one. Where the warm start m
 (a jump across the workspace), the batched solver answers from its seed pool
 (``search``). Every answer is judged by the tension IK's one verdict: a fresh forward
 statics solve of its tensions, the tension bounds, and python-fcl on the solved backbone.
+The fresh solve of a warm-started answer starts from the equilibrium the verdict found
+for the previous answer (``solve_statics(start_moment=…)``: Newton under the full loads, the
+equilibrium a robot dragged from there stays on; where that fails or is unstable, the
+loading path from rest as everywhere else): 3–4 shooting iterations instead of 7–10.
 Units: metres, radians, newtons, N·m, seconds.
 """
 
@@ -74,7 +78,7 @@ class TensionLiveIKSolver:
                                   replace(config or TensionIKConfig(), round_iterations=0))
         self.robot = self.ik.robot
         self.loads = static_loads(1, self.ik.length, **loads)
-        self._moment: tuple[bytes, np.ndarray] | None = None
+        self._moment: tuple | None = None
 
     def solve(self, tensions: Any, position: Any, wxyz: Any = None, *,
               search: bool = True) -> TensionLiveIKResult:
@@ -100,9 +104,9 @@ class TensionLiveIKSolver:
             raise ValueError("position: expected 3 finite numbers, m")
         quats = (np.full((1, 4), np.nan) if wxyz is None
                  else np.asarray(wxyz, dtype=float).reshape(1, 4))
-        moment = self._warm_moment(current)
+        moment, verified = self._warm_moment(current)
         answer = self.ik._lm(current, target, quats, self.loads, moment, smallest=1)
-        shape = self.ik._forward(answer, self.loads)
+        shape = self.ik._forward(answer, self.loads, verified)
         judged = self.ik._judge(shape, answer, target, quats, self.loads, StageTiming())
         stage = Stage.REFINE
         if search and not judged.success[0]:
@@ -113,7 +117,8 @@ class TensionLiveIKSolver:
                                    StageTiming())
             if other.success[0] or other.pose_error[0] < judged.pose_error[0]:
                 answer, judged, shape, stage = again, other, other_shape, Stage.SEARCH
-        self._moment = (answer.tobytes(), base_frame(self.robot, judged.base_moment))
+        self._moment = (answer.tobytes(), base_frame(self.robot, judged.base_moment),
+                        judged.base_moment[0])
         return TensionLiveIKResult(
             tensions=answer[0], position=judged.position[0],
             position_error=float(judged.position_error[0]),
@@ -131,12 +136,14 @@ class TensionLiveIKSolver:
             raise ValueError(f"tensions: expected {self.robot.n_tendons} finite numbers, N")
         return self.ik._forward(current, self.loads)
 
-    def _warm_moment(self, current: np.ndarray) -> np.ndarray | None:
-        """M(0) (1, 3) N·m, base frame, of ``current`` where it is the last answer (its
-        equilibrium is known), else None (the LM starts from the tip moments)."""
+    def _warm_moment(self, current: np.ndarray) -> tuple[Any, Any]:
+        """Where ``current`` is the last answer (its equilibrium is known): its M(0),
+        (1, 3) N·m in the base frame for the LM and (3,) in the world frame for the
+        verdict's statics; else (None, None): the LM starts from the tip moments, the
+        statics from rest."""
         if self._moment is not None and self._moment[0] == current.tobytes():
-            return self._moment[1]
-        return None
+            return self._moment[1], self._moment[2]
+        return None, None
 
 from ..._moved import moved_names  # noqa: E402 — the old names, for one release
 
