@@ -48,6 +48,7 @@ import numpy as np
 
 from ._files import write_atomic
 from ._fingerprint import Unkeyable, fingerprint
+from ._program_clock import Flat as _Flat
 from .runtime import cache_dir, register
 
 FORMAT = b"cr_nlp-program-3\n"
@@ -397,17 +398,6 @@ def _background() -> ThreadPoolExecutor:
     that goes on solving (at least one)."""
     return ThreadPoolExecutor(max(1, len(os.sched_getaffinity(0)) - 1),
                               thread_name_prefix="cr_nlp-compile")
-
-
-class _Flat:
-    """A compiled program over its arguments' leaves, called with the arguments.
-    ``movable``: XLA compiled it in this process (``_moved`` can move it)."""
-
-    def __init__(self, executable: Any, out_tree: Any, movable: bool = False) -> None:
-        self.executable, self.out_tree, self.movable = executable, out_tree, movable
-
-    def __call__(self, *args: Any) -> Any:
-        return jax.tree.unflatten(self.out_tree, self.executable(*jax.tree.leaves(args)))
 
 
 def _mesh() -> Any:

@@ -35,6 +35,20 @@ PLAN_PROBLEMS = 20
 """Problems of the ``plan`` entry (tdcr3 in the shelf)."""
 STATICS_CASES = 64
 """Tension cases of the ``statics`` entry (tdcr2_rao2021)."""
+NEW_ROBOT = {
+    "name": "startup_new3",
+    "description": "Not bundled (cr-nlp bench startup writes it): a 3-segment robot with "
+                   "tdcr3's layout and other lengths and radii.",
+    "segments": [{"length": 0.9, "theta_max": 3.0}, {"length": 1.1, "theta_max": 3.0},
+                 {"length": 0.8, "theta_max": 3.0}],
+    "backbone_radius": 0.08, "points_per_segment": 10,
+    "tendons": {"per_segment": 3, "radius": 0.065, "offsets": [0.0, 0.3, 0.6],
+                "routing": "per_segment"},
+    "base": {"position": [0.0, 0.0, 0.0], "wxyz": [1.0, 0.0, 0.0, 0.0]},
+    "tendon_speed_max": 0.2, "tendon_accel_max": 1.0,
+}
+"""The robot of the ``ik-new`` and ``plan-new`` entries: a robot file no process has seen
+(start-up on a user's own robot, where nothing of tdcr3's is reused)."""
 
 def entry_argv(entry: str, inputs: Path, out: Path) -> list[str] | None:
     """The ``cr-nlp`` arguments of an entry (None: ``import``) on the inputs in ``inputs``
@@ -54,34 +68,47 @@ def entry_argv(entry: str, inputs: Path, out: Path) -> list[str] | None:
         "predict": ["predict", "--robot", "ftdcr_v6_calibrated", "--data", "ftdcr_v6_val",
                     "--out", str(out / "predicted.csv")],
         "demo": ["demo", "--out", str(out / "demo")],
+        "ik-new": ["ik", "--robot", str(inputs / "new_robot.json"), "--targets",
+                   str(inputs / "targets_new.json"), "--out", str(out / "ik.json")],
+        "plan-new": ["plan", "--robot", str(inputs / "new_robot.json"), "--scene", "shelf",
+                     "--problems", str(inputs / "problems_new.json"),
+                     "--out", str(out / "plan.json")],
     }[entry]
 
 
 def write_inputs(folder: Path, entries: Sequence[str] = STARTUP_ENTRIES, seed: int = 0) -> None:
     """The input files of ``entries``: 1000 IK targets, 20 planning problems in the
-    shelf, 64 statics cases (seeded: every run times the same work)."""
+    shelf (for tdcr3 and, for the ``-new`` entries, for ``NEW_ROBOT``, whose file is
+    written there too), 64 statics cases (seeded: every run times the same work)."""
     from ..model import load_robot
 
     folder.mkdir(parents=True, exist_ok=True)
     robot = load_robot("tdcr3")
     if "ik" in entries:
-        _write_targets(folder, robot, seed)
+        _write_targets(folder / "targets.json", robot, seed)
     if "plan" in entries:
-        _write_problems(folder, robot, seed)
+        _write_problems(folder / "problems.json", robot, seed)
+    if "ik-new" in entries or "plan-new" in entries:
+        write_atomic(folder / "new_robot.json", json.dumps(NEW_ROBOT, indent=1).encode())
+        new = load_robot(folder / "new_robot.json")
+        if "ik-new" in entries:
+            _write_targets(folder / "targets_new.json", new, seed)
+        if "plan-new" in entries:
+            _write_problems(folder / "problems_new.json", new, seed)
     if "statics" in entries:
         _write_statics(folder, seed)
 
 
-def _write_targets(folder: Path, robot: Any, seed: int) -> None:
+def _write_targets(path: Path, robot: Any, seed: int) -> None:
     from .ik import free_case
 
     case = free_case(robot, IK_TARGETS, seed)
     poses = [{"position": p.tolist(), "wxyz": w.tolist()}
              for p, w in zip(case.positions, case.wxyz, strict=True)]
-    write_atomic(folder / "targets.json", json.dumps({"poses": poses}).encode())
+    write_atomic(path, json.dumps({"poses": poses}).encode())
 
 
-def _write_problems(folder: Path, robot: Any, seed: int) -> None:
+def _write_problems(path: Path, robot: Any, seed: int) -> None:
     from ..tasks.geometry.ik import IKConfig
     from ..world import load_scene
     from .plan import plan_problems
@@ -90,7 +117,7 @@ def _write_problems(folder: Path, robot: Any, seed: int) -> None:
                                   IKConfig.safety_margin, seed)
     problems = [{"start": s.tolist(), "goal": g.tolist()}
                 for s, g in zip(starts, goals, strict=True)]
-    write_atomic(folder / "problems.json", json.dumps({"problems": problems}).encode())
+    write_atomic(path, json.dumps({"problems": problems}).encode())
 
 
 def _write_statics(folder: Path, seed: int) -> None:
@@ -225,7 +252,10 @@ def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str], repeats: 
         f"{IK_TARGETS} free tdcr3 targets; plan: {PLAN_PROBLEMS} problems in the shelf; "
         "follow: ICRA; statics: "
         f"{STATICS_CASES} tension cases on tdcr2_rao2021; calibrate: FTDCR v6 training "
-        "file; predict: its validation file; demo: the three demo tasks.",
+        "file; predict: its validation file; demo: the three demo tasks; ik-new and "
+        "plan-new: the same jobs on a 3-segment robot file that is not bundled "
+        "(tdcr3's layout, other lengths and radii: nothing compiled for tdcr3 serves "
+        "it).",
         "",
         markdown_table(rows, COLUMNS),
         "",

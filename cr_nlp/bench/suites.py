@@ -73,7 +73,7 @@ BATCH_MODES = ("penalty", "exact")
 # ================================================================ startup
 
 STARTUP_ENTRIES = ("import", "ik", "plan", "follow", "statics", "calibrate", "predict",
-                   "demo")
+                   "demo", "ik-new", "plan-new")
 """The entry points that ``cr-nlp bench startup`` times as whole processes."""
 
 

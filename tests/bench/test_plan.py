@@ -63,6 +63,7 @@ def test_plan_benchmark_runs_on_a_tiny_size(tmp_path, monkeypatch):
         assert row["success_pct"] <= row["collision_free_pct"] or row["success_pct"] == 0.0
     for row in rows[:2]:       # the planner's rows carry its per-stage seconds per problem
         assert row["query_time"] >= 0.0 and row["lm_time"] > 0.0 and row["programs"] >= 1
+        assert 0.0 < row["host_pct"] < 100.0 and row["host_per_1000"] > 0.0
     for name in ("plan.md", "plan.csv", "roadmap_build.csv", "iterations.csv",
                  "iterations.png"):
         assert (tmp_path / "out" / name).stat().st_size > 0

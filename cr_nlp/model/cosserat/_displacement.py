@@ -44,7 +44,7 @@ from ..robot import Robot
 from ..rotations import matrix_from_wxyz
 from ..routing import routing_of
 from ._rod import CaseLoads, StaticsConfig, _integrate, _Layout, _layout
-from ._shooting import StaticsResult
+from ._shooting import StaticsResult, secant_update
 from ._statics import _case_loads, _load_batch, _padded, _stable, _typed, solve_statics
 from ._statics import _programs as _statics_programs
 
@@ -232,6 +232,11 @@ def _continuation(lay: _Layout, coarse: _Layout, config: StaticsConfig, pull: ja
         size_old = jnp.linalg.norm(_rows(y, f, lam, pull, k, scales))
         size_new = jnp.linalg.norm(_rows(y_new, f_new, target, pull, k, scales))
         continuing = target > lam
+        # At a fixed load factor the step's secant (both F full passes) corrects the
+        # Jacobian along the step, as in the shooting (``secant_update``).
+        keep = ~continuing & jnp.all(jnp.isfinite(f_new))
+        jf_new = jnp.where(keep, secant_update(jf, y_new - y, f_new - f), jf_new)
+        gf_new = jnp.where(keep, gf, gf_new)
         ok = jnp.isfinite(size_new) & (
             (size_new <= tol) | (size_new < jnp.maximum(size_old, 0.5 * jnp.linalg.norm(rows))))
         y, f, jf, gf = (jnp.where(ok, a, b) for a, b in

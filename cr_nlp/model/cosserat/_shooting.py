@@ -139,6 +139,9 @@ def _shooting(lay: _Layout, coarse: _Layout, config: StaticsConfig, tension: jax
     the Jacobian instead (below); ``alone`` (a program of one case, not vmapped) then
     skips the coarse passes (``lax.cond``; under vmap both branches would run, and
     inside a split over devices the cond does not trace).
+
+    Long: the iteration's closures (residual, slopes, start, iterate, done) share one
+    case's layout, loads and tolerances; apart they would pass them all around.
     """
     dtype = tension.dtype
     tol = config.resolved_tolerance() * lay.moment_scale
@@ -192,15 +195,12 @@ def _shooting(lay: _Layout, coarse: _Layout, config: StaticsConfig, tension: jax
             | (size_new < _NEWTON_RANGE * lay.moment_scale))
         # After a continuation step a fresh (coarse) Jacobian at the new load factor; at a
         # fixed one the step's secant (exact: both residuals are full passes) corrects
-        # the Jacobian along the step instead (Broyden's rule), so that Newton converges
-        # faster than the coarse Jacobian's error allows (tdcr2 under gravity and a
-        # payload, from the previous equilibrium: 6 → 4 iterations; from rest 10 → 7).
-        dx, dr = x_new - x, r_new - r
-        dd = jnp.where(jnp.dot(dx, dx) > 0.0, jnp.dot(dx, dx), 1.0)
+        # the Jacobian along the step instead (tdcr2 under gravity and a payload, from
+        # the previous equilibrium: 6 → 4 iterations; from rest 10 → 7).
         fresh = continuing | ~jnp.all(jnp.isfinite(r_new))
 
         def secant(*_: Any) -> tuple[jax.Array, jax.Array]:
-            return j + jnp.outer(dr - j @ dx, dx) / dd, g
+            return secant_update(j, x_new - x, r_new - r), g
 
         if alone:
             j_new, g_new = jax.lax.cond(fresh, slopes, secant, x_new, target)
@@ -219,6 +219,14 @@ def _shooting(lay: _Layout, coarse: _Layout, config: StaticsConfig, tension: jax
                        it + 1, jnp.where(folded, reached, stall))
 
     return start, iterate, done
+
+
+def secant_update(j: jax.Array, dx: jax.Array, dr: jax.Array) -> jax.Array:
+    """Broyden's rank-one update of the Jacobian ``j`` along a step ``dx`` whose residual
+    changed by ``dr``: j + (dr − j dx) dxᵀ / dxᵀdx (``j`` where dx = 0)."""
+    dd = jnp.dot(dx, dx)
+    return jnp.where(dd > 0.0, j + jnp.outer(dr - j @ dx, dx) / jnp.where(dd > 0.0, dd, 1.0),
+                     j)
 
 
 def _run(iterate: Any, done: Any, state: _Newton, iterations: int) -> _Newton:
