@@ -5,8 +5,8 @@ statement — at module level, inside functions, under ``TYPE_CHECKING`` — bec
 of the intra-package import graph (relative imports resolved; ``from pkg import name``
 points at ``pkg.name`` when that is a module, else at ``pkg``). The layers (docs/design.md §5)
 are model → world → stages → tasks → interfaces; ``_resources``, ``runtime``,
-``_programs`` (with ``_fingerprint`` and ``_program_clock``) and ``_files`` sit below them all, the package's
-``__init__`` (the public surface) above.
+``_programs`` (with ``_fingerprint`` and ``_program_clock``) and ``_files`` sit below them
+all, the package's ``__init__`` (the public surface) above.
 """
 
 from __future__ import annotations
@@ -24,7 +24,8 @@ PACKAGE = "cr_nlp"
 # Lowest first. A top-level module or package not named here (cli, bench, demo, viz,
 # batch, view, …) is an interface; the package __init__ re-exports the public API.
 LAYERS = {"_resources": 0, "runtime": 0, "_programs": 0, "_program_clock": 0,
-          "_fingerprint": 0, "_files": 0, "_moved": 0, "model": 1, "world": 2, "stages": 3, "tasks": 4}
+          "_fingerprint": 0, "_files": 0, "_moved": 0, "model": 1, "world": 2, "stages": 3,
+          "tasks": 4}
 INTERFACE = 5
 FACADE = 6
 LAYER_NAMES = {0: "base (_resources, runtime, _programs, _fingerprint, _files)", 1: "model",
