@@ -423,7 +423,8 @@ def _export(fn: Callable, in_tree: Any, leaves: list, batched: Sequence[bool] | 
         from jax.sharding import PartitionSpec as P
 
         specs = tuple(P("batch") if b else P() for b in batched)
-        inner = jax.shard_map(fn, mesh=_mesh(), in_specs=specs, out_specs=P("batch"))
+        inner = jax.shard_map(fn, mesh=_mesh(), in_specs=specs, out_specs=P("batch"),
+                              check_vma=False)  # as split_over_devices (why: there)
     out_trees = []
 
     def flat(*leaves: Any) -> tuple:

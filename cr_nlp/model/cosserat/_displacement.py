@@ -45,7 +45,7 @@ from ..rotations import matrix_from_wxyz
 from ..routing import routing_of
 from ._rod import CaseLoads, StaticsConfig, _integrate, _Layout, _layout
 from ._shooting import StaticsResult, secant_update
-from ._statics import _case_loads, _load_batch, _padded, _stable, _typed, solve_statics
+from ._statics import CASES, _case_loads, _load_batch, _padded, _stable, _typed, solve_statics
 from ._statics import _programs as _statics_programs
 
 __all__ = ["DisplacementStaticsResult", "commanded_pull", "displacement_pass",
@@ -174,13 +174,20 @@ _ACTIVE_SET_ROUNDS = 4
 
 
 def _continuation(lay: _Layout, coarse: _Layout, config: StaticsConfig, pull: jax.Array,
-                  k: jax.Array, stiffness: Any, loads: CaseLoads) -> tuple[Any, Any, Any]:
+                  k: jax.Array, stiffness: Any, loads: CaseLoads,
+                  axis: str | None = None) -> tuple[Any, Any, Any]:
     """(start, iterate, done) of semismooth Newton on (M(0), τ) with continuation in λ,
     as the shooting's (``model.cosserat._shooting``): the smooth parts F are linearised by
     forward differences on the coarse grid; the tendons taut in the Newton model are those
     stretched at the predicted F for the λ being tried (so from rest the pulled tendons
     are taut at once); a step is kept where it at least halved the residual it set out to
-    remove, the increment then doubles, else it is quartered."""
+    remove, the increment then doubles, else it is quartered. At a fixed λ the step's
+    secant corrects the Jacobian instead (``secant_update``); vmapped under the name
+    ``axis``, a batch skips the coarse passes on the iterations where none of its cases
+    needs them (``lax.psum`` over the batch makes the test one ``lax.cond``).
+
+    Long: as ``_shooting``, the iteration's closures share one case's layout, pulls,
+    stiffness and loads."""
     dtype = pull.dtype
     tol = config.resolved_tolerance()
     eps = float(np.sqrt(np.finfo(np.dtype(dtype)).eps))
@@ -189,14 +196,19 @@ def _continuation(lay: _Layout, coarse: _Layout, config: StaticsConfig, pull: ja
     size = 3 + pull.shape[0]
     tension_columns = jnp.concatenate([jnp.zeros(3, dtype), scales[1] / k])
 
-    def linearized(y: jax.Array, lam: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    def smooth(y: jax.Array, lam: jax.Array) -> jax.Array:
+        return _smooth(lay, config, y, lam, stiffness, loads, scales)[0]
+
+    def slopes(y: jax.Array, lam: jax.Array) -> tuple[jax.Array, jax.Array]:
         h = eps * jnp.maximum(jnp.max(jnp.abs(y)), 1.0)
         ys = jnp.concatenate([y[None], y[None] + h * jnp.eye(size, dtype=dtype), y[None]])
         lams = jnp.concatenate([jnp.broadcast_to(lam, (size + 1,)), (lam + eps)[None]])
         fs = jax.vmap(lambda a, b: _smooth(coarse, rough, a, b, stiffness, loads,
                                            scales)[0])(ys, lams)
-        f = _smooth(lay, config, y, lam, stiffness, loads, scales)[0]
-        return f, (fs[1:size + 1] - fs[0]).T / h, (fs[size + 1] - fs[0]) / eps
+        return (fs[1:size + 1] - fs[0]).T / h, (fs[size + 1] - fs[0]) / eps
+
+    def linearized(y: jax.Array, lam: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        return smooth(y, lam), *slopes(y, lam)
 
     def start(y0: jax.Array, lam0: jax.Array) -> _Newton:
         f0, j0, g0 = linearized(y0, lam0)
@@ -228,15 +240,24 @@ def _continuation(lay: _Layout, coarse: _Layout, config: StaticsConfig, pull: ja
         _, (dys, models) = jax.lax.scan(newton_step, taut0, None, length=_ACTIVE_SET_ROUNDS)
         dy, rows = dys[-1], models[-1]
         y_new = y + step * dy
-        f_new, jf_new, gf_new = linearized(y_new, target)
+        f_new = smooth(y_new, target)
         size_old = jnp.linalg.norm(_rows(y, f, lam, pull, k, scales))
         size_new = jnp.linalg.norm(_rows(y_new, f_new, target, pull, k, scales))
         continuing = target > lam
         # At a fixed load factor the step's secant (both F full passes) corrects the
         # Jacobian along the step, as in the shooting (``secant_update``).
         keep = ~continuing & jnp.all(jnp.isfinite(f_new))
-        jf_new = jnp.where(keep, secant_update(jf, y_new - y, f_new - f), jf_new)
-        gf_new = jnp.where(keep, gf, gf_new)
+        secant = secant_update(jf, y_new - y, f_new - f)
+
+        def fresh(*_: Any) -> tuple[jax.Array, jax.Array]:
+            jf_c, gf_c = slopes(y_new, target)
+            return jnp.where(keep, secant, jf_c), jnp.where(keep, gf, gf_c)
+
+        if axis is None:
+            jf_new, gf_new = fresh()
+        else:
+            needed = jax.lax.psum((~keep & ~done(state)).astype(jnp.int32), axis) > 0
+            jf_new, gf_new = jax.lax.cond(needed, fresh, lambda *_: (secant, gf))
         ok = jnp.isfinite(size_new) & (
             (size_new <= tol) | (size_new < jnp.maximum(size_old, 0.5 * jnp.linalg.norm(rows))))
         y, f, jf, gf = (jnp.where(ok, a, b) for a, b in
@@ -251,18 +272,22 @@ def _continuation(lay: _Layout, coarse: _Layout, config: StaticsConfig, pull: ja
 
 
 def displacement_solver(robot: Robot, config: StaticsConfig = StaticsConfig(),
-                        iterations: int = 40) -> Any:
+                        iterations: int = 40, axis: str | None = None) -> Any:
     """The per-case JAX function ``f(pull (T,) m, k (T,) N/m, stiffness (n,), loads, y0,
     lam0) -> (y, converged, iterations, stretch (T,) m, λ reached)``: Newton with
     continuation (at most ``iterations``) from the scaled unknowns ``y0`` = (M(0)/(EI/L),
     τ/τ_s) at load factor ``lam0`` (0 and zeros: from rest; 1 and a neighbour's answer: a
     warm start); ``displacement_pass`` reads y. A tendon
-    whose stretch (pull − shortening) is not positive is slack: its tension is set to 0."""
+    whose stretch (pull − shortening) is not positive is slack: its tension is set to 0.
+    ``axis``: the name of the vmap this function will be mapped by (``jax.vmap(…,
+    axis_name=axis)``), where the batch shares one test for the coarse Jacobian
+    (``_continuation``)."""
     lay, coarse = _layout(robot, config), _layout(robot, config, coarse=True)
 
     def solve(pull: jax.Array, k: jax.Array, stiffness: jax.Array, loads: CaseLoads,
               y0: jax.Array, lam0: jax.Array) -> tuple[jax.Array, ...]:
-        start, iterate, done = _continuation(lay, coarse, config, pull, k, stiffness, loads)
+        start, iterate, done = _continuation(lay, coarse, config, pull, k, stiffness, loads,
+                                             axis)
         state = jax.lax.while_loop(lambda s: ~done(s) & (s.it < iterations), iterate,
                                    start(y0, lam0))
         stretch = state.lam * pull - state.f[3:]
@@ -331,7 +356,8 @@ def pivoted_solve(a: jax.Array, b: jax.Array) -> jax.Array:
 def _program(robot: Robot, config: StaticsConfig, iterations: int) -> Any:
     """The Newton loop of ``iterations`` over a batch of cases, split over the devices
     (one per CPU core in the CLI) where the batch divides evenly."""
-    return CachedProgram(jax.vmap(displacement_solver(robot, config, iterations)),
+    return CachedProgram(jax.vmap(displacement_solver(robot, config, iterations, CASES),
+                                  axis_name=CASES),
                          name="the displacement-driven statics", batched=(True,) * 6,
                          outputs=5)
 

@@ -117,7 +117,8 @@ ends: a snap-through) and stops; the branch check then looks for where it snaps 
 
 
 def _shooting(lay: _Layout, coarse: _Layout, config: StaticsConfig, tension: jax.Array,
-              loads: CaseLoads, mode: jax.Array, alone: bool = False) -> tuple[Any, Any, Any]:
+              loads: CaseLoads, mode: jax.Array, alone: bool = False,
+              axis: str | None = None) -> tuple[Any, Any, Any]:
     """(start, iterate, done) of the shooting on M(0) for one case.
 
     Newton with continuation in a load factor λ: the external loads, and with ``mode[0]``
@@ -137,8 +138,9 @@ def _shooting(lay: _Layout, coarse: _Layout, config: StaticsConfig, tension: jax
     (the residual itself is the full pass), and derivatives of the converged answer are
     implicit and exact (``_shoot``). At a fixed load factor each step's secant corrects
     the Jacobian instead (below); ``alone`` (a program of one case, not vmapped) then
-    skips the coarse passes (``lax.cond``; under vmap both branches would run, and
-    inside a split over devices the cond does not trace).
+    skips the coarse passes (``lax.cond``), and so does a batch vmapped under the name
+    ``axis`` on the iterations where none of its cases needs them (a ``lax.psum`` over
+    the batch makes the test one cond; a per-case cond would run both branches).
 
     Long: the iteration's closures (residual, slopes, start, iterate, done) share one
     case's layout, loads and tolerances; apart they would pass them all around.
@@ -202,11 +204,17 @@ def _shooting(lay: _Layout, coarse: _Layout, config: StaticsConfig, tension: jax
         def secant(*_: Any) -> tuple[jax.Array, jax.Array]:
             return secant_update(j, x_new - x, r_new - r), g
 
+        def mixed(*_: Any) -> tuple[jax.Array, jax.Array]:
+            (j_fresh, g_fresh), (j_secant, _) = slopes(x_new, target), secant()
+            return jnp.where(fresh, j_fresh, j_secant), jnp.where(fresh, g_fresh, g)
+
         if alone:
             j_new, g_new = jax.lax.cond(fresh, slopes, secant, x_new, target)
+        elif axis is not None:
+            needed = jax.lax.psum((fresh & ~done(state)).astype(jnp.int32), axis) > 0
+            j_new, g_new = jax.lax.cond(needed, mixed, secant)
         else:
-            (j_fresh, g_fresh), (j_secant, _) = slopes(x_new, target), secant()
-            j_new, g_new = jnp.where(fresh, j_fresh, j_secant), jnp.where(fresh, g_fresh, g)
+            j_new, g_new = mixed()
         x, r, j, g = (jnp.where(ok, a, b) for a, b in
                       ((x_new, x), (r_new, r), (j_new, j), (g_new, g)))
         reached = jnp.where(ok, target, lam)

@@ -27,6 +27,9 @@ from ._equilibria import DOUBTFUL, distinct, jacobi_margin, load_parameter
 from ._rod import CaseLoads, StaticsConfig, _layout
 from ._shooting import Equilibrium, StaticsResult, _finish, _Newton, _run, _shooting
 
+CASES = "cases"
+"""The name of the vmap over a batch's cases (the shooting's and the displacement
+Newton's ``axis``)."""
 # Newton iterations every case of a batch gets; the few cases that need more continue in
 # a smaller batch, so that they do not hold the whole batch in the loop.
 _FIRST_ROUND = 10
@@ -41,14 +44,17 @@ def _programs(robot: Robot, config: StaticsConfig, alone: bool = False
     cannot (``_shooting``)."""
     lay, coarse = _layout(robot, config), _layout(robot, config, coarse=True)
 
+    axis = None if alone else CASES
+
     def first(tension: jax.Array, loads: CaseLoads, x0: jax.Array, lam0: jax.Array,
               mode: jax.Array) -> _Newton:
-        start, iterate, done = _shooting(lay, coarse, config, tension, loads, mode, alone)
+        start, iterate, done = _shooting(lay, coarse, config, tension, loads, mode, alone,
+                                         axis)
         return _run(iterate, done, start(x0, lam0), min(_FIRST_ROUND, config.max_iterations))
 
     def further(tension: jax.Array, loads: CaseLoads, mode: jax.Array,
                 state: _Newton) -> _Newton:
-        _, iterate, done = _shooting(lay, coarse, config, tension, loads, mode, alone)
+        _, iterate, done = _shooting(lay, coarse, config, tension, loads, mode, alone, axis)
         return _run(iterate, done, state, max(0, config.max_iterations - _FIRST_ROUND))
 
     def finish(base_moment: jax.Array, tension: jax.Array,
@@ -58,7 +64,9 @@ def _programs(robot: Robot, config: StaticsConfig, alone: bool = False
     def stability(base_moment: jax.Array, tension: jax.Array, loads: CaseLoads) -> jax.Array:
         return jacobi_margin(lay, config, base_moment, tension, loads)
 
-    batch = _one if alone else jax.vmap
+    def batch(fn: Any) -> Any:
+        return _one(fn) if alone else jax.vmap(fn, axis_name=CASES)
+
     return (_split(batch(first), 5), _split(batch(further), 4),
             _split(batch(finish), 3), _split(batch(stability), 3))
 
