@@ -27,34 +27,25 @@ from ._equilibria import DOUBTFUL, distinct, jacobi_margin, load_parameter
 from ._rod import CaseLoads, StaticsConfig, _layout
 from ._shooting import Equilibrium, StaticsResult, _finish, _Newton, _run, _shooting
 
-CASES = "cases"
-"""The name of the vmap over a batch's cases (the shooting's and the displacement
-Newton's ``axis``)."""
 # Newton iterations every case of a batch gets; the few cases that need more continue in
 # a smaller batch, so that they do not hold the whole batch in the loop.
 _FIRST_ROUND = 10
 
 
 @cached(maxsize=64)
-def _programs(robot: Robot, config: StaticsConfig, alone: bool = False
-              ) -> tuple[Any, Any, Any, Any]:
-    """(first round, further rounds, finish, stability): jitted and vmapped over cases
-    (jit keeps one compiled program per padded batch size); ``alone``: the same for a
-    batch of one case, not vmapped, where the shooting skips work the vmapped loop
-    cannot (``_shooting``)."""
+def _programs(robot: Robot, config: StaticsConfig) -> tuple[Any, Any, Any, Any]:
+    """(first round, further rounds, finish, stability): jitted and vmapped over cases;
+    jit keeps one compiled program per padded batch size."""
     lay, coarse = _layout(robot, config), _layout(robot, config, coarse=True)
-
-    axis = None if alone else CASES
 
     def first(tension: jax.Array, loads: CaseLoads, x0: jax.Array, lam0: jax.Array,
               mode: jax.Array) -> _Newton:
-        start, iterate, done = _shooting(lay, coarse, config, tension, loads, mode, alone,
-                                         axis)
+        start, iterate, done = _shooting(lay, coarse, config, tension, loads, mode)
         return _run(iterate, done, start(x0, lam0), min(_FIRST_ROUND, config.max_iterations))
 
     def further(tension: jax.Array, loads: CaseLoads, mode: jax.Array,
                 state: _Newton) -> _Newton:
-        _, iterate, done = _shooting(lay, coarse, config, tension, loads, mode, alone, axis)
+        _, iterate, done = _shooting(lay, coarse, config, tension, loads, mode)
         return _run(iterate, done, state, max(0, config.max_iterations - _FIRST_ROUND))
 
     def finish(base_moment: jax.Array, tension: jax.Array,
@@ -64,11 +55,8 @@ def _programs(robot: Robot, config: StaticsConfig, alone: bool = False
     def stability(base_moment: jax.Array, tension: jax.Array, loads: CaseLoads) -> jax.Array:
         return jacobi_margin(lay, config, base_moment, tension, loads)
 
-    def batch(fn: Any) -> Any:
-        return _one(fn) if alone else jax.vmap(fn, axis_name=CASES)
-
-    return (_split(batch(first), 5), _split(batch(further), 4),
-            _split(batch(finish), 3), _split(batch(stability), 3))
+    return (_split(jax.vmap(first), 5), _split(jax.vmap(further), 4),
+            _split(jax.vmap(finish), 3), _split(jax.vmap(stability), 3))
 
 
 @cached(maxsize=64)
@@ -81,7 +69,8 @@ def _settle_program(robot: Robot, config: StaticsConfig) -> Any:
     def settle(tension: jax.Array, loads: CaseLoads, x0: jax.Array
                ) -> tuple[_Newton, jax.Array, dict[str, jax.Array]]:
         mode = jnp.asarray([0.0, 1.0], tension.dtype)
-        start, iterate, done = _shooting(lay, coarse, config, tension, loads, mode, True)
+        start, iterate, done = _shooting(lay, coarse, config, tension, loads, mode,
+                                         secant=True)
         state = _run(iterate, done, start(x0, 1 + 0 * x0[0]),
                      min(_FIRST_ROUND, config.max_iterations))
         return (state, jacobi_margin(lay, config, state.x, tension, loads),
@@ -163,8 +152,8 @@ def _solve_rows(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads:
     (R, 2) (see ``_shooting``): every row gets ``_FIRST_ROUND`` iterations, then the
     unfinished ones among ``further_round`` (True: all; or a (R,) mask) continue in a
     smaller batch."""
+    first, further, _, _ = _programs(robot, config)
     count = len(tension)
-    first, further, _, _ = _programs(robot, config, count == 1)
     rows = (tension, loads)
     state = first(*_typed(_padded((*rows, x0, lam0, mode)), dtype))
     x, its = np.array(state.x)[:count], np.array(state.it)[:count]
@@ -194,7 +183,7 @@ def _solve_rows(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads:
 def _stable(robot: Robot, config: StaticsConfig, x: np.ndarray, tension: np.ndarray,
             loads: CaseLoads, dtype: Any) -> np.ndarray:
     """(R,) True where M(0) = ``x`` gives a stable equilibrium (``model._equilibria``)."""
-    stability = _programs(robot, config, len(x) == 1)[3]
+    stability = _programs(robot, config)[3]
     det = stability(*_typed(_padded((x, tension, loads)), dtype))
     return np.asarray(det)[:len(x)] > 0.0
 
@@ -332,8 +321,9 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
             frame (e.g. the previous step's ``base_moment`` of a slow motion). A case is
             then solved by Newton under its full loads from there, the equilibrium a robot
             moving slowly from that one stays on, where that converges within one round
-            and is stable (3–4 iterations from a neighbour, against 7–10 from rest);
-            elsewhere by the loading path from rest, as without it.
+            and is stable (tdcr2 under gravity and a payload: 5–6 iterations from a
+            neighbour, 4 for one case, against 7–10 from rest); elsewhere by the loading
+            path from rest, as without it.
 
     Returns:
         ``StaticsResult`` in the world frame; a case that did not converge is marked in
@@ -446,7 +436,7 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
                 for i, entries in zip(rows, check.found, strict=True):
                     found[i] = entries
         if out is None:  # (a one-case continued answer has its shape already)
-            finish = _programs(robot, config, batch == 1)[2]
+            finish = _programs(robot, config)[2]
             out = finish(*_typed(_padded((base, t, loads)), dtype))
             out = {k: np.asarray(v)[:batch] for k, v in out.items()}
         shapes = None

@@ -12,7 +12,8 @@ statics solve of its tensions, the tension bounds, and python-fcl on the solved 
 The fresh solve of a warm-started answer starts from the equilibrium the verdict found
 for the previous answer (``solve_statics(start_moment=…)``: Newton under the full loads, the
 equilibrium a robot dragged from there stays on; where that fails or is unstable, the
-loading path from rest as everywhere else): 3–4 shooting iterations instead of 7–10.
+loading path from rest as everywhere else): 4 shooting iterations instead of 10, with the
+shape and the stability test in the same program.
 Units: metres, radians, newtons, N·m, seconds.
 """
 
