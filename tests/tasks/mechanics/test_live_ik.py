@@ -48,3 +48,29 @@ def test_bad_inputs_are_named(live: TensionLiveIKSolver) -> None:
         live.solve(np.zeros(6), [np.nan, 0.0, 0.4])
     with pytest.raises(ValueError, match="tensions: expected 6"):
         live.equilibrium([1.0, np.inf, 0.0, 0.0, 0.0, 0.0])
+
+
+def test_the_verdict_continues_from_the_equilibrium_on_screen(live: TensionLiveIKSolver,
+                                                              monkeypatch) -> None:
+    """The first update's verdict loads the rod from rest; the next one starts from the
+    equilibrium that verdict found (``solve_statics(start_moment=…)``), and lands on the
+    shape a fresh solve from rest gives."""
+    import cr_nlp.tasks.mechanics.ik as ik_module
+
+    starts = []
+
+    def spy(*args, **kwargs):
+        starts.append(kwargs.get("start_moment"))
+        return solve_statics(*args, **kwargs)
+
+    monkeypatch.setattr(ik_module, "solve_statics", spy)
+    motion = np.array([[1.0, 0, 0.2, 0.6, 0.3, 0], [1.2, 0, 0.2, 0.6, 0.4, 0]])
+    tips = solve_statics(RAO, motion, PAYLOAD, None, GRAVITY).tip_position
+    live._moment = None
+    first = live.solve(motion[0], tips[0])
+    second = live.solve(first.tensions, tips[1])
+    assert first.success and second.success
+    assert starts[0] is None
+    np.testing.assert_allclose(starts[1], first.base_moment)
+    rest = solve_statics(RAO, second.tensions[None], PAYLOAD, None, GRAVITY)
+    np.testing.assert_allclose(second.backbone, rest.positions[0], atol=1e-9)
