@@ -100,8 +100,17 @@ class TensionMotionPolishConfig(NLPSettings):
     δ' = δ + the most the capsule chain can come nearer than its spheres (with
     tdcr2_rao2021's 12 mm envelope and 20 mm steps: 1.0 mm at 2 per step, 0.26 mm at 4)."""
 
+    slot_rounds: int = 4
+    """Ipopt runs per attempt: after each, where a pair without a clearance slot came
+    nearer than δ', the pairs near any of the shapes so far get the slots and Ipopt goes on
+    from its answer. A plan's refined motion shortened far through the clutter of
+    ``bench tension`` needed 3 (with 2 its last run's answer was 11.8 mm inside a box
+    that had no slot)."""
+
     def __post_init__(self) -> None:
         super().__post_init__()
+        if self.slot_rounds < 1:
+            raise ValueError(f"slot_rounds must be ≥ 1, got {self.slot_rounds}")
         if self.objective not in OBJECTIVES:
             raise ValueError(f"objective must be one of {OBJECTIVES}, got {self.objective!r}")
         if not (self.regularization >= 0 and self.target_tolerance >= 0):
@@ -415,12 +424,14 @@ class TensionMotionPolisher(ShootingSolvers):
     def _attempt(self, solver: ca.Function, x0: np.ndarray, fixed: np.ndarray,
                  bounds: tuple[np.ndarray, np.ndarray, float, float, set[int]],
                  near: list[np.ndarray]) -> tuple[np.ndarray, str, int]:
-        """One Ipopt run from ``x0`` with each rod's slots on its pairs ``near`` (m); where
-        a pair without a slot came too close, one more from its answer with the pairs near
-        either shape in the slots. Returns (the unknowns, Ipopt's status, iterations)."""
+        """Ipopt from ``x0`` with each rod's slots on its pairs ``near`` (m); where a pair
+        without a slot came too close, again from its answer with the pairs near any shape
+        so far in the slots (at most ``slot_rounds`` runs). Returns (the unknowns, Ipopt's
+        status, iterations)."""
         lbx, ubx, step, tolerance, loose = bounds
         iterations, status, x = 0, "not run", x0
-        for again in range(2):
+        rounds = self.config.slot_rounds
+        for again in range(rounds):
             chosen = [self._clear.slot_parameters(d) for d in near]
             slots = [p.ravel(order="F") for c in chosen for p in c[0]]
             lower = [np.full(c[1].shape, -np.inf) if r in loose else c[1]
@@ -432,7 +443,7 @@ class TensionMotionPolisher(ShootingSolvers):
             if not np.all(np.isfinite(run.x)):
                 return x0, status, iterations
             x = run.x
-            if again or run.out_of_time or not self._clear.groups:
+            if again == rounds - 1 or run.out_of_time or not self._clear.groups:
                 break
             closer = False
             for r in set(range(self.rods)) - loose:

@@ -28,7 +28,9 @@ Exact mode (``exact=True``) polishes the motions the verdict rejects with Ipopt 
 rod's own discrete equations (``stages.polish``'s ``polish_tension_motion``: every
 waypoint's and checked sample's equilibrium, the tension bounds, the rate between
 waypoints and the clearance as constraints, start and goal fixed, the smoothest motion as
-the objective) and keeps a polish the verdict accepts (``_motion_polish``).
+the objective) and keeps a polish the verdict accepts (``_motion_polish``). A refined
+motion the verdict rejected (the search's kept instead) is polished too, and kept where
+the verdict accepts it and its tip path is no longer than the search's.
 
 The verdict is the one of every tension motion (``tasks.mechanics._motion``): a fresh
 solve at every checked sample, independent of the screening's, the LM's and Ipopt's.
@@ -272,13 +274,18 @@ class TensionTrajectoryPlanner:
     def _polish(self, result: TensionTrajectoryResult, refined: np.ndarray | None,
                 loads: StaticLoads, timing: StageTiming,
                 time_limit: float | None) -> TensionTrajectoryResult:
-        """Exact mode on one plan (``_motion_polish.polish_motion``): its motion, then the
-        refined one where the search's was kept, polished with the start and goal fixed."""
+        """Exact mode on one plan (``_motion_polish.polish_motion``), the start and goal
+        fixed: a rejected plan's motion, then the refined one where the search's was kept.
+        Where the search's motion was kept because the verdict rejected the refined one,
+        that refined motion is polished too and its polish kept where the verdict accepts
+        it and its tip path is no longer (exact mode rescues what the penalty stage left
+        in collision or beyond a limit)."""
         from ...stages.polish import TensionMotionPolishConfig, polish_tension_motion
 
         cfg = self.config
+        rejected = refined is not None and not np.array_equal(refined, result.tensions)
         candidates = [(result.tensions, f"the {result.stage.value} stage's motion")]
-        if refined is not None and not np.array_equal(refined, result.tensions):
+        if rejected:
             candidates.append((refined, "the refined motion"))
 
         def polish(tensions: np.ndarray, budget: float | None) -> Any:
@@ -293,8 +300,22 @@ class TensionTrajectoryPlanner:
             return self._result(0, tensions[0], tensions[-1], np.ones(2, bool), tensions,
                                 list(result.notes), loads)
 
-        return polish_motion(result, candidates, polish, remake, timing, time_limit,
-                             cfg.polish_accepted)
+        if not (result.success and rejected and not cfg.polish_accepted):
+            return polish_motion(result, candidates, polish, remake, timing, time_limit,
+                                 cfg.polish_accepted)
+        polished = polish_motion(result, candidates[1:], polish, remake, timing, time_limit,
+                                 polish_accepted=True)
+        if polished is result:        # not accepted: the note says why
+            return result
+        length, kept = (self.tip_path(r.tensions, loads) for r in (polished, result))
+        if length <= kept:
+            polished.notes.append(f"tip path {1e3 * length:.1f} mm (the {result.stage.value}"
+                                  f" stage's {1e3 * kept:.1f})")
+            return polished
+        result.notes.append(f"the polished refined motion was not kept: its tip path "
+                            f"{1e3 * length:.1f} mm is not shorter than {1e3 * kept:.1f}")
+        result.timing, result.exact_mode = timing, polished.exact_mode
+        return result
 
     def _refined(self, index: int, searched: TensionTrajectoryResult, loads: StaticLoads,
                  timing: StageTiming) -> tuple[TensionTrajectoryResult, np.ndarray | None]:

@@ -196,6 +196,33 @@ def test_an_exact_plan_replayed_by_fresh_statics_and_fcl_keeps_its_constraints(
             or "Maximum_WallTime_Exceeded" in late.notes[-1]), late.notes
 
 
+def test_exact_planning_rescues_the_refined_motion_the_verdict_rejected() -> None:
+    """A problem of ``cr-nlp bench tension --suite clutter`` (16 spheres and boxes, seed 0):
+    the banded LM shortens the search's motion, but the verdict finds the shortened motion
+    1.2 mm inside δ between its waypoints, so the penalty stages keep the search's. Exact
+    mode polishes the rejected refined motion (every waypoint and every sample the verdict
+    checks a rod in the NLP; the clearance slots re-assigned as it moves through the
+    clutter) and keeps it: verified by fresh statics and python-fcl, a shorter tip path."""
+    from cr_nlp.bench.tension_clutter import clutter_scene
+
+    scene = clutter_scene(RAO, 0)
+    start = np.array([3.789121, 2.751595, 0.0, 0.89808, 5.689187, 0.0])
+    goal = np.array([5.039994, 0.0, 0.0, 3.876874, 2.343225, 0.0])
+    planner = TensionTrajectoryPlanner(RAO, scene)
+    penalty = planner.plan(start, goal, gravity=GRAVITY, tip_force=PAYLOAD)[0]
+    assert penalty.success and penalty.stage == "explore", penalty.notes
+    assert "the refined motion was not kept: breaks the clearance" in penalty.notes[-1]
+    exact = planner.plan(start, goal, gravity=GRAVITY, tip_force=PAYLOAD, exact=True)[0]
+    assert exact.success and exact.stage == "polish", (exact.reason, exact.notes)
+    assert "polished by Ipopt from the refined motion" in " ".join(exact.notes)
+    np.testing.assert_array_equal(exact.tensions[[0, -1]], np.stack([start, goal]))
+    replay = _replay(planner.scene, exact.tensions, planner.config.tension_rate_max)
+    assert max(v for k, v in replay.items() if k != "tips") <= 1e-6, replay
+    loads = static_loads(1, planner.length, PAYLOAD, None, GRAVITY)
+    assert (planner.tip_path(exact.tensions, loads)
+            < planner.tip_path(penalty.tensions, loads) - 0.01)
+
+
 # ---------------------------------------------------------------- bad input
 
 def test_bad_inputs_are_named(case: dict, tmp_path, capsys) -> None:
@@ -217,6 +244,8 @@ def test_bad_inputs_are_named(case: dict, tmp_path, capsys) -> None:
     assert unknown.status == "non-finite input"
     with pytest.raises(ValueError, match="objective"):
         TensionMotionPolishConfig(objective="shortest")
+    with pytest.raises(ValueError, match="slot_rounds must be ≥ 1, got 0"):
+        TensionMotionPolishConfig(slot_rounds=0)
     with pytest.raises(ValueError, match="time_limit"):
         case["follower"].follow(case["path"], dt=DT, exact=True, time_limit=-1.0)
     with pytest.raises(ValueError, match="time_limit"):
