@@ -6,9 +6,11 @@ Between waypoints the tensions move linearly and the robot passes through the eq
 of the interpolated tensions. A plan is a chain of straight legs in tension space: the
 direct leg start → goal, or, where that leg's motion is not clear, start → via → goal
 through the cheapest via tension set (fewest seconds at the rate limit) whose legs are
-clear, else start → via → via → goal (the first via among the sets nearest the start, the
-second among those nearest the goal). Via candidates come from a pool of random tension
-sets solved once per planner and load case, kept where the robot is clear of the scene.
+clear, else the quickest route through a roadmap in tension space (``stages.explore``'s
+``tension_roadmap``: the via candidates joined to their nearest neighbours by clear legs,
+cached on disk per robot, scene and load case; any number of vias). Via candidates come
+from a pool of random tension sets solved once per planner and load case, kept where the
+robot is clear of the scene.
 Each leg is cut into the fewest waypoints ``dt`` apart that keep every tendon's rate
 within ``tension_rate_max``, so the rate limit holds by construction, and a candidate is
 screened on exactly the samples the verdict checks: every waypoint and
@@ -42,7 +44,8 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -52,6 +55,7 @@ from ...model.cosserat import StaticsConfig, solve_statics
 from ...model.loads import StaticLoads, static_loads
 from ...model.mechanics import require_mechanics
 from ...model.tendon_groups import tensions_of_configuration
+from ...stages.explore import leg_change
 from ...stages.polish import check_time_limit
 from ...stages.refine import (
     LMConfig,
@@ -90,8 +94,11 @@ class TensionTrajectoryConfig:
     via_pool: int = 512
     """Random tension sets solved once per load case; the clear ones are via candidates."""
     via_candidates: int = 16
-    """Via points screened per problem whose direct leg is not clear (cheapest first); for
-    two-via chains, the sets nearest the start and those nearest the goal."""
+    """Via points screened per problem whose direct leg is not clear (cheapest first); on
+    the roadmap, the nodes the start and the goal are joined to (nearest first)."""
+    roadmap_neighbours: int = 10
+    """Each via candidate's nearest candidates it is joined to on the roadmap (by clear
+    legs), the roadmap built where a problem has no clear single via."""
     seed: int = 0
     """Seed of the via pool."""
     statics: StaticsConfig = StaticsConfig()
@@ -163,6 +170,7 @@ class TensionTrajectoryPlanner:
         self.config = config
         self.length = float(sum(s.length_min for s in self.robot.segments))
         self._vias: dict[bytes, np.ndarray] = {}
+        self._roadmaps: dict[bytes, Any] = {}
 
     def clear(self, samples: np.ndarray, loads: StaticLoads) -> np.ndarray:
         """(k,) True where the solved robot of a tension set converged and keeps δ."""
@@ -178,7 +186,7 @@ class TensionTrajectoryPlanner:
         step = self.config.tension_rate_max * self.config.dt * (1 - 1e-9)
         out = [points[0][None]]
         for a, b in zip(points[:-1], points[1:], strict=True):
-            count = max(1, math.ceil(float(_seconds(a, b)) / step))
+            count = max(1, math.ceil(float(leg_change(a, b)) / step))
             out.append(a + np.linspace(0.0, 1.0, count + 1)[1:, None] * (b - a))
         return np.concatenate(out)
 
@@ -396,42 +404,49 @@ class TensionTrajectoryPlanner:
         cheapest clear start → via → via → goal, else the direct legs (which the verdict
         will fail, saying where)."""
         vias = self.vias(loads)
-        cost = _seconds(vias, start) + _seconds(goal, vias)
+        cost = leg_change(vias, start) + leg_change(goal, vias)
         order = np.argsort(cost)[:self.config.via_candidates]
         plans = [self._legs([start, vias[k], goal]) for k in order]
         clear = self._screen(plans, loads)
         if clear.any():
             k = int(np.flatnonzero(clear)[0])
             return plans[k], [f"via tension set {int(order[k])} of the pool"]
-        chain = self._two_vias(start, goal, vias, loads)
-        if chain is not None:
-            a, b = chain
-            return self._legs([start, vias[a], vias[b], goal]), [
-                f"via tension sets {a} and {b} of the pool"]
+        route = self.roadmap(loads).route(start, goal, partial(self._screen_legs, loads),
+                                          self.config.via_candidates)
+        if route is not None:
+            return self._legs([start, *vias[route], goal]), [
+                f"via tension sets {', '.join(map(str, route))} of the pool (the roadmap)"]
         return self._legs([start, goal]), [
             f"no clear via among the {len(order)} cheapest of {len(vias)} candidates, nor a "
-            "chain of two"]
+            "route through the roadmap"]
 
-    def _two_vias(self, start: np.ndarray, goal: np.ndarray, vias: np.ndarray,
-                  loads: StaticLoads) -> tuple[int, int] | None:
-        """(a, b): pool indices of the cheapest clear start → a → b → goal, a among the
-        ``via_candidates`` sets nearest the start, b among those nearest the goal (legs
-        screened one by one, the middle legs only between clear ends), or None."""
-        count = min(self.config.via_candidates, len(vias))   # a small pool has fewer
-        near_start = np.argsort(_seconds(vias, start))[:count]
-        near_goal = np.argsort(_seconds(goal, vias))[:count]
-        ends = self._screen([self._legs([start, vias[a]]) for a in near_start]
-                            + [self._legs([vias[b], goal]) for b in near_goal], loads)
-        firsts, lasts = near_start[ends[:count]], near_goal[ends[count:]]
-        pairs = [(int(a), int(b)) for a in firsts for b in lasts if a != b]
-        if not pairs:
-            return None
-        pairs.sort(key=lambda ab: float(_seconds(vias[ab[0]], start)
-                                        + _seconds(vias[ab[1]], vias[ab[0]])
-                                        + _seconds(goal, vias[ab[1]])))
-        pairs = pairs[:4 * count]
-        middle = self._screen([self._legs([vias[a], vias[b]]) for a, b in pairs], loads)
-        return pairs[int(np.flatnonzero(middle)[0])] if middle.any() else None
+    def roadmap(self, loads: StaticLoads) -> Any:
+        """The roadmap over the via candidates under one load case
+        (``stages.explore.TensionRoadmap``), built once per planner, loaded from the disk
+        cache where a process built it for the same robot, scene, loads and settings."""
+        from ...stages.explore import tension_roadmap
+
+        key = b"".join(np.ascontiguousarray(a).tobytes() for a in loads.arrays())
+        if key not in self._roadmaps:
+            cfg = self.config
+            arrays = [*loads.arrays()]
+            if self.scene is not None and self.scene.parts:
+                arrays += list(scene_arrays(self.scene, as_numpy=True))
+            settings = {"robot": self.robot.to_dict(),
+                        "scene": None if self.scene is None else self.scene.to_dict(),
+                        "rate": cfg.tension_rate_max, "dt": cfg.dt,
+                        "samples_between": cfg.samples_between,
+                        "margin": cfg.safety_margin, "statics": asdict(cfg.statics)}
+            self._roadmaps[key] = tension_roadmap(self.vias(loads),
+                                                  partial(self._screen_legs, loads),
+                                                  cfg.roadmap_neighbours, settings,
+                                                  tuple(arrays))
+        return self._roadmaps[key]
+
+    def _screen_legs(self, loads: StaticLoads, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """(L,) True where the straight leg a[i] → b[i] (N) is clear at every sample the
+        verdict checks (one batch)."""
+        return self._screen([self._legs([x, y]) for x, y in zip(a, b, strict=True)], loads)
 
     def replay(self, motion: Any, dt: float | None = None, *, tip_force: Any = None,
                tip_moment: Any = None, gravity: Any = None, distributed_force: Any = None,
@@ -523,12 +538,6 @@ def _resampled(tensions: np.ndarray, count: int) -> np.ndarray:
 def _tip_path(tips: np.ndarray) -> float:
     """The length of a polyline of tip positions (T, 3), m."""
     return float(np.sum(np.linalg.norm(np.diff(tips, axis=0), axis=1)))
-
-
-def _seconds(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The largest tension change from a to b per tendon (N): the seconds of the leg at the
-    rate limit, up to the constant factor."""
-    return np.max(np.abs(np.asarray(b) - np.asarray(a)), axis=-1)
 
 
 def plan_tension_trajectories(robot: Robot | str | dict, starts: Any, goals: Any,

@@ -213,8 +213,9 @@ def test_a_plan_replayed_through_fresh_statics_keeps_its_clearance(planner) -> N
 
 
 def test_a_via_pool_smaller_than_the_candidates_gives_a_failed_plan_not_an_error() -> None:
-    """One via candidate (not clear): no via, no chain of two (the chain search asked for
-    16 candidates of the 1 and raised before), so the direct legs, judged in collision."""
+    """One via candidate (not clear): no via, no route through the roadmap of that one
+    node (a search asking for 16 candidates of the 1 raised before), so the direct legs,
+    judged in collision."""
     from cr_nlp import TensionTrajectoryConfig, TensionTrajectoryPlanner
 
     planner = TensionTrajectoryPlanner(RAO, SCENE,
@@ -222,7 +223,8 @@ def test_a_via_pool_smaller_than_the_candidates_gives_a_failed_plan_not_an_error
     result = planner.plan([0, 0, 0, 0, 0, 3.0], [0, 6.0, 0, 0, 0, 3.0], gravity=GRAVITY,
                           tip_force=PAYLOAD)[0]
     assert not result.success and "collision" in result.reason, result.reason
-    assert result.notes[0].startswith("no clear via among the 1 cheapest of 1")
+    assert result.notes[0] == ("no clear via among the 1 cheapest of 1 candidates, nor a "
+                               "route through the roadmap"), result.notes
 
 
 @pytest.mark.parametrize(("problem", "words"), [
