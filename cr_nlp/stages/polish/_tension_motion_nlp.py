@@ -393,8 +393,7 @@ class TensionMotionPolisher(ShootingSolvers):
         order = [True, False] if self.config.warm_start and clear else [False, True]
         iterations, status, x = 0, "not run", x0
         for warm in order[:2 if self.config.warm_start else 1]:
-            x, status, used = self._attempt(self._solver(warm), x0, np.concatenate(fixed),
-                                            bounds, near)
+            x, status, used = self._attempt(warm, x0, np.concatenate(fixed), bounds, near)
             iterations += used
             if status in SUCCESS_STATUSES or status == TIME_LIMIT_STATUS:
                 break
@@ -421,13 +420,14 @@ class TensionMotionPolisher(ShootingSolvers):
         high += [np.zeros(interpolation), np.full(rates, step)]
         return np.concatenate(low), np.concatenate(high)
 
-    def _attempt(self, solver: ca.Function, x0: np.ndarray, fixed: np.ndarray,
+    def _attempt(self, warm: bool, x0: np.ndarray, fixed: np.ndarray,
                  bounds: tuple[np.ndarray, np.ndarray, float, float, set[int]],
                  near: list[np.ndarray]) -> tuple[np.ndarray, str, int]:
-        """Ipopt from ``x0`` with each rod's slots on its pairs ``near`` (m); where a pair
-        without a slot came too close, again from its answer with the pairs near any shape
-        so far in the slots (at most ``slot_rounds`` runs). Returns (the unknowns, Ipopt's
-        status, iterations)."""
+        """Ipopt (``warm``: with the warm-start settings) from ``x0`` with each rod's slots
+        on its pairs ``near`` (m); where a pair without a slot came too close, again from
+        its answer with the pairs near any shape so far in the slots (at most
+        ``slot_rounds`` runs; those after the first warm-started where ``warm_start``).
+        Returns (the unknowns, Ipopt's status, iterations)."""
         lbx, ubx, step, tolerance, loose = bounds
         iterations, status, x = 0, "not run", x0
         rounds = self.config.slot_rounds
@@ -437,6 +437,7 @@ class TensionMotionPolisher(ShootingSolvers):
             lower = [np.full(c[1].shape, -np.inf) if r in loose else c[1]
                      for r, c in enumerate(chosen)]
             lbg, ubg = self._row_bounds(lower, step, tolerance)
+            solver = self._solver(warm or (again > 0 and self.config.warm_start))
             run = run_solver(solver, x, self._deadline, p=np.concatenate([fixed, *slots]),
                              lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
             iterations, status = iterations + run.iterations, run.status
