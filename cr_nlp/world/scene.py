@@ -15,21 +15,19 @@ scene loads in milliseconds after the first time. All lengths are metres.
 
 from __future__ import annotations
 
-import hashlib
-import io
-import json
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .._files import write_atomic
 from .._resources import bundled_file, resolve_file
 from ..model.robot import ModelFileError, _Checker, read_model_file
 from ..model.rotations import matrix_from_wxyz
-from ..runtime import cache_dir
+from ._mesh_cache import Hull, MeshData, decomposed
+from ._mesh_cache import coacd_cache_dir as coacd_cache_dir
+from ._mesh_cache import coacd_cache_stats as coacd_cache_stats
 
 # ================================================================ parts
 
@@ -97,17 +95,12 @@ class ConvexPart:
     def from_points(cls, points: np.ndarray) -> ConvexPart:
         """The convex hull of ``points`` (K, 3) m, with coplanar hull triangles merged
         into one face plane each."""
-        import trimesh
+        return cls.of_hull(Hull.of_points(points))
 
-        hull = trimesh.Trimesh(np.asarray(points, dtype=float)).convex_hull
-        normals = np.asarray(hull.face_normals, dtype=float)
-        offsets = np.einsum("ij,ij->i", normals, hull.triangles[:, 0])
-        # Triangles of one hull face share their plane; one plane per face keeps F small.
-        key = np.round(np.c_[normals, offsets], 6)
-        _, first = np.unique(key, axis=0, return_index=True)
-        first = np.sort(first)
-        return cls(np.asarray(hull.vertices, dtype=float), np.asarray(hull.faces, dtype=np.int64),
-                   normals[first], offsets[first])
+    @classmethod
+    def of_hull(cls, hull: Hull) -> ConvexPart:
+        """The part of a ``Hull`` (m)."""
+        return cls(hull.vertices, hull.triangles, hull.normals, hull.offsets)
 
 
 Part = SpherePart | BoxPart | CapsulePart | CylinderPart | ConvexPart
@@ -261,52 +254,6 @@ class DecompositionSettings:
     """Random seed, for reproducible parts."""
 
 
-_CACHE_STATS = {"hits": 0, "misses": 0}
-
-
-def coacd_cache_stats() -> dict[str, int]:
-    """How often a mesh decomposition came from the disk cache (``hits``) or was computed
-    (``misses``) in this process."""
-    return dict(_CACHE_STATS)
-
-
-def coacd_cache_dir() -> Path:
-    """Where decompositions are cached: ``$CR_NLP_CACHE_DIR/coacd``, else
-    ``~/.cache/cr_nlp/coacd``."""
-    return cache_dir() / "coacd"
-
-
-def decompose_mesh(vertices: np.ndarray, faces: np.ndarray, content: bytes,
-                   settings: DecompositionSettings) -> list[np.ndarray]:
-    """Convex parts of a closed triangle mesh, as a list of (K, 3) hull vertex arrays
-    (the mesh's own units). ``content`` is the mesh file's bytes: with the settings it
-    forms the cache key."""
-    key = hashlib.sha256(
-        content + json.dumps(asdict(settings), sort_keys=True).encode()).hexdigest()
-    path = coacd_cache_dir() / f"{key}.npz"
-    if path.exists():
-        try:
-            with np.load(path) as data:
-                points, counts = data["points"], data["counts"]
-            _CACHE_STATS["hits"] += 1
-            return np.split(points, np.cumsum(counts)[:-1])
-        except (OSError, KeyError, ValueError):
-            pass  # a damaged cache file is recomputed and overwritten below
-    import coacd
-
-    coacd.set_log_level("error")
-    result = coacd.run_coacd(coacd.Mesh(np.asarray(vertices, dtype=float),
-                                        np.asarray(faces, dtype=np.int32)), **asdict(settings))
-    parts = [np.asarray(v, dtype=float) for v, _ in result]
-    _CACHE_STATS["misses"] += 1
-    path.parent.mkdir(parents=True, exist_ok=True)
-    buffer = io.BytesIO()
-    np.savez(buffer, points=np.concatenate(parts), counts=np.array([len(p) for p in parts]))
-    # Write then rename, so a concurrent reader never sees half a file.
-    write_atomic(path, buffer.getvalue())
-    return parts
-
-
 # ================================================================ validation
 
 _TOP_KEYS = {"name", "description", "obstacles"}
@@ -400,8 +347,6 @@ def _parse_obstacle(c: _Checker, raw: Any, index: int, base_dir: Path,
 
 def _parse_mesh(c: _Checker, raw: dict, path: str, base_dir: Path,
                 settings: DecompositionSettings, vec: Any, rotation: Any) -> tuple[tuple, Any]:
-    import trimesh
-
     mesh_path = raw["path"]
     if not isinstance(mesh_path, str) or not mesh_path:
         raise c.fail(f"{path}.path", f"expected a file path string, got {mesh_path!r}")
@@ -415,28 +360,27 @@ def _parse_mesh(c: _Checker, raw: dict, path: str, base_dir: Path,
     scale = c.number(raw.get("scale", 1.0), f"{path}.scale", positive=True)
     position = vec("position") if "position" in raw else np.zeros(3)
     rot = rotation("wxyz")
+
+    def check(loaded: Any) -> None:
+        vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=float)
+        faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64)
+        if len(faces) == 0 or len(vertices) < 4:
+            raise c.fail(f"{path}.path", f"degenerate mesh {file}: it has no faces")
+        if not _has_volume(vertices):
+            raise c.fail(f"{path}.path", f"degenerate mesh {file}: zero volume "
+                                         "(all vertices lie on one plane)")
+        if not loaded.is_watertight:
+            raise c.fail(f"{path}.path", f"mesh {file} is not closed (watertight); the "
+                                         "convex decomposition needs a solid")
+
     try:
-        loaded = trimesh.load(io.BytesIO(content), file_type=file.suffix.lstrip(".").lower(),
-                              force="mesh", process=True)
+        found = decomposed(content, file.suffix.lstrip(".").lower(), settings, check)
+    except ModelFileError:
+        raise
     except Exception as exc:  # trimesh raises many types for unreadable files
         raise c.fail(f"{path}.path", f"cannot read {file} as a mesh: {exc}") from None
-    vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=float)
-    faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64)
-    if len(faces) == 0 or len(vertices) < 4:
-        raise c.fail(f"{path}.path", f"degenerate mesh {file}: it has no faces")
-    if not _has_volume(vertices):
-        raise c.fail(f"{path}.path", f"degenerate mesh {file}: zero volume "
-                                     "(all vertices lie on one plane)")
-    if not loaded.is_watertight:
-        raise c.fail(f"{path}.path", f"mesh {file} is not closed (watertight); the convex "
-                                     "decomposition needs a solid")
-    local_parts = decompose_mesh(vertices, faces, content, settings)
-
-    def place(points: np.ndarray) -> np.ndarray:
-        return (scale * points) @ rot.T + position
-
-    parts = tuple(ConvexPart.from_points(place(p)) for p in local_parts)
-    placed = trimesh.Trimesh(place(vertices), faces, process=False)
+    parts = tuple(ConvexPart.of_hull(h.placed(scale, rot, position)) for h in found.hulls)
+    placed = MeshData((scale * found.mesh.vertices) @ rot.T + position, found.mesh.faces)
     return parts, placed
 
 
