@@ -124,18 +124,22 @@ def bounding_sphere(part: Part) -> tuple[np.ndarray, float]:
 
 
 def rotation_z_to(direction: np.ndarray) -> np.ndarray:
-    """A rotation matrix whose third column is ``direction`` normalised (the shortest turn
-    from +z; a half turn about x for −z)."""
+    """A rotation matrix whose third column is ``direction`` normalised (for a direction
+    in the upper half space the shortest turn from +z; in the lower one a half turn about
+    x after the shortest turn from +z to the mirrored direction)."""
     x, y, z = (float(v) for v in np.asarray(direction, dtype=float).reshape(3))
     norm = math.sqrt(x * x + y * y + z * z)
     x, y, c = x / norm, y / norm, z / norm
-    if c < -1.0 + 1e-12:
-        return np.diag([1.0, -1.0, -1.0])
     # Rodrigues for the rotation taking e_z to d: R = I + K + K²/(1 + c), K = [e_z × d]×,
     # written out in Python floats: the verdict builds one per capsule it measures, and
     # 3 × 3 numpy products cost more than the whole formula.
-    xx, xy, yy = x * x / (1.0 + c), x * y / (1.0 + c), y * y / (1.0 + c)
-    return np.array([[1.0 - xx, -xy, x], [-xy, 1.0 - yy, y], [-x, -y, 1.0 - xx - yy]])
+    if c >= 0.0:
+        xx, xy, yy = x * x / (1.0 + c), x * y / (1.0 + c), y * y / (1.0 + c)
+        return np.array([[1.0 - xx, -xy, x], [-xy, 1.0 - yy, y], [-x, -y, 1.0 - xx - yy]])
+    # Near −z, 1/(1 + c) would lose the digits (5.9e-12 m in a sphere–cylinder distance):
+    # diag(1, −1, −1) times the turn from +z to (x, −y, −c), whose 1 − c is ≥ 1.
+    xx, xy, yy = x * x / (1.0 - c), x * y / (1.0 - c), y * y / (1.0 - c)
+    return np.array([[1.0 - xx, xy, x], [-xy, yy - 1.0, y], [x, -y, xx + yy - 1.0]])
 
 
 # ================================================================ scene
