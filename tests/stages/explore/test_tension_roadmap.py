@@ -95,8 +95,8 @@ def test_the_disk_cache_is_reused_and_keyed_on_what_changes_it(private_cache) ->
 
 def test_a_plan_through_the_roadmap_replayed_by_fresh_statics_and_fcl(private_cache) -> None:
     """A problem of ``bench tension --suite clutter`` whose direct leg is blocked, with
-    one via candidate screened (not clear): the roadmap routes it through several via
-    sets; every waypoint and the verdict's samples between them, solved again here, keep
+    one via candidate screened (not clear) of a pool of 128: the roadmap routes it through
+    two via sets or more; every waypoint and the verdict's samples between them, solved again here, keep
     δ by python-fcl and the rate limit holds."""
     from cr_nlp import TensionTrajectoryConfig, TensionTrajectoryPlanner
     from cr_nlp.bench.tension_clutter import clutter_scene
@@ -108,7 +108,7 @@ def test_a_plan_through_the_roadmap_replayed_by_fresh_statics_and_fcl(private_ca
     rao = load_robot("tdcr2_rao2021")
     gravity, payload = [0.0, 0.0, -9.81], [0.0, 0.0, -0.005 * 9.81]
     planner = TensionTrajectoryPlanner(rao, clutter_scene(rao, 0), TensionTrajectoryConfig(
-        via_candidates=1, chain_iterations=0))
+        via_pool=128, via_candidates=1, chain_iterations=0))
     start = np.array([3.789121, 2.751595, 0.0, 0.89808, 5.689187, 0.0])
     goal = np.array([5.039994, 0.0, 0.0, 3.876874, 2.343225, 0.0])
     result = planner.plan(start, goal, gravity=gravity, tip_force=payload)[0]
