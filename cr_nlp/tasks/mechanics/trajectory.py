@@ -401,8 +401,8 @@ class TensionTrajectoryPlanner:
     def _via_plan(self, start: np.ndarray, goal: np.ndarray,
                   loads: StaticLoads) -> tuple[np.ndarray, list[str]]:
         """The cheapest clear start → via → goal among the best via candidates, else the
-        cheapest clear start → via → via → goal, else the direct legs (which the verdict
-        will fail, saying where)."""
+        quickest route through the roadmap (``roadmap``), else the direct legs (which the
+        verdict will fail, saying where)."""
         vias = self.vias(loads)
         cost = leg_change(vias, start) + leg_change(goal, vias)
         order = np.argsort(cost)[:self.config.via_candidates]

@@ -96,8 +96,8 @@ def test_the_disk_cache_is_reused_and_keyed_on_what_changes_it(private_cache) ->
 def test_a_plan_through_the_roadmap_replayed_by_fresh_statics_and_fcl(private_cache) -> None:
     """A problem of ``bench tension --suite clutter`` whose direct leg is blocked, with
     one via candidate screened (not clear) of a pool of 128: the roadmap routes it through
-    two via sets or more; every waypoint and the verdict's samples between them, solved again here, keep
-    δ by python-fcl and the rate limit holds."""
+    two via sets or more; every waypoint and the verdict's samples between them, solved
+    again here, keep δ by python-fcl and the rate limit holds."""
     from cr_nlp import TensionTrajectoryConfig, TensionTrajectoryPlanner
     from cr_nlp.bench.tension_clutter import clutter_scene
     from cr_nlp.model import load_robot
