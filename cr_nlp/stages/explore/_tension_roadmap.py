@@ -12,7 +12,9 @@ search before it tried at most two.
 A roadmap depends on the robot, the scene, the load case, the nodes and how legs are
 screened (rate, waypoint spacing, samples, δ, the rod's discretisation): the caller puts
 all of them in ``key``, which names the cache file, so a new process under the same loads
-loads the edges instead of screening them again and any change builds a new roadmap.
+loads the edges instead of screening them again and any change builds a new roadmap. The
+nodes themselves (which random tension sets are clear: ``clear_nodes``) are cached the
+same way, so a new process's first plan that needs a via solves none of the pool again.
 Units: newtons.
 """
 
@@ -113,6 +115,49 @@ class TensionRoadmap:
         return path[::-1]
 
 
+def _cached(kind: str, key: dict[str, Any] | None, arrays: tuple[np.ndarray, ...],
+            build: Callable[[], dict[str, np.ndarray]]) -> tuple[dict[str, np.ndarray], bool]:
+    """``build()``'s arrays, from ``cache_dir()/tension_roadmaps`` where a file of this
+    ``kind``, ``key`` (JSON-able) and ``arrays`` is there, else built and written there
+    (``key`` None: built, not cached); and whether they came from the cache. A damaged
+    file is rebuilt."""
+    path = None
+    if key is not None:
+        h = hashlib.sha256(json.dumps({"version": FORMAT_VERSION, "kind": kind, **key},
+                                      sort_keys=True, default=str).encode())
+        for array in arrays:
+            h.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
+        path = cache_dir() / "tension_roadmaps" / f"{kind}-{h.hexdigest()}.npz"
+        if path.exists():
+            try:
+                with np.load(path) as data:
+                    out = {name: data[name] for name in data.files}
+                _CACHE_STATS["hits"] += 1
+                return out, True
+            except (OSError, KeyError, ValueError):
+                pass
+    out = build()
+    _CACHE_STATS["builds"] += 1
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        buffer = io.BytesIO()
+        np.savez(buffer, **out)
+        write_atomic(path, buffer.getvalue())   # a concurrent reader never sees half a file
+    return out, False
+
+
+def clear_nodes(candidates: np.ndarray, clear: Callable[[np.ndarray], np.ndarray],
+                key: dict[str, Any] | None = None,
+                arrays: tuple[np.ndarray, ...] = ()) -> np.ndarray:
+    """The ``candidates`` (V, n) N whose equilibria ``clear`` accepts (one batch), cached
+    like the roadmap under ``key`` and ``arrays`` with the candidates themselves: a new
+    process under the same loads solves none of them again."""
+    candidates = np.asarray(candidates, dtype=float)
+    out, _ = _cached("nodes", key, (candidates, *arrays),
+                     lambda: {"nodes": candidates[np.asarray(clear(candidates), bool)]})
+    return np.asarray(out["nodes"], dtype=float)
+
+
 def tension_roadmap(nodes: np.ndarray, screen: Screen, neighbours: int,
                     key: dict[str, Any] | None = None,
                     arrays: tuple[np.ndarray, ...] = ()) -> TensionRoadmap:
@@ -123,33 +168,17 @@ def tension_roadmap(nodes: np.ndarray, screen: Screen, neighbours: int,
     the scene's geometry) name the cache file in ``cache_dir()/tension_roadmaps`` with the
     nodes and ``neighbours``; None: not cached. A damaged cache file is rebuilt."""
     nodes = np.asarray(nodes, dtype=float)
-    path = None
-    if key is not None:
-        h = hashlib.sha256(json.dumps({"version": FORMAT_VERSION, "neighbours": neighbours,
-                                       **key}, sort_keys=True, default=str).encode())
-        for array in (nodes, *arrays):
-            h.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
-        path = cache_dir() / "tension_roadmaps" / f"{h.hexdigest()}.npz"
-        if path.exists():
-            try:
-                with np.load(path) as data:
-                    roadmap = TensionRoadmap(nodes, data["edges"],
-                                             float(data["build_seconds"]), True)
-                _CACHE_STATS["hits"] += 1
-                return roadmap
-            except (OSError, KeyError, ValueError):
-                pass
-    began = time.perf_counter()
-    near = _nearest(nodes, nodes, neighbours)
-    pairs = np.stack([np.repeat(np.arange(len(nodes)), near.shape[1]), near.ravel()], 1)
-    pairs = np.unique(np.sort(pairs, axis=1), axis=0).reshape(-1, 2)
-    clear = (screen(nodes[pairs[:, 0]], nodes[pairs[:, 1]]) if len(pairs)
-             else np.zeros(0, bool))
-    roadmap = TensionRoadmap(nodes, pairs[clear], time.perf_counter() - began)
-    _CACHE_STATS["builds"] += 1
-    if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        buffer = io.BytesIO()
-        np.savez(buffer, edges=roadmap.edges, build_seconds=roadmap.build_seconds)
-        write_atomic(path, buffer.getvalue())   # a concurrent reader never sees half a file
-    return roadmap
+
+    def build() -> dict[str, np.ndarray]:
+        began = time.perf_counter()
+        near = _nearest(nodes, nodes, neighbours)
+        pairs = np.stack([np.repeat(np.arange(len(nodes)), near.shape[1]), near.ravel()], 1)
+        pairs = np.unique(np.sort(pairs, axis=1), axis=0).reshape(-1, 2)
+        clear = (screen(nodes[pairs[:, 0]], nodes[pairs[:, 1]]) if len(pairs)
+                 else np.zeros(0, bool))
+        return {"edges": pairs[clear], "build_seconds": np.array(time.perf_counter() - began)}
+
+    out, hit = _cached("edges", None if key is None else {"neighbours": neighbours, **key},
+                       (nodes, *arrays), build)
+    return TensionRoadmap(nodes, np.asarray(out["edges"], dtype=np.int64).reshape(-1, 2),
+                          float(out["build_seconds"]), hit)

@@ -192,7 +192,11 @@ class TensionTrajectoryPlanner:
 
     def vias(self, loads: StaticLoads) -> np.ndarray:
         """The via candidates under one load case: random tension sets (one or two
-        tendons of each segment slack) where the robot is clear, (V, n) N."""
+        tendons of each segment slack) where the robot is clear, (V, n) N; cached on disk
+        with the roadmap (``stages.explore.clear_nodes``), so a new process under the same
+        robot, scene and loads solves none of them again."""
+        from ...stages.explore import clear_nodes
+
         key = b"".join(np.ascontiguousarray(a).tobytes() for a in loads.arrays())
         if key not in self._vias:
             rng = np.random.default_rng(self.config.seed)
@@ -201,8 +205,22 @@ class TensionTrajectoryPlanner:
             tensions = rng.uniform(0.0, float(self.robot.mechanics.tension_max), (size, n))
             for s in range(n // per):
                 tensions[np.arange(size), s * per + rng.integers(0, per, size)] = 0.0
-            self._vias[key] = tensions[self.clear(tensions, loads)]
+            settings, arrays = self._cache_key(loads)
+            self._vias[key] = clear_nodes(tensions, lambda sets: self.clear(sets, loads),
+                                          settings, arrays)
         return self._vias[key]
+
+    def _cache_key(self, loads: StaticLoads) -> tuple[dict[str, Any], tuple[np.ndarray, ...]]:
+        """What a clear set and a clear leg depend on besides the tensions: the robot, the
+        scene, δ and the rod's discretisation (JSON-able), the load case and the scene's
+        geometry (arrays); the disk caches of the via sets and the roadmap key on them."""
+        arrays = [*loads.arrays()]
+        if self.scene is not None and self.scene.parts:
+            arrays += list(scene_arrays(self.scene, as_numpy=True))
+        settings = {"robot": self.robot.to_dict(),
+                    "scene": None if self.scene is None else self.scene.to_dict(),
+                    "margin": self.config.safety_margin, "statics": asdict(self.config.statics)}
+        return settings, tuple(arrays)
 
     def _screen(self, plans: list[np.ndarray], loads: StaticLoads) -> np.ndarray:
         """(len(plans),) True where every sample the verdict will check is clear (one
@@ -429,18 +447,12 @@ class TensionTrajectoryPlanner:
         key = b"".join(np.ascontiguousarray(a).tobytes() for a in loads.arrays())
         if key not in self._roadmaps:
             cfg = self.config
-            arrays = [*loads.arrays()]
-            if self.scene is not None and self.scene.parts:
-                arrays += list(scene_arrays(self.scene, as_numpy=True))
-            settings = {"robot": self.robot.to_dict(),
-                        "scene": None if self.scene is None else self.scene.to_dict(),
-                        "rate": cfg.tension_rate_max, "dt": cfg.dt,
-                        "samples_between": cfg.samples_between,
-                        "margin": cfg.safety_margin, "statics": asdict(cfg.statics)}
+            settings, arrays = self._cache_key(loads)
+            settings.update(rate=cfg.tension_rate_max, dt=cfg.dt,
+                            samples_between=cfg.samples_between)
             self._roadmaps[key] = tension_roadmap(self.vias(loads),
                                                   partial(self._screen_legs, loads),
-                                                  cfg.roadmap_neighbours, settings,
-                                                  tuple(arrays))
+                                                  cfg.roadmap_neighbours, settings, arrays)
         return self._roadmaps[key]
 
     def _screen_legs(self, loads: StaticLoads, a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -8,7 +8,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cr_nlp.stages.explore import leg_change, tension_roadmap, tension_roadmap_cache_stats
+from cr_nlp.stages.explore import (
+    clear_nodes,
+    leg_change,
+    tension_roadmap,
+    tension_roadmap_cache_stats,
+)
 
 LOW, HIGH = 3.0, 7.0
 """A square of tension pairs (N) no leg may cross."""
@@ -91,6 +96,24 @@ def test_the_disk_cache_is_reused_and_keyed_on_what_changes_it(private_cache) ->
                                 changed)
         assert not other.loaded_from_cache
     assert not tension_roadmap(nodes, screen, 6, key).loaded_from_cache
+
+
+def test_the_clear_nodes_are_cached_too(private_cache) -> None:
+    grid = np.stack(np.meshgrid(np.linspace(0, 10, 11), np.linspace(0, 10, 11)), -1)
+    candidates, key, asked = grid.reshape(-1, 2), {"robot": "toy"}, []
+
+    def clear(sets: np.ndarray) -> np.ndarray:
+        asked.append(len(sets))
+        return ~_blocked(sets)
+
+    first = clear_nodes(candidates, clear, key)
+    np.testing.assert_array_equal(first, _nodes())           # the square's 9 left out
+    again = clear_nodes(candidates, clear, key)
+    np.testing.assert_array_equal(again, first)
+    assert asked == [121]                                     # solved once
+    clear_nodes(candidates, clear, {"robot": "toy", "margin": 0.003})
+    clear_nodes(candidates[:-1], clear, key)
+    assert asked == [121, 121, 120]
 
 
 def test_a_plan_through_the_roadmap_replayed_by_fresh_statics_and_fcl(private_cache) -> None:
