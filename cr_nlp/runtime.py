@@ -78,6 +78,36 @@ def cache_dir() -> Path:
     return Path(root) if root else Path.home() / ".cache" / "cr_nlp"
 
 
+def cached_arrays(path: Path | None, build: Callable[[], dict[str, Any]],
+                  stats: dict[str, int], miss: str = "builds") -> tuple[dict[str, Any], bool]:
+    """The named numpy arrays of the ``.npz`` file ``path`` where it is there and
+    readable, else ``build()``'s, written there atomically (a concurrent reader never sees
+    half a file; ``path`` None: built, not written); and whether they came from the file.
+    ``stats`` counts ``"hits"`` and ``miss``. A damaged file is rebuilt and overwritten."""
+    import io
+
+    import numpy as np
+
+    from ._files import write_atomic
+
+    if path is not None and path.exists():
+        try:
+            with np.load(path) as data:
+                out = {name: data[name] for name in data.files}
+            stats["hits"] += 1
+            return out, True
+        except (OSError, KeyError, ValueError):
+            pass
+    out = build()
+    stats[miss] += 1
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        buffer = io.BytesIO()
+        np.savez(buffer, **out)
+        write_atomic(path, buffer.getvalue())
+    return out, False
+
+
 def enable_compilation_cache() -> None:
     """Turn on JAX's persistent compilation cache, unless the user configured one already.
 

@@ -25,7 +25,7 @@ import numpy as np
 from .._resources import bundled_file, resolve_file
 from ..model.robot import ModelFileError, _Checker, read_model_file
 from ..model.rotations import matrix_from_wxyz
-from ._mesh_cache import Hull, MeshData, decomposed
+from ._mesh_cache import MeshData, MeshReadError, decomposed
 from ._mesh_cache import coacd_cache_dir as coacd_cache_dir
 from ._mesh_cache import coacd_cache_stats as coacd_cache_stats
 
@@ -95,12 +95,25 @@ class ConvexPart:
     def from_points(cls, points: np.ndarray) -> ConvexPart:
         """The convex hull of ``points`` (K, 3) m, with coplanar hull triangles merged
         into one face plane each."""
-        return cls.of_hull(Hull.of_points(points))
+        import trimesh
 
-    @classmethod
-    def of_hull(cls, hull: Hull) -> ConvexPart:
-        """The part of a ``Hull`` (m)."""
-        return cls(hull.vertices, hull.triangles, hull.normals, hull.offsets)
+        hull = trimesh.Trimesh(np.asarray(points, dtype=float)).convex_hull
+        normals = np.asarray(hull.face_normals, dtype=float)
+        offsets = np.einsum("ij,ij->i", normals, hull.triangles[:, 0])
+        # Triangles of one hull face share their plane; one plane per face keeps F small.
+        key = np.round(np.c_[normals, offsets], 6)
+        _, first = np.unique(key, axis=0, return_index=True)
+        first = np.sort(first)
+        return cls(np.asarray(hull.vertices, dtype=float), np.asarray(hull.faces, dtype=np.int64),
+                   normals[first], offsets[first])
+
+    def placed(self, scale: float, rotation: np.ndarray, position: np.ndarray) -> ConvexPart:
+        """This part scaled by ``scale`` (> 0), turned by ``rotation`` (3, 3) and moved by
+        ``position`` (3,) m: vertices s·R·v + t, face planes (R n)·x ≤ s·b + (R n)·t (the
+        hull of the placed points)."""
+        normals = self.normals @ rotation.T
+        return ConvexPart((scale * self.vertices) @ rotation.T + position, self.triangles,
+                          normals, scale * self.offsets + normals @ position)
 
 
 Part = SpherePart | BoxPart | CapsulePart | CylinderPart | ConvexPart
@@ -378,12 +391,11 @@ def _parse_mesh(c: _Checker, raw: dict, path: str, base_dir: Path,
                                          "convex decomposition needs a solid")
 
     try:
-        found = decomposed(content, file.suffix.lstrip(".").lower(), settings, check)
-    except ModelFileError:
-        raise
-    except Exception as exc:  # trimesh raises many types for unreadable files
+        found = decomposed(content, file.suffix.lstrip(".").lower(), settings, check,
+                           ConvexPart.from_points)
+    except MeshReadError as exc:
         raise c.fail(f"{path}.path", f"cannot read {file} as a mesh: {exc}") from None
-    parts = tuple(ConvexPart.of_hull(h.placed(scale, rot, position)) for h in found.hulls)
+    parts = tuple(ConvexPart(*fields).placed(scale, rot, position) for fields in found.parts)
     placed = MeshData((scale * found.mesh.vertices) @ rot.T + position, found.mesh.faces)
     return parts, placed
 

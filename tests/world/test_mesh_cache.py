@@ -1,6 +1,7 @@
-"""The cached mesh decomposition (``world._mesh_cache``): a placed hull is the hull of the
-placed points (checked against a fresh hull of them), and a scene whose decomposition is
-cached loads without importing trimesh or CoACD, with the parts of a fresh decomposition."""
+"""The cached mesh decomposition (``world._mesh_cache``): a placed part
+(``ConvexPart.placed``) is the hull of the placed points (checked against a fresh hull of
+them), and a scene whose decomposition is cached loads without importing trimesh or
+CoACD, with the parts of a fresh decomposition."""
 
 from __future__ import annotations
 
@@ -15,16 +16,16 @@ import pytest
 
 from cr_nlp.model.rotations import matrix_from_wxyz
 from cr_nlp.world._builders import union_of_boxes
-from cr_nlp.world._mesh_cache import Hull
+from cr_nlp.world.scene import ConvexPart
 
 
-def _planes(hull: Hull) -> np.ndarray:
+def _planes(hull: ConvexPart) -> np.ndarray:
     """The face planes (normal, offset) as a sorted set, rounded to 1e-9."""
     planes = np.round(np.c_[hull.normals, hull.offsets], 9)
     return planes[np.lexsort(planes.T[::-1])]
 
 
-def _points(hull: Hull) -> np.ndarray:
+def _points(hull: ConvexPart) -> np.ndarray:
     points = np.round(hull.vertices, 9)
     return points[np.lexsort(points.T[::-1])]
 
@@ -35,8 +36,8 @@ def test_a_placed_hull_is_the_hull_of_the_placed_points() -> None:
     rotation = matrix_from_wxyz(np.array([0.8, 0.1, -0.5, 0.3]) / np.linalg.norm(
         [0.8, 0.1, -0.5, 0.3]))
     scale, position = 1.7, np.array([0.4, -1.2, 0.9])
-    placed = Hull.of_points(points).placed(scale, rotation, position)
-    fresh = Hull.of_points(scale * points @ rotation.T + position)
+    placed = ConvexPart.from_points(points).placed(scale, rotation, position)
+    fresh = ConvexPart.from_points(scale * points @ rotation.T + position)
     np.testing.assert_allclose(_points(placed), _points(fresh), atol=1e-12)
     np.testing.assert_allclose(_planes(placed), _planes(fresh), atol=1e-9)
     # every vertex on or inside every face plane, each plane touching the hull

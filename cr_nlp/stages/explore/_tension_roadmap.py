@@ -21,7 +21,6 @@ Units: newtons.
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import time
 from collections.abc import Callable
@@ -30,8 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from ..._files import write_atomic
-from ...runtime import cache_dir
+from ...runtime import cache_dir, cached_arrays
 
 FORMAT_VERSION = 1
 """Bumped when the cached file's content or the build procedure changes."""
@@ -119,8 +117,7 @@ def _cached(kind: str, key: dict[str, Any] | None, arrays: tuple[np.ndarray, ...
             build: Callable[[], dict[str, np.ndarray]]) -> tuple[dict[str, np.ndarray], bool]:
     """``build()``'s arrays, from ``cache_dir()/tension_roadmaps`` where a file of this
     ``kind``, ``key`` (JSON-able) and ``arrays`` is there, else built and written there
-    (``key`` None: built, not cached); and whether they came from the cache. A damaged
-    file is rebuilt."""
+    (``key`` None: built, not cached); and whether they came from the cache."""
     path = None
     if key is not None:
         h = hashlib.sha256(json.dumps({"version": FORMAT_VERSION, "kind": kind, **key},
@@ -128,22 +125,7 @@ def _cached(kind: str, key: dict[str, Any] | None, arrays: tuple[np.ndarray, ...
         for array in arrays:
             h.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
         path = cache_dir() / "tension_roadmaps" / f"{kind}-{h.hexdigest()}.npz"
-        if path.exists():
-            try:
-                with np.load(path) as data:
-                    out = {name: data[name] for name in data.files}
-                _CACHE_STATS["hits"] += 1
-                return out, True
-            except (OSError, KeyError, ValueError):
-                pass
-    out = build()
-    _CACHE_STATS["builds"] += 1
-    if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        buffer = io.BytesIO()
-        np.savez(buffer, **out)
-        write_atomic(path, buffer.getvalue())   # a concurrent reader never sees half a file
-    return out, False
+    return cached_arrays(path, build, _CACHE_STATS)
 
 
 def clear_nodes(candidates: np.ndarray, clear: Callable[[np.ndarray], np.ndarray],
