@@ -197,7 +197,7 @@ class TensionTrajectoryPlanner:
         robot, scene and loads solves none of them again."""
         from ...stages.explore import clear_nodes
 
-        key = b"".join(np.ascontiguousarray(a).tobytes() for a in loads.arrays())
+        key = _case_key(loads)
         if key not in self._vias:
             rng = np.random.default_rng(self.config.seed)
             per, n = self.robot.tendons.per_segment, self.robot.n_tendons
@@ -340,8 +340,7 @@ class TensionTrajectoryPlanner:
             return polished
         result.notes.append(f"the polished refined motion was not kept: its tip path "
                             f"{1e3 * length:.1f} mm is not shorter than {1e3 * kept:.1f}")
-        result.timing, result.exact_mode = timing, polished.exact_mode
-        return result
+        return result   # its timing is ``timing`` and polish_motion set its exact_mode
 
     def _refined(self, index: int, searched: TensionTrajectoryResult, loads: StaticLoads,
                  timing: StageTiming) -> tuple[TensionTrajectoryResult, np.ndarray | None]:
@@ -444,7 +443,7 @@ class TensionTrajectoryPlanner:
         cache where a process built it for the same robot, scene, loads and settings."""
         from ...stages.explore import tension_roadmap
 
-        key = b"".join(np.ascontiguousarray(a).tobytes() for a in loads.arrays())
+        key = _case_key(loads)
         if key not in self._roadmaps:
             cfg = self.config
             settings, arrays = self._cache_key(loads)
@@ -545,6 +544,11 @@ def _resampled(tensions: np.ndarray, count: int) -> np.ndarray:
     old = np.linspace(0.0, 1.0, len(tensions))
     new = np.linspace(0.0, 1.0, count)
     return np.stack([np.interp(new, old, column) for column in tensions.T], axis=1)
+
+
+def _case_key(loads: StaticLoads) -> bytes:
+    """The bytes of a load case: what the planner's via sets and roadmap are kept under."""
+    return b"".join(np.ascontiguousarray(a).tobytes() for a in loads.arrays())
 
 
 def _tip_path(tips: np.ndarray) -> float:
