@@ -4,7 +4,9 @@ verdict's, ``world.check``).
 Internally points are triples of coordinate arrays (x, y, z), broadcast together: numpy
 is several times faster on separate contiguous coordinates than on (…, 3) arrays
 (``Xyz``; ``xyz``, ``dot``, ``sub`` and the ``point_segment`` / ``segment_segment``
-kernels work on them). The public functions take (…, 3) arrays.
+kernels work on them). The public functions take (…, 3) arrays. The kernels take the
+array module ``xp`` (numpy, or ``jax.numpy`` inside the verdict's float64 program,
+``world._verdict_program``): the same formulas in both.
 """
 
 from __future__ import annotations
@@ -29,11 +31,11 @@ def sub(u: Xyz, v: Xyz) -> Xyz:
     return u[0] - v[0], u[1] - v[1], u[2] - v[2]
 
 
-def point_segment_square(p: Xyz, a: Xyz, u: Xyz, uu: np.ndarray) -> np.ndarray:
+def point_segment_square(p: Xyz, a: Xyz, u: Xyz, uu: np.ndarray, xp: Any = np) -> np.ndarray:
     """Squared distance from points p to segments a + t·u, t ∈ [0, 1], with uu = |u|²."""
     w = sub(p, a)
     with np.errstate(invalid="ignore", divide="ignore"):
-        t = np.where(uu > 0.0, np.clip(dot(w, u) / uu, 0.0, 1.0), 0.0)
+        t = xp.where(uu > 0.0, xp.clip(dot(w, u) / uu, 0.0, 1.0), 0.0)
     dx, dy, dz = w[0] - t * u[0], w[1] - t * u[1], w[2] - t * u[2]
     return dx * dx + dy * dy + dz * dz
 
@@ -43,14 +45,14 @@ def point_segment(p: Xyz, a: Xyz, u: Xyz, uu: np.ndarray) -> np.ndarray:
     return np.sqrt(point_segment_square(p, a, u, uu))
 
 
-def segment_segment(p0: Xyz, p1: Xyz, q0: Xyz, q1: Xyz) -> np.ndarray:
+def segment_segment(p0: Xyz, p1: Xyz, q0: Xyz, q1: Xyz, xp: Any = np) -> np.ndarray:
     """Distance between segments p0–p1 and q0–q1 (see ``segment_distance``)."""
     d1, d2 = sub(p1, p0), sub(q1, q0)
     a, e = dot(d1, d1), dot(d2, d2)
-    best = np.minimum(np.minimum(point_segment_square(p0, q0, d2, e),
-                                 point_segment_square(p1, q0, d2, e)),
-                      np.minimum(point_segment_square(q0, p0, d1, a),
-                                 point_segment_square(q1, p0, d1, a)))
+    best = xp.minimum(xp.minimum(point_segment_square(p0, q0, d2, e, xp),
+                                 point_segment_square(p1, q0, d2, e, xp)),
+                      xp.minimum(point_segment_square(q0, p0, d1, a, xp),
+                                 point_segment_square(q1, p0, d1, a, xp)))
     w = sub(p0, q0)
     b, c, f = dot(d1, d2), dot(d1, w), dot(d2, w)
     denominator = a * e - b * b
@@ -58,13 +60,13 @@ def segment_segment(p0: Xyz, p1: Xyz, q0: Xyz, q1: Xyz) -> np.ndarray:
         s = (b * f - c * e) / denominator
         t = (a * f - b * c) / denominator
     inside = (denominator > 0.0) & (s >= 0.0) & (s <= 1.0) & (t >= 0.0) & (t <= 1.0)
-    if np.any(inside):
-        s, t = np.where(inside, s, 0.0), np.where(inside, t, 0.0)
+    if xp is not np or np.any(inside):      # numpy skips the work where no pair needs it
+        s, t = xp.where(inside, s, 0.0), xp.where(inside, t, 0.0)
         gx = w[0] + s * d1[0] - t * d2[0]
         gy = w[1] + s * d1[1] - t * d2[1]
         gz = w[2] + s * d1[2] - t * d2[2]
-        best = np.where(inside, np.minimum(best, gx * gx + gy * gy + gz * gz), best)
-    return np.sqrt(best)
+        best = xp.where(inside, xp.minimum(best, gx * gx + gy * gy + gz * gz), best)
+    return xp.sqrt(best)
 
 
 def point_segment_distance(p: Any, a: Any, b: Any) -> np.ndarray:

@@ -41,7 +41,7 @@ import numpy as np
 from ..._programs import compile_ahead, compile_program
 from ...model import Robot, q_to_z_numpy, z_to_q_numpy
 from ...model.limits import clip_to_limits
-from ...world import check_many
+from ...world._verdict_program import configuration_geometry
 from .._chunks import SMALLEST_CHUNK, chunk_plan
 from ..explore._seed_pool import SeedPool, random_configurations_z, sobol_configurations
 from ._ik_program import RetryPlan, SearchPlan, retry_targets, search_targets
@@ -390,7 +390,7 @@ class IKSearch:
         own = np.full(len(q), np.inf)
         if self.self_repair:
             t0 = time.perf_counter()
-            own = check_many(self.robot, None, q).self_distance
+            own = configuration_geometry(self.robot, q, self.counters)[2]
             timing.verify += time.perf_counter() - t0
             self._repair(q, own, z_beam, positions, rotations, timing, accepts)
         return q, z_beam, own
@@ -435,7 +435,7 @@ class IKSearch:
         take = ok & ~before
         if take.any():
             q[rows[take]] = q_new[take]
-            own[rows[take]] = check_many(self.robot, None, q_new[take]).self_distance
+            own[rows[take]] = configuration_geometry(self.robot, q_new[take], self.counters)[2]
         timing.verify += time.perf_counter() - t0
         return np.flatnonzero(~(ok | before))
 

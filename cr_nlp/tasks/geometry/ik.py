@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ...model import Robot, load_robot, pose_error, tip_pose
+from ...model import Robot, load_robot, pose_error
 from ...model.derivatives import pose_residual
 from ...model.limits import limit_violation_q, project_z
 from ...model.rotations import matrix_from_wxyz, wxyz_from_matrix
@@ -40,6 +40,7 @@ from ...stages.polish import check_time_limit, polish_note
 from ...stages.refine import IKSearch, LMConfig, RetryPlan, SearchPlan, SearchSettings
 from ...world import Scene, check_many, load_scene, scene_arrays
 from ...world._penalty import sphere_clearances_z
+from ...world._verdict_program import configuration_geometry
 from ...world.clearance import body_gap_tolerance
 from ...world.verdict import judge_many
 from .._result import Stage
@@ -259,9 +260,10 @@ class IKSolver:
         (positions (B, 3) m, wxyz (B, 4)), independent of the optimiser's numbers, and
         the library's verdict on them (``world.verdict.judge_many``).
 
-        The pose error by the numpy backend of the model, the limits, the python-fcl
-        distance to the obstacles and the distance between segments at least two apart
-        (``world.check``; with or without a scene). Returns an ``IKVerification``: arrays
+        The tip pose and the distance between segments at least two apart by the model's
+        float64 geometry (``world._verdict_program``: a compiled float64 program for
+        large batches, numpy for small ones), the limits, and with a scene the python-fcl
+        distance to the obstacles (``world.check``). Returns an ``IKVerification``: arrays
         (B, …) position, wxyz, pose_error, position_error (m), rotation_error (rad),
         obstacle_clearance and self_clearance (m, +inf where not checked), clearance (m,
         the smaller of the two, NaN when neither is checked), collision_free, and the
@@ -270,16 +272,16 @@ class IKSolver:
         ``self_clearance``: (B,) the answers' self-clearance by ``world.check`` when the
         caller has it already (no scene only; the search's self-repair measured it)."""
         robot = self.robot
-        pos_v, rot_m = tip_pose(robot, np.asarray(q, dtype=float).reshape(-1, robot.dof))
+        q = np.asarray(q, dtype=float).reshape(-1, robot.dof)
+        pos_v, rot_m, own = configuration_geometry(robot, q, self._search.counters)
         target_r = matrix_from_wxyz(wxyz)
         rel_rot = np.einsum("bji,bjk->bik", rot_m, target_r)
         cos_angle = np.clip((np.trace(rel_rot, axis1=1, axis2=2) - 1) / 2, -1, 1)
         errors = pose_error(pos_v, rot_m, positions, target_r)
         obstacle = np.full(len(q), np.inf)
-        own = np.full(len(q), np.inf)
         if self.scene is None and self_clearance is not None:
             own = np.asarray(self_clearance, dtype=float).reshape(len(q))
-        elif self.scene is not None or robot.has_self_pairs:
+        elif self.scene is not None:
             # In parts of the stream's size: the check's temporaries grow with its rows.
             step = max(int(self.config.stream_size), 1)
             parts = [check_many(robot, self.scene, q[i:i + step])
