@@ -24,12 +24,14 @@ CLI, summaries): the same text as schema 1 held.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import enum
+import gc
 import importlib
 import json
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from operator import itemgetter
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -182,6 +184,24 @@ def _with_notes(notes: Sequence[Any]) -> list[int]:
     return np.flatnonzero(np.fromiter(map(bool, notes), bool, len(notes))).tolist()
 
 
+@contextlib.contextmanager
+def _young_objects_only() -> Iterator[None]:
+    """While a block makes many small containers (a note list per answer), Python's
+    collections it triggers look at young objects only: everything older is frozen
+    (``gc.freeze``) for the block and thawed after. Otherwise a collection on the way
+    walks every object the process holds (JAX's among them): 0.08–0.18 s for 10⁵ empty
+    lists, measured, against 0.015 s. Nothing is done where the process froze objects of
+    its own (thawing would undo that)."""
+    if gc.get_freeze_count():
+        yield
+        return
+    gc.freeze()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
+
+
 def typed_stages(stages: Sequence[Stage | str], notes: Sequence[list[str] | None] | None = None
                  ) -> tuple[list[Stage], list[list[str]]]:
     """``typed_stage`` over a batch of answers, called once per distinct stage object
@@ -191,7 +211,8 @@ def typed_stages(stages: Sequence[Stage | str], notes: Sequence[list[str] | None
     if notes is not None and len(notes) != len(stages):
         raise ValueError(f"{len(notes)} notes for {len(stages)} stages")
     pairs = _per_object(stages, lambda stage: typed_stage(stage, None))
-    out_notes = list(map(list, map(itemgetter(1), pairs)))
+    with _young_objects_only():
+        out_notes = list(map(list, map(itemgetter(1), pairs)))
     for i in _with_notes(notes or ()):
         out_notes[i] += notes[i]        # type: ignore[index]
     return list(map(itemgetter(0), pairs)), out_notes

@@ -1,23 +1,24 @@
-"""The verdict's float64 geometry of many PCC configurations as one compiled program.
+"""The verdict's float64 re-evaluation of many IK answers as one compiled program.
 
 The verdict re-evaluates every answer in float64, apart from the optimiser's float32
-numbers (``world.verdict``). For IK batches that re-evaluation (the tip pose and the
-distance between segments at least two apart) was numpy on the host: about 0.5 s per
-100 000 targets, most of the host's share of a batch, and all of it on a GPU. Here the
+numbers (``world.verdict``). For IK batches that re-evaluation (the tip pose, the pose
+error and the distance between segments at least two apart) was numpy on the host: about
+0.5 s per 100 000 targets, most of the host's share of a batch, and all of it on a GPU.
+Here the
 same formulas (``model.kinematics``'s model, ``_segment_distances``' closed forms) run
 as one XLA program traced with float64 enabled for it alone (``jax.enable_x64``), in
 blocks of ``ROWS`` configurations split over the devices. The float32 solver programs
 are untouched; the program never sees their intermediate numbers, only the answers.
 
-Blocks under a quarter of ``ROWS`` (a batch's remainder, small batches) go
-through the numpy verdict instead: compiling a program for them would cost more than it
+Blocks under a quarter of ``ROWS`` (a batch's remainder, small batches) go through the
+numpy verdict instead: compiling a program for them would cost more than it
 saves. Both give the same numbers to rounding (tests pin 1e-12 m).
 """
 
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -25,8 +26,16 @@ import numpy as np
 
 from .._programs import compile_program
 from ..model._ops import JAX
-from ..model.kinematics import model_backbone, model_q_to_z, model_segment_frames, tip_pose
+from ..model.kinematics import (
+    model_backbone,
+    model_q_to_z,
+    model_segment_frames,
+    pose_error,
+    tip_pose,
+)
+from ..model.lie import quat_from_rot
 from ..model.robot import Robot
+from ..model.rotations import wxyz_from_matrix
 from ..runtime import cached
 from ._segment_distances import segment_segment
 
@@ -42,18 +51,27 @@ def _far_blocks(robot: Robot) -> list[tuple[int, int]]:
     return [(s, t) for s in range(n) for t in range(s + 2, n)]
 
 
-def _geometry(robot: Robot, q: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Tip position (B, 3) m, tip rotation (B, 3, 3) and the self-distance (B,) m of
-    configurations q (B, 3n), in q's precision: every pair of pieces of segments at least
-    two apart (capsules of the backbone radius), as ``world.check`` measures it."""
-    z = model_q_to_z(JAX, robot, q)
-    frames = model_segment_frames(JAX, robot, z)
-    rot, pos = frames[-1]
-    tip_p = jnp.stack(jnp.broadcast_arrays(*pos), axis=-1)
-    tip_r = jnp.stack(jnp.broadcast_arrays(*rot), axis=-1).reshape(q.shape[:-1] + (3, 3))
-    blocks = _far_blocks(robot)
-    if not blocks:
-        return tip_p, tip_r, jnp.full(q.shape[:-1], jnp.inf, q.dtype)
+class AnswerGeometry(NamedTuple):
+    """The verdict's float64 re-evaluation of B configurations against their targets."""
+
+    position: np.ndarray
+    """(B, 3) tip positions, m."""
+    wxyz: np.ndarray
+    """(B, 4) tip orientations, unit quaternions (w ≥ 0)."""
+    pose_error: np.ndarray
+    """(B,) ‖log(T_tip⁻¹·T_target)‖ (mixed m/rad)."""
+    position_error: np.ndarray
+    """(B,) m."""
+    rotation_error: np.ndarray
+    """(B,) rad."""
+    self_distance: np.ndarray
+    """(B,) smallest signed distance between pieces of segments at least two apart, m
+    (+inf where not checked: fewer than three segments or ``"self_collision": false``)."""
+
+
+def _self_distance(robot: Robot, q: jax.Array, z: list[Any], frames: list[Any]) -> jax.Array:
+    """(B,) every pair of pieces of segments at least two apart (capsules of the backbone
+    radius), as ``world.check`` measures it, in q's precision."""
     points = model_backbone(JAX, robot, z, frames)
     base = jnp.broadcast_to(jnp.asarray(robot.base_position, q.dtype),
                             points.shape[:-2] + (1, 3))
@@ -66,78 +84,111 @@ def _geometry(robot: Robot, q: jax.Array) -> tuple[jax.Array, jax.Array, jax.Arr
         return tuple(jnp.expand_dims(part[..., c], axis) for c in range(3))
 
     own = jnp.full(q.shape[:-1], jnp.inf, q.dtype)
-    for s, t in blocks:
+    for s, t in _far_blocks(robot):
         d = segment_segment(pieces(a, s, 2), pieces(b, s, 2), pieces(a, t, 1),
                             pieces(b, t, 1), jnp)
         own = jnp.minimum(own, jnp.min(d, axis=(1, 2)))
-    return tip_p, tip_r, own - 2.0 * robot.backbone_radius
+    return own - 2.0 * robot.backbone_radius
+
+
+def _geometry(robot: Robot, q: jax.Array, target_p: jax.Array,
+              target_r: jax.Array) -> tuple[jax.Array, ...]:
+    """``AnswerGeometry``'s fields for configurations q (B, 3n) and targets (positions
+    (B, 3) m, rotations (B, 9) row-major), in q's precision."""
+    z = model_q_to_z(JAX, robot, q)
+    frames = model_segment_frames(JAX, robot, z)
+    rot, pos = frames[-1]
+    tip_p = jnp.stack(jnp.broadcast_arrays(*pos), axis=-1)
+    tip_r = jnp.stack(jnp.broadcast_arrays(*rot), axis=-1)
+    wxyz = jnp.stack(jnp.broadcast_arrays(*quat_from_rot(JAX, rot)), axis=-1)
+    shape = q.shape[:-1] + (3, 3)
+    error = pose_error(tip_p, tip_r.reshape(shape), target_p, target_r.reshape(shape))
+    # trace(Rᵀ·R_target) = Σᵢⱼ Rᵢⱼ·R_targetᵢⱼ
+    cos_angle = jnp.clip((jnp.sum(tip_r * target_r, axis=-1) - 1.0) / 2.0, -1.0, 1.0)
+    own = (_self_distance(robot, q, z, frames) if _far_blocks(robot)
+           else jnp.full(q.shape[:-1], jnp.inf, q.dtype))
+    return (tip_p, wxyz, error, jnp.linalg.norm(tip_p - target_p, axis=-1),
+            jnp.arccos(cos_angle), own)
 
 
 @cached(maxsize=16)
 def _program(robot: Robot, rows: int) -> Any:
     """The compiled ``_geometry`` of ``robot`` for ``rows`` float64 configurations."""
-    def geometry(q: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        return _geometry(robot, q)
+    def geometry(q: jax.Array, target_p: jax.Array, target_r: jax.Array) -> tuple:
+        return _geometry(robot, q, target_p, target_r)
 
     with jax.enable_x64(True):
-        return compile_program(geometry, (np.zeros((rows, robot.dof)),),
-                               name="the float64 verdict geometry", batched=(True,),
-                               outputs=3)
+        return compile_program(geometry, (np.zeros((rows, robot.dof)), np.zeros((rows, 3)),
+                                          np.zeros((rows, 9))),
+                               name="the float64 verdict", batched=(True, True, True),
+                               outputs=len(AnswerGeometry._fields))
 
 
-def _numpy_geometry(robot: Robot, q: np.ndarray) -> tuple[np.ndarray, ...]:
+def _numpy_geometry(robot: Robot, q: np.ndarray, target_p: np.ndarray,
+                    target_r: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``_geometry`` in numpy (``tip_pose``, ``pose_error``, ``world.check``)."""
     from .check import check_many
 
     pos, rot = tip_pose(robot, q)
+    target_m = target_r.reshape(-1, 3, 3)
+    cos_angle = np.clip((np.sum(rot.reshape(-1, 9) * target_r, axis=-1) - 1.0) / 2.0, -1, 1)
     own = (check_many(robot, None, q).self_distance if _far_blocks(robot)
            else np.full(len(q), np.inf))
-    return pos, rot, own
+    return (pos, wxyz_from_matrix(rot), pose_error(pos, rot, target_p, target_m),
+            np.linalg.norm(pos - target_p, axis=1), np.arccos(cos_angle), own)
 
 
-def configuration_geometry(robot: Robot, q: Any, counters: Any = None
-                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The verdict's float64 tip pose and self-distance of PCC configurations.
+def answer_geometry(robot: Robot, q: Any, positions: Any, rotations: Any,
+                    counters: Any = None) -> AnswerGeometry:
+    """The verdict's float64 re-evaluation of PCC configurations against their targets.
 
     Args:
         robot: the robot.
         q: (B, 3n) configurations θ, φ, L (rad, rad, m).
+        positions: (B, 3) target tip positions, m; rotations: (B, 3, 3) target tip
+            orientations.
         counters: where the program's seconds are booked, or None: an object with
             ``device_calls``, ``device_launch`` and ``device_wait`` (the IK search's
             counters), so that a benchmark's host share leaves them out.
 
     Returns:
-        tip positions (B, 3) m, tip rotations (B, 3, 3) and the smallest signed distance
-        (B,) m between pieces of segments at least two apart (+inf where not checked:
-        fewer than three segments or ``"self_collision": false``), all float64 numpy.
+        an ``AnswerGeometry`` of float64 numpy arrays.
     """
     q = np.asarray(q, dtype=np.float64).reshape(-1, robot.dof)
     count = len(q)
-    pos, rot, own = np.empty((count, 3)), np.empty((count, 3, 3)), np.empty(count)
+    target_p = np.asarray(positions, dtype=np.float64).reshape(count, 3)
+    target_r = np.asarray(rotations, dtype=np.float64).reshape(count, 9)
+    out = [np.empty((count, 3)), np.empty((count, 4))] + [np.empty(count) for _ in range(4)]
     launched, small = [], []
     size = ROWS
     t0 = time.perf_counter()
     for start in range(0, count, size):
-        block = q[start:start + size]
-        if len(block) < max(size // 4, 1):
-            small.append((start, block))
+        rows = slice(start, min(start + size, count))
+        used = rows.stop - start
+        if used < max(size // 4, 1):
+            small.append(rows)
             continue
-        padded = np.empty((size, robot.dof))
-        padded[:len(block)] = block
-        padded[len(block):] = block[0]
+        args = []
+        for x in (q, target_p, target_r):
+            padded = np.empty((size, x.shape[1]))
+            padded[:used] = x[rows]
+            padded[used:] = x[start]
+            args.append(padded)
         with jax.enable_x64(True):
-            launched.append((start, len(block), _program(robot, size)(padded)))
+            launched.append((rows, _program(robot, size)(*args)))
     t1 = time.perf_counter()
-    for start, block in small:        # on the host while the device runs the blocks
-        rows = slice(start, start + len(block))
-        pos[rows], rot[rows], own[rows] = _numpy_geometry(robot, block)
+    for rows in small:                # on the host while the device runs the blocks
+        for field, value in zip(out, _numpy_geometry(robot, q[rows], target_p[rows],
+                                                     target_r[rows]), strict=True):
+            field[rows] = value
     t2 = time.perf_counter()
-    jax.block_until_ready([out for _, _, out in launched])
+    jax.block_until_ready([result for _, result in launched])
     t3 = time.perf_counter()
-    for start, used, out in launched:
-        rows = slice(start, start + used)
-        pos[rows], rot[rows], own[rows] = (np.asarray(x)[:used] for x in out)
+    for rows, result in launched:
+        for field, value in zip(out, result, strict=True):
+            field[rows] = np.asarray(value)[:rows.stop - rows.start]
     if counters is not None and launched:
         counters.device_calls += len(launched)
         counters.device_launch += t1 - t0
         counters.device_wait += t3 - t2
-    return pos, rot, own
+    return AnswerGeometry(*out)

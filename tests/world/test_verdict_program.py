@@ -1,14 +1,15 @@
 """The verdict's float64 program (``world._verdict_program``) against the numpy verdict:
-the same tip poses and self-distances on random configurations, program blocks, padded
-blocks and numpy remainders alike."""
+the same tip poses, pose errors and self-distances on random configurations, in program
+blocks, padded blocks and numpy remainders alike."""
 
 import importlib
 
 import numpy as np
 import pytest
 
-from cr_nlp.model import Robot
+from cr_nlp.model import Robot, pose_error
 from cr_nlp.model.kinematics import tip_pose
+from cr_nlp.model.rotations import wxyz_from_matrix
 from cr_nlp.world import check_many
 
 from ..conftest import MODELS, random_q
@@ -22,23 +23,36 @@ class _Counters:
     device_wait = 0.0
 
 
+def _targets(robot: Robot, count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Reachable targets: the tips of other random configurations."""
+    pos, rot = tip_pose(robot, random_q(robot, count, seed + 1000))
+    return pos, rot
+
+
 @pytest.mark.parametrize("name", ["tdcr3", "tdcr4_ext"])
 def test_program_matches_the_numpy_verdict(name, monkeypatch) -> None:
     robot = Robot.from_file(MODELS / "robots" / f"{name}.json")
     monkeypatch.setattr(program, "ROWS", 256)
-    # Two full blocks, one padded block (200 of 256) and, in the second call, a remainder
-    # under a quarter of a block (numpy).
+    # Two full blocks and one padded block (200 of 256); then a remainder under a quarter
+    # of a block (numpy).
     for count, programs in ((712, 3), (530, 2)):
         q = random_q(robot, count, seed=count)
+        target_p, target_r = _targets(robot, count, count)
         counters = _Counters()
-        pos, rot, own = program.configuration_geometry(robot, q, counters)
-        want_pos, want_rot = tip_pose(robot, q)
-        want_own = check_many(robot, None, q).self_distance
-        assert pos.dtype == rot.dtype == own.dtype == np.float64
-        np.testing.assert_allclose(pos, want_pos, rtol=0, atol=1e-12)
-        np.testing.assert_allclose(rot, want_rot, rtol=0, atol=1e-12)
-        np.testing.assert_allclose(own, want_own, rtol=0, atol=1e-12)
-        assert (own < 0).any() and (own > 0).any()     # both sides of contact compared
+        got = program.answer_geometry(robot, q, target_p, target_r, counters)
+        pos, rot = tip_pose(robot, q)
+        want = {"position": pos, "wxyz": wxyz_from_matrix(rot),
+                "pose_error": pose_error(pos, rot, target_p, target_r),
+                "position_error": np.linalg.norm(pos - target_p, axis=1),
+                "rotation_error": np.arccos(np.clip(
+                    (np.trace(np.einsum("bji,bjk->bik", rot, target_r), axis1=1, axis2=2)
+                     - 1) / 2, -1, 1)),
+                "self_distance": check_many(robot, None, q).self_distance}
+        for field, value in want.items():
+            assert getattr(got, field).dtype == np.float64
+            np.testing.assert_allclose(getattr(got, field), value, rtol=0, atol=1e-12,
+                                       err_msg=field)
+        assert (got.self_distance < 0).any() and (got.self_distance > 0).any()
         assert counters.device_calls == programs and counters.device_wait >= 0.0
 
 
@@ -47,7 +61,10 @@ def test_no_self_pairs_give_infinity(monkeypatch) -> None:
     robot = Robot.from_dict({**data, "self_collision": False})
     monkeypatch.setattr(program, "ROWS", 256)
     q = random_q(robot, 300, seed=1)
-    pos, _, own = program.configuration_geometry(robot, q)
-    assert np.all(own == np.inf)
-    np.testing.assert_allclose(pos, tip_pose(robot, q)[0], rtol=0, atol=1e-12)
-    assert program.configuration_geometry(robot, np.zeros((0, robot.dof)))[2].shape == (0,)
+    target_p, target_r = _targets(robot, 300, 1)
+    got = program.answer_geometry(robot, q, target_p, target_r)
+    assert np.all(got.self_distance == np.inf)
+    np.testing.assert_allclose(got.position, tip_pose(robot, q)[0], rtol=0, atol=1e-12)
+    empty = program.answer_geometry(robot, np.zeros((0, robot.dof)), np.zeros((0, 3)),
+                                    np.zeros((0, 3, 3)))
+    assert empty.self_distance.shape == (0,) and empty.wxyz.shape == (0, 4)

@@ -41,7 +41,8 @@ import numpy as np
 from ..._programs import compile_ahead, compile_program
 from ...model import Robot, q_to_z_numpy, z_to_q_numpy
 from ...model.limits import clip_to_limits
-from ...world._verdict_program import configuration_geometry
+from ...world import check_many
+from ...world._verdict_program import answer_geometry
 from .._chunks import SMALLEST_CHUNK, chunk_plan
 from ..explore._seed_pool import SeedPool, random_configurations_z, sobol_configurations
 from ._ik_program import RetryPlan, SearchPlan, retry_targets, search_targets
@@ -172,10 +173,12 @@ class ChunkRunner:
         # Cast on the host, then transfer: ``jnp.asarray`` of a float64 array converts on
         # the device, behind the chunks already launched (measured: 4.3 s of a 33 s solve
         # of 20 000 free tdcr3 targets on 2 CPU cores, the host blocked).
-        rows = jax.tree.map(lambda x: jax.device_put(np.asarray(
-            padded(x), self.dtype if x.dtype.kind == "f" else None)), per_target)
-        return (*rows, jax.device_put(np.arange(chunk) < stop - start), self.shared,
-                self.free, *whole)
+        # One transfer for every argument (one call per array cost ~0.1 s of host per
+        # 100 000 targets).
+        rows, mask = jax.device_put((jax.tree.map(lambda x: np.asarray(
+            padded(x), self.dtype if x.dtype.kind == "f" else None), per_target),
+            np.arange(chunk) < stop - start))
+        return (*rows, mask, self.shared, self.free, *whole)
 
     @staticmethod
     def _batched(per_target: tuple, whole: tuple) -> tuple[bool, ...]:
@@ -390,7 +393,8 @@ class IKSearch:
         own = np.full(len(q), np.inf)
         if self.self_repair:
             t0 = time.perf_counter()
-            own = configuration_geometry(self.robot, q, self.counters)[2]
+            own = answer_geometry(self.robot, q, positions, rotations,
+                                  self.counters).self_distance
             timing.verify += time.perf_counter() - t0
             self._repair(q, own, z_beam, positions, rotations, timing, accepts)
         return q, z_beam, own
@@ -435,7 +439,7 @@ class IKSearch:
         take = ok & ~before
         if take.any():
             q[rows[take]] = q_new[take]
-            own[rows[take]] = configuration_geometry(self.robot, q_new[take], self.counters)[2]
+            own[rows[take]] = check_many(self.robot, None, q_new[take]).self_distance
         timing.verify += time.perf_counter() - t0
         return np.flatnonzero(~(ok | before))
 

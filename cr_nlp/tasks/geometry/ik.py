@@ -29,10 +29,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ...model import Robot, load_robot, pose_error
+from ...model import Robot, load_robot
 from ...model.derivatives import pose_residual
 from ...model.limits import limit_violation_q, project_z
-from ...model.rotations import matrix_from_wxyz, wxyz_from_matrix
+from ...model.rotations import matrix_from_wxyz
 from ...runtime import configure
 from ...stages import SMALLEST_CHUNK as SMALLEST_CHUNK
 from ...stages import chunk_plan as chunk_plan
@@ -40,7 +40,7 @@ from ...stages.polish import check_time_limit, polish_note
 from ...stages.refine import IKSearch, LMConfig, RetryPlan, SearchPlan, SearchSettings
 from ...world import Scene, check_many, load_scene, scene_arrays
 from ...world._penalty import sphere_clearances_z
-from ...world._verdict_program import configuration_geometry
+from ...world._verdict_program import answer_geometry
 from ...world.clearance import body_gap_tolerance
 from ...world.verdict import judge_many
 from .._result import Stage
@@ -260,9 +260,9 @@ class IKSolver:
         (positions (B, 3) m, wxyz (B, 4)), independent of the optimiser's numbers, and
         the library's verdict on them (``world.verdict.judge_many``).
 
-        The tip pose and the distance between segments at least two apart by the model's
-        float64 geometry (``world._verdict_program``: a compiled float64 program for
-        large batches, numpy for small ones), the limits, and with a scene the python-fcl
+        The tip pose, the pose error and the distance between segments at least two apart
+        in float64 (``world._verdict_program``: a compiled float64 program for large
+        batches, numpy for small ones), the limits, and with a scene the python-fcl
         distance to the obstacles (``world.check``). Returns an ``IKVerification``: arrays
         (B, …) position, wxyz, pose_error, position_error (m), rotation_error (rad),
         obstacle_clearance and self_clearance (m, +inf where not checked), clearance (m,
@@ -273,12 +273,9 @@ class IKSolver:
         caller has it already (no scene only; the search's self-repair measured it)."""
         robot = self.robot
         q = np.asarray(q, dtype=float).reshape(-1, robot.dof)
-        pos_v, rot_m, own = configuration_geometry(robot, q, self._search.counters)
-        target_r = matrix_from_wxyz(wxyz)
-        rel_rot = np.einsum("bji,bjk->bik", rot_m, target_r)
-        cos_angle = np.clip((np.trace(rel_rot, axis1=1, axis2=2) - 1) / 2, -1, 1)
-        errors = pose_error(pos_v, rot_m, positions, target_r)
-        obstacle = np.full(len(q), np.inf)
+        found = answer_geometry(robot, q, positions, matrix_from_wxyz(wxyz),
+                                self._search.counters)
+        obstacle, own = np.full(len(q), np.inf), found.self_distance
         if self.scene is None and self_clearance is not None:
             own = np.asarray(self_clearance, dtype=float).reshape(len(q))
         elif self.scene is not None:
@@ -291,12 +288,12 @@ class IKSolver:
         nearest = np.minimum(obstacle, own)
         verdicts = judge_many(margin=self.config.safety_margin,
                               limits=limit_violation_q(robot, q), min_clearance=obstacle,
-                              self_clearance=own, pose_error=errors,
+                              self_clearance=own, pose_error=found.pose_error,
                               pose_tolerance=self.config.success_tolerance)
         return IKVerification(
-            position=pos_v, wxyz=wxyz_from_matrix(rot_m), pose_error=errors,
-            position_error=np.linalg.norm(pos_v - positions, axis=1),
-            rotation_error=np.arccos(cos_angle), obstacle_clearance=obstacle,
+            position=found.position, wxyz=found.wxyz, pose_error=found.pose_error,
+            position_error=found.position_error, rotation_error=found.rotation_error,
+            obstacle_clearance=obstacle,
             self_clearance=own, clearance=np.where(np.isfinite(nearest), nearest, np.nan),
             collision_free=~(nearest < 0.0), verdicts=verdicts)
 
