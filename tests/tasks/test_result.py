@@ -32,6 +32,7 @@ from cr_nlp.tasks._result import (
     split_stage,
     stage_text,
     status_of,
+    typed_stages,
 )
 from cr_nlp.tasks._timing import StageTiming
 from cr_nlp.tasks.geometry._follow_result import tracking_errors
@@ -288,3 +289,23 @@ def test_split_stage_and_stage_text_are_inverse():
     # One word for a refused input in every task; IK files of before 2026-12-02 said "none".
     assert Stage("none") is Stage.REJECTED is Stage.NONE
     assert status_of(False, "polish") == Status.FAILED and status_of(True, "refine") == "success"
+
+
+def test_typed_stages_leave_the_collector_as_they_found_it() -> None:
+    """``typed_stages`` freezes older objects while it makes its note lists and thaws them
+    after; objects the caller froze stay frozen."""
+    import gc
+
+    stages = [Stage.REFINE] * 3 + ["refine (roadmap)"]
+    assert gc.get_freeze_count() == 0
+    got, notes = typed_stages(stages)
+    assert gc.get_freeze_count() == 0
+    assert got == [Stage.REFINE] * 4 and notes == [[], [], [], ["roadmap"]]
+    assert len({id(n) for n in notes}) == 4            # a list of its own per answer
+    gc.freeze()
+    try:
+        frozen = gc.get_freeze_count()
+        typed_stages(stages)
+        assert gc.get_freeze_count() == frozen
+    finally:
+        gc.unfreeze()
