@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -42,9 +43,10 @@ def project_z(robot: Robot, z: jax.Array) -> jax.Array:
     return jnp.concatenate([u, length[..., None]], axis=-1).reshape(z.shape)
 
 
-def limit_violation_q(robot: Robot, q: np.ndarray) -> np.ndarray:
-    """Largest violation of the limits by (…, 3n) configurations (θ, φ, L), in rad or m (≥ 0)."""
-    q = np.asarray(q, dtype=float)
+def limit_violation_q(robot: Robot, q: np.ndarray, xp: Any = np) -> np.ndarray:
+    """Largest violation of the limits by (…, 3n) configurations (θ, φ, L), in rad or m (≥ 0).
+    ``xp``: numpy (float64), or ``jax.numpy`` inside a traced program (the verdict's)."""
+    q = xp.asarray(q, dtype=float) if xp is np else q
     seg = q.reshape(q.shape[:-1] + (robot.n_segments, 3))
     theta, phi, length = seg[..., 0], seg[..., 1], seg[..., 2]
     theta_max = np.array([s.theta_max for s in robot.segments])
@@ -53,15 +55,15 @@ def limit_violation_q(robot: Robot, q: np.ndarray) -> np.ndarray:
     lo_p = np.array([s.phi_min for s in robot.segments])
     hi_p = np.array([s.phi_max for s in robot.segments])
     parts = [
-        np.maximum(theta - theta_max, 0.0), np.maximum(-theta, 0.0),
-        np.maximum(length - hi_l, 0.0), np.maximum(lo_l - length, 0.0),
+        xp.maximum(theta - theta_max, 0.0), xp.maximum(-theta, 0.0),
+        xp.maximum(length - hi_l, 0.0), xp.maximum(lo_l - length, 0.0),
     ]
     limited = np.isfinite(lo_p) | np.isfinite(hi_p)
     # φ is undefined for a straight segment: its range cannot be broken there.
     bent = theta > 1e-12
-    parts += [np.where(limited & bent, np.maximum(phi - hi_p, 0.0), 0.0),
-              np.where(limited & bent, np.maximum(lo_p - phi, 0.0), 0.0)]
-    return np.max(np.stack(parts, axis=-1), axis=(-1, -2))
+    parts += [xp.where(limited & bent, xp.maximum(phi - hi_p, 0.0), 0.0),
+              xp.where(limited & bent, xp.maximum(lo_p - phi, 0.0), 0.0)]
+    return xp.max(xp.stack(parts, axis=-1), axis=(-1, -2))
 
 
 def project_bending(robot: Robot, q: np.ndarray) -> np.ndarray:

@@ -2,17 +2,17 @@
 
 The verdict re-evaluates every answer in float64, apart from the optimiser's float32
 numbers (``world.verdict``). For IK batches that re-evaluation (the tip pose, the pose
-error and the distance between segments at least two apart) was numpy on the host: about
-0.5 s per 100 000 targets, most of the host's share of a batch, and all of it on a GPU.
-Here the
-same formulas (``model.kinematics``'s model, ``_segment_distances``' closed forms) run
-as one XLA program traced with float64 enabled for it alone (``jax.enable_x64``), in
-blocks of ``ROWS`` configurations split over the devices. The float32 solver programs
-are untouched; the program never sees their intermediate numbers, only the answers.
+error, the limits and the distance between segments at least two apart) was numpy on the
+host: about 0.5 s per 100 000 targets, most of the host's share of a batch, and all of it
+on a GPU. Here the same formulas (``model.kinematics``'s model, ``model.limits``,
+``_segment_distances``' closed forms) run as one XLA program traced with float64 enabled
+for it alone (``jax.enable_x64``), in blocks of ``ROWS`` configurations split over the
+devices. The float32 solver programs are untouched; the program never sees their
+intermediate numbers, only the answers.
 
 Blocks under a quarter of ``ROWS`` (a batch's remainder, small batches) go through the
-numpy verdict instead: compiling a program for them would cost more than it
-saves. Both give the same numbers to rounding (tests pin 1e-12 m).
+numpy verdict instead: compiling a program for them would cost more than it saves. Both
+give the same numbers to rounding (tests pin 1e-12).
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ from ..model.kinematics import (
     tip_pose,
 )
 from ..model.lie import quat_from_rot
+from ..model.limits import limit_violation_q
 from ..model.robot import Robot
 from ..model.rotations import wxyz_from_matrix
 from ..runtime import cached
@@ -67,6 +68,8 @@ class AnswerGeometry(NamedTuple):
     self_distance: np.ndarray
     """(B,) smallest signed distance between pieces of segments at least two apart, m
     (+inf where not checked: fewer than three segments or ``"self_collision": false``)."""
+    limits: np.ndarray
+    """(B,) largest violation of the configuration limits, rad or m (≥ 0)."""
 
 
 def _self_distance(robot: Robot, q: jax.Array, z: list[Any], frames: list[Any]) -> jax.Array:
@@ -108,7 +111,7 @@ def _geometry(robot: Robot, q: jax.Array, target_p: jax.Array,
     own = (_self_distance(robot, q, z, frames) if _far_blocks(robot)
            else jnp.full(q.shape[:-1], jnp.inf, q.dtype))
     return (tip_p, wxyz, error, jnp.linalg.norm(tip_p - target_p, axis=-1),
-            jnp.arccos(cos_angle), own)
+            jnp.arccos(cos_angle), own, limit_violation_q(robot, q, jnp))
 
 
 @cached(maxsize=16)
@@ -125,21 +128,23 @@ def _program(robot: Robot, rows: int) -> Any:
 
 
 def _numpy_geometry(robot: Robot, q: np.ndarray, target_p: np.ndarray,
-                    target_r: np.ndarray) -> tuple[np.ndarray, ...]:
-    """``_geometry`` in numpy (``tip_pose``, ``pose_error``, ``world.check``)."""
+                    target_r: np.ndarray, self_distance: bool) -> tuple[np.ndarray, ...]:
+    """``_geometry`` in numpy (``tip_pose``, ``pose_error``, ``world.check``); the
+    self-distance +inf unless asked for."""
     from .check import check_many
 
     pos, rot = tip_pose(robot, q)
     target_m = target_r.reshape(-1, 3, 3)
     cos_angle = np.clip((np.sum(rot.reshape(-1, 9) * target_r, axis=-1) - 1.0) / 2.0, -1, 1)
-    own = (check_many(robot, None, q).self_distance if _far_blocks(robot)
+    own = (check_many(robot, None, q).self_distance if self_distance and _far_blocks(robot)
            else np.full(len(q), np.inf))
     return (pos, wxyz_from_matrix(rot), pose_error(pos, rot, target_p, target_m),
-            np.linalg.norm(pos - target_p, axis=1), np.arccos(cos_angle), own)
+            np.linalg.norm(pos - target_p, axis=1), np.arccos(cos_angle), own,
+            limit_violation_q(robot, q))
 
 
 def answer_geometry(robot: Robot, q: Any, positions: Any, rotations: Any,
-                    counters: Any = None) -> AnswerGeometry:
+                    counters: Any = None, self_distance: bool = True) -> AnswerGeometry:
     """The verdict's float64 re-evaluation of PCC configurations against their targets.
 
     Args:
@@ -150,6 +155,9 @@ def answer_geometry(robot: Robot, q: Any, positions: Any, rotations: Any,
         counters: where the program's seconds are booked, or None: an object with
             ``device_calls``, ``device_launch`` and ``device_wait`` (the IK search's
             counters), so that a benchmark's host share leaves them out.
+        self_distance: False where the caller measures the self-distance itself (a
+            scene's check, the search's self-repair): then it is +inf where numpy
+            evaluates a block (the program measures it anyway, on the device).
 
     Returns:
         an ``AnswerGeometry`` of float64 numpy arrays.
@@ -158,7 +166,7 @@ def answer_geometry(robot: Robot, q: Any, positions: Any, rotations: Any,
     count = len(q)
     target_p = np.asarray(positions, dtype=np.float64).reshape(count, 3)
     target_r = np.asarray(rotations, dtype=np.float64).reshape(count, 9)
-    out = [np.empty((count, 3)), np.empty((count, 4))] + [np.empty(count) for _ in range(4)]
+    out = [np.empty((count, 3)), np.empty((count, 4))] + [np.empty(count) for _ in range(5)]
     launched, small = [], []
     size = ROWS
     t0 = time.perf_counter()
@@ -179,7 +187,8 @@ def answer_geometry(robot: Robot, q: Any, positions: Any, rotations: Any,
     t1 = time.perf_counter()
     for rows in small:                # on the host while the device runs the blocks
         for field, value in zip(out, _numpy_geometry(robot, q[rows], target_p[rows],
-                                                     target_r[rows]), strict=True):
+                                                     target_r[rows], self_distance),
+                              strict=True):
             field[rows] = value
     t2 = time.perf_counter()
     jax.block_until_ready([result for _, result in launched])

@@ -9,6 +9,7 @@ import pytest
 
 from cr_nlp.model import Robot, pose_error
 from cr_nlp.model.kinematics import tip_pose
+from cr_nlp.model.limits import limit_violation_q
 from cr_nlp.model.rotations import wxyz_from_matrix
 from cr_nlp.world import check_many
 
@@ -37,6 +38,7 @@ def test_program_matches_the_numpy_verdict(name, monkeypatch) -> None:
     # of a block (numpy).
     for count, programs in ((712, 3), (530, 2)):
         q = random_q(robot, count, seed=count)
+        q[::7, 0] = robot.segments[0].theta_max + 0.3       # some beyond θ max
         target_p, target_r = _targets(robot, count, count)
         counters = _Counters()
         got = program.answer_geometry(robot, q, target_p, target_r, counters)
@@ -47,12 +49,14 @@ def test_program_matches_the_numpy_verdict(name, monkeypatch) -> None:
                 "rotation_error": np.arccos(np.clip(
                     (np.trace(np.einsum("bji,bjk->bik", rot, target_r), axis1=1, axis2=2)
                      - 1) / 2, -1, 1)),
-                "self_distance": check_many(robot, None, q).self_distance}
+                "self_distance": check_many(robot, None, q).self_distance,
+                "limits": limit_violation_q(robot, q)}
         for field, value in want.items():
             assert getattr(got, field).dtype == np.float64
             np.testing.assert_allclose(getattr(got, field), value, rtol=0, atol=1e-12,
                                        err_msg=field)
         assert (got.self_distance < 0).any() and (got.self_distance > 0).any()
+        assert np.allclose(got.limits[::7], 0.3) and (got.limits[1::7] == 0).all()
         assert counters.device_calls == programs and counters.device_wait >= 0.0
 
 

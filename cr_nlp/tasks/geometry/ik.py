@@ -31,7 +31,7 @@ import numpy as np
 
 from ...model import Robot, load_robot
 from ...model.derivatives import pose_residual
-from ...model.limits import limit_violation_q, project_z
+from ...model.limits import project_z
 from ...model.rotations import matrix_from_wxyz
 from ...runtime import configure
 from ...stages import SMALLEST_CHUNK as SMALLEST_CHUNK
@@ -274,7 +274,8 @@ class IKSolver:
         robot = self.robot
         q = np.asarray(q, dtype=float).reshape(-1, robot.dof)
         found = answer_geometry(robot, q, positions, matrix_from_wxyz(wxyz),
-                                self._search.counters)
+                                self._search.counters,
+                                self.scene is None and self_clearance is None)
         obstacle, own = np.full(len(q), np.inf), found.self_distance
         if self.scene is None and self_clearance is not None:
             own = np.asarray(self_clearance, dtype=float).reshape(len(q))
@@ -287,7 +288,7 @@ class IKSolver:
             own = np.concatenate([c.self_distance for c in parts])
         nearest = np.minimum(obstacle, own)
         verdicts = judge_many(margin=self.config.safety_margin,
-                              limits=limit_violation_q(robot, q), min_clearance=obstacle,
+                              limits=found.limits, min_clearance=obstacle,
                               self_clearance=own, pose_error=found.pose_error,
                               pose_tolerance=self.config.success_tolerance)
         return IKVerification(
