@@ -584,7 +584,9 @@ def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str],
         "- The baselines ignore obstacles and self-collision; their answers are judged "
         "by the same verdict (python-fcl, self-clearance) as every other row.",
         "- throughput: explore (nearest-pose lookup, coarse LM, beam), refine (LM) and "
-        "verify (float64 numpy + python-fcl, host only) are `IKResult.timing`; device wait "
+        "verify (the float64 verdict: a compiled float64 program for blocks of 4096 "
+        "answers, numpy for smaller ones, python-fcl for obstacles) are "
+        "`IKResult.timing`; device wait "
         "is the time the host blocked on device results (`IKSolver.device_wait`: device "
         "work nothing on the host overlapped); host s = wall − device wait, the time the "
         "device may have idled (on a CPU the device is the host: XLA may run a program "
