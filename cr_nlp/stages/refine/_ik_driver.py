@@ -123,7 +123,8 @@ class ChunkRunner:
     def search(self, plan: SearchPlan, z_seeds: np.ndarray, positions: np.ndarray,
                rotations: np.ndarray, timing: Booking) -> tuple[np.ndarray, np.ndarray]:
         """Coarse LM on (T, K, n) seeds, a diverse beam, refinement: z (T, width, n) and
-        cost ½‖r‖² (T, width), as ``search_targets`` programs. Booked as refinement."""
+        cost ½‖r‖² (T, width), best first, as ``search_targets`` programs. Booked as
+        refinement."""
         k = z_seeds.shape[1]
         search = partial(search_targets, self.residual, self.project, plan)
         z, cost, runs = self._run(("search", k, plan), search,
@@ -352,10 +353,7 @@ class IKSearch:
         pool = self.seed_pool(timing)
         nearest = self.nearest(positions, rotations, self.settings.seeds_per_target, timing)
         plan = replace(self.settings.plan, per_target=per_target)
-        z, cost = self.main.search(plan, pool.z[nearest], positions, rotations, timing)
-        order = np.argsort(cost, axis=1)
-        return (np.take_along_axis(z, order[..., None], axis=1),
-                np.take_along_axis(cost, order, axis=1))
+        return self.main.search(plan, pool.z[nearest], positions, rotations, timing)
 
     def solve_part(self, positions: np.ndarray, rotations: np.ndarray, timing: Booking,
                    accepts: Callable[[np.ndarray, np.ndarray], np.ndarray]

@@ -119,13 +119,17 @@ def search_targets(residual: Residual, project: Projection, plan: SearchPlan,
         free: (n,) 1.0 for the variables LM may move.
 
     Returns:
-        z (T, width, n) and cost ½‖r‖² (T, width) of the refined beam, and per round
-        (coarse first) the rows iterated (1, rounds) and the most LM iterations any of
-        its blocks ran (1, rounds), for profiling (the leading 1 is one row per device).
+        z (T, width, n) and cost ½‖r‖² (T, width) of the refined beam, best first (NaN
+        last), and per round (coarse first) the rows iterated (1, rounds) and the most LM
+        iterations any of its blocks ran (1, rounds), for profiling (the leading 1 is one
+        row per device).
     """
     z, cost, counted, iterated = _search_rows(residual, project, plan, z_seeds, params,
                                               valid, shared, free)
-    return z, cost, counted[None], iterated[None]
+    # Sorted here, not on the host: 10⁵ targets' beams took ~0.04 s of host time.
+    order = jnp.argsort(cost, axis=1)
+    return (jnp.take_along_axis(z, order[..., None], axis=1),
+            jnp.take_along_axis(cost, order, axis=1), counted[None], iterated[None])
 
 
 def _search_rows(residual: Residual, project: Projection, plan: SearchPlan,
