@@ -26,30 +26,18 @@ import numpy as np
 
 from .._programs import compile_program
 from ..model._ops import JAX
-from ..model.kinematics import (
-    model_backbone,
-    model_q_to_z,
-    model_segment_frames,
-    pose_error,
-    tip_pose,
-)
+from ..model.kinematics import model_q_to_z, model_segment_frames, pose_error, tip_pose
 from ..model.lie import quat_from_rot
 from ..model.limits import limit_violation_q
 from ..model.robot import Robot
 from ..model.rotations import wxyz_from_matrix
 from ..runtime import cached
 from ._segment_distances import segment_segment
+from .clearance import _body_centres
 
 ROWS = 4096
 """Configurations per run of the program (a batch is cut into blocks of this size);
 blocks under a quarter of it use the numpy verdict (``tip_pose``, ``world.check``)."""
-
-
-def _far_blocks(robot: Robot) -> list[tuple[int, int]]:
-    """Segment pairs (s, t ≥ s + 2) whose pieces the self-distance compares (none when
-    the robot file turns self-collision off)."""
-    n = robot.n_segments if robot.self_collision else 0
-    return [(s, t) for s in range(n) for t in range(s + 2, n)]
 
 
 class AnswerGeometry(NamedTuple):
@@ -72,13 +60,10 @@ class AnswerGeometry(NamedTuple):
     """(B,) largest violation of the configuration limits, rad or m (≥ 0)."""
 
 
-def _self_distance(robot: Robot, q: jax.Array, z: list[Any], frames: list[Any]) -> jax.Array:
+def _self_distance(robot: Robot, q: jax.Array, z: list[Any]) -> jax.Array:
     """(B,) every pair of pieces of segments at least two apart (capsules of the backbone
     radius), as ``world.check`` measures it, in q's precision."""
-    points = model_backbone(JAX, robot, z, frames)
-    base = jnp.broadcast_to(jnp.asarray(robot.base_position, q.dtype),
-                            points.shape[:-2] + (1, 3))
-    chain = jnp.concatenate([base, points], axis=-2)
+    chain = _body_centres(JAX, robot, z)   # the base point, then the backbone's
     k = robot.points_per_segment
     a, b = chain[:, :-1], chain[:, 1:]     # piece i joins chain points i and i + 1
 
@@ -87,10 +72,12 @@ def _self_distance(robot: Robot, q: jax.Array, z: list[Any], frames: list[Any]) 
         return tuple(jnp.expand_dims(part[..., c], axis) for c in range(3))
 
     own = jnp.full(q.shape[:-1], jnp.inf, q.dtype)
-    for s, t in _far_blocks(robot):
-        d = segment_segment(pieces(a, s, 2), pieces(b, s, 2), pieces(a, t, 1),
-                            pieces(b, t, 1), jnp)
-        own = jnp.minimum(own, jnp.min(d, axis=(1, 2)))
+    n = robot.n_segments
+    for s in range(n):
+        for t in range(s + 2, n):
+            d = segment_segment(pieces(a, s, 2), pieces(b, s, 2), pieces(a, t, 1),
+                                pieces(b, t, 1), jnp)
+            own = jnp.minimum(own, jnp.min(d, axis=(1, 2)))
     return own - 2.0 * robot.backbone_radius
 
 
@@ -108,7 +95,7 @@ def _geometry(robot: Robot, q: jax.Array, target_p: jax.Array,
     error = pose_error(tip_p, tip_r.reshape(shape), target_p, target_r.reshape(shape))
     # trace(Rᵀ·R_target) = Σᵢⱼ Rᵢⱼ·R_targetᵢⱼ
     cos_angle = jnp.clip((jnp.sum(tip_r * target_r, axis=-1) - 1.0) / 2.0, -1.0, 1.0)
-    own = (_self_distance(robot, q, z, frames) if _far_blocks(robot)
+    own = (_self_distance(robot, q, z) if robot.has_self_pairs
            else jnp.full(q.shape[:-1], jnp.inf, q.dtype))
     return (tip_p, wxyz, error, jnp.linalg.norm(tip_p - target_p, axis=-1),
             jnp.arccos(cos_angle), own, limit_violation_q(robot, q, jnp))
@@ -128,23 +115,31 @@ def _program(robot: Robot, rows: int) -> Any:
 
 
 def _numpy_geometry(robot: Robot, q: np.ndarray, target_p: np.ndarray,
-                    target_r: np.ndarray, self_distance: bool) -> tuple[np.ndarray, ...]:
+                    target_r: np.ndarray, self_distance: bool,
+                    pose: bool) -> tuple[np.ndarray, ...]:
     """``_geometry`` in numpy (``tip_pose``, ``pose_error``, ``world.check``); the
-    self-distance +inf unless asked for."""
+    self-distance +inf unless asked for, the pose fields and limits NaN unless asked
+    for."""
     from .check import check_many
 
+    count = len(q)
+    own = (check_many(robot, None, q).self_distance if self_distance and robot.has_self_pairs
+           else np.full(count, np.inf))
+    if not pose:
+        nan = np.full(count, np.nan)
+        return (np.full((count, 3), np.nan), np.full((count, 4), np.nan), nan, nan, nan,
+                own, nan)
     pos, rot = tip_pose(robot, q)
     target_m = target_r.reshape(-1, 3, 3)
     cos_angle = np.clip((np.sum(rot.reshape(-1, 9) * target_r, axis=-1) - 1.0) / 2.0, -1, 1)
-    own = (check_many(robot, None, q).self_distance if self_distance and _far_blocks(robot)
-           else np.full(len(q), np.inf))
     return (pos, wxyz_from_matrix(rot), pose_error(pos, rot, target_p, target_m),
             np.linalg.norm(pos - target_p, axis=1), np.arccos(cos_angle), own,
             limit_violation_q(robot, q))
 
 
 def answer_geometry(robot: Robot, q: Any, positions: Any, rotations: Any,
-                    counters: Any = None, self_distance: bool = True) -> AnswerGeometry:
+                    counters: Any = None, self_distance: bool = True,
+                    pose: bool = True) -> AnswerGeometry:
     """The verdict's float64 re-evaluation of PCC configurations against their targets.
 
     Args:
@@ -158,6 +153,8 @@ def answer_geometry(robot: Robot, q: Any, positions: Any, rotations: Any,
         self_distance: False where the caller measures the self-distance itself (a
             scene's check, the search's self-repair): then it is +inf where numpy
             evaluates a block (the program measures it anyway, on the device).
+        pose: False where the caller needs the self-distance only (the search's
+            self-repair): then the other fields are NaN where numpy evaluates a block.
 
     Returns:
         an ``AnswerGeometry`` of float64 numpy arrays.
@@ -187,7 +184,7 @@ def answer_geometry(robot: Robot, q: Any, positions: Any, rotations: Any,
     t1 = time.perf_counter()
     for rows in small:                # on the host while the device runs the blocks
         for field, value in zip(out, _numpy_geometry(robot, q[rows], target_p[rows],
-                                                     target_r[rows], self_distance),
+                                                     target_r[rows], self_distance, pose),
                               strict=True):
             field[rows] = value
     t2 = time.perf_counter()

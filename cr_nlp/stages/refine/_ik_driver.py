@@ -391,8 +391,8 @@ class IKSearch:
         own = np.full(len(q), np.inf)
         if self.self_repair:
             t0 = time.perf_counter()
-            own = answer_geometry(self.robot, q, positions, rotations,
-                                  self.counters).self_distance
+            own = answer_geometry(self.robot, q, positions, rotations, self.counters,
+                                  pose=False).self_distance
             timing.verify += time.perf_counter() - t0
             self._repair(q, own, z_beam, positions, rotations, timing, accepts)
         return q, z_beam, own
