@@ -27,6 +27,7 @@ file fail before it is used.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -46,6 +47,7 @@ from typing import Any
 import jax
 import numpy as np
 
+from ._by_shape import ByShape, WithData, lift
 from ._files import write_atomic
 from ._fingerprint import Unkeyable, fingerprint
 from ._program_clock import Flat as _Flat
@@ -162,7 +164,8 @@ def _batch_size(batched: Sequence[bool] | None, args: Sequence[Any]) -> int | No
 
 
 def compile_program(fn: Callable, args: Sequence[Any], *, name: str = "",
-                    batched: Sequence[bool] | None = None, outputs: int = 1) -> Any:
+                    batched: Sequence[bool] | None = None, outputs: int = 1,
+                    by_shape: bool = False) -> Any:
     """``fn`` compiled for ``args`` (their shapes and dtypes): a callable that takes
     arguments like ``args`` and returns ``fn``'s outputs.
 
@@ -174,12 +177,16 @@ def compile_program(fn: Callable, args: Sequence[Any], *, name: str = "",
     there, else traces, stores and compiles it; a program compiled earlier in this
     process with the same key is reused, and one that ``compile_ahead`` is compiling is
     waited for. Turns on JAX's persistent compilation cache
-    (``runtime.configure``) unless the user configured one."""
-    return _request(fn, args, name, batched, outputs, ahead=False)
+    (``runtime.configure``) unless the user configured one.
+
+    ``by_shape``: the robots among ``fn``'s partial arguments are the program's data,
+    not constants, so a robot of the same shape runs the same program (``_by_shape``)."""
+    return _request(fn, args, name, batched, outputs, ahead=False, by_shape=by_shape)
 
 
 def compile_ahead(fn: Callable, args: Sequence[Any], *, name: str = "",
-                  batched: Sequence[bool] | None = None, outputs: int = 1) -> None:
+                  batched: Sequence[bool] | None = None, outputs: int = 1,
+                  by_shape: bool = False) -> None:
     """Start ``compile_program(fn, args, …)`` on a background thread and return at once;
     the ``compile_program`` call that later asks for the same program waits for it.
 
@@ -189,11 +196,21 @@ def compile_ahead(fn: Callable, args: Sequence[Any], *, name: str = "",
     under way in this process, or for an unkeyable function. The thread keeps running
     until the program is compiled (a process exits after it), so ask only for programs
     the process is likely to run; one that is not run is still stored for later ones."""
-    _request(fn, args, name, batched, outputs, ahead=True)
+    _request(fn, args, name, batched, outputs, ahead=True, by_shape=by_shape)
 
 
 def _request(fn: Callable, args: Sequence[Any], name: str, batched: Sequence[bool] | None,
-             outputs: int, ahead: bool) -> Any:
+             outputs: int, ahead: bool, by_shape: bool = False) -> Any:
+    fn, data = lift(fn) if by_shape else (fn, ())
+    if not len(data):
+        return _requested(fn, args, name, batched, outputs, ahead)
+    program = _requested(ByShape(fn), (data, *args), name or _name(fn),
+                         batched and (False, *batched), outputs, ahead)
+    return program and WithData(program, data)
+
+
+def _requested(fn: Callable, args: Sequence[Any], name: str,
+               batched: Sequence[bool] | None, outputs: int, ahead: bool) -> Any:
     from .runtime import configure, split_over_devices
 
     configure()  # XLA's half of the cache (a no-op once on, or user-set)
@@ -360,14 +377,12 @@ def _from_sibling(siblings: Sequence[str], args: Sequence[Any]) -> _Flat | None:
 def _moved(program: _Flat, device: Any) -> _Flat:
     """``program`` (compiled for one device) bound to ``device`` of the same client.
 
-    XLA's CPU executables carry their device, so each lane of a schedule used to compile
-    its own copy (the trajectory LM: 13 s alone, 20–28 s each when two compile side by
-    side on 2 cores, and one cache load per copy warm). The compiled code is the same:
-    it is serialised and loaded again with the other device's assignment (~2 ms), as
-    JAX's own compilation cache does for GPUs. Only a program XLA compiled in this
-    process moves: one loaded from XLA's disk cache (or moved already) serialises without
-    its code and fails when run ("Function … not found"); in a warm process each lane
-    loads the one cache entry instead (``runtime._one_cache_entry_per_program``)."""
+    XLA's CPU executables carry their device, so each lane of a schedule compiled its own
+    copy (the trajectory LM: 13 s alone, 20–28 s two side by side on 2 cores). The code is
+    the same: serialised and loaded with the other device's assignment (~2 ms), as JAX's
+    cache does for GPUs. Only a program XLA compiled in this process moves (one loaded
+    from XLA's disk cache serialises without its code: "Function … not found"); warm,
+    each lane loads the one cache entry (``runtime._one_cache_entry_per_program``)."""
     from jax._src.lib import xla_client as xc
     from jax.experimental import serialize_executable as se
 
@@ -512,23 +527,17 @@ def _store(key: str, exported: Any, out_tree: Any) -> None:
                       RuntimeWarning, stacklevel=3)
 
 
-def _rate_file() -> Path:
-    return programs_dir() / "seconds_per_op.txt"
-
-
 def _seconds_per_op() -> float:
     """Compile seconds per operation measured on this machine last time (or the default)."""
     try:
-        return float(_rate_file().read_text())
+        return float((programs_dir() / "seconds_per_op.txt").read_text())
     except (OSError, ValueError):
         return SECONDS_PER_OP
 
 
 def _record_rate(rate: float) -> None:
-    try:
-        write_atomic(_rate_file(), f"{rate:.6g}".encode())
-    except OSError:
-        pass
+    with contextlib.suppress(OSError):
+        write_atomic(programs_dir() / "seconds_per_op.txt", f"{rate:.6g}".encode())
 
 
 def clear_memory() -> None:

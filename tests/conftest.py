@@ -134,3 +134,15 @@ def sigint_ignored() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+@pytest.fixture
+def program_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """An empty cr_nlp program cache and no programs in memory; counts reset."""
+    from cr_nlp import _programs
+
+    monkeypatch.setenv("CR_NLP_CACHE_DIR", str(tmp_path))
+    _programs.clear_memory()
+    _programs.stats.__init__()
+    yield tmp_path
+    _programs.clear_memory()

@@ -36,16 +36,6 @@ HEAVY = ("casadi", "trimesh", "coacd", "fcl", "dask", "distributed", "matplotlib
          "scipy.stats", "scipy.optimize", "scipy.spatial")
 
 
-@pytest.fixture
-def cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    """An empty program cache and no programs in memory; counts reset."""
-    monkeypatch.setenv("CR_NLP_CACHE_DIR", str(tmp_path))
-    _programs.clear_memory()
-    _programs.stats.__init__()
-    yield tmp_path
-    _programs.clear_memory()
-
-
 def _residual(robot, scale: float, z: jax.Array) -> jax.Array:
     lengths = jnp.asarray([s.length_max for s in robot.segments], z.dtype)
     return scale * jnp.sin(z) * jnp.sum(lengths)
@@ -147,7 +137,7 @@ def _same(answer: tuple, expected: tuple) -> None:
         np.testing.assert_allclose(a, b, rtol=1e-6)
 
 
-def test_a_new_process_loads_the_program_instead_of_tracing_it(cache: Path) -> None:
+def test_a_new_process_loads_the_program_instead_of_tracing_it(program_cache: Path) -> None:
     _same(_run(), _expected())
     assert (_programs.stats.traced, _programs.stats.loaded) == (1, 0)
     assert len(list(programs_dir().glob("*.jaxexport"))) == 1
@@ -162,7 +152,7 @@ def test_a_new_process_loads_the_program_instead_of_tracing_it(cache: Path) -> N
 
 
 @pytest.mark.parametrize("damage", ["truncate", "flip", "garbage", "empty"])
-def test_a_damaged_entry_is_ignored_with_a_warning(cache: Path, damage: str) -> None:
+def test_a_damaged_entry_is_ignored_with_a_warning(program_cache: Path, damage: str) -> None:
     _run()
     (entry,) = programs_dir().glob("*.jaxexport")
     data = entry.read_bytes()
@@ -180,7 +170,7 @@ def test_a_damaged_entry_is_ignored_with_a_warning(cache: Path, damage: str) -> 
     assert _programs.stats.loaded == 1
 
 
-def test_a_stale_entry_of_another_program_is_not_used(cache: Path) -> None:
+def test_a_stale_entry_of_another_program_is_not_used(program_cache: Path) -> None:
     """A file under this key that holds another program (copied or left over) is
     rejected by the key it carries and traced again."""
     _run(0.5)
@@ -196,7 +186,7 @@ def test_a_stale_entry_of_another_program_is_not_used(cache: Path) -> None:
     assert _programs.stats.rejected == 1
 
 
-def test_cached_jit_keeps_one_program_per_shape_and_static_value(cache: Path) -> None:
+def test_cached_jit_keeps_one_program_per_shape_and_static_value(program_cache: Path) -> None:
     @partial(cached_jit, static_argnums=(0,))
     def power(n: int, z: jax.Array) -> jax.Array:
         return z ** n
@@ -210,7 +200,7 @@ def test_cached_jit_keeps_one_program_per_shape_and_static_value(cache: Path) ->
 
 
 @pytest.mark.skipif(jax.device_count() < 2, reason="needs two JAX devices")
-def test_a_program_split_over_the_devices_round_trips(cache: Path) -> None:
+def test_a_program_split_over_the_devices_round_trips(program_cache: Path) -> None:
     def fn(z, w):
         return jnp.sin(z) * w, jnp.sum(z, axis=1)
 
@@ -227,7 +217,7 @@ def test_a_program_split_over_the_devices_round_trips(cache: Path) -> None:
 
 # ---------------------------------------------------------------- compiling ahead
 
-def test_a_program_compiled_ahead_is_waited_for_not_compiled_again(cache: Path) -> None:
+def test_a_program_compiled_ahead_is_waited_for_not_compiled_again(program_cache: Path) -> None:
     z = np.arange(12, dtype=np.float32).reshape(4, 3)
     args = (z, {"scale": np.float32(3.0)})
     fn = partial(_square_sum, 0.5)
@@ -243,7 +233,7 @@ def test_a_program_compiled_ahead_is_waited_for_not_compiled_again(cache: Path) 
 
 
 def test_an_error_compiling_ahead_is_raised_where_the_program_is_asked_for(
-        cache: Path) -> None:
+        program_cache: Path) -> None:
     def broken(z: jax.Array) -> jax.Array:
         return z @ jnp.ones((5, 2), z.dtype)  # (4, 3) @ (5, 2): shapes that do not fit
 
@@ -265,7 +255,7 @@ def _on_devices(devices: list) -> list[tuple]:
 @pytest.mark.skipif(jax.device_count() < 2, reason="needs two JAX devices")
 @pytest.mark.parametrize("ahead", [False, True])
 def test_a_second_device_gets_the_first_ones_program_not_a_compile_of_its_own(
-        cache: Path, ahead: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+        program_cache: Path, ahead: bool, monkeypatch: pytest.MonkeyPatch) -> None:
     """As the trajectory LM's lanes: one program per device, traced and compiled once.
     Asked for side by side (ahead), the second copy is moved from the first; asked for
     after the first is stored, it is loaded from the same two cache entries."""
@@ -340,7 +330,7 @@ def test_one_xla_cache_entry_serves_both_devices_and_is_not_moved(tmp_path: Path
 
 
 @pytest.mark.skipif(jax.device_count() < 2, reason="needs two JAX devices")
-def test_a_program_that_cannot_move_is_compiled_for_its_device(cache: Path,
+def test_a_program_that_cannot_move_is_compiled_for_its_device(program_cache: Path,
                                                                 monkeypatch) -> None:
     def refuse(program: object, device: object) -> None:
         raise RuntimeError("this JAX cannot move executables")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import jax
@@ -32,10 +31,8 @@ def project_z(robot: Robot, z: jax.Array) -> jax.Array:
     scale = jnp.where(theta > theta_max, theta_max / jnp.maximum(theta, 1e-30), 1.0)
     u = u * scale[..., None]
     if any(s.phi_limited for s in robot.segments):
-        lo = jnp.asarray([s.phi_min if math.isfinite(s.phi_min) else -np.inf
-                          for s in robot.segments], z.dtype)
-        hi = jnp.asarray([s.phi_max if math.isfinite(s.phi_max) else np.inf
-                          for s in robot.segments], z.dtype)
+        lo = jnp.asarray([s.phi_min for s in robot.segments], z.dtype)  # −inf: no limit
+        hi = jnp.asarray([s.phi_max for s in robot.segments], z.dtype)
         th = jnp.minimum(theta, theta_max)
         phi = jnp.clip(jnp.arctan2(u[..., 1], u[..., 0]), lo, hi)
         u = jnp.stack([th * jnp.cos(phi), th * jnp.sin(phi)], axis=-1)
@@ -49,16 +46,16 @@ def limit_violation_q(robot: Robot, q: np.ndarray, xp: Any = np) -> np.ndarray:
     q = xp.asarray(q, dtype=float) if xp is np else q
     seg = q.reshape(q.shape[:-1] + (robot.n_segments, 3))
     theta, phi, length = seg[..., 0], seg[..., 1], seg[..., 2]
-    theta_max = np.array([s.theta_max for s in robot.segments])
-    lo_l = np.array([s.length_min for s in robot.segments])
-    hi_l = np.array([s.length_max for s in robot.segments])
-    lo_p = np.array([s.phi_min for s in robot.segments])
-    hi_p = np.array([s.phi_max for s in robot.segments])
+    # xp's arrays: inside a program whose robot is data (``Robot.program_data``) the
+    # limits are traced.
+    theta_max, lo_l, hi_l, lo_p, hi_p = (
+        xp.asarray([getattr(s, f) for s in robot.segments])
+        for f in ("theta_max", "length_min", "length_max", "phi_min", "phi_max"))
     parts = [
         xp.maximum(theta - theta_max, 0.0), xp.maximum(-theta, 0.0),
         xp.maximum(length - hi_l, 0.0), xp.maximum(lo_l - length, 0.0),
     ]
-    limited = np.isfinite(lo_p) | np.isfinite(hi_p)
+    limited = np.array([s.phi_limited for s in robot.segments])
     # φ is undefined for a straight segment: its range cannot be broken there.
     bent = theta > 1e-12
     parts += [xp.where(limited & bent, xp.maximum(phi - hi_p, 0.0), 0.0),

@@ -8,7 +8,7 @@ what is wrong, before anything reaches JAX or CasADi.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -58,6 +58,59 @@ class Segment:
     @property
     def phi_limited(self) -> bool:
         return math.isfinite(self.phi_min) or math.isfinite(self.phi_max)
+
+
+@dataclass(frozen=True)
+class NumberAt:
+    """In a robot's program template (``Robot.program_data``): the number a compiled
+    program takes as entry ``index`` of its robot vector."""
+
+    index: int
+
+
+@dataclass(frozen=True)
+class _ProgramSegment(Segment):
+    """A segment of a program template or of the robot a compiled program rebuilds from
+    its data: the numbers may be ``NumberAt`` or traced, so whether the length can change
+    and whether the azimuth is limited are kept as they were (part of the program's
+    shape, not of its data)."""
+
+    flags: tuple[bool, bool] = (True, False)
+    """(extendable, phi_limited) of the segment it stands for."""
+
+    @property
+    def extendable(self) -> bool:
+        return self.flags[0]
+
+    @property
+    def phi_limited(self) -> bool:
+        return self.flags[1]
+
+
+def _take(value: Any, numbers: list[float]) -> Any:
+    """A finite number of the robot as ``NumberAt`` (appended to ``numbers``); anything
+    else (an infinite limit, a flag, a name) stays where it is, part of the shape."""
+    if isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value):
+        numbers.append(float(value))
+        return NumberAt(len(numbers) - 1)
+    return value
+
+
+def _finite(value: Any) -> bool:
+    """Whether a limit is finite; a traced one is (only finite numbers become data)."""
+    return not isinstance(value, float) or math.isfinite(value)
+
+
+def _fill(value: Any, numbers: Any) -> Any:
+    """``value`` with every ``NumberAt`` replaced by its entry of ``numbers``."""
+    if isinstance(value, NumberAt):
+        return numbers[value.index]
+    if isinstance(value, tuple):
+        return tuple(_fill(v, numbers) for v in value)
+    if is_dataclass(value) and isinstance(value, Segment | Tendons):
+        return replace(value, **{f.name: _fill(getattr(value, f.name), numbers)
+                                 for f in fields(value) if f.init})
+    return value
 
 
 @dataclass(frozen=True)
@@ -125,13 +178,14 @@ class Robot:
         """Longest possible backbone, metres."""
         return float(sum(s.length_max for s in self.segments))
 
-    def q_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Lower and upper bounds of q; an unlimited azimuth is bounded by ±π for sampling."""
+    def q_bounds(self, xp: Any = np) -> tuple[Any, Any]:
+        """Lower and upper bounds of q; an unlimited azimuth is bounded by ±π for sampling.
+        ``xp``: numpy (float64), or ``jax.numpy`` where the numbers are traced."""
         lo, hi = [], []
         for s in self.segments:
-            lo += [0.0, s.phi_min if math.isfinite(s.phi_min) else -math.pi, s.length_min]
-            hi += [s.theta_max, s.phi_max if math.isfinite(s.phi_max) else math.pi, s.length_max]
-        return np.array(lo), np.array(hi)
+            lo += [0.0, s.phi_min if _finite(s.phi_min) else -math.pi, s.length_min]
+            hi += [s.theta_max, s.phi_max if _finite(s.phi_max) else math.pi, s.length_max]
+        return xp.array(lo), xp.array(hi)
 
     def lengths_fixed(self) -> np.ndarray:
         """Boolean mask over segments: True where the length cannot change."""
@@ -181,6 +235,41 @@ class Robot:
                         else f"is outside [{seg.length_min}, {seg.length_max}]")
                 raise ValueError(f"{self.name}: L{i + 1} = {length} m {what}")
         return q
+
+    # ------------------------------------------------------------ compiled programs
+    def program_data(self) -> tuple[Robot, np.ndarray]:
+        """This robot as a compiled program takes it (``_programs.compile_program``'s
+        ``by_shape``): (template, numbers). The template is the robot with each finite
+        number (lengths, limits and angles in m and rad, radii, tendon offsets, base pose,
+        tendon rate limits) replaced by ``NumberAt`` and without its name: its shape,
+        which keys the program. ``numbers`` (float64, in the template's order) are the
+        program's data, so robots of one shape share one program."""
+        numbers: list[float] = []
+        segments = tuple(_ProgramSegment(
+            *(_take(getattr(s, f), numbers)
+              for f in ("length_min", "length_max", "theta_max", "phi_min", "phi_max")),
+            flags=(s.extendable, s.phi_limited)) for s in self.segments)
+        template = replace(
+            self, name="", segments=segments,
+            backbone_radius=_take(self.backbone_radius, numbers),
+            tendons=replace(self.tendons, radius=_take(self.tendons.radius, numbers),
+                            offsets=tuple(_take(o, numbers) for o in self.tendons.offsets)),
+            base_position=tuple(_take(v, numbers) for v in self.base_position),
+            base_wxyz=tuple(_take(v, numbers) for v in self.base_wxyz),
+            tendon_speed_max=_take(self.tendon_speed_max, numbers),
+            tendon_accel_max=_take(self.tendon_accel_max, numbers))
+        return template, np.array(numbers, dtype=np.float64)
+
+    def filled(self, numbers: Any) -> Robot:
+        """A template's robot (``program_data``) with its numbers: ``numbers[i]`` in place
+        of each ``NumberAt(i)`` (inside a compiled program, traced scalars)."""
+        return replace(self, segments=_fill(self.segments, numbers),
+                       backbone_radius=_fill(self.backbone_radius, numbers),
+                       tendons=_fill(self.tendons, numbers),
+                       base_position=_fill(self.base_position, numbers),
+                       base_wxyz=_fill(self.base_wxyz, numbers),
+                       tendon_speed_max=_fill(self.tendon_speed_max, numbers),
+                       tendon_accel_max=_fill(self.tendon_accel_max, numbers))
 
     # ------------------------------------------------------------ construction
     @classmethod

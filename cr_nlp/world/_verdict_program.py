@@ -18,6 +18,7 @@ give the same numbers to rounding (tests pin 1e-12).
 from __future__ import annotations
 
 import time
+from functools import partial
 from typing import Any, NamedTuple
 
 import jax
@@ -103,15 +104,14 @@ def _geometry(robot: Robot, q: jax.Array, target_p: jax.Array,
 
 @cached(maxsize=16)
 def _program(robot: Robot, rows: int) -> Any:
-    """The compiled ``_geometry`` of ``robot`` for ``rows`` float64 configurations."""
-    def geometry(q: jax.Array, target_p: jax.Array, target_r: jax.Array) -> tuple:
-        return _geometry(robot, q, target_p, target_r)
-
+    """The compiled ``_geometry`` of ``robot`` for ``rows`` float64 configurations (one
+    program per robot shape: the robot is its data)."""
     with jax.enable_x64(True):
-        return compile_program(geometry, (np.zeros((rows, robot.dof)), np.zeros((rows, 3)),
-                                          np.zeros((rows, 9))),
+        return compile_program(partial(_geometry, robot),
+                               (np.zeros((rows, robot.dof)), np.zeros((rows, 3)),
+                                np.zeros((rows, 9))),
                                name="the float64 verdict", batched=(True, True, True),
-                               outputs=len(AnswerGeometry._fields))
+                               outputs=len(AnswerGeometry._fields), by_shape=True)
 
 
 def _numpy_geometry(robot: Robot, q: np.ndarray, target_p: np.ndarray,

@@ -33,6 +33,8 @@ ORIENTATION_SCALE = 1.0
 NEAREST_BLOCK = 4096
 """Pool entries per distance block of the nearest-pose lookup: a batch of B targets
 holds B × ``NEAREST_BLOCK`` distances at a time, whatever the pool's size."""
+POOL_ROUND = 512
+"""A pool smaller than a block is padded to a multiple of this many entries."""
 
 
 def sobol_configurations(robot: Robot, count: int, seed: int = 0) -> np.ndarray:
@@ -75,7 +77,7 @@ def configurations_from_unit(robot: Robot, sample: Any, xp: Any = np) -> Any:
     θ = θmax·√s (uniform over the bending-vector disk, so straight-ish shapes are not
     oversampled), φ and L uniform over their ranges. ``xp``: numpy, or jax.numpy inside
     a traced program (the result in the sample's dtype)."""
-    lo, hi = robot.q_bounds()
+    lo, hi = robot.q_bounds(xp)
     theta = np.arange(robot.dof) % 3 == 0
     dtype = sample.dtype
     return xp.where(theta, xp.asarray(hi, dtype) * xp.sqrt(sample),
@@ -167,7 +169,9 @@ class SeedPool:
         self.dtype = jnp.dtype(dtype)
         self.chunk_size = chunk_size
         count = len(self.q)
-        block = max(1, min(block, count))
+        # Padded to a multiple of POOL_ROUND: pools of a few entries more or less (robots
+        # of one shape keep different numbers of entries clear) share one lookup program.
+        block = max(1, min(block, -(-count // POOL_ROUND) * POOL_ROUND))
         blocks = max(1, -(-count // block))
         padded = np.zeros((blocks * block, self.features.shape[1]))
         padded[:count] = self.features - self._centre

@@ -164,7 +164,8 @@ class ChunkRunner:
         per_target = (np.zeros((chunk, seeds, n)), (np.zeros((chunk, 3)), np.zeros((chunk, 9))))
         compile_ahead(partial(search_targets, self.residual, self.project, plan),
                       self._chunk_args(per_target, 0, chunk, chunk, ()),
-                      name="the IK search", batched=self._batched(per_target, ()), outputs=4)
+                      name="the IK search", batched=self._batched(per_target, ()), outputs=4,
+                      by_shape=True)
 
     def _chunk_args(self, per_target: tuple, start: int, stop: int, chunk: int,
                     whole: tuple) -> tuple:
@@ -208,7 +209,7 @@ class ChunkRunner:
                 t1 = time.perf_counter()
                 self.compiled[key] = compile_program(search, args, name=f"the IK {name[0]}",
                                                      batched=self._batched(per_target, whole),
-                                                     outputs=outputs)
+                                                     outputs=outputs, by_shape=True)
                 timing.compile += time.perf_counter() - t1
             t1 = time.perf_counter()
             runs.append((stop - start, chunk, self.compiled[key](*args)))
