@@ -35,7 +35,8 @@ class _Slot:
 
 def lift(fn: Callable) -> tuple[Callable, np.ndarray]:
     """``fn`` with every float and every object with ``program_data`` (a robot) among its
-    partial arguments (nested partials, tuples and lists included) replaced by a
+    partial arguments (nested partials, tuples, lists and dataclasses of functions
+    included) replaced by a
     ``_Slot``, and their numbers as one float64 vector, in slot order (an object met
     twice is one slot)."""
     slots: dict[int, _Slot] = {}
@@ -60,6 +61,8 @@ def lift(fn: Callable) -> tuple[Callable, np.ndarray]:
                                      **{k: walk(v) for k, v in x.keywords.items()})
         if type(x) in (tuple, list):
             return type(x)(map(walk, x))
+        if _holds_functions(x):
+            return dataclasses.replace(x, **{f: walk(getattr(x, f)) for f in _fields(x)})
         return x
 
     lifted = walk(fn)
@@ -77,7 +80,20 @@ def _filled(x: Any, data: Any) -> Any:
                                  **{k: _filled(v, data) for k, v in x.keywords.items()})
     if type(x) in (tuple, list):
         return type(x)(_filled(v, data) for v in x)
+    if _holds_functions(x):
+        return dataclasses.replace(x, **{f: _filled(getattr(x, f), data) for f in _fields(x)})
     return x
+
+
+def _fields(x: Any) -> list[str]:
+    return [f.name for f in dataclasses.fields(x) if f.init]
+
+
+def _holds_functions(x: Any) -> bool:
+    """A dataclass of functions (a residual's terms, each a partial or None): walked into;
+    a dataclass with numbers (a settings class) stays a constant of the program."""
+    return (dataclasses.is_dataclass(x) and not isinstance(x, type)
+            and all(callable(getattr(x, f)) or getattr(x, f) is None for f in _fields(x)))
 
 
 @dataclasses.dataclass(frozen=True)

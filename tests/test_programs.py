@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 
 from cr_nlp import _programs
+from cr_nlp._cached_jit import cached_jit
 from cr_nlp._programs import (
     Unkeyable,
-    cached_jit,
     compile_ahead,
     compile_program,
     fingerprint,

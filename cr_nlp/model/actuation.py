@@ -47,7 +47,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._programs import cached_jit
+from .._cached_jit import cached_jit
 from ._actuation_block import NOMINAL_AXIAL_STIFFNESS_RATIO as NOMINAL_AXIAL_STIFFNESS_RATIO
 from ._actuation_block import NOMINAL_TENDON_STIFFNESS_RATIO as NOMINAL_TENDON_STIFFNESS_RATIO
 from ._actuation_block import Actuation as Actuation

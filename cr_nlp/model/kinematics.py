@@ -22,7 +22,6 @@ CasADi front ends of the same code.
 
 from __future__ import annotations
 
-from functools import partial
 from typing import Any
 
 import casadi as ca
@@ -41,7 +40,7 @@ from .lie import (
     transform_between,
     transform_compose,
 )
-from .robot import Robot
+from .robot import Robot, robot_jit
 from .routing import routing_of
 
 # ================================================================ the model, once
@@ -124,16 +123,20 @@ def model_tendon_lengths(ops: Ops, robot: Robot, z: list[Any]) -> list[Any]:
     applies inside segment i). ``per_segment``: segment k's m tendons end at
     segment k and sum over segments 1…k; order ``[seg1 tendons, seg2 tendons, …]``.
     """
-    n, r = robot.n_segments, robot.tendons.radius
+    n, r, offsets = robot.n_segments, robot.tendons.radius, robot.tendons.offsets
     routing = routing_of(robot)
-    alpha = routing.angles(robot.tendons.offsets)
 
-    def contribution(i: int, angle: float) -> Any:
+    def contribution(i: int, t: int) -> Any:
         ux, uy, length = z[3 * i], z[3 * i + 1], z[3 * i + 2]
-        return length - r * (ux * float(np.cos(angle)) + uy * float(np.sin(angle)))
+        angle = routing.slot_angle[t] + offsets[routing.owner[t, i]]
+        if isinstance(angle, float):   # a number (not data of a compiled program)
+            cos, sin = float(np.cos(angle)), float(np.sin(angle))
+        else:
+            cos, sin = jnp.cos(angle), jnp.sin(angle)
+        return length - r * (ux * cos + uy * sin)
 
-    return [sum(contribution(i, alpha[t, i]) for i in range(n) if routing.through[t, i])
-            for t in range(len(alpha))]
+    return [sum(contribution(i, t) for i in range(n) if routing.through[t, i])
+            for t in range(len(routing.slot))]
 
 
 def model_pose_error(ops: Ops, tip: Transform, target: Transform) -> tuple[Any, ...]:
@@ -232,7 +235,7 @@ def _numpy_rot(entries: Any) -> np.ndarray:
     return flat.reshape(flat.shape[:-1] + (3, 3))
 
 
-@partial(jax.jit, static_argnums=0)
+@robot_jit
 def tip_pose_z(robot: Robot, z: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Tip position (…, 3) metres and rotation matrix (…, 3, 3) from bending-vector z."""
     entries = [z[..., i] for i in range(robot.dof)]
@@ -253,7 +256,7 @@ def tip_pose(robot: Robot, q: Any) -> tuple[Any, Any]:
     return _numpy_vec(pos), _numpy_rot(rot)
 
 
-@partial(jax.jit, static_argnums=0)
+@robot_jit
 def backbone_points_z(robot: Robot, z: jax.Array) -> jax.Array:
     """Backbone points (…, n·k, 3) in metres from bending-vector z (z's dtype)."""
     return model_backbone(JAX, robot, [z[..., i] for i in range(robot.dof)]).astype(z.dtype)
@@ -270,7 +273,7 @@ def backbone_points(robot: Robot, q: Any) -> Any:
     return np.asarray(model_backbone(NUMPY, robot, _numpy_entries(robot, q)), dtype=np.float64)
 
 
-@partial(jax.jit, static_argnums=0)
+@robot_jit
 def tendon_lengths_z(robot: Robot, z: jax.Array) -> jax.Array:
     """Tendon lengths (…, n_tendons) in metres from bending-vector z."""
     return JAX.stack(model_tendon_lengths(JAX, robot, [z[..., i] for i in range(robot.dof)]))

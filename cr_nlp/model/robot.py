@@ -7,7 +7,9 @@ what is wrong, before anything reaches JAX or CasADi.
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -158,6 +160,16 @@ class Robot:
     def has_self_pairs(self) -> bool:
         """True when self-collision is checked and some segments are two or more apart."""
         return self.self_collision and self.n_segments >= 3
+
+    @property
+    def speed_limited(self) -> bool:
+        """Whether the tendons have a speed limit (m/s)."""
+        return _finite(self.tendon_speed_max)
+
+    @property
+    def accel_limited(self) -> bool:
+        """Whether the tendons have an acceleration limit (m/s²)."""
+        return _finite(self.tendon_accel_max)
 
     @property
     def dof(self) -> int:
@@ -321,6 +333,26 @@ class Robot:
         if self.mechanics is not None:
             out["mechanics"] = self.mechanics.to_dict()
         return out
+
+
+def robot_jit(fn: Callable) -> Callable:
+    """``jax.jit(fn, static_argnums=0)`` for a function of a robot first; called with a
+    robot whose numbers are traced (inside a program that takes the robot as data,
+    ``Robot.program_data``), which cannot be a static argument, ``fn`` runs inline in
+    that program's trace."""
+    import jax  # here: a robot file is read without importing JAX
+
+    jitted = jax.jit(fn, static_argnums=0)
+
+    @functools.wraps(fn)
+    def call(robot: Robot, *args: Any) -> Any:
+        try:
+            hash(robot)
+        except TypeError:  # traced numbers
+            return fn(robot, *args)
+        return jitted(robot, *args)
+
+    return call
 
 
 def read_model_file(path: str | Path) -> Any:

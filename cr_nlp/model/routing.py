@@ -70,16 +70,20 @@ class TendonRouting:
         return self.slot_angle[:, None] + np.asarray(offsets, dtype=float)[self.owner]
 
 
-@cached(maxsize=64)
 def routing_of(robot: Robot) -> TendonRouting:
-    """The routing of ``robot``'s tendons (see the module), derived once per robot (the
-    robot is frozen; the arrays are read-only, shared by every caller)."""
-    n, m = robot.n_segments, robot.tendons.per_segment
-    count = tendon_count(m, n, robot.tendons.routing)
+    """The routing of ``robot``'s tendons (see the module), derived once per robot shape
+    (segments, tendons per segment, routing; the arrays are read-only, shared by every
+    caller)."""
+    return _routing(robot.n_segments, robot.tendons.per_segment, robot.tendons.routing)
+
+
+@cached(maxsize=64)
+def _routing(n: int, m: int, routing: str) -> TendonRouting:
+    count = tendon_count(m, n, routing)
     tendon = np.arange(count)
     slot = tendon % m
     segment = np.arange(n)
-    shared = robot.tendons.routing == "shared"
+    shared = routing == "shared"
     if shared:
         anchor = np.full(count, n - 1)
         owner = np.tile(segment, (count, 1))

@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..._programs import CachedProgram
+from ..._cached_jit import CachedProgram
 from ...runtime import cached, configure
 from .._actuation_block import Actuation
 from ..loads import static_loads

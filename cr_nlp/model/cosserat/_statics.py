@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..._programs import CachedProgram
+from ..._cached_jit import CachedProgram
 from ...runtime import cached, configure
 from ..loads import static_loads
 from ..robot import Robot

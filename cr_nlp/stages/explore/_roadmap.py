@@ -35,23 +35,22 @@ import json
 import math
 import time
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from ..._cached_jit import cached_jit
 from ..._files import write_atomic
-from ..._programs import cached_jit
 from ...model import Robot, q_to_z, q_to_z_numpy, z_to_q_numpy
 from ...runtime import cache_dir, cached
 from ...world import Scene, body_gap_tolerance, scene_arrays
 from ...world._broad_phase import PartCells, part_cells, reach_box
 from ...world._clearance_groups import near_clearance_z
-from ...world.clearance import SceneArrays
 from ._roadmap_search import neighbour_table, shortest_paths
 from ._seed_pool import sobol_configurations
 
@@ -149,11 +148,8 @@ def polyline_length(points_z: np.ndarray) -> float:
 def _chunk_program(robot: Robot, chunk: int) -> Any:
     """``near_clearance_z`` over a (chunk, 3n) float32 batch; chunks of 512 and more are
     split over the JAX devices (splitting tiny ones costs more than it saves)."""
-    def f(arrays: SceneArrays, cells: PartCells | None, z: jax.Array) -> jax.Array:
-        return near_clearance_z(robot, arrays, cells, z)
-
-    return cached_jit(f, name="the roadmap clearance",
-                      batched=None if chunk < 512 else (False, False, True))
+    return cached_jit(partial(near_clearance_z, robot), name="the roadmap clearance",
+                      batched=None if chunk < 512 else (False, False, True), by_shape=True)
 
 
 class ClearanceChecker:

@@ -29,7 +29,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
-from ..._programs import cached_jit
+from ..._cached_jit import cached_jit
 from ...runtime import cached
 from .._chunks import chunk_plan
 

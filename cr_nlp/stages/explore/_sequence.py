@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..._programs import cached_jit
+from ..._cached_jit import cached_jit
 from ...model import Robot, q_to_z_numpy
 
 

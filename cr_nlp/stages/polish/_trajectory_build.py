@@ -7,7 +7,6 @@ the solve on top.
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
 
@@ -49,8 +48,8 @@ class TrajectoryNLPBuilder(ClearancePolisher):
             "tendon_jacobian", [self._model.z],
             [ca.jacobian(self._model.functions_z["tendons"](self._model.z), self._model.z)],
         )(np.zeros(robot.dof)))
-        self._speed = math.isfinite(robot.tendon_speed_max)
-        self._accel = math.isfinite(robot.tendon_accel_max) and w >= 3
+        self._speed = robot.speed_limited
+        self._accel = robot.accel_limited and w >= 3
         self._pose_errors = self._model.functions_z["pose_error"].map(w)
         self._solvers: dict[tuple[int, ...], tuple[ca.Function, np.ndarray]] = {}
 

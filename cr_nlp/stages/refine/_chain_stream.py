@@ -407,40 +407,10 @@ class ChainBatchLM:
         than ``wanted`` run or ``trips`` were made; returns the state, which slots still
         run and the trips made. One device (see ``_compile_chunk``). ``ahead``: start
         compiling it in the background (``_programs.compile_ahead``), return None."""
-        n, config, extra = self.waypoints, self.config, self.extra
-        terms, project = self.terms, self.project
-
-        def advance(state: BandedLMState, z_new: jax.Array, load: jax.Array, step: jax.Array,
-                    budget: jax.Array, arrays: Any, free: jax.Array, trips: jax.Array,
-                    wanted: jax.Array) -> tuple[BandedLMState, jax.Array, jax.Array]:
-            def select(mask: jax.Array, a: Any, b: Any) -> Any:
-                return jax.tree_util.tree_map(
-                    lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)),
-                                           x, y), a, b)
-
-            fresh = jax.vmap(partial(banded_lm_start, project, config=config))(
-                z_new.reshape(len(z_new), n, -1))
-            state = select(load, fresh, state)
-            running = jax.vmap(partial(banded_lm_running, config=config))
-
-            def trip(one: BandedLMState, h: jax.Array) -> BandedLMState:
-                return banded_lm_trip(terms, project, one, None, (arrays, extra, h),
-                                      free.reshape(n, -1), config)
-
-            def more(carry: tuple) -> jax.Array:
-                state, count = carry
-                return (count < trips) & (jnp.sum(running(state, budget)) >= wanted)
-
-            def body(carry: tuple) -> tuple:
-                state, count = carry
-                moving = running(state, budget)
-                return select(moving, jax.vmap(trip)(state, step), state), count + 1
-
-            state, count = jax.lax.while_loop(more, body, (state, jnp.int32(0)))
-            return state, running(state, budget), count
-
-        return (compile_ahead if ahead else compile_program)(advance, args,
-                                                             name="the trajectory LM")
+        advance = partial(_advance, self.terms, self.project, self.extra, self.waypoints,
+                          self.config)
+        return (compile_ahead if ahead else compile_program)(
+            advance, args, name="the trajectory LM", by_shape=True)
 
     # ------------------------------------------------------------ chunks
     def _solve_chunks(self, z0: np.ndarray, step: np.ndarray, arrays: Any,
@@ -513,3 +483,37 @@ class _Lane:
         self.state: Any = lm._idle_state(slots)
         self.arrays, self.free = jax.device_put((arrays, lm.free), device)
         self.out: Any = None
+
+
+def _advance(terms: ChainResidual, project: Callable, extra: Any, n: int, config: LMConfig,
+             state: BandedLMState, z_new: jax.Array, load: jax.Array, step: jax.Array,
+             budget: jax.Array, arrays: Any, free: jax.Array, trips: jax.Array,
+             wanted: jax.Array) -> tuple[BandedLMState, jax.Array, jax.Array]:
+    """The slot program (``ChainBatchLM._compile_slots``) of chains of n waypoints: the
+    problem (``terms``, ``project``, ``extra``) and LM settings first, as partial
+    arguments (its robot is data: ``compile_program``'s ``by_shape``)."""
+    def select(mask: jax.Array, a: Any, b: Any) -> Any:
+        return jax.tree_util.tree_map(
+            lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y),
+            a, b)
+
+    fresh = jax.vmap(partial(banded_lm_start, project, config=config))(
+        z_new.reshape(len(z_new), n, -1))
+    state = select(load, fresh, state)
+    running = jax.vmap(partial(banded_lm_running, config=config))
+
+    def trip(one: BandedLMState, h: jax.Array) -> BandedLMState:
+        return banded_lm_trip(terms, project, one, None, (arrays, extra, h),
+                              free.reshape(n, -1), config)
+
+    def more(carry: tuple) -> jax.Array:
+        state, count = carry
+        return (count < trips) & (jnp.sum(running(state, budget)) >= wanted)
+
+    def body(carry: tuple) -> tuple:
+        state, count = carry
+        moving = running(state, budget)
+        return select(moving, jax.vmap(trip)(state, step), state), count + 1
+
+    state, count = jax.lax.while_loop(more, body, (state, jnp.int32(0)))
+    return state, running(state, budget), count

@@ -39,7 +39,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..._programs import cached_jit, compile_program
+from ..._cached_jit import cached_jit
+from ..._programs import compile_program
 from ...model import Robot, q_to_z_numpy
 from ...model.kinematics import tendon_lengths_z
 from ...model.limits import project_z

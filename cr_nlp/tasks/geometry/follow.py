@@ -323,7 +323,7 @@ def follow_pair(robot: Robot, margin: float, checks: int, weights: tuple[float, 
         for c in range(1, checks + 1):
             out.append(sqrt_clear * clearance_groups(robot, margin, arrays,
                                                       z_a + (c / (checks + 1)) * step))
-    if math.isfinite(robot.tendon_speed_max):
+    if robot.speed_limited:
         out.append(sqrt_tendon * tendon_speed_excess(robot, limit_fraction, z_a, z_b, dt))
     return jnp.concatenate(out)
 
@@ -349,7 +349,7 @@ def follow_terms(robot: Robot, margin: float, config: FollowConfig) -> ChainResi
                     sqrt(config.tendon_weight)), config.tendon_limit_fraction)
     triple = (partial(follow_triple, robot, sqrt(config.tendon_weight),
                       config.tendon_limit_fraction)
-              if math.isfinite(robot.tendon_accel_max) else None)
+              if robot.accel_limited else None)
     return ChainResidual(unary, pair, triple,
                          unary_far=partial(follow_unary_far, robot, unary_weights),
                          near=partial(follow_near, robot, float(margin)))

@@ -241,11 +241,11 @@ def trajectory_residual(robot: Robot, waypoints: int, checks: int, margin: float
         out.append(math.sqrt(w_clear) * groups.reshape(-1))
     lengths = jnp.stack(model_tendon_lengths(JAX, robot, [way[:, i] for i in range(robot.dof)]),
                         axis=-1).astype(z.dtype)
-    if math.isfinite(robot.tendon_speed_max):
+    if robot.speed_limited:
         speed = (lengths[1:] - lengths[:-1]) / dt
         over = jnp.abs(speed) / (limit_fraction * robot.tendon_speed_max) - 1.0
         out.append(math.sqrt(w_tendon) * jnp.maximum(over, 0.0).reshape(-1))
-    if math.isfinite(robot.tendon_accel_max):
+    if robot.accel_limited:
         accel = (lengths[2:] - 2.0 * lengths[1:-1] + lengths[:-2]) / (dt * dt)
         over = jnp.abs(accel) / (limit_fraction * robot.tendon_accel_max) - 1.0
         out.append(math.sqrt(w_tendon) * jnp.maximum(over, 0.0).reshape(-1))
@@ -278,7 +278,7 @@ def trajectory_pair(robot: Robot, margin: float, checks: int,
         for c in range(1, checks + 1):
             out.append(sqrt_clear * near_clearance_groups(
                 robot, margin, arrays, cells, z_a + (c / (checks + 1)) * step))
-    if math.isfinite(robot.tendon_speed_max):
+    if robot.speed_limited:
         out.append(sqrt_tendon * tendon_speed_excess(robot, limit_fraction, z_a, z_b, dt))
     return jnp.concatenate(out)
 
@@ -307,7 +307,7 @@ def trajectory_terms(robot: Robot, margin: float, config: TrajectoryConfig,
                    config.tendon_limit_fraction)
     triple = (partial(trajectory_triple, robot, sqrt(config.tendon_weight),
                       config.tendon_limit_fraction)
-              if math.isfinite(robot.tendon_accel_max) else None)
+              if robot.accel_limited else None)
     return ChainResidual(unary, pair, triple)
 
 
@@ -373,9 +373,10 @@ class TrajectoryPlanner:
 
     # ------------------------------------------------------------ pieces
     def roadmap(self) -> Any:
-        """The scene's roadmap (built, or loaded from the cache, on first use); None if
-        ``cr_nlp.stages.explore._roadmap`` is not available."""
-        if self._roadmap is None:
+        """The scene's roadmap (built, or loaded from the cache, on first use); None
+        without a scene (no obstacles to route around: the straight and perturbed
+        guesses) or if ``cr_nlp.stages.explore._roadmap`` is not available."""
+        if self._roadmap is None and self.scene is not None:
             try:
                 from ...stages.explore import Roadmap, RoadmapConfig
             except ImportError:

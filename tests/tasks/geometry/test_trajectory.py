@@ -236,3 +236,17 @@ def test_one_verdict_a_margin_violation_is_a_failure_in_both_modes(shelf_planner
     for result in (penalty, exact):
         assert not result.success and result.max_violation > 1e-6
         assert "breaks the clearance by 0.001 m" in result.reason
+
+
+def test_planning_without_a_scene_needs_no_roadmap(robot):
+    # The default init ("roadmap") without a scene: no roadmap to build (there was a
+    # crash here: the roadmap's cache key read the missing scene), straight and perturbed
+    # guesses only, and the verdict accepts the answer.
+    start = [0.5, 0.3, 1.0, 0.6, 1.0, 1.0, 0.4, 2.0, 1.0]
+    goal = np.add(start, [0.3, 0.2, 0.0] * 3)
+    config = TrajectoryConfig(waypoints=10, dt=0.12, guesses=1)
+    planner = TrajectoryPlanner(robot, None, config)
+    result = planner.plan([start], [goal])[0]
+    assert planner.roadmap() is None
+    assert result.success, result.reason
+    assert verify_trajectory(robot, None, result.q, config.dt).success
