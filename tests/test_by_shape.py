@@ -1,7 +1,8 @@
 """Robots as data of compiled programs (``cr_nlp._by_shape``): robots of one shape share a
 template and a program, robots of other shapes do not; the program computes with each
 robot's own numbers (checked against the numpy model); a second robot of the same shape
-solves IK without tracing or compiling a program, and its answers pass the verdict."""
+solves IK and plans among spheres without tracing a program, and its answers pass the
+verdict (python-fcl and its own model)."""
 
 from __future__ import annotations
 
@@ -119,3 +120,35 @@ def test_a_second_robot_of_the_same_shape_solves_ik_on_the_first_ones_programs(
     np.testing.assert_allclose(tip_pose(other, result.q[ok])[0], position[ok], atol=1e-3)
     assert np.all(np.linalg.norm(tip_pose(tdcr3, result.q[ok])[0] - position[ok], axis=1)
                   > 1e-3)
+
+
+def test_a_second_robot_of_the_same_shape_plans_on_the_first_ones_programs(
+        program_cache: Path) -> None:
+    # Among spheres (the broad-phase grid of a mesh scene follows each robot's reach,
+    # so there the programs are the robot's own).
+    from cr_nlp.bench.plan import plan_problems
+    from cr_nlp.tasks.geometry.trajectory import (
+        TrajectoryConfig,
+        TrajectoryPlanner,
+        verify_trajectory,
+    )
+    from cr_nlp.world import load_scene
+
+    scene = load_scene("lattice")
+    tdcr3 = load_robot("tdcr3")
+    data = tdcr3.to_dict()
+    data["name"] = "wider"
+    data["backbone_radius"] *= 1.1
+    data["tendons"]["radius"] *= 0.9
+    data["segments"][1]["theta_max"] *= 0.95
+    wider = Robot.from_dict(data)
+    for robot in (tdcr3, wider):
+        planner = TrajectoryPlanner(robot, scene, TrajectoryConfig(guesses=2))
+        starts, goals = plan_problems(robot, scene, 2, planner.margin, seed=1)
+        _programs.stats.__init__()
+        results = planner.plan(starts, goals)
+    assert _programs.stats.traced == 0 and _programs.stats.unkeyed == 0
+    assert _programs.stats.reused >= 2   # the roadmap clearance and the trajectory LM
+    for result in results:
+        assert result.success, result.reason
+        assert verify_trajectory(wider, scene, result.q, planner.config.dt).success

@@ -74,6 +74,14 @@ SLACK = 1e-4
 be indexed into the neighbouring cell."""
 
 
+GRID_ROUND = 16
+"""The table's cells per axis (more than one) are padded to a multiple of this (copies of
+the border cells, which a point outside the grid takes anyway)."""
+WIDTH_ROUND = 4
+"""Columns per part kind are padded to a multiple of this (part 0: measuring a part
+more never makes a distance wrong)."""
+
+
 @dataclass(frozen=True)
 class PartCells:
     """The broad-phase table of one scene (``part_cells``); a pytree whose arrays are
@@ -97,8 +105,12 @@ class PartCells:
 
 
 jax.tree_util.register_dataclass(
-    PartCells, data_fields=["origin", "inverse_size", "table"],
-    meta_fields=["widths", "cell_size", "cutoff", "truncated"])
+    PartCells, data_fields=["origin", "inverse_size", "table", "cell_size", "cutoff",
+                            "truncated"],
+    meta_fields=["widths"])
+# Only the column widths shape a program: the numbers are data, the grid is padded to
+# ``GRID_ROUND`` cells per axis and the widths to ``WIDTH_ROUND``, so robots of one shape
+# (whose reach, hence grid and cell size, differ) share the programs that take a table.
 
 
 def cell_candidates(cells: PartCells, centres: jax.Array) -> list[jax.Array]:
@@ -273,15 +285,18 @@ def part_cells(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.nd
         rank = np.arange(ids.size) - np.repeat(start, count)
         width = int(min(near, count.max())) if count.size else 1
         truncated[listed[count > near]] = True
-        table = np.zeros((n_cells, width), dtype=np.int64)
+        table = np.zeros((n_cells, -(-width // WIDTH_ROUND) * WIDTH_ROUND), dtype=np.int64)
         use = rank < width
         table[ids[use], rank[use]] = index[use]
         columns.append(table)
-        widths.append(width)
+        widths.append(table.shape[1])
     biggest = max((len(p) for p in kinds), default=0)
     index_type = np.int16 if biggest <= np.iinfo(np.int16).max else np.int32
     table = (np.concatenate(columns, axis=1) if columns else np.zeros((n_cells, 0), int))
     dtype = dtype or jnp.result_type(float)
+    grid = table.reshape(tuple(dims) + (-1,)).astype(index_type)
+    grid = np.pad(grid, [(0, 0 if d == 1 else -(-d // GRID_ROUND) * GRID_ROUND - d)
+                         for d in dims] + [(0, 0)], mode="edge")
     return PartCells(jnp.asarray(lo, dtype), jnp.asarray(1.0 / cell_size, dtype),
-                     jnp.asarray(table.reshape(tuple(dims) + (-1,)).astype(index_type)),
-                     tuple(widths), float(cell_size), float(cutoff), int(truncated.sum()))
+                     jnp.asarray(grid), tuple(widths), float(cell_size), float(cutoff),
+                     int(truncated.sum()))

@@ -214,7 +214,8 @@ def grouped_shortfalls(robot: Robot, margin: float, arrays: SceneArrays | None,
     ``_nearest_and_gradient`` (``world._broad_phase``; None: every part), whose cutoff
     must be at least ``margin`` (checked here where the margin is a number, not data of
     the program)."""
-    if cells is not None and isinstance(margin, float) and cells.cutoff < margin:
+    if cells is not None and isinstance(margin, float) and isinstance(
+            cells.cutoff, float) and cells.cutoff < margin:
         raise ValueError(f"the broad-phase table is exact below {cells.cutoff} m, less than "
                          f"the margin {margin} m")
     obstacles = arrays is not None and arrays.n_parts > 0

@@ -16,7 +16,13 @@ from cr_nlp.model import load_robot, q_to_z_numpy
 from cr_nlp.model._ops import NUMPY
 from cr_nlp.tasks.geometry.trajectory import TrajectoryConfig
 from cr_nlp.world import ConvexPart, Obstacle, Scene, load_scene, scene_arrays
-from cr_nlp.world._broad_phase import _part_box, cell_candidates, part_cells, reach_box
+from cr_nlp.world._broad_phase import (
+    WIDTH_ROUND,
+    _part_box,
+    cell_candidates,
+    part_cells,
+    reach_box,
+)
 from cr_nlp.world._clearance_groups import (
     body_centres_jacobian_z,
     body_centres_z,
@@ -126,11 +132,12 @@ def test_the_planners_tables_are_exact_on_the_bundled_scenes():
 
 
 def test_a_cut_row_is_never_nearer_than_the_truth():
-    """Truncation (one part per row) may miss the nearest part of a cell; what it
-    measures is then farther than the truth, never nearer (every entry is a real part)."""
+    """Truncation (one part per row, the row padded with part 0 to ``WIDTH_ROUND``
+    columns) may miss the nearest part of a cell; what it measures is then farther than
+    the truth, never nearer (every entry is a real part)."""
     scene = load_scene("shelf")
     cells = part_cells(scene, ROBOT.backbone_radius, reach_box(ROBOT), CUTOFF, near=1)
-    assert cells.truncated > 0 and cells.widths == (0, 0, 0, 0, 1)
+    assert cells.truncated > 0 and cells.widths == (0, 0, 0, 0, WIDTH_ROUND)
     row_min, true_min = row_and_true_minimum(scene, cells, sample_points(scene, 2000, 2))
     assert np.all(row_min >= true_min)
     assert np.any(row_min[true_min < CUTOFF] > true_min[true_min < CUTOFF])
@@ -143,7 +150,8 @@ def test_a_scene_out_of_reach_gets_one_cell():
         {"type": "sphere", "center": [9.0, 0.0, 0.0], "radius": 0.5},
         {"type": "box", "center": [0.0, -9.0, 0.0], "size": [1.0, 1.0, 1.0]}]})
     cells = part_cells(far, ROBOT.backbone_radius, reach_box(ROBOT), CUTOFF)
-    assert cells.table.shape[:3] == (1, 1, 1) and cells.widths == (1, 1, 0, 0, 0)
+    assert cells.table.shape[:3] == (1, 1, 1)
+    assert cells.widths == (WIDTH_ROUND, WIDTH_ROUND, 0, 0, 0)
     row_min, true_min = row_and_true_minimum(far, cells, sample_points(far, 500, 3)[:500])
     assert np.all(true_min > CUTOFF) and np.all(row_min >= true_min)
 

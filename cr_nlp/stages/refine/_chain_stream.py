@@ -239,7 +239,8 @@ class ChainBatchLM:
         arrays, the free mask, the trip budget and how many running slots end the call."""
         args = jax.device_put((lane.state, z_new.astype(self.dtype), load,
                                lane.slot_step.astype(self.dtype), lane.budget), lane.device)
-        return (*args, lane.arrays, lane.free, np.int32(self.trips), np.int32(wanted))
+        return (*args, lane.arrays, lane.extra, lane.free, np.int32(self.trips),
+                np.int32(wanted))
 
     def _solve_slots(self, z0: np.ndarray, step: np.ndarray, arrays: Any, iterations: int,
                      more: MoreChains | None) -> ChainSolution:
@@ -341,7 +342,7 @@ class ChainBatchLM:
             # a slot program: the other lanes' copies compile side by side with this one.
             for device in self.devices:
                 if (device.id, lane.slots) not in self._slot_programs and device != lane.device:
-                    self._compile_slots((*jax.device_put(args[:7], device), *args[7:]),
+                    self._compile_slots((*jax.device_put(args[:8], device), *args[8:]),
                                         ahead=True)
             self._slot_programs[key] = self._compile_slots(args)
             seconds = time.perf_counter() - t0
@@ -407,8 +408,7 @@ class ChainBatchLM:
         than ``wanted`` run or ``trips`` were made; returns the state, which slots still
         run and the trips made. One device (see ``_compile_chunk``). ``ahead``: start
         compiling it in the background (``_programs.compile_ahead``), return None."""
-        advance = partial(_advance, self.terms, self.project, self.extra, self.waypoints,
-                          self.config)
+        advance = partial(_advance, self.terms, self.project, self.waypoints, self.config)
         return (compile_ahead if ahead else compile_program)(
             advance, args, name="the trajectory LM", by_shape=True)
 
@@ -481,17 +481,19 @@ class _Lane:
         self.budget = np.full(slots, -1, np.int32)      # -1: the slot does not run
         self.slot_step = np.zeros(slots)
         self.state: Any = lm._idle_state(slots)
-        self.arrays, self.free = jax.device_put((arrays, lm.free), device)
+        self.arrays, self.extra, self.free = jax.device_put((arrays, lm.extra, lm.free),
+                                                            device)
         self.out: Any = None
 
 
-def _advance(terms: ChainResidual, project: Callable, extra: Any, n: int, config: LMConfig,
+def _advance(terms: ChainResidual, project: Callable, n: int, config: LMConfig,
              state: BandedLMState, z_new: jax.Array, load: jax.Array, step: jax.Array,
-             budget: jax.Array, arrays: Any, free: jax.Array, trips: jax.Array,
+             budget: jax.Array, arrays: Any, extra: Any, free: jax.Array, trips: jax.Array,
              wanted: jax.Array) -> tuple[BandedLMState, jax.Array, jax.Array]:
     """The slot program (``ChainBatchLM._compile_slots``) of chains of n waypoints: the
-    problem (``terms``, ``project``, ``extra``) and LM settings first, as partial
-    arguments (its robot is data: ``compile_program``'s ``by_shape``)."""
+    problem (``terms``, ``project``) and LM settings first, as partial arguments (its
+    robot is data: ``compile_program``'s ``by_shape``); ``extra`` (the scene's broad
+    phase) is an argument too, so a robot of the same shape shares the program."""
     def select(mask: jax.Array, a: Any, b: Any) -> Any:
         return jax.tree_util.tree_map(
             lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y),
