@@ -74,6 +74,8 @@ SLACK = 1e-4
 be indexed into the neighbouring cell."""
 
 
+CELL_BASE = 0.025
+"""Automatic cell edges are ``CELL_BASE``·√2ᵏ metres (tdcr3's 0.05 m is one)."""
 GRID_ROUND = 16
 """The table's cells per axis (more than one) are padded to a multiple of this (copies of
 the border cells, which a point outside the grid takes anyway)."""
@@ -205,7 +207,8 @@ def part_cells(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.nd
     (default JAX's default float).
 
     ``cell_size`` None: the larger of half the body radius and 1/128 of the region's
-    longest edge, doubled while the table would take more than ``TABLE_BYTES``. Measured
+    longest edge, rounded up to ``CELL_BASE``·√2ᵏ, doubled while the table would take
+    more than ``TABLE_BYTES``. Measured
     for tdcr3 (r = 0.1 m, cutoff 0.014 m; cells of 0.025 / 0.05 / 0.1 / 0.2 m): the widest
     row (the device's work per sphere) was 8 / 9 / 9 / 12 convex parts in shelf, 9 / 9 /
     9 / 13 in cabinet (9–13 at 0.05–0.1 m when the grid was shifted by 0.1 m), 4 spheres
@@ -217,6 +220,9 @@ def part_cells(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.nd
     region_lo, region_hi = (np.asarray(x, dtype=float) for x in region)
     if cell_size is None:
         size = max(0.5 * body_radius, float(np.max(region_hi - region_lo)) / 128)
+        # Up to the next size of one series: robots of similar size get the same grid
+        # (and so share the programs that take the table).
+        size = CELL_BASE * math.sqrt(2.0) ** math.ceil(2 * math.log2(size / CELL_BASE) - 1e-9)
         while True:
             cells = part_cells(scene, body_radius, region, cutoff, near, size, dtype)
             if cells.table.nbytes <= TABLE_BYTES:

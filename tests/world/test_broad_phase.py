@@ -17,6 +17,8 @@ from cr_nlp.model._ops import NUMPY
 from cr_nlp.tasks.geometry.trajectory import TrajectoryConfig
 from cr_nlp.world import ConvexPart, Obstacle, Scene, load_scene, scene_arrays
 from cr_nlp.world._broad_phase import (
+    CELL_BASE,
+    GRID_ROUND,
     WIDTH_ROUND,
     _part_box,
     cell_candidates,
@@ -223,3 +225,26 @@ def test_self_pair_blocks_give_the_group_jacobian_of_every_pair(margin):
     assert active.sum() >= 5
     np.testing.assert_allclose(values, expected, rtol=0, atol=1e-12)
     np.testing.assert_allclose(jac, expected_jac, rtol=0, atol=1e-9)
+
+
+def test_robots_of_similar_size_get_one_grid_shape():
+    """The automatic cell edge comes from one series (``CELL_BASE``·√2ᵏ) and the grid is
+    padded to ``GRID_ROUND`` cells per axis: tdcr3 and a robot of its layout with other
+    lengths and radii (reach 2.8 m instead of 3 m) get tables of one shape with the
+    trajectory planner's settings (so one program serves both), each exact for its own
+    robot. (Near a boundary of the padding two such robots can still differ: with a
+    0.1 m cutoff the shelf's grids are 48 and 64 cells deep.)"""
+    from cr_nlp.bench.startup import NEW_ROBOT
+    from cr_nlp.model.robot import Robot
+
+    other = Robot.from_dict(NEW_ROBOT)
+    for name in ("shelf", "cabinet"):
+        scene = load_scene(name)
+        tables = [part_cells(scene, r.backbone_radius, reach_box(r),
+                             TrajectoryConfig().safety_margin + body_gap_tolerance(r),
+                             near=TrajectoryConfig().near_parts) for r in (ROBOT, other)]
+        assert tables[0].table.shape == tables[1].table.shape
+        assert tables[0].widths == tables[1].widths
+        assert tables[0].cell_size == tables[1].cell_size == pytest.approx(2 * CELL_BASE)
+        assert all(d % GRID_ROUND == 0 for d in tables[1].table.shape[:3])
+        assert tables[1].truncated == 0
