@@ -152,3 +152,32 @@ def test_a_second_robot_of_the_same_shape_plans_on_the_first_ones_programs(
     for result in results:
         assert result.success, result.reason
         assert verify_trajectory(thinner, scene, result.q, planner.config.dt).success
+
+
+def test_a_second_robot_of_the_same_shape_follows_on_the_first_ones_programs(
+        program_cache: Path) -> None:
+    # test_follow's line path, settings and scene, each robot's own tip path.
+    from cr_nlp.tasks.geometry.follow import PathFollower
+    from cr_nlp.tasks.paths import ReferencePath
+    from cr_nlp.world import load_scene
+
+    from .tasks.geometry.test_follow import CONFIG, DT, OBSTACLE, Q_A, Q_B, WAYPOINTS
+
+    tdcr3 = load_robot("tdcr3")
+    data = tdcr3.to_dict()
+    data["name"] = "thinner"
+    data["backbone_radius"] *= 0.9
+    data["tendons"]["radius"] *= 0.9
+    thinner = Robot.from_dict(data)
+    q = Q_A + np.linspace(0.0, 1.0, WAYPOINTS)[:, None] * (Q_B - Q_A)
+    for robot in (tdcr3, thinner):
+        position, rotation = tip_pose(robot, q)
+        path = ReferencePath("line", position, wxyz_from_matrix(rotation), DT,
+                             np.ones(WAYPOINTS, bool))
+        _programs.stats.__init__()
+        result = PathFollower(robot, load_scene(OBSTACLE), CONFIG).follow(path)
+    assert _programs.stats.traced == 0 and _programs.stats.unkeyed == 0
+    assert _programs.stats.reused >= 4   # stage 1's programs and the path LM
+    assert result.success, result.reason
+    # The answer tracks the thinner robot's own tip path by its own model.
+    np.testing.assert_allclose(tip_pose(thinner, result.q)[0], position, atol=1e-3)

@@ -271,11 +271,11 @@ class BranchContinuation:
         self.settings = settings
         self._compiled: dict[Any, Any] = {}
         self._choose_program = cached_jit(partial(extend_and_choose, robot),
-                                          static_argnums=(0,), name="the waypoint choice")
+                                          static_argnums=(0,), name="the waypoint choice",
+                                          by_shape=True)
         self._extend = cached_jit(extend_table, static_argnums=(0,))
-        self._score = cached_jit(lambda z, target, shared: jnp.linalg.norm(
-            jax.vmap(residual, in_axes=(0, 0, None))(z, target, shared), axis=-1),
-            name="the waypoint scores")
+        self._score = cached_jit(partial(_scores, residual), name="the waypoint scores",
+                                 by_shape=True)
 
     def sequence(self, positions: np.ndarray, wxyz: np.ndarray, seconds: np.ndarray,
                  shared: Any) -> np.ndarray:
@@ -414,7 +414,8 @@ class BranchContinuation:
             # Chains are independent: split over the devices like the IK's LM (measured:
             # unsplit, the anchors' 96 chains ran on one core).
             self._compiled[key] = compile_program(fn, args, name="the path continuation",
-                                                  batched=(True,) * 3 + (False,) * 5, outputs=2)
+                                                  batched=(True,) * 3 + (False,) * 5, outputs=2,
+                                                  by_shape=True)
         z, err = self._compiled[key](*args)
         return z, err, index, active, column
 
@@ -467,3 +468,8 @@ class BranchContinuation:
         links = np.concatenate([links, np.full((r, len(column), 2), -1)], axis=1)
         return chains, chain_links(links, index, np.broadcast_to(column[:, None], index.shape),
                                    active)
+
+
+def _scores(residual: Callable, z: jax.Array, target: Any, shared: Any) -> jax.Array:
+    """‖residual‖ of each candidate z (…, 3n) against its target (the waypoint scores)."""
+    return jnp.linalg.norm(jax.vmap(residual, in_axes=(0, 0, None))(z, target, shared), axis=-1)

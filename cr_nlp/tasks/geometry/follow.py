@@ -479,7 +479,7 @@ class PathFollower:
         key = (len(q0), repair)
         if key not in self._compiled:
             self._compiled[key] = compile_program(self._path_lm(repair), args,
-                                                  name="the path LM")
+                                                  name="the path LM", by_shape=True)
         z, cost, iterations = jax.device_get(self._compiled[key](*args))
         q = z_to_q_numpy(z)
         return clip_to_limits(self.robot, q), float(cost), int(iterations)
@@ -555,7 +555,7 @@ class PathFollower:
             # stage 1 runs; ``refine`` then waits for it.
             compile_ahead(self._path_lm(False), self._lm_args(
                 np.zeros((len(positions), self.robot.dof)), positions, wxyz, trackable, dt),
-                name="the path LM")
+                name="the path LM", by_shape=True)
         t0 = time.perf_counter()
         with compile_seconds() as compiled:
             q0 = self.initial_sequence(positions, wxyz, trackable, dt)
