@@ -181,3 +181,31 @@ def test_a_second_robot_of_the_same_shape_follows_on_the_first_ones_programs(
     assert result.success, result.reason
     # The answer tracks the thinner robot's own tip path by its own model.
     np.testing.assert_allclose(tip_pose(thinner, result.q)[0], position, atol=1e-3)
+
+
+def test_azimuth_ranges_are_data_too(program_cache: Path) -> None:
+    # Two robots whose middle segment has an azimuth range (other bounds): one program,
+    # and each robot's answers keep its own range (the verdict measures the limits;
+    # the ranges do not overlap, so the first robot's could not serve the second).
+    tdcr3 = load_robot("tdcr3")
+    robots = []
+    for name, bounds in (("narrow", [0.0, 1.0]), ("apart", [1.5, 2.5])):
+        data = tdcr3.to_dict()
+        data["name"] = name
+        data["segments"][1]["phi_range"] = bounds
+        robots.append(Robot.from_dict(data))
+    rng = np.random.default_rng(11)
+    for robot in robots:
+        lo, hi = robot.q_bounds()
+        q = rng.uniform(lo, hi, (30, robot.dof))
+        position, rotation = tip_pose(robot, q)
+        _programs.stats.__init__()
+        result = IKSolver(robot).solve(position, wxyz_from_matrix(rotation))
+        assert np.mean(result.success) >= 0.9
+        ok = result.success
+        assert np.all(limit_violation_q(robot, result.q[ok]) <= 1e-6)
+        phi = result.q[ok, 4]
+        bent = result.q[ok, 3] > 1e-9
+        low, high = robot.segments[1].phi_min, robot.segments[1].phi_max
+        assert np.all((phi[bent] >= low - 1e-6) & (phi[bent] <= high + 1e-6))
+    assert _programs.stats.traced == 0
