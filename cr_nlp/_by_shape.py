@@ -36,9 +36,8 @@ class _Slot:
 def lift(fn: Callable) -> tuple[Callable, np.ndarray]:
     """``fn`` with every float and every object with ``program_data`` (a robot) among its
     partial arguments (nested partials, tuples, lists and dataclasses of functions
-    included) replaced by a
-    ``_Slot``, and their numbers as one float64 vector, in slot order (an object met
-    twice is one slot)."""
+    included) replaced by a ``_Slot``, and their numbers as one float64 vector, in slot
+    order (an object met twice is one slot)."""
     slots: dict[int, _Slot] = {}
     data: list[np.ndarray] = []
     size = 0
