@@ -15,7 +15,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "warmup", help="compile a robot's programs ahead into the cache (workers, CI, demos)",
         description="Solves small representative problems so that the programs later "
                     "processes need are traced and compiled into the cache "
-                    "($CR_NLP_CACHE_DIR, default ~/.cache/cr_nlp).")
+                    "($CR_NLP_CACHE_DIR, default ~/.cache/cr_nlp). The IK programs serve "
+                    "every robot of the same shape (segments, points per segment, tendon "
+                    "layout, actuation and mechanics blocks; other lengths, limits, radii "
+                    "and base pose); the planning and following programs, which take the "
+                    "scene's broad-phase grid, those of a similar size too.")
     p.add_argument("--robot", required=True, help="robot JSON file or bundled name (tdcr3)")
     p.add_argument("--scene", help="scene JSON file or bundled name (planning needs one)")
     p.add_argument("--tasks", nargs="+", choices=TASKS, default=["ik", "plan", "follow"],
