@@ -42,46 +42,48 @@ def lift(fn: Callable) -> tuple[Callable, np.ndarray]:
     data: list[np.ndarray] = []
     size = 0
 
-    def slot(x: Any, template: Any, numbers: np.ndarray) -> _Slot:
+    def slot(x: Any) -> Any:
         nonlocal size
+        if isinstance(x, float):
+            template, numbers = None, np.array([x])
+        elif hasattr(x, "program_data") and not isinstance(x, type):
+            template, numbers = x.program_data()
+        else:
+            return x
         if id(x) not in slots:
             slots[id(x)] = _Slot(size, size + len(numbers), template)
             data.append(numbers)
             size += len(numbers)
         return slots[id(x)]
 
-    def walk(x: Any) -> Any:
-        if isinstance(x, float):
-            return slot(x, None, np.array([x]))
-        if hasattr(x, "program_data") and not isinstance(x, type):
-            return slot(x, *x.program_data())
-        if isinstance(x, functools.partial):
-            return functools.partial(walk(x.func), *map(walk, x.args),
-                                     **{k: walk(v) for k, v in x.keywords.items()})
-        if type(x) in (tuple, list):
-            return type(x)(map(walk, x))
-        if _holds_functions(x):
-            return dataclasses.replace(x, **{f: walk(getattr(x, f)) for f in _fields(x)})
-        return x
-
-    lifted = walk(fn)
+    lifted = _rebuilt(fn, slot)
     return lifted, np.concatenate(data) if data else np.zeros(0)
 
 
 def _filled(x: Any, data: Any) -> Any:
     """``lift``'s function with each slot's number or robot rebuilt from the (traced)
     data vector."""
-    if isinstance(x, _Slot):
-        return data[x.start] if x.template is None else x.template.filled(
-            data[x.start:x.stop])
+    def fill(y: Any) -> Any:
+        if not isinstance(y, _Slot):
+            return y
+        return data[y.start] if y.template is None else y.template.filled(
+            data[y.start:y.stop])
+
+    return _rebuilt(x, fill)
+
+
+def _rebuilt(x: Any, leaf: Callable[[Any], Any]) -> Any:
+    """``x`` with ``leaf(y)`` in place of everything ``y`` inside it that is not a
+    ``functools.partial``, a tuple or list, or a dataclass of functions (those are built
+    again around their new contents)."""
     if isinstance(x, functools.partial):
-        return functools.partial(_filled(x.func, data), *(_filled(a, data) for a in x.args),
-                                 **{k: _filled(v, data) for k, v in x.keywords.items()})
+        return functools.partial(_rebuilt(x.func, leaf), *(_rebuilt(a, leaf) for a in x.args),
+                                 **{k: _rebuilt(v, leaf) for k, v in x.keywords.items()})
     if type(x) in (tuple, list):
-        return type(x)(_filled(v, data) for v in x)
+        return type(x)(_rebuilt(v, leaf) for v in x)
     if _holds_functions(x):
-        return dataclasses.replace(x, **{f: _filled(getattr(x, f), data) for f in _fields(x)})
-    return x
+        return dataclasses.replace(x, **{f: _rebuilt(getattr(x, f), leaf) for f in _fields(x)})
+    return leaf(x)
 
 
 def _fields(x: Any) -> list[str]:

@@ -125,18 +125,19 @@ def model_tendon_lengths(ops: Ops, robot: Robot, z: list[Any]) -> list[Any]:
     """
     n, r, offsets = robot.n_segments, robot.tendons.radius, robot.tendons.offsets
     routing = routing_of(robot)
+    # Offsets that are numbers enter as constants; offsets a compiled program takes as
+    # data (``Robot.program_data``) are traced.
+    numbers = not any(isinstance(o, jax.core.Tracer) for o in offsets)
+    alpha = routing.angles(offsets, np if numbers else jnp)
 
-    def contribution(i: int, t: int) -> Any:
+    def contribution(i: int, angle: Any) -> Any:
         ux, uy, length = z[3 * i], z[3 * i + 1], z[3 * i + 2]
-        angle = routing.slot_angle[t] + offsets[routing.owner[t, i]]
-        if isinstance(angle, float):   # a number (not data of a compiled program)
-            cos, sin = float(np.cos(angle)), float(np.sin(angle))
-        else:
-            cos, sin = jnp.cos(angle), jnp.sin(angle)
+        cos, sin = ((float(np.cos(angle)), float(np.sin(angle))) if numbers
+                    else (jnp.cos(angle), jnp.sin(angle)))
         return length - r * (ux * cos + uy * sin)
 
-    return [sum(contribution(i, t) for i in range(n) if routing.through[t, i])
-            for t in range(len(routing.slot))]
+    return [sum(contribution(i, alpha[t, i]) for i in range(n) if routing.through[t, i])
+            for t in range(len(alpha))]
 
 
 def model_pose_error(ops: Ops, tip: Transform, target: Transform) -> tuple[Any, ...]:

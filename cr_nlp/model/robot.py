@@ -109,7 +109,7 @@ def _fill(value: Any, numbers: Any) -> Any:
         return numbers[value.index]
     if isinstance(value, tuple):
         return tuple(_fill(v, numbers) for v in value)
-    if is_dataclass(value) and isinstance(value, Segment | Tendons):
+    if is_dataclass(value) and isinstance(value, Segment | Tendons | Robot):
         return replace(value, **{f.name: _fill(getattr(value, f.name), numbers)
                                  for f in fields(value) if f.init})
     return value
@@ -275,13 +275,7 @@ class Robot:
     def filled(self, numbers: Any) -> Robot:
         """A template's robot (``program_data``) with its numbers: ``numbers[i]`` in place
         of each ``NumberAt(i)`` (inside a compiled program, traced scalars)."""
-        return replace(self, segments=_fill(self.segments, numbers),
-                       backbone_radius=_fill(self.backbone_radius, numbers),
-                       tendons=_fill(self.tendons, numbers),
-                       base_position=_fill(self.base_position, numbers),
-                       base_wxyz=_fill(self.base_wxyz, numbers),
-                       tendon_speed_max=_fill(self.tendon_speed_max, numbers),
-                       tendon_accel_max=_fill(self.tendon_accel_max, numbers))
+        return _fill(self, numbers)
 
     # ------------------------------------------------------------ construction
     @classmethod

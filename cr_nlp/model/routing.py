@@ -12,7 +12,7 @@ slot's angle plus segment i's offset). Slot j of m is at 2πj/m rad before the o
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -64,10 +64,11 @@ class TendonRouting:
             return [f"tendon_{j + 1}" for j in self.slot]
         return [f"tendon_{k + 1}_{j + 1}" for k, j in zip(self.anchor, self.slot, strict=True)]
 
-    def angles(self, offsets: np.ndarray) -> np.ndarray:
+    def angles(self, offsets: Any, xp: Any = np) -> Any:
         """(T, n) angle α of tendon t inside segment i, rad, for per-segment ``offsets``
-        (n,) rad (defined, but unused, where the tendon does not run)."""
-        return self.slot_angle[:, None] + np.asarray(offsets, dtype=float)[self.owner]
+        (n,) rad (defined, but unused, where the tendon does not run). ``xp``: numpy
+        (float64), or ``jax.numpy`` for offsets a compiled program takes as data."""
+        return self.slot_angle[:, None] + xp.asarray(offsets, dtype=float)[self.owner]
 
 
 def routing_of(robot: Robot) -> TendonRouting:

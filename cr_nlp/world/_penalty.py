@@ -35,7 +35,7 @@ from ..model.derivatives import backbone_jacobian_z
 from ..model.robot import Robot
 from ..runtime import cached
 from . import _distances as dist
-from .clearance import SceneArrays, _centres, _kind_blocks
+from .clearance import SceneArrays, _centres, _kind_blocks, body_segments
 
 
 def _nearest_obstacle(robot: Robot, arrays: SceneArrays, centres: jax.Array) -> jax.Array:
@@ -52,22 +52,18 @@ def self_pair_blocks(robot: Robot) -> tuple[tuple[int, int, int, int], ...]:
     ``(row_start, row_stop, col_start, col_stop)``, one block per chain pair (s, t ≥ s + 2),
     each pair exactly once. Chains share their junction sphere, so a block drops its first
     row when s ≥ 1 (that pair is in block (s − 1, t)) and its last column when t < n − 1
-    (that pair is in block (s, t + 1)). They depend on the robot's shape alone (a robot
-    whose numbers are traced has them too)."""
-    return _pair_blocks(robot.n_segments if robot.self_collision else 0,
-                        robot.points_per_segment)
-
-
-@cached(maxsize=32)
-def _pair_blocks(n: int, k: int) -> tuple[tuple[int, int, int, int], ...]:
-    """``self_pair_blocks`` of n segments (0: none checked) of k pieces each (segment s's
-    chain: body spheres s·k … s·k + k, ``clearance.body_segments``)."""
+    (that pair is in block (s, t + 1)). From the robot's shape alone (a robot whose
+    numbers are traced has them too); not cached by robot, as a traced one cannot be a
+    key (a few segments: cheap, and asked for while a program is traced)."""
+    chains = body_segments(robot)
+    n = robot.n_segments if robot.self_collision else 0
     blocks = []
     for s in range(n):
         for t in range(s + 2, n):
-            r0 = s * k + (1 if s >= 1 else 0)
-            c1 = t * k + k + (0 if t < n - 1 else 1)
-            blocks.append((r0, s * k + k + 1, t * k, c1))
+            rows, cols = chains[s], chains[t]
+            r0 = int(rows[0]) + (1 if s >= 1 else 0)
+            c1 = int(cols[-1]) + (0 if t < n - 1 else 1)
+            blocks.append((r0, int(rows[-1]) + 1, int(cols[0]), c1))
     return tuple(blocks)
 
 
