@@ -143,30 +143,36 @@ def bench_follow(follower: Any, motions: list[np.ndarray], repeats: int,
             "max_rate_n_s": rate,
             "min_clearance_mm": 1e3 * min(r.min_clearance for r in results),
             "median_s": statistics.median(medians) if medians else 0.0,
+            "polish_median_s": statistics.median(r.timing.polish for r in results),
             "polish_s": max(r.timing.polish for r in results),
             "first_s": max(firsts) if firsts else 0.0,
             "stages": ", ".join(sorted({r.stage.value for r in results}))}
 
 
 def bench_plan(robot: Any, scene: dict, problems: int, repeats: int, follower: Any,
-               rng: np.random.Generator, modes: tuple[str, ...] = ("penalty",)
-               ) -> list[dict[str, Any]]:
+               rng: np.random.Generator, modes: tuple[str, ...] = ("penalty",),
+               polish_accepted: bool = False) -> list[dict[str, Any]]:
     """The planning rows, one per mode: plans against the search's on the same problems
-    (``exact``: the motions the verdict rejects polished by Ipopt)."""
+    (``exact``: the motions the verdict rejects polished by Ipopt; with
+    ``polish_accepted`` every motion)."""
     from ..tasks.mechanics.trajectory import TensionTrajectoryPlanner
 
     ends = clear_tensions(follower, 2 * problems, rng)
     starts, goals = ends[:problems], ends[problems:]
     planner = TensionTrajectoryPlanner(robot, scene)
+    exact = TensionTrajectoryPlanner(robot, scene, dataclasses.replace(
+        planner.config, polish_accepted=polish_accepted))
     search = TensionTrajectoryPlanner(robot, scene, dataclasses.replace(planner.config,
                                                               chain_iterations=0))
     loads = static_loads(1, planner.length, PAYLOAD, None, GRAVITY)
     searched = search.plan(starts, goals, gravity=GRAVITY, tip_force=PAYLOAD)
     rows = []
     for mode in modes:
+        runner = exact if mode == "exact" else planner
         results, first, median = timed(
-            lambda mode=mode: planner.plan(starts, goals, gravity=GRAVITY, tip_force=PAYLOAD,
-                                           exact=mode == "exact"), repeats)
+            lambda mode=mode, runner=runner: runner.plan(
+                starts, goals, gravity=GRAVITY, tip_force=PAYLOAD, exact=mode == "exact"),
+            repeats)
         ratio = [planner.tip_path(r.tensions, loads) / planner.tip_path(s.tensions, loads)
                  for r, s in zip(results, searched, strict=True) if r.success and s.success]
         rows.append({
@@ -177,6 +183,7 @@ def bench_plan(robot: Any, scene: dict, problems: int, repeats: int, follower: A
             "polished": sum(r.stage.value == "polish" for r in results),
             "tip_path_ratio": statistics.median(ratio) if ratio else float("nan"),
             "min_clearance_mm": 1e3 * min(r.min_clearance for r in results),
+            "polish_s": max(r.timing.polish for r in results),
             "per_problem_s": median / max(problems, 1), "first_s": first})
     return rows
 
@@ -196,6 +203,7 @@ FOLLOW_COLUMNS = [
     Column("max_rate_n_s", f"max rate (N/s, limit {RATE_MAX:g})", fixed(1)),
     Column("min_clearance_mm", "min clearance (mm)", fixed(1)),
     Column("median_s", "median s per path", fixed(2)),
+    Column("polish_median_s", "median polish (s)", fixed(1)),
     Column("polish_s", "largest polish (s)", fixed(1)),
     Column("first_s", "first call (s)", fixed(1)), Column("stages", "stage"),
 ]
@@ -206,6 +214,7 @@ PLAN_COLUMNS = [
     Column("refined_pct", "refined kept (%)", fixed(1)), Column("polished", "polished"),
     Column("tip_path_ratio", "median tip path / search's", fixed(2)),
     Column("min_clearance_mm", "min clearance (mm)", fixed(1)),
+    Column("polish_s", "largest polish (s)", fixed(1)),
     Column("per_problem_s", "s per problem", fixed(3)),
     Column("first_s", "first call (s)", fixed(1)),
 ]
@@ -215,8 +224,11 @@ def run_tension_clutter_benchmark(robot: str = "tdcr2_rao2021", targets: int = 2
                                   paths: int = 6, waypoints: int = 60, problems: int = 20,
                                   modes: tuple[str, ...] = ("penalty",), repeats: int = 2,
                                   seed: int = 0, rate_fraction: float = 0.7,
+                                  polish_accepted: bool = False,
                                   out: str | Path | None = None) -> dict[str, Any]:
-    """All three rows in the clutter scene, printed and written to ``out``."""
+    """All three rows in the clutter scene, printed and written to ``out``
+    (``polish_accepted``: exact mode polishes every motion, the ones the verdict accepts
+    too, timing the exact stage on each path and plan)."""
     from ..tasks.mechanics.follow import TensionFollowConfig, TensionPathFollower
 
     rob = load_robot(robot)
@@ -225,8 +237,12 @@ def run_tension_clutter_benchmark(robot: str = "tdcr2_rao2021", targets: int = 2
     follower = TensionPathFollower(rob, scene, TensionFollowConfig(tension_rate_max=RATE_MAX))
     motions = clear_motions(follower, paths, waypoints, rate_fraction, rng)
     ik = bench_ik(rob, scene, targets, list(modes), repeats, follower, rng)
-    follow = [bench_follow(follower, motions, repeats, mode) for mode in modes]
-    plan = bench_plan(rob, scene, problems, repeats, follower, rng, tuple(modes))
+    exact = TensionPathFollower(rob, scene, dataclasses.replace(
+        follower.config, polish_accepted=polish_accepted))
+    follow = [bench_follow(exact if mode == "exact" else follower, motions, repeats, mode)
+              for mode in modes]
+    plan = bench_plan(rob, scene, problems, repeats, follower, rng, tuple(modes),
+                      polish_accepted)
     env = environment()
     report = (f"## Mechanics tasks in clutter under load, {robot}\n\n"
               f"Gravity and a 5 g tip payload, {len(scene['obstacles'])} spheres and boxes "
@@ -239,5 +255,6 @@ def run_tension_clutter_benchmark(robot: str = "tdcr2_rao2021", targets: int = 2
     write_report("tension_clutter", report, out,
                  tables={"ik": ik, "follow": follow, "plan": plan}, env=env,
                  settings={"robot": robot, "repeats": repeats, "seed": seed,
-                           "rate_fraction": rate_fraction})
+                           "rate_fraction": rate_fraction,
+                           "polish_accepted": polish_accepted})
     return {"ik": ik, "follow": follow, "plan": plan}

@@ -293,6 +293,9 @@ def _add_tension(group: argparse._SubParsersAction) -> None:
     p.add_argument("--modes", nargs="+", choices=("penalty", "exact"), default=["penalty"],
                    help="clutter: modes of every row, IK, following and planning "
                         "(default penalty)")
+    p.add_argument("--polish-accepted", action="store_true",
+                   help="clutter: exact mode polishes every path and plan, also those the "
+                        "verdict accepts (times the exact stage on each)")
     add_common_options(p, "tension", repeats=3, robot=False, seed=True)
     p.add_argument("--robot", default="tdcr2_rao2021",
                    help="robot with a mechanics block and 2×3 tendons (default tdcr2_rao2021)")
@@ -307,7 +310,8 @@ def _run_tension(args: argparse.Namespace) -> int:
         run_tension_clutter_benchmark(robot=args.robot, targets=args.targets,
                                       paths=args.paths, waypoints=args.waypoints or 60,
                                       problems=args.problems, modes=tuple(args.modes),
-                                      repeats=args.repeats, seed=args.seed, out=args.out)
+                                      repeats=args.repeats, seed=args.seed,
+                                      polish_accepted=args.polish_accepted, out=args.out)
         _wrote(args, "tension_clutter")
         return 0
     from ..bench.tension_motion import run_tension_motion_benchmark

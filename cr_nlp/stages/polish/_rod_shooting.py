@@ -161,18 +161,26 @@ def states_function(rod: CasadiRod) -> ca.Function:
 
 
 class ShootingSolvers:
-    """What the rod's polishers share: their Ipopt solvers, one per warm-start setting,
-    built on first use from the shooting rows (``self._build(warm)``), and built again on
-    the compiled step functions once those are there. A subclass sets ``rod``,
-    ``_state_scale``, ``tension_scale``, ``config`` (``compile``), ``_shooting`` and
-    ``_solvers`` ({} at first)."""
+    """What the rod's polishers share: their Ipopt solvers, one per warm-start setting
+    (and layout, where a polisher's NLP has several), built on first use from the shooting
+    rows (``self._build(warm, *layout)``), and built again on the compiled step functions
+    once those are there. A subclass sets ``rod``, ``_state_scale``, ``tension_scale``,
+    ``config`` (``compile``), ``_shooting`` and ``_solvers`` ({} at first)."""
 
-    def _solver(self, warm: bool) -> ca.Function:
-        """The Ipopt solver with the warm-start settings or Ipopt's own."""
+    kept_layouts = 4
+    """Solvers kept per warm-start setting, the most recently used (a layout's solver
+    holds its NLP's graph)."""
+
+    def _solver(self, warm: bool, *layout: Any) -> ca.Function:
+        """The Ipopt solver with the warm-start settings or Ipopt's own (of ``layout``)."""
         if self._shooting.interpreted and not pending():
             self._shooting = ShootingRows(self.rod, self._state_scale, self.tension_scale,
                                           self.config.compile)
             self._solvers.clear()
-        if warm not in self._solvers:
-            self._solvers[warm] = self._build(warm)
-        return self._solvers[warm]
+        key = (warm, *layout)
+        solver = self._solvers.pop(key, None) or self._build(warm, *layout)
+        self._solvers[key] = solver                  # the most recent last
+        same = [k for k in self._solvers if k[0] == warm]
+        for old in same[:-self.kept_layouts]:
+            del self._solvers[old]
+        return solver

@@ -140,7 +140,7 @@ class TensionIKPolisher(ShootingSolvers):
         self.row_margin = self._clear.row_margin
         self._deadline = Deadline()
         self._shooting = ShootingRows(rod, self._state_scale, self.tension_scale, config.compile)
-        self._solvers: dict[bool, ca.Function] = {}
+        self._solvers: dict[tuple, ca.Function] = {}
         self._states = states_function(rod)
         self._solver(config.warm_start)
 

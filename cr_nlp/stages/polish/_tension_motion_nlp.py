@@ -4,10 +4,14 @@ the Cosserat rod, solved by Ipopt with its constraints as constraints.
 A motion is T waypoints of tensions ``dt`` apart; between two waypoints the tensions move
 linearly and the robot passes through the equilibria of the interpolated tensions. The
 verdict (``tasks.mechanics._motion``) checks every waypoint and ``samples_between``
-evenly spaced tension sets between each pair. Here each of those R = T + (T − 1)·k
-tension sets is one rod in the NLP (``EXACT_MODE``), in multiple shooting over the JAX
-statics' RK4 steps (``_rod_shooting``, as the IK polish): its tensions, its base moment
-M(0) and every step's end state are unknowns, each step an equality. Constraints:
+evenly spaced tension sets between each pair, R = T + (T − 1)·k tension sets. Each
+waypoint, and each sample whose backbone comes within δ' + ``sample_margin`` of an
+obstacle or of itself, is one rod in the NLP (``EXACT_MODE``), in multiple shooting over
+the JAX statics' RK4 steps (``_rod_shooting``, as the IK polish): its tensions, its base
+moment M(0) and every step's end state are unknowns, each step an equality. The samples
+left out are solved afresh (JAX statics) after Ipopt; where one came nearer than δ', the
+samples then near join and Ipopt starts again (``sample_rounds``). So every tension set
+the verdict checks is either constrained or measured clear. Constraints:
 
 - every rod's steps and its tip's moment balance ``M(L) = M_tip`` (an equilibrium of the
   discrete equations the verdict's fresh statics solves);
@@ -15,8 +19,8 @@ M(0) and every step's end state are unknowns, each step an equality. Constraints
 - tension bounds ``0 ≤ τ ≤ τ_max`` at the waypoints (the samples lie between them);
 - the tension rate between neighbouring waypoints, ``|τₖ₊₁ − τₖ| ≤ τ̇_max·dt`` (linear);
 - clearance ≥ δ' of every rod's backbone: the slot rows of ``_rod_clearance`` (spheres
-  at the grid points and chord midpoints, obstacle and self pairs), at the waypoints AND
-  at the verdict's samples between them;
+  at the grid points and along the chords, obstacle and self pairs), at the waypoints
+  and at the samples in the NLP;
 - planning: the first and last waypoints' tensions fixed (simple bounds);
 - following: every waypoint's tip at its target (3 rows, metres; each within
   ``target_tolerance`` or equal) and, when asked, its orientation (the skew part of R*ᵀR).
@@ -27,20 +31,25 @@ motion; ρ small, the least-tension tie-break among the redundant tension sets) 
 
 Derivatives: each rod is one CasADi function (its rows, their Jacobian from the steps'
 compiled blocks and CasADi's own for the tip and clearance rows, its Lagrangian's
-Hessian), called once per rod; the NLP's Jacobian and Hessian are block-diagonal over the
-rods plus the constant linear rows and the objective's constant Hessian. The NLP is
-built once per robot, scene, statics settings, point-load arc lengths, waypoint count,
-samples and target kind (``tension_motion_polisher``, cached) and re-solved with
-parameters (loads, targets, reference, slots) and bounds (rate step, ends, tolerance).
-Units: metres, radians, newtons, N·m, seconds.
+Hessian); the rods of one kind are evaluated by one CasADi map in threads over the
+process's cores; the NLP's Jacobian and Hessian are block-diagonal over the rods plus the
+constant linear rows and the objective's constant Hessian. The clearance rows' curvature
+is left out of the Hessian by default (``clearance_curvature``): on the clutter suite's
+first 60-waypoint path the same 27 iterations and answer, the Hessian 0.73 → 0.45 s per
+evaluation. The rods' functions are built once per robot, scene, statics settings,
+point-load arc lengths, waypoint count, samples and target kind
+(``tension_motion_polisher``, cached), the NLP once per set of rods (the last few kept),
+and re-solved with parameters (loads, targets, reference, slots) and bounds (rate step,
+ends, tolerance). Units: metres, radians, newtons, N·m, seconds.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import time
-from dataclasses import dataclass
-from typing import Any, NamedTuple
+from collections.abc import Callable
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -55,7 +64,6 @@ from ._ipopt import (
     SUCCESS_STATUSES,
     TIME_LIMIT_STATUS,
     Deadline,
-    NLPSettings,
     WarmStart,
     build_solver,
     ipopt_options,
@@ -64,91 +72,12 @@ from ._ipopt import (
 from ._rod_clearance import RodClearance
 from ._rod_shooting import STATE, ShootingRows, ShootingSolvers, states_function
 from ._tension_ik_nlp import _start_moments
-
-EXACT_MODE = ("cosserat multiple shooting over the motion (every waypoint and the "
-              "verdict's samples between them)")
-"""The formulation of the tension-motion exact stage (a result's ``exact_mode``)."""
-
-OBJECTIVES = ("smooth", "nearest")
-TARGETS = ("none", "position", "pose")
-
-
-@dataclass(frozen=True)
-class TensionMotionPolishConfig(NLPSettings):
-    """Settings of the tension-motion polish (the shared ones: ``NLPSettings``; the
-    clearance rows' curvature is always exact here, ``clearance_curvature`` unused)."""
-
-    tol: float = 1e-8
-    """Ipopt's ``tol`` (scaled optimality error; the objective is O(1) in scaled tensions)."""
-    constr_viol_tol: float = 1e-10
-    """Scaled rows: 1e-10 of the robot's length on positions, of E·I/L on moments, of
-    τ_max on the tension rows, metres on the clearance rows."""
-    max_iter: int = 150
-    """Ipopt iterations per attempt."""
-    objective: str = "smooth"
-    """"smooth": Σ‖Δτ/τ_max‖² + ρ·Σ‖τ/τ_max‖²; "nearest": Σ‖(τ − τ_start)/τ_max‖²."""
-    regularization: float = 1e-3
-    """ρ of the "smooth" objective (a least-tension tie-break)."""
-    warm_start: bool = True
-    """Start Ipopt's barrier parameter at 1e-6 with the start kept in place where every
-    rod of the start keeps its clearance, else Ipopt's own settings first; a failed solve
-    is tried once more with the other (False: Ipopt's own only)."""
-    target_tolerance: float = 0.0
-    """Following: each tip coordinate within this of its target, m (0: equality)."""
-    spheres_per_step: int = 4
-    """Body spheres per chord of the rod's grid (``_rod_clearance``): the rows ask
-    δ' = δ + the most the capsule chain can come nearer than its spheres (with
-    tdcr2_rao2021's 12 mm envelope and 20 mm steps: 1.0 mm at 2 per step, 0.26 mm at 4)."""
-
-    slot_rounds: int = 4
-    """Ipopt runs per attempt: after each, where a pair without a clearance slot came
-    nearer than δ', the pairs near any of the shapes so far get the slots and Ipopt goes on
-    from its answer. A plan's refined motion shortened far through the clutter of
-    ``bench tension`` needed 3 (with 2 its last run's answer was 11.8 mm inside a box
-    that had no slot)."""
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if self.slot_rounds < 1:
-            raise ValueError(f"slot_rounds must be ≥ 1, got {self.slot_rounds}")
-        if self.objective not in OBJECTIVES:
-            raise ValueError(f"objective must be one of {OBJECTIVES}, got {self.objective!r}")
-        if not (self.regularization >= 0 and self.target_tolerance >= 0):
-            raise ValueError("regularization and target_tolerance must be ≥ 0")
-        if self.spheres_per_step < 1:
-            raise ValueError(f"spheres_per_step must be ≥ 1, got {self.spheres_per_step}")
-
-
-class TensionMotionPolish(NamedTuple):
-    """One polished motion (a failure is a status, never an exception; nothing here is
-    judged: the caller's verdict replays the tensions through fresh statics)."""
-
-    tensions: np.ndarray
-    """(T, n) N within [0, τ_max]: Ipopt's last iterate (clipped), or the start where no
-    run finished (no time, non-finite input, a numerical failure)."""
-    status: str
-    """Ipopt's return status (``TIME_LIMIT_STATUS`` where the time ran out)."""
-    seconds: float
-    """Wall time (start solves, Ipopt, refreshed slots), s."""
-    iterations: int
-    """Ipopt iterations."""
-
-
-def sample_weights(count: int, samples_between: int) -> np.ndarray:
-    """(R, T) weights giving the R tension sets the verdict checks from the T waypoints'
-    (its order: each waypoint, then ``samples_between`` evenly spaced sets strictly
-    between it and the next; R = T + (T − 1)·k)."""
-    if count < 2:
-        return np.eye(count)
-    rows = []
-    for i in range(count - 1):
-        for j in range(samples_between + 1):
-            row = np.zeros(count)
-            f = j / (samples_between + 1)
-            row[i], row[i + 1] = 1.0 - f, f
-            rows.append(row)
-    rows.append(np.eye(count)[-1])
-    return np.array(rows)
+from ._tension_motion_config import (
+    TARGETS,
+    TensionMotionPolish,
+    TensionMotionPolishConfig,
+    sample_weights,
+)
 
 
 def _triplets(shape: tuple[int, int], rows: list[int], cols: list[int],
@@ -189,6 +118,7 @@ class TensionMotionPolisher(ShootingSolvers):
         self.weights = sample_weights(count, samples_between)
         self.count, self.rods = count, len(self.weights)
         self.waypoint_rods = np.arange(count) * (samples_between + 1)
+        self._waypoints = set(self.waypoint_rods.tolist())
         self.block = self.n + 3 + STATE * rod.steps
         self._clear = RodClearance(robot, scene, rod.layout.arc_length, margin,
                                    config.max_pairs, config.near_margin, config.face_smoothing,
@@ -197,13 +127,15 @@ class TensionMotionPolisher(ShootingSolvers):
         self._shooting = ShootingRows(rod, self._state_scale, self.tension_scale,
                                       config.compile)
         self._states = states_function(rod)
-        self._solvers: dict[bool, ca.Function] = {}
-        self._solver(config.warm_start)
+        self._solvers: dict[tuple, ca.Function] = {}
+        self._functions_of: ShootingRows | None = None    # the rods' functions: of these
 
     # ------------------------------------------------------------ building
 
     def _aims(self, r: int) -> bool:
-        return self.targets != "none" and r in set(self.waypoint_rods.tolist())
+        """Whether tension set ``r`` (of the verdict's R) has a tip target: a waypoint of a
+        followed path."""
+        return self.targets != "none" and r in self._waypoints
 
     def _rod_function(self, aim: bool) -> tuple[tuple[ca.Function, ...], int]:
         """One rod's functions of (unknowns, loads, target (3), target rotation (3 × 3),
@@ -231,9 +163,13 @@ class TensionMotionPolisher(ShootingSolvers):
         other = ca.vertcat(*others, clearance)
         values, jacobian = shooting.jacobian(tension, base_moment, states, inputs)
         lam = ca.MX.sym("lam", values.size1() + other.size1())
+        # The clearance rows' curvature only where asked (``clearance_curvature``): the
+        # centres are linear in the unknowns, so "parts" is "full" here.
+        curved = other if self.config.clearance_curvature != "none" else ca.vertcat(*others)
         hessian = (shooting.hessian(tension, base_moment, states, inputs,
                                     lam[:STATE * steps])
-                   + ca.hessian(ca.dot(lam[STATE * steps:], other), z)[0])
+                   + ca.hessian(ca.dot(lam[STATE * steps:STATE * steps + curved.size1()],
+                                       curved), z)[0])
         arguments = [z, load_column, target, target_rot, *slots]
         rows = ca.Function(f"motion_rod_{int(aim)}", arguments,
                            [ca.vertcat(values, other), ca.vertcat(jacobian,
@@ -244,20 +180,21 @@ class TensionMotionPolisher(ShootingSolvers):
             *shooting.defects(tension, base_moment, states, inputs), other)])
         return (rows, curvature, alone), values.size1() + other.size1() - clearance.size1()
 
-    def _linear_rows(self) -> tuple[ca.DM, ca.DM]:
-        """(A, D): the constant rows over the unknowns: A the samples' interpolation rows
-        (= 0) then the waypoints' tension steps (the rate rows); D the objective's rows
-        (the steps, then √ρ·τ̃ or the waypoints' τ̃ for "nearest")."""
-        n, size = self.n, self.rods * self.block
+    def _linear_rows(self, members: tuple[int, ...]) -> tuple[ca.DM, ca.DM]:
+        """(A, D): the constant rows over the unknowns of the rods ``members``: A the
+        samples' interpolation rows (= 0) then the waypoints' tension steps (the rate rows);
+        D the objective's rows (the steps, then √ρ·τ̃ or the waypoints' τ̃ for "nearest")."""
+        n, size = self.n, len(members) * self.block
+        column = {r: i * self.block for i, r in enumerate(members)}
         rows, cols, values = [], [], []
         count = 0
-        for r in range(self.rods):
-            if r in set(self.waypoint_rods.tolist()):
+        for r in members:
+            if r in self._waypoints:
                 continue
             for j in range(n):
-                rows.append(count), cols.append(r * self.block + j), values.append(1.0)
+                rows.append(count), cols.append(column[r] + j), values.append(1.0)
                 for i in np.flatnonzero(self.weights[r]):
-                    rows.append(count), cols.append(int(self.waypoint_rods[i]) * self.block + j)
+                    rows.append(count), cols.append(column[int(self.waypoint_rods[i])] + j)
                     values.append(-float(self.weights[r, i]))
                 count += 1
         steps_rows, steps_cols, steps_values = [], [], []
@@ -265,14 +202,14 @@ class TensionMotionPolisher(ShootingSolvers):
             a, b = self.waypoint_rods[k], self.waypoint_rods[k + 1]
             for j in range(n):
                 steps_rows += [k * n + j] * 2
-                steps_cols += [int(b) * self.block + j, int(a) * self.block + j]
+                steps_cols += [column[int(b)] + j, column[int(a)] + j]
                 steps_values += [1.0, -1.0]
         steps = (self.count - 1) * n
         a_matrix = _triplets((count + steps, size), rows + [count + i for i in steps_rows],
                              cols + steps_cols, values + steps_values)
         weight = (1.0 if self.config.objective == "nearest"
                   else math.sqrt(self.config.regularization))
-        own = [int(w) * self.block + j for w in self.waypoint_rods for j in range(n)]
+        own = [column[int(w)] + j for w in self.waypoint_rods for j in range(n)]
         smooth = self.config.objective == "smooth"
         d_rows = (steps_rows if smooth else []) + [(steps if smooth else 0) + i
                                                     for i in range(len(own))]
@@ -281,20 +218,23 @@ class TensionMotionPolisher(ShootingSolvers):
                              (steps_values if smooth else []) + [weight] * len(own))
         return a_matrix, d_matrix
 
-    def _build(self, warm: bool) -> ca.Function:
-        """The Ipopt solver (``warm``: with the warm-start settings). Parameters: the
-        loads (``flat_loads``), with targets the waypoints' targets (T × 3, base frame)
-        and rotations (T × 3 × 3), the reference tensions (T·n, scaled), then every
-        rod's slots."""
-        functions = {aim: self._rod_function(aim) for aim in {False, self.targets != "none"}}
+    def _build(self, warm: bool, members: tuple[int, ...]) -> ca.Function:
+        """The Ipopt solver of the rods ``members`` (``warm``: with the warm-start
+        settings). Parameters: the loads (``flat_loads``), with targets the waypoints'
+        targets (T × 3, base frame) and rotations (T × 3 × 3), the reference tensions
+        (T·n, scaled), then every rod's slots."""
+        if self._functions_of is not self._shooting:     # the step functions changed
+            self._functions_of = self._shooting
+            self._functions = {aim: self._rod_function(aim)
+                               for aim in {False, self.targets != "none"}}
+        functions = self._functions
         self._equalities = {aim: f[1] for aim, f in functions.items()}
         load_column = ca.MX.sym("loads", 12 + 6 * self.rod.n_points)
-        zs = [ca.MX.sym(f"rod_{r}", self.block) for r in range(self.rods)]
+        zs = [ca.MX.sym(f"rod_{r}", self.block) for r in members]
         unknowns = ca.vertcat(*zs)
         reference = ca.MX.sym("reference", self.count * self.n)
-        parameters, slot_parameters, calls = [load_column], [], []
-        target_symbols = []
-        for r in range(self.rods):
+        slot_parameters, calls, target_symbols = [], [], []
+        for r, z in zip(members, zs, strict=True):
             aim = self._aims(r)
             function = functions[aim][0][0]
             slots = [ca.MX.sym(f"slot_{r}_{i}", function.size_in(4 + i))
@@ -306,24 +246,21 @@ class TensionMotionPolisher(ShootingSolvers):
                 target_symbols += [target, ca.vec(rotation)]
             else:
                 target, rotation = ca.DM.zeros(3), ca.DM.eye(3)
-            calls.append((functions[aim][0], [zs[r], load_column, target, rotation, *slots]))
+            calls.append((functions[aim][0], [z, load_column, target, rotation, *slots]))
         parameters = ca.vertcat(load_column, *target_symbols, reference, *slot_parameters)
-        a_matrix, d_matrix = self._linear_rows()
+        a_matrix, d_matrix = self._linear_rows(members)
         self._linear = a_matrix.size1()
         offset = ca.mtimes(ca.DM(d_matrix), unknowns)
         if self.config.objective == "nearest":
             offset = offset - reference
         objective = ca.sumsqr(offset)
         hessian_f = 2.0 * ca.mtimes(d_matrix.T, d_matrix)
-        sizes = [functions[self._aims(r)][0][0].size_out(0)[0] for r in range(self.rods)]
+        sizes = [functions[self._aims(r)][0][0].size_out(0)[0] for r in members]
         lam_f = ca.MX.sym("lam_f")
         lam_g = ca.MX.sym("lam_g", sum(sizes) + self._linear)
         starts = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
-        values, alone, jacobians, hessians = [], [], [], []
-        for r, ((rows, curvature, only), arguments) in enumerate(calls):
-            value, jacobian = rows(*arguments)
-            values.append(value), jacobians.append(jacobian), alone.append(only(*arguments))
-            hessians.append(curvature(*arguments, lam_g[starts[r]:starts[r + 1]]))
+        values, alone, jacobians, hessians = _mapped(
+            calls, [lam_g[starts[i]:starts[i + 1]] for i in range(len(members))])
         linear = ca.mtimes(ca.DM(a_matrix), unknowns)
         g = ca.vertcat(*alone, linear)
         callbacks = {
@@ -352,24 +289,47 @@ class TensionMotionPolisher(ShootingSolvers):
         """The robot's grid points (S+1, 3, base frame, m) of one rod's states (15 × (S'+1))."""
         return states[:3, self.rod.grid.robot_points].T
 
-    def solve(self, tensions0: np.ndarray, base_moments: np.ndarray, loads: np.ndarray,
-              targets: np.ndarray | None, rotations: np.ndarray | None,
+    def _fresh(self, tensions: np.ndarray, rods: list[int],
+               equilibria: Callable[[np.ndarray], np.ndarray], loads: np.ndarray
+               ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+        """For the tension sets ``rods`` of the waypoints' ``tensions`` (T, n) N: their
+        scaled unknowns (the equilibrium ``equilibria`` finds, integrated) and their pair
+        distances (m), by rod."""
+        samples = self.weights[rods] @ tensions
+        moments = equilibria(samples) if rods else np.zeros((0, 3))
+        unknowns, near = {}, {}
+        for r, tension, moment in zip(rods, samples, moments, strict=True):
+            states = np.asarray(self._states(tension, moment, loads))
+            unknowns[r] = np.concatenate([tension / self.tension_scale,
+                                          moment / self.moment_scale,
+                                          (states[:, 1:] / self._state_scale[:, None]).T.ravel()])
+            near[r] = self._clear.distances(self._positions(states))
+        return unknowns, near
+
+    def _near_samples(self, near: dict[int, np.ndarray]) -> set[int]:
+        """The samples between waypoints whose backbone comes within δ' +
+        ``sample_margin``."""
+        reach = self._clear.row_margin + self.config.sample_margin
+        return {r for r, d in near.items() if r not in self._waypoints and d.size
+                and float(np.min(d)) < reach}
+
+    def solve(self, tensions0: np.ndarray, equilibria: Callable[[np.ndarray], np.ndarray],
+              loads: np.ndarray, targets: np.ndarray | None, rotations: np.ndarray | None,
               reference: np.ndarray, fixed_ends: bool, rate_step: float,
               target_tolerance: float) -> tuple[np.ndarray, str, int]:
-        """Polish one motion (base frame): waypoint tensions (T, n) N, every rod's M(0)
-        (R, 3) N·m, ``loads`` (``flat_loads``), targets (T, 3) m and rotations (T, 3, 3)
-        or None, reference tensions (T, n) N, the ends fixed or not, the largest tension
-        step between waypoints (N) and the targets' tolerance (m). Returns (tensions
-        (T, n) N, Ipopt's status, iterations)."""
+        """Polish one motion (base frame): waypoint tensions (T, n) N, ``equilibria`` (the
+        base moments M(0) (B, 3) N·m of tension sets (B, n) N, base frame), ``loads``
+        (``flat_loads``), targets (T, 3) m and rotations (T, 3, 3) or None, reference
+        tensions (T, n) N, the ends fixed or not, the largest tension step between
+        waypoints (N) and the targets' tolerance (m). Returns (tensions (T, n) N, Ipopt's
+        status, iterations).
+
+        The NLP holds every waypoint and the samples between them that come within
+        δ' + ``sample_margin`` at the start; after Ipopt the others are solved afresh, and where
+        one came nearer than δ' the samples near then join and Ipopt starts again from the
+        start (at most ``sample_rounds`` runs)."""
         scale, n = self.tension_scale, self.n
-        samples = self.weights @ tensions0
-        states = [np.asarray(self._states(samples[r], base_moments[r], loads))
-                  for r in range(self.rods)]
-        near = [self._clear.distances(self._positions(s)) for s in states]
-        x0 = np.concatenate([np.concatenate([samples[r] / scale,
-                                             base_moments[r] / self.moment_scale,
-                                             (s[:, 1:] / self._state_scale[:, None]).T.ravel()])
-                             for r, s in enumerate(states)])
+        start, near = self._fresh(tensions0, list(range(self.rods)), equilibria, loads)
         fixed = [loads]
         if self.targets != "none":
             assert targets is not None
@@ -377,67 +337,89 @@ class TensionMotionPolisher(ShootingSolvers):
             fixed += [np.concatenate([t, rot.ravel(order="F")])
                       for t, rot in zip(targets, rotations, strict=True)]
         fixed.append(reference.ravel() / scale)
-        lbx, ubx = np.full(x0.size, -np.inf), np.full(x0.size, np.inf)
+        members = tuple(sorted(self._waypoints | self._near_samples(near)))
         upper = 1.0 if math.isfinite(self.tension_max) else np.inf
-        for k, r in enumerate(self.waypoint_rods):
-            at = slice(r * self.block, r * self.block + n)
-            lbx[at], ubx[at] = 0.0, upper
-            if fixed_ends and k in (0, self.count - 1):
-                lbx[at] = ubx[at] = tensions0[k] / scale
+        ends = {int(self.waypoint_rods[0]), int(self.waypoint_rods[-1])}
         # Fixed ends are fixed equilibria: their clearance rows would only ask δ' of shapes
         # the verdict accepted at δ (the planner refuses ends that are not clear).
-        loose = {int(self.waypoint_rods[0]), int(self.waypoint_rods[-1])} if fixed_ends else set()
-        bounds = (lbx, ubx, rate_step / scale, target_tolerance / self.length, loose)
-        clear = all(not d.size or float(np.min(d)) >= self._clear.row_margin
-                    for r, d in enumerate(near) if r not in loose)
+        loose = ends if fixed_ends else set()
+        clear = all(not near[r].size or float(np.min(near[r])) >= self._clear.row_margin
+                    for r in members if r not in loose)
         order = [True, False] if self.config.warm_start and clear else [False, True]
-        iterations, status, x = 0, "not run", x0
-        for warm in order[:2 if self.config.warm_start else 1]:
-            x, status, used = self._attempt(warm, x0, np.concatenate(fixed), bounds, near)
-            iterations += used
-            if status in SUCCESS_STATUSES or status == TIME_LIMIT_STATUS:
+        iterations, status = 0, "not run"
+        answer = tensions0
+        for again in range(self.config.sample_rounds):
+            size = len(members) * self.block
+            lbx, ubx = np.full(size, -np.inf), np.full(size, np.inf)
+            for i, r in enumerate(members):
+                if r in self._waypoints:
+                    lbx[i * self.block: i * self.block + n] = 0.0
+                    ubx[i * self.block: i * self.block + n] = upper
+                    if fixed_ends and r in ends:
+                        lbx[i * self.block: i * self.block + n] = start[r][:n]
+                        ubx[i * self.block: i * self.block + n] = start[r][:n]
+            bounds = (lbx, ubx, rate_step / scale, target_tolerance / self.length, loose)
+            x0 = np.concatenate([start[r] for r in members])
+            for warm in order[:2 if self.config.warm_start else 1]:
+                x, status, used = self._attempt(warm, members, x0, np.concatenate(fixed),
+                                                bounds, near)
+                iterations += used
+                if status in SUCCESS_STATUSES or status == TIME_LIMIT_STATUS:
+                    break
+            place = {r: i * self.block for i, r in enumerate(members)}
+            answer = np.stack([x[place[int(r)]: place[int(r)] + n]
+                               for r in self.waypoint_rods]) * scale
+            outside = [r for r in range(self.rods) if r not in place]
+            if (status not in SUCCESS_STATUSES or not outside
+                    or again == self.config.sample_rounds - 1):
                 break
-        out = np.stack([x[r * self.block: r * self.block + n] for r in self.waypoint_rods])
-        return np.clip(out * scale, 0.0, self.tension_max), status, iterations
+            _, after = self._fresh(answer, outside, equilibria, loads)
+            if not any(d.size and float(np.min(d)) < self._clear.row_margin
+                       - self.config.violation_tolerance for d in after.values()):
+                break
+            # Again from the start: the answer's motion passes through what it missed.
+            near.update({r: np.minimum(near[r], d) for r, d in after.items()})
+            members = tuple(sorted(set(members) | self._near_samples(after)))
+        return np.clip(answer, 0.0, self.tension_max), status, iterations
 
-    def _row_bounds(self, lower: list[np.ndarray], step: float,
+    def _row_bounds(self, members: tuple[int, ...], lower: list[np.ndarray], step: float,
                     tolerance: float) -> tuple[np.ndarray, np.ndarray]:
-        """(lbg, ubg): per rod its equalities (the targets' within ``tolerance``, scaled)
-        and its slots' lower bounds ``lower``; then the interpolation rows (= 0) and the
-        rate rows (within ±``step``, scaled)."""
+        """(lbg, ubg): per rod of ``members`` its equalities (the targets' within
+        ``tolerance``, scaled) and its slots' lower bounds ``lower``; then the
+        interpolation rows (= 0) and the rate rows (within ±``step``, scaled)."""
         low, high = [], []
         equal_steps = STATE * self.rod.steps + 3
-        for r in range(self.rods):
+        for i, r in enumerate(members):
             count = self._equalities[self._aims(r)]
             a, b = np.zeros(count), np.zeros(count)
             a[equal_steps:equal_steps + 3] = -tolerance
             b[equal_steps:equal_steps + 3] = tolerance
-            low += [a, lower[r]]
-            high += [b, np.full(lower[r].size, np.inf)]
+            low += [a, lower[i]]
+            high += [b, np.full(lower[i].size, np.inf)]
         rates = (self.count - 1) * self.n
         interpolation = self._linear - rates
         low += [np.zeros(interpolation), np.full(rates, -step)]
         high += [np.zeros(interpolation), np.full(rates, step)]
         return np.concatenate(low), np.concatenate(high)
 
-    def _attempt(self, warm: bool, x0: np.ndarray, fixed: np.ndarray,
-                 bounds: tuple[np.ndarray, np.ndarray, float, float, set[int]],
-                 near: list[np.ndarray]) -> tuple[np.ndarray, str, int]:
-        """Ipopt (``warm``: with the warm-start settings) from ``x0`` with each rod's slots
-        on its pairs ``near`` (m); where a pair without a slot came too close, again from
-        its answer with the pairs near any shape so far in the slots (at most
-        ``slot_rounds`` runs; those after the first warm-started where ``warm_start``).
-        Returns (the unknowns, Ipopt's status, iterations)."""
+    def _attempt(self, warm: bool, members: tuple[int, ...], x0: np.ndarray,
+                 fixed: np.ndarray, bounds: tuple[np.ndarray, np.ndarray, float, float, set[int]],
+                 near: dict[int, np.ndarray]) -> tuple[np.ndarray, str, int]:
+        """Ipopt on the rods ``members`` (``warm``: with the warm-start settings) from
+        ``x0`` with each rod's slots on its pairs ``near`` (m, by rod); where a pair without
+        a slot came too close, again from its answer with the pairs near any shape so far
+        in the slots (at most ``slot_rounds`` runs; those after the first warm-started
+        where ``warm_start``). Returns (the unknowns, Ipopt's status, iterations)."""
         lbx, ubx, step, tolerance, loose = bounds
         iterations, status, x = 0, "not run", x0
         rounds = self.config.slot_rounds
         for again in range(rounds):
-            chosen = [self._clear.slot_parameters(d) for d in near]
-            slots = [p.ravel(order="F") for c in chosen for p in c[0]]
-            lower = [np.full(c[1].shape, -np.inf) if r in loose else c[1]
-                     for r, c in enumerate(chosen)]
-            lbg, ubg = self._row_bounds(lower, step, tolerance)
-            solver = self._solver(warm or (again > 0 and self.config.warm_start))
+            chosen = {r: self._clear.slot_parameters(near[r]) for r in members}
+            slots = [p.ravel(order="F") for r in members for p in chosen[r][0]]
+            lower = [np.full(chosen[r][1].shape, -np.inf) if r in loose else chosen[r][1]
+                     for r in members]
+            solver = self._solver(warm or (again > 0 and self.config.warm_start), members)
+            lbg, ubg = self._row_bounds(members, lower, step, tolerance)
             run = run_solver(solver, x, self._deadline, p=np.concatenate([fixed, *slots]),
                              lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
             iterations, status = iterations + run.iterations, run.status
@@ -447,8 +429,10 @@ class TensionMotionPolisher(ShootingSolvers):
             if again == rounds - 1 or run.out_of_time or not self._clear.groups:
                 break
             closer = False
-            for r in set(range(self.rods)) - loose:
-                z = x[r * self.block: (r + 1) * self.block]
+            for i, r in enumerate(members):
+                if r in loose:
+                    continue
+                z = x[i * self.block: (i + 1) * self.block]
                 solved = z[self.n + 3:].reshape(-1, STATE)[:, :3] * self.length
                 after = self._clear.distances(np.vstack([np.zeros((1, 3)), solved])[
                     self.rod.grid.robot_points])
@@ -460,6 +444,37 @@ class TensionMotionPolisher(ShootingSolvers):
             if not closer:
                 break
         return x, status, iterations
+
+
+def _mapped(calls: list[tuple[tuple[ca.Function, ...], list[Any]]], lams: list[Any]
+            ) -> tuple[list[Any], list[Any], list[Any], list[Any]]:
+    """Per rod (rods in ``calls``' order: (its functions, its arguments), λ its rows'
+    multipliers ``lams``): its (rows, rows alone, Jacobian, Hessian) as MX. The rods of one
+    kind are evaluated by one map over the process's cores (CasADi's threads); the loads,
+    the second argument, are every rod's."""
+    out: list[list[Any]] = [[None] * len(calls) for _ in range(4)]
+    for kind in {id(f) for f, _ in calls}:
+        group = [i for i, (f, _) in enumerate(calls) if id(f) == kind]
+        (rows, curvature, only), first = calls[group[0]]
+        stacked = [ca.horzcat(*[calls[i][1][j] for i in group]) for j in range(len(first))]
+        stacked[1] = first[1]
+        value, jacobian = _each_rod(rows, len(group), *stacked)
+        (just,) = _each_rod(only, len(group), *stacked)
+        (hessian,) = _each_rod(curvature, len(group), *stacked,
+                               ca.horzcat(*[lams[i] for i in group]))
+        for k, i in enumerate(group):
+            out[0][i], out[1][i] = value[k], just[k]
+            out[2][i], out[3][i] = jacobian[k], hessian[k]
+    return out[0], out[1], out[2], out[3]
+
+
+def _each_rod(f: ca.Function, count: int, *args: Any) -> list[list[Any]]:
+    """``f`` on ``count`` rods' horizontally stacked ``args`` in CasADi's threads: per
+    output, the rods' pieces."""
+    threads = min(count, len(os.sched_getaffinity(0)))
+    mapped = f.map(count, "thread", max(1, threads))(*args)
+    return [ca.horzsplit(m, m.size2() // count)
+            for m in (mapped if isinstance(mapped, (list, tuple)) else [mapped])]
 
 
 def _checked(robot: Robot, tensions0: Any, dt: float, rate_max: float, samples_between: int,
@@ -543,9 +558,10 @@ def polish_tension_motion(robot: Robot, scene: Scene | None, tensions0: Any,
                                        tuple(float(s) for s in frame.point_s[0][real]), count,
                                        int(samples_between), kind, float(margin), config)
     starts = np.clip(tensions0, 0.0, polisher.tension_max)
-    samples = polisher.weights @ starts
-    moments = _start_moments(robot, samples, loads.rows(np.zeros(len(samples), int)),
-                             statics_config) @ base_rot
+
+    def equilibria(tensions: np.ndarray) -> np.ndarray:
+        return _start_moments(robot, tensions, loads.rows(np.zeros(len(tensions), int)),
+                              statics_config) @ base_rot
     column = flat_loads(frame.tip_force[0], frame.tip_moment[0], frame.gravity[0],
                         frame.distributed_force[0], frame.point_force[0][real],
                         frame.point_moment[0][real])
@@ -559,7 +575,7 @@ def polish_tension_motion(robot: Robot, scene: Scene | None, tensions0: Any,
                              else time_limit - (time.perf_counter() - began))
     try:
         out, status, iterations = polisher.solve(
-            starts, moments, column, base_targets, rotations, starts, fixed_ends,
+            starts, equilibria, column, base_targets, rotations, starts, fixed_ends,
             rate_max * dt, config.target_tolerance)
     finally:
         polisher._deadline.start(None)

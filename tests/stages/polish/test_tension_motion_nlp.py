@@ -196,19 +196,27 @@ def test_an_exact_plan_replayed_by_fresh_statics_and_fcl_keeps_its_constraints(
             or "Maximum_WallTime_Exceeded" in late.notes[-1]), late.notes
 
 
-def test_exact_planning_rescues_the_refined_motion_the_verdict_rejected() -> None:
+CLUTTER_START = np.array([3.789121, 2.751595, 0.0, 0.89808, 5.689187, 0.0])
+CLUTTER_GOAL = np.array([5.039994, 0.0, 0.0, 3.876874, 2.343225, 0.0])
+
+
+@pytest.fixture(scope="module")
+def clutter() -> dict:
+    from cr_nlp.bench.tension_clutter import clutter_scene
+
+    return clutter_scene(RAO, 0)
+
+
+def test_exact_planning_rescues_the_refined_motion_the_verdict_rejected(clutter) -> None:
     """A problem of ``cr-nlp bench tension --suite clutter`` (16 spheres and boxes, seed 0):
     the banded LM shortens the search's motion, but the verdict finds the shortened motion
     1.2 mm inside δ between its waypoints, so the penalty stages keep the search's. Exact
-    mode polishes the rejected refined motion (every waypoint and every sample the verdict
-    checks a rod in the NLP; the clearance slots re-assigned as it moves through the
-    clutter) and keeps it: verified by fresh statics and python-fcl, a shorter tip path."""
-    from cr_nlp.bench.tension_clutter import clutter_scene
-
-    scene = clutter_scene(RAO, 0)
-    start = np.array([3.789121, 2.751595, 0.0, 0.89808, 5.689187, 0.0])
-    goal = np.array([5.039994, 0.0, 0.0, 3.876874, 2.343225, 0.0])
-    planner = TensionTrajectoryPlanner(RAO, scene)
+    mode polishes the rejected refined motion (every waypoint and the samples the verdict
+    checks between them that come near, each a rod in the NLP; the clearance slots
+    re-assigned as it moves through the clutter) and keeps it: verified by fresh statics
+    and python-fcl, a shorter tip path."""
+    start, goal = CLUTTER_START, CLUTTER_GOAL
+    planner = TensionTrajectoryPlanner(RAO, clutter)
     penalty = planner.plan(start, goal, gravity=GRAVITY, tip_force=PAYLOAD)[0]
     assert penalty.success and penalty.stage == "explore", penalty.notes
     assert "the refined motion was not kept: breaks the clearance" in penalty.notes[-1]
@@ -221,6 +229,29 @@ def test_exact_planning_rescues_the_refined_motion_the_verdict_rejected() -> Non
     loads = static_loads(1, planner.length, PAYLOAD, None, GRAVITY)
     assert (planner.tip_path(exact.tensions, loads)
             < planner.tip_path(penalty.tensions, loads) - 0.01)
+
+
+def test_samples_left_out_of_the_nlp_join_where_the_answer_passes_through_them(
+        clutter) -> None:
+    """The same problem with no sample between waypoints in the NLP at first
+    (``sample_margin`` 1 µm): Ipopt's motion then passes through an obstacle between two
+    waypoints. With one run the verdict rejects it; with the default rounds the samples the
+    fresh statics finds near join the NLP, Ipopt starts again, and the answer keeps every
+    constraint at every sample (replayed)."""
+    from cr_nlp.stages.polish import TensionMotionPolishConfig
+
+    def planned(rounds: int):
+        polish = TensionMotionPolishConfig(sample_margin=1e-6, sample_rounds=rounds)
+        planner = TensionTrajectoryPlanner(RAO, clutter, TensionTrajectoryConfig(polish=polish))
+        return planner, planner.plan(CLUTTER_START, CLUTTER_GOAL, gravity=GRAVITY,
+                                     tip_force=PAYLOAD, exact=True)[0]
+
+    _, once = planned(1)
+    assert once.stage != "polish" and "rejected by the verdict" in once.notes[-1], once.notes
+    planner, rounds = planned(3)
+    assert rounds.success and rounds.stage == "polish", (rounds.reason, rounds.notes)
+    replay = _replay(planner.scene, rounds.tensions, planner.config.tension_rate_max)
+    assert max(v for k, v in replay.items() if k != "tips") <= 1e-6, replay
 
 
 # ---------------------------------------------------------------- bad input
@@ -246,6 +277,10 @@ def test_bad_inputs_are_named(case: dict, tmp_path, capsys) -> None:
         TensionMotionPolishConfig(objective="shortest")
     with pytest.raises(ValueError, match="slot_rounds must be ≥ 1, got 0"):
         TensionMotionPolishConfig(slot_rounds=0)
+    with pytest.raises(ValueError, match="sample_rounds must be ≥ 1, got 0"):
+        TensionMotionPolishConfig(sample_rounds=0)
+    with pytest.raises(ValueError, match="sample_margin must be > 0 m, got -0.01"):
+        TensionMotionPolishConfig(sample_margin=-0.01)
     with pytest.raises(ValueError, match="time_limit"):
         case["follower"].follow(case["path"], dt=DT, exact=True, time_limit=-1.0)
     with pytest.raises(ValueError, match="time_limit"):
