@@ -152,7 +152,8 @@ class WarmStart:
 def ipopt_options(*, tol: float, constr_viol_tol: float, max_iter: int, print_level: int = 0,
                   warm_start: WarmStart | None = None, mu_strategy: str | None = None,
                   hessian_approximation: str | None = None,
-                  callbacks: dict[str, ca.Function] | None = None) -> dict[str, Any]:
+                  callbacks: dict[str, ca.Function] | None = None,
+                  mumps_pivot_order: int | None = None) -> dict[str, Any]:
     """The ``nlpsol`` options of one polish NLP.
 
     Args:
@@ -166,6 +167,8 @@ def ipopt_options(*, tol: float, constr_viol_tol: float, max_iter: int, print_le
         hessian_approximation: "exact" or "limited-memory", None: Ipopt's ("exact").
         callbacks: CasADi derivative functions by option name (``grad_f``, ``jac_g``,
             ``hess_lag``) that replace the ones CasADi would generate.
+        mumps_pivot_order: MUMPS's fill-reducing ordering (Ipopt's ``mumps_pivot_order``:
+            0 AMD, 5 METIS, 7 MUMPS's choice), None: Ipopt's (7).
     """
     options: dict[str, Any] = {
         "ipopt.tol": tol,
@@ -185,6 +188,8 @@ def ipopt_options(*, tol: float, constr_viol_tol: float, max_iter: int, print_le
         options["ipopt.hessian_approximation"] = hessian_approximation
     if mu_strategy is not None:
         options["ipopt.mu_strategy"] = mu_strategy
+    if mumps_pivot_order is not None:
+        options["ipopt.mumps_pivot_order"] = mumps_pivot_order
     if warm_start is not None:
         options.update({"ipopt.warm_start_init_point": "yes",
                         "ipopt.warm_start_bound_push": warm_start.push,

@@ -109,10 +109,14 @@ class RodClearance:
                                                             ca.DM(self.body_matrix.T)))
         return (world + ca.repmat(ca.DM(self.base_pos), 1, self.n_bodies)).T
 
-    def rows(self, centres: Any, tag: str = "") -> tuple[Any, list[Any]]:
-        """The slot rows (m) of ``centres`` and new slot parameters (named with ``tag``):
-        per group the one-hot rows choosing each slot's sphere(s) (capacity × N) and its
-        part rows."""
+    def rows(self, positions: Any, tag: str = "") -> tuple[Any, list[Any]]:
+        """The slot rows (m) of the robot's grid points ``positions`` (3 × (S+1), base
+        frame, m, symbolic) and new slot parameters (named with ``tag``): per group the
+        one-hot rows choosing each slot's sphere(s) (capacity × N) and its part rows. A
+        slot's centre is taken from the grid points through its row of the body matrix
+        (capacity × (S+1)), not from all N centres: the rows' derivatives pass through
+        3 × (S+1) numbers, not N × 3."""
+        world = ca.mtimes(ca.DM(self.base_rot), positions).T           # (S+1) × 3, rotated
         rows, parameters = [], []
         for group in self.groups:
             spheres = 2 if group.kind == "self" else 1
@@ -123,7 +127,9 @@ class RodClearance:
             part_sx = ca.SX.sym("part", group.width - spheres)
             distance = ca.Function(f"slot_{group.kind}", [*centre, part_sx], [slot_distance(
                 group, centre, part_sx, self.robot.backbone_radius, self.smoothing)])
-            chosen = [ca.mtimes(p, centres).T for p in pick]
+            offset = ca.repmat(ca.DM(self.base_pos).T, group.capacity, 1)
+            chosen = [(ca.mtimes(ca.mtimes(p, ca.DM(self.body_matrix)), world) + offset).T
+                      for p in pick]
             rows.append(distance.map(group.capacity)(*chosen, part.T).T)
             parameters += [*pick, part]
         return (ca.vertcat(*rows) if rows else ca.MX(0, 1)), parameters

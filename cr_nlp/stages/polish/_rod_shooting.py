@@ -128,27 +128,42 @@ class ShootingRows:
     def hessian(self, tension: Any, base_moment: Any, states: list[Any], inputs: list[Any],
                 lam: Any) -> Any:
         """Σ_k λ_kᵀ ∇²(x̃_{k+1} − Ψ_k) over (τ̃, m̃₀, x̃_1 … x̃_S') as MX; ``lam`` the rows'
-        multipliers (15 S')."""
-        steps, n = self.rod.steps, self.n
-        size = n + 3 + STATE * steps
+        multipliers (15 S'). The steps' blocks are summed by one constant sparse product
+        over their nonzeros (``_hessian_sum``), not block by block."""
         starts = [self.base_state(base_moment), *states[:-1]]
-        total = ca.MX(size, size)
-        for k in range(steps):
-            block = -self._call(k, "_hessian", starts[k], tension, inputs[k],
-                                lam[STATE * k: STATE * (k + 1)])
-            # rows of the block (x̃_k, then τ̃) → columns of the unknowns
+        blocks = [self._call(k, "_hessian", starts[k], tension, inputs[k],
+                             lam[STATE * k: STATE * (k + 1)]) for k in range(self.rod.steps)]
+        sparsity, picks, summed = self._hessian_sum([b.sparsity() for b in blocks])
+        pieces = ca.vertcat(*[b.nz[pick] for b, pick in zip(blocks, picks, strict=True)])
+        return ca.MX(sparsity, ca.mtimes(summed, pieces))
+
+    def _hessian_sum(self, blocks: list[ca.Sparsity]) -> tuple[ca.Sparsity, list[list[int]],
+                                                               ca.DM]:
+        """For the steps' Hessian blocks of sparsity ``blocks`` (over (x̃_k, τ̃)): the
+        sparsity of their sum over the unknowns, each block's nonzeros that fall on an
+        unknown (step 0: only m̃₀ of x̃₀ is one), and the matrix (−1 entries) that sums
+        those nonzeros into the sum's."""
+        n, steps = self.n, self.rod.steps
+        size = n + 3 + STATE * steps
+        rows, cols, picks = [], [], []
+        for k, sparsity in enumerate(blocks):
             place = np.full(STATE + n, -1)
             place[STATE:] = np.arange(n)
             if k == 0:
                 place[12:15] = n + np.arange(3)
             else:
                 place[:STATE] = n + 3 + STATE * (k - 1) + np.arange(STATE)
-            used = np.flatnonzero(place >= 0)
-            select = ca.DM(ca.Sparsity.triplet(len(used), size, list(range(len(used))),
-                                               [int(c) for c in place[used]]),
-                           np.ones(len(used)))
-            total += ca.mtimes([select.T, block[used.tolist(), used.tolist()], select])
-        return total
+            row, col = (np.asarray(v) for v in sparsity.get_triplet())
+            kept = np.flatnonzero((place[row] >= 0) & (place[col] >= 0))
+            picks.append(kept.tolist())
+            rows.append(place[row[kept]]), cols.append(place[col[kept]])
+        row, col = np.concatenate(rows), np.concatenate(cols)
+        cells, at = np.unique(col * size + row, return_inverse=True)   # column-major order
+        sparsity = ca.Sparsity.triplet(size, size, (cells % size).tolist(),
+                                       (cells // size).tolist())
+        summed = ca.DM.triplet(at.tolist(), list(range(len(at))), ca.DM(-np.ones(len(at))),
+                               len(cells), len(at))
+        return sparsity, picks, summed
 
 
 def states_function(rod: CasadiRod) -> ca.Function:

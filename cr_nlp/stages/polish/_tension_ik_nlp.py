@@ -174,7 +174,7 @@ class TensionIKPolisher(ShootingSolvers):
         inputs = shooting.step_inputs(loads)
         everywhere = [ca.DM.zeros(3)] + [x[:3] * self.length for x in states]
         points = ca.horzcat(*[everywhere[int(i)] for i in rod.grid.robot_points])
-        clearance, slots = self._clear.rows(self._clear.centres(points))
+        clearance, slots = self._clear.rows(points)
         others = ca.vertcat(*self._tip_rows(states[-1], target, target_rot, loads), clearance)
         defects = shooting.defects(tension, base_moment, states, inputs)
         objective = ca.sumsqr(tension - reference / self.tension_scale)

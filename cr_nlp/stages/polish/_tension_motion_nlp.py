@@ -32,7 +32,8 @@ motion; ρ small, the least-tension tie-break among the redundant tension sets) 
 Derivatives: each rod is one CasADi function (its rows, their Jacobian from the steps'
 compiled blocks and CasADi's own for the tip and clearance rows, its Lagrangian's
 Hessian); the rods of one kind are evaluated by one CasADi map in threads over the
-process's cores; the NLP's Jacobian and Hessian are block-diagonal over the rods plus the
+process's cores; the NLP's Jacobian and Hessian are block-diagonal over the rods (their
+nonzeros picked from the maps' outputs by one gather, ``_block_diagonal``) plus the
 constant linear rows and the objective's constant Hessian. The clearance rows' curvature
 is left out of the Hessian by default (``clearance_curvature``): on the clutter suite's
 first 60-waypoint path the same 27 iterations and answer, the Hessian 0.73 → 0.45 s per
@@ -60,6 +61,7 @@ from ...model.loads import StaticLoads
 from ...model.rotations import matrix_from_wxyz
 from ...runtime import cached
 from ...world.scene import Scene
+from ._block_diagonal import Stacked, block_diagonal, columns_in_order
 from ._ipopt import (
     SUCCESS_STATUSES,
     TIME_LIMIT_STATUS,
@@ -151,7 +153,7 @@ class TensionMotionPolisher(ShootingSolvers):
         inputs = shooting.step_inputs(loads)
         everywhere = [ca.DM.zeros(3)] + [x[:3] * self.length for x in states]
         points = ca.horzcat(*[everywhere[int(i)] for i in rod.grid.robot_points])
-        clearance, slots = self._clear.rows(self._clear.centres(points))
+        clearance, slots = self._clear.rows(points)
         tip = states[-1]
         others = [tip[12:15] - loads.tip_moment / self.moment_scale]
         if aim:
@@ -262,24 +264,26 @@ class TensionMotionPolisher(ShootingSolvers):
         values, alone, jacobians, hessians = _mapped(
             calls, [lam_g[starts[i]:starts[i + 1]] for i in range(len(members))])
         linear = ca.mtimes(ca.DM(a_matrix), unknowns)
-        g = ca.vertcat(*alone, linear)
+        g = ca.vertcat(columns_in_order(alone), linear)
         callbacks = {
             "grad_f": ca.Function("grad_f", [unknowns, parameters],
                                   [objective, ca.gradient(objective, unknowns)],
                                   ["x", "p"], ["f", "grad_f_x"]),
             "jac_g": ca.Function("jac_g", [unknowns, parameters],
-                                 [ca.vertcat(*values, linear),
-                                  ca.vertcat(ca.diagcat(*jacobians), ca.DM(a_matrix))],
+                                 [ca.vertcat(columns_in_order(values), linear),
+                                  block_diagonal(jacobians, self.block,
+                                                 below=ca.DM(a_matrix))],
                                  ["x", "p"], ["g", "jac_g_x"]),
             "hess_lag": ca.Function("hess_lag", [unknowns, parameters, lam_f, lam_g],
-                                    [ca.triu(ca.diagcat(*hessians) + lam_f * hessian_f)],
+                                    [block_diagonal(hessians, self.block, upper=True)
+                                     + lam_f * ca.triu(hessian_f)],
                                     ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])}
         cfg = self.config
         options = ipopt_options(
             tol=cfg.tol, constr_viol_tol=cfg.constr_viol_tol, max_iter=cfg.max_iter,
             print_level=cfg.print_level,
             warm_start=WarmStart(push=1e-9, mu_init=1e-6) if warm else None,
-            callbacks=callbacks)
+            callbacks=callbacks, mumps_pivot_order=cfg.mumps_pivot_order)
         return build_solver(f"tension_motion_polish_{self.robot.name}", {
             "x": unknowns, "p": parameters, "f": objective, "g": g}, options, self._deadline)
 
@@ -447,34 +451,33 @@ class TensionMotionPolisher(ShootingSolvers):
 
 
 def _mapped(calls: list[tuple[tuple[ca.Function, ...], list[Any]]], lams: list[Any]
-            ) -> tuple[list[Any], list[Any], list[Any], list[Any]]:
-    """Per rod (rods in ``calls``' order: (its functions, its arguments), λ its rows'
-    multipliers ``lams``): its (rows, rows alone, Jacobian, Hessian) as MX. The rods of one
-    kind are evaluated by one map over the process's cores (CasADi's threads); the loads,
-    the second argument, are every rod's."""
-    out: list[list[Any]] = [[None] * len(calls) for _ in range(4)]
-    for kind in {id(f) for f, _ in calls}:
+            ) -> list[list[Stacked]]:
+    """The rods (in ``calls``' order: (its functions, its arguments); λ its rows'
+    multipliers ``lams``) evaluated kind by kind, each kind by one map over the process's
+    cores (CasADi's threads); the loads, the second argument, are every rod's. Per output
+    (rows, rows alone, Jacobian, Hessian) the maps' outputs with their rods' places."""
+    out: list[list[Stacked]] = [[], [], [], []]
+    kinds = list(dict.fromkeys(id(f) for f, _ in calls))
+    for kind in kinds:
         group = [i for i, (f, _) in enumerate(calls) if id(f) == kind]
         (rows, curvature, only), first = calls[group[0]]
         stacked = [ca.horzcat(*[calls[i][1][j] for i in group]) for j in range(len(first))]
         stacked[1] = first[1]
         value, jacobian = _each_rod(rows, len(group), *stacked)
-        (just,) = _each_rod(only, len(group), *stacked)
+        (alone,) = _each_rod(only, len(group), *stacked)
         (hessian,) = _each_rod(curvature, len(group), *stacked,
                                ca.horzcat(*[lams[i] for i in group]))
-        for k, i in enumerate(group):
-            out[0][i], out[1][i] = value[k], just[k]
-            out[2][i], out[3][i] = jacobian[k], hessian[k]
-    return out[0], out[1], out[2], out[3]
+        for k, m in enumerate((value, alone, jacobian, hessian)):
+            out[k].append((m, group))
+    return out
 
 
-def _each_rod(f: ca.Function, count: int, *args: Any) -> list[list[Any]]:
-    """``f`` on ``count`` rods' horizontally stacked ``args`` in CasADi's threads: per
-    output, the rods' pieces."""
+def _each_rod(f: ca.Function, count: int, *args: Any) -> list[Any]:
+    """``f`` on ``count`` rods' horizontally stacked ``args`` in CasADi's threads: its
+    outputs, the rods' side by side."""
     threads = min(count, len(os.sched_getaffinity(0)))
     mapped = f.map(count, "thread", max(1, threads))(*args)
-    return [ca.horzsplit(m, m.size2() // count)
-            for m in (mapped if isinstance(mapped, (list, tuple)) else [mapped])]
+    return list(mapped) if isinstance(mapped, (list, tuple)) else [mapped]
 
 
 def _checked(robot: Robot, tensions0: Any, dt: float, rate_max: float, samples_between: int,
