@@ -109,11 +109,12 @@ class ChunkRunner:
         free: (n,) 1.0 for the variables LM may move.
         dtype: JAX dtype of the real inputs.
         counters: where launches, waits and LM rounds are counted.
-        chunk: (largest, smallest) targets per program (``chunk_plan``).
+        chunk: (largest, smallest[, large]) targets per program (``chunk_plan``).
     """
 
     def __init__(self, residual: Residual, project: Projection, shared: Any, free: jax.Array,
-                 dtype: Any, counters: SearchCounters, chunk: tuple[int, int]) -> None:
+                 dtype: Any, counters: SearchCounters,
+                 chunk: tuple[int, int] | tuple[int, int, int | None]) -> None:
         self.residual, self.project = residual, project
         self.shared, self.free, self.dtype = shared, free, dtype
         self.counters = counters
@@ -254,6 +255,9 @@ class SearchSettings:
     """Seed of the pool."""
     chunk_size: int
     """Most targets per fused program."""
+    large_chunk_size: int | None
+    """Targets per fused program of batches at least this large (``chunk_plan``'s
+    ``large``)."""
     margin: float
     """δ on the sphere body (m): pool entries closer than this to an obstacle or to the
     robot itself are left out of the pool."""
@@ -288,7 +292,8 @@ class IKSearch:
         self.dtype = jnp.dtype(settings.dtype)
         self.counters = SearchCounters()
         self.main = ChunkRunner(residuals[0], project, shared, free, self.dtype,
-                                self.counters, (settings.chunk_size, SMALLEST_CHUNK))
+                                self.counters, (settings.chunk_size, SMALLEST_CHUNK,
+                                                settings.large_chunk_size))
         self.repair = ChunkRunner(residuals[1], project, shared, free, self.dtype,
                                   self.counters, (REPAIR_CHUNK, REPAIR_CHUNK))
         self.pool: SeedPool | None = None

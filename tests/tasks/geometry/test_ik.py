@@ -257,6 +257,11 @@ def test_chunk_plan_covers_every_problem_with_little_padding(count: int, largest
         assert size >= SMALLEST_CHUNK and size & (size - 1) == 0  # a power of two
         assert size <= max(largest, SMALLEST_CHUNK)
     assert chunk_plan(0, largest) == []
+    # a third shape for large batches only: whole 4096-target chunks first
+    large = chunk_plan(count, largest, large=4096)
+    assert sum(large) >= count and sum(large) - count < SMALLEST_CHUNK
+    assert large == (plan if count < 4096 else
+                     [4096] * (count // 4096) + chunk_plan(count % 4096, largest))
 
 
 @pytest.mark.usefixtures("float64")  # float64 scene arrays; autodiff at 1e-12
