@@ -193,7 +193,9 @@ class ShootingSolvers:
                                           self.config.compile)
             self._solvers.clear()
         key = (warm, *layout)
-        solver = self._solvers.pop(key, None) or self._build(warm, *layout)
+        solver = self._solvers.pop(key, None)
+        if solver is None:
+            solver = self._build(warm, *layout)
         self._solvers[key] = solver                  # the most recent last
         same = [k for k in self._solvers if k[0] == warm]
         for old in same[:-self.kept_layouts]:
