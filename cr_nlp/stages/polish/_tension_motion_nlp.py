@@ -131,6 +131,7 @@ class TensionMotionPolisher(ShootingSolvers):
         self._states = states_function(rod)
         self._solvers: dict[tuple, ca.Function] = {}
         self._functions_of: ShootingRows | None = None    # the rods' functions: of these
+        self._functions: dict[bool, tuple[tuple[ca.Function, ...], int]] = {}
 
     # ------------------------------------------------------------ building
 
@@ -356,12 +357,11 @@ class TensionMotionPolisher(ShootingSolvers):
             size = len(members) * self.block
             lbx, ubx = np.full(size, -np.inf), np.full(size, np.inf)
             for i, r in enumerate(members):
+                at = slice(i * self.block, i * self.block + n)      # a waypoint's tensions
                 if r in self._waypoints:
-                    lbx[i * self.block: i * self.block + n] = 0.0
-                    ubx[i * self.block: i * self.block + n] = upper
+                    lbx[at], ubx[at] = 0.0, upper
                     if fixed_ends and r in ends:
-                        lbx[i * self.block: i * self.block + n] = start[r][:n]
-                        ubx[i * self.block: i * self.block + n] = start[r][:n]
+                        lbx[at] = ubx[at] = start[r][:n]
             bounds = (lbx, ubx, rate_step / scale, target_tolerance / self.length, loose)
             x0 = np.concatenate([start[r] for r in members])
             for warm in order[:2 if self.config.warm_start else 1]:
