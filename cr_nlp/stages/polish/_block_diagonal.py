@@ -39,31 +39,36 @@ def block_diagonal(groups: list[Stacked], width: int, below: ca.DM | None = None
     """The block-diagonal MX of the maps' matrix outputs (each rod's block ``width``
     columns wide), the rods in the NLP's order, then the constant rows ``below`` (over all
     the blocks' columns); ``upper``: only the upper triangle."""
-    blocks = {}
-    source, offset = [], 0
-    for stacked, places in groups:
-        row, col = (np.asarray(v) for v in stacked.sparsity().get_triplet())
-        each = row.size // len(places)                    # every block has one sparsity
-        for j, place in enumerate(places):
-            blocks[place] = (stacked.size1(), row[:each], col[:each], offset + j * each)
+    places = np.concatenate([np.asarray(p, dtype=int) for _, p in groups])
+    heights = np.concatenate([np.full(len(p), m.size1()) for m, p in groups])
+    top = np.zeros(places.max() + 1, dtype=int)
+    top[np.sort(places)] = np.concatenate([[0], np.cumsum(heights[np.argsort(places)])[:-1]])
+    rows, cols, picks, source, offset = {}, {}, {}, [], 0
+    for stacked, group in groups:
+        # every block of a map has one sparsity: read the first block's, column-major
+        row, col = (np.asarray(v) for v in
+                    stacked[:, :stacked.size2() // len(group)].sparsity().get_triplet())
+        for j, place in enumerate(group):
+            rows[place], cols[place] = top[place] + row, place * width + col
+            picks[place] = offset + j * row.size + np.arange(row.size)
         source.append(stacked.nz[:])
-        offset += row.size
-    rows, cols, picks, top = [], [], [], 0
-    for place in sorted(blocks):
-        height, row, col, start = blocks[place]
-        rows.append(top + row), cols.append(place * width + col)
-        picks.append(start + np.arange(row.size))
-        top += height
-    size = len(blocks) * width
+        offset += row.size * len(group)
+    order = sorted(rows)
+    row, col, pick = (np.concatenate([v[p] for p in order]) for v in (rows, cols, picks))
+    height, size = int(heights.sum()), len(order) * width
     if below is not None:
-        row, col = (np.asarray(v) for v in below.sparsity().get_triplet())
-        rows.append(top + row), cols.append(col), picks.append(offset + np.arange(row.size))
+        extra_row, extra_col = (np.asarray(v) for v in below.sparsity().get_triplet())
+        row = np.concatenate([row, height + extra_row])
+        col = np.concatenate([col, extra_col])
+        pick = np.concatenate([pick, offset + np.arange(extra_row.size)])
         source.append(ca.MX(ca.DM(below.nonzeros())))
-        top += below.size1()
-    row, col, pick = (np.concatenate(v) for v in (rows, cols, picks))
+        height += below.size1()
+        # two runs, each in column-major order: a stable sort by column merges them
+        merged = np.argsort(col, kind="stable")
+        row, col, pick = row[merged], col[merged], pick[merged]
     if upper:
         kept = row <= col
         row, col, pick = row[kept], col[kept], pick[kept]
-    order = np.lexsort((row, col))                         # CasADi's column-major order
-    sparsity = ca.Sparsity.triplet(top, size, row[order].tolist(), col[order].tolist())
-    return ca.MX(sparsity, ca.vertcat(*source)[pick[order].tolist()])
+    colind = np.searchsorted(col, np.arange(size + 1))
+    sparsity = ca.Sparsity(height, size, colind.tolist(), row.tolist())
+    return ca.MX(sparsity, ca.vertcat(*source)[pick.tolist()])
