@@ -16,6 +16,11 @@ compiled library once it is there. A small job (the demo's 20 IK targets polish 
 another process started (a lock file says so) is not started again. The interpreter
 waits at exit for the builds it started, so that the next process finds the library.
 
+A library that takes long to build and pays off only on large problems (``faster``: the
+tension motions' step functions at -Og, about 75 s of gcc) is built by a detached compiler
+process instead: no process waits for it, at exit or before switching, and a later call
+(or process) that finds it uses it instead of the quicker-built one.
+
 Without a C compiler (``$CC``, ``cc`` or ``gcc``), or if compiling fails, the functions
 run in the virtual machine: the same numbers, slower; a warning says so once.
 """
@@ -47,6 +52,12 @@ _lock = threading.Lock()
 _pending: dict[Path, threading.Thread | None] = {}
 """Libraries asked for and not built yet: this process's build thread, or None where
 another process holds the build's lock."""
+_detached: dict[Path, subprocess.Popen | None] = {}
+"""Faster libraries asked for: the detached compiler this process started, or None where
+another process holds the build's lock."""
+_failed: set[Path] = set()
+"""Faster libraries whose detached build could not start or ended without the library:
+not started again by this process."""
 
 
 def _compiler() -> str | None:
@@ -57,12 +68,16 @@ def _compiler() -> str | None:
 
 
 def compiled(functions: Sequence[ca.Function], enabled: bool = True,
-             wait: bool = False, flags: Sequence[str] = FLAGS) -> tuple[list[ca.Function], bool]:
+             wait: bool = False, flags: Sequence[str] = FLAGS,
+             faster: Sequence[str] | None = None) -> tuple[list[ca.Function], bool]:
     """``functions`` as compiled ``ca.external`` functions from one cached shared library
     (same names, inputs and outputs), or unchanged when ``enabled`` is False or no
     compiler works; and whether they came back unchanged because the library is being
     built (in the background; ``wait``: here, before returning): ask again once
-    ``pending()`` is False. ``flags``: the compiler's optimisation flags (``FLAGS``)."""
+    ``pending()`` is False. ``flags``: the compiler's optimisation flags (``FLAGS``).
+    ``faster``: flags of a library worth a long build; where it is built its functions
+    come back, else its build starts in a detached process (``faster_pending()`` says
+    while it runs) and the ``flags`` library serves meanwhile."""
     functions = list(functions)
     compiler = _compiler() if enabled else None
     if compiler is None:
@@ -74,8 +89,12 @@ def compiled(functions: Sequence[ca.Function], enabled: bool = True,
     for function in functions:
         generator.add(function)
     source = generator.dump()
-    key = hashlib.sha256("\n".join([ca.__version__, *flags, source]).encode()).hexdigest()[:24]
-    library = cache_dir() / "casadi" / f"{key}.so"
+    if faster is not None:
+        fast = _library(source, faster)
+        if fast.exists():
+            return [ca.external(f.name(), str(fast)) for f in functions], False
+        _start_detached(compiler, source, fast, tuple(faster))
+    library = _library(source, flags)
     if not library.exists():
         if wait:
             if not _build(compiler, source, library, tuple(flags)):
@@ -84,6 +103,12 @@ def compiled(functions: Sequence[ca.Function], enabled: bool = True,
             _start(compiler, source, library, tuple(flags))
             return functions, True
     return [ca.external(f.name(), str(library)) for f in functions], False
+
+
+def _library(source: str, flags: Sequence[str]) -> Path:
+    """Where the library of ``source`` compiled with ``flags`` is kept."""
+    key = hashlib.sha256("\n".join([ca.__version__, *flags, source]).encode()).hexdigest()[:24]
+    return cache_dir() / "casadi" / f"{key}.so"
 
 
 def pending() -> bool:
@@ -95,6 +120,23 @@ def pending() -> bool:
                     thread is None and not _locked(library)):
                 del _pending[library]
         return bool(_pending)
+
+
+def faster_pending() -> bool:
+    """Whether a faster library (``compiled``'s ``faster``) is still being built, by this
+    process's detached compiler or by another process."""
+    with _lock:
+        running = False
+        for library, process in list(_detached.items()):
+            if library.exists() or library in _failed:
+                continue
+            if process is None:
+                running |= _locked(library)
+            elif process.poll() is None:
+                running = True
+            else:
+                _failed.add(library)
+        return running
 
 
 def wait_for_builds(timeout: float | None = None) -> bool:
@@ -123,6 +165,45 @@ def _start(compiler: str, source: str, library: Path, flags: tuple[str, ...] = F
                                   name=f"cr_nlp gcc {library.stem}")
         _pending[library] = thread
         thread.start()
+
+
+def _start_detached(compiler: str, source: str, library: Path, flags: tuple[str, ...]) -> None:
+    """Build ``library`` in a compiler process of its own session, which outlives this
+    one and holds the build's lock (the lock file's descriptor passed on); not where
+    this process started it already, or failed to, or another process holds the lock."""
+    try:
+        import fcntl
+    except ImportError:          # no advisory locks: no detached builds either
+        return
+    with _lock:
+        if library in _failed or isinstance(_detached.get(library), subprocess.Popen):
+            return
+        try:
+            library.parent.mkdir(parents=True, exist_ok=True)
+            with open(_lock_path(library), "a+") as lock:
+                try:
+                    fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    _detached[library] = None                  # another process builds it
+                    return
+                work = Path(tempfile.mkdtemp(dir=library.parent))
+                (work / "functions.c").write_text(source)
+                # Compile, put the library in place by one rename, clean up; the lock is
+                # released when the shell exits.
+                script = ('"$0" "$@" -shared -fPIC -o "$W/functions.so" "$W/functions.c" -lm '
+                          '&& mv "$W/functions.so" "$L"; rm -rf "$W"')
+                _detached[library] = subprocess.Popen(
+                    ["sh", "-c", script, compiler, *flags],
+                    env={**os.environ, "W": str(work), "L": str(library)},
+                    stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL, pass_fds=(lock.fileno(),),
+                    start_new_session=True)
+        except OSError:
+            _failed.add(library)
+            return
+    print(f"cr_nlp: compiling faster functions for large problems in a background process "
+          f"(1–2 min, once: later solves and processes load them from {cache_dir()})",
+          file=sys.stderr, flush=True)
 
 
 def _lock_path(library: Path) -> Path:

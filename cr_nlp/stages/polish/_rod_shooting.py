@@ -15,7 +15,8 @@ code (``stages.polish._compiled_functions``) and called once per step; the NLP's
 and Hessian are assembled from the blocks. ``-O0``: gcc -O1 took 5 minutes for one step's
 Hessian (124 000 instructions) on this 2-core machine, -O0 16 s, and the -O0 code still
 runs 2× faster than the virtual machine (1.0 ms against 1.9 ms per step; the Jacobian
-0.2 ms against 1.6 ms).
+0.2 ms against 1.6 ms). Large NLPs (``fast``) also ask for the same functions at ``-Og``,
+built once per robot by a detached compiler (``FAST_FLAGS``).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import casadi as ca
 import numpy as np
 
 from ...model.cosserat import CasadiRod, RodLoads
-from ._compiled_functions import compiled, pending
+from ._compiled_functions import compiled, faster_pending, pending
 
 STATE = 15
 """Entries of a step's state: position (3), rotation (9, row-major), moment (3)."""
@@ -34,6 +35,10 @@ STEP_INPUTS = 19
 """Numbers of one step's loads and grid: h, mass (3), length (3), force (3), gravity (3),
 force per metre (3), point-moment jump (3)."""
 FLAGS = ("-O0",)
+FAST_FLAGS = ("-Og",)
+"""For large NLPs: on a 60-waypoint motion's 178 rods the Hessian blocks took 96 ms per
+evaluation against 228 ms at -O0 and the Jacobian 64 against 145 ms, for about 75 s of gcc
+(-O0: 16 s) on a 2-core machine; built by a detached process, not waited for."""
 
 
 class ShootingRows:
@@ -45,10 +50,12 @@ class ShootingRows:
         tension_scale: N per unit of scaled tension.
         compile: compile the step functions (in the background; ``interpreted`` says
             whether they still run in CasADi's virtual machine).
+        fast: with ``compile``, also build them at ``FAST_FLAGS`` (detached) and use that
+            library once it is there (``upgrading`` while it is being built).
     """
 
     def __init__(self, rod: CasadiRod, state_scale: np.ndarray, tension_scale: float,
-                 compile: bool) -> None:
+                 compile: bool, fast: bool = False) -> None:
         self.rod, self.n = rod, rod.n_tendons
         self.scale = np.asarray(state_scale, dtype=float)
         self.tension_scale = float(tension_scale)
@@ -60,8 +67,17 @@ class ShootingRows:
             tag = "".join("1" if a else "0" for a in tendons) + f"_{place}"
             functions += self._derivatives(step, tag)
             self._names[key] = tag
-        done, self.interpreted = compiled(functions, compile, flags=FLAGS)
+        done, self.interpreted = compiled(functions, compile, flags=FLAGS,
+                                          faster=FAST_FLAGS if fast else None)
+        self.fast = fast
+        self.upgrading = compile and fast and faster_pending()
         self._functions = {f.name(): f for f in done}
+
+    def outdated(self) -> bool:
+        """Whether better compiled functions than these are now there (the library being
+        built when these were made is done)."""
+        return ((self.interpreted and not pending())
+                or (self.upgrading and not faster_pending()))
 
     def _derivatives(self, step: ca.Function, tag: str) -> list[ca.Function]:
         """SX (value, Jacobian, Hessian) functions of one step in scaled variables."""
@@ -188,9 +204,9 @@ class ShootingSolvers:
 
     def _solver(self, warm: bool, *layout: Any) -> ca.Function:
         """The Ipopt solver with the warm-start settings or Ipopt's own (of ``layout``)."""
-        if self._shooting.interpreted and not pending():
+        if self._shooting.outdated():
             self._shooting = ShootingRows(self.rod, self._state_scale, self.tension_scale,
-                                          self.config.compile)
+                                          self.config.compile, self._shooting.fast)
             self._solvers.clear()
         key = (warm, *layout)
         solver = self._solvers.pop(key, None)

@@ -71,10 +71,15 @@ class TensionMotionPolishConfig(NLPSettings):
     """Ipopt runs over the rods (each with its ``slot_rounds``): after each, where a sample
     outside the NLP came nearer than δ', the samples then within δ' + ``sample_margin``
     join and Ipopt starts again from the start."""
+    fast_from: int = 120
+    """Tension sets (waypoints and the samples between them; 120: 40 waypoints with 2
+    samples between) from which a motion's step functions are also compiled at -Og
+    (``stages.polish._rod_shooting.FAST_FLAGS``: its derivatives about 2.3× faster, for
+    75 s of gcc once per robot in a detached process; until it is there, the -O0 ones)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        for name in ("slot_rounds", "sample_rounds"):
+        for name in ("slot_rounds", "sample_rounds", "fast_from"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be ≥ 1, got {getattr(self, name)}")
         if not self.sample_margin > 0:

@@ -127,7 +127,7 @@ class TensionMotionPolisher(ShootingSolvers):
                                    config.spheres_per_step)
         self._deadline = Deadline()
         self._shooting = ShootingRows(rod, self._state_scale, self.tension_scale,
-                                      config.compile)
+                                      config.compile, fast=self.rods >= config.fast_from)
         self._states = states_function(rod)
         self._solvers: dict[tuple, ca.Function] = {}
         self._functions_of: ShootingRows | None = None    # the rods' functions: of these

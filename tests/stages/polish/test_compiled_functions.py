@@ -10,6 +10,7 @@ import fcntl
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import casadi as ca
@@ -92,3 +93,73 @@ def test_a_process_waits_for_its_builds_at_exit(tmp_path: Path) -> None:
     assert run.returncode == 0, run.stderr
     assert "compiling the exact stage's CasADi functions in the background" in run.stderr
     assert len(list((tmp_path / "casadi").glob("*.so"))) == 1
+
+
+def _cube() -> list[ca.Function]:
+    x = ca.SX.sym("x")
+    return [ca.Function("cube", [x], [x ** 3])]
+
+
+def test_a_faster_library_is_built_by_a_process_nobody_waits_for(tmp_path: Path) -> None:
+    """``faster``: a detached compiler (here slowed down by 8 s) builds it; the process
+    that asked exits at once with the quicker library's functions, the faster library
+    appears later, and a new process takes it without building anything."""
+    slow = tmp_path / "slow-cc"
+    slow.write_text(f'#!/bin/sh\nsleep 8\nexec {compiled_functions._compiler()} "$@"\n')
+    slow.chmod(0o755)
+    script = ("import os, sys\n"
+              "from cr_nlp.stages.polish import _compiled_functions as c\n"
+              "import casadi as ca\n"
+              "x = ca.SX.sym('x')\n"
+              "f = [ca.Function('cube', [x], [x ** 3])]\n"
+              "out, waiting = c.compiled(f, wait=True)          # the quick one, here\n"
+              "assert not waiting\n"
+              "os.environ['CC'] = sys.argv[1]\n"
+              "out, waiting = c.compiled(f, wait=True, faster=('-O2',))\n"
+              "assert not waiting and c.faster_pending() and float(out[0](2.0)) == 8.0\n")
+    env = {**os.environ, "CR_NLP_CACHE_DIR": str(tmp_path)}
+    env.pop("CC", None)
+    start = time.monotonic()
+    run = subprocess.run([sys.executable, "-c", script, str(slow)], env=env,
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "compiling faster functions for large problems" in run.stderr
+    libraries = tmp_path / "casadi"
+    assert len(list(libraries.glob("*.so"))) == 1           # the faster one is not there yet
+    while len(list(libraries.glob("*.so"))) < 2:
+        assert time.monotonic() - start < 120, "the detached build never finished"
+        time.sleep(0.5)
+    quick = set(libraries.glob("*.so"))
+    monkey_env = {**env, "CC": "/nonexistent-compiler"}
+    check = ("from cr_nlp.stages.polish import _compiled_functions as c\n"
+             "import casadi as ca\n"
+             "x = ca.SX.sym('x')\n"
+             "out, waiting = c.compiled([ca.Function('cube', [x], [x ** 3])], faster=('-O2',))\n"
+             "assert not waiting and not c.faster_pending() and not c.pending()\n"
+             "assert float(out[0](3.0)) == 27.0 and 'external' in str(out[0]).lower()\n")
+    run = subprocess.run([sys.executable, "-c", check], env=monkey_env, capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert set(libraries.glob("*.so")) == quick and not list(libraries.glob("tmp*"))
+
+
+def test_a_failed_faster_build_is_not_started_again(tmp_path: Path,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("CR_NLP_CACHE_DIR", str(tmp_path))
+    broken = tmp_path / "broken-cc"
+    broken.write_text("#!/bin/sh\nexit 1\n")
+    broken.chmod(0o755)
+    monkeypatch.setattr(compiled_functions, "_compiler", lambda: str(broken))
+    monkeypatch.setattr(compiled_functions, "_warned", True)    # its warning: expected
+    functions = _cube()
+    out, waiting = compiled_functions.compiled(functions, enabled=True, faster=("-O2",))
+    assert waiting                                   # the quick build (a thread) fails too
+    compiled_functions.wait_for_builds(timeout=60)
+    deadline = time.monotonic() + 60
+    while compiled_functions.faster_pending():
+        assert time.monotonic() < deadline
+        time.sleep(0.1)
+    started = dict(compiled_functions._detached)
+    out, _ = compiled_functions.compiled(functions, enabled=True, faster=("-O2",))
+    assert compiled_functions._detached == started and not compiled_functions.faster_pending()
+    assert float(out[0](2.0)) == 8.0                 # the virtual machine's, same numbers
