@@ -283,7 +283,7 @@ class TensionMotionPolisher(ShootingSolvers):
         options = ipopt_options(
             tol=cfg.tol, constr_viol_tol=cfg.constr_viol_tol, max_iter=cfg.max_iter,
             print_level=cfg.print_level,
-            warm_start=WarmStart(push=1e-9, mu_init=1e-6) if warm else None,
+            warm_start=WarmStart(push=1e-9, mu_init=cfg.warm_mu_init) if warm else None,
             callbacks=callbacks, mumps_pivot_order=cfg.mumps_pivot_order)
         return build_solver(f"tension_motion_polish_{self.robot.name}", {
             "x": unknowns, "p": parameters, "f": objective, "g": g}, options, self._deadline)
