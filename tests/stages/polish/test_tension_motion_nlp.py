@@ -281,6 +281,10 @@ def test_bad_inputs_are_named(case: dict, tmp_path, capsys) -> None:
         TensionMotionPolishConfig(sample_rounds=0)
     with pytest.raises(ValueError, match="sample_margin must be > 0 m, got -0.01"):
         TensionMotionPolishConfig(sample_margin=-0.01)
+    with pytest.raises(ValueError, match="warm_mu_init must be > 0, got 0.0"):
+        TensionMotionPolishConfig(warm_mu_init=0.0)
+    with pytest.raises(ValueError, match="fast_from must be ≥ 1, got 0"):
+        TensionMotionPolishConfig(fast_from=0)
     with pytest.raises(ValueError, match="time_limit"):
         case["follower"].follow(case["path"], dt=DT, exact=True, time_limit=-1.0)
     with pytest.raises(ValueError, match="time_limit"):
