@@ -187,17 +187,21 @@ def _start_detached(compiler: str, source: str, library: Path, flags: tuple[str,
                     _detached[library] = None                  # another process builds it
                     return
                 work = Path(tempfile.mkdtemp(dir=library.parent))
-                (work / "functions.c").write_text(source)
-                # Compile, put the library in place by one rename, clean up; the lock is
-                # released when the shell exits.
-                script = ('"$0" "$@" -shared -fPIC -o "$W/functions.so" "$W/functions.c" -lm '
-                          '&& mv "$W/functions.so" "$L"; rm -rf "$W"')
-                _detached[library] = subprocess.Popen(
-                    ["sh", "-c", script, compiler, *flags],
-                    env={**os.environ, "W": str(work), "L": str(library)},
-                    stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                    stderr=subprocess.DEVNULL, pass_fds=(lock.fileno(),),
-                    start_new_session=True)
+                try:
+                    (work / "functions.c").write_text(source)
+                    # Compile, put the library in place by one rename, clean up; the lock
+                    # is released when the shell exits.
+                    script = ('"$0" "$@" -shared -fPIC -o "$W/functions.so" "$W/functions.c" '
+                              '-lm && mv "$W/functions.so" "$L"; rm -rf "$W"')
+                    _detached[library] = subprocess.Popen(
+                        ["sh", "-c", script, compiler, *flags],
+                        env={**os.environ, "W": str(work), "L": str(library)},
+                        stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                        stderr=subprocess.DEVNULL, pass_fds=(lock.fileno(),),
+                        start_new_session=True)
+                except OSError:
+                    shutil.rmtree(work, ignore_errors=True)
+                    raise
         except OSError:
             _failed.add(library)
             return

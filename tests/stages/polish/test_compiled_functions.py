@@ -163,3 +163,4 @@ def test_a_failed_faster_build_is_not_started_again(tmp_path: Path,
     out, _ = compiled_functions.compiled(functions, enabled=True, faster=("-O2",))
     assert compiled_functions._detached == started and not compiled_functions.faster_pending()
     assert float(out[0](2.0)) == 8.0                 # the virtual machine's, same numbers
+    compiled_functions.wait_for_builds(timeout=60)   # the quick build's retry, failing too
