@@ -38,7 +38,7 @@ FLAGS = ("-O0",)
 FAST_FLAGS = ("-Og",)
 """For large NLPs: on a 60-waypoint motion's 178 rods the Hessian blocks took 96 ms per
 evaluation against 228 ms at -O0 and the Jacobian 64 against 145 ms, for about 75 s of gcc
-(-O0: 16 s) on a 2-core machine; built by a detached process, not waited for."""
+(-O0: 8.5 s) on a 2-core machine; built by a detached process, not waited for."""
 
 
 class ShootingRows:
