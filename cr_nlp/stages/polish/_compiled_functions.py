@@ -76,8 +76,9 @@ def compiled(functions: Sequence[ca.Function], enabled: bool = True,
     built (in the background; ``wait``: here, before returning): ask again once
     ``pending()`` is False. ``flags``: the compiler's optimisation flags (``FLAGS``).
     ``faster``: flags of a library worth a long build; where it is built its functions
-    come back, else its build starts in a detached process (``faster_pending()`` says
-    while it runs) and the ``flags`` library serves meanwhile."""
+    come back, else, once the ``flags`` library is there, its build starts in a detached
+    process (``faster_pending()`` says while it runs) and the ``flags`` library serves
+    meanwhile: ask again once ``pending()`` is False, then once ``faster_pending()`` is."""
     functions = list(functions)
     compiler = _compiler() if enabled else None
     if compiler is None:
@@ -89,12 +90,10 @@ def compiled(functions: Sequence[ca.Function], enabled: bool = True,
     for function in functions:
         generator.add(function)
     source = generator.dump()
-    if faster is not None:
-        fast = _library(source, faster)
-        if fast.exists():
-            return [ca.external(f.name(), str(fast)) for f in functions], False
-        _start_detached(compiler, source, fast, tuple(faster))
     library = _library(source, flags)
+    fast = None if faster is None else _library(source, faster)
+    if fast is not None and fast.exists():
+        return [ca.external(f.name(), str(fast)) for f in functions], False
     if not library.exists():
         if wait:
             if not _build(compiler, source, library, tuple(flags)):
@@ -102,6 +101,8 @@ def compiled(functions: Sequence[ca.Function], enabled: bool = True,
         else:
             _start(compiler, source, library, tuple(flags))
             return functions, True
+    if fast is not None:        # after the quick one: the two builds do not share the cores
+        _start_detached(compiler, source, fast, tuple(faster))
     return [ca.external(f.name(), str(library)) for f in functions], False
 
 
