@@ -17,9 +17,9 @@ another process started (a lock file says so) is not started again. The interpre
 waits at exit for the builds it started, so that the next process finds the library.
 
 A library that takes long to build and pays off only on large problems (``faster``: the
-tension motions' step functions at -Og, about 75 s of gcc) is built by a detached compiler
-process instead: no process waits for it, at exit or before switching, and a later call
-(or process) that finds it uses it instead of the quicker-built one.
+tension motions' step functions at -Og, about 75 s of gcc) is built after the quick one, by
+a detached compiler process: no process waits for it, at exit or before switching, and a
+later call (or process) that finds it uses it instead of the quicker-built one.
 
 Without a C compiler (``$CC``, ``cc`` or ``gcc``), or if compiling fails, the functions
 run in the virtual machine: the same numbers, slower; a warning says so once.
