@@ -192,11 +192,11 @@ def _start_detached(compiler: str, source: str, library: Path, flags: tuple[str,
                     (work / "functions.c").write_text(source)
                     # Compile, put the library in place by one rename, clean up; the lock
                     # is released when the shell exits.
-                    script = ('"$0" "$@" -shared -fPIC -o "$W/functions.so" "$W/functions.c" '
-                              '-lm && mv "$W/functions.so" "$L"; rm -rf "$W"')
+                    out = work / "functions.so"
+                    command = _command(compiler, flags, work / "functions.c", out)
                     _detached[library] = subprocess.Popen(
-                        ["sh", "-c", script, compiler, *flags],
-                        env={**os.environ, "W": str(work), "L": str(library)},
+                        ["sh", "-c", '"$@" && mv "$OUT" "$L"; rm -rf "$W"', "sh", *command],
+                        env={**os.environ, "W": str(work), "OUT": str(out), "L": str(library)},
                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                         stderr=subprocess.DEVNULL, pass_fds=(lock.fileno(),),
                         start_new_session=True)
@@ -209,6 +209,11 @@ def _start_detached(compiler: str, source: str, library: Path, flags: tuple[str,
     print(f"cr_nlp: compiling faster functions for large problems in a background process "
           f"(1–2 min, once: later solves and processes load them from {cache_dir()})",
           file=sys.stderr, flush=True)
+
+
+def _command(compiler: str, flags: Sequence[str], c_file: Path, out: Path) -> list[str]:
+    """The compiler's command line that builds the shared library ``out`` from ``c_file``."""
+    return [compiler, *flags, "-shared", "-fPIC", "-o", str(out), str(c_file), "-lm"]
 
 
 def _lock_path(library: Path) -> Path:
@@ -249,8 +254,8 @@ def _build(compiler: str, source: str, library: Path, flags: tuple[str, ...] = F
             with tempfile.TemporaryDirectory(dir=library.parent) as work:
                 c_file, out = Path(work) / "functions.c", Path(work) / "functions.so"
                 c_file.write_text(source)
-                subprocess.run([compiler, *flags, "-shared", "-fPIC", "-o", str(out),
-                                str(c_file), "-lm"], check=True, capture_output=True)
+                subprocess.run(_command(compiler, flags, c_file, out), check=True,
+                               capture_output=True)
                 os.replace(out, library)
         return True
     except (OSError, subprocess.CalledProcessError) as exc:
