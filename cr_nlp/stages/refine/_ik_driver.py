@@ -359,7 +359,7 @@ class IKSearch:
         pool = self.seed_pool(timing)
         nearest = self.nearest(positions, rotations, self.settings.seeds_per_target, timing)
         plan = replace(self.settings.plan, per_target=per_target)
-        return self.main.search(plan, pool.z[nearest], positions, rotations, timing)
+        return self.main.search(plan, pool.typed_z[nearest], positions, rotations, timing)
 
     def solve_part(self, positions: np.ndarray, rotations: np.ndarray, timing: Booking,
                    accepts: Callable[[np.ndarray, np.ndarray], np.ndarray]
