@@ -201,8 +201,10 @@ def _run_mechanics(args: argparse.Namespace, robot: Robot, train: Measurements,
         print(f"{result.unconverged} rows did not converge (left out of the errors' fit)")
     mech = result.robot.mechanics
     gravity = ",".join(f"{v:.4g}" for v in mech.calibration_gravity)
+    take_up = ", ".join(f"{1e6 * v:.3g}" for v in mech.take_up(result.robot.n_segments))
     print(f"segment stiffness {', '.join(f'{v:.3g}' for v in mech.segment_stiffness)}; "
           f"tendon stiffness {', '.join(f'{v:.4g}' for v in mech.tendon_stiffness)} N/m; "
+          f"take-up {take_up} µm/N; "
           f"gravity of the recording {gravity} m/s² (pass --gravity {gravity} to statics, "
           f"ik, plan and follow --model cosserat)")
     if args.report:

@@ -15,7 +15,7 @@ from typing import Any
 _MECHANICS_KEYS = {"youngs_modulus", "poisson_ratio", "backbone_outer_radius",
                    "backbone_inner_radius", "linear_density", "disks_per_segment",
                    "disk_mass", "tension_max", "segment_stiffness", "tendon_stiffness",
-                   "calibration_gravity"}
+                   "tendon_take_up", "calibration_gravity"}
 MAX_DISKS_PER_SEGMENT = 1000
 """Most spacer disks per segment a ``mechanics`` block may list (each is a point load)."""
 _REQUIRED = {"youngs_modulus", "poisson_ratio", "backbone_outer_radius"}
@@ -68,6 +68,13 @@ class Mechanics:
     that ``cr-nlp calibrate --model cosserat`` found, m/s²; its size also carries the
     fitted scale of the masses (only the product of mass and g acts). ``predict --model
     cosserat`` applies it; other commands take loads from their options. Empty: none."""
+    tendon_take_up: tuple[float, ...] = ()
+    """Per segment, the take-up compliance c_i, m/N: every tendon running through segment
+    i loses c_i · N_i of its path, N_i the sum of the tensions through segment i (the
+    section's axial give under the tendon load: the take-up of ``cr-nlp calibrate
+    --axial-compression tendons`` on the geometric model). It changes which tensions a
+    command gives (``model.cosserat.solve_displacement_statics``, ``motor_commands``),
+    not the shape that tensions give. Empty: none."""
 
     # ------------------------------------------------------------ section properties
     @property
@@ -115,11 +122,17 @@ class Mechanics:
             out["tendon_stiffness"] = list(self.tendon_stiffness)
         if self.calibration_gravity:
             out["calibration_gravity"] = list(self.calibration_gravity)
+        if self.tendon_take_up:
+            out["tendon_take_up"] = list(self.tendon_take_up)
         return out
 
     def stiffness_factors(self, n_segments: int) -> tuple[float, ...]:
         """(n,) the segments' stiffness factors (1 where the block gives none)."""
         return self.segment_stiffness or (1.0,) * n_segments
+
+    def take_up(self, n_segments: int) -> tuple[float, ...]:
+        """(n,) the segments' take-up compliances, m/N (0 where the block gives none)."""
+        return self.tendon_take_up or (0.0,) * n_segments
 
 
 def parse_mechanics(c: Any, raw: Any, n_segments: int) -> Mechanics:
@@ -157,8 +170,9 @@ def parse_mechanics(c: Any, raw: Any, n_segments: int) -> Mechanics:
     tendon_k = _per_segment(c, d, "tendon_stiffness", n_segments)
     gravity = (c.vector(d["calibration_gravity"], "mechanics.calibration_gravity", 3)
                if "calibration_gravity" in d else ())
+    take_up = _per_segment(c, d, "tendon_take_up", n_segments)
     return Mechanics(e, nu, outer, inner, density, disks, disk_mass, tension_max, factors,
-                     tendon_k, tuple(float(v) for v in gravity))
+                     tendon_k, tuple(float(v) for v in gravity), take_up)
 
 
 def _per_segment(c: Any, d: dict, key: str, n_segments: int) -> tuple[float, ...]:

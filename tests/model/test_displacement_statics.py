@@ -1,6 +1,6 @@
 """Displacement-driven Cosserat statics: the tensions it finds meet the commands on the
 tension statics' own shapes, slack tendons carry nothing, bad inputs are named; the
-per-segment stiffness of the mechanics block."""
+per-segment stiffness and take-up of the mechanics block."""
 
 from __future__ import annotations
 
@@ -96,7 +96,8 @@ def test_segment_stiffness_scales_the_bending_of_its_segment() -> None:
 
 
 @pytest.mark.parametrize("field, value", [("segment_stiffness", [1.0, 0.0]),
-                                          ("tendon_stiffness", [1.0])])
+                                          ("tendon_stiffness", [1.0]),
+                                          ("tendon_take_up", [1e-4, -1e-4])])
 def test_mechanics_stiffness_fields_are_checked_and_round_trip(field: str,
                                                                value: object) -> None:
     data = RAO.to_dict()
@@ -107,6 +108,53 @@ def test_mechanics_stiffness_fields_are_checked_and_round_trip(field: str,
     robot = Robot.from_dict(data)
     assert getattr(robot.mechanics, field) == (3.0, 3.0)
     assert Robot.from_dict(robot.to_dict()) == robot
+
+
+TAKE_UP = (2e-4, 1e-4)  # m/N per segment
+TAKEN = replace(ROBOT, mechanics=replace(ROBOT.mechanics, tendon_take_up=TAKE_UP))
+
+
+@pytest.fixture(scope="module")
+def taken() -> object:
+    return solve_displacement_statics(TAKEN, COMMANDS, gravity=GRAVITY)
+
+
+def test_the_take_up_shortens_every_tendon_through_a_segment_by_its_load(
+        taken: object, solved: tuple) -> None:
+    result, k = taken, solved[1]
+    assert result.converged.all() and result.stable.all()
+    check = solve_statics(TAKEN, result.tensions, gravity=GRAVITY)  # tensions alone
+    assert np.abs(check.positions - result.positions).max() <= 1e-6
+    # segment 1 carries every tension, segment 2 its own tendons' (4-6); tendons 1-3 run
+    # through segment 1 only, tendons 4-6 through both
+    t = result.tensions
+    carried = np.stack([t.sum(axis=1), t[:, 3:].sum(axis=1)], axis=1)
+    lost = np.where(np.arange(6) < 3, TAKE_UP[0] * carried[:, :1],
+                    TAKE_UP[0] * carried[:, :1] + TAKE_UP[1] * carried[:, 1:])
+    stretch = COMMANDS - check.tendon_displacements - lost
+    np.testing.assert_allclose(t, k * np.maximum(0.0, stretch), atol=1e-9 * K)
+    np.testing.assert_allclose(result.stretch, stretch, atol=1e-9)
+    # it matters: the same commands pull with less tension than without the take-up
+    assert (t[[0, 1, 3]].sum(axis=1) < 0.9 * solved[0].tensions[[0, 1, 3]].sum(axis=1)).all()
+
+
+def test_motor_commands_invert_the_solve_with_the_take_up(taken: object) -> None:
+    result = taken
+    commands = motor_commands(TAKEN, result.tensions, result.tendon_displacements)
+    taut = ~result.slack
+    np.testing.assert_allclose(commands[taut], COMMANDS[taut], atol=1e-9)
+
+
+def test_one_taut_tendon_takes_up_like_a_softer_tendon_in_series() -> None:
+    # tendon 1 alone taut runs through segment 1 only: its take-up c₁τ is a compliance in
+    # series with the tendon, k' = 1 / (1/k + c₁)
+    command = [0.003, -0.01, -0.01, -0.01, -0.01, -0.01]  # the others well slack
+    a = solve_displacement_statics(TAKEN, command)
+    softer = [1.0 / (1.0 / K + TAKE_UP[0]), K, K, 2 * K, 2 * K, 2 * K]
+    b = solve_displacement_statics(ROBOT, command, tendon_stiffness=softer)
+    assert a.converged.all() and a.slack[0, 1:].all() and a.tensions[0, 0] > 1.0
+    np.testing.assert_allclose(a.tensions, b.tensions, rtol=1e-8, atol=1e-9)
+    np.testing.assert_allclose(a.positions, b.positions, atol=1e-9)
 
 
 def test_a_tension_motion_of_a_displacement_driven_robot_writes_its_commands(

@@ -31,8 +31,9 @@ stages on the rod: the one-case programs (``tip_equilibrium``, ``backbone_equili
 for CasADi (``CasadiRod``, ``RodLoads``, ``flat_loads``; ``_casadi``). Driven by motor
 commands instead of tensions: ``solve_displacement_statics`` and its
 ``DisplacementStaticsResult`` (``_displacement``: the tensions that make each tendon's path
-match its command, slack tendons carrying none), its inverse ``motor_commands`` and, for
-the calibration, ``predict_marker``, ``displacement_pass`` and ``displacement_solver``.
+match its command, slack tendons carrying none; the segments' take-up
+``take_up_lengths``), its inverse ``motor_commands`` and, for the calibration,
+``predict_marker``, ``displacement_pass`` and ``displacement_solver``.
 """
 
 from ._casadi import CasadiRod as CasadiRod
@@ -44,6 +45,7 @@ from ._displacement import displacement_solver as displacement_solver
 from ._displacement import motor_commands as motor_commands
 from ._displacement import predict_marker as predict_marker
 from ._displacement import solve_displacement_statics as solve_displacement_statics
+from ._displacement import take_up_lengths as take_up_lengths
 from ._rod import CaseLoads as CaseLoads
 from ._rod import StaticsConfig as StaticsConfig
 from ._shooting import Equilibrium as Equilibrium

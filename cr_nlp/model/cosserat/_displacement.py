@@ -4,13 +4,17 @@ A real robot's motors set how far each tendon is pulled, not its tension. Tendon
 commanded pull is ``p_j = g_j (d_j − d0_j)`` (the command d in m, positive = pulled, with
 the gain g and zero offset d0 of the robot file's ``actuation`` block, as ``calibrate``
 reads them; nominal 1 and 0 without one). Along the solved rod the tendon's path is
-shorter than its straight length by s_j (the geometric shortening: bending, and the
-backbone's compression). The tendon is stretched by ``p_j − s_j`` when that is positive
-and slack otherwise, and pulls with
+shorter than its straight length by s_j: the geometric shortening (bending, and the
+backbone's compression) plus the take-up ``Σ_i c_i N_i`` over the segments i it runs
+through (c_i: ``mechanics.tendon_take_up``, m/N; N_i the sum of the tensions through
+segment i). The tendon is stretched by ``p_j − s_j`` when that is positive and slack
+otherwise, and pulls with
 
     τ_j = k_j · max(0, p_j − s_j)        (k_j: ``mechanics.tendon_stiffness``, N/m)
 
-so a slack tendon carries nothing and a tendon never pushes. The unknowns of one case are
+so a slack tendon carries nothing and a tendon never pushes. The take-up couples the
+tendons (one tendon's tension shortens the others through the same segments) but not the
+shape: the rod's shape depends on the tensions alone. The unknowns of one case are
 the moment at the base M(0) (as in the tension statics, ``_shooting``) and the
 tensions τ: one integration pass gives both the moment balance at the tip and every s_j,
 so Newton solves the 3 + T equations together, with continuation in a factor λ that
@@ -50,7 +54,7 @@ from ._statics import _programs as _statics_programs
 
 __all__ = ["DisplacementStaticsResult", "commanded_pull", "displacement_pass",
            "displacement_solver", "motor_commands", "predict_marker", "solve_displacement_statics",
-           "tension_scale", "tendon_stiffness_of"]
+           "take_up_lengths", "tension_scale", "tendon_stiffness_of"]
 
 DISPLACEMENT_TOLERANCE = 1e-9
 """A case is converged when every tendon's tension matches its stretch within this, m
@@ -66,8 +70,8 @@ class DisplacementStaticsResult(StaticsResult):
     pull: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     """(B, n_tendons) commanded pull g (d − d0), m."""
     stretch: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
-    """(B, n_tendons) pull minus the tendon's shortening along the solved rod, m: > 0 taut
-    (τ = k · stretch), ≤ 0 slack."""
+    """(B, n_tendons) pull minus the tendon's shortening along the solved rod and its
+    take-up, m: > 0 taut (τ = k · stretch), ≤ 0 slack."""
     displacement_residual: np.ndarray = field(default_factory=lambda: np.zeros(0))
     """(B,) largest |τ/k − max(0, stretch)| over the tendons, m."""
 
@@ -103,6 +107,27 @@ def tendon_stiffness_of(robot: Robot, tendon_stiffness: Any = None) -> np.ndarra
                          f"segment) or {robot.n_tendons} (per tendon), N/m; got "
                          f"{np.asarray(tendon_stiffness).tolist()}")
     return k
+
+
+def take_up_of(robot: Robot) -> np.ndarray:
+    """(n_segments,) the segments' take-up compliances c, m/N (``mechanics.tendon_take_up``;
+    zeros without)."""
+    mech = require_mechanics(robot, "the displacement-driven statics")
+    return np.asarray(mech.take_up(robot.n_segments), dtype=float)
+
+
+def take_up_coupling(through: Any, take_up: Any) -> Any:
+    """(T, T) the take-up's lengths per tension: tendon j loses ``(C τ)_j`` m of its path
+    under tensions τ (N), ``C = B diag(c) Bᵀ`` with B = ``routing.through`` (T, n) and c
+    (n,) m/N (numpy, or JAX with traced c)."""
+    return (through * take_up[None, :]) @ through.T
+
+
+def take_up_lengths(robot: Robot, tensions: Any) -> np.ndarray:
+    """(B, n_tendons) how much of each tendon's path the take-up takes under tensions (B,
+    n_tendons) N, m (zeros for a robot without ``mechanics.tendon_take_up``)."""
+    through = routing_of(robot).through.astype(float)
+    return np.asarray(tensions, float) @ take_up_coupling(through, take_up_of(robot)).T
 
 
 def commanded_pull(robot: Robot, displacements: Any) -> np.ndarray:
@@ -148,14 +173,15 @@ def _scales(lay: _Layout) -> tuple[float, float, float]:
 
 
 def _smooth(lay: _Layout, config: StaticsConfig, y: jax.Array, lam: jax.Array,
-            stiffness: Any, loads: CaseLoads,
+            stiffness: Any, coupling: jax.Array, loads: CaseLoads,
             scales: tuple[float, float, float]) -> tuple[jax.Array, jax.Array, jax.Array]:
     """(F (3 + T,), tip position (3,), tip rotation (3, 3)) of one pass at load factor
-    ``lam``: F = (the tip's moment balance / (EI/L), each tendon's shortening s in m)."""
+    ``lam``: F = (the tip's moment balance / (EI/L), each tendon's shortening s in m, the
+    take-up ``coupling`` (T, T) m/N times the tensions included)."""
     ms, ts, _ = scales
     mom, ell, tip, frame = _integrate(lay, config, y[:3] * ms, y[3:] * ts, loads.scaled(lam),
                                       False, stiffness)
-    shortening = jnp.asarray(lay.tendon_end, y.dtype) - ell
+    shortening = jnp.asarray(lay.tendon_end, y.dtype) - ell + coupling @ (y[3:] * ts)
     return jnp.concatenate([(mom - lam * loads.moment) / ms, shortening]), tip, frame
 
 
@@ -174,7 +200,7 @@ _ACTIVE_SET_ROUNDS = 4
 
 
 def _continuation(lay: _Layout, coarse: _Layout, config: StaticsConfig, pull: jax.Array,
-                  k: jax.Array, stiffness: Any, loads: CaseLoads,
+                  k: jax.Array, stiffness: Any, coupling: jax.Array, loads: CaseLoads,
                   axis: str | None = None) -> tuple[Any, Any, Any]:
     """(start, iterate, done) of semismooth Newton on (M(0), τ) with continuation in λ,
     as the shooting's (``model.cosserat._shooting``): the smooth parts F are linearised by
@@ -200,13 +226,13 @@ def _continuation(lay: _Layout, coarse: _Layout, config: StaticsConfig, pull: ja
     tension_columns = jnp.concatenate([jnp.zeros(3, dtype), scales[1] / k])
 
     def smooth(y: jax.Array, lam: jax.Array) -> jax.Array:
-        return _smooth(lay, config, y, lam, stiffness, loads, scales)[0]
+        return _smooth(lay, config, y, lam, stiffness, coupling, loads, scales)[0]
 
     def slopes(y: jax.Array, lam: jax.Array) -> tuple[jax.Array, jax.Array]:
         h = eps * jnp.maximum(jnp.max(jnp.abs(y)), 1.0)
         ys = jnp.concatenate([y[None], y[None] + h * jnp.eye(size, dtype=dtype), y[None]])
         lams = jnp.concatenate([jnp.broadcast_to(lam, (size + 1,)), (lam + eps)[None]])
-        fs = jax.vmap(lambda a, b: _smooth(coarse, rough, a, b, stiffness, loads,
+        fs = jax.vmap(lambda a, b: _smooth(coarse, rough, a, b, stiffness, coupling, loads,
                                            scales)[0])(ys, lams)
         return (fs[1:size + 1] - fs[0]).T / h, (fs[size + 1] - fs[0]) / eps
 
@@ -276,8 +302,9 @@ def _continuation(lay: _Layout, coarse: _Layout, config: StaticsConfig, pull: ja
 
 def displacement_solver(robot: Robot, config: StaticsConfig = StaticsConfig(),
                         iterations: int = 40, axis: str | None = None) -> Any:
-    """The per-case JAX function ``f(pull (T,) m, k (T,) N/m, stiffness (n,), loads, y0,
-    lam0) -> (y, converged, iterations, stretch (T,) m, λ reached)``: Newton with
+    """The per-case JAX function ``f(pull (T,) m, k (T,) N/m, stiffness (n,), take_up (n,)
+    m/N, loads, y0, lam0) -> (y, converged, iterations, stretch (T,) m, λ reached)``:
+    Newton with
     continuation (at most ``iterations``) from the scaled unknowns ``y0`` = (M(0)/(EI/L),
     τ/τ_s) at load factor ``lam0`` (0 and zeros: from rest; 1 and a neighbour's answer: a
     warm start); ``displacement_pass`` reads y. A tendon
@@ -286,11 +313,13 @@ def displacement_solver(robot: Robot, config: StaticsConfig = StaticsConfig(),
     axis_name=axis)``), where the batch shares one test for the coarse Jacobian
     (``_continuation``)."""
     lay, coarse = _layout(robot, config), _layout(robot, config, coarse=True)
+    through = routing_of(robot).through.astype(float)
 
-    def solve(pull: jax.Array, k: jax.Array, stiffness: jax.Array, loads: CaseLoads,
-              y0: jax.Array, lam0: jax.Array) -> tuple[jax.Array, ...]:
-        start, iterate, done = _continuation(lay, coarse, config, pull, k, stiffness, loads,
-                                             axis)
+    def solve(pull: jax.Array, k: jax.Array, stiffness: jax.Array, take_up: jax.Array,
+              loads: CaseLoads, y0: jax.Array, lam0: jax.Array) -> tuple[jax.Array, ...]:
+        coupling = take_up_coupling(jnp.asarray(through, pull.dtype), take_up)
+        start, iterate, done = _continuation(lay, coarse, config, pull, k, stiffness,
+                                             coupling, loads, axis)
         state = jax.lax.while_loop(lambda s: ~done(s) & (s.it < iterations), iterate,
                                    start(y0, lam0))
         stretch = state.lam * pull - state.f[3:]
@@ -301,17 +330,20 @@ def displacement_solver(robot: Robot, config: StaticsConfig = StaticsConfig(),
 
 
 def displacement_pass(robot: Robot, config: StaticsConfig = StaticsConfig()) -> Any:
-    """The per-case JAX function ``f(y, pull, k, stiffness, loads) -> (rows (3 + T,), tip
-    position (3,) m, tip rotation (3, 3))`` of one pass at the full loads, base frame:
+    """The per-case JAX function ``f(y, pull, k, stiffness, take_up, loads) -> (rows (3 +
+    T,), tip position (3,) m, tip rotation (3, 3))`` of one pass at the full loads, base
+    frame:
     ``rows`` vanish at a displacement-driven equilibrium (see ``displacement_solver``);
     tensions are ``y[3:] * tension_scale``."""
     lay = _layout(robot, config)
     scales = _scales(lay)
+    through = routing_of(robot).through.astype(float)
 
     def one_pass(y: jax.Array, pull: jax.Array, k: jax.Array, stiffness: jax.Array,
-                 loads: CaseLoads) -> tuple[jax.Array, jax.Array, jax.Array]:
+                 take_up: jax.Array, loads: CaseLoads) -> tuple[jax.Array, jax.Array, jax.Array]:
         one = jnp.asarray(1.0, y.dtype)
-        f, tip, frame = _smooth(lay, config, y, one, stiffness, loads, scales)
+        coupling = take_up_coupling(jnp.asarray(through, y.dtype), take_up)
+        f, tip, frame = _smooth(lay, config, y, one, stiffness, coupling, loads, scales)
         return _rows(y, f, one, pull, k, scales), tip, frame
 
     return one_pass
@@ -365,12 +397,13 @@ def _program(robot: Robot, config: StaticsConfig, iterations: int) -> Any:
     (one per CPU core in the CLI) where the batch divides evenly."""
     return CachedProgram(jax.vmap(displacement_solver(robot, config, iterations, CASES),
                                   axis_name=CASES),
-                         name="the displacement-driven statics", batched=(True,) * 6,
+                         name="the displacement-driven statics", batched=(True,) * 7,
                          outputs=5)
 
 
 def _solve_rows(robot: Robot, config: StaticsConfig, rows: tuple) -> tuple[np.ndarray, ...]:
-    """(y, solved, iterations) of the cases ``rows`` = (pull, k, stiffness, loads): a first
+    """(y, solved, iterations) of the cases ``rows`` = (pull, k, stiffness, take-up, loads):
+    a first
     round of ``_FIRST_ROUND`` iterations for all, then the unfinished ones from where they
     were."""
     batch = len(rows[0])
@@ -440,6 +473,8 @@ def solve_displacement_statics(robot: Robot, displacements: Any, tip_force: Any 
         y, solved, iterations = _solve_rows(robot, config, (pull, np.broadcast_to(k, pull.shape),
                                                 np.broadcast_to(lay.stiffness,
                                                                 (batch, robot.n_segments)),
+                                                np.broadcast_to(take_up_of(robot),
+                                                                (batch, robot.n_segments)),
                                                 loads))
         tensions = np.maximum(0.0, y[:, 3:] * scales[1])
         result = _verdict(robot, config, y[:, :3] * scales[0], tensions, loads, iterations)
@@ -450,7 +485,7 @@ def solve_displacement_statics(robot: Robot, displacements: Any, tip_force: Any 
                                 part.gravity, config, distributed_force=part.distributed_force,
                                 point_loads=part.point_load_lists())
         result = _replace_rows(result, doubtful, checked)
-    stretch = pull - result.tendon_displacements
+    stretch = pull - result.tendon_displacements - take_up_lengths(robot, tensions)
     residual = np.max(np.abs(tensions / k - np.maximum(0.0, stretch)), axis=1)
     fields = {f.name: getattr(result, f.name) for f in dataclasses.fields(StaticsResult)}
     fields["converged"] = result.converged & (residual <= DISPLACEMENT_TOLERANCE)
@@ -515,10 +550,12 @@ def predict_marker(robot: Robot, displacements: Any, gravity: Any = None,
 def motor_commands(robot: Robot, tensions: Any, shortening: Any) -> np.ndarray:
     """(B, n_tendons) the commanded displacements d, m, that hold tensions (B, n_tendons) N
     on a solved rod whose tendon paths are shorter than straight by ``shortening`` (B,
-    n_tendons) m (``StaticsResult.tendon_displacements``): the pull p = s + τ/k, d = d0 +
-    p/g (the inverse of ``solve_displacement_statics``; a tendon without tension gets the
-    command that leaves it just taut, and any smaller one gives the same shape)."""
+    n_tendons) m (``StaticsResult.tendon_displacements``): the pull p = s + Cτ + τ/k (Cτ:
+    the take-up, ``take_up_lengths``), d = d0 + p/g (the inverse of
+    ``solve_displacement_statics``; a tendon without tension gets the command that leaves
+    it just taut, and any smaller one gives the same shape)."""
     k = tendon_stiffness_of(robot)
     act = robot.actuation or Actuation.nominal(robot.n_tendons, robot.n_segments)
-    pull = np.asarray(shortening, float) + np.asarray(tensions, float) / k
+    tensions = np.asarray(tensions, float)
+    pull = np.asarray(shortening, float) + take_up_lengths(robot, tensions) + tensions / k
     return np.asarray(act.zero_offsets) + pull / np.asarray(act.gains)

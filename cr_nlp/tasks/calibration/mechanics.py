@@ -2,14 +2,16 @@
 
 The model of a row: the commanded displacements d (m) pull each tendon by ``p = g (d −
 d0)``; the rod takes the displacement-driven equilibrium
-(``model.cosserat.solve_displacement_statics``: tensions k·max(0, p − s), the rod's own
-weight under the fitted gravity), and the measured point is the tip plus a marker offset,
-seen from a fitted base pose. The fitted parameters
+(``model.cosserat.solve_displacement_statics``: tensions k·max(0, p − s), s with the
+take-up, the rod's own weight under the fitted gravity), and the measured point is the tip
+plus a marker offset, seen from a fitted base pose. The fitted parameters
 (``MechanicsCalibrationConfig.priors``): the base pose in the measurement frame, the
 marker, zero offsets d0 and gains g per tendon, each segment's stiffness factor relative
 to the first (the unit: with commands alone only ratios of stiffnesses, tendon stiffnesses
-and weights are seen), the tendon stiffness k of each segment's tendons, and the gravity
-vector in the measurement frame (its size stands for the masses' scale: only m·g acts).
+and weights are seen), the tendon stiffness k of each segment's tendons, each segment's
+take-up compliance (m/N: the length every tendon through it loses per newton it carries),
+and the gravity vector in the measurement frame (its size stands for the masses' scale:
+only m·g acts).
 
 The fit is scipy's bounded trust-region least squares over the tip errors of the training
 rows plus prior rows, as the geometric calibration's (``tasks.calibrate``). Every
@@ -59,6 +61,9 @@ from .measurements import Measurements
 
 STANDARD_GRAVITY = 9.81
 """m/s²: the size of the starting gravity vector."""
+TAKE_UP_START = 1e-4
+"""m/N: the segments' take-up compliance the fit starts from where the robot file gives
+none (0.1 mm of every tendon through a segment per newton it carries)."""
 
 
 def default_mechanics(robot: Robot) -> Mechanics:
@@ -85,6 +90,7 @@ def _default_priors() -> dict[str, Prior]:
         "gains": Prior(0.15, 3.0),
         "log_stiffness": Prior(0.7, 4.0),       # segment factors; the first is the unit
         "log_tendon_stiffness": Prior(1.5, 3.0),
+        "log_take_up": Prior(2.0, 3.0),         # log m/N per segment, from TAKE_UP_START
         "gravity": Prior(STANDARD_GRAVITY, 3.0),                      # m/s², per axis
     }
 
@@ -131,22 +137,24 @@ class MechanicsCalibrationResult(FitResult):
 @cached(maxsize=8)
 def _programs(robot: Robot, config: StaticsConfig) -> tuple[Any, Any]:
     """(solve, sensitivity), jitted and vmapped over rows, for rows' inputs q = (pull (T)
-    m, log k (T), log stiffness factor (n), gravity in the base frame (3) m/s²)."""
+    m, log k (T), log stiffness factor (n), take-up (n) m/N, gravity in the base frame (3)
+    m/s²)."""
     solver = displacement_solver(robot, config)
     one_pass = displacement_pass(robot, config)
     t, n = robot.n_tendons, robot.n_segments
 
     def split(q: jax.Array) -> tuple[jax.Array, ...]:
-        return q[:t], jnp.exp(q[t:2 * t]), jnp.exp(q[2 * t:2 * t + n]), q[2 * t + n:]
+        return (q[:t], jnp.exp(q[t:2 * t]), jnp.exp(q[2 * t:2 * t + n]),
+                q[2 * t + n:2 * t + 2 * n], q[2 * t + 2 * n:])
 
     def loads(gravity: jax.Array) -> Any:
         zero = jnp.zeros(3, gravity.dtype)
         return case_loads(zero, zero, gravity)
 
     def solve(q: jax.Array, y0: jax.Array, lam0: jax.Array) -> tuple[jax.Array, ...]:
-        pull, k, stiffness, gravity = split(q)
-        y, ok, _, _, _ = solver(pull, k, stiffness, loads(gravity), y0, lam0)
-        _, tip, frame = one_pass(y, pull, k, stiffness, loads(gravity))
+        pull, k, stiffness, take_up, gravity = split(q)
+        y, ok, _, _, _ = solver(pull, k, stiffness, take_up, loads(gravity), y0, lam0)
+        _, tip, frame = one_pass(y, pull, k, stiffness, take_up, loads(gravity))
         return y, ok, jnp.concatenate([tip, frame.ravel()])
 
     def sensitivity(y: jax.Array, q: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -155,12 +163,13 @@ def _programs(robot: Robot, config: StaticsConfig) -> tuple[Any, Any]:
         ny = y.shape[0]
         z = jnp.concatenate([y, q])
         typical = jnp.concatenate([jnp.ones_like(y), jnp.full(t, robot.tendons.radius),
-                                   jnp.ones(t + n + 3, q.dtype)])
+                                   jnp.ones(t + n, q.dtype), jnp.full(n, TAKE_UP_START),
+                                   jnp.ones(3, q.dtype)])
         h = 1e-7 * jnp.maximum(jnp.abs(z), typical)
 
         def evaluate(zz: jax.Array) -> tuple[jax.Array, jax.Array]:
-            pull, k, stiffness, gravity = split(zz[ny:])
-            rows, tip, frame = one_pass(zz[:ny], pull, k, stiffness, loads(gravity))
+            pull, k, stiffness, take_up, gravity = split(zz[ny:])
+            rows, tip, frame = one_pass(zz[:ny], pull, k, stiffness, take_up, loads(gravity))
             return rows, jnp.concatenate([tip, frame.ravel()])
 
         rows, out = jax.vmap(evaluate)(jnp.concatenate([z[None], z[None] + jnp.diag(h)]))
@@ -188,9 +197,11 @@ class _Model:
         rows = pull.shape[0]
         log_k = jnp.broadcast_to(params["log_tendon_stiffness"][self.anchor], (rows, self.t))
         stiff = params["log_stiffness"] - params["log_stiffness"][0]
+        take_up = jnp.exp(params["log_take_up"])
         rotation = base_rotation(params)
         gravity_base = rotation.T @ params["gravity"]
         return jnp.concatenate([pull, log_k, jnp.broadcast_to(stiff, (rows, self.n)),
+                                jnp.broadcast_to(take_up, (rows, self.n)),
                                 jnp.broadcast_to(gravity_base, (rows, 3))], axis=1)
 
     @staticmethod
@@ -318,6 +329,8 @@ def _start(robot: Robot, train: Measurements, config: MechanicsCalibrationConfig
         "gains": np.asarray(act.gains, float),
         "log_stiffness": np.log(factors),
         "log_tendon_stiffness": np.log(np.asarray(mech.tendon_stiffness, float)),
+        "log_take_up": np.log(np.asarray(mech.tendon_take_up or
+                                         (TAKE_UP_START,) * robot.n_segments, float)),
         "gravity": gravity,
     }
     return start, nominal, note
@@ -333,7 +346,8 @@ def _robot_with(robot: Robot, params: dict[str, np.ndarray],
     mech = replace(robot.mechanics, segment_stiffness=tuple(float(v) for v in stiff),
                    tendon_stiffness=tuple(float(v) for v in
                                           np.exp(params["log_tendon_stiffness"])),
-                   calibration_gravity=tuple(float(v) for v in params["gravity"]))
+                   calibration_gravity=tuple(float(v) for v in params["gravity"]),
+                   tendon_take_up=tuple(float(v) for v in np.exp(params["log_take_up"])))
     act = replace(Actuation.nominal(robot.n_tendons, robot.n_segments),
                   zero_offsets=tuple(float(v) for v in params["zero_offsets"]),
                   gains=tuple(float(v) for v in params["gains"]),

@@ -32,7 +32,8 @@ NOMINAL = replace(RAO, mechanics=replace(RAO.mechanics, tendon_stiffness=(3000.0
                   actuation=replace(Actuation.nominal(6, 2), tip_marker=MARKER))
 ZEROS = np.array([0.07, 0.27, -0.21, 0.27, -0.11, -0.05]) * 1e-3   # m
 TRUTH = replace(NOMINAL, mechanics=replace(NOMINAL.mechanics, segment_stiffness=(1.0, 0.7),
-                                           tendon_stiffness=(2000.0, 4000.0)),
+                                           tendon_stiffness=(2000.0, 4000.0),
+                                           tendon_take_up=(1.5e-4, 0.6e-4)),
                 actuation=replace(NOMINAL.actuation, zero_offsets=tuple(ZEROS)))
 NOISE = 2e-6  # m per axis
 
@@ -70,6 +71,7 @@ def test_a_known_mechanics_block_is_recovered_from_its_recording(recordings: tup
     mech = result.robot.mechanics
     assert mech.segment_stiffness[1] == pytest.approx(0.7, rel=0.02)
     np.testing.assert_allclose(mech.tendon_stiffness, [2000.0, 4000.0], rtol=0.02)
+    np.testing.assert_allclose(mech.tendon_take_up, [1.5e-4, 0.6e-4], rtol=0.02)
     # zero offsets within 2 % of their spread (0.48 mm): 10 µm
     np.testing.assert_allclose(result.robot.actuation.zero_offsets, ZEROS, atol=1e-5)
     assert result.nominal_train.mean > 100 * NOISE
