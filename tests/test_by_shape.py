@@ -112,7 +112,7 @@ def test_a_second_robot_of_the_same_shape_solves_ik_on_the_first_ones_programs(
         result = IKSolver(robot).solve(position, wxyz_from_matrix(rotation))
         answers[robot.name] = (result, position)
     assert _programs.stats.traced == 0 and _programs.stats.unkeyed == 0
-    assert _programs.stats.reused >= 2   # the seed lookup and the search, at least
+    assert _programs.stats.reused >= 1   # the search with its seed lookup, at least
     result, position = answers["variant"]
     assert np.mean(result.success) >= 0.95
     ok = result.success

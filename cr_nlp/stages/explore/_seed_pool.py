@@ -179,9 +179,9 @@ class SeedPool:
         self._device_features = jnp.asarray(padded.reshape(blocks, block, -1), self.dtype)
         self._device_valid = jnp.asarray(valid.reshape(blocks, block))
         self._device_z: jax.Array | None = None
+        self._device_z_padded: jax.Array | None = None
         self.typed_z = self.z.astype(self.dtype)
-        """(P, 3n) the entries' bending vectors in the search's dtype (rad, rad, m): seeds
-        gathered from it need no cast (float64 gathers of 10⁵ targets' seeds took 0.1 s)."""
+        """(P, 3n) the entries' bending vectors in the search's dtype (rad, rad, m)."""
         self._programs: dict[tuple[int, int], object] = {}
         self.compile_seconds = 0.0
         """Seconds spent compiling lookup programs so far (one per chunk shape and k)."""
@@ -202,13 +202,22 @@ class SeedPool:
         centred as the pool's: the ``targets`` argument of ``nearest_features``."""
         return pose_features(target_position, target_rotation).reshape(-1, 9) - self._centre
 
-    def device_arrays(self) -> tuple[jax.Array, jax.Array, jax.Array]:
+    def device_arrays(self, padded: bool = False) -> tuple[jax.Array, jax.Array, jax.Array]:
         """The pool on the device, for programs that look up seeds themselves (the fused
-        search's retries): features and valid mask as ``nearest_features`` takes them,
-        and the entries' bending vectors (P, 3n) (rad, rad, m)."""
+        search and its retries): features and valid mask as ``nearest_features`` takes
+        them, and the entries' bending vectors (P, 3n) (rad, rad, m); ``padded``: with
+        zero rows to the features' padded length, so that pools of one padded size (robots
+        of one shape) give programs arrays of one shape."""
         if self._device_z is None:
             self._device_z = jnp.asarray(self.typed_z)
-        return self._device_features, self._device_valid, self._device_z
+        if not padded:
+            return self._device_features, self._device_valid, self._device_z
+        if self._device_z_padded is None:
+            rows = self._device_valid.size
+            z = np.zeros((rows, self.typed_z.shape[1]), self.typed_z.dtype)
+            z[:len(self.typed_z)] = self.typed_z
+            self._device_z_padded = jnp.asarray(z)
+        return self._device_features, self._device_valid, self._device_z_padded
 
     def nearest(self, target_position: np.ndarray, target_rotation: np.ndarray,
                 k: int) -> np.ndarray:

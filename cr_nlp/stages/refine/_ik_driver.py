@@ -3,9 +3,14 @@ device programs of ``stages.refine._ik_program``, the retry rounds and the self-
 
 One part of a stream of targets is solved by
 
-1. explore: the pool entries nearest each target in pose (``SeedPool.nearest``);
-2. search: coarse LM on every seed, a diverse beam, the refinement rounds, as one
-   ``search_targets`` program per chunk of targets (``ChunkRunner``);
+1. explore and search, one ``search_pooled`` program per chunk of targets
+   (``ChunkRunner.search_pool``): the pool entries nearest each target in pose (the
+   lookup of ``SeedPool.nearest``, on the device), coarse LM on every seed, a diverse
+   beam, the refinement rounds. The seeds never pass through the host: a separate
+   lookup program sent (T, k) indices back, the host gathered the (T, k, n) seeds, cast
+   them and sent them out again;
+2. (the same program's search is ``search_targets`` where the seeds are given: the
+   self-repair below);
 3. retry: every retry round of the targets whose best cost is still above the success
    level, as one ``retry_targets`` program per chunk (only when some target failed);
 4. self-repair (without a scene only; the search then ran on the pose alone, because the
@@ -45,7 +50,7 @@ from ...world import check_many
 from ...world._verdict_program import answer_geometry
 from .._chunks import SMALLEST_CHUNK, chunk_plan
 from ..explore._seed_pool import SeedPool, random_configurations_z, sobol_configurations
-from ._ik_program import RetryPlan, SearchPlan, retry_targets, search_targets
+from ._ik_program import RetryPlan, SearchPlan, retry_targets, search_pooled, search_targets
 from ._lm import Projection, Residual
 
 REPAIR_CHUNK = 16
@@ -130,6 +135,20 @@ class ChunkRunner:
         search = partial(search_targets, self.residual, self.project, plan)
         z, cost, runs = self._run(("search", k, plan), search,
                                   (z_seeds, (positions, rotations.reshape(-1, 9))), 4, timing)
+        for chunk, (_, _, counted, iterated) in runs:
+            self._count_rounds(counted, iterated, chunk * k, plan.budgets)
+        return z, cost
+
+    def search_pool(self, plan: SearchPlan, pool: SeedPool, k: int, positions: np.ndarray,
+                    rotations: np.ndarray, timing: Booking) -> tuple[np.ndarray, np.ndarray]:
+        """``search`` from the ``k`` entries of ``pool`` nearest each target in pose, the
+        lookup inside the same ``search_pooled`` programs (no seeds through the host).
+        Booked as refinement."""
+        search = partial(search_pooled, self.residual, self.project, plan, k)
+        z, cost, runs = self._run(
+            ("search", k, plan, "pool"), search,
+            (pool.target_features(positions, rotations), (positions, rotations.reshape(-1, 9))),
+            4, timing, pool.device_arrays(padded=True))
         for chunk, (_, _, counted, iterated) in runs:
             self._count_rounds(counted, iterated, chunk * k, plan.budgets)
         return z, cost
@@ -334,32 +353,19 @@ class IKSearch:
             d = np.asarray(clearance(self.robot, self.main.shared, x))
         return d >= self.settings.margin
 
-    def nearest(self, positions: np.ndarray, rotations: np.ndarray, k: int,
-                timing: Booking) -> np.ndarray:
-        """(T, k) pool indices nearest each target in pose; booked as exploration."""
-        pool = self.seed_pool(timing)
-        t0 = time.perf_counter()
-        c0, waited, calls = pool.compile_seconds, pool.wait_seconds, pool.calls
-        launched = pool.launch_seconds
-        found = pool.nearest(positions, rotations, k)
-        compiled = pool.compile_seconds - c0
-        timing.compile += compiled
-        timing.explore += time.perf_counter() - t0 - compiled
-        self.counters.device_wait += pool.wait_seconds - waited
-        self.counters.device_calls += pool.calls - calls
-        self.counters.device_launch += pool.launch_seconds - launched
-        return found
-
     # ------------------------------------------------------------ the search
     def beam(self, positions: np.ndarray, rotations: np.ndarray, per_target: bool,
              timing: Booking) -> tuple[np.ndarray, np.ndarray]:
-        """Lookup and search: the refined beam z (T, width, n), best first, and its cost
-        ½‖r‖² (T, width). ``per_target``: a target's other candidates stop refining once
-        one converged (only the best is wanted)."""
+        """Lookup and search, one program per chunk: the refined beam z (T, width, n), best
+        first, and its cost ½‖r‖² (T, width). ``per_target``: a target's other candidates
+        stop refining once one converged (only the best is wanted)."""
         pool = self.seed_pool(timing)
-        nearest = self.nearest(positions, rotations, self.settings.seeds_per_target, timing)
+        k = min(self.settings.seeds_per_target, len(pool))
         plan = replace(self.settings.plan, per_target=per_target)
-        return self.main.search(plan, pool.typed_z[nearest], positions, rotations, timing)
+        if k == 0:  # no pool entry keeps clear of the scene: no seeds (as before the pool)
+            seeds = np.zeros((len(positions), 0, len(self.main.free)), pool.typed_z.dtype)
+            return self.main.search(plan, seeds, positions, rotations, timing)
+        return self.main.search_pool(plan, pool, k, positions, rotations, timing)
 
     def solve_part(self, positions: np.ndarray, rotations: np.ndarray, timing: Booking,
                    accepts: Callable[[np.ndarray, np.ndarray], np.ndarray]

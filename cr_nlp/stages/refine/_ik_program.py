@@ -132,6 +132,21 @@ def search_targets(residual: Residual, project: Projection, plan: SearchPlan,
             jnp.take_along_axis(cost, order, axis=1), counted[None], iterated[None])
 
 
+def search_pooled(residual: Residual, project: Projection, plan: SearchPlan, seeds: int,
+                  features: jax.Array, params: Any, valid: jax.Array, shared: Any,
+                  free: jax.Array, pool: tuple) -> tuple[jax.Array, jax.Array, jax.Array,
+                                                         jax.Array]:
+    """``search_targets`` from the ``seeds`` pool entries nearest each target in pose,
+    looked up in the same program (``explore.nearest_features``): the targets' pose
+    features (T, 9) go in, not their seeds (T, seeds, n), and no indices come back to the
+    host between the lookup and the search. ``pool``: ``SeedPool.device_arrays(padded=
+    True)``; ``seeds`` at most the pool's valid entries."""
+    pool_features, pool_valid, pool_z = pool
+    nearest = nearest_features(pool_features, pool_valid, features, seeds)
+    return search_targets(residual, project, plan, pool_z[nearest], params, valid, shared,
+                          free)
+
+
 def _search_rows(residual: Residual, project: Projection, plan: SearchPlan,
                  z_seeds: jax.Array, params: Any, valid: jax.Array, shared: Any,
                  free: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:

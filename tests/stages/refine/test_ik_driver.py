@@ -49,11 +49,12 @@ def test_self_colliding_free_answers_are_repaired_in_a_small_chunk() -> None:
     assert 1 <= repaired <= 2
     own = fcl_self_clearance(TDCR3, result.q)
     assert np.all(own >= solver.config.safety_margin - 1e-6), own
-    # Lookup, search, one repair program from the answers' own beams (their answer and
-    # its three beam candidates: 4 seeds), no retry program: 3 device calls; the repair's
+    # The search with its seed lookup, one repair program from the answers' own beams
+    # (their answer and its three beam candidates: 4 seeds), no retry program: 2 device
+    # calls; the repair's
     # coarse round iterated 4 rows per repaired target in a REPAIR_CHUNK-target chunk,
     # not 32 seeds per target in a 128-target chunk.
-    assert solver.device_calls == 3
+    assert solver.device_calls == 2
     repair = [call for call in solver.lm_calls if call[1] == REPAIR_CHUNK * 4]
     assert repair and repair[0][0] == repaired * 4, solver.lm_calls
     # The verdict reused the repair's self-clearance: it equals world.check's own.
@@ -83,6 +84,7 @@ def test_answers_the_beam_cannot_repair_go_to_the_retry_program(monkeypatch) -> 
     assert result.success.all(), result.reason
     own = fcl_self_clearance(TDCR3, result.q)
     assert np.all(own >= solver.config.safety_margin - 1e-6), own
-    # Lookup, search, then the retry program (the beam search was replaced here).
-    assert solver.device_calls == 3
+    # The search (its lookup inside), then the retry program (the repair's search was
+    # replaced here).
+    assert solver.device_calls == 2
     assert solver.retried[0] == repaired

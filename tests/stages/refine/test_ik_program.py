@@ -87,7 +87,7 @@ def test_per_target_search_stops_the_other_candidates() -> None:
 @pytest.mark.parametrize(("robot", "scene"), [
     (TDCR3, None), pytest.param(TDCR4, LATTICE, marks=pytest.mark.slow)],
                          ids=["tdcr3-free", "tdcr4_ext-lattice"])
-def test_search_reaches_every_target_in_two_device_calls(robot, scene) -> None:  # noqa: ANN001
+def test_search_reaches_every_target_in_one_device_call(robot, scene) -> None:  # noqa: ANN001
     q = free_configurations(robot, 24, seed=21, clearance=0.05)
     positions, wxyz = targets_from(robot, q)
     solver = IKSolver(robot, scene)
@@ -97,8 +97,8 @@ def test_search_reaches_every_target_in_two_device_calls(robot, scene) -> None: 
     reached, _ = targets_from(robot, result.q)
     assert np.median(np.linalg.norm(reached - positions, axis=1)) < 1e-5
     assert np.all(result.max_violation <= 1e-6) and result.collision_free.all()
-    # One lookup and one search program: no retry, no repair was needed.
-    assert solver.device_calls == 2 and solver.retried == [0, 0]
+    # One search program, the seed lookup inside it: no retry, no repair was needed.
+    assert solver.device_calls == 1 and solver.retried == [0, 0]
 
 
 def test_candidates_are_a_diverse_refined_beam() -> None:
@@ -130,10 +130,10 @@ def _assert_verified(result, positions: np.ndarray) -> None:  # noqa: ANN001
 
 def test_fused_retries_run_inside_the_search_program() -> None:
     """Targets the search cannot reach (98 % of the robot's length from its base but off
-    its axis: only a nearly straight robot reaches that far) are retried: one lookup,
-    one search and one retry program for both rounds, and a solve is reproducible. Same
-    24 targets as the tdcr3 case above, so the lookup and search programs come from the
-    compilation cache."""
+    its axis: only a nearly straight robot reaches that far) are retried: one search
+    program (its seed lookup inside) and one retry program for both rounds, and a solve
+    is reproducible. Same 24 targets as the tdcr3 case above, so the search program
+    comes from the compilation cache."""
     q = free_configurations(TDCR3, 20, seed=21, clearance=0.05)
     positions, wxyz = targets_from(TDCR3, q)
     sideways = np.array([[1.0, 0, 0], [0, 1, 0], [0, 0, -1], [-0.6, 0.8, 0]])
@@ -146,7 +146,7 @@ def test_fused_retries_run_inside_the_search_program() -> None:
     _assert_verified(new, positions)
     # The unreachable four fail every round.
     assert new_solver.retried == [4, 4]
-    assert new_solver.device_calls == 3
+    assert new_solver.device_calls == 2
     # Both retry rounds ran in the retry program: each one's coarse round iterated the
     # four targets' 32 seeds.
     assert [c[0] for c in new_solver.lm_calls].count(4 * 32) == 2
@@ -169,4 +169,4 @@ def test_fused_retries_rescue_targets() -> None:
     assert new_solver.retried[0] > 20
     assert new.success.sum() > none.success.sum() + 10
     _assert_verified(new, positions)
-    assert new_solver.device_calls == 3
+    assert new_solver.device_calls == 2
