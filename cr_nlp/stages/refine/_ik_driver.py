@@ -6,14 +6,13 @@ One part of a stream of targets is solved by
 1. explore and search, one ``search_pooled`` program per chunk of targets
    (``ChunkRunner.search_pool``): the pool entries nearest each target in pose (the
    lookup of ``SeedPool.nearest``, on the device), coarse LM on every seed, a diverse
-   beam, the refinement rounds. The seeds never pass through the host: a separate
-   lookup program sent (T, k) indices back, the host gathered the (T, k, n) seeds, cast
-   them and sent them out again;
-2. (the same program's search is ``search_targets`` where the seeds are given: the
-   self-repair below);
-3. retry: every retry round of the targets whose best cost is still above the success
+   beam, the refinement rounds (``search_targets``, which the self-repair runs on seeds
+   it gives). The seeds never pass through the host (a separate lookup program used to
+   send (T, k) indices back; the host gathered the (T, k, n) seeds, cast them and sent
+   them out again); booked as refinement;
+2. retry: every retry round of the targets whose best cost is still above the success
    level, as one ``retry_targets`` program per chunk (only when some target failed);
-4. self-repair (without a scene only; the search then ran on the pose alone, because the
+3. self-repair (without a scene only; the search then ran on the pose alone, because the
    self-clearance rows in every LM row made a free tdcr3 solve ~8× slower): the targets
    whose answer's segments at least two apart come closer than δ by ``world.check`` are
    searched again with the self-clearance rows, first from their own beam in a small
