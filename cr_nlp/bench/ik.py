@@ -583,11 +583,10 @@ def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str],
         f"{sizes.scipy_targets} targets of each case (it is slow).",
         "- The baselines ignore obstacles and self-collision; their answers are judged "
         "by the same verdict (python-fcl, self-clearance) as every other row.",
-        "- throughput: explore (the seed pool, once per solver), refine (one search "
-        "program per chunk: nearest-pose lookup, coarse LM, beam, LM; the retries) and "
-        "verify (the float64 verdict: a compiled float64 program for blocks of 4096 "
-        "answers, numpy for smaller ones, python-fcl for obstacles) are "
-        "`IKResult.timing`; device wait "
+        "- throughput: explore (the seed pool), refine (per chunk one search program: "
+        "nearest-pose lookup, coarse LM, beam, LM; retries) and verify (the float64 "
+        "verdict: a compiled float64 program for blocks of 4096 answers, numpy for "
+        "smaller ones, python-fcl for obstacles) are `IKResult.timing`; device wait "
         "is the time the host blocked on device results (`IKSolver.device_wait`: device "
         "work nothing on the host overlapped); host s = wall − device wait, the time the "
         "device may have idled (on a CPU the device is the host: XLA may run a program "
