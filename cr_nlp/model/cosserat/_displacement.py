@@ -42,6 +42,7 @@ import numpy as np
 from ..._cached_jit import CachedProgram
 from ...runtime import cached, configure
 from .._actuation_block import Actuation
+from ..actuation import tendon_segments
 from ..loads import static_loads
 from ..mechanics import require_mechanics
 from ..robot import Robot
@@ -126,7 +127,7 @@ def take_up_coupling(through: Any, take_up: Any) -> Any:
 def take_up_lengths(robot: Robot, tensions: Any) -> np.ndarray:
     """(B, n_tendons) how much of each tendon's path the take-up takes under tensions (B,
     n_tendons) N, m (zeros for a robot without ``mechanics.tendon_take_up``)."""
-    through = routing_of(robot).through.astype(float)
+    through = tendon_segments(robot)
     return np.asarray(tensions, float) @ take_up_coupling(through, take_up_of(robot)).T
 
 
@@ -313,7 +314,7 @@ def displacement_solver(robot: Robot, config: StaticsConfig = StaticsConfig(),
     axis_name=axis)``), where the batch shares one test for the coarse Jacobian
     (``_continuation``)."""
     lay, coarse = _layout(robot, config), _layout(robot, config, coarse=True)
-    through = routing_of(robot).through.astype(float)
+    through = tendon_segments(robot)
 
     def solve(pull: jax.Array, k: jax.Array, stiffness: jax.Array, take_up: jax.Array,
               loads: CaseLoads, y0: jax.Array, lam0: jax.Array) -> tuple[jax.Array, ...]:
@@ -337,7 +338,7 @@ def displacement_pass(robot: Robot, config: StaticsConfig = StaticsConfig()) -> 
     tensions are ``y[3:] * tension_scale``."""
     lay = _layout(robot, config)
     scales = _scales(lay)
-    through = routing_of(robot).through.astype(float)
+    through = tendon_segments(robot)
 
     def one_pass(y: jax.Array, pull: jax.Array, k: jax.Array, stiffness: jax.Array,
                  take_up: jax.Array, loads: CaseLoads) -> tuple[jax.Array, jax.Array, jax.Array]:

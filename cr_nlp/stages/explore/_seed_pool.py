@@ -180,8 +180,6 @@ class SeedPool:
         self._device_valid = jnp.asarray(valid.reshape(blocks, block))
         self._device_z: jax.Array | None = None
         self._device_z_padded: jax.Array | None = None
-        self.typed_z = self.z.astype(self.dtype)
-        """(P, 3n) the entries' bending vectors in the search's dtype (rad, rad, m)."""
         self._programs: dict[tuple[int, int], object] = {}
         self.compile_seconds = 0.0
         """Seconds spent compiling lookup programs so far (one per chunk shape and k)."""
@@ -208,14 +206,13 @@ class SeedPool:
         them, and the entries' bending vectors (P, 3n) (rad, rad, m); ``padded``: with
         zero rows to the features' padded length, so that pools of one padded size (robots
         of one shape) give programs arrays of one shape."""
-        if self._device_z is None:
-            self._device_z = jnp.asarray(self.typed_z)
         if not padded:
+            if self._device_z is None:
+                self._device_z = jnp.asarray(self.z, self.dtype)
             return self._device_features, self._device_valid, self._device_z
         if self._device_z_padded is None:
-            rows = self._device_valid.size
-            z = np.zeros((rows, self.typed_z.shape[1]), self.typed_z.dtype)
-            z[:len(self.typed_z)] = self.typed_z
+            z = np.zeros((self._device_valid.size, self.z.shape[1]), self.dtype)
+            z[:len(self.z)] = self.z
             self._device_z_padded = jnp.asarray(z)
         return self._device_features, self._device_valid, self._device_z_padded
 

@@ -361,8 +361,8 @@ class IKSearch:
         pool = self.seed_pool(timing)
         k = min(self.settings.seeds_per_target, len(pool))
         plan = replace(self.settings.plan, per_target=per_target)
-        if k == 0:  # no pool entry keeps clear of the scene: no seeds (as before the pool)
-            seeds = np.zeros((len(positions), 0, len(self.main.free)), pool.typed_z.dtype)
+        if k == 0:  # no pool entry keeps clear of the scene: no seeds, as the lookup gave
+            seeds = np.zeros((len(positions), 0, len(self.main.free)), self.main.dtype)
             return self.main.search(plan, seeds, positions, rotations, timing)
         return self.main.search_pool(plan, pool, k, positions, rotations, timing)
 
