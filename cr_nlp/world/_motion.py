@@ -20,7 +20,7 @@ from ..model import Robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import NUMPY
 from ..model.kinematics import model_segment_frames, model_tendon_lengths
 from ..model.limits import limit_violation_q
-from .check import check_many, check_motion
+from .check import body_chain, check_many, check_motion
 from .scene import Scene
 from .verdict import VIOLATION_TOLERANCE, Verdict, judge
 
@@ -121,7 +121,10 @@ def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
     if q.ndim != 2 or q.shape[1] != robot.dof or len(q) < 2:
         raise ValueError(f"q must be (H+1, {robot.dof}) with H ≥ 1, got {q.shape}")
     dense = interpolate_trajectory(q, samples)
-    tips = tip_positions(robot, dense)
+    # The body chain's last point is the tip: one forward kinematics pass, not two.
+    chains = (body_chain(robot, dense) if scene is not None or robot.has_self_pairs
+              else None)
+    tips = chains[:, -1] if chains is not None else tip_positions(robot, dense)
     path_length = float(np.sum(np.linalg.norm(np.diff(tips, axis=0), axis=1)))
     lengths = tendon_series(robot, q)
     speed = np.diff(lengths, axis=0) / dt
@@ -130,11 +133,11 @@ def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
     speed_max = float(np.max(np.abs(speed))) if speed.size else 0.0
     accel_max = float(np.max(np.abs(accel))) if accel.size else 0.0
     min_clearance, self_clearance, first_collision = math.inf, math.inf, -1
-    if scene is not None or robot.has_self_pairs:
-        checked = check_motion(robot, scene, dense)
-        min_clearance = checked.obstacle_distance
-        self_clearance = checked.self_distance
-        hits = np.flatnonzero(checked.collision)
+    if chains is not None:
+        motion = check_motion(robot, scene, dense, chains=chains)
+        min_clearance = motion.obstacle_distance
+        self_clearance = motion.self_distance
+        hits = np.flatnonzero(motion.collision)
         first_collision = int(hits[0]) if len(hits) else -1
     where = ""
     if first_collision >= 0:

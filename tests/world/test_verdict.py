@@ -158,3 +158,21 @@ def test_without_the_self_model_the_first_answers_self_collide() -> None:
     blind = _snake_solver(off).solve(positions, wxyz)
     assert blind.success.all()                 # by a rule without self-collision …
     assert np.any(fcl_self_clearance(snake, blind.q) < -1e-3)   # … they pass through
+
+
+@pytest.mark.parametrize("scene", [None, "lattice"])
+def test_a_motions_path_length_is_its_tips_polyline(scene: str | None) -> None:
+    """The verdict's tip path (taken from the body chain it checks when it checks one) is
+    the polyline through the tips of the densely interpolated motion by the forward
+    kinematics (``bench.ik.forward_kinematics``), with a scene and without."""
+    from cr_nlp.model import load_robot
+    from cr_nlp.world import load_scene
+    from cr_nlp.world._motion import interpolate_trajectory
+
+    robot = load_robot("tdcr3")
+    lo, hi = robot.q_bounds()
+    q = np.random.default_rng(3).uniform(lo, hi, size=(5, robot.dof))
+    verdict = verify_trajectory(robot, scene and load_scene(scene), q, dt=1.0, samples=4)
+    tips, _ = forward_kinematics(robot, interpolate_trajectory(q, 4))
+    expected = np.linalg.norm(np.diff(tips, axis=0), axis=1).sum()
+    assert verdict.path_length == pytest.approx(expected, rel=1e-12)
