@@ -160,16 +160,19 @@ def test_without_the_self_model_the_first_answers_self_collide() -> None:
     assert np.any(fcl_self_clearance(snake, blind.q) < -1e-3)   # … they pass through
 
 
-@pytest.mark.parametrize("scene", [None, "lattice"])
-def test_a_motions_path_length_is_its_tips_polyline(scene: str | None) -> None:
-    """The verdict's tip path (taken from the body chain it checks when it checks one) is
-    the polyline through the tips of the densely interpolated motion by the forward
-    kinematics (``bench.ik.forward_kinematics``), with a scene and without."""
+@pytest.mark.parametrize(("scene", "self_collision"),
+                         [("lattice", True), (None, True), (None, False)])
+def test_a_motions_path_length_is_its_tips_polyline(scene: str | None,
+                                                    self_collision: bool) -> None:
+    """The verdict's tip path (taken from the body chain it checks when it checks one:
+    with a scene or the robot's self-collision; else from the tips alone) is the polyline
+    through the tips of the densely interpolated motion by the forward kinematics
+    (``bench.ik.forward_kinematics``)."""
     from cr_nlp.model import load_robot
     from cr_nlp.world import load_scene
     from cr_nlp.world._motion import interpolate_trajectory
 
-    robot = load_robot("tdcr3")
+    robot = dataclasses.replace(load_robot("tdcr3"), self_collision=self_collision)
     lo, hi = robot.q_bounds()
     q = np.random.default_rng(3).uniform(lo, hi, size=(5, robot.dof))
     verdict = verify_trajectory(robot, scene and load_scene(scene), q, dt=1.0, samples=4)
