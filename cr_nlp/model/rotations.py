@@ -23,6 +23,7 @@ def wxyz_from_matrix(rotation: np.ndarray) -> np.ndarray:
 def matrix_from_wxyz(wxyz: np.ndarray) -> np.ndarray:
     """(…, 4) unit quaternions (w, x, y, z) → (…, 3, 3) rotation matrices."""
     q = np.asarray(wxyz, dtype=float)
+    # Every entry is a product of the components, so already of the batch's shape (no
+    # ``np.broadcast_to``: 20 µs each, most of a single quaternion's 0.2 ms).
     entries = rot_from_quat(tuple(q[..., i] for i in range(4)))
-    return np.stack([np.broadcast_to(e, q.shape[:-1]) for e in entries], axis=-1).reshape(
-        q.shape[:-1] + (3, 3))
+    return np.stack(entries, axis=-1).reshape(q.shape[:-1] + (3, 3))

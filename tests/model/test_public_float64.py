@@ -203,6 +203,11 @@ def test_quaternion_conversions_are_float64() -> None:
     expected *= np.where(expected[:, :1] < 0, -1.0, 1.0)
     np.testing.assert_allclose(wxyz, expected, rtol=0, atol=1e-14)
     np.testing.assert_allclose(matrix_from_wxyz(wxyz), r, rtol=0, atol=1e-14)
+    # one quaternion, and a batch of batches, keep their shapes
+    np.testing.assert_allclose(matrix_from_wxyz(wxyz[3]), r[3], rtol=0, atol=1e-14)
+    nested = matrix_from_wxyz(wxyz.reshape(2, 5, 4))
+    assert nested.shape == (2, 5, 3, 3) and nested.dtype == np.float64
+    np.testing.assert_allclose(nested.reshape(10, 3, 3), r, rtol=0, atol=1e-14)
 
 
 # ------------------------------------------------------------------ JAX in, JAX out

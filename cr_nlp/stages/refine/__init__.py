@@ -16,6 +16,7 @@ from ._banded_lm import banded_lm_solve as banded_lm_solve
 from ._lm import STOP_REASONS as STOP_REASONS
 from ._lm import LMConfig as LMConfig
 from ._lm import LMSolution as LMSolution
+from ._lm import iteration_budget as iteration_budget
 from ._lm import lm_solve as lm_solve
 
 _LAZY = {"MotionTerms": ("._tension_lm", "MotionTerms"),

@@ -52,7 +52,7 @@ from ...model.tendon_groups import moments_from_tensions, tendon_groups, tension
 from ...runtime import cached
 from ...world.clearance import SceneArrays, kind_distances
 from ._banded_lm import ChainResidual, banded_lm_solve
-from ._lm import LMConfig
+from ._lm import LMConfig, iteration_budget
 
 EQUILIBRIUM_WEIGHT = 10.0
 """Weight of the equilibrium rows against the tip rows (both in metres)."""
@@ -176,7 +176,7 @@ def tensions_of_unknowns(terms: TensionTerms, z: np.ndarray) -> np.ndarray:
     if terms.groups is None:
         return np.clip(z[:, :terms.robot.n_tendons], 0.0, 1.0) * terms.tension_max
     with jax.enable_x64(True):
-        return np.asarray(_tension_map(terms)(jnp.asarray(z)), dtype=float)
+        return np.asarray(_tension_map(terms)(z), dtype=float)
 
 
 @cached(maxsize=32)
@@ -363,5 +363,5 @@ def solve_motion(terms: MotionTerms, z0: np.ndarray, params: WaypointParams,
         z, cost, used = banded_lm_solve(
             motion_chain(terms), _chain_projection(terms.waypoint), padded(z0),
             jax.tree_util.tree_map(padded, params), shared, padded(free),
-            jnp.asarray(iterations), config)
+            iteration_budget(iterations), config)
         return np.asarray(z, dtype=float)[:count], float(cost), int(used)

@@ -66,6 +66,7 @@ from ...stages.refine import (
     WaypointParams,
     base_frame,
     box_bounds,
+    iteration_budget,
     lm_solve,
     project_box,
     tensions_of_unknowns,
@@ -485,7 +486,7 @@ class TensionIKSolver:
             solution = lm_solve(self._residuals[terms.shoot], self._project, padded(z0),
                                 jax.tree_util.tree_map(padded, params),
                                 self._device_scene(dtype), np.ones(z0.shape[1], dtype),
-                                jnp.asarray(iterations),
+                                iteration_budget(iterations),
                                 replace(self.lm_config(),
                                         initial_damping=self.config.initial_damping),
                                 bounds=box_bounds(terms, dtype))

@@ -4,7 +4,7 @@ against Nielsen's rule worked by hand."""
 import jax.numpy as jnp
 import numpy as np
 
-from cr_nlp.stages.refine import STOP_REASONS, lm_solve
+from cr_nlp.stages.refine import STOP_REASONS, iteration_budget, lm_solve
 from cr_nlp.stages.refine._lm import LMConfig, lm_step_rule
 
 CONFIG = LMConfig(give_up=((5, 1.0),))
@@ -88,6 +88,29 @@ def test_lm_solve_says_why_each_problem_stopped() -> None:
     stubborn = LMConfig(give_up=((2, 1e-9),), stall_tolerance=0.0)
     gave = lm_solve(_line, lambda z: z, z0, params, None, free, jnp.int32(50), config=stubborn)
     assert gave.reasons()[1] == "gave up"
+
+
+def _same(z):
+    return z
+
+
+def test_every_iteration_budget_runs_on_one_compiled_lm() -> None:
+    # A live update calls the LM with the same budget every time and the rounds of a
+    # batch with their own: each budget made by ``iteration_budget`` is the same traced
+    # integer (made once per value), so no budget compiles a program of its own.
+    import jax
+
+    params = (jnp.asarray([[1.0], [1.0]]), jnp.asarray([[0.0], [1.0]]))
+    z0, free = jnp.asarray([[5.0], [5.0]]), jnp.ones(1)
+    assert iteration_budget(7) is iteration_budget(7)
+    before = lm_solve._cache_size()
+    for budget in (1, 6, 200):
+        solved = lm_solve(_cubic, _same, z0, params, None, free, iteration_budget(budget))
+    assert solved.reasons() == ["converged", "stalled"]
+    assert lm_solve._cache_size() == before + 1
+    with jax.enable_x64(True):  # an int64 budget there, made once too
+        assert iteration_budget(7).dtype == jnp.int64
+        assert iteration_budget(7) is iteration_budget(7)
 
 
 def _rosenbrock(z, params, shared):
