@@ -123,6 +123,51 @@ def test_a_slow_motion_continued_from_its_last_equilibrium_keeps_the_shapes() ->
     assert continued.iterations.mean() < 0.7 * rest.iterations[1:].mean()
 
 
+def test_a_one_case_step_started_from_its_neighbours_jacobian_keeps_the_shape() -> None:
+    """``start_jacobian``: one case continued from the previous step's equilibrium with
+    that step's ``tip_moment_jacobian`` (the stability test's ∂M(L)/∂M(0)) lands on the
+    same shape in fewer Newton iterations; the Jacobian is CasADi's exact derivative of
+    the rod's tip moment (within 4e-7 of its size here: the stability test sweeps the
+    strains once), and a turned base turns it (world frame)."""
+    import casadi as ca
+
+    from cr_nlp.model.cosserat._casadi import CasadiRod, RodLoads
+
+    gravity, payload = [0.0, 0.0, -9.81], [0.0, 0.0, -0.005 * 9.81]
+    step = np.array([[2.0, 0.0, 0.5, 0.5, 1.0, 0.0], [2.1, 0.0, 0.55, 0.45, 1.05, 0.0],
+                     [2.2, 0.0, 0.6, 0.4, 1.1, 0.0]])
+    rest = solve_statics(RAO, step, payload, None, gravity)
+    first = solve_statics(RAO, step[1], payload, None, gravity,
+                          start_moment=rest.base_moment[0])
+    jacobian = first.tip_moment_jacobian
+    assert jacobian.shape == (1, 3, 3) and rest.tip_moment_jacobian is None
+    # CasADi's derivative of M(L) in M(0) at that equilibrium (base frame: identity here)
+    rod = CasadiRod(RAO, StaticsConfig(), np.zeros(0))
+    m0 = ca.MX.sym("m0", 3)
+    tip = rod.integrate(step[1], m0, RodLoads.numeric(payload, None, gravity))["tip_moment"]
+    exact = np.asarray(ca.Function("j", [m0], [ca.jacobian(tip, m0)])(first.base_moment[0]))
+    np.testing.assert_allclose(jacobian[0], exact, rtol=0, atol=1e-5 * np.abs(exact).max())
+    cold = solve_statics(RAO, step[2], payload, None, gravity, start_moment=first.base_moment[0])
+    warm = solve_statics(RAO, step[2], payload, None, gravity, start_moment=first.base_moment[0],
+                         start_jacobian=jacobian[0])
+    np.testing.assert_allclose(warm.positions, rest.positions[2:], atol=1e-9)
+    np.testing.assert_allclose(cold.positions, rest.positions[2:], atol=1e-9)
+    assert warm.stable[0] and warm.iterations[0] < cold.iterations[0]
+    # the base turned 90° about x, the loads with it: the same rod, its Jacobian turned
+    from dataclasses import replace
+
+    turn = matrix_from_wxyz(np.array([np.cos(np.pi / 4), np.sin(np.pi / 4), 0.0, 0.0]))
+    turned = replace(RAO, base_wxyz=tuple(np.array([np.cos(np.pi / 4), np.sin(np.pi / 4),
+                                                    0.0, 0.0])))
+    again = solve_statics(turned, step[1], turn @ payload, None, turn @ gravity,
+                          start_moment=turn @ rest.base_moment[0])
+    np.testing.assert_allclose(again.tip_moment_jacobian[0], turn @ jacobian[0] @ turn.T,
+                               atol=1e-9 * np.abs(jacobian).max())
+    with pytest.raises(ValueError, match=r"start_jacobian: expected a finite \(3, 3\)"):
+        solve_statics(RAO, step[2], payload, None, gravity, start_moment=first.base_moment[0],
+                      start_jacobian=np.eye(2))
+
+
 def test_an_unstable_start_moment_falls_back_to_the_loading_path() -> None:
     """Newton from the mirror image of a buckled column converges to that mirror image,
     which is unstable: the answer is the loading path's, buckled towards the nudge."""

@@ -62,11 +62,12 @@ def _det3(a: jax.Array) -> jax.Array:
 
 
 def jacobi_margin(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
-                  tension: jax.Array, loads: CaseLoads) -> jax.Array:
+                  tension: jax.Array, loads: CaseLoads, with_tip: bool = False) -> Any:
     """Positive for a stable equilibrium at M(0) = ``base_moment`` (one case): the smallest
     det Y(s) over the rod's grid points (Y = ∂M(s)/∂M(0), the identity at the base), and
     −1 where Y(s) has two negative real eigenvalues (two conjugate points passed at once,
-    which keeps the determinant's sign; see the module)."""
+    which keeps the determinant's sign; see the module). ``with_tip``: (that margin,
+    Y(L)), the shooting residual's Jacobian at the equilibrium (a next Newton's start)."""
     dtype = base_moment.dtype
     h = float(np.sqrt(np.finfo(np.dtype(dtype)).eps)) * jnp.maximum(
         jnp.max(jnp.abs(base_moment)), lay.moment_scale)
@@ -87,6 +88,8 @@ def jacobi_margin(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
     mu = (a - jnp.sqrt(jnp.maximum(spread, 0.0))) / 3
     peak = mu ** 3 - a * mu ** 2 + b * mu - d
     two_negative = (spread >= 0) & (mu < 0) & (peak >= -1e-6)
+    if with_tip:
+        return jnp.min(jnp.where(two_negative, -1.0, d)), y[-1]
     return jnp.min(jnp.where(two_negative, -1.0, d))
 
 

@@ -63,20 +63,22 @@ def _programs(robot: Robot, config: StaticsConfig) -> tuple[Any, Any, Any, Any]:
 def _settle_program(robot: Robot, config: StaticsConfig) -> Any:
     """One case's Newton under the full loads from a given M(0) (one round), its
     stability and its shape, in one program of a batch of one (a live update's verdict:
-    one call instead of three)."""
+    one call instead of three). Newton's first Jacobian is the given one (the previous
+    equilibrium's ∂M(L)/∂M(0), base frame) unless it holds a NaN (then differences); the
+    program returns the answer's, its stability test's Jacobi field at the tip."""
     lay, coarse = _layout(robot, config), _layout(robot, config, coarse=True)
 
-    def settle(tension: jax.Array, loads: CaseLoads, x0: jax.Array
-               ) -> tuple[_Newton, jax.Array, dict[str, jax.Array]]:
+    def settle(tension: jax.Array, loads: CaseLoads, x0: jax.Array, jacobian: jax.Array
+               ) -> tuple[_Newton, jax.Array, dict[str, jax.Array], jax.Array]:
         mode = jnp.asarray([0.0, 1.0], tension.dtype)
         start, iterate, done = _shooting(lay, coarse, config, tension, loads, mode,
                                          secant=True)
-        state = _run(iterate, done, start(x0, 1 + 0 * x0[0]),
+        state = _run(iterate, done, start(x0, 1 + 0 * x0[0], jacobian),
                      min(_FIRST_ROUND, config.max_iterations))
-        return (state, jacobi_margin(lay, config, state.x, tension, loads),
-                _finish(lay, config, state.x, tension, loads))
+        margin, tip = jacobi_margin(lay, config, state.x, tension, loads, with_tip=True)
+        return state, margin, _finish(lay, config, state.x, tension, loads), tip
 
-    return _split(_one(settle), 3)
+    return _split(_one(settle), 4)
 
 
 def _one(fn: Any) -> Any:
@@ -295,7 +297,8 @@ def _check(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads: Case
 def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment: Any = None,
                   gravity: Any = None, config: StaticsConfig = StaticsConfig(), *,
                   distributed_force: Any = None, point_loads: Any = None,
-                  all_equilibria: bool = False, start_moment: Any = None) -> StaticsResult:
+                  all_equilibria: bool = False, start_moment: Any = None,
+                  start_jacobian: Any = None) -> StaticsResult:
     """Equilibrium shapes for a batch of tendon tensions and loads (numpy in, numpy out).
 
     The answer is the equilibrium reached by loading the robot from rest (tensions and
@@ -324,6 +327,11 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
             and is stable (tdcr2 under gravity and a payload: 5–6 iterations from a
             neighbour, 4 for one case, against 7–10 from rest); elsewhere by the loading
             path from rest, as without it.
+        start_jacobian: (3, 3) ∂M(L)/∂M(0) at ``start_moment``'s equilibrium, world frame:
+            the ``tip_moment_jacobian`` of the one-case result that gave ``start_moment``.
+            A one-case solve from ``start_moment`` takes it as Newton's first Jacobian
+            instead of differences on a coarse grid (a slow motion's next step: 3 Newton
+            iterations instead of 4, and no differences). Ignored for a batch.
 
     Returns:
         ``StaticsResult`` in the world frame; a case that did not converge is marked in
@@ -369,13 +377,14 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
     snap_load = np.full(batch, np.nan)
     found: list = [[(base[i], True, True)] for i in range(batch)]
     shot = np.flatnonzero(frame.has_force())
-    out = None
+    out = jacobian = None
     # float64 without touching the process-wide flag (the batched stages keep theirs).
     with jax.enable_x64(config.dtype == "float64"):
         if shot.size and start_moment is not None:
             near = _start_moments(start_moment, batch) @ base_rot
-            kept = _continued(robot, config, t[shot], _rows(loads, shot), near[shot], dtype)
-            out = kept.shape
+            kept = _continued(robot, config, t[shot], _rows(loads, shot), near[shot], dtype,
+                              _start_jacobian(start_jacobian, base_rot))
+            out, jacobian = kept.shape, kept.jacobian
             base[shot[kept.any]] = kept.x
             iterations[shot[kept.any]] = kept.iterations
             for i in shot[kept.any]:
@@ -451,7 +460,8 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
         iterations=iterations,
         base_moment=out["base_moment"].astype(float) @ base_rot.T,
         base_force=out["base_force"].astype(float) @ base_rot.T,
-        stable=stable, equilibria=equilibria, snap_load=snap_load, all_equilibria=shapes)
+        stable=stable, equilibria=equilibria, snap_load=snap_load, all_equilibria=shapes,
+        tip_moment_jacobian=None if jacobian is None else base_rot @ jacobian @ base_rot.T)
 
 
 class _Continued(NamedTuple):
@@ -459,22 +469,28 @@ class _Continued(NamedTuple):
     x: np.ndarray           # their M(0), base frame
     iterations: np.ndarray
     shape: dict | None      # one row answered: its ``_finish`` (numpy)
+    jacobian: np.ndarray | None = None  # one row answered: (1, 3, 3) ∂M(L)/∂M(0), base frame
 
 
 def _continued(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads: CaseLoads,
-               near: np.ndarray, dtype: Any) -> _Continued:
+               near: np.ndarray, dtype: Any, jacobian: np.ndarray | None = None
+               ) -> _Continued:
     """Newton under the full loads from M(0) = ``near`` (R, 3), base frame, one round:
-    the rows whose answer converged and is stable."""
+    the rows whose answer converged and is stable. One row: from ``jacobian`` (3, 3),
+    ∂M(L)/∂M(0) at ``near``'s equilibrium, base frame, where given."""
     rows = len(tension)
     if rows == 1:
-        state, margin, shape = _settle_program(robot, config)(
-            *_typed((tension, loads, near), dtype))
+        start = np.full((1, 3, 3), np.nan) if jacobian is None else jacobian.reshape(1, 3, 3)
+        state, margin, shape, tip = _settle_program(robot, config)(
+            *_typed((tension, loads, near, start), dtype))
         x, it = np.array(state.x), np.asarray(state.it)
         tol = config.resolved_tolerance() * _layout(robot, config).moment_scale
         ok = ((np.asarray(state.lam) >= 1.0) & (np.linalg.norm(np.asarray(state.r), axis=1)
                                                  <= tol) & (np.asarray(margin) > 0.0))
-        return _Continued(ok, x[ok], it[ok],
-                          {k: np.asarray(v) for k, v in shape.items()} if ok[0] else None)
+        if not ok[0]:
+            return _Continued(ok, x[ok], it[ok], None)
+        return _Continued(ok, x, it, {k: np.asarray(v) for k, v in shape.items()},
+                          np.asarray(tip, dtype=float))
     solved = _solve_rows(robot, config, tension, loads, near, np.ones(rows),
                          np.tile([0.0, 1.0], (rows, 1)), dtype, further_round=False)
     ok = solved.converged.copy()
@@ -483,6 +499,17 @@ def _continued(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads: 
         ok[good] = _stable(robot, config, solved.x[good], tension[good],
                            _rows(loads, good), dtype)
     return _Continued(ok, solved.x[ok], solved.iterations[ok], None)
+
+
+def _start_jacobian(value: Any, base_rot: np.ndarray) -> np.ndarray | None:
+    """``start_jacobian`` (world frame) as (3, 3) in the base frame, checked; None: none."""
+    if value is None:
+        return None
+    j = np.asarray(value, dtype=float)
+    if j.size != 9 or not np.all(np.isfinite(j)):
+        raise ValueError(f"start_jacobian: expected a finite (3, 3) ∂M(L)/∂M(0), got shape "
+                         f"{j.shape}")
+    return base_rot.T @ j.reshape(3, 3) @ base_rot
 
 
 def _start_moments(value: Any, batch: int) -> np.ndarray:

@@ -501,13 +501,16 @@ class TensionIKSolver:
                            timing)
 
     def _forward(self, tensions: np.ndarray, loads: StaticLoads,
-                 start_moment: np.ndarray | None = None) -> StaticsResult:
+                 start_moment: np.ndarray | None = None,
+                 start_jacobian: np.ndarray | None = None) -> StaticsResult:
         """The verdict's fresh forward statics of ``tensions`` under ``loads`` (from
-        ``start_moment``, world frame, where given: ``solve_statics``)."""
+        ``start_moment`` and ``start_jacobian``, world frame, where given:
+        ``solve_statics``)."""
         return solve_statics(self.robot, tensions, loads.tip_force, loads.tip_moment,
                              loads.gravity, self.config.statics,
                              distributed_force=loads.distributed_force,
-                             point_loads=loads.point_load_lists(), start_moment=start_moment)
+                             point_loads=loads.point_load_lists(), start_moment=start_moment,
+                             start_jacobian=start_jacobian)
 
     def _judge(self, statics: StaticsResult, tensions: np.ndarray, positions: np.ndarray,
                quats: np.ndarray, loads: StaticLoads, timing: StageTiming) -> TensionIKResult:

@@ -12,8 +12,9 @@ statics solve of its tensions, the tension bounds, and python-fcl on the solved 
 The fresh solve of a warm-started answer starts from the equilibrium the verdict found
 for the previous answer (``solve_statics(start_moment=…)``: Newton under the full loads, the
 equilibrium a robot dragged from there stays on; where that fails or is unstable, the
-loading path from rest as everywhere else): 4 shooting iterations instead of 10, with the
-shape and the stability test in the same program.
+loading path from rest as everywhere else), whose first Jacobian is that equilibrium's
+own ∂M(L)/∂M(0) (``start_jacobian``): 3 shooting iterations instead of 10 from rest, with
+the shape and the stability test in the same program.
 Units: metres, radians, newtons, N·m, seconds.
 """
 
@@ -79,7 +80,7 @@ class TensionLiveIKSolver:
                                   replace(config or TensionIKConfig(), round_iterations=0))
         self.robot = self.ik.robot
         self.loads = static_loads(1, self.ik.length, **loads)
-        self._moment: tuple | None = None
+        self._warm: tuple | None = None
 
     def solve(self, tensions: Any, position: Any, wxyz: Any = None, *,
               search: bool = True) -> TensionLiveIKResult:
@@ -105,9 +106,9 @@ class TensionLiveIKSolver:
             raise ValueError("position: expected 3 finite numbers, m")
         quats = (np.full((1, 4), np.nan) if wxyz is None
                  else np.asarray(wxyz, dtype=float).reshape(1, 4))
-        moment, verified = self._warm_moment(current)
+        moment, verified, jacobian = self._warm_start(current)
         answer = self.ik._lm(current, target, quats, self.loads, moment, smallest=1)
-        shape = self.ik._forward(answer, self.loads, verified)
+        shape = self.ik._forward(answer, self.loads, verified, jacobian)
         judged = self.ik._judge(shape, answer, target, quats, self.loads, StageTiming())
         stage = Stage.REFINE
         if search and not judged.success[0]:
@@ -118,8 +119,8 @@ class TensionLiveIKSolver:
                                    StageTiming())
             if other.success[0] or other.pose_error[0] < judged.pose_error[0]:
                 answer, judged, shape, stage = again, other, other_shape, Stage.SEARCH
-        self._moment = (answer.tobytes(), base_frame(self.robot, judged.base_moment),
-                        judged.base_moment[0])
+        self._warm = (answer.tobytes(), base_frame(self.robot, judged.base_moment),
+                      judged.base_moment[0], shape.tip_moment_jacobian)
         return TensionLiveIKResult(
             tensions=answer[0], position=judged.position[0],
             position_error=float(judged.position_error[0]),
@@ -137,14 +138,15 @@ class TensionLiveIKSolver:
             raise ValueError(f"tensions: expected {self.robot.n_tendons} finite numbers, N")
         return self.ik._forward(current, self.loads)
 
-    def _warm_moment(self, current: np.ndarray) -> tuple[Any, Any]:
+    def _warm_start(self, current: np.ndarray) -> tuple[Any, Any, Any]:
         """Where ``current`` is the last answer (its equilibrium is known): its M(0),
         (1, 3) N·m in the base frame for the LM and (3,) in the world frame for the
-        verdict's statics; else (None, None): the LM starts from the tip moments, the
-        statics from rest."""
-        if self._moment is not None and self._moment[0] == current.tobytes():
-            return self._moment[1], self._moment[2]
-        return None, None
+        verdict's statics, with the statics' ∂M(L)/∂M(0) there (None where that answer
+        came from the loading path); else (None, None, None): the LM starts from the tip
+        moments, the statics from rest."""
+        if self._warm is not None and self._warm[0] == current.tobytes():
+            return self._warm[1:]
+        return None, None, None
 
 from ..._moved import moved_names  # noqa: E402 — the old names, for one release
 
