@@ -123,6 +123,19 @@ def test_a_slow_motion_continued_from_its_last_equilibrium_keeps_the_shapes() ->
     assert continued.iterations.mean() < 0.7 * rest.iterations[1:].mean()
 
 
+def test_a_batch_with_one_loaded_case_continued_keeps_every_case() -> None:
+    """``start_moment`` on a batch whose only loaded case is continued alone: every case
+    keeps its row and its loading-path shape (the one-case shortcut once returned that
+    case's shape for the whole batch)."""
+    tensions = np.array([[2.0, 0.0, 0.5, 0.5, 1.0, 0.0], [2.1, 0.0, 0.5, 0.5, 1.0, 0.0]])
+    force = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -0.05]])
+    rest = solve_statics(RAO, tensions, force)
+    continued = solve_statics(RAO, tensions, force, start_moment=rest.base_moment)
+    assert continued.positions.shape == rest.positions.shape
+    np.testing.assert_allclose(continued.positions, rest.positions, atol=1e-9)
+    assert continued.tip_moment_jacobian is None  # a batch's solve: none kept
+
+
 def test_a_one_case_step_started_from_its_neighbours_jacobian_keeps_the_shape() -> None:
     """``start_jacobian``: one case continued from the previous step's equilibrium with
     that step's ``tip_moment_jacobian`` (the stability test's ∂M(L)/∂M(0)) lands on the

@@ -384,7 +384,8 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
             near = _start_moments(start_moment, batch) @ base_rot
             kept = _continued(robot, config, t[shot], _rows(loads, shot), near[shot], dtype,
                               _start_jacobian(start_jacobian, base_rot))
-            out, jacobian = kept.shape, kept.jacobian
+            if batch == 1:  # (the one case's shape; in a batch every case's is made below)
+                out, jacobian = kept.shape, kept.jacobian
             base[shot[kept.any]] = kept.x
             iterations[shot[kept.any]] = kept.iterations
             for i in shot[kept.any]:
