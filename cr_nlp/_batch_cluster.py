@@ -45,7 +45,9 @@ class ExposedClusterWarning(UserWarning):
 def worker_env(workers: int) -> dict[str, str]:
     """Environment of one of ``workers`` local worker processes: its share of the usable
     cores as JAX host devices (at least one), also in ``XLA_FLAGS`` (which it would
-    otherwise inherit from this process, set for all the cores)."""
+    otherwise inherit from this process, set for all the cores); programs optimised fully
+    at once (a batch is a large job: ``cr_nlp._compile_effort``) unless
+    ``$CR_NLP_COMPILE`` says otherwise."""
     devices = max(1, len(os.sched_getaffinity(0)) // workers)
     flags = [
         f
@@ -53,7 +55,8 @@ def worker_env(workers: int) -> dict[str, str]:
         if not f.startswith("--xla_force_host_platform_device_count")
     ]
     flags.append(f"--xla_force_host_platform_device_count={devices}")
-    return {DEVICES_ENV: str(devices), "XLA_FLAGS": " ".join(flags)}
+    return {DEVICES_ENV: str(devices), "XLA_FLAGS": " ".join(flags),
+            "CR_NLP_COMPILE": os.environ.get("CR_NLP_COMPILE", "full")}
 
 
 def is_loopback(host: str) -> bool:

@@ -47,11 +47,12 @@ from typing import Any
 import jax
 import numpy as np
 
+from . import _compile_effort as _effort
 from ._by_shape import ByShape, WithData, lift
 from ._files import write_atomic
 from ._fingerprint import Unkeyable, fingerprint
 from ._program_clock import Flat as _Flat
-from .runtime import cache_dir, register
+from .runtime import cache_dir, programs_dir, register
 
 FORMAT = b"cr_nlp-program-3\n"
 """First bytes of an entry: the file format (a change of format is a change of key too)."""
@@ -232,7 +233,9 @@ def _requested(fn: Callable, args: Sequence[Any], name: str,
     leaves = jax.tree.leaves(tuple(args))
     devices = tuple(sorted({d.id for leaf in leaves if isinstance(leaf, jax.Array)
                             for d in leaf.devices()}))
-    memory_key = f"{key}:{devices}"
+    effort = _effort.effort(key, _effort.forced_full(), leaves, split)
+    tier = key if effort == "full" else f"{key}+{effort}"  # one program per effort in memory
+    memory_key = f"{tier}:{devices}"
     with _lock:
         if memory_key in _memory:
             if not ahead:
@@ -247,11 +250,11 @@ def _requested(fn: Callable, args: Sequence[Any], name: str,
             # where it is on disk already: then XLA's cache likely has its code, which
             # each device loads at once (side by side) and which cannot be moved.
             siblings = [] if split or len(devices) != 1 or _stored(key) else [
-                k for k in (*_memory, *_pending) if k.startswith(f"{key}:(")]
+                k for k in (*_memory, *_pending) if k.startswith(f"{tier}:(")]
             future = _pending[memory_key] = Future()
     if owner:
         build = functools.partial(_build, future, fn, args, key, memory_key, name,
-                                  batched if split else None, outputs, siblings)
+                                  batched if split else None, outputs, siblings, effort)
         if ahead:
             _background().submit(build)
         else:
@@ -261,14 +264,14 @@ def _requested(fn: Callable, args: Sequence[Any], name: str,
 
 def _build(future: Future, fn: Callable, args: Sequence[Any], key: str, memory_key: str,
            name: str, batched: Sequence[bool] | None, outputs: int,
-           siblings: Sequence[str] = ()) -> None:
+           siblings: Sequence[str] = (), effort: str = "full") -> None:
     """Load or trace, then compile, the program under ``key`` (or move a sibling's copy
     of it to this device); its result (or error) goes to ``future``, the program into
     the memory."""
     try:
         compiled = _from_sibling(siblings, args) if siblings else None
         if compiled is None:
-            compiled = _compiled(fn, args, key, name, batched, outputs)
+            compiled = _compiled(fn, args, key, name, batched, outputs, effort)
     except BaseException as exc:
         with _lock:
             del _pending[memory_key]
@@ -285,12 +288,14 @@ def _build(future: Future, fn: Callable, args: Sequence[Any], key: str, memory_k
 
 
 def _compiled(fn: Callable, args: Sequence[Any], key: str, name: str,
-              batched: Sequence[bool] | None, outputs: int) -> Any:
-    """The program under ``key``: loaded from disk, else traced and stored; compiled."""
+              batched: Sequence[bool] | None, outputs: int, effort: str = "full") -> Any:
+    """The program under ``key``: loaded from disk, else traced and stored; compiled
+    with ``effort`` ("quick" in auto mode: noted for the background upgrade)."""
     leaves, in_tree = jax.tree.flatten(tuple(args))
     # The program is exported over the arguments' leaves (its pytrees, NamedTuples of
     # cr_nlp's among them, need no serialisation of their own); the output structure is
     # stored beside it.
+    leaf_batched = None
     if batched is not None:
         mesh = _mesh()
         leaf_batched = [b for arg, b in zip(args, batched, strict=True)
@@ -313,7 +318,8 @@ def _compiled(fn: Callable, args: Sequence[Any], key: str, name: str,
             ops = _operations(exported)
             if announce:
                 print(f"cr_nlp: compiling {name or _name(fn)} ({ops} operations; about "
-                      f"{max(1, round(ops * _seconds_per_op()))} s, once: later processes "
+                      f"{max(1, round(ops * _seconds_per_op(effort)))} s"
+                      f"{', quickly' if effort == 'quick' else ''}, once: later processes "
                       f"load it from {cache_dir()})", file=sys.stderr, flush=True)
         else:
             exported, out_tree = entry
@@ -321,11 +327,13 @@ def _compiled(fn: Callable, args: Sequence[Any], key: str, name: str,
     _watch_xla_cache()
     hits = getattr(_xla_cache, "hits", 0)
     t0 = time.perf_counter()
-    executable = runner.lower(*leaves).compile()
+    executable = runner.lower(*leaves).compile(compiler_options=_effort.compile_options(effort))
     seconds = time.perf_counter() - t0
     stats.compile_seconds += seconds
     if ops:
-        _record_rate(seconds / ops)
+        _record_rate(seconds / ops, effort)
+    if effort == "quick" and _effort.setting() == "auto":
+        _effort.note_quick(key, leaves, leaf_batched, environment_key())
     return _Flat(executable, out_tree, movable=getattr(_xla_cache, "hits", 0) == hits)
 
 
@@ -465,11 +473,6 @@ def _operations(exported: Any) -> int:
 
 # ================================================================ the disk
 
-def programs_dir() -> Path:
-    """Where the traced programs are kept (``cache_dir()/programs``)."""
-    return cache_dir() / "programs"
-
-
 def _entry(key: str) -> Path:
     """The file of the program stored under ``key``."""
     return programs_dir() / f"{key}.jaxexport"
@@ -527,17 +530,18 @@ def _store(key: str, exported: Any, out_tree: Any) -> None:
                       RuntimeWarning, stacklevel=3)
 
 
-def _seconds_per_op() -> float:
-    """Compile seconds per operation measured on this machine last time (or the default)."""
+def _seconds_per_op(effort: str = "full") -> float:
+    """Compile seconds per operation at ``effort`` measured on this machine last time (or
+    the default: ``SECONDS_PER_OP``, a fifth of it quickly)."""
     try:
-        return float((programs_dir() / "seconds_per_op.txt").read_text())
+        return float((programs_dir() / f"seconds_per_op.{effort}.txt").read_text())
     except (OSError, ValueError):
-        return SECONDS_PER_OP
+        return SECONDS_PER_OP / (5 if effort == "quick" else 1)
 
 
-def _record_rate(rate: float) -> None:
+def _record_rate(rate: float, effort: str = "full") -> None:
     with contextlib.suppress(OSError):
-        write_atomic(programs_dir() / "seconds_per_op.txt", f"{rate:.6g}".encode())
+        write_atomic(programs_dir() / f"seconds_per_op.{effort}.txt", f"{rate:.6g}".encode())
 
 
 def clear_memory() -> None:

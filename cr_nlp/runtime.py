@@ -24,6 +24,9 @@ ENVIRONMENT = {
                         "programs, XLA's code, compiled CasADi functions, convex parts, "
                         "roadmaps, Sobol pools",
     "CR_NLP_JAX_CACHE": "XLA's compilation cache alone (default $CR_NLP_CACHE_DIR/jax)",
+    "CR_NLP_COMPILE": "how hard XLA optimises a program that no cache holds optimised: "
+                      "auto (default; quickly on a CPU, optimised by a background process "
+                      "for later runs), quick or full (see cr_nlp._compile_effort)",
     "CR_NLP_BATCH_DEVICES": "host devices of each Dask worker of a batch job (set by "
                             "cr_nlp for the workers it starts)",
     "CR_NLP_STARTUP_T": "process start time given to the start-up probe by "
@@ -76,6 +79,11 @@ def cache_dir() -> Path:
     """Where cr_nlp keeps its caches ($CR_NLP_CACHE_DIR, else ~/.cache/cr_nlp)."""
     root = os.environ.get("CR_NLP_CACHE_DIR")
     return Path(root) if root else Path.home() / ".cache" / "cr_nlp"
+
+
+def programs_dir() -> Path:
+    """Where the traced programs are kept (``cache_dir()/programs``; ``cr_nlp._programs``)."""
+    return cache_dir() / "programs"
 
 
 def cached_arrays(path: Path | None, build: Callable[[], dict[str, Any]],

@@ -31,6 +31,11 @@ ROOT = Path(__file__).resolve().parent.parent
 MODELS = ROOT / "models"
 
 use_host_devices()  # the solvers' sharded path runs in the tests as it does in the CLI
+# Every program with one effort, the run's XLA flags (below), and no background process
+# optimising them afterwards (``cr_nlp._compile_effort``; tests/test_compile_effort.py
+# runs its default in processes of its own). The commands and kernels the tests start
+# inherit it.
+os.environ.setdefault("CR_NLP_COMPILE", "full")
 # The cache the CLI and every cr_nlp process use ($CR_NLP_JAX_CACHE, else the cr_nlp cache
 # folder's jax/): the commands the tests start, the notebooks' kernels and the other
 # worker load what one process compiled. The test processes store only programs that

@@ -8,6 +8,7 @@ Adding a subcommand: a module ``cr_nlp/cli/<name>.py`` with ``add_parser(subpars
 from __future__ import annotations
 
 import argparse
+import os
 import shlex
 import sys
 from collections.abc import Sequence
@@ -44,6 +45,11 @@ SUBCOMMANDS = [
     warmup,
 ]
 """The subcommand modules, in ``--help`` order; each has ``add_parser(subparsers)``."""
+FULL_EFFORT = ("bench", "batch", "view", "warmup")
+"""Subcommands whose programs XLA optimises fully at once unless $CR_NLP_COMPILE says
+otherwise (``cr_nlp._compile_effort``): benchmarks measure the code later runs get,
+batches are large jobs, the viewer's live updates want the fastest code, a warm-up
+compiles for later processes."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -69,6 +75,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     from ._io import UsageError
 
     args.command_line = shlex.join(["cr-nlp", *argv])  # what a report says it came from
+    if args.command in FULL_EFFORT:
+        os.environ.setdefault("CR_NLP_COMPILE", "full")
     # Every core for the batched stages (before JAX starts); ``--devices`` where given.
     use_host_devices(getattr(args, "devices", None))
     configure()

@@ -25,6 +25,7 @@ PACKAGE = "cr_nlp"
 # batch, view, …) is an interface; the package __init__ re-exports the public API.
 LAYERS = {"_resources": 0, "runtime": 0, "_programs": 0, "_program_clock": 0,
           "_fingerprint": 0, "_files": 0, "_moved": 0, "_by_shape": 0, "_cached_jit": 0,
+          "_compile_effort": 0,
           "model": 1, "world": 2, "stages": 3, "tasks": 4}
 INTERFACE = 5
 FACADE = 6

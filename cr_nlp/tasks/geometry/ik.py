@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._compile_effort import LARGE_IK, full_effort
 from ...model import Robot, load_robot
 from ...model.derivatives import pose_residual
 from ...model.limits import project_z
@@ -329,7 +330,14 @@ class IKSolver:
             exact: polish every answer with Ipopt, constraints as constraints (each
                 target within ``config.polish_time_limit``, if set).
             progress: show a progress bar for the exact stage.
+
+        From ``LARGE_IK`` targets on, programs this solve compiles are optimised fully
+        at once (``cr_nlp._compile_effort``).
         """
+        with full_effort(len(positions) >= LARGE_IK):
+            return self._solve(positions, wxyz, exact, progress)
+
+    def _solve(self, positions: Any, wxyz: Any, exact: bool, progress: bool) -> IKResult:
         timing = IKTiming()
         self._search.reset()
         self.stream_parts = []

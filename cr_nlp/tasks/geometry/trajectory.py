@@ -42,6 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._compile_effort import LARGE_PLAN, full_effort
 from ...model import Robot, load_robot, q_to_z_numpy
 from ...model._ops import JAX
 from ...model.derivatives import tip_position_z
@@ -434,7 +435,15 @@ class TrajectoryPlanner:
                 (straight line and perturbed ones only).
             progress: show a progress bar for the exact stage.
             dt: seconds between waypoints (default ``config.dt``).
+
+        From ``LARGE_PLAN`` problems on, programs this call compiles are optimised fully
+        at once (``cr_nlp._compile_effort``).
         """
+        with full_effort(len(starts) >= LARGE_PLAN):
+            return self._plan(starts, goals, exact, init, progress, dt)
+
+    def _plan(self, starts: Any, goals: Any, exact: bool, init: str, progress: bool,
+              dt: float | None) -> list[TrajectoryResult]:
         if init not in ("roadmap", "straight"):
             raise ValueError(f"init must be 'roadmap' or 'straight', got {init!r}")
         if len(starts) != len(goals):
