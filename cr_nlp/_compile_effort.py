@@ -210,13 +210,28 @@ def start_upgrade() -> subprocess.Popen | None:
 
 
 def wait_for_upgrade(folder: Path | None = None, timeout: float = 900.0,
-                     poll: float = 0.5) -> bool:
+                     poll: float = 0.5, idle: float = 5.0) -> bool:
     """Wait until every program noted in ``folder`` (default: ``programs_dir()``) is
-    compiled fully, or ``timeout`` seconds passed: a benchmark's warm process then
-    measures the code every later process gets. Returns whether none is pending."""
+    compiled fully: a benchmark's warm process then measures the code every later
+    process gets. Gives up after ``timeout`` seconds, or once no background process has
+    held the folder's lock for ``idle`` seconds (what is left, none will compile).
+    Returns whether none is pending."""
+    import fcntl
+
+    folder = _folder() if folder is None else Path(folder)
     stop = time.monotonic() + timeout
+    free_since = None
     while pending(folder):
-        if time.monotonic() > stop:
+        now = time.monotonic()
+        if now > stop:
+            return False
+        try:
+            with open(folder / "upgrade.lock", "a") as lock:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)    # released on close
+            free_since = now if free_since is None else free_since
+        except BlockingIOError:
+            free_since = None
+        if free_since is not None and now - free_since > idle:
             return False
         time.sleep(poll)
     return True

@@ -18,6 +18,7 @@ import os
 import sys
 import time
 from collections.abc import Sequence
+from pathlib import Path
 
 
 def _arguments(note: dict) -> list:
@@ -67,13 +68,33 @@ def upgrade(key: str) -> bool:
 
 
 def run(devices: int) -> int:
-    """Compile every pending note of this environment; 0 when done, 1: another one runs."""
-    from . import _compile_effort as effort
-    from ._programs import environment_key
-    from .runtime import configure, programs_dir, use_host_devices
+    """Compile every pending note of this environment; 0 when done, 1: another one runs
+    (checked before JAX is imported: a second one costs next to nothing)."""
+    from .runtime import programs_dir
 
     with contextlib.suppress(OSError):
         os.nice(19)
+    folder = programs_dir()
+    with open(folder / "upgrade.lock", "a") as lock:
+        for attempt in range(20):       # a waiter's probe holds it for a moment
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if attempt == 19:
+                    return 1
+                time.sleep(0.05)
+        _compile_pending(devices, folder)
+    return 0
+
+
+def _compile_pending(devices: int, folder: Path) -> None:
+    """Compile the notes in ``folder`` of this process's environment (on ``devices`` host
+    devices, as the process that noted them), looking again until none is left."""
+    from . import _compile_effort as effort
+    from ._programs import environment_key
+    from .runtime import configure, use_host_devices
+
     use_host_devices(devices)
     configure()
     import jax
@@ -81,34 +102,31 @@ def run(devices: int) -> int:
     # Every program into the cache, as ``runtime.enable_compilation_cache`` has it (the
     # parent's cache directory comes as $JAX_COMPILATION_CACHE_DIR).
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    folder = programs_dir()
-    with open(folder / "upgrade.lock", "w") as lock:
-        try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return 1
-        mine = effort.environment_hash(environment_key())
-        tried: set[str] = set()
-        while True:
-            todo = []
-            for key in effort.pending(folder):
-                if key in tried:
-                    continue
-                with contextlib.suppress(OSError, ValueError):
-                    if json.loads(effort._note(key).read_text())["environment"] == mine:
-                        todo.append(key)
-            if not todo:
-                return 0
-            for key in todo:
-                tried.add(key)
-                t0 = time.perf_counter()
-                try:
+    mine = {}
+    for x64 in (False, True):        # programs traced in float64 (statics) and not
+        with jax.enable_x64(x64):
+            mine[effort.environment_hash(environment_key())] = x64
+    tried: set[str] = set()
+    while True:
+        todo = []
+        for key in effort.pending(folder):
+            with contextlib.suppress(OSError, ValueError):
+                x64 = mine.get(json.loads(effort._note(key).read_text())["environment"])
+                if key not in tried and x64 is not None:
+                    todo.append((key, x64))
+        if not todo:
+            return
+        for key, x64 in todo:
+            tried.add(key)
+            t0 = time.perf_counter()
+            try:
+                with jax.enable_x64(x64):
                     done = upgrade(key)
-                except Exception as exc:  # noqa: BLE001 — one program's failure is logged
-                    print(f"cr_nlp upgrade: {key}: {exc}", flush=True)
-                    continue
-                print(f"cr_nlp upgrade: {key}: {'compiled' if done else 'dropped'} in "
-                      f"{time.perf_counter() - t0:.1f} s", flush=True)
+            except Exception as exc:  # noqa: BLE001 — one program's failure is logged
+                print(f"cr_nlp upgrade: {key}: {exc}", flush=True)
+                continue
+            print(f"cr_nlp upgrade: {key}: {'compiled' if done else 'dropped'} in "
+                  f"{time.perf_counter() - t0:.1f} s", flush=True)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -45,12 +45,17 @@ x = np.linspace(-1.0, 1.0, 24, dtype=np.float32).reshape(8, 3)
 y = jax.device_put(np.linspace(0.0, 2.0, 12, dtype=np.float32).reshape(4, 3),
                    jax.devices()[1])                       # committed to the second device
 programs, counts, efforts = [], [], []
-for fn, args, batched in ((partial(bend, 0.5), (x, y), None), (spread, (x,), (True,))):
-    before = dict(seen)
-    key = _programs.program_key(fn, args, ((True,), 1) if batched else None)
-    efforts.append(_compile_effort.effort(key, False, jax.tree.leaves(args), bool(batched)))
-    programs.append(np.asarray(_programs.compile_program(fn, args, batched=batched)(*args)))
-    counts.append({k: seen[k] - before[k] for k in seen})
+for fn, args, batched, x64 in ((partial(bend, 0.5), (x, y), None, False),
+                               (spread, (x,), (True,), False),
+                               (spread, (x.astype(np.float64),), None, True)):
+    with jax.enable_x64(x64):                      # the third traced in float64
+        before = dict(seen)
+        key = _programs.program_key(fn, args, ((True,), 1) if batched else None)
+        efforts.append(_compile_effort.effort(key, False, jax.tree.leaves(args),
+                                              bool(batched)))
+        program = _programs.compile_program(fn, args, batched=batched)
+        programs.append(np.asarray(program(*args)))
+        counts.append({k: seen[k] - before[k] for k in seen})
 print(json.dumps({"counts": counts, "efforts": efforts, "pending": _compile_effort.pending(),
                   "values": [p.tolist() for p in programs]}))
 '''
@@ -70,20 +75,20 @@ def _child(tmp_path: Path) -> dict:
 
 def test_a_later_process_loads_every_quick_program_fully_optimised(tmp_path: Path) -> None:
     first = _child(tmp_path)
-    assert first["efforts"] == ["quick", "quick"]
-    assert [c["misses"] for c in first["counts"]] == [1, 1]       # compiled here
-    assert len(first["pending"]) == 2                              # noted for the upgrade
+    assert first["efforts"] == ["quick"] * 3
+    assert [c["misses"] for c in first["counts"]] == [1, 1, 1]    # compiled here
+    assert len(first["pending"]) == 3                              # noted for the upgrade
     folder = tmp_path / "cache" / "programs"
     log = folder / "upgrade.log"
     assert _compile_effort.wait_for_upgrade(folder, timeout=240), (
         log.read_text() if log.exists() else "no upgrade log")
     assert "compiled" in log.read_text()
     later = _child(tmp_path)
-    assert later["efforts"] == ["full", "full"]
-    # Both programs, one of them split over the devices and one with an argument committed
-    # to a device, come from XLA's cache: the background process compiled what this one
-    # asks for.
-    assert later["counts"] == [{"hits": 1, "misses": 0}] * 2
+    assert later["efforts"] == ["full"] * 3
+    # Every program, one with an argument committed to a device, one split over the
+    # devices, one traced in float64, comes from XLA's cache: the background process
+    # compiled what this one asks for.
+    assert later["counts"] == [{"hits": 1, "misses": 0}] * 3
     assert later["pending"] == []
     for quick, full in zip(first["values"], later["values"], strict=True):
         np.testing.assert_allclose(quick, full, rtol=1e-5, atol=1e-6)
@@ -131,3 +136,31 @@ def test_large_ik_and_planning_calls_compile_fully(count: int, large: bool,
     TrajectoryPlanner.plan(planner, [None] * count, [None] * count)
     assert seen == [large, large]
     assert not _compile_effort.forced_full()
+
+
+def test_one_background_process_per_cache(tmp_path: Path) -> None:
+    import fcntl
+
+    folder = tmp_path / "programs"
+    folder.mkdir()
+    env = dict(os.environ, CR_NLP_CACHE_DIR=str(tmp_path))
+    with open(folder / "upgrade.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)        # one is running
+        done = subprocess.run([sys.executable, "-m", "cr_nlp._upgrade", "--devices", "1"],
+                              env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1, done.stderr
+    done = subprocess.run([sys.executable, "-m", "cr_nlp._upgrade", "--devices", "1"],
+                          env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr                      # nothing noted: done
+
+
+def test_waiting_ends_when_no_background_process_will_compile_what_is_left(
+        tmp_path: Path) -> None:
+    import time
+
+    (tmp_path / f"{'k' * 40}.quick.json").write_text("{}")       # noted, never compiled
+    t0 = time.monotonic()
+    assert not _compile_effort.wait_for_upgrade(tmp_path, timeout=60, poll=0.05, idle=0.5)
+    assert time.monotonic() - t0 < 10
+    (tmp_path / f"{'k' * 40}.full").touch()
+    assert _compile_effort.wait_for_upgrade(tmp_path, timeout=1)
