@@ -70,6 +70,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)  # --help ends here, having imported no JAX
 
+    from .._compile_effort import setting as compile_setting
     from ..model import ModelFileError
     from ..runtime import configure, use_host_devices
     from ._io import UsageError
@@ -77,6 +78,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.command_line = shlex.join(["cr-nlp", *argv])  # what a report says it came from
     if args.command in FULL_EFFORT:
         os.environ.setdefault("CR_NLP_COMPILE", "full")
+    try:
+        compile_setting()  # a bad $CR_NLP_COMPILE is named before any work
+    except ValueError as exc:
+        print(f"cr-nlp {args.command}: error: {exc}", file=sys.stderr)
+        return 2
     # Every core for the batched stages (before JAX starts); ``--devices`` where given.
     use_host_devices(getattr(args, "devices", None))
     configure()

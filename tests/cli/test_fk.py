@@ -150,3 +150,12 @@ def test_fk_prints_float64_numbers_that_match_an_independent_evaluation(
     line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("tip position"))
     printed = [float(v) for v in line.split("[")[1].split("]")[0].split(",")]
     np.testing.assert_allclose(printed, tip[:3, 3], rtol=0, atol=1e-12)
+
+
+def test_a_bad_compile_setting_is_named(monkeypatch: pytest.MonkeyPatch,
+                                        capsys: pytest.CaptureFixture) -> None:
+    monkeypatch.setenv("CR_NLP_COMPILE", "fastest")
+    assert main(["fk", "--robot", TDCR3, "--q", "0,0,1,0,0,1,0,0,1", "--json"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert "CR_NLP_COMPILE must be one of auto, quick, full, got 'fastest'" in captured.err
