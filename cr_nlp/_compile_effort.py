@@ -14,7 +14,8 @@ each one done. Every later process loads the optimised code. Steps aside for:
 - ``CR_NLP_COMPILE=full`` (optimise at once, as JAX does) or ``quick`` (quick code, no
   background process); the default is ``auto``;
 - a large job (``full_effort()``: the tasks use it above ``LARGE_IK``/``LARGE_PLAN``,
-  batch workers and benchmarks always): its run time outweighs the compile saved;
+  batch workers and benchmarks always): its run time outweighs the compile saved; and
+  the live solvers' updates (``compiles_fully``), whose latency is what they are for;
 - a GPU (only CPU compiles were measured), an optimisation level in ``$XLA_FLAGS`` (the
   user's own), no persistent compilation cache (nothing to upgrade), a system without
   POSIX file locks, or arguments spread over several devices by an earlier program (the
@@ -30,6 +31,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import functools
 import hashlib
 import json
 import os
@@ -37,9 +39,9 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 QUICK_OPTIONS = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
 """XLA's compile options of a quick compile (debug options, by name)."""
@@ -52,6 +54,7 @@ LARGE_PLAN = 200
 """Planning problems from which a call compiles fully (~63 ms more per problem, ~12 s
 of compiling saved once)."""
 
+F = TypeVar("F", bound=Callable[..., Any])
 _large_jobs = 0
 """``full_effort()`` blocks running in this process."""
 _queued: set[str] = set()
@@ -85,6 +88,17 @@ def full_effort(active: bool = True) -> Iterator[None]:
     finally:
         with _lock:
             _large_jobs -= int(active)
+
+
+def compiles_fully(method: F) -> F:
+    """``method`` run inside ``full_effort()``: for latency-bound calls (live IK), whose
+    every later call runs the code its first one compiles."""
+    @functools.wraps(method)
+    def wrapped(*args: Any, **kwargs: Any) -> Any:
+        with full_effort():
+            return method(*args, **kwargs)
+
+    return wrapped  # type: ignore[return-value]
 
 
 def effort(key: str, forced: bool, leaves: Sequence[Any], split: bool) -> str:

@@ -20,6 +20,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
+from ..._compile_effort import compiles_fully
 from ...model import Robot, load_robot, q_to_z_numpy, z_to_q_numpy
 from ...model.limits import clip_to_limits, project_z
 from ...model.rotations import matrix_from_wxyz
@@ -158,6 +159,7 @@ class LiveIKSolver:
         """``IKSolver.verify`` of one answer (B = 1): its numbers and the verdict."""
         return self.ik.verify(q[None], position[None], wxyz[None])
 
+    @compiles_fully
     def solve(
         self,
         q_current: Any,

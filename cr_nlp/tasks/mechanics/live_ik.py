@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from ..._compile_effort import compiles_fully
 from ...model import Robot
 from ...model.cosserat import StaticsResult
 from ...model.loads import static_loads
@@ -82,6 +83,7 @@ class TensionLiveIKSolver:
         self.loads = static_loads(1, self.ik.length, **loads)
         self._warm: tuple | None = None
 
+    @compiles_fully
     def solve(self, tensions: Any, position: Any, wxyz: Any = None, *,
               search: bool = True) -> TensionLiveIKResult:
         """Move the robot's tip from the equilibrium of ``tensions`` (n,) N to ``position``
@@ -129,6 +131,7 @@ class TensionLiveIKSolver:
             seconds=time.perf_counter() - start, backbone=shape.positions[0],
             backbone_rotations=shape.rotations[0])
 
+    @compiles_fully
     def equilibrium(self, tensions: Any) -> StaticsResult:
         """The shape the rod takes under ``tensions`` (n,) N and the solver's loads: a
         one-case forward statics solve (the verdict's), e.g. the rest shape to show

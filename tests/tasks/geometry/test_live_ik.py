@@ -53,3 +53,23 @@ def test_invalid_targets_are_errors() -> None:
         solver.solve([0.0, 0.0, 1.0] * 3, [0.0, 0.0, 9.0], [1.0, 0.0, 0.0, 0.0])
     with pytest.raises(ValueError, match="unit quaternion"):
         solver.solve([0.0, 0.0, 1.0] * 3, [0.0, 0.0, 2.0], [2.0, 0.0, 0.0, 0.0])
+
+
+def test_live_updates_compile_their_programs_fully(monkeypatch: pytest.MonkeyPatch) -> None:
+    from cr_nlp import _compile_effort
+
+    robot = load_robot("tdcr3")
+    solver = LiveIKSolver(robot, config=LiveIKConfig(fallback_search=False, iterations=2))
+    refine, asked = solver._refine, []
+
+    def recorded(*args):
+        asked.append(_compile_effort.forced_full())
+        return refine(*args)
+
+    monkeypatch.setattr(solver, "_refine", recorded)
+    position, rotation = _tip(robot, np.array([0.1, 0.2, 1.0] * 3))
+    answer = solver.solve([0.0, 0.0, 1.0] * 3, position, wxyz_from_matrix(rotation[None])[0])
+    # The update runs with programs optimised at once: a live solver's later updates run
+    # the code its first one compiles (cr_nlp._compile_effort).
+    assert asked == [True] and answer.success
+    assert not _compile_effort.forced_full()
