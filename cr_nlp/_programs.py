@@ -295,15 +295,9 @@ def _compiled(fn: Callable, args: Sequence[Any], key: str, name: str,
     # The program is exported over the arguments' leaves (its pytrees, NamedTuples of
     # cr_nlp's among them, need no serialisation of their own); the output structure is
     # stored beside it.
-    leaf_batched = None
-    if batched is not None:
-        mesh = _mesh()
-        leaf_batched = [b for arg, b in zip(args, batched, strict=True)
-                        for _ in jax.tree.leaves(arg)]
-        in_shardings = tuple(_sharding(mesh, b) for b in leaf_batched)
-        out_shardings = _sharding(mesh, True)
-    else:
-        in_shardings = out_shardings = None
+    leaf_batched = None if batched is None else [
+        b for arg, b in zip(args, batched, strict=True) for _ in jax.tree.leaves(arg)]
+    in_shardings, out_shardings = split_shardings(leaf_batched)
     with _lock:
         tracing = _tracing.setdefault(key, threading.Lock())
     with tracing:  # one thread traces a program; one compiling it for another device waits
@@ -427,6 +421,16 @@ def _mesh() -> Any:
     from jax.sharding import Mesh
 
     return Mesh(np.array(jax.devices()), ("batch",))
+
+
+def split_shardings(leaf_batched: Sequence[bool] | None) -> tuple[Any, Any]:
+    """The input shardings (one per leaf: split along axis 0 over the devices, or
+    replicated) and the output sharding (split) of a program split over the devices;
+    (None, None) for ``leaf_batched`` None (one device)."""
+    if leaf_batched is None:
+        return None, None
+    mesh = _mesh()
+    return tuple(_sharding(mesh, b) for b in leaf_batched), _sharding(mesh, True)
 
 
 def _sharding(mesh: Any, batched: bool) -> Any:

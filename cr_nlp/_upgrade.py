@@ -21,21 +21,18 @@ from collections.abc import Sequence
 from pathlib import Path
 
 
-def _arguments(note: dict) -> list:
+def _arguments(note: dict, in_shardings: tuple | None) -> list:
     """Abstract arguments of the noted shapes, dtypes and weak types, placed as the
-    program's were: split over the devices, else committed to one device or not."""
+    program's were: split over the devices (``in_shardings``), else committed to one
+    device or not."""
     import jax
     import numpy as np
 
-    from ._programs import _mesh, _sharding
-
-    leaves, batched = note["leaves"], note["batched"]
-    if batched is None:
+    leaves = note["leaves"]
+    placements = in_shardings
+    if placements is None:
         one = jax.sharding.SingleDeviceSharding(jax.devices()[0])
         placements = [one if committed else None for *_, committed in leaves]
-    else:
-        mesh = _mesh()
-        placements = [_sharding(mesh, b) for b in batched]
     return [jax.ShapeDtypeStruct(tuple(shape), np.dtype(dtype), weak_type=weak, sharding=where)
             for (shape, dtype, weak, _), where in zip(leaves, placements, strict=True)]
 
@@ -46,7 +43,7 @@ def upgrade(key: str) -> bool:
     import jax
 
     from . import _compile_effort as effort
-    from ._programs import _load, _mesh, _sharding
+    from ._programs import _load, split_shardings
 
     note_path = effort._note(key)
     entry = _load(key)
@@ -59,10 +56,9 @@ def upgrade(key: str) -> bool:
             note_path.unlink()
         return False
     exported, _ = entry
-    shardings = ({} if note["batched"] is None else
-                 {"in_shardings": tuple(_sharding(_mesh(), b) for b in note["batched"]),
-                  "out_shardings": _sharding(_mesh(), True)})
-    jax.jit(exported.call, **shardings).lower(*_arguments(note)).compile()
+    in_shardings, out_shardings = split_shardings(note["batched"])
+    jax.jit(exported.call, in_shardings=in_shardings, out_shardings=out_shardings).lower(
+        *_arguments(note, in_shardings)).compile()
     effort._marker(key).touch()
     return True
 
