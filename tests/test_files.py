@@ -197,6 +197,11 @@ def test_a_killed_writer_leaves_the_old_or_the_new_complete_file(tmp_path: Path)
             driver.stdin.flush()
             pid = int(driver.stdout.readline())
             try:
+                # Until a write has finished (a loaded machine can cut all 20 short), let
+                # this round's first one finish before its random kill.
+                give_up = time.perf_counter() + 60.0
+                while seen[-1] == 0 and time.perf_counter() < give_up:
+                    check()
                 deadline = time.perf_counter() + rng.uniform(0.0, window)
                 while time.perf_counter() < deadline:
                     check()  # a reader beside the writer
