@@ -190,6 +190,34 @@ def _lower_bound(part: Part, values: np.ndarray, centres: np.ndarray, half: floa
     return np.maximum(bound, _box_gap(np.asarray(centre, float), centres, half) - radius)
 
 
+def _grid(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.ndarray],
+          cutoff: float, cell_size: float) -> tuple[list, list, np.ndarray, np.ndarray]:
+    """``part_cells``' grid: the parts per kind, their padded boxes, the grid's lower
+    corner (m) and its cells per axis."""
+    region_lo, region_hi = (np.asarray(x, dtype=float) for x in region)
+    kinds = [[p for p in scene.parts if isinstance(p, kind)] for kind in PART_KINDS]
+    pad = body_radius + cutoff + SLACK
+    boxes = [[_part_box(p, pad) for p in parts] for parts in kinds]
+    flat = [b for kind in boxes for b in kind     # parts that can come within the cutoff
+            if np.all(b[0] <= region_hi) and np.all(b[1] >= region_lo)]
+    if flat:
+        lo = np.maximum(region_lo, np.min([b[0] for b in flat], axis=0))
+        hi = np.minimum(region_hi, np.max([b[1] for b in flat], axis=0))
+    else:
+        lo, hi = region_lo, region_lo
+    return kinds, boxes, lo, np.maximum(np.ceil((hi - lo) / cell_size), 1).astype(int)
+
+
+def _least_table_bytes(scene: Scene, body_radius: float,
+                       region: tuple[np.ndarray, np.ndarray], cutoff: float,
+                       cell_size: float) -> int:
+    """Bytes of the smallest table ``part_cells`` can build at ``cell_size``: its padded
+    cells, ``WIDTH_ROUND`` columns per present kind, 16-bit indices."""
+    kinds, _, _, dims = _grid(scene, body_radius, region, cutoff, cell_size)
+    cells = np.prod([1 if d == 1 else -(-d // GRID_ROUND) * GRID_ROUND for d in dims])
+    return int(cells) * WIDTH_ROUND * sum(1 for parts in kinds if parts) * 2
+
+
 def _one_part(arrays: SceneArrays, kind: int, index: int) -> SceneArrays:
     """``arrays`` holding only part ``index`` of kind ``kind``."""
     fields = set(KIND_FIELDS[kind])
@@ -224,26 +252,18 @@ def part_cells(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.nd
         # (and so share the programs that take the table).
         size = CELL_BASE * math.sqrt(2.0) ** math.ceil(2 * math.log2(size / CELL_BASE) - 1e-9)
         while True:
-            cells = part_cells(scene, body_radius, region, cutoff, near, size, dtype)
-            if cells.table.nbytes <= TABLE_BYTES:
-                return cells
+            # A size whose table cannot fit (its fewest columns) is not built.
+            if _least_table_bytes(scene, body_radius, region, cutoff, size) <= TABLE_BYTES:
+                cells = part_cells(scene, body_radius, region, cutoff, near, size, dtype)
+                if cells.table.nbytes <= TABLE_BYTES:
+                    return cells
             size *= 2.0
     if near < 1:
         raise ValueError(f"near must be at least 1, got {near}")
     if not cell_size > 0 or not math.isfinite(cutoff):
         raise ValueError(f"cell_size must be positive and cutoff finite, got {cell_size}, "
                          f"{cutoff}")
-    kinds = [[p for p in scene.parts if isinstance(p, kind)] for kind in PART_KINDS]
-    pad = body_radius + cutoff + SLACK
-    boxes = [[_part_box(p, pad) for p in parts] for parts in kinds]
-    flat = [b for kind in boxes for b in kind     # parts that can come within the cutoff
-            if np.all(b[0] <= region_hi) and np.all(b[1] >= region_lo)]
-    if flat:
-        lo = np.maximum(region_lo, np.min([b[0] for b in flat], axis=0))
-        hi = np.minimum(region_hi, np.max([b[1] for b in flat], axis=0))
-    else:
-        lo, hi = region_lo, region_lo
-    dims = np.maximum(np.ceil((hi - lo) / cell_size), 1).astype(int)
+    kinds, boxes, lo, dims = _grid(scene, body_radius, region, cutoff, cell_size)
     n_cells = int(np.prod(dims))
     arrays = scene_arrays(scene, as_numpy=True)
     threshold = np.full(n_cells, float(cutoff))       # min(cutoff, min_q U_q) per cell

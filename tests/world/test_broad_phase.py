@@ -19,7 +19,9 @@ from cr_nlp.world import ConvexPart, Obstacle, Scene, load_scene, scene_arrays
 from cr_nlp.world._broad_phase import (
     CELL_BASE,
     GRID_ROUND,
+    TABLE_BYTES,
     WIDTH_ROUND,
+    _least_table_bytes,
     _part_box,
     cell_candidates,
     part_cells,
@@ -225,6 +227,28 @@ def test_self_pair_blocks_give_the_group_jacobian_of_every_pair(margin):
     assert active.sum() >= 5
     np.testing.assert_allclose(values, expected, rtol=0, atol=1e-12)
     np.testing.assert_allclose(jac, expected_jac, rtol=0, atol=1e-9)
+
+
+def test_a_cell_size_is_skipped_only_where_its_table_cannot_fit():
+    """The automatic cell size skips, without building it, a size whose smallest possible
+    table (``_least_table_bytes``) is over ``TABLE_BYTES``: that bound is never above the
+    table built at that size, and the size chosen is the first whose table fits."""
+    scenes = {name: load_scene(name) for name in ("shelf", "cabinet", "random_27")}
+    scenes["mixed"] = scene_named("mixed")
+    region = reach_box(ROBOT)
+    for name, scene in scenes.items():
+        for cutoff, sizes in ((0.014, (0.05, 0.1)), (0.3, (0.1, 0.2))):
+            for size in sizes:
+                built = part_cells(scene, ROBOT.backbone_radius, region, cutoff, cell_size=size)
+                least = _least_table_bytes(scene, ROBOT.backbone_radius, region, cutoff, size)
+                assert 0 < least <= built.table.nbytes, (name, cutoff, size)
+    # 1.5 m: the sizes below 0.1 m cannot fit (the automatic table skips them unbuilt)
+    scene, cutoff = scenes["mixed"], 1.5
+    auto = part_cells(scene, ROBOT.backbone_radius, region, cutoff, near=64)
+    assert auto.cell_size == pytest.approx(4 * CELL_BASE) and auto.table.nbytes <= TABLE_BYTES
+    for size in (CELL_BASE * 2**0.5, 2 * CELL_BASE, CELL_BASE * 2**1.5):
+        assert _least_table_bytes(scene, ROBOT.backbone_radius, region, cutoff,
+                                  size) > TABLE_BYTES
 
 
 def test_robots_of_similar_size_get_one_grid_shape():
