@@ -211,19 +211,22 @@ class ChainBatchLM:
     # ------------------------------------------------------------ slots
     def compile_ahead(self, chains: int, arrays: Any) -> None:
         """Start compiling, in the background, the slot program a stream of ``chains``
-        chains (at most) will first run, for the first device (the others get it moved,
-        ``_programs``): the caller's host work (a roadmap) then overlaps XLA's. Only for
+        chains (at most) will first run, for each lane's device: the caller's host work
+        (a roadmap) then overlaps XLA's. Compiled, the first device's copy is moved to
+        the others (``_programs``); loaded from XLA's cache, each device loads its own,
+        side by side (a warm ``cr-nlp plan``: both copies ready 0.6 s sooner). Only for
         the slot schedule; nothing when that program is compiled already. A stream that
         starts with fewer chains may want a smaller program: this one is then not used
         in this process, but stored for later ones."""
         if self.schedule != "slots" or self.structure != "banded" or chains < 1:
             return
-        slots, device = self._first_slots(chains), self.devices[0]
-        if (device.id, slots) in self._slot_programs:
-            return
-        lane = _Lane(device, slots, self, arrays)
-        self._compile_slots(self._slot_args(lane, np.zeros((slots, np.size(self.free))),
-                                            np.zeros(slots, bool), 1), ahead=True)
+        slots = self._first_slots(chains)
+        for device in self.devices:
+            if (device.id, slots) in self._slot_programs:
+                continue
+            lane = _Lane(device, slots, self, arrays)
+            self._compile_slots(self._slot_args(lane, np.zeros((slots, np.size(self.free))),
+                                                np.zeros(slots, bool), 1), ahead=True)
 
     def _first_slots(self, chains: int) -> int:
         """Slots per lane when a stream of ``chains`` chains starts: the fitting size for

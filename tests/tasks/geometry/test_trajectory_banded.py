@@ -145,16 +145,18 @@ def test_early_give_up_checkpoint_plans_random_27_alike_in_fewer_trips():
 
 
 def test_the_first_slot_program_compiles_while_the_roadmap_is_built(monkeypatch):
-    """The planner asks for the LM's first slot program before it builds the roadmap,
-    and it is the program the stream then runs (not a second compile of another size)."""
+    """The planner asks for the LM's first slot program, for every lane's device, before
+    it builds the roadmap (a warm process loads the copies side by side), and it is the
+    program the stream then runs (not a second compile of another size)."""
     from cr_nlp.bench.plan import plan_problems
     from cr_nlp.stages.refine import _chain_stream
 
-    asked: list[tuple[str, int]] = []
+    asked: list[tuple[str, int, int]] = []
     real = _chain_stream.compile_ahead
 
     def recording(fn, args, **kwargs):
-        asked.append((kwargs.get("name", ""), int(args[1].shape[0])))
+        device = next(iter(args[1].devices())).id
+        asked.append((kwargs.get("name", ""), int(args[1].shape[0]), device))
         return real(fn, args, **kwargs)
 
     monkeypatch.setattr(_chain_stream, "compile_ahead", recording)
@@ -166,8 +168,11 @@ def test_the_first_slot_program_compiles_while_the_roadmap_is_built(monkeypatch)
     starts, goals = plan_problems(ROBOT, scene, 3, planner.margin, seed=0)
     results = planner.plan(starts, goals)
     assert all(r.q is not None for r in results)
-    name, slots = asked[0]
-    assert name == "the trajectory LM" and built and built[0] >= 1   # asked before the roadmap
-    first_device = planner.lm.devices[0].id
+    name, slots, _ = asked[0]
+    lanes = [d.id for d in planner.lm.devices]
+    assert name == "the trajectory LM" and built
+    assert sorted(d for _, _, d in asked[:built[0]]) == lanes  # asked before the roadmap
+    assert all(a[:2] == (name, slots) for a in asked[:built[0]])
+    first_device = lanes[0]
     assert (first_device, slots) in planner.lm._slot_programs
     assert min(s for d, s in planner.lm._slot_programs if d == first_device) == slots
