@@ -190,10 +190,11 @@ def _lower_bound(part: Part, values: np.ndarray, centres: np.ndarray, half: floa
     return np.maximum(bound, _box_gap(np.asarray(centre, float), centres, half) - radius)
 
 
-def _grid(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.ndarray],
-          cutoff: float, cell_size: float) -> tuple[list, list, np.ndarray, np.ndarray]:
-    """``part_cells``' grid: the parts per kind, their padded boxes, the grid's lower
-    corner (m) and its cells per axis."""
+def _reach(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.ndarray],
+           cutoff: float) -> tuple[list, list, np.ndarray, np.ndarray]:
+    """What ``part_cells``' grid covers, whatever its cell size: the parts per kind, their
+    boxes padded by the body radius and the cutoff, and the lower and upper corners (m) of
+    the part of ``region`` they reach."""
     region_lo, region_hi = (np.asarray(x, dtype=float) for x in region)
     kinds = [[p for p in scene.parts if isinstance(p, kind)] for kind in PART_KINDS]
     pad = body_radius + cutoff + SLACK
@@ -205,17 +206,24 @@ def _grid(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.ndarray
         hi = np.minimum(region_hi, np.max([b[1] for b in flat], axis=0))
     else:
         lo, hi = region_lo, region_lo
-    return kinds, boxes, lo, np.maximum(np.ceil((hi - lo) / cell_size), 1).astype(int)
+    return kinds, boxes, lo, hi
 
 
-def _least_table_bytes(scene: Scene, body_radius: float,
-                       region: tuple[np.ndarray, np.ndarray], cutoff: float,
-                       cell_size: float) -> int:
-    """Bytes of the smallest table ``part_cells`` can build at ``cell_size``: its padded
-    cells, ``WIDTH_ROUND`` columns per present kind, 16-bit indices."""
-    kinds, _, _, dims = _grid(scene, body_radius, region, cutoff, cell_size)
-    cells = np.prod([1 if d == 1 else -(-d // GRID_ROUND) * GRID_ROUND for d in dims])
-    return int(cells) * WIDTH_ROUND * sum(1 for parts in kinds if parts) * 2
+def _cells_per_axis(lo: np.ndarray, hi: np.ndarray, cell_size: float) -> np.ndarray:
+    """Cells of ``cell_size`` m per axis covering the box ``lo``–``hi`` (at least one)."""
+    return np.maximum(np.ceil((hi - lo) / cell_size), 1).astype(int)
+
+
+def _padded(dims: np.ndarray) -> list[int]:
+    """The table's cells per axis: more than one padded to a multiple of ``GRID_ROUND``."""
+    return [1 if d == 1 else -(-d // GRID_ROUND) * GRID_ROUND for d in dims]
+
+
+def _least_table_bytes(kinds: list, dims: np.ndarray) -> int:
+    """Bytes of the smallest table ``part_cells`` can build on a grid of ``dims`` cells
+    for the parts ``kinds``: its padded cells, ``WIDTH_ROUND`` columns per present kind,
+    16-bit indices."""
+    return int(np.prod(_padded(dims))) * WIDTH_ROUND * sum(1 for parts in kinds if parts) * 2
 
 
 def _one_part(arrays: SceneArrays, kind: int, index: int) -> SceneArrays:
@@ -242,28 +250,39 @@ def part_cells(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.nd
     9 / 13 in cabinet (9–13 at 0.05–0.1 m when the grid was shifted by 0.1 m), 4 spheres
     in random_27; the tables took 5.2–21 / 0.73–2.7 / 0.10–0.34 / ≤ 0.04 MB and were
     built in 0.7–1.8 / 0.17–0.27 / 0.04–0.13 / 0.05–0.10 s (2 busy cores).
-
-    Long: one table built in order (grid, per-part cell bounds, per-kind columns) on shared arrays.
     """
-    region_lo, region_hi = (np.asarray(x, dtype=float) for x in region)
+    if near < 1:
+        raise ValueError(f"near must be at least 1, got {near}")
+    if not (cell_size is None or cell_size > 0) or not math.isfinite(cutoff):
+        raise ValueError(f"cell_size must be positive and cutoff finite, got {cell_size}, "
+                         f"{cutoff}")
+    kinds, boxes, lo, hi = _reach(scene, body_radius, region, cutoff)
     if cell_size is None:
+        region_lo, region_hi = (np.asarray(x, dtype=float) for x in region)
         size = max(0.5 * body_radius, float(np.max(region_hi - region_lo)) / 128)
         # Up to the next size of one series: robots of similar size get the same grid
         # (and so share the programs that take the table).
         size = CELL_BASE * math.sqrt(2.0) ** math.ceil(2 * math.log2(size / CELL_BASE) - 1e-9)
         while True:
             # A size whose table cannot fit (its fewest columns) is not built.
-            if _least_table_bytes(scene, body_radius, region, cutoff, size) <= TABLE_BYTES:
-                cells = part_cells(scene, body_radius, region, cutoff, near, size, dtype)
+            dims = _cells_per_axis(lo, hi, size)
+            if _least_table_bytes(kinds, dims) <= TABLE_BYTES:
+                cells = _table(scene, body_radius, cutoff, near, size, dtype,
+                               kinds, boxes, lo, dims)
                 if cells.table.nbytes <= TABLE_BYTES:
                     return cells
             size *= 2.0
-    if near < 1:
-        raise ValueError(f"near must be at least 1, got {near}")
-    if not cell_size > 0 or not math.isfinite(cutoff):
-        raise ValueError(f"cell_size must be positive and cutoff finite, got {cell_size}, "
-                         f"{cutoff}")
-    kinds, boxes, lo, dims = _grid(scene, body_radius, region, cutoff, cell_size)
+    return _table(scene, body_radius, cutoff, near, cell_size, dtype, kinds, boxes, lo,
+                  _cells_per_axis(lo, hi, cell_size))
+
+
+def _table(scene: Scene, body_radius: float, cutoff: float, near: int, cell_size: float,
+           dtype: Any, kinds: list, boxes: list, lo: np.ndarray, dims: np.ndarray) -> PartCells:
+    """``part_cells`` at ``cell_size`` on the grid ``_reach`` and ``_cells_per_axis`` give
+    (``lo``: its lower corner, m; ``dims``: its cells per axis).
+
+    Long: one table built in order (grid, per-part cell bounds, per-kind columns) on shared arrays.
+    """
     n_cells = int(np.prod(dims))
     arrays = scene_arrays(scene, as_numpy=True)
     threshold = np.full(n_cells, float(cutoff))       # min(cutoff, min_q U_q) per cell
@@ -321,8 +340,8 @@ def part_cells(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.nd
     table = (np.concatenate(columns, axis=1) if columns else np.zeros((n_cells, 0), int))
     dtype = dtype or jnp.result_type(float)
     grid = table.reshape(tuple(dims) + (-1,)).astype(index_type)
-    grid = np.pad(grid, [(0, 0 if d == 1 else -(-d // GRID_ROUND) * GRID_ROUND - d)
-                         for d in dims] + [(0, 0)], mode="edge")
+    grid = np.pad(grid, [(0, p - d) for p, d in zip(_padded(dims), dims, strict=True)]
+                  + [(0, 0)], mode="edge")
     return PartCells(jnp.asarray(lo, dtype), jnp.asarray(1.0 / cell_size, dtype),
                      jnp.asarray(grid), tuple(widths), float(cell_size), float(cutoff),
                      int(truncated.sum()))

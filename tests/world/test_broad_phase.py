@@ -5,6 +5,7 @@ clearance terms built on it against autodiff of the penalty distances."""
 
 from __future__ import annotations
 
+import math
 from functools import partial
 
 import jax
@@ -21,8 +22,10 @@ from cr_nlp.world._broad_phase import (
     GRID_ROUND,
     TABLE_BYTES,
     WIDTH_ROUND,
+    _cells_per_axis,
     _least_table_bytes,
     _part_box,
+    _reach,
     cell_candidates,
     part_cells,
     reach_box,
@@ -166,6 +169,8 @@ def test_bad_table_settings_are_refused():
         part_cells(scene, 0.1, reach_box(ROBOT), CUTOFF, near=0)
     with pytest.raises(ValueError, match="cell_size"):
         part_cells(scene, 0.1, reach_box(ROBOT), CUTOFF, cell_size=0.0)
+    with pytest.raises(ValueError, match="cutoff finite"):   # the automatic size too
+        part_cells(scene, 0.1, reach_box(ROBOT), math.inf)
 
 
 @pytest.mark.usefixtures("float64")
@@ -236,19 +241,21 @@ def test_a_cell_size_is_skipped_only_where_its_table_cannot_fit():
     scenes = {name: load_scene(name) for name in ("shelf", "cabinet", "random_27")}
     scenes["mixed"] = scene_named("mixed")
     region = reach_box(ROBOT)
+    def least(scene, cutoff, size):
+        kinds, _, lo, hi = _reach(scene, ROBOT.backbone_radius, region, cutoff)
+        return _least_table_bytes(kinds, _cells_per_axis(lo, hi, size))
+
     for name, scene in scenes.items():
         for cutoff, sizes in ((0.014, (0.05, 0.1)), (0.3, (0.1, 0.2))):
             for size in sizes:
                 built = part_cells(scene, ROBOT.backbone_radius, region, cutoff, cell_size=size)
-                least = _least_table_bytes(scene, ROBOT.backbone_radius, region, cutoff, size)
-                assert 0 < least <= built.table.nbytes, (name, cutoff, size)
+                assert 0 < least(scene, cutoff, size) <= built.table.nbytes, (name, cutoff, size)
     # 1.5 m: the sizes below 0.1 m cannot fit (the automatic table skips them unbuilt)
     scene, cutoff = scenes["mixed"], 1.5
     auto = part_cells(scene, ROBOT.backbone_radius, region, cutoff, near=64)
     assert auto.cell_size == pytest.approx(4 * CELL_BASE) and auto.table.nbytes <= TABLE_BYTES
     for size in (CELL_BASE * 2**0.5, 2 * CELL_BASE, CELL_BASE * 2**1.5):
-        assert _least_table_bytes(scene, ROBOT.backbone_radius, region, cutoff,
-                                  size) > TABLE_BYTES
+        assert least(scene, cutoff, size) > TABLE_BYTES
 
 
 def test_robots_of_similar_size_get_one_grid_shape():
