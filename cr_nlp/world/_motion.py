@@ -11,6 +11,7 @@ and path following both answer to it. Units: rad, m, s.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,7 +21,8 @@ from ..model import Robot, q_to_z_numpy, z_to_q_numpy
 from ..model._ops import NUMPY
 from ..model.kinematics import model_segment_frames, model_tendon_lengths
 from ..model.limits import limit_violation_q
-from .check import body_chain, check_many, check_motion
+from ._motion_check import MotionCheck, check_motions
+from .check import body_chain, check_many
 from .scene import Scene
 from .verdict import VIOLATION_TOLERANCE, Verdict, judge
 
@@ -76,10 +78,7 @@ def interpolate_trajectory(q: np.ndarray, samples: int) -> np.ndarray:
     """The motion between waypoints, linear in the bending vector z (hence linear in the
     tendon lengths): (H·samples + 1, 3n) configurations (rad, rad, m), each interval split
     into ``samples`` pieces, waypoints included."""
-    z = q_to_z_numpy(q)
-    s = np.arange(samples)[:, None] / samples
-    inner = (z[:-1, None, :] + s[None, :, :] * (z[1:] - z[:-1])[:, None, :]).reshape(-1, z.shape[1])
-    return z_to_q_numpy(np.concatenate([inner, z[-1:]]))
+    return z_to_q_numpy(_interpolate_z(q_to_z_numpy(q), np.array([len(q)]), samples))
 
 
 def tip_positions(robot: Robot, q: np.ndarray) -> np.ndarray:
@@ -117,24 +116,75 @@ def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
     ``success``, ``reason``, ``violations`` per family and ``max_violation``) and the
     measured clearances, path length, tendon lengths, speed and acceleration.
     """
-    q = np.asarray(q, dtype=np.float64)
-    if q.ndim != 2 or q.shape[1] != robot.dof or len(q) < 2:
-        raise ValueError(f"q must be (H+1, {robot.dof}) with H ≥ 1, got {q.shape}")
-    dense = interpolate_trajectory(q, samples)
+    return verify_trajectories(robot, scene, [q], dt, margin, samples, tolerance)[0]
+
+
+def verify_trajectories(robot: Robot, scene: Scene | None, qs: Sequence[Any], dt: float,
+                        margin: float = 0.002, samples: int = 4,
+                        tolerance: float = VIOLATION_TOLERANCE) -> list[MotionVerification]:
+    """``verify_trajectory`` of several trajectories at once (e.g. a planner's candidates
+    of many problems): the same report for each, ``qs`` a sequence of (H_m+1, 3n)
+    waypoints (rad, rad, m; H_m ≥ 1, lengths may differ), ``dt`` s, ``margin`` m. The
+    interpolation, kinematics, tendon lengths, limits and the collision search
+    (``world._motion_check.check_motions``) run once over every motion's configurations,
+    not once per motion.
+
+    Long: one pass over the motions' concatenated waypoints, then a report per motion.
+    """
+    qs = [np.asarray(q, dtype=np.float64) for q in qs]
+    for q in qs:
+        if q.ndim != 2 or q.shape[1] != robot.dof or len(q) < 2:
+            raise ValueError(f"q must be (H+1, {robot.dof}) with H ≥ 1, got {q.shape}")
+    if not qs:
+        return []
+    waypoints = np.concatenate(qs)
+    ends = np.cumsum([len(q) for q in qs])            # each motion's rows end here
+    dense = z_to_q_numpy(_interpolate_z(q_to_z_numpy(waypoints), ends, samples))
+    dense_ends = (ends - np.arange(1, len(qs) + 1)) * samples + np.arange(1, len(qs) + 1)
     # The body chain's last point is the tip: one forward kinematics pass, not two.
     chains = (body_chain(robot, dense) if scene is not None or robot.has_self_pairs
               else None)
     tips = chains[:, -1] if chains is not None else tip_positions(robot, dense)
-    path_length = float(np.sum(np.linalg.norm(np.diff(tips, axis=0), axis=1)))
-    lengths = tendon_series(robot, q)
+    lengths = tendon_series(robot, waypoints)
+    limits = limit_violation_q(robot, waypoints)
+    dense_spans = list(zip(np.r_[0, dense_ends[:-1]].tolist(), dense_ends.tolist(), strict=True))
+    motions = (check_motions(robot, scene, [chains[a:b] for a, b in dense_spans])
+               if chains is not None else [None] * len(qs))
+    out = []
+    for m, (start, stop) in enumerate(zip(np.r_[0, ends[:-1]].tolist(), ends.tolist(),
+                                          strict=True)):
+        a, b = dense_spans[m]
+        out.append(_report(robot, margin, tolerance, samples, dt, lengths[start:stop],
+                           float(np.max(limits[start:stop])),
+                           float(np.sum(np.linalg.norm(np.diff(tips[a:b], axis=0), axis=1))),
+                           motions[m]))
+    return out
+
+
+def _interpolate_z(z: np.ndarray, ends: np.ndarray, samples: int) -> np.ndarray:
+    """``interpolate_trajectory``'s motion in z for the motions whose waypoints z
+    (rows ending at ``ends``) are concatenated: each motion's dense rows in turn."""
+    s = np.arange(samples)[:, None] / samples
+    first = np.delete(np.arange(len(z)), ends - 1)    # every interval's first waypoint
+    inner = (z[first, None, :] + s[None, :, :] * (z[first + 1] - z[first])[:, None, :]
+             ).reshape(-1, z.shape[1])
+    intervals = np.cumsum(ends - np.r_[0, ends[:-1]] - 1)
+    return np.insert(inner, intervals * samples, z[ends - 1], axis=0)
+
+
+def _report(robot: Robot, margin: float, tolerance: float, samples: int, dt: float,
+            lengths: np.ndarray, limits: float, path_length: float,
+            motion: MotionCheck | None) -> MotionVerification:
+    """One motion's ``MotionVerification`` from what ``verify_trajectories`` measured:
+    its waypoints' tendon lengths (H+1, n_tendons; m), largest limit violation, tip path
+    (m) and collision verdict (None: nothing to collide with)."""
     speed = np.diff(lengths, axis=0) / dt
-    accel = (np.diff(lengths, 2, axis=0) / (dt * dt) if len(q) > 2
+    accel = (np.diff(lengths, 2, axis=0) / (dt * dt) if len(lengths) > 2
              else np.zeros((0, lengths.shape[1])))
     speed_max = float(np.max(np.abs(speed))) if speed.size else 0.0
     accel_max = float(np.max(np.abs(accel))) if accel.size else 0.0
     min_clearance, self_clearance, first_collision = math.inf, math.inf, -1
-    if chains is not None:
-        motion = check_motion(robot, scene, dense, chains=chains)
+    if motion is not None:
         min_clearance = motion.obstacle_distance
         self_clearance = motion.self_distance
         hits = np.flatnonzero(motion.collision)
@@ -143,7 +193,7 @@ def verify_trajectory(robot: Robot, scene: Scene | None, q: Any, dt: float,
     if first_collision >= 0:
         at = first_collision / samples
         where = f"at t = {at * dt:.3f} s (interval {int(at)})"
-    verdict = judge(margin=margin, limits=float(np.max(limit_violation_q(robot, q))),
+    verdict = judge(margin=margin, limits=limits,
                     min_clearance=min_clearance, self_clearance=self_clearance,
                     tendon_speed=speed_max - robot.tendon_speed_max,
                     tendon_accel=accel_max - robot.tendon_accel_max,

@@ -29,12 +29,8 @@ What is computed how, for a whole batch of configurations at once:
   so the minimum is exact while most pairs are never handed to fcl. A piece's fcl
   capsule is built (by ``capsule_object``) only when a pair needs it.
 
-A motion (``check_motion``: the configurations of one trajectory or path) needs less:
-its smallest distance and which configurations collide. There the pairs of all its
-configurations are visited together in order of their bound, and a configuration is
-measured only as far as it can lower the motion's minimum or collide; a ball around each
-run of pieces (against each part's bounding sphere and axis-aligned box) says which pieces
-need bounds of their own, and each pair's axis-aligned box bound which need the face planes.
+Motions (the configurations of trajectories and paths) are judged by
+``world._motion_check``, which finds their minima and collisions with fewer fcl queries.
 
 fcl stays for those parts because their closed forms (segment–box, segment–cylinder,
 segment–polytope) are not written here; the closed forms above agree with fcl's
@@ -131,27 +127,6 @@ def body_chain(robot: Robot, q: Any) -> np.ndarray:
 # ================================================================ the verdict
 
 _BATCH_ELEMENTS = 1 << 17   # (configuration, piece, part) entries per vectorised chunk
-_CHUNK_CONFIGURATIONS = 192  # configurations per chunk of a motion at most
-
-
-def _motion_chunks(fscene: FclScene, count: int, pieces: int,
-                   per_segment: int) -> list[slice]:
-    """Even chunks of a motion's ``count`` configurations, each array of the motion
-    search within a quarter of ``_BATCH_ELEMENTS`` (it makes no (piece, part) array, so
-    the largest are (piece, sphere) entries, (run, part) entries and far pairs; bigger
-    ones outgrow the cache) and at most ``_CHUNK_CONFIGURATIONS`` configurations."""
-    runs = pieces // _run_length(per_segment)
-    width = max(pieces * len(fscene.sphere_index), runs * len(fscene.other_index),
-                len(_far_pairs(pieces, per_segment)[0]), 1)
-    step = max(1, min((_BATCH_ELEMENTS >> 2) // width, _CHUNK_CONFIGURATIONS))
-    step = -(-count // -(-count // step)) if count else step      # as even as they come
-    return [slice(s, s + step) for s in range(0, count, step)]
-
-
-def _run_length(per_segment: int) -> int:
-    """Pieces per run of ``_group_bounds``: the largest divisor of the segment's pieces
-    up to ``_RUN_PIECES``."""
-    return max(g for g in range(1, min(per_segment, _RUN_PIECES) + 1) if per_segment % g == 0)
 
 
 @cached(maxsize=32)
@@ -204,7 +179,6 @@ def _tighten_more(r: float, fscene: FclScene, sa: np.ndarray, sb: np.ndarray,
     return low
 
 
-_RUN_PIECES = 5        # pieces per ball of ``_group_bounds`` (a divisor of the segment's)
 _SEED_CANDIDATES = 8   # pairs per configuration whose tight bound picks the first fcl query
 
 
@@ -286,111 +260,6 @@ def _fcl_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
         obstacle[k], part[k] = best, best_part
 
 
-def _group_bounds(r: float, fscene: FclScene, mid: Xyz, half: np.ndarray,
-                  group: int) -> np.ndarray:
-    """(B, m / group, parts) lower bounds on the distance between each run of ``group``
-    consecutive pieces (mid points ``mid``, coordinates (B, m) each; half lengths ``half``
-    (B, m)) and each fcl part: a ball around the run (centre: the mean of its mid points;
-    radius: the farthest mid point plus its half length, plus r) against the part's
-    bounding sphere and its axis-aligned box. A pair of piece and part is worth a look
-    only where its run's entry is."""
-    count = half.shape[0]
-    mid = tuple(c.reshape(count, -1, group) for c in mid)
-    half = half.reshape(count, -1, group)
-    centre = tuple(c.mean(axis=2) for c in mid)
-    off = sub(mid, tuple(c[:, :, None] for c in centre))
-    reach = (np.sqrt(dot(off, off)) + half).max(axis=2) + r
-    gap = sub(tuple(c[:, :, None] for c in centre),
-               tuple(fscene.other_centres[:, k] for k in range(3)))
-    apart = np.sqrt(dot(gap, gap)) - fscene.other_radii
-    # The part's axis-aligned box: the ball's centre lies beyond one of its faces.
-    for k in range(3):
-        apart = np.maximum(apart, np.maximum(fscene.box_lower[:, k] - centre[k][:, :, None],
-                                             centre[k][:, :, None] - fscene.box_upper[:, k]))
-    # 1e-12 m below: rounding of the ball may not lift the bound above the distance.
-    return apart - reach[:, :, None] - 1e-12
-
-
-def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
-                       obstacle: np.ndarray, part: np.ndarray, best: float,
-                       group: int) -> float:
-    """``_fcl_search`` for a motion, where only the smallest distance over the whole batch
-    and which configurations penetrate matter: lower ``obstacle`` (B,) in place so that
-    every configuration that penetrates a part gets a negative entry, and return the
-    batch's exact smallest distance (``best`` if none is smaller: the best of configurations
-    searched before). An entry may stay above its configuration's true distance (never
-    below it), and ``part`` names the part of each lowered entry.
-
-    Pairs are visited over the whole batch in order of their lower bound, from a seed
-    pair (the smallest tight bound among the pieces of each configuration's run of
-    ``group`` pieces nearest to a part by ``_group_bounds``), until no pair can lower the
-    minimum or make a configuration penetrate; only the pieces of runs whose ball can get
-    below that are bounded one by one. The distances measured are the ones ``_fcl_search``
-    measures, on capsules built alike."""
-    count, pieces = a.shape[:2]
-    objects, part_of = fscene.objects, fscene.other_index
-    x0 = tuple(np.ascontiguousarray(a[..., k]) for k in range(3))
-    x1 = tuple(np.ascontiguousarray(b[..., k]) for k in range(3))
-    mid = tuple(0.5 * (p + q) for p, q in zip(x0, x1, strict=True))
-    u = sub(x1, x0)
-    half = 0.5 * np.sqrt(dot(u, u))
-    coarse = _group_bounds(r, fscene, mid, half, group)
-    reach = half + r
-    centres = tuple(fscene.other_centres[:, k] for k in range(3))
-    best = min(best, float(obstacle.min(initial=np.inf)))
-
-    def measure(k: int, capsule: fcl.CollisionObject, q: int) -> None:
-        nonlocal best
-        d = fcl_distance(capsule, objects[q])
-        if d < obstacle[k]:
-            obstacle[k], part[k] = d, q
-        best = min(best, d)
-
-    def expand(bk: np.ndarray, bg: np.ndarray,
-               bq: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The pairs of the runs' pieces whose loose bound (the part's bounding sphere
-        against the piece's ball) is below the threshold, with their tight bounds."""
-        bi, qi = np.repeat(bk, group), np.repeat(bq, group)
-        pi = ((bg * group)[:, None] + np.arange(group)).ravel()
-        gap = sub(tuple(c[bi, pi] for c in mid), tuple(c[qi] for c in centres))
-        loose = np.sqrt(dot(gap, gap)) - reach[bi, pi] - fscene.other_radii[qi]
-        keep = np.flatnonzero(loose < max(best, 0.0))
-        bi, pi, qi = bi[keep], pi[keep], qi[keep]
-        return bi, pi, qi, _tighten(r, fscene, a[bi, pi], b[bi, pi], qi, loose[keep],
-                                    max(best, 0.0))
-
-    # Seed: the pair of smallest tight bound among the pieces of each configuration's
-    # nearest run, so that the candidates below are only those that can beat it.
-    seed = (-1, -1, -1)                                  # (configuration, piece, part)
-    flat = coarse.reshape(count, -1).argmin(axis=1)
-    near = np.flatnonzero(coarse.reshape(count, -1)[np.arange(count), flat] < max(best, 0.0))
-    if len(near):
-        bi, pi, qi, tight = expand(near, *np.divmod(flat[near], coarse.shape[2]))
-        if len(tight) and tight.min() < max(best, 0.0):
-            s = int(np.argmin(tight))
-            seed = int(bi[s]), int(pi[s]), int(qi[s])
-            measure(seed[0], capsule_object(a[seed[:2]], b[seed[:2]], r), int(part_of[seed[2]]))
-    bk, bg, bq = np.nonzero(coarse < max(best, 0.0))
-    if not len(bk):
-        return best
-    bi, pi, qi, low = expand(bk, bg, bq)
-    open_ = (low < max(best, 0.0)) & ~((bi == seed[0]) & (pi == seed[1])
-                                       & (qi == seed[2]))           # the seed is measured
-    order = np.flatnonzero(open_)
-    order = order[np.argsort(low[order], kind="stable")]
-    bi, pi, qi, low = bi[order], pi[order], qi[order], low[order]
-    unique, slot = np.unique(bi * pieces + pi, return_inverse=True)
-    capsules = Capsules(r, a.reshape(-1, 3)[unique], b.reshape(-1, 3)[unique])
-    for k, s, bound, q in zip(bi.tolist(), slot.tolist(), low.tolist(),
-                              part_of[qi].tolist(), strict=True):
-        if bound >= max(best, 0.0):
-            break                        # no pair left can lower the minimum or penetrate
-        if bound >= best and obstacle[k] < 0.0:
-            continue                     # already known to penetrate; cannot lower the minimum
-        measure(k, capsules[s], q)
-    return best
-
-
 def _self_distance(r: float, a: Xyz, b: Xyz, per_segment: int) -> np.ndarray:
     """Smallest signed distance (B,) between the capsules of pieces of segments at least
     two apart (``_far_pairs``), for pieces running a–b (coordinates (B, m) each), k =
@@ -428,67 +297,56 @@ def _self_distance(r: float, a: Xyz, b: Xyz, per_segment: int) -> np.ndarray:
     return own - 2.0 * r
 
 
-def _spheres_that_matter(r: float, fscene: FclScene, chains: np.ndarray,
-                         best: float) -> np.ndarray:
-    """Indices of the sphere parts that can lower a motion's smallest distance below
-    ``best`` (m) or reach a configuration of ``chains`` (B, points, 3): those whose gap to
-    the box around every chain point is at most max(best, 0); best +inf (none yet) becomes
-    the distance of the first configuration's nearest point to any sphere, an upper bound
-    of the chunk's smallest distance. Every other sphere is farther from every
-    configuration than that: it changes neither the smallest distance nor any
-    configuration's sign."""
-    centres, radii = fscene.sphere_centres, fscene.sphere_radii
-    if not len(radii):
-        return np.zeros(0, dtype=np.int64)
-    lower, upper = chains.min(axis=(0, 1)), chains.max(axis=(0, 1))
-    outside = np.maximum(np.maximum(lower - centres, centres - upper), 0.0)
-    gap = np.sqrt(np.sum(outside * outside, axis=1)) - radii - r
-    if not np.isfinite(best):        # the motion's first chunk: no smallest distance yet
-        best = float((np.linalg.norm(chains[0][:, None] - centres[None], axis=2)
-                      - radii - r).min())
-    bound = max(best, 0.0)
-    return np.flatnonzero(gap <= bound)
+def _sphere_distances(r: float, fscene: FclScene, a: Xyz,
+                      b: Xyz) -> tuple[np.ndarray, np.ndarray]:
+    """Distance (B,) from the pieces a–b (coordinates (B, m) each) to the nearest sphere
+    part of the scene, closed form, and that part's index (B,)."""
+    count = len(a[0])
+    u = sub(b, a)
+    centre = tuple(fscene.sphere_centres[:, k] for k in range(3))
+    d = (point_segment(centre, tuple(c[:, :, None] for c in a),
+                       tuple(c[:, :, None] for c in u), dot(u, u)[:, :, None])
+         - r - fscene.sphere_radii).reshape(count, -1)
+    nearest = np.argmin(d, axis=1)
+    return (d[np.arange(count), nearest],
+            fscene.sphere_index[nearest % len(fscene.sphere_index)])
 
 
-def _verdicts(robot: Robot, fscene: FclScene, chains: np.ndarray, per_segment: int,
-              motion: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """Obstacle distance (B,), its part index (B,; −1: none), self distance (B,) and the
-    smallest obstacle distance for body chains (B, 1 + n·k, 3) of k pieces per segment.
+def _own_distances(robot: Robot, chains: np.ndarray, per_segment: int) -> np.ndarray:
+    """The self distance (B,) of body chains (B, 1 + n·k, 3) of k = ``per_segment``
+    pieces per segment (``_self_distance``; +inf where not checked), in chunks of
+    ``_BATCH_ELEMENTS`` far pairs."""
+    pairs = len(_far_pairs(chains.shape[1] - 1, per_segment)[0])
+    if not pairs or not robot.self_collision:
+        return np.full(len(chains), np.inf)
+    step = max(1, _BATCH_ELEMENTS // pairs)
+    out = [_self_distance(robot.backbone_radius,
+                          *(tuple(np.ascontiguousarray(c[..., k]) for k in range(3))
+                            for c in (part[:, :-1], part[:, 1:])), per_segment)
+           for part in (chains[s:s + step] for s in range(0, len(chains), step))]
+    return np.concatenate(out) if out else np.zeros(0)
 
-    ``motion`` None: every entry exact. Else the chains are one motion and ``motion`` the
-    smallest obstacle distance of its configurations checked before (+inf: none): only
-    the smallest distance and the sign of each entry are exact (``_fcl_motion_search``).
-    """
+
+def _verdicts(robot: Robot, fscene: FclScene, chains: np.ndarray,
+              per_segment: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Obstacle distance (B,), its part index (B,; −1: none) and self distance (B,) for
+    body chains (B, 1 + n·k, 3) of k pieces per segment, every entry exact."""
     r = robot.backbone_radius
     count = len(chains)
     obstacle = np.full(count, np.inf)
     part = np.full(count, -1, dtype=np.int64)
-    own = np.full(count, np.inf)
-    best = np.inf if motion is None else motion
     if not count:
-        return obstacle, part, own, best
+        return obstacle, part, np.full(count, np.inf)
     x = tuple(np.ascontiguousarray(chains[..., k]) for k in range(3))
     a, b = tuple(c[:, :-1] for c in x), tuple(c[:, 1:] for c in x)
-    spheres = (np.arange(len(fscene.sphere_index)) if motion is None else
-               _spheres_that_matter(r, fscene, chains, best))
-    if len(spheres):
-        u = sub(b, a)
-        centre = tuple(fscene.sphere_centres[spheres, k] for k in range(3))
-        d = (point_segment(centre, tuple(c[:, :, None] for c in a),
-                            tuple(c[:, :, None] for c in u), dot(u, u)[:, :, None])
-             - r - fscene.sphere_radii[spheres]).reshape(count, -1)
-        nearest = np.argmin(d, axis=1)
-        obstacle = d[np.arange(count), nearest]
-        part = fscene.sphere_index[spheres[nearest % len(spheres)]]
-    if len(fscene.other_index) and motion is not None:
-        best = _fcl_motion_search(r, fscene, chains[:, :-1], chains[:, 1:], obstacle, part,
-                                  best, _run_length(per_segment))
-    elif len(fscene.other_index):
+    if len(fscene.sphere_index):
+        obstacle, part = _sphere_distances(r, fscene, a, b)
+    if len(fscene.other_index):
         _fcl_search(r, fscene, chains[:, :-1], chains[:, 1:], obstacle, part)
-    best = min(best, float(obstacle.min()))
+    own = np.full(count, np.inf)
     if len(_far_pairs(chains.shape[1] - 1, per_segment)[0]) and robot.self_collision:
         own = _self_distance(r, a, b, per_segment)
-    return obstacle, part, own, best
+    return obstacle, part, own
 
 
 def check(robot: Robot, scene: Scene | None, q: Any) -> CheckResult:
@@ -529,7 +387,7 @@ def check_chains(robot: Robot, scene: Scene | None, chains: Any,
     # without a scene (43 tdcr3 configurations, the Python of each chunk most of the time).
     width = max(pieces * len(fscene.objects), len(_far_pairs(pieces, pieces_per_segment)[0]), 1)
     step = max(1, _BATCH_ELEMENTS // width)
-    parts = [_verdicts(robot, fscene, chains[s:s + step], pieces_per_segment)[:3]
+    parts = [_verdicts(robot, fscene, chains[s:s + step], pieces_per_segment)
              for s in range(0, len(chains), step)]
     obstacle, part, own = (np.concatenate([p[k] for p in parts]) if parts else
                            np.zeros(0, dtype=np.int64 if k == 1 else float) for k in range(3))
@@ -540,50 +398,3 @@ def check_chains(robot: Robot, scene: Scene | None, chains: Any,
     return CheckManyResult(collision=min_distance < 0.0, min_distance=min_distance,
                            self_collision=own < 0.0, obstacle_distance=obstacle,
                            self_distance=own, closest=tuple(closest.tolist()))
-
-
-@dataclass(frozen=True)
-class MotionCheck:
-    """The verdict on a motion: B configurations judged together (distances signed, m)."""
-
-    obstacle_distance: float
-    """Smallest signed distance between the body and any obstacle over the motion, exact
-    (+inf: no obstacles)."""
-    closest: str
-    """Name of the obstacle at ``obstacle_distance`` ("" if none)."""
-    self_distance: float
-    """Smallest signed distance between segments at least two apart over the motion
-    (+inf: not checked)."""
-    collision: np.ndarray
-    """(B,) bool: the configuration penetrates an obstacle or itself."""
-
-
-def check_motion(robot: Robot, scene: Scene | None, qs: Any,
-                 chains: np.ndarray | None = None) -> MotionCheck:
-    """The verdict on a motion through configurations qs (B, 3n; rad, rad, m): its
-    smallest obstacle and self distances and which configurations collide: what
-    ``check_many`` gives (its minima, its ``collision``), found with fewer fcl queries, as
-    a configuration's distance is measured only as far as it can lower the motion's
-    minimum or make it collide. The distances are the same fcl answers on the same
-    capsules; where two pairs tie for the minimum to rounding (e.g. a motion resting at
-    one configuration), either may be the one measured. ``scene`` None: the robot's
-    self-collision only. Measured on the trajectory planner's verification of 20 cabinet
-    problems (2,418 configurations): 5,255 fcl queries instead of 17,750, 2–3× faster.
-    ``chains``: their ``body_chain`` where the caller has it already (B, 1 + n·k, 3), m."""
-    qs = np.asarray(qs, dtype=np.float64).reshape(-1, robot.dof)
-    chains = body_chain(robot, qs) if chains is None else chains
-    per_segment = robot.points_per_segment
-    fscene = fcl_scene(scene)
-    pieces = chains.shape[1] - 1
-    best, closest, own_min = np.inf, "", np.inf
-    collision = np.zeros(len(qs), dtype=bool)
-    for s in _motion_chunks(fscene, len(qs), pieces, per_segment):
-        obstacle, part, own, low = _verdicts(robot, fscene, chains[s], per_segment,
-                                             motion=best)
-        if low < best:
-            nearest = int(np.argmin(obstacle))
-            best, closest = low, fscene.names[part[nearest]] if part[nearest] >= 0 else ""
-        own_min = min(own_min, float(own.min(initial=np.inf)))
-        collision[s] = np.minimum(obstacle, own) < 0.0
-    return MotionCheck(obstacle_distance=float(best), closest=closest,
-                       self_distance=float(own_min), collision=collision)

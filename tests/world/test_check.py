@@ -16,31 +16,16 @@ from cr_nlp.world.check import (
     capsule_sphere_distance,
     check,
     check_many,
-    check_motion,
     fcl_distance,
     fcl_object,
     point_segment_distance,
     segment_distance,
 )
 
-from ..conftest import MODELS, random_q, write_mixed_scene
+from ..conftest import random_q
 
 check_module = importlib.import_module("cr_nlp.world.check")
 fcl_objects = importlib.import_module("cr_nlp.world._fcl_objects")
-
-
-@pytest.fixture(scope="module")
-def robots() -> dict[str, Robot]:
-    return {name: Robot.from_file(MODELS / "robots" / f"{name}.json")
-            for name in ("tdcr3", "tdcr4_ext")}
-
-
-@pytest.fixture(scope="module")
-def mixed_scene(tmp_path_factory: pytest.TempPathFactory) -> Scene:
-    """One obstacle of every kind, within reach of the robots."""
-    root = tmp_path_factory.mktemp("mixed_check")
-    slab = {"type": "box", "name": "slab", "center": [0.0, 0.9, 2.4], "size": [0.8, 0.3, 0.2]}
-    return write_mixed_scene(root, [slab])
 
 
 # ---------------------------------------------------------------- closed forms
@@ -216,40 +201,6 @@ def test_chunking_and_empty_cases(robots, mixed_scene, monkeypatch) -> None:
     assert lone.min_distance == np.inf and lone.closest == "" and not lone.collision
 
 
-@pytest.mark.parametrize("robot_name,scene_name,chunk", [
-    ("tdcr3", "shelf", None), ("tdcr3", "cabinet", None), ("tdcr3", "mixed", None),
-    ("tdcr3", "lattice", None), ("tdcr4_ext", "mixed", 1 << 12), ("tdcr3", "shelf", 1),
-    ("tdcr3", "random_27", None), ("tdcr3", "random_27", 1 << 12), ("tdcr3", "lattice", 1),
-])
-def test_check_motion_gives_the_minima_and_collisions_of_check_many(
-        robots, mixed_scene, monkeypatch, robot_name, scene_name, chunk) -> None:
-    """The motion verdict measures fewer pairs but decides the same: the smallest obstacle
-    and self distances (the same fcl calls on the same capsules; where two pairs tie for
-    the minimum either may be measured, so to rounding) and every configuration's
-    collision, on motions that hit and miss the obstacles. Small chunks (``chunk``) make
-    the spheres that cannot matter to a chunk (``_spheres_that_matter``) drop out."""
-    robot = robots[robot_name]
-    scene = mixed_scene if scene_name == "mixed" else load_scene(scene_name)
-    if chunk is not None:
-        monkeypatch.setattr(check_module, "_BATCH_ELEMENTS", chunk)
-    ends = random_q(robot, 12, seed=len(scene_name))
-    for start, goal in zip(ends[::2], ends[1::2], strict=True):
-        qs = start + np.linspace(0.0, 1.0, 25)[:, None] * (goal - start)
-        want = check_many(robot, scene, qs)
-        got = check_motion(robot, scene, qs)
-        assert got.obstacle_distance == pytest.approx(want.obstacle_distance.min(), abs=1e-12)
-        assert got.self_distance == want.self_distance.min()
-        assert np.array_equal(got.collision, want.collision)
-        nearest = int(np.argmin(want.obstacle_distance))
-        if np.isfinite(got.obstacle_distance):
-            assert got.closest == check(robot, scene, qs[nearest]).closest or \
-                got.obstacle_distance < want.self_distance[nearest]
-    empty = check_motion(robot, Scene("empty", ()), ends)
-    assert empty.obstacle_distance == np.inf and empty.closest == ""
-    none = check_motion(robot, scene, np.zeros((0, robot.dof)))
-    assert none.collision.shape == (0,) and none.obstacle_distance == np.inf
-
-
 def test_lazy_capsules_are_capsule_objects() -> None:
     """Zero-length pieces become balls, and a piece along −z gets the half turn."""
     built = fcl_objects.Capsules(0.1, np.zeros((2, 3)), np.array([[0, 0, 0], [0, 0, -1.0]]))
@@ -258,64 +209,6 @@ def test_lazy_capsules_are_capsule_objects() -> None:
     assert built[1].getNodeType() == fcl.CollisionObject(fcl.Capsule(1.0, 1.0)).getNodeType()
     assert fcl_distance(built[0], ball) == pytest.approx(0.3, abs=1e-9)
     assert fcl_distance(built[1], ball) == pytest.approx(0.3, abs=1e-9)   # the −z turn
-
-
-@pytest.mark.parametrize("group", [1, 2, 5, 10])
-def test_run_balls_bound_every_piece_of_their_run(robots, mixed_scene, group) -> None:
-    """``_group_bounds`` (the motion search's first cut) is a true lower bound: below the
-    bound of every piece's own ball in its run (against the part's bounding sphere and
-    axis-aligned box) and below fcl's distance of each of them."""
-    robot = robots["tdcr3"]
-    r = robot.backbone_radius
-    chains = body_chain(robot, random_q(robot, 6, seed=group))
-    a, b = chains[:, :-1], chains[:, 1:]
-    for scene in (mixed_scene, load_scene("cabinet")):
-        fscene = fcl_objects.fcl_scene(scene)
-        mid = 0.5 * (a + b)
-        coarse = check_module._group_bounds(r, fscene, tuple(mid[..., k] for k in range(3)),
-                                            0.5 * np.linalg.norm(b - a, axis=-1), group)
-        count, pieces = a.shape[:2]
-        assert coarse.shape == (count, pieces // group, len(fscene.other_index))
-        mid = mid[:, :, None]                             # each piece's own ball
-        beyond_box = np.maximum(fscene.box_lower - mid, mid - fscene.box_upper).max(axis=-1)
-        piece_ball = (np.maximum(np.linalg.norm(mid - fscene.other_centres, axis=-1)
-                                 - fscene.other_radii, beyond_box)
-                      - 0.5 * np.linalg.norm(b - a, axis=-1)[:, :, None] - r)
-        runs = np.repeat(coarse, group, axis=1)          # each piece's run entry
-        assert np.all(runs <= piece_ball)
-        for k in range(count):
-            for i in range(0, pieces, 3):
-                capsule = capsule_object(a[k, i], b[k, i], r)
-                for q, whole in enumerate(fscene.other_index):
-                    d = fcl_distance(capsule, fscene.objects[whole])
-                    assert runs[k, i, q] <= d + 1e-5     # fcl's GJK: ~1e-5 m
-
-
-def test_pruned_motion_search_gives_the_minima_of_the_plain_one(robots) -> None:
-    """On random box scenes, the motion search (runs pruned by their balls) gives the
-    smallest distance and the collisions of every pair measured."""
-    robot = robots["tdcr3"]
-    rng = np.random.default_rng(7)
-    hits = 0
-    for trial in range(6):
-        centres = rng.uniform([-1.2, -1.2, 0.8], [1.2, 1.2, 2.4], (12, 3))
-        boxes = [{"type": "box", "name": f"box{j}", "center": centre.tolist(),
-                  "size": rng.uniform(0.1, 0.6, 3).tolist()} for j, centre in enumerate(centres)]
-        scene = Scene.from_dict({"obstacles": boxes})
-        start, goal = random_q(robot, 2, seed=trial)
-        qs = start + np.linspace(0.0, 1.0, 9)[:, None] * (goal - start)
-        got = check_motion(robot, scene, qs)
-        chains = body_chain(robot, qs)
-        capsules = [[capsule_object(c[i], c[i + 1], robot.backbone_radius)
-                     for i in range(len(c) - 1)] for c in chains]
-        every = np.array([[min(fcl_distance(p, obj) for obj in
-                               fcl_objects.fcl_scene(scene).objects) for p in row]
-                          for row in capsules]).min(axis=1)
-        assert got.obstacle_distance == pytest.approx(every.min(), abs=1e-12)
-        hits += int(np.any(every < 0.0))
-        assert np.array_equal(got.collision, np.minimum(every, check_many(
-            robot, scene, qs).self_distance) < 0.0)
-    assert 0 < hits < 6                  # motions that hit boxes and motions that miss
 
 
 def test_tightened_bounds_are_below_fcl_and_a_threshold_only_skips_work(robots,

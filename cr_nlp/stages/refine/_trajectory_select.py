@@ -50,7 +50,8 @@ class Selection:
 def select_guesses(lm: ChainBatchLM, guesses: np.ndarray, ends: list[tuple[np.ndarray,
                                                                             np.ndarray]],
                    dt: float, arrays: Any, iterations: int, first_round: int,
-                   verify: Callable[[np.ndarray], MotionVerification]) -> Selection:
+                   verify: Callable[[list[np.ndarray]], list[MotionVerification]]
+                   ) -> Selection:
     """Refine the (P, G, waypoints, 3n) ``guesses`` (bending vectors z) in two rounds and
     pick each problem's best by ``verify``.
 
@@ -70,8 +71,8 @@ def select_guesses(lm: ChainBatchLM, guesses: np.ndarray, ends: list[tuple[np.nd
         arrays: the scene arrays the LM's clearance terms use (or None).
         iterations: LM iterations per guess.
         first_round: guesses refined for every problem in round 1 (at least 1).
-        verify: q (waypoints, 3n) → its ``MotionVerification`` (``success``,
-            ``max_violation``).
+        verify: a list of q (waypoints, 3n) → their ``MotionVerification`` s
+            (``success``, ``max_violation``), e.g. ``world._motion.verify_trajectories``.
     """
     p_count, g_count, n, dof = guesses.shape
     first = min(max(first_round, 1), g_count)
@@ -86,44 +87,56 @@ def select_guesses(lm: ChainBatchLM, guesses: np.ndarray, ends: list[tuple[np.nd
     second = np.zeros(p_count, dtype=bool)         # the problem is in round 2
     finished: list[dict[int, tuple[np.ndarray, float]]] = [{} for _ in range(p_count)]
 
-    def judge(row: int) -> None:
-        """Verify the problem's finished round in cost order until one passes."""
-        q_start, q_goal = ends[row]
-        done = finished[row]
-        finished[row] = {}
+    def judge(rows: list[int]) -> None:
+        """Verify each problem's finished round in cost order until one passes: the
+        problems' first-ranked guesses in one ``verify`` call, then the second-ranked of
+        those still unsolved, and so on."""
         t2 = time.perf_counter()
-        order = sorted(done, key=lambda g: (done[g][1], g))
-        verified = set()
-        for g in order:
-            z, cost = done[g]
-            q = z_to_q_numpy(z.reshape(n, dof))
-            q[0], q[-1] = q_start, q_goal
-            verdict = verify(q)
-            verified.add(g)
-            tried[row].append((not verdict.success, verdict.max_violation, cost, q, g))
-            b = best[row]
-            if b is None or (verdict.success, -verdict.max_violation) > (
-                    b[0].success, -b[0].max_violation):
-                best[row] = (verdict, g, q, cost)
-            if verdict.success:
-                break
-        for g in sorted(done):
-            if g not in verified:          # not verified: ranked after the verified
-                q = z_to_q_numpy(done[g][0].reshape(n, dof))
-                q[0], q[-1] = q_start, q_goal
-                tried[row].append((True, math.inf, done[g][1], q, g))
-        verify_seconds[row] += time.perf_counter() - t2
+        done = {row: finished[row] for row in rows}
+        order = {row: sorted(done[row], key=lambda g, d=done[row]: (d[g][1], g)) for row in rows}
+        for row in rows:
+            finished[row] = {}
+        verified: dict[int, set[int]] = {row: set() for row in rows}
+        pending, rank = list(rows), 0
+        while pending:
+            batch = [(row, order[row][rank]) for row in pending if rank < len(order[row])]
+            qs = []
+            for row, g in batch:
+                q = z_to_q_numpy(done[row][g][0].reshape(n, dof))
+                q[0], q[-1] = ends[row]
+                qs.append(q)
+            pending = []
+            for (row, g), q, verdict in zip(batch, qs, verify(qs) if qs else [], strict=True):
+                verified[row].add(g)
+                tried[row].append((not verdict.success, verdict.max_violation,
+                                   done[row][g][1], q, g))
+                b = best[row]
+                if b is None or (verdict.success, -verdict.max_violation) > (
+                        b[0].success, -b[0].max_violation):
+                    best[row] = (verdict, g, q, done[row][g][1])
+                if not verdict.success:
+                    pending.append(row)
+            rank += 1
+        for row in rows:
+            for g in sorted(done[row]):
+                if g not in verified[row]:     # not verified: ranked after the verified
+                    q = z_to_q_numpy(done[row][g][0].reshape(n, dof))
+                    q[0], q[-1] = ends[row]
+                    tried[row].append((True, math.inf, done[row][g][1], q, g))
+        verify_seconds[rows] += (time.perf_counter() - t2) / len(rows)
 
     def more(chains: np.ndarray, z: np.ndarray,
              cost: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        added = []
+        added, complete = [], []
         for k, chain in enumerate(chains):
             row, g = owner[chain]
             finished[row][g] = (z[k], float(cost[k]))
             outstanding[row] -= 1
-            if outstanding[row]:
-                continue
-            judge(row)
+            if not outstanding[row]:
+                complete.append(row)
+        if complete:
+            judge(complete)
+        for row in complete:
             b = best[row]
             later = rounds[row][1]
             if not second[row] and not (b is not None and b[0].success) and later:

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
@@ -64,7 +65,7 @@ from ...world import Scene, load_scene, scene_arrays
 from ...world._broad_phase import part_cells, reach_box
 from ...world._clearance_groups import clearance_groups, has_clearance, near_clearance_groups
 from ...world._motion import MotionVerification as MotionVerification
-from ...world._motion import check_ends
+from ...world._motion import check_ends, verify_trajectories
 from ...world._motion import interpolate_trajectory as interpolate_trajectory
 from ...world._motion import tendon_series as tendon_series
 from ...world._motion import tip_positions as tip_positions
@@ -407,9 +408,15 @@ class TrajectoryPlanner:
         return check_ends(self.robot, self.scene, starts, goals)
 
     def verify(self, q: np.ndarray, dt: float) -> MotionVerification:
-        """``verify_trajectory`` with this planner's scene, δ and sampling."""
-        return verify_trajectory(self.robot, self.scene, q, dt, self.config.safety_margin,
-                                 self.config.verify_samples)
+        """``verify_trajectory`` with this planner's scene, δ and sampling: q (H+1, 3n)
+        rad, rad, m; dt s."""
+        return self.verify_many([q], dt)[0]
+
+    def verify_many(self, qs: Sequence[np.ndarray], dt: float) -> list[MotionVerification]:
+        """``verify`` of several trajectories (each (H+1, 3n) rad, rad, m; dt s) in one
+        pass (``world._motion.verify_trajectories``)."""
+        return verify_trajectories(self.robot, self.scene, qs, dt,
+                                   self.config.safety_margin, self.config.verify_samples)
 
     # ------------------------------------------------------------ the solve
     def plan(self, starts: Any, goals: Any, exact: bool = False, init: str = "roadmap",
@@ -508,7 +515,7 @@ class TrajectoryPlanner:
         timing.explore += time.perf_counter() - t0
         sel = select_guesses(self.lm, np.stack(guesses), [(a, b) for _, a, b in valid], dt,
                              self._arrays, cfg.iterations, cfg.first_round,
-                             lambda q: self.verify(q, dt))
+                             lambda qs: self.verify_many(qs, dt))
         self.last_programs += sel.programs
         timing.compile += sel.compile
         timing.refine += sel.refine

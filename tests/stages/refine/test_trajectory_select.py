@@ -56,9 +56,9 @@ def test_a_repeated_guess_is_refined_once_and_round_two_runs_only_where_needed()
     # Problem 2 (known by its start, written over each answer's first waypoint) fails
     # every verdict; the others pass with their first verified guess.
 
-    def verify(q: np.ndarray) -> SimpleNamespace:   # the verification's two fields read
-        ok = not np.array_equal(q[0], ends[2][0])
-        return SimpleNamespace(success=ok, max_violation=0.0 if ok else 1.0)
+    def verify(qs: list[np.ndarray]) -> list[SimpleNamespace]:   # the two fields read
+        ok = [not np.array_equal(q[0], ends[2][0]) for q in qs]
+        return [SimpleNamespace(success=o, max_violation=0.0 if o else 1.0) for o in ok]
 
     lm = RecordingLM()
     sel = select_guesses(lm, guesses, ends, 0.35, None, 10, 2, verify)
