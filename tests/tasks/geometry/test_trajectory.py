@@ -217,17 +217,19 @@ def test_one_verdict_a_margin_violation_is_a_failure_in_both_modes(shelf_planner
 
     monkeypatch.setattr(TrajectoryPolisher, "solve", lambda self, q, dt, *a, **k: Failed())
     assert shelf_planner.plan([SHELF_START], [SHELF_GOAL])[0].success
-    true_verify = T.verify_trajectory
+    true_verify = T.verify_trajectories
 
-    def verify_with_a_short_margin(robot, scene, q, dt, margin, samples, *a, **k):
-        checked = true_verify(robot, scene, q, dt, margin, samples, *a, **k)
+    def short(checked):
         violations = {**checked.violations, "clearance": 1e-3}
         reason = failure_reason(violations)
         return replace(checked, verdict=replace(
             checked.verdict, violations=violations, max_violation=max(violations.values()),
             reason=reason, success=not reason))
 
-    monkeypatch.setattr(T, "verify_trajectory", verify_with_a_short_margin)
+    def verify_with_a_short_margin(robot, scene, qs, dt, margin, samples, *a, **k):
+        return [short(c) for c in true_verify(robot, scene, qs, dt, margin, samples, *a, **k)]
+
+    monkeypatch.setattr(T, "verify_trajectories", verify_with_a_short_margin)
     penalty = shelf_planner.plan([SHELF_START], [SHELF_GOAL])[0]
     exact = shelf_planner.plan([SHELF_START], [SHELF_GOAL], exact=True)[0]
     assert "polish failed: from refine" in exact.stage_text
