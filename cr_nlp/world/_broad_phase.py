@@ -34,6 +34,8 @@ too far, never too near.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -43,8 +45,10 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import HalfspaceIntersection
 
+from .._programs import source_hash
 from ..model._ops import NUMPY
 from ..model.robot import Robot
+from ..runtime import cache_dir, cached_arrays
 from .clearance import SceneArrays, kind_distances, scene_arrays
 from .scene import (
     PART_KINDS,
@@ -68,6 +72,8 @@ KIND_FIELDS: tuple[tuple[str, ...], ...] = (
 
 TABLE_BYTES = 16 * 2**20
 """The automatic cell size keeps a table within this many bytes."""
+
+_CACHE_STATS = {"hits": 0, "builds": 0}
 
 SLACK = 1e-4
 """Metres added to the keep threshold: a float32 centre this close to a cell's border may
@@ -250,36 +256,75 @@ def part_cells(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.nd
     9 / 13 in cabinet (9–13 at 0.05–0.1 m when the grid was shifted by 0.1 m), 4 spheres
     in random_27; the tables took 5.2–21 / 0.73–2.7 / 0.10–0.34 / ≤ 0.04 MB and were
     built in 0.7–1.8 / 0.17–0.27 / 0.04–0.13 / 0.05–0.10 s (2 busy cores).
+
+    A table is built once per scene, settings and cr_nlp source and kept in
+    ``cache_dir()/cell_tables``: a later process (a warm ``cr-nlp plan``'s two tables took
+    0.10 and 0.17 s) reads it from there (``part_cells_cache_stats``).
     """
     if near < 1:
         raise ValueError(f"near must be at least 1, got {near}")
     if not (cell_size is None or cell_size > 0) or not math.isfinite(cutoff):
         raise ValueError(f"cell_size must be positive and cutoff finite, got {cell_size}, "
                          f"{cutoff}")
+    key = _table_key(scene, body_radius, region, cutoff, near, cell_size)
+    data, _ = cached_arrays(cache_dir() / "cell_tables" / f"{key}.npz", lambda: _built(
+        scene, body_radius, region, cutoff, near, cell_size), _CACHE_STATS)
+    dtype = dtype or jnp.result_type(float)
+    size = float(data["cell_size"])
+    return PartCells(jnp.asarray(data["origin"], dtype), jnp.asarray(1.0 / size, dtype),
+                     jnp.asarray(data["table"]), tuple(data["widths"].tolist()), size,
+                     float(cutoff), int(data["truncated"]))
+
+
+def part_cells_cache_stats() -> dict[str, int]:
+    """How often ``part_cells`` loaded a table from ``cache_dir()/cell_tables``
+    (``hits``) or built one (``builds``) in this process."""
+    return dict(_CACHE_STATS)
+
+
+def _table_key(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.ndarray],
+               cutoff: float, near: int, cell_size: float | None) -> str:
+    """sha256 of everything a table depends on: the scene (its file form and its parts'
+    arrays), the settings, the cr_nlp source and numpy's version."""
+    digest = hashlib.sha256()
+    digest.update(json.dumps({
+        "scene": scene.to_dict(), "body_radius": float(body_radius),
+        "region": [np.asarray(x, dtype=float).tolist() for x in region],
+        "cutoff": float(cutoff), "near": int(near), "cell_size": cell_size,
+        "source": source_hash(), "numpy": np.__version__}, sort_keys=True,
+        default=str).encode())
+    for array in scene_arrays(scene, as_numpy=True):
+        digest.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
+    return digest.hexdigest()
+
+
+def _built(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.ndarray],
+           cutoff: float, near: int, cell_size: float | None) -> dict[str, np.ndarray]:
+    """``part_cells``' table built (its numpy fields), the automatic cell size chosen."""
     kinds, boxes, lo, hi = _reach(scene, body_radius, region, cutoff)
-    if cell_size is None:
-        region_lo, region_hi = (np.asarray(x, dtype=float) for x in region)
-        size = max(0.5 * body_radius, float(np.max(region_hi - region_lo)) / 128)
-        # Up to the next size of one series: robots of similar size get the same grid
-        # (and so share the programs that take the table).
-        size = CELL_BASE * math.sqrt(2.0) ** math.ceil(2 * math.log2(size / CELL_BASE) - 1e-9)
-        while True:
-            # A size whose table cannot fit (its fewest columns) is not built.
-            dims = _cells_per_axis(lo, hi, size)
-            if _least_table_bytes(kinds, dims) <= TABLE_BYTES:
-                cells = _table(scene, body_radius, cutoff, near, size, dtype,
-                               kinds, boxes, lo, dims)
-                if cells.table.nbytes <= TABLE_BYTES:
-                    return cells
-            size *= 2.0
-    return _table(scene, body_radius, cutoff, near, cell_size, dtype, kinds, boxes, lo,
-                  _cells_per_axis(lo, hi, cell_size))
+    if cell_size is not None:
+        return _table(scene, body_radius, cutoff, near, cell_size, kinds, boxes, lo,
+                      _cells_per_axis(lo, hi, cell_size))
+    region_lo, region_hi = (np.asarray(x, dtype=float) for x in region)
+    size = max(0.5 * body_radius, float(np.max(region_hi - region_lo)) / 128)
+    # Up to the next size of one series: robots of similar size get the same grid
+    # (and so share the programs that take the table).
+    size = CELL_BASE * math.sqrt(2.0) ** math.ceil(2 * math.log2(size / CELL_BASE) - 1e-9)
+    while True:
+        # A size whose table cannot fit (its fewest columns) is not built.
+        dims = _cells_per_axis(lo, hi, size)
+        if _least_table_bytes(kinds, dims) <= TABLE_BYTES:
+            table = _table(scene, body_radius, cutoff, near, size, kinds, boxes, lo, dims)
+            if table["table"].nbytes <= TABLE_BYTES:
+                return table
+        size *= 2.0
 
 
 def _table(scene: Scene, body_radius: float, cutoff: float, near: int, cell_size: float,
-           dtype: Any, kinds: list, boxes: list, lo: np.ndarray, dims: np.ndarray) -> PartCells:
-    """``part_cells`` at ``cell_size`` on the grid ``_reach`` and ``_cells_per_axis`` give
-    (``lo``: its lower corner, m; ``dims``: its cells per axis).
+           kinds: list, boxes: list, lo: np.ndarray, dims: np.ndarray) -> dict[str, np.ndarray]:
+    """``part_cells``' numpy fields at ``cell_size`` on the grid ``_reach`` and
+    ``_cells_per_axis`` give (``lo``: its lower corner, m; ``dims``: its cells per axis):
+    ``origin``, ``table``, ``widths``, ``cell_size`` and ``truncated``.
 
     Long: one table built in order (grid, per-part cell bounds, per-kind columns) on shared arrays.
     """
@@ -338,10 +383,9 @@ def _table(scene: Scene, body_radius: float, cutoff: float, near: int, cell_size
     biggest = max((len(p) for p in kinds), default=0)
     index_type = np.int16 if biggest <= np.iinfo(np.int16).max else np.int32
     table = (np.concatenate(columns, axis=1) if columns else np.zeros((n_cells, 0), int))
-    dtype = dtype or jnp.result_type(float)
     grid = table.reshape(tuple(dims) + (-1,)).astype(index_type)
     grid = np.pad(grid, [(0, p - d) for p, d in zip(_padded(dims), dims, strict=True)]
                   + [(0, 0)], mode="edge")
-    return PartCells(jnp.asarray(lo, dtype), jnp.asarray(1.0 / cell_size, dtype),
-                     jnp.asarray(grid), tuple(widths), float(cell_size), float(cutoff),
-                     int(truncated.sum()))
+    return {"origin": np.asarray(lo, dtype=float), "table": grid,
+            "widths": np.array(widths, dtype=np.int64), "cell_size": np.array(float(cell_size)),
+            "truncated": np.array(int(truncated.sum()))}

@@ -28,6 +28,7 @@ from cr_nlp.world._broad_phase import (
     _reach,
     cell_candidates,
     part_cells,
+    part_cells_cache_stats,
     reach_box,
 )
 from cr_nlp.world._clearance_groups import (
@@ -279,3 +280,37 @@ def test_robots_of_similar_size_get_one_grid_shape():
         assert tables[0].cell_size == tables[1].cell_size == pytest.approx(2 * CELL_BASE)
         assert all(d % GRID_ROUND == 0 for d in tables[1].table.shape[:3])
         assert tables[1].truncated == 0
+
+
+def test_a_table_is_built_once_and_read_back_from_the_cache(tmp_path, monkeypatch):
+    """A second ``part_cells`` with the same scene and settings reads the table the first
+    one built (the same arrays and fields, in the asked dtype); another cutoff or a moved
+    part builds its own; a damaged file is built again and replaced."""
+    monkeypatch.setenv("CR_NLP_CACHE_DIR", str(tmp_path))
+    scene, region = load_scene("shelf"), reach_box(ROBOT)
+    before = part_cells_cache_stats()
+
+    def counts() -> tuple[int, int]:
+        now = part_cells_cache_stats()
+        return now["hits"] - before["hits"], now["builds"] - before["builds"]
+
+    built = part_cells(scene, ROBOT.backbone_radius, region, 0.014)
+    again = part_cells(scene, ROBOT.backbone_radius, region, 0.014, dtype=jnp.float32)
+    assert counts() == (1, 1)
+    assert np.array_equal(np.asarray(again.table), np.asarray(built.table))
+    assert again.table.dtype == built.table.dtype
+    assert (again.widths, again.cell_size, again.cutoff, again.truncated) == (
+        built.widths, built.cell_size, built.cutoff, built.truncated)
+    assert again.origin.dtype == jnp.float32
+    np.testing.assert_array_equal(np.asarray(again.origin), np.asarray(built.origin, np.float32))
+    part_cells(scene, ROBOT.backbone_radius, region, 0.02)
+    moved = Scene("moved", tuple(scene.obstacles[1:]))
+    part_cells(moved, ROBOT.backbone_radius, region, 0.014)
+    assert counts() == (1, 3)
+    files = sorted((tmp_path / "cell_tables").glob("*.npz"))
+    assert len(files) == 3
+    for path in files:
+        path.write_bytes(b"not a table")
+    damaged = part_cells(scene, ROBOT.backbone_radius, region, 0.014)
+    assert counts() == (1, 4)
+    assert np.array_equal(np.asarray(damaged.table), np.asarray(built.table))
