@@ -10,7 +10,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from ._programs import compile_program
+from ._programs import compile_ahead, compile_program
 
 
 class CachedProgram:
@@ -29,23 +29,36 @@ class CachedProgram:
         self._compiled: dict[Any, Any] = {}
 
     def __call__(self, *args: Any) -> Any:
-        fn, static = self.fn, ()
-        if self.static_argnums:
-            static = tuple(args[i] for i in self.static_argnums)
-            fn = functools.partial(_with_static, self.fn, self.static_argnums, static)
-            args = tuple(a for i, a in enumerate(args) if i not in self.static_argnums)
-        leaves, tree = jax.tree.flatten(args)
-        signature = (tree, tuple(
-            (np.shape(x), (x.dtype if hasattr(x, "dtype") else np.result_type(x)).str,
-             isinstance(x, float | int),
-             tuple(d.id for d in x.devices()) if isinstance(x, jax.Array) else ())
-            for x in leaves), static)
+        fn, args, signature = self._split(args)
         program = self._compiled.get(signature)
         if program is None:
             program = compile_program(fn, args, name=self.name, batched=self.batched,
                                       outputs=self.outputs, by_shape=self.by_shape)
             self._compiled[signature] = program
         return program(*args)
+
+    def ahead(self, *args: Any) -> None:
+        """Start compiling (or loading) the program for these arguments' shapes in the
+        background (``compile_ahead``); a later call with such arguments takes it over."""
+        fn, args, signature = self._split(args)
+        if signature not in self._compiled:
+            compile_ahead(fn, args, name=self.name, batched=self.batched,
+                          outputs=self.outputs, by_shape=self.by_shape)
+
+    def _split(self, args: tuple) -> tuple[Callable, tuple, tuple]:
+        """The function of the dynamic arguments (the static ones bound), those
+        arguments, and their signature (pytree, shapes, dtypes, devices, static values)."""
+        fn, static = self.fn, ()
+        if self.static_argnums:
+            static = tuple(args[i] for i in self.static_argnums)
+            fn = functools.partial(_with_static, self.fn, self.static_argnums, static)
+            args = tuple(a for i, a in enumerate(args) if i not in self.static_argnums)
+        leaves, tree = jax.tree.flatten(args)
+        return fn, args, (tree, tuple(
+            (np.shape(x), (x.dtype if hasattr(x, "dtype") else np.result_type(x)).str,
+             isinstance(x, float | int),
+             tuple(d.id for d in x.devices()) if isinstance(x, jax.Array) else ())
+            for x in leaves), static)
 
 
 def _with_static(fn: Callable, positions: tuple[int, ...], values: tuple,

@@ -69,6 +69,9 @@ the IK search program, ~4 000 operations, 15–20 s)."""
 _memory: OrderedDict[str, Any] = register(OrderedDict())
 _pending: dict[str, Future] = {}
 """Programs being compiled (``compile_ahead``), by the same key as ``_memory``."""
+_queued: dict[str, tuple[Future, Callable[[], None]]] = {}
+"""Programs asked for ahead whose build has not started: the background pool's future and
+the build, which a thread that needs the program now takes over (``_requested``)."""
 _lock = threading.Lock()
 _tracing: dict[str, threading.Lock] = {}
 """Per disk key: held while a thread loads or traces that program."""
@@ -244,6 +247,10 @@ def _requested(fn: Callable, args: Sequence[Any], name: str,
             return _memory[memory_key]
         future = _pending.get(memory_key)
         owner = future is None
+        queued = None if owner or ahead else _queued.pop(memory_key, None)
+        # Asked for ahead but still waiting for a background thread (behind longer
+        # builds): built here and now instead of waited for.
+        take_over = queued[1] if queued is not None and queued[0].cancel() else None
         if owner:
             # The same program for another single device, done or under way: moved, not
             # compiled again (requested earlier, so never queued behind this one). Not
@@ -252,11 +259,14 @@ def _requested(fn: Callable, args: Sequence[Any], name: str,
             siblings = [] if split or len(devices) != 1 or _stored(key) else [
                 k for k in (*_memory, *_pending) if k.startswith(f"{tier}:(")]
             future = _pending[memory_key] = Future()
+    if take_over is not None:
+        take_over()
     if owner:
         build = functools.partial(_build, future, fn, args, key, memory_key, name,
                                   batched if split else None, outputs, siblings, effort)
         if ahead:
-            _background().submit(build)
+            with _lock:
+                _queued[memory_key] = (_background().submit(build), build)
         else:
             build()
     return None if ahead else future.result()
@@ -268,6 +278,8 @@ def _build(future: Future, fn: Callable, args: Sequence[Any], key: str, memory_k
     """Load or trace, then compile, the program under ``key`` (or move a sibling's copy
     of it to this device); its result (or error) goes to ``future``, the program into
     the memory."""
+    with _lock:
+        _queued.pop(memory_key, None)
     try:
         compiled = _from_sibling(siblings, args) if siblings else None
         if compiled is None:

@@ -244,6 +244,34 @@ def test_an_error_compiling_ahead_is_raised_where_the_program_is_asked_for(
     assert not _programs._pending
 
 
+def test_a_program_asked_for_ahead_but_not_started_is_built_by_who_needs_it(
+        program_cache: Path, monkeypatch) -> None:
+    """A program queued behind a longer build (the background pool busy) is built by the
+    thread that asks for it, not waited for; asked ahead again, it starts nothing."""
+    from concurrent.futures import ThreadPoolExecutor
+    from threading import Event
+
+    busy, pool = Event(), ThreadPoolExecutor(1)
+    pool.submit(busy.wait, 60)                    # the pool's one thread: taken
+    monkeypatch.setattr(_programs, "_background", lambda: pool)
+    z = np.arange(12, dtype=np.float32).reshape(4, 3)
+    args = (z, {"scale": np.float32(3.0)})
+    fn = partial(_square_sum, 0.5)
+    compile_ahead(fn, args)
+    assert _programs._pending and _programs._queued
+    try:
+        total, extra = compile_program(fn, args)(*args)   # would wait 60 s for the pool
+        assert not busy.is_set()
+    finally:
+        busy.set()
+        pool.shutdown()
+    _same((total, extra["scaled"]), _expected())
+    assert _programs.stats.traced == 1
+    assert not _programs._pending and not _programs._queued
+    compile_ahead(fn, args)
+    assert not _programs._pending
+
+
 def _on_devices(devices: list) -> list[tuple]:
     copies = []
     for device in devices:
