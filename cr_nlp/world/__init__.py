@@ -28,6 +28,7 @@ from .clearance import clearance_z as clearance_z
 from .clearance import pair_distances as pair_distances
 from .clearance import pair_distances_z as pair_distances_z
 from .clearance import scene_arrays as scene_arrays
+from .clearance import scene_digest as scene_digest
 from .clearance import self_distances as self_distances
 from .clearance import self_distances_z as self_distances_z
 from .clearance import self_pairs as self_pairs

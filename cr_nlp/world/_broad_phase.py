@@ -49,7 +49,7 @@ from .._programs import source_hash
 from ..model._ops import NUMPY
 from ..model.robot import Robot
 from ..runtime import cache_dir, cached_arrays
-from .clearance import SceneArrays, kind_distances, scene_arrays
+from .clearance import SceneArrays, kind_distances, scene_arrays, scene_digest
 from .scene import (
     PART_KINDS,
     BoxPart,
@@ -286,16 +286,11 @@ def _table_key(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.nd
                cutoff: float, near: int, cell_size: float | None) -> str:
     """sha256 of everything a table depends on: the scene (its file form and its parts'
     arrays), the settings, the cr_nlp source and numpy's version."""
-    digest = hashlib.sha256()
-    digest.update(json.dumps({
-        "scene": scene.to_dict(), "body_radius": float(body_radius),
+    return hashlib.sha256(json.dumps({
+        "scene": scene_digest(scene), "body_radius": float(body_radius),
         "region": [np.asarray(x, dtype=float).tolist() for x in region],
         "cutoff": float(cutoff), "near": int(near), "cell_size": cell_size,
-        "source": source_hash(), "numpy": np.__version__}, sort_keys=True,
-        default=str).encode())
-    for array in scene_arrays(scene, as_numpy=True):
-        digest.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
-    return digest.hexdigest()
+        "source": source_hash(), "numpy": np.__version__}, sort_keys=True).encode()).hexdigest()
 
 
 def _built(scene: Scene, body_radius: float, region: tuple[np.ndarray, np.ndarray],

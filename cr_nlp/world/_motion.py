@@ -138,9 +138,10 @@ def verify_trajectories(robot: Robot, scene: Scene | None, qs: Sequence[Any], dt
     if not qs:
         return []
     waypoints = np.concatenate(qs)
-    ends = np.cumsum([len(q) for q in qs])            # each motion's rows end here
+    sizes = np.array([len(q) for q in qs])
+    ends = np.cumsum(sizes)                           # each motion's rows end here
     dense = z_to_q_numpy(_interpolate_z(q_to_z_numpy(waypoints), ends, samples))
-    dense_ends = (ends - np.arange(1, len(qs) + 1)) * samples + np.arange(1, len(qs) + 1)
+    dense_ends = np.cumsum((sizes - 1) * samples + 1)
     # The body chain's last point is the tip: one forward kinematics pass, not two.
     chains = (body_chain(robot, dense) if scene is not None or robot.has_self_pairs
               else None)

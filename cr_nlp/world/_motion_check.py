@@ -40,9 +40,8 @@ _CHUNK_ELEMENTS = 1 << 15
 cache); a long motion is searched chunk after chunk."""
 _ROUND_ELEMENTS = 1 << 17
 """Entries of the largest array (configuration × run × part) searched at once: the
-chunks of several motions share a batch up to this size (measured on the shelf's
-trajectories: 1 << 15 per motion, as before, took 4.4 ms a motion; 1 << 17 shared
-between motions, see ``verify_trajectories``)."""
+chunks of several motions share a batch up to this size (on the shelf's trajectories,
+1 << 15 to 1 << 21 gave the same time per motion within this machine's noise)."""
 
 
 @dataclass(frozen=True)

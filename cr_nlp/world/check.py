@@ -343,10 +343,7 @@ def _verdicts(robot: Robot, fscene: FclScene, chains: np.ndarray,
         obstacle, part = _sphere_distances(r, fscene, a, b)
     if len(fscene.other_index):
         _fcl_search(r, fscene, chains[:, :-1], chains[:, 1:], obstacle, part)
-    own = np.full(count, np.inf)
-    if len(_far_pairs(chains.shape[1] - 1, per_segment)[0]) and robot.self_collision:
-        own = _self_distance(r, a, b, per_segment)
-    return obstacle, part, own
+    return obstacle, part, _own_distances(robot, chains, per_segment)
 
 
 def check(robot: Robot, scene: Scene | None, q: Any) -> CheckResult:

@@ -35,6 +35,8 @@ make the clearance smaller (``distances.py``).
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 from dataclasses import dataclass
 from functools import partial
@@ -123,6 +125,16 @@ def scene_arrays(scene: Scene, dtype: Any = None, as_numpy: bool = False) -> Sce
         return arrays
     dtype = dtype or jnp.result_type(float)
     return SceneArrays(*(jnp.asarray(a, dtype=dtype) for a in arrays))
+
+
+def scene_digest(scene: Scene) -> str:
+    """sha256 (hex) of a scene's content, the key of what is built from it and cached: its
+    file form and its parts' arrays (``scene_arrays``: they cover mesh contents and their
+    decomposition)."""
+    digest = hashlib.sha256(json.dumps(scene.to_dict(), sort_keys=True, default=str).encode())
+    for array in scene_arrays(scene, as_numpy=True):
+        digest.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
+    return digest.hexdigest()
 
 
 # ================================================================ the body

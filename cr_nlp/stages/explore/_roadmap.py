@@ -48,7 +48,7 @@ from ..._cached_jit import cached_jit
 from ..._files import write_atomic
 from ...model import Robot, q_to_z, q_to_z_numpy, z_to_q_numpy
 from ...runtime import cache_dir, cached
-from ...world import Scene, body_gap_tolerance, scene_arrays
+from ...world import Scene, body_gap_tolerance, scene_arrays, scene_digest
 from ...world._broad_phase import PartCells, part_cells, reach_box
 from ...world._clearance_groups import near_clearance_z
 from ._roadmap_search import neighbour_table, shortest_paths
@@ -235,14 +235,10 @@ def _edge_free(checker: ClearanceChecker, za: np.ndarray, zb: np.ndarray, counts
 def _scene_key(robot: Robot, scene: Scene, config: RoadmapConfig) -> str:
     """sha256 of the robot, the scene (its file form and its parts' geometry, which
     covers mesh contents and their decomposition) and the settings."""
-    h = hashlib.sha256()
-    h.update(json.dumps({"version": FORMAT_VERSION, "robot": robot.to_dict(),
-                         "scene": scene.to_dict(), "config": asdict(config),
-                         "margin": resolved_margin(robot, config), "chunk": CHECK_CHUNK},
-                        sort_keys=True, default=str).encode())
-    for array in scene_arrays(scene, as_numpy=True):
-        h.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
-    return h.hexdigest()
+    return hashlib.sha256(json.dumps(
+        {"version": FORMAT_VERSION, "robot": robot.to_dict(), "scene": scene_digest(scene),
+         "config": asdict(config), "margin": resolved_margin(robot, config),
+         "chunk": CHECK_CHUNK}, sort_keys=True, default=str).encode()).hexdigest()
 
 
 # ================================================================ the roadmap
