@@ -57,6 +57,31 @@ class Ops:
     """Compute a tuple of entries here. On JAX an optimisation barrier: without it XLA's
     fusion recomputes shared subexpressions inside every consumer, which made the
     derivative of the pose error ~100× slower. Identity on CasADi."""
+    polynomials: Callable[[Any, list[tuple[float, ...]]], list[Any]]
+    """Σₖ cₖ·tᵏ of one entry t for each table of coefficients c₀, c₁, … (Horner form).
+    JAX: the tables side by side on one trailing axis (one Horner loop, not one per
+    table: the compiled programs that evaluate many arcs stay smaller)."""
+
+
+def polynomial(t: Any, coefficients: tuple[float, ...]) -> Any:
+    """Σₖ cₖ·tᵏ in Horner form (plain arithmetic: every backend)."""
+    out = coefficients[-1]
+    for c in coefficients[-2::-1]:
+        out = c + t * out
+    return out
+
+
+def _polynomials(t: Any, tables: list[tuple[float, ...]]) -> list[Any]:
+    return [polynomial(t, c) for c in tables]
+
+
+def _jax_polynomials(t: Any, tables: list[tuple[float, ...]]) -> list[Any]:
+    t = jnp.asarray(t)[..., None]
+    rows = np.array(tables, dtype=float).T           # (degree + 1, tables)
+    out = jnp.asarray(rows[-1], t.dtype)
+    for row in rows[-2::-1]:
+        out = jnp.asarray(row, t.dtype) + t * out
+    return [out[..., i] for i in range(len(tables))]
 
 
 def _jax_stack_points(per_segment: list[tuple[Any, Any, Any]]) -> Any:
@@ -90,6 +115,7 @@ JAX = Ops(
     points_of=lambda x, m: x[..., m, :],
     stack_points=_jax_stack_points,
     materialize=_jax_materialize,
+    polynomials=_jax_polynomials,
 )
 
 CASADI = Ops(
@@ -109,6 +135,7 @@ CASADI = Ops(
     points_of=lambda x, m: x[m, :].T,
     stack_points=_casadi_stack_points,
     materialize=lambda x: x,
+    polynomials=_polynomials,
 )
 
 
@@ -147,4 +174,5 @@ NUMPY = Ops(
     points_of=lambda x, m: x[..., m, :],
     stack_points=_numpy_stack_points,
     materialize=lambda x: x,
+    polynomials=_polynomials,
 )

@@ -116,28 +116,38 @@ def model_backbone(ops: Ops, robot: Robot, z: list[Any],
     return ops.stack_points(per_segment)
 
 
-def model_tendon_lengths(ops: Ops, robot: Robot, z: list[Any]) -> list[Any]:
-    """Tendon lengths (metres), ``ℓᵢⱼ = Lᵢ − r·θᵢ·cos(αⱼ − φᵢ) = Lᵢ − r·(uxᵢ cos αⱼ + uyᵢ sin αⱼ)``.
+def _offsets_xp(robot: Robot) -> Any:
+    """numpy where the tendon offsets are numbers (constants of a program), ``jax.numpy``
+    where a compiled program takes them as data (``Robot.program_data``: traced)."""
+    return jnp if any(isinstance(o, jax.core.Tracer) for o in robot.tendons.offsets) else np
 
-    ``shared``: m tendons, each summed over all segments (segment i's offset
-    applies inside segment i). ``per_segment``: segment k's m tendons end at
-    segment k and sum over segments 1…k; order ``[seg1 tendons, seg2 tendons, …]``.
+
+def tendon_length_matrix(robot: Robot, xp: Any = np) -> tuple[Any, np.ndarray]:
+    """∂ℓ/∂z, (3n, T): tendon lengths are linear in the bending vector, ℓ = z·M
+    (``ℓₜ = Σᵢ Lᵢ − r·(uxᵢ cos αₜᵢ + uyᵢ sin αₜᵢ)`` over the segments i tendon t runs
+    through), m per rad for the ux, uy rows and m per m for the L rows; with the (3n, T)
+    mask of its entries that are not structurally zero. ``xp``: numpy (float64), or
+    ``jax.numpy`` for offsets a compiled program takes as data (``Robot.program_data``).
+
+    ``shared``: m tendons, each summed over all segments (segment i's offset applies
+    inside segment i). ``per_segment``: segment k's m tendons end at segment k and sum
+    over segments 1…k; order ``[seg1 tendons, seg2 tendons, …]``.
     """
-    n, r, offsets = robot.n_segments, robot.tendons.radius, robot.tendons.offsets
+    n, r = robot.n_segments, robot.tendons.radius
     routing = routing_of(robot)
-    # Offsets that are numbers enter as constants; offsets a compiled program takes as
-    # data (``Robot.program_data``) are traced.
-    numbers = not any(isinstance(o, jax.core.Tracer) for o in offsets)
-    alpha = routing.angles(offsets, np if numbers else jnp)
+    alpha = routing.angles(robot.tendons.offsets, xp).T            # (n, T)
+    through = routing.through.T.astype(float)                      # (n, T)
+    rows = xp.stack([-r * xp.cos(alpha) * through, -r * xp.sin(alpha) * through,
+                     xp.asarray(through)], axis=1)                 # (n, 3, T)
+    return rows.reshape(3 * n, -1), np.repeat(routing.through.T, 3, axis=0)
 
-    def contribution(i: int, angle: Any) -> Any:
-        ux, uy, length = z[3 * i], z[3 * i + 1], z[3 * i + 2]
-        cos, sin = ((float(np.cos(angle)), float(np.sin(angle))) if numbers
-                    else (jnp.cos(angle), jnp.sin(angle)))
-        return length - r * (ux * cos + uy * sin)
 
-    return [sum(contribution(i, alpha[t, i]) for i in range(n) if routing.through[t, i])
-            for t in range(len(alpha))]
+def model_tendon_lengths(ops: Ops, robot: Robot, z: list[Any]) -> list[Any]:
+    """Tendon lengths (metres), ``ℓ = z·M`` with M = ``tendon_length_matrix``, as one sum
+    of the entries of ``z`` (a list of 3n entries) per tendon."""
+    matrix, used = tendon_length_matrix(robot, _offsets_xp(robot))
+    return [sum(matrix[j, t] * z[j] for j in range(len(z)) if used[j, t])
+            for t in range(matrix.shape[1])]
 
 
 def model_pose_error(ops: Ops, tip: Transform, target: Transform) -> tuple[Any, ...]:
@@ -276,8 +286,10 @@ def backbone_points(robot: Robot, q: Any) -> Any:
 
 @robot_jit
 def tendon_lengths_z(robot: Robot, z: jax.Array) -> jax.Array:
-    """Tendon lengths (…, n_tendons) in metres from bending-vector z."""
-    return JAX.stack(model_tendon_lengths(JAX, robot, [z[..., i] for i in range(robot.dof)]))
+    """Tendon lengths (…, n_tendons) in metres from bending-vector z: one product with
+    ``tendon_length_matrix`` (a program of a few operations, not one per entry)."""
+    matrix = tendon_length_matrix(robot, _offsets_xp(robot))[0]
+    return jnp.matmul(z, jnp.asarray(matrix, z.dtype), precision=jax.lax.Precision.HIGHEST)
 
 
 def tendon_lengths(robot: Robot, q: Any) -> Any:

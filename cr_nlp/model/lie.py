@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._ops import JAX, Ops, safe_where
+from ._ops import JAX, Ops, polynomial, safe_where
 
 Vec = tuple[Any, Any, Any]
 Rot = tuple[Any, Any, Any, Any, Any, Any, Any, Any, Any]
@@ -26,14 +26,6 @@ SERIES_BELOW = 1e-2
 
 
 # ---------------------------------------------------------------- smooth scalars
-
-def _polynomial(t: Any, coefficients: tuple[float, ...]) -> Any:
-    """Σₖ cₖ·tᵏ in Horner form (plain arithmetic: every backend)."""
-    out = coefficients[-1]
-    for c in coefficients[-2::-1]:
-        out = c + t * out
-    return out
-
 
 _SINC = tuple((-1.0) ** k / math.factorial(2 * k + 1) for k in range(8))
 _VERSINE = tuple((-1.0) ** k / math.factorial(2 * k + 2) for k in range(8))
@@ -75,23 +67,24 @@ def bend_coefficients(ops: Ops, t: Any, slopes: bool = False) -> Bend:
     b = 0.5 * sinc_h * sinc_h  # (1 − cos θ)/θ² = ½·sinc²(θ/2): no cancellation
     exact = [a, b, (1.0 - a) / safe]
     tables = [_SINC, _VERSINE, _DEFICIT]
-    # numpy evaluates every entry it is given (no dead-code elimination, no fusion): it
-    # evaluates the series only where they are used (``_numpy_series_where``).
-    lazy = ops.name == "numpy" and np.ndim(series_below) > 0
-    series = [] if lazy else [_polynomial(t, c) for c in tables]
     if slopes:
         cos_theta = 1.0 - 2.0 * sin_h * sin_h
         exact += [(cos_theta - a) / (2.0 * safe), (a - 2.0 * b) / (2.0 * safe)]
         tables += [_SINC_SLOPE, _VERSINE_SLOPE]
-        series += [] if lazy else [_polynomial(t, c) for c in tables[3:]]
+    # numpy evaluates every entry it is given (no dead-code elimination, no fusion): it
+    # evaluates the series only where they are used (``_numpy_series_where``).
+    lazy = ops.name == "numpy" and np.ndim(series_below) > 0
+    series = [] if lazy else ops.polynomials(t, tables)
     if lazy:
         return Bend(*_numpy_series_where(series_below, t, tables, exact))
-    return Bend(*(ops.where(series_below, s, e) for s, e in zip(series, exact, strict=True)))
+    # Computed once (JAX: an optimisation barrier), not again inside every consumer.
+    return ops.materialize(Bend(*(ops.where(series_below, s, e)
+                                  for s, e in zip(series, exact, strict=True))))
 
 
 def _numpy_series_where(series_below: np.ndarray, t: Any, tables: list[tuple[float, ...]],
                         exact: list[Any]) -> list[np.ndarray]:
-    """``np.where(series_below, _polynomial(t, table), exact)`` per table, each series
+    """``np.where(series_below, polynomial(t, table), exact)`` per table, each series
     evaluated only on the entries below the switch: the same numbers (elementwise
     arithmetic), a fraction of the work where most arcs bend past the series range."""
     below = np.nonzero(series_below)
@@ -99,7 +92,7 @@ def _numpy_series_where(series_below: np.ndarray, t: Any, tables: list[tuple[flo
     out = []
     for table, value in zip(tables, exact, strict=True):
         value = np.array(np.broadcast_to(value, series_below.shape), dtype=float)
-        value[below] = _polynomial(t_below, table)
+        value[below] = polynomial(t_below, table)
         out.append(value)
     return out
 

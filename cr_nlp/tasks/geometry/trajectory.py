@@ -45,9 +45,8 @@ import numpy as np
 
 from ..._compile_effort import LARGE_PLAN, full_effort
 from ...model import Robot, load_robot, q_to_z_numpy
-from ...model._ops import JAX
 from ...model.derivatives import tip_position_z
-from ...model.kinematics import model_tendon_lengths
+from ...model.kinematics import tendon_lengths_z
 from ...model.limits import project_z
 from ...runtime import configure
 from ...stages.explore import initial_guesses
@@ -241,8 +240,7 @@ def trajectory_residual(robot: Robot, waypoints: int, checks: int, margin: float
         groups = jax.vmap(partial(clearance_groups, robot, margin, scene))(
             jnp.concatenate(configs))
         out.append(math.sqrt(w_clear) * groups.reshape(-1))
-    lengths = jnp.stack(model_tendon_lengths(JAX, robot, [way[:, i] for i in range(robot.dof)]),
-                        axis=-1).astype(z.dtype)
+    lengths = tendon_lengths_z(robot, way).astype(z.dtype)
     if robot.speed_limited:
         speed = (lengths[1:] - lengths[:-1]) / dt
         over = jnp.abs(speed) / (limit_fraction * robot.tendon_speed_max) - 1.0
