@@ -19,7 +19,7 @@ import pytest
 from cr_nlp import _programs
 from cr_nlp._programs import compile_program, fingerprint
 from cr_nlp.model import load_robot
-from cr_nlp.model.kinematics import backbone_points, tip_pose
+from cr_nlp.model.kinematics import backbone_points, tendon_lengths, tip_pose
 from cr_nlp.model.limits import limit_violation_q
 from cr_nlp.model.robot import Robot
 from cr_nlp.model.rotations import wxyz_from_matrix
@@ -69,12 +69,15 @@ def test_robots_of_one_shape_share_a_template_and_others_do_not() -> None:
 
 
 def _chain(robot: Robot, scale: float, q: jax.Array) -> jax.Array:
-    """The backbone (as ``backbone_points``) scaled, and the limits' violation."""
+    """The backbone (as ``backbone_points``) scaled, the limits' violation and the tendon
+    lengths (the tendon offsets as data)."""
     from cr_nlp.model._ops import JAX
-    from cr_nlp.model.kinematics import model_backbone, model_q_to_z
+    from cr_nlp.model.kinematics import model_backbone, model_q_to_z, tendon_lengths_z
 
-    points = model_backbone(JAX, robot, model_q_to_z(JAX, robot, q))   # (B, points, 3)
-    return scale * points, limit_violation_q(robot, q, jnp)
+    z = model_q_to_z(JAX, robot, q)
+    points = model_backbone(JAX, robot, z)   # (B, points, 3)
+    return (scale * points, limit_violation_q(robot, q, jnp),
+            tendon_lengths_z(robot, JAX.stack(z)))
 
 
 def test_one_program_computes_with_each_robots_own_numbers(program_cache: Path) -> None:
@@ -86,10 +89,11 @@ def test_one_program_computes_with_each_robots_own_numbers(program_cache: Path) 
     with jax.enable_x64(True):
         for i, robot in enumerate(robots):
             program = compile_program(partial(_chain, robot, 2.0 + i), (q,), by_shape=True)
-            points, limits = program(q)
+            points, limits, lengths = program(q)
             np.testing.assert_allclose(points, (2.0 + i) * backbone_points(robot, q),
                                        atol=1e-12)
             np.testing.assert_allclose(limits, limit_violation_q(robot, q), atol=1e-12)
+            np.testing.assert_allclose(lengths, tendon_lengths(robot, q), atol=1e-12)
     # Three robots and three scales, one program.
     assert (_programs.stats.traced, _programs.stats.reused) == (1, 2)
     # Without by_shape each robot keeps its own program.
