@@ -68,7 +68,11 @@ class TendonRouting:
         """(T, n) angle α of tendon t inside segment i, rad, for per-segment ``offsets``
         (n,) rad (defined, but unused, where the tendon does not run). ``xp``: numpy
         (float64), or ``jax.numpy`` for offsets a compiled program takes as data."""
-        return self.slot_angle[:, None] + xp.asarray(offsets, dtype=float)[self.owner]
+        # An int32 index: under ``jax.enable_x64`` (which cr_nlp's float64 stages enter and
+        # leave) JAX's gather once mixed an int64 index with an int32 bound in a later
+        # program traced without it (TypeError in lax.add).
+        return (self.slot_angle[:, None]
+                + xp.asarray(offsets, dtype=float)[self.owner.astype(np.int32)])
 
 
 def routing_of(robot: Robot) -> TendonRouting:

@@ -276,3 +276,23 @@ def test_numpy_q_z_pair_matches_jax_and_round_trips():
     one = q[1, 1]
     np.testing.assert_allclose(q_to_z_numpy(one), z[1, 1])    # a single (3n,) row
     assert q_to_z_numpy(one) is not one and np.all(one == q[1, 1])  # input untouched
+
+
+def test_tendon_lengths_with_the_offsets_as_data_after_a_float64_program() -> None:
+    """A program that takes the robot's numbers as data (``Robot.program_data``) traces
+    the tendon lengths with traced offsets; one traced under ``jax.enable_x64`` (as the
+    float64 stages do) must leave the next float32 trace working and exact."""
+    from cr_nlp.model.kinematics import q_to_z_numpy, tendon_lengths_z
+
+    template, numbers = TDCR3.program_data()
+    q = random_q(TDCR3, np.random.default_rng(5), 8)
+    z = q_to_z_numpy(q)
+
+    def lengths(data: jax.Array, z: jax.Array) -> jax.Array:
+        return tendon_lengths_z(template.filled(data), z)
+
+    with jax.enable_x64(True):
+        np.testing.assert_allclose(jax.jit(lengths)(numbers, z), tendon_lengths(TDCR3, q),
+                                   atol=1e-12)
+    single = jax.jit(lengths)(numbers.astype(np.float32), z.astype(np.float32))
+    np.testing.assert_allclose(single, tendon_lengths(TDCR3, q), atol=1e-5)
