@@ -175,7 +175,7 @@ class _Topology:
 def _routing(topo: _Topology, params: dict[str, Any]) -> jax.Array:
     """(n_tendons, 2n) matrix B: tendon j's shortening per unit bending vector, / r."""
     mask = jnp.asarray(topo.runs_through)
-    owner = np.asarray(topo.offset_owner)
+    owner = np.asarray(topo.offset_owner, dtype=np.int32)   # as ``TendonRouting.owner``
     alpha = (jnp.asarray(topo.nominal_angles) + params["segment_offsets"][owner]
              + params["angle_deltas"][:, None])
     b = jnp.stack([jnp.cos(alpha) * mask, jnp.sin(alpha) * mask], axis=-1)

@@ -48,6 +48,9 @@ class TendonRouting:
     anchor: np.ndarray    # (T,) the segment where tendon t ends (its stiffness group)
     slot: np.ndarray      # (T,) its place among the m tendons around the disks
     owner: np.ndarray     # (T, n) the segment whose offset sets its angle inside segment i
+    # (int32: it indexes offsets a program traces; under ``jax.enable_x64``, which the
+    # float64 stages enter and leave, an int64 index made JAX's gather mix int64 and int32
+    # in a program traced later without it: TypeError in lax.add)
     slot_angle: np.ndarray  # (T,) 2π slot / m, rad, before any offset
     shared: bool          # every tendon runs to the tip (``shared``), else per segment
 
@@ -68,11 +71,7 @@ class TendonRouting:
         """(T, n) angle α of tendon t inside segment i, rad, for per-segment ``offsets``
         (n,) rad (defined, but unused, where the tendon does not run). ``xp``: numpy
         (float64), or ``jax.numpy`` for offsets a compiled program takes as data."""
-        # An int32 index: under ``jax.enable_x64`` (which cr_nlp's float64 stages enter and
-        # leave) JAX's gather once mixed an int64 index with an int32 bound in a later
-        # program traced without it (TypeError in lax.add).
-        return (self.slot_angle[:, None]
-                + xp.asarray(offsets, dtype=float)[self.owner.astype(np.int32)])
+        return self.slot_angle[:, None] + xp.asarray(offsets, dtype=float)[self.owner]
 
 
 def routing_of(robot: Robot) -> TendonRouting:
@@ -96,7 +95,7 @@ def _routing(n: int, m: int, routing: str) -> TendonRouting:
         anchor = tendon // m
         owner = np.repeat(anchor[:, None], n, axis=1)
     arrays = {"through": segment[None, :] <= anchor[:, None], "anchor": anchor,
-              "slot": slot, "owner": owner, "slot_angle": slot * 2.0 * np.pi / m}
+              "slot": slot, "owner": owner.astype(np.int32), "slot_angle": slot * 2.0 * np.pi / m}
     for value in arrays.values():
         value.flags.writeable = False
     return TendonRouting(**arrays, shared=shared)
