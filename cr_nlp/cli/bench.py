@@ -280,13 +280,16 @@ def _run_statics(args: argparse.Namespace) -> int:
 def _add_tension(group: argparse._SubParsersAction) -> None:
     p = group.add_parser("tension", help="tension-space IK, planning and following under "
                                          "gravity and a 5 g payload (Cosserat model)")
-    p.add_argument("--suite", choices=("loop", "clutter"), default="loop",
+    p.add_argument("--suite", choices=("loop", "clutter", "live"), default="loop",
                    help="loop (default): planning among four obstacles and one followed "
                         "loop; clutter: IK, following and planning among 14 spheres and "
-                        "2 boxes through the loaded workspace")
+                        "2 boxes through the loaded workspace; live: the viewer's dragged "
+                        "target, one update at a time (ms per update), without a scene "
+                        "and in the clutter")
     p.add_argument("--problems", type=int, default=20, help="planning problems (default 20)")
     p.add_argument("--waypoints", type=int, default=None,
-                   help="waypoints of each followed path (default 100 loop, 60 clutter)")
+                   help="waypoints of each followed path or drag (default 100 loop, 60 "
+                        "clutter and live)")
     p.add_argument("--targets", type=int, default=200,
                    help="clutter: IK targets (default 200)")
     p.add_argument("--paths", type=int, default=6, help="clutter: followed paths (default 6)")
@@ -313,6 +316,13 @@ def _run_tension(args: argparse.Namespace) -> int:
                                       repeats=args.repeats, seed=args.seed,
                                       polish_accepted=args.polish_accepted, out=args.out)
         _wrote(args, "tension_clutter")
+        return 0
+    if args.suite == "live":
+        from ..bench.tension_live import run_tension_live_benchmark
+
+        run_tension_live_benchmark(robot=args.robot, waypoints=args.waypoints or 60,
+                                   repeats=args.repeats, seed=args.seed, out=args.out)
+        _wrote(args, "tension_live")
         return 0
     from ..bench.tension_motion import run_tension_motion_benchmark
 

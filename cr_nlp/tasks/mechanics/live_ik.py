@@ -59,6 +59,10 @@ class TensionLiveIKResult:
     """(3,) moment at the base of the solved rod, N·m, world frame: the next warm start."""
     seconds: float
     """Wall time of the update, verdict included."""
+    timing: StageTiming
+    """Where ``seconds`` went: ``refine`` the warm-started LM, ``explore`` the pool's
+    seeds and their LM (where the warm start missed), ``verify`` the verdicts (fresh
+    statics, python-fcl); the rest is the update's own bookkeeping."""
     backbone: np.ndarray
     """(P, 3) the solved rod's backbone points from the base to the tip, m (the verdict's
     fresh statics)."""
@@ -109,16 +113,21 @@ class TensionLiveIKSolver:
         quats = (np.full((1, 4), np.nan) if wxyz is None
                  else np.asarray(wxyz, dtype=float).reshape(1, 4))
         moment, verified, jacobian = self._warm_start(current)
+        timing, clock = StageTiming(), time.perf_counter()
         answer = self.ik._lm(current, target, quats, self.loads, moment, smallest=1)
+        timing.refine, clock = _lap(clock)
         shape = self.ik._forward(answer, self.loads, verified, jacobian)
         judged = self.ik._judge(shape, answer, target, quats, self.loads, StageTiming())
+        timing.verify, clock = _lap(clock)
         stage = Stage.REFINE
         if search and not judged.success[0]:
             seeds = self.ik._seeds(target, self.loads, 0)
             again = self.ik._lm(seeds, target, quats, self.loads, smallest=1)
+            timing.explore, clock = _lap(clock)
             other_shape = self.ik._forward(again, self.loads)
             other = self.ik._judge(other_shape, again, target, quats, self.loads,
                                    StageTiming())
+            timing.verify += _lap(clock)[0]
             if other.success[0] or other.pose_error[0] < judged.pose_error[0]:
                 answer, judged, shape, stage = again, other, other_shape, Stage.SEARCH
         self._warm = (answer.tobytes(), base_frame(self.robot, judged.base_moment),
@@ -128,7 +137,7 @@ class TensionLiveIKSolver:
             position_error=float(judged.position_error[0]),
             min_clearance=float(judged.min_clearance[0]), success=bool(judged.success[0]),
             reason=judged.reason[0], stage=stage, base_moment=judged.base_moment[0],
-            seconds=time.perf_counter() - start, backbone=shape.positions[0],
+            seconds=time.perf_counter() - start, timing=timing, backbone=shape.positions[0],
             backbone_rotations=shape.rotations[0])
 
     @compiles_fully
@@ -150,6 +159,12 @@ class TensionLiveIKSolver:
         if self._warm is not None and self._warm[0] == current.tobytes():
             return self._warm[1:]
         return None, None, None
+
+def _lap(clock: float) -> tuple[float, float]:
+    """(seconds since ``clock``, now)."""
+    now = time.perf_counter()
+    return now - clock, now
+
 
 from ..._moved import moved_names  # noqa: E402 — the old names, for one release
 
