@@ -68,14 +68,32 @@ def jacobi_margin(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
     −1 where Y(s) has two negative real eigenvalues (two conjugate points passed at once,
     which keeps the determinant's sign; see the module). ``with_tip``: (that margin,
     Y(L)), the shooting residual's Jacobian at the equilibrium (a next Newton's start)."""
+    rough = dataclasses.replace(config, constitutive_iterations=1)
+    margin, y, _ = _jacobi_field(lay, rough, base_moment, tension, loads)
+    return (margin, y[-1]) if with_tip else margin
+
+
+def shape_and_margin(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
+                     tension: jax.Array, loads: CaseLoads) -> tuple:
+    """``jacobi_margin(..., with_tip=True)`` and the shape's pass at ``base_moment`` in one
+    vmapped integration (its unperturbed lane is the shape: one sequential pass fewer than
+    the two apart, for a one-case solve; every lane with ``config``'s own constitutive
+    iterations). Returns (margin, Y(L), ``_integrate``'s outputs with the path)."""
+    margin, y, shape = _jacobi_field(lay, config, base_moment, tension, loads)
+    return margin, y[-1], shape
+
+
+def _jacobi_field(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
+                  tension: jax.Array, loads: CaseLoads) -> tuple:
+    """(the margin of ``jacobi_margin``, Y at every grid point (P, 3, 3), the unperturbed
+    pass's ``_integrate`` outputs with the path) from four passes with ``config``."""
     dtype = base_moment.dtype
     h = float(np.sqrt(np.finfo(np.dtype(dtype)).eps)) * jnp.maximum(
         jnp.max(jnp.abs(base_moment)), lay.moment_scale)
     starts = base_moment[None] + jnp.concatenate(
         [jnp.zeros((1, 3), dtype), h * jnp.eye(3, dtype=dtype)])
-    rough = dataclasses.replace(config, constitutive_iterations=1)
-    _, _, _, _, mom = jax.vmap(
-        lambda m0: _integrate(lay, rough, m0, tension, loads, True))(starts)
+    passes = jax.vmap(lambda m0: _integrate(lay, config, m0, tension, loads, True))(starts)
+    mom = passes[-1]
     y = jnp.moveaxis((mom[1:] - mom[0]) / h, 0, -1)                     # (P, 3, 3)
     # det(μI − Y) = μ³ − aμ² + bμ − d; with d > 0 it has two negative roots iff its local
     # maximum lies at μ < 0 and is not below zero (a touch: the symmetric case).
@@ -88,9 +106,8 @@ def jacobi_margin(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
     mu = (a - jnp.sqrt(jnp.maximum(spread, 0.0))) / 3
     peak = mu ** 3 - a * mu ** 2 + b * mu - d
     two_negative = (spread >= 0) & (mu < 0) & (peak >= -1e-6)
-    if with_tip:
-        return jnp.min(jnp.where(two_negative, -1.0, d)), y[-1]
-    return jnp.min(jnp.where(two_negative, -1.0, d))
+    return (jnp.min(jnp.where(two_negative, -1.0, d)), y,
+            tuple(out[0] for out in passes))
 
 
 def distinct(base_moments: np.ndarray, valid: np.ndarray, scale: float) -> np.ndarray:

@@ -328,8 +328,14 @@ def moment_scale(robot: Robot) -> float:
 def _finish(lay: _Layout, config: StaticsConfig, base_moment: jax.Array,
             tension: jax.Array, loads: CaseLoads) -> dict[str, jax.Array]:
     """The shape and its checks for one case from its M(0): one integration pass."""
-    mom, ell, positions, rotations, _ = _integrate(lay, config, base_moment, tension, loads,
-                                                   True)
+    return _finished(lay, config, base_moment, loads,
+                     _integrate(lay, config, base_moment, tension, loads, True))
+
+
+def _finished(lay: _Layout, config: StaticsConfig, base_moment: jax.Array, loads: CaseLoads,
+              integrated: tuple) -> dict[str, jax.Array]:
+    """``_finish`` of the pass ``integrated`` (``_integrate``'s outputs with the path)."""
+    mom, ell, positions, rotations, _ = integrated
     straight = jnp.asarray(lay.active.T @ lay.step_length, ell.dtype)
     residual = jnp.linalg.norm(mom - loads.moment)
     tol = config.resolved_tolerance() * lay.moment_scale

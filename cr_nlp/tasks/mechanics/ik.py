@@ -120,6 +120,11 @@ class TensionIKConfig:
     capsules between the points, which can come closer than the spheres. A target whose
     only clear answers keep less than δ plus this is pulled off by the rows: at 2 mm,
     1.9 % of clear targets in clutter failed, at 0.5 mm 0–0.1 % (docs/benchmarks.md)."""
+    lm_precision: float | None = None
+    """The LM stops once its residual is below this fraction of ``tolerance`` (its rows in
+    metres). None: 1e-3 for a batch (answers about a thousand times inside the verdict's
+    tolerance), ``live_ik.LIVE_PRECISION`` for ``TensionLiveIKSolver``'s single updates,
+    where each trip of the LM is a visible share of the update."""
     jacobian: str = "broyden"
     """How the LM differentiates the rod (``LMConfig.jacobian``): ``"broyden"`` (forward
     differences at the start of each round and every 8 iterations within one, Broyden's
@@ -434,7 +439,8 @@ class TensionIKSolver:
     def lm_config(self) -> LMConfig:
         """The refine stage's LM rules for this solver's tolerance."""
         return LMConfig(jacobian=self.config.jacobian, refresh=8, linear_solver="unrolled",
-                        cost_tolerance=0.5 * (1e-3 * self.config.tolerance) ** 2,
+                        cost_tolerance=0.5 * ((self.config.lm_precision or 1e-3)
+                                              * self.config.tolerance) ** 2,
                         stall_tolerance=1e-6)
 
     def _lm(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,

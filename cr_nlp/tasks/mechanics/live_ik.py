@@ -3,11 +3,14 @@ current tensions (the viewer's dragged target under gravity), as ``tasks.geometr
 for the PCC model.
 
 Each update runs the refine stage of ``tasks.mechanics.ik`` (its LM rows: tip,
-equilibrium, backbone clearance; forward-difference Jacobians) on one target from the
-current tensions and the current moment at the base (so the first LM step starts at an
-equilibrium), a program compiled once for a batch of one. Where the warm start misses
-(a jump across the workspace), the batched solver answers from its seed pool
-(``search``). Every answer is judged by the tension IK's one verdict: a fresh forward
+equilibrium, backbone clearance; a difference Jacobian, then Broyden's updates) on one
+target from the current tensions and the current moment at the base (so the first LM
+step starts at an equilibrium), a program compiled once for a batch of one, stopped at
+``LIVE_PRECISION`` of the tolerance (each trip of the LM is a visible share of an
+update). Where the warm start misses (a jump across the workspace, a drag pressed
+against a bound or an obstacle), the solver answers from its seed pool as the batch
+does: the nearest clear set with its equilibrium, then the next ones (``search``). Every
+answer is judged by the tension IK's one verdict: a fresh forward
 statics solve of its tensions, the tension bounds, and python-fcl on the solved backbone.
 The fresh solve of a warm-started answer starts from the equilibrium the verdict found
 for the previous answer (``solve_statics(start_moment=…)``: Newton under the full loads, the
@@ -35,6 +38,12 @@ from ...world.scene import Scene
 from .._result import Stage
 from .._timing import StageTiming
 from .ik import TensionIKConfig, TensionIKSolver
+
+LIVE_PRECISION = 0.3
+"""The live LM stops once its residual is below this fraction of the tolerance
+(``TensionIKConfig.lm_precision``, unless a config sets it). On drags in clutter the
+verified answers end 4–15 µm from their targets (tolerance 0.1 mm) and the LM takes 3–4
+trips instead of 5 (1e-3, a batch's): 0.3–0.6 ms less per update (docs/benchmarks.md)."""
 
 
 @dataclass(frozen=True)
@@ -81,8 +90,10 @@ class TensionLiveIKSolver:
     def __init__(self, robot: Robot | str | dict, scene: Scene | str | None = None,
                  config: TensionIKConfig | None = None, **loads: Any) -> None:
         # One target: the LM in one round (rounds only shrink a batch's stragglers).
-        self.ik = TensionIKSolver(robot, scene,
-                                  replace(config or TensionIKConfig(), round_iterations=0))
+        config = config or TensionIKConfig()
+        self.ik = TensionIKSolver(robot, scene, replace(
+            config, round_iterations=0,
+            lm_precision=config.lm_precision or LIVE_PRECISION))
         self.robot = self.ik.robot
         self.loads = static_loads(1, self.ik.length, **loads)
         self._warm: tuple | None = None
@@ -97,8 +108,9 @@ class TensionLiveIKSolver:
             tensions: the current tensions, e.g. the previous answer's.
             position: the target tip position, m.
             wxyz: the target orientation (unit quaternion w, x, y, z) or None.
-            search: where the warm start misses, answer from the pool's seeds (the batched
-                solver: tens of milliseconds).
+            search: where the warm start misses, answer from the pool's seeds as the
+                batch does: the nearest clear set, then up to ``retry_seeds`` more, until
+                one verifies (milliseconds each).
 
         Raises:
             ValueError: tensions of the wrong size, a non-finite target.
@@ -113,21 +125,25 @@ class TensionLiveIKSolver:
         quats = (np.full((1, 4), np.nan) if wxyz is None
                  else np.asarray(wxyz, dtype=float).reshape(1, 4))
         moment, verified, jacobian = self._warm_start(current)
-        timing, clock = StageTiming(), time.perf_counter()
+        timing, lap = StageTiming(), _Lap()
         answer = self.ik._lm(current, target, quats, self.loads, moment, smallest=1)
-        timing.refine, clock = _lap(clock)
+        timing.refine = lap()
         shape = self.ik._forward(answer, self.loads, verified, jacobian)
         judged = self.ik._judge(shape, answer, target, quats, self.loads, StageTiming())
-        timing.verify, clock = _lap(clock)
+        timing.verify = lap()
         stage = Stage.REFINE
-        if search and not judged.success[0]:
-            seeds = self.ik._seeds(target, self.loads, 0)
-            again = self.ik._lm(seeds, target, quats, self.loads, smallest=1)
-            timing.explore, clock = _lap(clock)
+        for rank in range(self.ik.config.retry_seeds + 1 if search else 0):
+            if judged.success[0]:
+                break
+            # The pool's rank-th nearest clear set and its equilibrium, as the batch's
+            # first try and retries do.
+            seeds, moments = self.ik._start(target, self.loads, rank)
+            again = self.ik._lm(seeds, target, quats, self.loads, moments, smallest=1)
+            timing.explore += lap()
             other_shape = self.ik._forward(again, self.loads)
             other = self.ik._judge(other_shape, again, target, quats, self.loads,
                                    StageTiming())
-            timing.verify += _lap(clock)[0]
+            timing.verify += lap()
             if other.success[0] or other.pose_error[0] < judged.pose_error[0]:
                 answer, judged, shape, stage = again, other, other_shape, Stage.SEARCH
         self._warm = (answer.tobytes(), base_frame(self.robot, judged.base_moment),
@@ -160,10 +176,16 @@ class TensionLiveIKSolver:
             return self._warm[1:]
         return None, None, None
 
-def _lap(clock: float) -> tuple[float, float]:
-    """(seconds since ``clock``, now)."""
-    now = time.perf_counter()
-    return now - clock, now
+class _Lap:
+    """A stopwatch: each call returns the seconds since the previous one (or since made)."""
+
+    def __init__(self) -> None:
+        self.last = time.perf_counter()
+
+    def __call__(self) -> float:
+        now = time.perf_counter()
+        seconds, self.last = now - self.last, now
+        return seconds
 
 
 from ..._moved import moved_names  # noqa: E402 — the old names, for one release

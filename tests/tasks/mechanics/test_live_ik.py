@@ -74,3 +74,33 @@ def test_the_verdict_continues_from_the_equilibrium_on_screen(live: TensionLiveI
     np.testing.assert_allclose(starts[1], first.base_moment)
     rest = solve_statics(RAO, second.tensions[None], PAYLOAD, None, GRAVITY)
     np.testing.assert_allclose(second.backbone, rest.positions[0], atol=1e-9)
+
+
+def test_a_missed_update_tries_the_next_pool_seeds(live: TensionLiveIKSolver,
+                                                   monkeypatch) -> None:
+    """Where the warm start and the nearest pool set both miss, the update goes on to the
+    next pool sets (as the batch's retries do) and answers from the first that verifies."""
+    motion = np.array([[1.0, 0, 0.2, 0.6, 0.3, 0], [2.0, 0.5, 0, 0.2, 0.8, 0.1]])
+    tips = solve_statics(RAO, motion, PAYLOAD, None, GRAVITY).tip_position
+    stuck = motion[:1]
+    real_lm, real_start = live.ik._lm, live.ik._start
+    ranks = []
+
+    def lm(tensions, *args, **kwargs):      # an LM that cannot leave ``stuck``
+        return tensions if np.array_equal(tensions, stuck) else real_lm(tensions, *args,
+                                                                        **kwargs)
+
+    def start(positions, loads, rank):      # the nearest pool set is ``stuck``
+        ranks.append(rank)
+        return (stuck, None) if rank == 0 else real_start(positions, loads, rank)
+
+    monkeypatch.setattr(live.ik, "_lm", lm)
+    monkeypatch.setattr(live.ik, "_start", start)
+    answer = live.solve(motion[0], tips[1])
+    assert answer.success, answer.reason
+    assert answer.stage == Stage.SEARCH and ranks == [0, 1]
+    assert answer.timing.explore > 0.0 and answer.timing.refine > 0.0
+    again = solve_statics(RAO, answer.tensions[None], PAYLOAD, None, GRAVITY)
+    assert np.linalg.norm(again.tip_position[0] - tips[1]) < 1e-4
+    missed = live.solve(motion[0], tips[1], search=False)
+    assert not missed.success and missed.stage == Stage.REFINE
