@@ -180,6 +180,7 @@ def _tighten_more(r: float, fscene: FclScene, sa: np.ndarray, sb: np.ndarray,
 
 
 _SEED_CANDIDATES = 8   # pairs per configuration whose tight bound picks the first fcl query
+_FEW_CONFIGURATIONS = 2  # batches up to this size are searched pair by pair (_fcl_search_few)
 
 
 def _loose_bounds(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -207,6 +208,9 @@ def _fcl_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
     parts = len(fscene.other_index)
     objects, part_of = fscene.objects, fscene.other_index
     lower = _loose_bounds(r, fscene, a, b)
+    if count <= _FEW_CONFIGURATIONS:
+        _fcl_search_few(r, fscene, a, b, lower, obstacle, part)
+        return
     # Seed: where the best sphere-part distance (or none) leaves pairs open, measure first
     # the pair of smallest tight bound among the few of smallest loose bound, so that the
     # candidates below are only those that can beat it.
@@ -295,6 +299,28 @@ def _self_distance(r: float, a: Xyz, b: Xyz, per_segment: int) -> np.ndarray:
     own = np.full(count, np.inf)
     np.minimum.at(own, rows, d)
     return own - 2.0 * r
+
+
+def _fcl_search_few(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
+                    lower: np.ndarray, obstacle: np.ndarray, part: np.ndarray) -> None:
+    """``_fcl_search`` for a few configurations: each one's pairs in order of their loose
+    bound, measured until the bound reaches the best distance. The tighter bounds and the
+    shared capsules of the batched search cost more than the queries they save when there
+    are few (one live update's backbone against the clutter's boxes: 4 queries, 0.29 →
+    0.10 ms)."""
+    parts = len(fscene.other_index)
+    for k in range(len(a)):
+        best, best_part = float(obstacle[k]), int(part[k])
+        bounds = lower[k]
+        for flat in np.argsort(bounds, kind="stable").tolist():
+            if bounds[flat] >= best:
+                break
+            i, q = divmod(flat, parts)
+            q = int(fscene.other_index[q])
+            d = fcl_distance(capsule_object(a[k, i], b[k, i], r), fscene.objects[q])
+            if d < best:
+                best, best_part = d, q
+        obstacle[k], part[k] = best, best_part
 
 
 def _sphere_distances(r: float, fscene: FclScene, a: Xyz,
