@@ -176,6 +176,7 @@ class TensionLiveIKSolver:
             return self._warm[1:]
         return None, None, None
 
+
 class _Lap:
     """A stopwatch: each call returns the seconds since the previous one (or since made)."""
 
