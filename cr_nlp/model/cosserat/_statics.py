@@ -95,17 +95,9 @@ def _one(fn: Any) -> Any:
 
 def _split(fn: Any, arguments: int) -> Any:
     """``fn`` jitted, its batch split over the JAX devices (one per CPU core when the
-    process asked for host devices) when the batch divides evenly, else on one."""
-    programs: dict[tuple, Any] = {}
-
-    def call(*args: Any) -> Any:
-        key = tuple(np.shape(leaf) for leaf in jax.tree_util.tree_leaves(args))
-        if key not in programs:
-            programs[key] = CachedProgram(fn, name="the Cosserat shooting",
-                                          batched=(True,) * arguments)
-        return programs[key](*args)
-
-    return call
+    process asked for host devices) when the batch divides evenly, else on one: one
+    program per argument shapes (``CachedProgram``)."""
+    return CachedProgram(fn, name="the Cosserat shooting", batched=(True,) * arguments)
 
 
 def _padded(rows: Any, edge: bool = False) -> Any:
