@@ -180,7 +180,7 @@ def _tighten_more(r: float, fscene: FclScene, sa: np.ndarray, sb: np.ndarray,
 
 
 _SEED_CANDIDATES = 8   # pairs per configuration whose tight bound picks the first fcl query
-_FEW_CONFIGURATIONS = 2  # batches up to this size are searched pair by pair (_fcl_search_few)
+_FEW_CONFIGURATIONS = 2  # batches up to this size skip the seed and the tight bounds
 
 
 def _loose_bounds(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -199,25 +199,19 @@ def _loose_bounds(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray) -> n
             - fscene.other_radii).reshape(count, pieces * len(fscene.other_index))
 
 
-def _fcl_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
-                obstacle: np.ndarray, part: np.ndarray) -> None:
-    """Lower ``obstacle`` (B,) and set ``part`` (B,) in place by the fcl parts, for pieces
-    a–b (B, m, 3): per configuration from its best distance so far, pairs in order of a
-    lower bound, until no pair can beat the best."""
-    count, pieces = a.shape[:2]
-    parts = len(fscene.other_index)
-    objects, part_of = fscene.objects, fscene.other_index
-    lower = _loose_bounds(r, fscene, a, b)
-    if count <= _FEW_CONFIGURATIONS:
-        _fcl_search_few(r, fscene, a, b, lower, obstacle, part)
-        return
-    # Seed: where the best sphere-part distance (or none) leaves pairs open, measure first
-    # the pair of smallest tight bound among the few of smallest loose bound, so that the
-    # candidates below are only those that can beat it.
+def _measure_seeds(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
+                   lower: np.ndarray, obstacle: np.ndarray,
+                   part: np.ndarray) -> dict[int, fcl.CollisionObject]:
+    """``_fcl_search``'s seeds: where the best sphere-part distance (or none) leaves pairs
+    open, measure first the pair of smallest tight bound among the few of smallest loose
+    bound, so that the candidates after it are only those that can beat it. Lowers
+    ``obstacle``, ``part`` in place and marks the measured pairs' ``lower`` inf; returns
+    their capsules by configuration · pieces + piece."""
+    pieces, parts = a.shape[1], len(fscene.other_index)
     width = min(_SEED_CANDIDATES, pieces * parts)
     near = np.argpartition(lower, width - 1, axis=1)[:, :width]
     seed = np.flatnonzero(np.take_along_axis(lower, near, axis=1).min(axis=1) < obstacle)
-    seeded: dict[int, fcl.CollisionObject] = {}       # configuration · pieces + piece
+    seeded: dict[int, fcl.CollisionObject] = {}
     if len(seed):
         rep, flat = np.repeat(seed, width), near[seed].ravel()
         pi, qi = np.divmod(flat, parts)
@@ -227,17 +221,35 @@ def _fcl_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
         piece, which = np.divmod(first, parts)
         built = Capsules(r, a[seed, piece], b[seed, piece])
         for row, (k, i, q) in enumerate(zip(seed.tolist(), piece.tolist(),
-                                            part_of[which].tolist(), strict=True)):
+                                            fscene.other_index[which].tolist(), strict=True)):
             seeded[k * pieces + i] = built[row]
-            d = fcl_distance(built[row], objects[q])
+            d = fcl_distance(built[row], fscene.objects[q])
             if d < obstacle[k]:
                 obstacle[k], part[k] = d, q
         lower[seed, first] = np.inf            # measured
+    return seeded
+
+
+def _fcl_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
+                obstacle: np.ndarray, part: np.ndarray) -> None:
+    """Lower ``obstacle`` (B,) and set ``part`` (B,) in place by the fcl parts, for pieces
+    a–b (B, m, 3): per configuration from its best distance so far, pairs in order of a
+    lower bound, until no pair can beat the best."""
+    count, pieces = a.shape[:2]
+    parts = len(fscene.other_index)
+    objects, part_of = fscene.objects, fscene.other_index
+    lower = _loose_bounds(r, fscene, a, b)
+    # A few configurations (one live update's backbone) go by the loose bounds alone: the
+    # seed and the tighter bounds cost more than the fcl queries they save there (4
+    # queries either way against the clutter's boxes; check_chains 0.50 → 0.28 ms).
+    few = count <= _FEW_CONFIGURATIONS
+    seeded = {} if few else _measure_seeds(r, fscene, a, b, lower, obstacle, part)
     bi, flat = np.nonzero(lower < obstacle[:, None])
     if not len(bi):
         return
     pi, qi = np.divmod(flat, parts)
-    low = _tighten(r, fscene, a[bi, pi], b[bi, pi], qi, lower[bi, flat], obstacle[bi])
+    low = (lower[bi, flat] if few else
+           _tighten(r, fscene, a[bi, pi], b[bi, pi], qi, lower[bi, flat], obstacle[bi]))
     order = np.flatnonzero(low < obstacle[bi])
     if not len(order):
         return
@@ -299,28 +311,6 @@ def _self_distance(r: float, a: Xyz, b: Xyz, per_segment: int) -> np.ndarray:
     own = np.full(count, np.inf)
     np.minimum.at(own, rows, d)
     return own - 2.0 * r
-
-
-def _fcl_search_few(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
-                    lower: np.ndarray, obstacle: np.ndarray, part: np.ndarray) -> None:
-    """``_fcl_search`` for a few configurations: each one's pairs in order of their loose
-    bound, measured until the bound reaches the best distance. The tighter bounds and the
-    shared capsules of the batched search cost more than the queries they save when there
-    are few (one live update's backbone against the clutter's boxes: 4 queries, 0.29 →
-    0.10 ms)."""
-    parts = len(fscene.other_index)
-    for k in range(len(a)):
-        best, best_part = float(obstacle[k]), int(part[k])
-        bounds = lower[k]
-        for flat in np.argsort(bounds, kind="stable").tolist():
-            if bounds[flat] >= best:
-                break
-            i, q = divmod(flat, parts)
-            q = int(fscene.other_index[q])
-            d = fcl_distance(capsule_object(a[k, i], b[k, i], r), fscene.objects[q])
-            if d < best:
-                best, best_part = d, q
-        obstacle[k], part[k] = best, best_part
 
 
 def _sphere_distances(r: float, fscene: FclScene, a: Xyz,

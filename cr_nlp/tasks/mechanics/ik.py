@@ -438,9 +438,9 @@ class TensionIKSolver:
 
     def lm_config(self) -> LMConfig:
         """The refine stage's LM rules for this solver's tolerance."""
+        precision = 1e-3 if self.config.lm_precision is None else self.config.lm_precision
         return LMConfig(jacobian=self.config.jacobian, refresh=8, linear_solver="unrolled",
-                        cost_tolerance=0.5 * ((self.config.lm_precision or 1e-3)
-                                              * self.config.tolerance) ** 2,
+                        cost_tolerance=0.5 * (precision * self.config.tolerance) ** 2,
                         stall_tolerance=1e-6)
 
     def _lm(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,

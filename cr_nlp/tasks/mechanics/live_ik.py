@@ -93,7 +93,8 @@ class TensionLiveIKSolver:
         config = config or TensionIKConfig()
         self.ik = TensionIKSolver(robot, scene, replace(
             config, round_iterations=0,
-            lm_precision=config.lm_precision or LIVE_PRECISION))
+            lm_precision=(LIVE_PRECISION if config.lm_precision is None
+                          else config.lm_precision)))
         self.robot = self.ik.robot
         self.loads = static_loads(1, self.ik.length, **loads)
         self._warm: tuple | None = None
@@ -125,25 +126,28 @@ class TensionLiveIKSolver:
         quats = (np.full((1, 4), np.nan) if wxyz is None
                  else np.asarray(wxyz, dtype=float).reshape(1, 4))
         moment, verified, jacobian = self._warm_start(current)
-        timing, lap = StageTiming(), _Lap()
+        timing, t0 = StageTiming(), time.perf_counter()
         answer = self.ik._lm(current, target, quats, self.loads, moment, smallest=1)
-        timing.refine = lap()
+        timing.refine = time.perf_counter() - t0
+        t0 = time.perf_counter()
         shape = self.ik._forward(answer, self.loads, verified, jacobian)
         judged = self.ik._judge(shape, answer, target, quats, self.loads, StageTiming())
-        timing.verify = lap()
+        timing.verify = time.perf_counter() - t0
         stage = Stage.REFINE
         for rank in range(self.ik.config.retry_seeds + 1 if search else 0):
             if judged.success[0]:
                 break
             # The pool's rank-th nearest clear set and its equilibrium, as the batch's
             # first try and retries do.
+            t0 = time.perf_counter()
             seeds, moments = self.ik._start(target, self.loads, rank)
             again = self.ik._lm(seeds, target, quats, self.loads, moments, smallest=1)
-            timing.explore += lap()
+            timing.explore += time.perf_counter() - t0
+            t0 = time.perf_counter()
             other_shape = self.ik._forward(again, self.loads)
             other = self.ik._judge(other_shape, again, target, quats, self.loads,
                                    StageTiming())
-            timing.verify += lap()
+            timing.verify += time.perf_counter() - t0
             if other.success[0] or other.pose_error[0] < judged.pose_error[0]:
                 answer, judged, shape, stage = again, other, other_shape, Stage.SEARCH
         self._warm = (answer.tobytes(), base_frame(self.robot, judged.base_moment),
@@ -175,18 +179,6 @@ class TensionLiveIKSolver:
         if self._warm is not None and self._warm[0] == current.tobytes():
             return self._warm[1:]
         return None, None, None
-
-
-class _Lap:
-    """A stopwatch: each call returns the seconds since the previous one (or since made)."""
-
-    def __init__(self) -> None:
-        self.last = time.perf_counter()
-
-    def __call__(self) -> float:
-        now = time.perf_counter()
-        seconds, self.last = now - self.last, now
-        return seconds
 
 
 from ..._moved import moved_names  # noqa: E402 — the old names, for one release
