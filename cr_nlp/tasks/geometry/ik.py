@@ -101,21 +101,27 @@ class IKConfig:
     chunk_size: int = 1024
     """Most targets per search program (each with its seeds); larger batches are split
     into chunks (``stages._chunks.chunk_plan``)."""
-    large_chunk_size: int | None = 4096
+    large_chunk_size: int | None = None
     """Targets per search program of a batch (a stream part) of at least this many: whole
     chunks of it first, the rest as ``chunk_size`` chunks; one more compiled shape that
-    only such batches use (None: never). Host seconds outside the compiled programs per
-    100 000 tdcr3 targets, alternated: 0.26 against 0.31–0.36 in 1024-target chunks on a
-    quiet machine; medians 0.35 against 0.38 (4 runs each) on a busy one."""
-    stream_size: int = 16384
+    only such batches use (a value not above ``chunk_size``: never). None: 4096 on a CPU,
+    16 384 on an accelerator (see ``stream_size``). Host seconds outside the compiled
+    programs per 100 000 tdcr3 targets on the CPU, alternated: 0.26 against 0.31–0.36 in
+    1024-target chunks on a quiet machine; medians 0.35 against 0.38 (4 runs each) on a
+    busy one."""
+    stream_size: int | None = None
     """Most targets solved at once: a larger batch is streamed through the stages in
     parts of this many targets, so the memory a solve holds stays bounded whatever the
     batch (measured with tracemalloc, tdcr3: 2000 targets in one part peaked at 7.8 MB
-    of host arrays, in parts of 500 at 2.3 MB). Each part costs the host its own
-    bookkeeping and verdict calls: 100 000 tdcr3 targets in one process, parts of 8192,
-    16 384 and 32 768 alternated (3 solves each, 2026-12-03): host seconds outside the
-    compiled programs 0.39, 0.32, 0.31 (medians), walls the same within noise, the
-    solve's traced peak 101 MB in parts of 8192 and of 16 384."""
+    of host arrays, in parts of 500 at 2.3 MB). None: 16 384 on a CPU, 131 072 on an
+    accelerator. Each part costs the host its own bookkeeping and verdict calls: 100 000
+    tdcr3 targets in one process on the CPU, parts of 8192, 16 384 and 32 768 alternated
+    (3 solves each, 2026-12-03): host seconds outside the compiled programs 0.39, 0.32,
+    0.31 (medians), walls the same within noise, the solve's traced peak 101 MB in parts
+    of 8192 and of 16 384. On one H200 (2026-12-04, three processes) 100 000 targets took
+    1.07–1.25 s as one part of 16 384-target programs against 1.33–1.54 s in parts of
+    16 384 with 4096-target programs (a GPU waits on each program's loops, so fewer,
+    larger programs pay there)."""
     search_block: int | None = None
     """LM rows per block and device of the search programs; a round runs its active rows in as
     many blocks as they fill, so finished rows cost nothing. None: on a CPU 128 without
@@ -129,12 +135,21 @@ class IKConfig:
 
     def __post_init__(self) -> None:
         for name in ("chunk_size", "stream_size"):
-            if getattr(self, name) < 1:
+            if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"IKConfig.{name} must be at least 1, got {getattr(self, name)}")
         if self.large_chunk_size is not None and self.large_chunk_size < 1:
             raise ValueError(f"IKConfig.large_chunk_size must be at least 1 or None, got "
                              f"{self.large_chunk_size}")
         check_time_limit(self.polish_time_limit, "IKConfig.polish_time_limit")
+
+
+def part_sizes(config: IKConfig, backend: str) -> tuple[int, int]:
+    """(targets per stream part, targets per program of a large part) of ``config`` on a
+    JAX backend ("cpu", "gpu", …): its ``stream_size`` and ``large_chunk_size``, or where
+    None the backend's (16 384 and 4096 on a CPU, 131 072 and 16 384 elsewhere)."""
+    cpu = backend == "cpu"
+    return (config.stream_size or (16384 if cpu else 131072),
+            config.large_chunk_size or (4096 if cpu else 16384))
 
 
 IKTiming = StageTiming
@@ -211,11 +226,14 @@ class IKSolver:
         self_repair = self.scene is None and robot.has_self_pairs
         free = np.ones(robot.dof)
         free[2::3] = ~robot.lengths_fixed()  # a fixed length is not a variable
+        cpu = jax.default_backend() == "cpu"
+        self.stream_size, self.large_chunk_size = part_sizes(cfg, jax.default_backend())
+        """Targets per part of a solve's stream and per program of a large part
+        (``IKConfig.stream_size``, ``large_chunk_size``; ``part_sizes``)."""
         block = cfg.search_block
         if block is None:
             # A scene's clearance rows make each LM row several times heavier.
-            block = ((128 if self.scene is None else 64) if jax.default_backend() == "cpu"
-                     else 1 << 30)
+            block = (128 if self.scene is None else 64) if cpu else 1 << 30
         plan = SearchPlan(
             width=cfg.beam_width, coarse_iterations=cfg.coarse_iterations,
             refine_iterations=cfg.refine_iterations, refine_round=cfg.refine_round,
@@ -229,7 +247,7 @@ class IKSolver:
             partial(project_z, robot), jnp.asarray(free, self.dtype),
             SearchSettings(plan=plan, retry=retry, seeds_per_target=cfg.seeds_per_target,
                            pool_size=cfg.pool_size, seed=cfg.seed, chunk_size=cfg.chunk_size,
-                           large_chunk_size=cfg.large_chunk_size, margin=float(self.margin),
+                           large_chunk_size=self.large_chunk_size, margin=float(self.margin),
                            safety_margin=cfg.safety_margin, dtype=cfg.dtype),
             self_repair)
         self._polisher: Any = None
@@ -295,7 +313,7 @@ class IKSolver:
             own = np.asarray(self_clearance, dtype=float).reshape(len(q))
         elif self.scene is not None:
             # In parts of the stream's size: the check's temporaries grow with its rows.
-            step = max(int(self.config.stream_size), 1)
+            step = self.stream_size
             parts = [check_many(robot, self.scene, q[i:i + step])
                      for i in (range(0, len(q), step) if len(q) else [0])]
             obstacle = np.concatenate([c.obstacle_distance for c in parts])
@@ -348,7 +366,7 @@ class IKSolver:
         # The search's beams as bending vectors: made configurations only for a polish.
         beam = np.full((len(positions), self.config.beam_width, self.robot.dof), np.nan)
         idx = np.flatnonzero(valid)
-        step = max(int(self.config.stream_size), 1)
+        step = self.stream_size
         for start in range(0, len(idx), step):
             part = idx[start:start + step]
             self.stream_parts.append(len(part))

@@ -17,7 +17,7 @@ from cr_nlp.stages.explore._seed_pool import (
     select_beam_device,
     sobol_configurations,
 )
-from cr_nlp.tasks.geometry.ik import IKConfig, IKSolver
+from cr_nlp.tasks.geometry.ik import IKConfig, IKSolver, part_sizes
 
 from ...conftest import MODELS
 
@@ -153,6 +153,17 @@ def test_a_batch_is_streamed_in_parts_without_growing_memory() -> None:
 @pytest.mark.slow  # a benchmark-sized run: `pytest -m slow`
 def test_twenty_thousand_targets_stream_without_growing_memory() -> None:
     _stream_check(count=20_000, part=2048)
+
+
+def test_part_sizes_follow_the_backend_unless_given() -> None:
+    """Unset sizes are the backend's (an accelerator waits on each program's loops, so it
+    takes one part of large programs); given ones are kept, and the solver uses them."""
+    assert part_sizes(IKConfig(), "cpu") == (16384, 4096)
+    assert part_sizes(IKConfig(), "gpu") == (131072, 16384)
+    given = IKConfig(stream_size=500, large_chunk_size=2048)
+    assert part_sizes(given, "gpu") == part_sizes(given, "cpu") == (500, 2048)
+    solver = IKSolver(TDCR3, config=IKConfig(stream_size=700))
+    assert (solver.stream_size, solver.large_chunk_size) == (700, 4096)  # on CI's CPU
 
 
 @pytest.mark.parametrize("field", ["chunk_size", "stream_size"])
