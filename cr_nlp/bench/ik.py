@@ -590,14 +590,11 @@ def format_report(rows: Sequence[dict[str, Any]], env: dict[str, str],
         "smaller ones, python-fcl for obstacles) are `IKResult.timing`; device wait "
         "is the time the host blocked on device results (`IKSolver.device_wait`: device "
         "work nothing on the host overlapped); host s: the wall time outside compiled "
-        "programs (less the device wait, the calls of programs, `IKSolver.device_launch`, "
-        "and any compile): the host Python and numpy around the programs, the float64 "
-        "verdict included, as `bench plan` counts its host; host %: its share of the "
-        "wall time; host s / 10⁵ targets: scaled to 100 000 targets. A GPU runs a "
-        "program's while loops with the host waiting inside its call, so there the calls "
-        "are device time; on a CPU XLA may run a program inside its call too. parts: the "
-        "stream's parts (`IKConfig.stream_size`; by default 16 384 targets on a CPU, "
-        "131 072 on an accelerator).",
+        "programs (less the device wait, the program calls, `IKSolver.device_launch`, and "
+        "any compile), the float64 verdict included, as `bench plan` counts it; host %: "
+        "its share of the wall; host s / 10⁵ targets: scaled (a GPU's host waits inside "
+        "a call for its loops; a CPU may run the program there); parts: the stream's "
+        "parts (`IKConfig.stream_size`: 16 384 on a CPU, 131 072 on an accelerator).",
     ])]
     parts += ["## Environment", environment_markdown(env)]
     return "\n\n".join(parts)
