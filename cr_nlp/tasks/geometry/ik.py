@@ -226,10 +226,10 @@ class IKSolver:
         self_repair = self.scene is None and robot.has_self_pairs
         free = np.ones(robot.dof)
         free[2::3] = ~robot.lengths_fixed()  # a fixed length is not a variable
-        cpu = jax.default_backend() == "cpu"
-        self.stream_size, self.large_chunk_size = part_sizes(cfg, jax.default_backend())
-        """Targets per part of a solve's stream and per program of a large part
-        (``IKConfig.stream_size``, ``large_chunk_size``; ``part_sizes``)."""
+        backend = jax.default_backend()
+        cpu = backend == "cpu"
+        # Targets per part of a solve's stream and per program of a large part, resolved.
+        self.stream_size, self.large_chunk_size = part_sizes(cfg, backend)
         block = cfg.search_block
         if block is None:
             # A scene's clearance rows make each LM row several times heavier.
