@@ -9,7 +9,8 @@ update is judged by the solver's verdict (fresh statics, the tension bounds, pyt
 
 The first drag compiles and is timed apart; the figures per update are medians and 90th
 percentiles over ``repeats`` later drags, with the medians of each answer's own
-``timing``: the warm-started LM (``refine``), the verdict (fresh statics and python-fcl,
+``timing``: the warm-started LM with the verdict's fresh statics (``refine``: one program
+where the last equilibrium is known), the rest of the verdict (python-fcl, bounds;
 ``verify``) and the pool's fallback where the warm start missed (``explore``). Units: ms.
 """
 
@@ -76,8 +77,8 @@ COLUMNS = [
     Column("min_clearance_mm", "min clearance (mm)", fixed(1)),
     Column("median_ms", "median ms per update", fixed(2)),
     Column("p90_ms", "90th pct (ms)", fixed(2)),
-    Column("refine_ms", "LM (ms)", fixed(2)),
-    Column("verify_ms", "verdict (ms)", fixed(2)),
+    Column("refine_ms", "LM + statics (ms)", fixed(2)),
+    Column("verify_ms", "fcl, bounds (ms)", fixed(2)),
     Column("explore_ms", "pool fallback (ms)", fixed(2)),
     Column("first_s", "first drag (s)", fixed(1)),
 ]
@@ -104,7 +105,8 @@ def run_tension_live_benchmark(robot: str = "tdcr2_rao2021", waypoints: int = 60
               f"N/s, {len(scene['obstacles'])} obstacles, seed {seed}), each solved from "
               "the previous answer's tensions and judged by the verdict (fresh statics, "
               f"python-fcl); per update: medians over {repeats} drags after the first, "
-              "with the medians of each answer's LM and verdict times.\n\n"
+              "with the medians of each answer's LM (with the verdict's statics: one "
+              "program) and the rest of its verdict.\n\n"
               + markdown_table(rows, COLUMNS) + "\n\n" + environment_markdown(env))
     write_report("tension_live", report, out, tables={"live": rows}, env=env,
                  settings={"robot": robot, "waypoints": waypoints, "repeats": repeats,

@@ -27,12 +27,14 @@ iterations. Units: metres, radians, newtons, N·m, kg, m/s².
 The public face: ``solve_statics`` (batched, numpy in, float64 numpy out), its settings
 ``StaticsConfig`` and its result ``StaticsResult`` (with ``Equilibrium``). For the solver
 stages on the rod: the one-case programs (``tip_equilibrium``, ``backbone_equilibrium``,
-``statics_single``, ``case_loads``, ``CaseLoads``, ``moment_scale``) and the same RK4 steps
-for CasADi (``CasadiRod``, ``RodLoads``, ``flat_loads``; ``_casadi``). Driven by motor
-commands instead of tensions: ``solve_displacement_statics`` and its
-``DisplacementStaticsResult`` (``_displacement``: the tensions that make each tendon's path
-match its command, slack tendons carrying none; the segments' take-up
-``take_up_lengths``), its inverse ``motor_commands`` and, for the calibration,
+``statics_single``, ``case_loads``, ``CaseLoads``, ``moment_scale``), one case settled from
+a nearby equilibrium inside a caller's program (``settle_function``, its arguments
+``settle_arguments`` and its ``settled_statics``: the live update's verdict run after its
+LM in one program) and the same RK4 steps for CasADi (``CasadiRod``, ``RodLoads``,
+``flat_loads``; ``_casadi``). Driven by motor commands instead of tensions:
+``solve_displacement_statics`` and its ``DisplacementStaticsResult`` (``_displacement``: the
+tensions that make each tendon's path match its command, slack tendons carrying none; the
+segments' take-up ``take_up_lengths``), its inverse ``motor_commands`` and, for the calibration,
 ``predict_marker``, ``displacement_pass`` and ``displacement_solver``.
 """
 
@@ -55,4 +57,7 @@ from ._shooting import case_loads as case_loads
 from ._shooting import moment_scale as moment_scale
 from ._shooting import statics_single as statics_single
 from ._shooting import tip_equilibrium as tip_equilibrium
+from ._statics import settle_arguments as settle_arguments
+from ._statics import settle_function as settle_function
+from ._statics import settled_statics as settled_statics
 from ._statics import solve_statics as solve_statics

@@ -48,9 +48,10 @@ from ..mechanics import require_mechanics
 from ..robot import Robot
 from ..rotations import matrix_from_wxyz
 from ..routing import routing_of
+from ._batch_rows import _padded, _typed
 from ._rod import CaseLoads, StaticsConfig, _integrate, _Layout, _layout
 from ._shooting import StaticsResult, secant_update
-from ._statics import _case_loads, _load_batch, _padded, _stable, _typed, solve_statics
+from ._statics import _case_loads, _load_batch, _stable, solve_statics
 from ._statics import _programs as _statics_programs
 
 __all__ = ["DisplacementStaticsResult", "commanded_pull", "displacement_pass",

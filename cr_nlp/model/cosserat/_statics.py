@@ -11,18 +11,17 @@ loading path itself (tensions and loads together from rest) and more starts
 
 from __future__ import annotations
 
-import math
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..._cached_jit import CachedProgram
 from ...runtime import cached, configure
 from ..loads import static_loads
 from ..robot import Robot
 from ..rotations import matrix_from_wxyz
+from ._batch_rows import _one, _padded, _rows, _split, _typed
 from ._equilibria import DOUBTFUL, distinct, jacobi_margin, load_parameter, shape_and_margin
 from ._rod import CaseLoads, StaticsConfig, _layout
 from ._shooting import Equilibrium, StaticsResult, _finish, _finished, _Newton, _run, _shooting
@@ -59,16 +58,18 @@ def _programs(robot: Robot, config: StaticsConfig) -> tuple[Any, Any, Any, Any]:
             _split(jax.vmap(finish), 3), _split(jax.vmap(stability), 3))
 
 
-@cached(maxsize=64)
-def _settle_program(robot: Robot, config: StaticsConfig) -> Any:
-    """One case's Newton under the full loads from a given M(0) (one round), its
-    stability and its shape, in one program of a batch of one (a live update's verdict:
-    one call instead of three). Newton's first Jacobian is the given one (the previous
-    equilibrium's ∂M(L)/∂M(0), base frame) unless it holds a NaN (then differences); the
-    program returns the answer's, its stability test's Jacobi field at the tip. The
-    stability test's unperturbed pass is the shape's (``shape_and_margin``: its four
-    passes with the full constitutive iterations, one sequential pass fewer than the two
-    apart: 2.27 → 2.13 ms for tdcr2 under gravity and a payload)."""
+def settle_function(robot: Robot, config: StaticsConfig) -> Any:
+    """The traced settle of one case from a nearby equilibrium, as a function of a batch
+    of one: (tensions (1, n) N, ``CaseLoads`` (1, …) base frame, M(0) (1, 3) N·m base
+    frame, ∂M(L)/∂M(0) (1, 3, 3) base frame or NaN) → (Newton's state, the stability
+    margin, the shape, the answer's ∂M(L)/∂M(0)): Newton under the full loads from the given
+    M(0) (one round), its stability and its shape. ``settled_statics`` reads its outputs;
+    ``_settle_program`` compiles it alone, and a program that solves the tensions first
+    (the live update's LM) can run it after them. Newton's first Jacobian is the given one
+    (the previous equilibrium's) unless it holds a NaN (then differences). The stability
+    test's unperturbed pass is the shape's (``shape_and_margin``: its four passes with the
+    full constitutive iterations, one sequential pass fewer than the two apart: 2.27 →
+    2.13 ms for tdcr2 under gravity and a payload)."""
     lay, coarse = _layout(robot, config), _layout(robot, config, coarse=True)
 
     def settle(tension: jax.Array, loads: CaseLoads, x0: jax.Array, jacobian: jax.Array
@@ -81,56 +82,14 @@ def _settle_program(robot: Robot, config: StaticsConfig) -> Any:
         margin, tip, shape = shape_and_margin(lay, config, state.x, tension, loads)
         return state, margin, _finished(lay, config, state.x, loads, shape), tip
 
-    return _split(_one(settle), 4)
+    return _one(settle)
 
 
-def _one(fn: Any) -> Any:
-    """``fn`` of one case as a function of a batch of one (no vmap)."""
-    def call(*args: Any) -> Any:
-        out = fn(*jax.tree_util.tree_map(lambda a: a[0], args))
-        return jax.tree_util.tree_map(lambda a: a[None], out)
-
-    return call
-
-
-def _split(fn: Any, arguments: int) -> Any:
-    """``fn`` jitted, its batch split over the JAX devices (one per CPU core when the
-    process asked for host devices) when the batch divides evenly, else on one: one
-    program per argument shapes (``CachedProgram``)."""
-    return CachedProgram(fn, name="the Cosserat shooting", batched=(True,) * arguments)
-
-
-def _padded(rows: Any, edge: bool = False) -> Any:
-    """Rows (an array or a pytree of arrays with the same first axis) padded to 16, 64 or
-    256 rows, then 512 or 1024, then a multiple of 512 (one row stays one: a live update
-    or a viewer's rest shape solves one case, 11 → 6–7 ms), so that a few compiled programs
-    serve every batch size: with zero rows (no load: done at once) or copies of the first
-    row. (Padding rows still iterate in the vmapped loop: 3333 loaded rows of 10 000 mixed
-    cases cost 10–15 % less padded to 3584 than to 4096. Below 256 rows a solve is cheap
-    and each program size costs ~2–5 s of compiling: skipping 32 and 128 cut the compiling
-    of notebook 07's tension plan from 34 to 21 s, its steady state unchanged.)"""
-    leaves, tree = jax.tree_util.tree_flatten(rows)
-    count = len(leaves[0])
-    size = 1 if count == 1 else max(16, 1 << (count - 1).bit_length())
-    if 1 < size < 256:
-        size = 1 << (2 * math.ceil(math.log2(size) / 2))
-    if size > 1024:
-        size = -(-count // 512) * 512
-
-    def pad(a: np.ndarray) -> np.ndarray:
-        a = np.asarray(a)
-        fill = (np.repeat(a[:1], size - count, axis=0) if edge
-                else np.zeros((size - count, *a.shape[1:]), a.dtype))
-        return np.concatenate([a, fill])
-
-    return jax.tree_util.tree_unflatten(tree, [pad(a) for a in leaves])
-
-
-def _typed(rows: Any, dtype: Any) -> Any:
-    """The rows as ``dtype`` numpy arrays for a compiled program, which moves them to its
-    devices itself (30 µs for ten small arrays, against 180 µs for ``jax.device_put`` of
-    the tree first: a one-case solve makes five such calls)."""
-    return jax.tree_util.tree_map(lambda a: np.asarray(a, dtype), rows)
+@cached(maxsize=64)
+def _settle_program(robot: Robot, config: StaticsConfig) -> Any:
+    """``settle_function`` compiled alone (a live update's verdict when its tensions come
+    from elsewhere: one call instead of three)."""
+    return _split(settle_function(robot, config), 4)
 
 
 class _Solved(NamedTuple):
@@ -183,10 +142,6 @@ def _stable(robot: Robot, config: StaticsConfig, x: np.ndarray, tension: np.ndar
     stability = _programs(robot, config)[3]
     det = stability(*_typed(_padded((x, tension, loads)), dtype))
     return np.asarray(det)[:len(x)] > 0.0
-
-
-def _rows(value: Any, index: np.ndarray) -> Any:
-    return jax.tree_util.tree_map(lambda a: np.asarray(a)[index], value)
 
 
 # Other starts of a doubtful case, beside the direct continuation's answer: Newton under
@@ -447,7 +402,17 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
         shapes = None
         if all_equilibria:
             shapes = _shapes(robot, config, found, t, loads, base_rot, base_pos, dtype)
-    positions = out["positions"].astype(float) @ base_rot.T + base_pos
+    return _result(robot, lay, out, iterations, stable, equilibria, snap_load, shapes,
+                   jacobian)
+
+
+def _result(robot: Robot, lay: Any, out: dict, iterations: np.ndarray, stable: np.ndarray,
+            equilibria: np.ndarray, snap_load: np.ndarray, shapes: list | None = None,
+            jacobian: np.ndarray | None = None) -> StaticsResult:
+    """The world-frame ``StaticsResult`` of the base-frame shapes ``out`` (``_finish``'s,
+    numpy) and what the solve found per case."""
+    base_rot = matrix_from_wxyz(np.asarray(robot.base_wxyz))
+    positions = out["positions"].astype(float) @ base_rot.T + np.asarray(robot.base_position)
     rotations = np.einsum("ij,bpjk->bpik", base_rot, out["rotations"].astype(float))
     return StaticsResult(
         positions=positions, rotations=rotations, arc_length=lay.arc_length,
@@ -458,6 +423,33 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
         base_force=out["base_force"].astype(float) @ base_rot.T,
         stable=stable, equilibria=equilibria, snap_load=snap_load, all_equilibria=shapes,
         tip_moment_jacobian=None if jacobian is None else base_rot @ jacobian @ base_rot.T)
+
+
+def settle_arguments(robot: Robot, config: StaticsConfig, loads: Any, start_moment: Any,
+                     start_jacobian: Any = None) -> tuple:
+    """``settle_function``'s arguments after the tensions, typed for its program: the
+    loads (a one-case ``model.loads.StaticLoads``, world frame) in the base frame, M(0) of
+    the nearby equilibrium (``start_moment``, (3,) N·m, world frame) and its ∂M(L)/∂M(0)
+    (``start_jacobian``, (3, 3) world frame, or None: differences)."""
+    base_rot = matrix_from_wxyz(np.asarray(robot.base_wxyz))
+    jacobian = _start_jacobian(start_jacobian, base_rot)
+    start = np.full((1, 3, 3), np.nan) if jacobian is None else jacobian.reshape(1, 3, 3)
+    near = _start_moments(start_moment, 1) @ base_rot
+    dtype = np.float64 if config.dtype == "float64" else np.float32
+    return _typed((_case_loads(loads.in_base_frame(base_rot)), near, start), dtype)
+
+
+def settled_statics(robot: Robot, config: StaticsConfig, outputs: Any) -> StaticsResult | None:
+    """The ``StaticsResult`` of the one case that ``settle_function`` settled (its outputs,
+    on the device or fetched), or None where Newton did not reach the full loads within
+    its round or the answer is unstable: there ``solve_statics`` without a start (the
+    loading path from rest) answers the case, as ``solve_statics`` itself does."""
+    kept = _settled(robot, config, jax.device_get(outputs))
+    if not kept.any[0]:
+        return None
+    return _result(robot, _layout(robot, config), kept.shape, kept.iterations,
+                   np.ones(1, bool), np.ones(1, int), np.full(1, np.nan),
+                   jacobian=kept.jacobian)
 
 
 class _Continued(NamedTuple):
@@ -477,16 +469,8 @@ def _continued(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads: 
     rows = len(tension)
     if rows == 1:
         start = np.full((1, 3, 3), np.nan) if jacobian is None else jacobian.reshape(1, 3, 3)
-        state, margin, shape, tip = _settle_program(robot, config)(
-            *_typed((tension, loads, near, start), dtype))
-        x, it = np.array(state.x), np.asarray(state.it)
-        tol = config.resolved_tolerance() * _layout(robot, config).moment_scale
-        ok = ((np.asarray(state.lam) >= 1.0) & (np.linalg.norm(np.asarray(state.r), axis=1)
-                                                 <= tol) & (np.asarray(margin) > 0.0))
-        if not ok[0]:
-            return _Continued(ok, x[ok], it[ok], None)
-        return _Continued(ok, x, it, {k: np.asarray(v) for k, v in shape.items()},
-                          np.asarray(tip, dtype=float))
+        return _settled(robot, config, _settle_program(robot, config)(
+            *_typed((tension, loads, near, start), dtype)))
     solved = _solve_rows(robot, config, tension, loads, near, np.ones(rows),
                          np.tile([0.0, 1.0], (rows, 1)), dtype, further_round=False)
     ok = solved.converged.copy()
@@ -495,6 +479,20 @@ def _continued(robot: Robot, config: StaticsConfig, tension: np.ndarray, loads: 
         ok[good] = _stable(robot, config, solved.x[good], tension[good],
                            _rows(loads, good), dtype)
     return _Continued(ok, solved.x[ok], solved.iterations[ok], None)
+
+
+def _settled(robot: Robot, config: StaticsConfig, outputs: Any) -> _Continued:
+    """The one-row ``_Continued`` of ``settle_function``'s outputs: answered where Newton
+    reached the full loads within the tolerance and the answer is stable."""
+    state, margin, shape, tip = outputs
+    x, it = np.array(state.x), np.asarray(state.it)
+    tol = config.resolved_tolerance() * _layout(robot, config).moment_scale
+    ok = ((np.asarray(state.lam) >= 1.0) & (np.linalg.norm(np.asarray(state.r), axis=1)
+                                             <= tol) & (np.asarray(margin) > 0.0))
+    if not ok[0]:
+        return _Continued(ok, x[ok], it[ok], None)
+    return _Continued(ok, x, it, {k: np.asarray(v) for k, v in shape.items()},
+                      np.asarray(tip, dtype=float))
 
 
 def _start_jacobian(value: Any, base_rot: np.ndarray) -> np.ndarray | None:

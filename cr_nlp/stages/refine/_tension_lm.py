@@ -179,11 +179,18 @@ def tensions_of_unknowns(terms: TensionTerms, z: np.ndarray) -> np.ndarray:
         return np.asarray(_tension_map(terms)(z), dtype=float)
 
 
+def tensions_of_batch(terms: TensionTerms, z: jax.Array) -> jax.Array:
+    """``tensions_of_unknowns`` traced, for a program that goes on with the tensions."""
+    if terms.groups is None:
+        return jnp.clip(z[:, :terms.robot.n_tendons], 0.0, 1.0) * terms.tension_max
+    return jax.vmap(partial(tensions_of, terms))(z)
+
+
 @cached(maxsize=32)
 def _tension_map(terms: TensionTerms) -> Any:
     """``tensions_of`` over a batch, compiled once per settings (op by op it took tens of
     milliseconds, the whole of a live update)."""
-    return jax.jit(jax.vmap(partial(tensions_of, terms)))
+    return jax.jit(partial(tensions_of_batch, terms))
 
 
 def world_points(robot: Robot, positions: jax.Array) -> jax.Array:

@@ -443,6 +443,10 @@ class TensionIKSolver:
                         cost_tolerance=0.5 * (precision * self.config.tolerance) ** 2,
                         stall_tolerance=1e-6)
 
+    def waypoint_lm_config(self) -> LMConfig:
+        """``lm_config`` with the IK's first damping: one waypoint's LM (batch or live)."""
+        return replace(self.lm_config(), initial_damping=self.config.initial_damping)
+
     def _lm(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,
             loads: StaticLoads, base_moment: np.ndarray | None = None,
             smallest: int = 16) -> np.ndarray:
@@ -492,9 +496,7 @@ class TensionIKSolver:
             solution = lm_solve(self._residuals[terms.shoot], self._project, padded(z0),
                                 jax.tree_util.tree_map(padded, params),
                                 self._device_scene(dtype), np.ones(z0.shape[1], dtype),
-                                iteration_budget(iterations),
-                                replace(self.lm_config(),
-                                        initial_damping=self.config.initial_damping),
+                                iteration_budget(iterations), self.waypoint_lm_config(),
                                 bounds=box_bounds(terms, dtype))
             z = np.asarray(solution.z, dtype=float)[:len(z0)]
         return z, np.array(solution.reasons()[:len(z0)], dtype=object)

@@ -52,9 +52,10 @@ def test_bad_inputs_are_named(live: TensionLiveIKSolver) -> None:
 
 def test_the_verdict_continues_from_the_equilibrium_on_screen(live: TensionLiveIKSolver,
                                                               monkeypatch) -> None:
-    """The first update's verdict loads the rod from rest; the next one starts from the
-    equilibrium that verdict found (``solve_statics(start_moment=…)``), and lands on the
-    shape a fresh solve from rest gives."""
+    """The first update's verdict loads the rod from rest; the next one settles from the
+    equilibrium that verdict found, in the LM's own program (no ``solve_statics`` call):
+    the shape ``solve_statics(start_moment=…)`` gives from there, and a fresh solve from
+    rest."""
     import cr_nlp.tasks.mechanics.ik as ik_module
 
     starts = []
@@ -66,12 +67,40 @@ def test_the_verdict_continues_from_the_equilibrium_on_screen(live: TensionLiveI
     monkeypatch.setattr(ik_module, "solve_statics", spy)
     motion = np.array([[1.0, 0, 0.2, 0.6, 0.3, 0], [1.2, 0, 0.2, 0.6, 0.4, 0]])
     tips = solve_statics(RAO, motion, PAYLOAD, None, GRAVITY).tip_position
-    live._moment = None
     first = live.solve(motion[0], tips[0])
     second = live.solve(first.tensions, tips[1])
     assert first.success and second.success
-    assert starts[0] is None
-    np.testing.assert_allclose(starts[1], first.base_moment)
+    assert starts == [None]
+    near = solve_statics(RAO, second.tensions[None], PAYLOAD, None, GRAVITY,
+                         start_moment=first.base_moment)
+    rest = solve_statics(RAO, second.tensions[None], PAYLOAD, None, GRAVITY)
+    for fresh in (near, rest):
+        np.testing.assert_allclose(second.backbone, fresh.positions[0], atol=1e-9)
+        np.testing.assert_allclose(second.backbone_rotations, fresh.rotations[0], atol=1e-9)
+        np.testing.assert_allclose(second.base_moment, fresh.base_moment[0], atol=1e-9)
+
+
+def test_an_update_that_does_not_settle_from_the_last_equilibrium_loads_from_rest(
+        live: TensionLiveIKSolver, monkeypatch) -> None:
+    """Where Newton from the last equilibrium does not settle within its round (or settles
+    on an unstable equilibrium), the verdict solves the answer's tensions from rest."""
+    import cr_nlp.tasks.mechanics.ik as ik_module
+    import cr_nlp.tasks.mechanics.live_ik as live_module
+
+    starts = []
+
+    def spy(*args, **kwargs):
+        starts.append(kwargs.get("start_moment"))
+        return solve_statics(*args, **kwargs)
+
+    motion = np.array([[1.0, 0, 0.2, 0.6, 0.3, 0], [1.2, 0, 0.2, 0.6, 0.4, 0]])
+    tips = solve_statics(RAO, motion, PAYLOAD, None, GRAVITY).tip_position
+    first = live.solve(motion[0], tips[0])
+    monkeypatch.setattr(ik_module, "solve_statics", spy)
+    monkeypatch.setattr(live_module, "settled_statics", lambda *args: None)
+    second = live.solve(first.tensions, tips[1])
+    assert second.success, second.reason
+    assert starts == [None]                        # one solve, from rest
     rest = solve_statics(RAO, second.tensions[None], PAYLOAD, None, GRAVITY)
     np.testing.assert_allclose(second.backbone, rest.positions[0], atol=1e-9)
 
