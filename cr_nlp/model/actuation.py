@@ -93,7 +93,6 @@ def params_of(robot: Robot) -> dict[str, np.ndarray]:
     (n) rad, angle_deltas, zero_offsets (m), gains, log_stiffness (n), log_kappa,
     marker (3) m, base_position (3) m, base_rotation (3×3); and log_axial (n), the log of
     the axial stiffness ratio, only where the robot's segments are compressible."""
-    from .rotations import matrix_from_wxyz
 
     act = actuation_of(robot)
     axial = (
@@ -112,7 +111,7 @@ def params_of(robot: Robot) -> dict[str, np.ndarray]:
                                      float)),
         "marker": np.array(act.tip_marker, float),
         "base_position": np.array(robot.base_position, float),
-        "base_rotation": matrix_from_wxyz(np.array(robot.base_wxyz, float)),
+        "base_rotation": np.array(robot.base_rotation),
     }
 
 

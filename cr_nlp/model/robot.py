@@ -98,6 +98,17 @@ def _take(value: Any, numbers: list[float]) -> Any:
     return value
 
 
+@functools.lru_cache(maxsize=64)
+def _rotation(wxyz: tuple[float, ...]) -> np.ndarray:
+    """``matrix_from_wxyz`` of a base orientation, read-only (a live update asked for it
+    four times: 30–45 µs each)."""
+    from .rotations import matrix_from_wxyz
+
+    matrix = matrix_from_wxyz(np.asarray(wxyz, dtype=float))
+    matrix.flags.writeable = False
+    return matrix
+
+
 def _finite(value: Any) -> bool:
     """Whether a limit is finite; a traced one is (only finite numbers become data)."""
     return not isinstance(value, float) or math.isfinite(value)
@@ -184,6 +195,12 @@ class Robot:
     def n_points(self) -> int:
         """Backbone points returned by ``backbone_points`` (the base is not included)."""
         return self.points_per_segment * self.n_segments
+
+    @property
+    def base_rotation(self) -> np.ndarray:
+        """(3, 3) rotation of the base frame in the world frame (``base_wxyz``; columns: the
+        base's axes), float64, read-only, made once per orientation."""
+        return _rotation(self.base_wxyz)
 
     @property
     def total_length_max(self) -> float:

@@ -46,7 +46,6 @@ from ..actuation import tendon_segments
 from ..loads import static_loads
 from ..mechanics import require_mechanics
 from ..robot import Robot
-from ..rotations import matrix_from_wxyz
 from ..routing import routing_of
 from ._batch_rows import _padded, _typed
 from ._rod import CaseLoads, StaticsConfig, _integrate, _Layout, _layout
@@ -473,7 +472,7 @@ def solve_displacement_statics(robot: Robot, displacements: Any, tip_force: Any 
     batch = len(pull)
     world = static_loads(batch, float(lay.arc_length[-1]), tip_force, tip_moment, gravity,
                          distributed_force, point_loads)
-    loads = _case_loads(world.in_base_frame(matrix_from_wxyz(np.asarray(robot.base_wxyz))))
+    loads = _case_loads(world.in_base_frame(robot.base_rotation))
     scales = _scales(lay)
     with jax.enable_x64(True):
         # padded with copies of a row: a zero k has no solution
@@ -510,7 +509,7 @@ def _verdict(robot: Robot, config: StaticsConfig, base_moment: np.ndarray,
     out = finish(*_typed(_padded((base_moment, tensions, loads)), np.float64))
     out = {key: np.asarray(v)[:batch] for key, v in out.items()}
     stable = _stable(robot, config, base_moment, tensions, loads, np.float64)
-    base_rot = matrix_from_wxyz(np.asarray(robot.base_wxyz))
+    base_rot = robot.base_rotation
     positions = out["positions"].astype(float) @ base_rot.T + np.asarray(robot.base_position)
     return StaticsResult(
         positions=positions,

@@ -75,7 +75,6 @@ class RodClearance:
     def __init__(self, robot: Robot, scene: Scene | None, arc_length: np.ndarray,
                  margin: float, max_pairs: int, near_margin: float,
                  face_smoothing: float, per_step: int = 2) -> None:
-        from ...model.rotations import matrix_from_wxyz
 
         self.robot, self.near_margin, self.smoothing = robot, near_margin, face_smoothing
         self.body_matrix, arc, spacing = _bodies(np.asarray(arc_length, dtype=float),
@@ -94,7 +93,7 @@ class RodClearance:
             self.groups.append(SlotGroup("self", min(max_pairs, len(self.self_table)), 0,
                                          np.zeros((0, 0))))
         self.arrays = scene_arrays(scene, as_numpy=True) if scene is not None else None
-        self.base_rot = matrix_from_wxyz(np.asarray(robot.base_wxyz))
+        self.base_rot = robot.base_rotation
         self.base_pos = np.asarray(robot.base_position, dtype=float)
 
     @property

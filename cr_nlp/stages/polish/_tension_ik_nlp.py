@@ -340,7 +340,7 @@ def polish_tension_ik(robot: Robot, scene: Scene | None, tensions0: Any, targets
     if loads is None:
         loads = static_loads(count, length)
     end = math.inf if time_limit is None else time.perf_counter() + float(time_limit)
-    base_rot = matrix_from_wxyz(np.asarray(robot.base_wxyz))
+    base_rot = robot.base_rotation
     frame = loads.in_base_frame(base_rot)
     base_targets = (targets - np.asarray(robot.base_position, dtype=float)) @ base_rot
     base_moments = _start_moments(robot, tensions0, loads, statics_config) @ base_rot

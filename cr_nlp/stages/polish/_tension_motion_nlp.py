@@ -553,7 +553,7 @@ def polish_tension_motion(robot: Robot, scene: Scene | None, tensions0: Any,
     if not np.all(np.isfinite(tensions0)) or (aims is not None and not np.all(np.isfinite(aims))):
         return TensionMotionPolish(tensions0.copy(), "non-finite input", 0.0, 0)
     statics_config = StaticsConfig() if statics_config is None else statics_config
-    base_rot = matrix_from_wxyz(np.asarray(robot.base_wxyz))
+    base_rot = robot.base_rotation
     frame = loads.in_base_frame(base_rot)
     real = np.any(frame.point_force[0] != 0, axis=1) | np.any(frame.point_moment[0] != 0, axis=1)
     kind = "none" if aims is None else ("position" if wxyz is None else "pose")

@@ -124,7 +124,7 @@ def waypoint_params(robot: Robot, positions: np.ndarray, quats: np.ndarray, load
     of M(0) (B, 3) N·m: the tip and point moments, exact without forces) of tip targets
     ``positions`` (B, 3) m and ``quats`` (B, 4) (NaN rows: orientation free) under
     ``loads`` (``model.loads.StaticLoads`` of B cases, world frame)."""
-    base_rot = matrix_from_wxyz(np.asarray(robot.base_wxyz))
+    base_rot = robot.base_rotation
     target = (np.asarray(positions, float) - np.asarray(robot.base_position)) @ base_rot
     oriented = ~np.any(np.isnan(quats), axis=1)
     target_rot = np.tile(np.eye(3), (len(target), 1, 1))
@@ -140,7 +140,7 @@ def waypoint_params(robot: Robot, positions: np.ndarray, quats: np.ndarray, load
 
 def base_frame(robot: Robot, world: np.ndarray) -> np.ndarray:
     """Vectors (…, 3) of the world frame in the robot's base frame (no translation)."""
-    return np.asarray(world, float) @ matrix_from_wxyz(np.asarray(robot.base_wxyz))
+    return np.asarray(world, float) @ robot.base_rotation
 
 
 def tensions_of(terms: TensionTerms, z: jax.Array) -> jax.Array:
@@ -195,7 +195,7 @@ def _tension_map(terms: TensionTerms) -> Any:
 
 def world_points(robot: Robot, positions: jax.Array) -> jax.Array:
     """Backbone points (P, 3) of the base frame in the world frame, m."""
-    rot = jnp.asarray(matrix_from_wxyz(np.asarray(robot.base_wxyz)), positions.dtype)
+    rot = jnp.asarray(robot.base_rotation, positions.dtype)
     return positions @ rot.T + jnp.asarray(robot.base_position, positions.dtype)
 
 
