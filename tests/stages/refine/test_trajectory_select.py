@@ -70,3 +70,45 @@ def test_a_repeated_guess_is_refined_once_and_round_two_runs_only_where_needed()
     assert not any(np.array_equal(c, guesses[0, 2]) for c in solved)
     assert [b[0].success for b in sel.best] == [True, True, False]
     assert [len(c) for c in sel.candidates] == [1, 2, 4]
+
+
+class OneAtATimeLM(RecordingLM):
+    """``RecordingLM`` finishing one chain per call, as a stream's slots often do."""
+
+    def solve(self, z0, step, arrays, iterations, more=None) -> ChainSolution:
+        waiting, done = list(z0), []
+        while waiting:
+            chain = waiting.pop(0)
+            self.programs += 1
+            done.append(chain)
+            self.chains.append(chain)
+            z = np.array([chain])
+            added = more(np.array([len(done) - 1]), z, z[:, 0].copy()) if more else None
+            if added is not None:
+                waiting += list(added[0])
+        z = np.array(done)
+        return ChainSolution(z, z[:, 0].copy(), np.zeros(len(z), int), 0.0, 0.0)
+
+
+def test_problems_are_verified_a_batch_at_a_time_and_every_one_is_judged():
+    """20 problems finishing one by one: verified ``VERIFY_BATCH`` at a time (the last few
+    once no chain runs), not in 20 calls; a failing problem still gets its round 2."""
+    from cr_nlp.stages.refine._trajectory_select import VERIFY_BATCH
+
+    guesses = _guesses(20, 3)
+    ends = [(g[0, 0], g[0, -1]) for g in guesses]
+    calls = []
+
+    def verify(qs: list[np.ndarray]) -> list[SimpleNamespace]:
+        calls.append(len(qs))
+        ok = [not np.array_equal(q[0], ends[5][0]) for q in qs]     # problem 5 fails
+        return [SimpleNamespace(success=o, max_violation=0.0 if o else 1.0) for o in ok]
+
+    lm = OneAtATimeLM()
+    sel = select_guesses(lm, guesses, ends, 0.35, None, 10, 1, verify)
+    assert [b[0].success for b in sel.best] == [p != 5 for p in range(20)]
+    assert len(sel.candidates[5]) == 3                  # round 2: its two other guesses
+    assert len(lm.chains) == 20 + 2
+    assert sum(calls) == 20 + 2                          # each refined guess verified once
+    assert len(calls) <= -(-20 // VERIFY_BATCH) + 2      # not one call per problem
+    assert max(calls) == VERIFY_BATCH
