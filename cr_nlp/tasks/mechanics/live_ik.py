@@ -20,8 +20,8 @@ own ∂M(L)/∂M(0) (``start_jacobian``): 3 shooting iterations instead of 10 fr
 the shape and the stability test in the same program. Where that equilibrium is known and
 the rod is loaded (M(0) unknown), the update is one compiled program: the LM, then that
 settle of the LM's tensions (``model.cosserat.settle_function``; it starts from the last
-equilibrium, never from the LM's own M(0)), with no host work between them (an update
-5.46 → 5.07 ms in clutter, measured in one process: docs/benchmarks.md).
+equilibrium, never from the LM's own M(0)), with no host work between them (0.4 ms of a
+5.5 ms update in clutter, measured in one process: docs/benchmarks.md).
 Units: metres, radians, newtons, N·m, seconds.
 """
 
