@@ -49,6 +49,9 @@ def test_a_dragged_target_is_solved_for_tensions_under_load() -> None:
     with viewer.Viewer(RAO, model="cosserat", loads=loads) as view:
         assert view._live_on and not hasattr(view, "_exact_box")  # no exact stage live
         view._warming.join()
+        # The warm-up compiled a drag's updates: the first, and the one program of those
+        # whose last equilibrium is known.
+        assert view._tension.solver()._program is not None
         # Before a target: the rod's rest shape under the loads, the gizmo at its tip.
         rest = solve_statics(RAO, np.zeros((1, 6)), PAYLOAD, None, GRAVITY)
         np.testing.assert_allclose(view._live_gizmo.position, rest.tip_position[0], atol=1e-6)
