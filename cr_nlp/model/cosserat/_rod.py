@@ -54,6 +54,11 @@ class StaticsConfig:
     dtype: str = "float64"
     """"float64" (default) or "float32" (a speed setting for large batches)."""
 
+    @property
+    def numpy_dtype(self) -> type:
+        """``dtype`` as the numpy type of the programs' arguments."""
+        return np.float64 if self.dtype == "float64" else np.float32
+
     def resolved_tolerance(self) -> float:
         """The tolerance in radians of bending with the dtype's default filled in."""
         if self.tolerance is not None:

@@ -318,7 +318,7 @@ def solve_statics(robot: Robot, tensions: Any, tip_force: Any = None, tip_moment
     base_pos = np.asarray(robot.base_position)
     frame = world.in_base_frame(base_rot)
     loads = _case_loads(frame)
-    dtype = np.float64 if config.dtype == "float64" else np.float32
+    dtype = config.numpy_dtype
     # Without an external force N ≡ 0: M is constant between the point moments.
     base = frame.tip_moment + frame.point_moment.sum(axis=1)
     iterations = np.zeros(batch, dtype=int)
@@ -434,7 +434,7 @@ def settle_arguments(robot: Robot, config: StaticsConfig, loads: Any, start_mome
     jacobian = _start_jacobian(start_jacobian, base_rot)
     start = np.full((1, 3, 3), np.nan) if jacobian is None else jacobian.reshape(1, 3, 3)
     near = _start_moments(start_moment, 1) @ base_rot
-    dtype = np.float64 if config.dtype == "float64" else np.float32
+    dtype = config.numpy_dtype
     return _typed((_case_loads(loads.in_base_frame(base_rot)), near, start), dtype)
 
 

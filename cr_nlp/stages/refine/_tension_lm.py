@@ -358,7 +358,7 @@ def solve_motion(terms: MotionTerms, z0: np.ndarray, params: WaypointParams,
     """
     count = len(z0)
     pad = chain_length(count) - count
-    dtype = np.float64 if terms.waypoint.statics.dtype == "float64" else np.float32
+    dtype = terms.waypoint.statics.numpy_dtype
 
     def padded(a: Any) -> jax.Array:
         a = np.asarray(a)

@@ -44,7 +44,7 @@ from ...model.cosserat import (
     predict_marker,
 )
 from ...model.mechanics import Mechanics
-from ...model.rotations import matrix_from_wxyz, wxyz_from_matrix
+from ...model.rotations import wxyz_from_matrix
 from ...model.routing import routing_of
 from ...runtime import cached, configure
 from .calibrate import (
@@ -322,7 +322,7 @@ def _start(robot: Robot, train: Measurements, config: MechanicsCalibrationConfig
                else np.array([0.0, 0.0, -STANDARD_GRAVITY]))
     nominal = {
         "base_position": np.asarray(source.base_position, float),
-        "base_rotation": matrix_from_wxyz(np.asarray(source.base_wxyz, float)),
+        "base_rotation": np.array(source.base_rotation),
         "base_rotvec": np.zeros(3),
         "marker": np.asarray(act.tip_marker, float),
         "zero_offsets": np.asarray(act.zero_offsets, float),

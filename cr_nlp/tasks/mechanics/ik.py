@@ -447,6 +447,20 @@ class TensionIKSolver:
         """``lm_config`` with the IK's first damping: one waypoint's LM (batch or live)."""
         return replace(self.lm_config(), initial_damping=self.config.initial_damping)
 
+    def lm_arguments(self, z0: np.ndarray, params: WaypointParams, iterations: int,
+                     pad: int = 0) -> tuple:
+        """``lm_solve``'s arguments from the start to the budget for unknowns ``z0`` (B, size)
+        and their ``WaypointParams``: numpy in the statics' dtype (the compiled call moves
+        them: cheaper), each batch padded with ``pad`` copies of its first row."""
+        dtype = self.config.statics.numpy_dtype
+
+        def padded(a: np.ndarray) -> np.ndarray:
+            a = np.asarray(a, dtype)
+            return np.concatenate([a, np.repeat(a[:1], pad, axis=0)]) if pad else a
+
+        return (padded(z0), jax.tree_util.tree_map(padded, params), self._device_scene(dtype),
+                np.ones(z0.shape[1], dtype), iteration_budget(iterations))
+
     def _lm(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,
             loads: StaticLoads, base_moment: np.ndarray | None = None,
             smallest: int = 16) -> np.ndarray:
@@ -484,20 +498,12 @@ class TensionIKSolver:
                   iterations: int, smallest: int) -> tuple[np.ndarray, np.ndarray]:
         """One round of the LM from unknowns ``z0`` (B, size): (z, why each stopped). The
         batch is padded to a power of two, at least ``smallest``."""
-        dtype = np.float64 if self.config.statics.dtype == "float64" else np.float32
+        dtype = self.config.statics.numpy_dtype
         size = max(smallest, 1 << (len(z0) - 1).bit_length())
-        pad = size - len(z0)
-
-        def padded(a: np.ndarray) -> np.ndarray:  # the compiled call moves it (cheaper)
-            a = np.asarray(a, dtype)
-            return np.concatenate([a, np.repeat(a[:1], pad, axis=0)]) if pad else a
-
         with jax.enable_x64(dtype == np.float64):
-            solution = lm_solve(self._residuals[terms.shoot], self._project, padded(z0),
-                                jax.tree_util.tree_map(padded, params),
-                                self._device_scene(dtype), np.ones(z0.shape[1], dtype),
-                                iteration_budget(iterations), self.waypoint_lm_config(),
-                                bounds=box_bounds(terms, dtype))
+            solution = lm_solve(self._residuals[terms.shoot], self._project,
+                                *self.lm_arguments(z0, params, iterations, size - len(z0)),
+                                self.waypoint_lm_config(), bounds=box_bounds(terms, dtype))
             z = np.asarray(solution.z, dtype=float)[:len(z0)]
         return z, np.array(solution.reasons()[:len(z0)], dtype=object)
 

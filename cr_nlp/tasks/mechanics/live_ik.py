@@ -42,7 +42,6 @@ from ...model.loads import static_loads
 from ...stages.refine import (
     base_frame,
     box_bounds,
-    iteration_budget,
     lm_solve,
     tensions_of_batch,
     unknowns_of,
@@ -208,13 +207,11 @@ class TensionLiveIKSolver:
             self._program = _update_program(ik)
         terms = ik.terms(True)
         _, params, _ = ik.waypoint_params(target, quats, self.loads)
-        dtype = np.float64 if statics.dtype == "float64" else np.float32
+        dtype = statics.numpy_dtype
         with jax.enable_x64(dtype == np.float64):
             tensions, settled = self._program(
-                unknowns_of(terms, current, moment).astype(dtype),
-                jax.tree_util.tree_map(lambda a: np.asarray(a, dtype), params),
-                ik._device_scene(dtype), np.ones(terms.size, dtype),
-                iteration_budget(ik.config.iterations), box_bounds(terms, dtype),
+                *ik.lm_arguments(unknowns_of(terms, current, moment), params,
+                                 ik.config.iterations), box_bounds(terms, dtype),
                 *settle_arguments(self.robot, statics, self.loads, verified, jacobian))
             return (np.asarray(tensions, dtype=float),
                     settled_statics(self.robot, statics, settled))
