@@ -161,6 +161,12 @@ def _tighten_more(r: float, fscene: FclScene, sa: np.ndarray, sb: np.ndarray,
     the piece's segment, face planes, the axis of capsules and cylinders."""
     sa_, sb_ = xyz(sa), xyz(sb)
     u = sub(sb_, sa_)
+    # Separated axis-aligned boxes (the piece's, the part's) are apart by their gaps along
+    # all three axes together (where they overlap, ``_tighten``'s largest gap stays).
+    gap = np.maximum(np.maximum(fscene.box_lower[qi] - np.maximum(sa, sb),
+                                np.minimum(sa, sb) - fscene.box_upper[qi]), 0.0)
+    apart = np.sqrt(np.einsum("ij,ij->i", gap, gap))
+    low = np.where(apart > 0.0, np.maximum(low, apart - r), low)
     # The part's bounding sphere against the piece's segment.
     centre = fscene.other_centres[qi]
     low = np.maximum(low, point_segment(xyz(centre), sa_, u, dot(u, u))
