@@ -18,10 +18,13 @@ equilibrium a robot dragged from there stays on; where that fails or is unstable
 loading path from rest as everywhere else), whose first Jacobian is that equilibrium's
 own ∂M(L)/∂M(0) (``start_jacobian``): 3 shooting iterations instead of 10 from rest, with
 the shape and the stability test in the same program. Where that equilibrium is known and
-the rod is loaded (M(0) unknown), the update is one compiled program: the LM, then that
-settle of the LM's tensions (``model.cosserat.settle_function``; it starts from the last
-equilibrium, never from the LM's own M(0)), with no host work between them (0.4 ms of a
-5.5 ms update in clutter, measured in one process: docs/benchmarks.md).
+the rod is loaded (M(0) unknown), the update is one compiled program: the LM, then the
+settle of the LM's tensions (``model.cosserat.settle_function``), with no host work between
+them. Its Newton starts from the LM's own M(0) where the LM moved M(0) only a drag's step
+from the last equilibrium (``newton_start``: its steps kept the rod at an equilibrium
+all the way; 2–3 iterations instead of 4–5), else from the last equilibrium; the verdict
+is still Newton's own equilibrium of the answer's tensions on the statics' grid, its
+stability test and python-fcl on its shape (docs/benchmarks.md).
 Units: metres, radians, newtons, N·m, seconds.
 """
 
@@ -32,12 +35,19 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ..._cached_jit import CachedProgram
 from ..._compile_effort import compiles_fully
 from ...model import Robot
-from ...model.cosserat import StaticsResult, settle_arguments, settle_function, settled_statics
+from ...model.cosserat import (
+    StaticsResult,
+    moment_scale,
+    settle_arguments,
+    settle_function,
+    settled_statics,
+)
 from ...model.loads import static_loads
 from ...stages.refine import (
     base_frame,
@@ -50,6 +60,14 @@ from ...world.scene import Scene
 from .._result import Stage
 from .._timing import StageTiming
 from .ik import TensionIKConfig, TensionIKSolver
+
+LIVE_NEWTON_START = 0.1
+"""The verdict's Newton starts from the LM's own M(0) where the LM moved M(0) less than
+this many radians of bending over the robot (|ΔM(0)|·L/(E·I)) from the last equilibrium,
+else from that equilibrium. On the benchmark's drags in clutter the LM moves it 0.016 rad
+(median; 0.045 at most) and Newton takes 2–3 iterations instead of 4–5 (1.27 against
+2.13 ms of the settle); on 300 jumps across the workspace (moves 0.17 rad median, 0.68 at
+most) both starts settled on the same equilibrium (tips within 1e-9 m) or both missed."""
 
 LIVE_PRECISION = 0.3
 """The live LM stops once its residual is below this fraction of the tolerance
@@ -147,7 +165,7 @@ class TensionLiveIKSolver:
             answer, shape = self._update(current, target, quats, moment, verified, jacobian)
             timing.refine = time.perf_counter() - t0
             t0 = time.perf_counter()
-            if shape is None:   # Newton from the last equilibrium missed: from rest
+            if shape is None:   # Newton near the last equilibrium missed: from rest
                 shape = self.ik._forward(answer, self.loads)
         else:
             answer = self.ik._lm(current, target, quats, self.loads, moment, smallest=1)
@@ -198,10 +216,10 @@ class TensionLiveIKSolver:
                 ) -> tuple[np.ndarray, StaticsResult | None]:
         """A warm-started update in one compiled program: the LM from ``current`` (1, n) N
         and M(0) ``moment`` (1, 3) N·m, base frame, then the verdict's statics of its
-        tensions from the last equilibrium (``verified`` (3,) N·m and ``jacobian`` (3, 3),
-        world frame), with no host work between the two (0.3–0.6 ms of an update). Returns
-        the tensions (1, n) N and their ``StaticsResult``, or None where Newton from the last
-        equilibrium did not settle (``settled_statics``)."""
+        tensions near the last equilibrium (``verified`` (3,) N·m and ``jacobian`` (3, 3),
+        world frame; Newton's start: ``newton_start``), with no host work between the two
+        (0.3–0.6 ms of an update). Returns the tensions (1, n) N and their
+        ``StaticsResult``, or None where Newton did not settle (``settled_statics``)."""
         ik, statics = self.ik, self.ik.config.statics
         if self._program is None:
             self._program = _update_program(ik)
@@ -227,18 +245,31 @@ class TensionLiveIKSolver:
         return None, None, None
 
 
+def newton_start(z: Any, last_moment: Any, scale: float) -> Any:
+    """Where the verdict's Newton starts (1, 3) N·m, base frame: the LM's own M(0) (the
+    last three unknowns of ``z`` (1, width), in units of ``scale`` = E·I/L, N·m) where the
+    LM moved it less than ``LIVE_NEWTON_START`` rad of bending from ``last_moment`` (1, 3)
+    N·m, the last equilibrium's, else that last equilibrium."""
+    lm_moment = z[:, -3:] * scale
+    moved = jnp.linalg.norm(lm_moment - last_moment, axis=1, keepdims=True) / scale
+    return jnp.where(moved <= LIVE_NEWTON_START, lm_moment, last_moment)
+
+
 def _update_program(ik: TensionIKSolver) -> CachedProgram:
     """``TensionLiveIKSolver._update``'s program for ``ik``'s rows (M(0) an unknown): its
     LM (``stages.refine.lm_solve``), the tensions of the answer, and
-    ``model.cosserat.settle_function`` on them."""
+    ``model.cosserat.settle_function`` on them from ``newton_start``."""
     residual, project, terms = ik._residuals[True], ik._project, ik.terms(True)
     lm, settle = ik.waypoint_lm_config(), settle_function(ik.robot, ik.config.statics)
+    scale = moment_scale(ik.robot)
 
     def update(z0: Any, params: Any, scene: Any, free: Any, budget: Any, bounds: Any,
-               loads: Any, start_moment: Any, start_jacobian: Any) -> tuple:
+               loads: Any, last_moment: Any, start_jacobian: Any) -> tuple:
         z = lm_solve(residual, project, z0, params, scene, free, budget, lm, bounds=bounds).z
         tensions = tensions_of_batch(terms, z)
-        return tensions, settle(tensions, loads, start_moment, start_jacobian)
+        start = newton_start(z, last_moment, scale)
+        return tensions, settle(tensions, loads, start.astype(last_moment.dtype),
+                                start_jacobian)
 
     return CachedProgram(update, name="the live tension update")
 

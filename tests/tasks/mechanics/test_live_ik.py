@@ -133,3 +133,22 @@ def test_a_missed_update_tries_the_next_pool_seeds(live: TensionLiveIKSolver,
     assert np.linalg.norm(again.tip_position[0] - tips[1]) < 1e-4
     missed = live.solve(motion[0], tips[1], search=False)
     assert not missed.success and missed.stage == Stage.REFINE
+
+
+def test_newton_starts_from_the_lms_moment_only_a_drags_step_from_the_last_equilibrium(
+        ) -> None:
+    """The verdict's Newton starts from the LM's own M(0) where the LM moved it less than
+    ``LIVE_NEWTON_START`` rad of bending from the last equilibrium, else from that one."""
+    import jax
+
+    from cr_nlp.tasks.mechanics.live_ik import LIVE_NEWTON_START, newton_start
+
+    scale = 2.0                                           # N·m per radian of bending
+    last = np.array([[0.3, -0.2, 0.05]])
+    with jax.enable_x64(True):
+        for move, lm_start in ((0.5 * LIVE_NEWTON_START, True),
+                               (2.0 * LIVE_NEWTON_START, False)):
+            lm_moment = last + move * scale * np.array([[0.6, 0.8, 0.0]])
+            z = np.concatenate([np.full((1, 6), 0.4), lm_moment / scale], axis=1)
+            start = np.asarray(newton_start(z, last, scale))
+            np.testing.assert_allclose(start, lm_moment if lm_start else last, atol=1e-15)
