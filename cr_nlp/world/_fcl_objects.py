@@ -95,6 +95,14 @@ class FclScene:
         boxes = [_axis_aligned_box(parts[i]) for i in other]
         self.box_lower = np.array([lo for lo, _ in boxes], dtype=float).reshape(-1, 3) - 1e-12
         self.box_upper = np.array([hi for _, hi in boxes], dtype=float).reshape(-1, 3) + 1e-12
+        # float32 copies for the motion search's first, dense bounds (``_motion_check.
+        # _group_bounds``), and the largest coordinate or radius they hold, m.
+        self.other_centres32, self.other_radii32, self.box_lower32, self.box_upper32 = (
+            a.astype(np.float32) for a in (self.other_centres, self.other_radii,
+                                           self.box_lower, self.box_upper))
+        finite = [np.abs(a[np.isfinite(a)]) for a in (self.other_centres, self.other_radii,
+                                                      self.box_lower, self.box_upper)]
+        self.extent = float(max((a.max() for a in finite if a.size), default=0.0))
         # Capsules and cylinders: the capsule around the axis contains the part.
         axis = [_axis(parts[i]) for i in other]
         self.axis_a = np.array([a for a, _, _ in axis], dtype=float).reshape(-1, 3)

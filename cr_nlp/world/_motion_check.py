@@ -189,22 +189,30 @@ def _group_bounds(r: float, fscene: FclScene, mid: Xyz, half: np.ndarray,
     (B, m)) and each fcl part: a ball around the run (centre: the mean of its mid points;
     radius: the farthest mid point plus its half length, plus r) against the part's
     bounding sphere and its axis-aligned box. A pair of piece and part is worth a look
-    only where its run's entry is."""
+    only where its run's entry is.
+
+    The dense entries are float32 (on the shelf's motions the whole motion search took
+    0.72–0.76× the time of float64 ones, with the same pairs measured), lowered by a bound
+    on their rounding: 32·2⁻²⁴ of the largest coordinate or radius involved (an entry is
+    ten float32 operations on numbers of that size or up to four times it; ~24 such
+    roundings at most), plus 1e-12 m."""
     count = half.shape[0]
     mid = tuple(c.reshape(count, -1, group) for c in mid)
     half = half.reshape(count, -1, group)
     centre = tuple(c.mean(axis=2) for c in mid)
     off = sub(mid, tuple(c[:, :, None] for c in centre))
     reach = (np.sqrt(dot(off, off)) + half).max(axis=2) + r
-    gap = sub(tuple(c[:, :, None] for c in centre),
-               tuple(fscene.other_centres[:, k] for k in range(3)))
-    apart = np.sqrt(dot(gap, gap)) - fscene.other_radii
+    size = max(fscene.extent, float(max(np.abs(c).max(initial=0.0) for c in centre)),
+               float(reach.max(initial=0.0)))
+    slack = np.float32(32 * 2.0 ** -24 * size + 1e-12)
+    at = tuple(c[:, :, None].astype(np.float32) for c in centre)
+    gap = sub(at, tuple(fscene.other_centres32[:, k] for k in range(3)))
+    apart = np.sqrt(dot(gap, gap)) - fscene.other_radii32
     # The part's axis-aligned box: the ball's centre lies beyond one of its faces.
     for k in range(3):
-        apart = np.maximum(apart, np.maximum(fscene.box_lower[:, k] - centre[k][:, :, None],
-                                             centre[k][:, :, None] - fscene.box_upper[:, k]))
-    # 1e-12 m below: rounding of the ball may not lift the bound above the distance.
-    return apart - reach[:, :, None] - 1e-12
+        apart = np.maximum(apart, np.maximum(fscene.box_lower32[:, k] - at[k],
+                                             at[k] - fscene.box_upper32[:, k]))
+    return apart - reach[:, :, None].astype(np.float32) - slack
 
 
 def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,

@@ -83,6 +83,37 @@ def test_run_balls_bound_every_piece_of_their_run(robots, mixed_scene, group) ->
                     assert runs[k, i, q] <= d + 1e-5     # fcl's GJK: ~1e-5 m
 
 
+@pytest.mark.parametrize("offset", [0.0, 300.0])
+@pytest.mark.parametrize("group", [1, 5])
+def test_run_bounds_in_float32_stay_below_far_from_the_origin(robots, offset, group) -> None:
+    """The run bounds are float32 lowered by a bound on their rounding: still below every
+    piece's own ball (float64) in a scene of boxes, tilted and not, around the robot's
+    motions, also where both are moved ``offset`` m from the origin (larger coordinates,
+    larger rounding). Runs of one piece are that piece's ball: there the float32 rounding
+    alone would lift many bounds above it."""
+    robot = robots["tdcr3"]
+    r = robot.backbone_radius
+    chains = body_chain(robot, random_q(robot, 40, seed=3)) + [offset, 0.0, 0.0]
+    tilt = {"wxyz": [0.9621, 0.20255, 0.15191, 0.10127]}
+    boxes = [{"type": "box", "name": f"box{i}", "size": [0.05, 0.4, 0.3],
+              "center": [offset + x, y, z], **(tilt if i % 2 else {})}
+             for i, (x, y, z) in enumerate(np.random.default_rng(4).uniform(
+                 [-0.3, -0.3, 0.0], [0.3, 0.3, 0.4], (12, 3)))]
+    fscene = fcl_objects.fcl_scene(load_scene({"name": "far", "obstacles": boxes}))
+    a, b = chains[:, :-1], chains[:, 1:]
+    mid = 0.5 * (a + b)
+    coarse = motion_module._group_bounds(r, fscene, tuple(mid[..., k] for k in range(3)),
+                                         0.5 * np.linalg.norm(b - a, axis=-1), group)
+    mid = mid[:, :, None]
+    beyond_box = np.maximum(fscene.box_lower - mid, mid - fscene.box_upper).max(axis=-1)
+    piece_ball = (np.maximum(np.linalg.norm(mid - fscene.other_centres, axis=-1)
+                             - fscene.other_radii, beyond_box)
+                  - 0.5 * np.linalg.norm(b - a, axis=-1)[:, :, None] - r)
+    runs = np.repeat(coarse, group, axis=1)
+    assert np.all(runs <= piece_ball)
+    assert np.mean(np.abs(runs) < 0.02) > 0.01           # some runs near the boxes
+
+
 def test_pruned_motion_search_gives_the_minima_of_the_plain_one(robots) -> None:
     """On random box scenes, the motion search (runs pruned by their balls) gives the
     smallest distance and the collisions of every pair measured."""
