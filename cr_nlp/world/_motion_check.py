@@ -5,9 +5,9 @@ A motion (the configurations of one trajectory or path) needs less than ``check_
 gives: its smallest obstacle and self distances and which configurations collide. There
 the pairs of all its configurations are visited together in order of their bound, and a
 configuration is measured only as far as it can lower the motion's minimum or collide; a
-ball around each run of pieces (against each part's bounding sphere and axis-aligned box)
-says which pieces need bounds of their own, and each pair's axis-aligned box bound which
-need the face planes.
+ball around a run of pieces in a tile of consecutive configurations (against each part's
+bounding sphere and axis-aligned box) says which runs need bounds of their own, a run's
+ball which pieces, and each pair's axis-aligned box bound which need the face planes.
 
 Several motions (``check_motions``: a planner's candidate trajectories) are searched
 together: the self-distances, the sphere parts and every bound are one vectorised pass
@@ -33,7 +33,9 @@ from ._segment_distances import Xyz, dot, sub
 from .check import _far_pairs, _own_distances, _sphere_distances, _tighten, body_chain
 from .scene import Scene
 
-_RUN_PIECES = 5        # pieces per ball of ``_group_bounds`` (a divisor of the segment's)
+_RUN_PIECES = 5        # pieces per ball of ``_run_balls`` (a divisor of the segment's)
+_TILE_CONFIGURATIONS = 8  # consecutive configurations of a motion per ``_tile_bounds`` entry
+_SEED_TILES = 4        # a motion's tiles whose nearest run picks its seed
 _CHUNK_CONFIGURATIONS = 192  # configurations per chunk of a motion at most
 _CHUNK_ELEMENTS = 1 << 15
 """Entries of the largest array of one chunk of a motion at most (bigger ones outgrow the
@@ -110,7 +112,7 @@ def check_motions(robot: Robot, scene: Scene | None,
 
 
 def _run_length(per_segment: int) -> int:
-    """Pieces per run of ``_group_bounds``: the largest divisor of the segment's pieces
+    """Pieces per run of ``_run_balls``: the largest divisor of the segment's pieces
     up to ``_RUN_PIECES``."""
     return max(g for g in range(1, min(per_segment, _RUN_PIECES) + 1) if per_segment % g == 0)
 
@@ -182,37 +184,84 @@ def _motion_obstacles(r: float, fscene: FclScene, chains: np.ndarray, motion: np
     return obstacle, part
 
 
-def _group_bounds(r: float, fscene: FclScene, mid: Xyz, half: np.ndarray,
-                  group: int) -> np.ndarray:
-    """(B, m / group, parts) lower bounds on the distance between each run of ``group``
-    consecutive pieces (mid points ``mid``, coordinates (B, m) each; half lengths ``half``
-    (B, m)) and each fcl part: a ball around the run (centre: the mean of its mid points;
-    radius: the farthest mid point plus its half length, plus r) against the part's
-    bounding sphere and its axis-aligned box. A pair of piece and part is worth a look
-    only where its run's entry is.
+def _tiles(motion: np.ndarray, size: int) -> np.ndarray:
+    """Starts of the tiles of configurations (rows of the motions ``motion`` (B,), each
+    motion's rows together): ``size`` consecutive rows of one motion at most."""
+    count = len(motion)
+    if not count:
+        return np.zeros(0, dtype=np.int64)
+    first = np.r_[0, np.flatnonzero(np.diff(motion)) + 1]          # each motion's first row
+    within = np.arange(count) - np.repeat(first, np.diff(np.r_[first, count]))
+    return np.flatnonzero(within % size == 0)
+
+
+def _members(starts: np.ndarray, sizes: np.ndarray, tiles: np.ndarray) -> np.ndarray:
+    """The rows of the tiles ``tiles`` (indices into ``starts``, ``sizes``), tile by tile."""
+    sizes = sizes[tiles]
+    before = np.repeat(np.cumsum(sizes) - sizes, sizes)
+    return np.repeat(starts[tiles], sizes) + np.arange(len(before)) - before
+
+
+def _run_balls(r: float, mid: Xyz, half: np.ndarray, group: int) -> tuple[Xyz, np.ndarray]:
+    """Balls around each run of ``group`` consecutive pieces (mid points ``mid``,
+    coordinates (B, m) each; half lengths ``half`` (B, m)), capsules of radius r: their
+    centres (the mean of the run's mid points; coordinates (B, m / group) each) and radii
+    (B, m / group; the farthest mid point plus its half length, plus r)."""
+    count = half.shape[0]
+    mid = tuple(c.reshape(count, -1, group) for c in mid)
+    centre = tuple(c.mean(axis=2) for c in mid)
+    off = sub(mid, tuple(c[:, :, None] for c in centre))
+    return centre, (np.sqrt(dot(off, off)) + half.reshape(count, -1, group)).max(axis=2) + r
+
+
+def _tile_bounds(fscene: FclScene, centre: Xyz, reach: np.ndarray,
+                 starts: np.ndarray) -> np.ndarray:
+    """(T, runs, parts) lower bounds on the distance between each fcl part and the runs
+    of T tiles of configurations (rows from ``starts`` to the next start; runs' balls
+    ``centre``, ``reach`` by ``_run_balls``, (B, runs)): a ball around a run in all its
+    tile's configurations (centre: their mean; radius: the farthest ball's reach) against
+    the part's bounding sphere and its axis-aligned box. A pair of piece and part is worth
+    a look only where its tile's run's entry is.
 
     The dense entries are float32 (on the shelf's motions the whole motion search took
     0.72–0.76× the time of float64 ones, with the same pairs measured), lowered by a bound
     on their rounding: 32·2⁻²⁴ of the largest coordinate or radius involved (an entry is
     ten float32 operations on numbers of that size or up to four times it; ~24 such
     roundings at most), plus 1e-12 m."""
-    count = half.shape[0]
-    mid = tuple(c.reshape(count, -1, group) for c in mid)
-    half = half.reshape(count, -1, group)
-    centre = tuple(c.mean(axis=2) for c in mid)
-    off = sub(mid, tuple(c[:, :, None] for c in centre))
-    reach = (np.sqrt(dot(off, off)) + half).max(axis=2) + r
-    size = max(fscene.extent, float(max(np.abs(c).max(initial=0.0) for c in centre)),
-               float(reach.max(initial=0.0)))
+    count = len(reach)
+    sizes = np.diff(np.r_[starts, count])[:, None]
+    tile = tuple(np.add.reduceat(c, starts, axis=0) / sizes for c in centre)
+    of = np.repeat(np.arange(len(starts)), sizes[:, 0])
+    off = sub(centre, tuple(c[of] for c in tile))
+    tile_reach = np.maximum.reduceat(np.sqrt(dot(off, off)) + reach, starts, axis=0)
+    size = max(fscene.extent, float(max(np.abs(c).max(initial=0.0) for c in tile)),
+               float(tile_reach.max(initial=0.0)))
     slack = np.float32(32 * 2.0 ** -24 * size + 1e-12)
-    at = tuple(c[:, :, None].astype(np.float32) for c in centre)
+    at = tuple(c[:, :, None].astype(np.float32) for c in tile)
     gap = sub(at, tuple(fscene.other_centres32[:, k] for k in range(3)))
     apart = np.sqrt(dot(gap, gap)) - fscene.other_radii32
     # The part's axis-aligned box: the ball's centre lies beyond one of its faces.
     for k in range(3):
         apart = np.maximum(apart, np.maximum(fscene.box_lower32[:, k] - at[k],
                                              at[k] - fscene.box_upper32[:, k]))
-    return apart - reach[:, :, None].astype(np.float32) - slack
+    return apart - tile_reach[:, :, None].astype(np.float32) - slack
+
+
+def _run_bounds(fscene: FclScene, centre: Xyz, reach: np.ndarray, rows: np.ndarray,
+                runs: np.ndarray, parts: np.ndarray) -> np.ndarray:
+    """``_tile_bounds`` of single runs (configuration ``rows``, run ``runs``, part
+    ``parts``; (N,) each), float64."""
+    at = tuple(c[rows, runs] for c in centre)
+    gap = sub(at, tuple(fscene.other_centres[parts, k] for k in range(3)))
+    # The part's axis-aligned box: a ball's centre outside it is apart from it by its
+    # gaps along all three axes together; one inside, by the largest (negative) gap.
+    beyond = tuple(np.maximum(fscene.box_lower[parts, k] - at[k],
+                              at[k] - fscene.box_upper[parts, k]) for k in range(3))
+    out = tuple(np.maximum(c, 0.0) for c in beyond)
+    inside = np.maximum(np.maximum(beyond[0], beyond[1]), beyond[2])
+    box = np.where(inside > 0.0, np.sqrt(dot(out, out)), inside)
+    return np.maximum(np.sqrt(dot(gap, gap)) - fscene.other_radii[parts], box) \
+        - reach[rows, runs]
 
 
 def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
@@ -224,10 +273,11 @@ def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
     (per motion) to each motion's exact smallest distance.
 
     Per motion, pairs are visited in order of their lower bound, from a seed pair (the
-    smallest tight bound among the pieces of each configuration's run of ``group`` pieces
-    nearest to a part by ``_group_bounds``), until no pair can lower the motion's minimum
-    or make a configuration penetrate; only the pieces of runs whose ball can get below
-    that are bounded one by one. The bounds of every motion are computed together; the
+    smallest tight bound among the pieces of the run of ``group`` pieces nearest to a part
+    in the motion's nearest tiles of configurations, ``_tile_bounds``), until no pair can
+    lower the motion's minimum or make a configuration penetrate; only the runs whose
+    tile's ball can get below that are bounded one by one, then the pieces of those whose
+    own ball can. The bounds of every motion are computed together; the
     distances measured are the ones ``check._fcl_search`` measures, on capsules built
     alike.
 
@@ -241,7 +291,11 @@ def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
     mid = tuple(0.5 * (p + q) for p, q in zip(x0, x1, strict=True))
     u = sub(x1, x0)
     half = 0.5 * np.sqrt(dot(u, u))
-    coarse = _group_bounds(r, fscene, mid, half, group)
+    balls = _run_balls(r, mid, half, group)
+    starts = _tiles(motion, _TILE_CONFIGURATIONS)
+    sizes = np.diff(np.r_[starts, count])
+    coarse = _tile_bounds(fscene, *balls, starts)
+    tile_motion = motion[starts]
     reach = half + r
     centres = tuple(fscene.other_centres[:, k] for k in range(3))
 
@@ -266,15 +320,22 @@ def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
         return bi, pi, qi, _tighten(r, fscene, a[bi, pi], b[bi, pi], qi, loose[keep],
                                           below[keep])
 
-    # Seeds: per motion, the pair of smallest tight bound among the pieces of each
-    # configuration's nearest run, so that the candidates below are only those that can
-    # beat it.
+    # Seeds: per motion, the pair of smallest tight bound among the pieces of the
+    # nearest run of its few nearest tiles, so that the candidates below are only those
+    # that can beat it.
     seeds = np.full((len(best), 3), -1)                   # (configuration, piece, part)
     cut = np.maximum(best, 0.0)
-    flat = coarse.reshape(count, -1).argmin(axis=1)
-    near = np.flatnonzero(coarse.reshape(count, -1)[np.arange(count), flat] < cut[motion])
+    flat = coarse.reshape(len(starts), -1).argmin(axis=1)
+    nearest = coarse.reshape(len(starts), -1)[np.arange(len(starts)), flat]
+    near = np.flatnonzero(nearest < cut[tile_motion])
+    near = near[np.lexsort((nearest[near], tile_motion[near]))]
+    first = np.r_[0, np.flatnonzero(np.diff(tile_motion[near])) + 1]
+    near = near[np.arange(len(near)) - np.repeat(first, np.diff(np.r_[first, len(near)]))
+                < _SEED_TILES]
     if len(near):
-        bi, pi, qi, tight = expand(near, *np.divmod(flat[near], parts), cut[motion[near]])
+        bk = _members(starts, sizes, near)
+        bg, bq = (np.repeat(x, sizes[near]) for x in np.divmod(flat[near], parts))
+        bi, pi, qi, tight = expand(bk, bg, bq, cut[motion[bk]])
         order = np.lexsort((tight, motion[bi]))        # per motion, smallest bound first
         firsts = order[np.r_[0, np.flatnonzero(np.diff(motion[bi][order])) + 1]] \
             if len(order) else order
@@ -285,7 +346,11 @@ def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
                 measure(int(bi[s]), capsule_object(a[bi[s], pi[s]], b[bi[s], pi[s]], r),
                         int(part_of[qi[s]]))
     cut = np.maximum(best, 0.0)
-    bk, bg, bq = np.nonzero(coarse < cut[motion][:, None, None])
+    tk, bg, bq = np.nonzero(coarse < cut[tile_motion][:, None, None])
+    bk = _members(starts, sizes, tk)
+    bg, bq = np.repeat(bg, sizes[tk]), np.repeat(bq, sizes[tk])
+    keep = np.flatnonzero(_run_bounds(fscene, *balls, bk, bg, bq) < cut[motion[bk]])
+    bk, bg, bq = bk[keep], bg[keep], bq[keep]
     if not len(bk):
         return
     bi, pi, qi, low = expand(bk, bg, bq, cut[motion[bk]])

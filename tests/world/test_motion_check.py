@@ -52,66 +52,89 @@ def test_check_motion_gives_the_minima_and_collisions_of_check_many(
     assert none.collision.shape == (0,) and none.obstacle_distance == np.inf
 
 
-@pytest.mark.parametrize("group", [1, 2, 5, 10])
-def test_run_balls_bound_every_piece_of_their_run(robots, mixed_scene, group) -> None:
-    """``_group_bounds`` (the motion search's first cut) is a true lower bound: below the
-    bound of every piece's own ball in its run (against the part's bounding sphere and
-    axis-aligned box) and below fcl's distance of each of them."""
+def _bounds(r, fscene, chains, group, tile, motion_length=7):
+    """The motion search's bounds for body chains, each piece's entries (B, pieces,
+    parts): its tile's run (``_tile_bounds``, tiles of ``tile`` configurations of one
+    motion of ``motion_length``), its run (``_run_bounds``); and each piece's own ball
+    (float64: the part's bounding sphere and its box: the distance outside, the largest
+    gap inside) against every part."""
+    a, b = chains[:, :-1], chains[:, 1:]
+    count, pieces = a.shape[:2]
+    mid, half = 0.5 * (a + b), 0.5 * np.linalg.norm(b - a, axis=-1)
+    balls = motion_module._run_balls(r, tuple(mid[..., k] for k in range(3)), half, group)
+    starts = motion_module._tiles(np.arange(count) // motion_length, tile)
+    tiles = motion_module._tile_bounds(fscene, *balls, starts)
+    parts = len(fscene.other_index)
+    assert tiles.shape == (len(starts), pieces // group, parts)
+    of_tile = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, count]))
+    k, g, q = (x.ravel() for x in np.meshgrid(np.arange(count), np.arange(pieces // group),
+                                              np.arange(parts), indexing="ij"))
+    runs = motion_module._run_bounds(fscene, *balls, k, g, q).reshape(tiles[of_tile].shape)
+    mid = mid[:, :, None]
+    beyond = np.maximum(fscene.box_lower - mid, mid - fscene.box_upper)
+    box = np.where(beyond.max(axis=-1) > 0.0,
+                   np.linalg.norm(np.maximum(beyond, 0.0), axis=-1), beyond.max(axis=-1))
+    piece_ball = (np.maximum(np.linalg.norm(mid - fscene.other_centres, axis=-1)
+                             - fscene.other_radii, box) - half[:, :, None] - r)
+    return (np.repeat(tiles[of_tile], group, axis=1), np.repeat(runs, group, axis=1),
+            piece_ball)
+
+
+@pytest.mark.parametrize("group,tile", [(1, 1), (2, 3), (5, 1), (5, 4), (10, 7)])
+def test_tile_and_run_balls_bound_every_piece_of_them(robots, mixed_scene, group,
+                                                     tile) -> None:
+    """The motion search's first cuts are true lower bounds: a tile's run (a ball around
+    a run's pieces in several configurations of a motion) below every run of it, a run
+    below every piece's own ball in it (against the part's bounding sphere and
+    axis-aligned box) and below fcl's distance of each piece; also where the pieces lie
+    deep inside a part (a box around the whole robot, distances below −r)."""
     robot = robots["tdcr3"]
     r = robot.backbone_radius
-    chains = body_chain(robot, random_q(robot, 6, seed=group))
-    a, b = chains[:, :-1], chains[:, 1:]
-    for scene in (mixed_scene, load_scene("cabinet")):
+    chains = body_chain(robot, random_q(robot, 14, seed=group))
+    around = {"name": "around", "obstacles": [
+        {"type": "box", "name": "around", "center": [0.0, 0.0, 1.5], "size": [5.0, 5.0, 5.0]}]}
+    deep = 0
+    for scene in (mixed_scene, load_scene("cabinet"), load_scene(around)):
         fscene = fcl_objects.fcl_scene(scene)
-        mid = 0.5 * (a + b)
-        coarse = motion_module._group_bounds(r, fscene, tuple(mid[..., k] for k in range(3)),
-                                            0.5 * np.linalg.norm(b - a, axis=-1), group)
-        count, pieces = a.shape[:2]
-        assert coarse.shape == (count, pieces // group, len(fscene.other_index))
-        mid = mid[:, :, None]                             # each piece's own ball
-        beyond_box = np.maximum(fscene.box_lower - mid, mid - fscene.box_upper).max(axis=-1)
-        piece_ball = (np.maximum(np.linalg.norm(mid - fscene.other_centres, axis=-1)
-                                 - fscene.other_radii, beyond_box)
-                      - 0.5 * np.linalg.norm(b - a, axis=-1)[:, :, None] - r)
-        runs = np.repeat(coarse, group, axis=1)          # each piece's run entry
-        assert np.all(runs <= piece_ball)
+        tiles, runs, piece_ball = _bounds(r, fscene, chains, group, tile)
+        assert np.all(tiles <= runs + 1e-6)              # float32 entries: their slack
+        assert np.all(runs <= piece_ball + 1e-12)
+        count, pieces = chains.shape[0], chains.shape[1] - 1
         for k in range(count):
             for i in range(0, pieces, 3):
-                capsule = capsule_object(a[k, i], b[k, i], r)
+                capsule = capsule_object(chains[k, i], chains[k, i + 1], r)
                 for q, whole in enumerate(fscene.other_index):
                     d = fcl_distance(capsule, fscene.objects[whole])
                     assert runs[k, i, q] <= d + 1e-5     # fcl's GJK: ~1e-5 m
+                    deep += d < -r
+    assert deep > 0
 
 
 @pytest.mark.parametrize("offset", [0.0, 300.0])
-@pytest.mark.parametrize("group", [1, 5])
-def test_run_bounds_in_float32_stay_below_far_from_the_origin(robots, offset, group) -> None:
-    """The run bounds are float32 lowered by a bound on their rounding: still below every
+@pytest.mark.parametrize("group,tile", [(1, 1), (5, 1), (5, 8)])
+def test_tile_bounds_in_float32_stay_below_far_from_the_origin(robots, offset, group,
+                                                              tile) -> None:
+    """The tile bounds are float32 lowered by a bound on their rounding: still below every
     piece's own ball (float64) in a scene of boxes, tilted and not, around the robot's
-    motions, also where both are moved ``offset`` m from the origin (larger coordinates,
-    larger rounding). Runs of one piece are that piece's ball: there the float32 rounding
-    alone would lift many bounds above it."""
+    motions (five of eight configurations), also where both are moved ``offset`` m from
+    the origin (larger coordinates, larger rounding). Tiles of one configuration's runs of
+    one piece are that piece's ball: there the float32 rounding alone would lift many
+    bounds above it."""
     robot = robots["tdcr3"]
-    r = robot.backbone_radius
-    chains = body_chain(robot, random_q(robot, 40, seed=3)) + [offset, 0.0, 0.0]
+    ends = random_q(robot, 10, seed=3)
+    motions = [start + np.linspace(0.0, 1.0, 8)[:, None] * (goal - start)
+               for start, goal in zip(ends[::2], ends[1::2], strict=True)]
+    chains = body_chain(robot, np.concatenate(motions)) + [offset, 0.0, 0.0]
     tilt = {"wxyz": [0.9621, 0.20255, 0.15191, 0.10127]}
     boxes = [{"type": "box", "name": f"box{i}", "size": [0.05, 0.4, 0.3],
               "center": [offset + x, y, z], **(tilt if i % 2 else {})}
              for i, (x, y, z) in enumerate(np.random.default_rng(4).uniform(
                  [-0.3, -0.3, 0.0], [0.3, 0.3, 0.4], (12, 3)))]
     fscene = fcl_objects.fcl_scene(load_scene({"name": "far", "obstacles": boxes}))
-    a, b = chains[:, :-1], chains[:, 1:]
-    mid = 0.5 * (a + b)
-    coarse = motion_module._group_bounds(r, fscene, tuple(mid[..., k] for k in range(3)),
-                                         0.5 * np.linalg.norm(b - a, axis=-1), group)
-    mid = mid[:, :, None]
-    beyond_box = np.maximum(fscene.box_lower - mid, mid - fscene.box_upper).max(axis=-1)
-    piece_ball = (np.maximum(np.linalg.norm(mid - fscene.other_centres, axis=-1)
-                             - fscene.other_radii, beyond_box)
-                  - 0.5 * np.linalg.norm(b - a, axis=-1)[:, :, None] - r)
-    runs = np.repeat(coarse, group, axis=1)
-    assert np.all(runs <= piece_ball)
-    assert np.mean(np.abs(runs) < 0.02) > 0.01           # some runs near the boxes
+    tiles, runs, piece_ball = _bounds(robot.backbone_radius, fscene, chains, group, tile, 8)
+    assert np.all(tiles <= piece_ball)
+    assert np.all(runs <= piece_ball + 1e-12)
+    assert np.mean(np.abs(tiles) < 0.02) > 0.01          # some tiles near the boxes
 
 
 def test_pruned_motion_search_gives_the_minima_of_the_plain_one(robots) -> None:
