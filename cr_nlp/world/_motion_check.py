@@ -90,11 +90,11 @@ def check_motions(robot: Robot, scene: Scene | None,
     every = np.concatenate([np.asarray(c, dtype=np.float64) for c in chains])
     offsets = np.r_[0, np.cumsum(counts)]
     pieces = every.shape[1] - 1
-    own = _own_distances(robot, every, per_segment)
+    motion = np.repeat(np.arange(len(chains)), counts)
+    own = _own_distances(robot, every, per_segment, motion)
     obstacle = np.full(len(every), np.inf)
     part = np.full(len(every), -1, dtype=np.int64)
     best = np.full(len(chains), np.inf)
-    motion = np.repeat(np.arange(len(chains)), counts)
     for rows in _rounds(fscene, counts, offsets, pieces, per_segment):
         obstacle[rows], part[rows] = _motion_obstacles(
             robot.backbone_radius, fscene, every[rows], motion[rows], best,
@@ -253,15 +253,20 @@ def _run_bounds(fscene: FclScene, centre: Xyz, reach: np.ndarray, rows: np.ndarr
     ``parts``; (N,) each), float64."""
     at = tuple(c[rows, runs] for c in centre)
     gap = sub(at, tuple(fscene.other_centres[parts, k] for k in range(3)))
-    # The part's axis-aligned box: a ball's centre outside it is apart from it by its
-    # gaps along all three axes together; one inside, by the largest (negative) gap.
+    return np.maximum(np.sqrt(dot(gap, gap)) - fscene.other_radii[parts],
+                      _box_distance(fscene, at, parts)) - reach[rows, runs]
+
+
+def _box_distance(fscene: FclScene, at: Xyz, parts: np.ndarray) -> np.ndarray:
+    """A lower bound on the signed distance from points ``at`` (coordinates (N,) each)
+    to fcl parts ``parts`` (N,) by their axis-aligned boxes: a point outside its part's
+    box is apart from it by its gaps along all three axes together; one inside, by the
+    largest (negative) gap."""
     beyond = tuple(np.maximum(fscene.box_lower[parts, k] - at[k],
                               at[k] - fscene.box_upper[parts, k]) for k in range(3))
     out = tuple(np.maximum(c, 0.0) for c in beyond)
     inside = np.maximum(np.maximum(beyond[0], beyond[1]), beyond[2])
-    box = np.where(inside > 0.0, np.sqrt(dot(out, out)), inside)
-    return np.maximum(np.sqrt(dot(gap, gap)) - fscene.other_radii[parts], box) \
-        - reach[rows, runs]
+    return np.where(inside > 0.0, np.sqrt(dot(out, out)), inside)
 
 
 def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
@@ -307,13 +312,15 @@ def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
 
     def expand(bk: np.ndarray, bg: np.ndarray, bq: np.ndarray, below: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The pairs of the runs' pieces whose loose bound (the part's bounding sphere
-        against the piece's ball) is below their motion's threshold ``below`` (per run),
-        with their tight bounds."""
+        """The pairs of the runs' pieces whose loose bound (the piece's ball against the
+        part's bounding sphere and axis-aligned box) is below their motion's threshold
+        ``below`` (per run), with their tight bounds."""
         bi, qi = np.repeat(bk, group), np.repeat(bq, group)
         pi = ((bg * group)[:, None] + np.arange(group)).ravel()
-        gap = sub(tuple(c[bi, pi] for c in mid), tuple(c[qi] for c in centres))
-        loose = np.sqrt(dot(gap, gap)) - reach[bi, pi] - fscene.other_radii[qi]
+        at = tuple(c[bi, pi] for c in mid)
+        gap = sub(at, tuple(c[qi] for c in centres))
+        loose = np.maximum(np.sqrt(dot(gap, gap)) - fscene.other_radii[qi],
+                           _box_distance(fscene, at, qi)) - reach[bi, pi]
         below = np.repeat(below, group)
         keep = np.flatnonzero(loose < below)
         bi, pi, qi = bi[keep], pi[keep], qi[keep]

@@ -282,13 +282,20 @@ def _fcl_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
         obstacle[k], part[k] = best, best_part
 
 
-def _self_distance(r: float, a: Xyz, b: Xyz, per_segment: int) -> np.ndarray:
+def _self_distance(r: float, a: Xyz, b: Xyz, per_segment: int,
+                   motion: np.ndarray | None = None) -> np.ndarray:
     """Smallest signed distance (B,) between the capsules of pieces of segments at least
     two apart (``_far_pairs``), for pieces running a–b (coordinates (B, m) each), k =
     ``per_segment`` pieces per segment. Exact: a pair whose bound (mid-point gap minus
     both half lengths) exceeds the smallest mid-point gap (the distance of a real pair of
     points) cannot hold the minimum; only the others get the segment distance. Each pair
-    of segments is one (B, k, k) block, by broadcasting rather than gathering pairs."""
+    of segments is one (B, k, k) block, by broadcasting rather than gathering pairs.
+
+    ``motion`` (B,): the configurations' motions, of which only the smallest distance and
+    the collisions count. A pair is then measured only if it can also hold its motion's
+    minimum (bound below the motion's smallest mid-point gap) or collide; a configuration
+    none of whose pairs is measured gets +inf, its distance being above both (on the
+    planner's shelf motions, 2.8 pairs per configuration instead of 9.6)."""
     mid = tuple(0.5 * (p + q) for p, q in zip(a, b, strict=True))
     u = sub(b, a)
     half = 0.5 * np.sqrt(dot(u, u))
@@ -304,7 +311,12 @@ def _self_distance(r: float, a: Xyz, b: Xyz, per_segment: int) -> np.ndarray:
         between = sub(tuple(of(c, s)[:, :, None] for c in mid),
                       tuple(of(c, t)[:, None, :] for c in mid))
         gaps.append(np.sqrt(dot(between, between)))
-    upper = np.minimum.reduce([gap.min(axis=(1, 2)) for gap in gaps])[:, None, None]
+    upper = np.minimum.reduce([gap.min(axis=(1, 2)) for gap in gaps])
+    if motion is not None:
+        least = np.full(int(motion.max(initial=0)) + 1, np.inf)
+        np.minimum.at(least, motion, upper)
+        upper = np.minimum(upper, np.maximum(least[motion], 2.0 * r))
+    upper = upper[:, None, None]
     found = [np.nonzero(gap - of(half, s)[:, :, None] - of(half, t)[:, None, :]
                         <= upper + 1e-9) for (s, t), gap in zip(blocks, gaps, strict=True)]
     rows = np.concatenate([row for row, _, _ in found])
@@ -334,18 +346,20 @@ def _sphere_distances(r: float, fscene: FclScene, a: Xyz,
             fscene.sphere_index[nearest % len(fscene.sphere_index)])
 
 
-def _own_distances(robot: Robot, chains: np.ndarray, per_segment: int) -> np.ndarray:
+def _own_distances(robot: Robot, chains: np.ndarray, per_segment: int,
+                   motion: np.ndarray | None = None) -> np.ndarray:
     """The self distance (B,) of body chains (B, 1 + n·k, 3) of k = ``per_segment``
-    pieces per segment (``_self_distance``; +inf where not checked), in chunks of
-    ``_BATCH_ELEMENTS`` far pairs."""
+    pieces per segment (``_self_distance``, of motions ``motion`` (B,) if given; +inf
+    where not checked), in chunks of ``_BATCH_ELEMENTS`` far pairs."""
     pairs = len(_far_pairs(chains.shape[1] - 1, per_segment)[0])
     if not pairs or not robot.self_collision:
         return np.full(len(chains), np.inf)
     step = max(1, _BATCH_ELEMENTS // pairs)
     out = [_self_distance(robot.backbone_radius,
                           *(tuple(np.ascontiguousarray(c[..., k]) for k in range(3))
-                            for c in (part[:, :-1], part[:, 1:])), per_segment)
-           for part in (chains[s:s + step] for s in range(0, len(chains), step))]
+                            for c in (chains[s:s + step, :-1], chains[s:s + step, 1:])),
+                          per_segment, None if motion is None else motion[s:s + step])
+           for s in range(0, len(chains), step)]
     return np.concatenate(out) if out else np.zeros(0)
 
 
