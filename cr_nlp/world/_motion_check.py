@@ -78,10 +78,12 @@ def check_motion(robot: Robot, scene: Scene | None, qs: Any,
     return check_motions(robot, scene, [body_chain(robot, qs) if chains is None else chains])[0]
 
 
-def check_motions(robot: Robot, scene: Scene | None,
-                  chains: Sequence[np.ndarray]) -> list[MotionCheck]:
+def check_motions(robot: Robot, scene: Scene | None, chains: Sequence[np.ndarray],
+                  own: np.ndarray | None = None) -> list[MotionCheck]:
     """``check_motion`` of several motions at once, given each one's body chains
-    (B_m, 1 + n·k, 3; m): one report per motion, each what the motion gets alone."""
+    (B_m, 1 + n·k, 3; m): one report per motion, each what the motion gets alone.
+    ``own``: the self distances of all the motions' configurations in turn (ΣB_m,; m)
+    where the caller has them (``_verdict_program.motion_chains``)."""
     if not len(chains):
         return []
     fscene = fcl_scene(scene)
@@ -91,7 +93,8 @@ def check_motions(robot: Robot, scene: Scene | None,
     offsets = np.r_[0, np.cumsum(counts)]
     pieces = every.shape[1] - 1
     motion = np.repeat(np.arange(len(chains)), counts)
-    own = _own_distances(robot, every, per_segment, motion)
+    if own is None:
+        own = _own_distances(robot, every, per_segment, motion)
     obstacle = np.full(len(every), np.inf)
     part = np.full(len(every), -1, dtype=np.int64)
     best = np.full(len(chains), np.inf)

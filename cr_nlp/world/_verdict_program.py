@@ -39,6 +39,9 @@ from .clearance import _body_centres
 ROWS = 4096
 """Configurations per run of the program (a batch is cut into blocks of this size);
 blocks under a quarter of it use the numpy verdict (``tip_pose``, ``world.check``)."""
+MOTION_ROWS = 256
+"""Configurations per run of the motion verdict's program (``motion_chains``): a
+planner's verdict judges a few hundred at a time."""
 
 
 class AnswerGeometry(NamedTuple):
@@ -198,3 +201,54 @@ def answer_geometry(robot: Robot, q: Any, positions: Any, rotations: Any,
         counters.device_launch += t1 - t0
         counters.device_wait += t3 - t2
     return AnswerGeometry(*out)
+
+
+def _motion_geometry(robot: Robot, q: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``motion_chains``' body chains (B, 1 + n·k, 3) and self distances (B,) of
+    configurations q (B, 3n), in q's precision."""
+    z = model_q_to_z(JAX, robot, q)
+    own = (_self_distance(robot, q, z) if robot.has_self_pairs
+           else jnp.full(q.shape[:-1], jnp.inf, q.dtype))
+    return _body_centres(JAX, robot, z), own
+
+
+@cached(maxsize=16)
+def _motion_program(robot: Robot, rows: int) -> Any:
+    """The compiled ``_motion_geometry`` of ``robot`` for ``rows`` float64 configurations
+    (one program per robot shape)."""
+    with jax.enable_x64(True):
+        return compile_program(partial(_motion_geometry, robot), (np.zeros((rows, robot.dof)),),
+                               name="the float64 motion verdict", outputs=2, by_shape=True)
+
+
+def motion_chains(robot: Robot, q: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """The motion verdict's float64 re-evaluation of configurations q (B, 3n; rad, rad,
+    m): their body chains (``world.check.body_chain``: the base point, then the backbone
+    points; (B, 1 + n·k, 3), m) and their self distances (B,; ``check_many``'s
+    ``self_distance``, m; +inf where not checked), as one program over blocks of
+    ``MOTION_ROWS`` (the last one padded). The same formulas as numpy's, to rounding
+    (tests pin 1e-12 m). Under half a block (one motion's configurations): numpy's chains
+    and no self distances (None: the motion search measures those it needs).
+
+    On the planner's 300 shelf problems the host's share of planning fell from 3.19–3.23
+    to 2.56–2.58 s per 1000 problems, the whole run's wall time unchanged."""
+    q = np.asarray(q, dtype=np.float64).reshape(-1, robot.dof)
+    count = len(q)
+    if count < MOTION_ROWS // 2:
+        from .check import body_chain
+
+        return body_chain(robot, q), None
+    chains = np.empty((count, 1 + robot.n_segments * robot.points_per_segment, 3))
+    own = np.empty(count)
+    launched = []
+    for start in range(0, count, MOTION_ROWS):
+        rows = slice(start, min(start + MOTION_ROWS, count))
+        block = np.empty((MOTION_ROWS, robot.dof))
+        block[:rows.stop - start] = q[rows]
+        block[rows.stop - start:] = q[start]
+        with jax.enable_x64(True):
+            launched.append((rows, _motion_program(robot, MOTION_ROWS)(block)))
+    for rows, (chain, distance) in launched:
+        chains[rows] = np.asarray(chain)[:rows.stop - rows.start]
+        own[rows] = np.asarray(distance)[:rows.stop - rows.start]
+    return chains, own

@@ -12,6 +12,7 @@ from cr_nlp.model.kinematics import tip_pose
 from cr_nlp.model.limits import limit_violation_q
 from cr_nlp.model.rotations import wxyz_from_matrix
 from cr_nlp.world import check_many
+from cr_nlp.world.check import body_chain
 
 from ..conftest import MODELS, random_q
 
@@ -72,3 +73,31 @@ def test_no_self_pairs_give_infinity(monkeypatch) -> None:
     empty = program.answer_geometry(robot, np.zeros((0, robot.dof)), np.zeros((0, 3)),
                                     np.zeros((0, 3, 3)))
     assert empty.self_distance.shape == (0,) and empty.wxyz.shape == (0, 4)
+
+
+@pytest.mark.parametrize("name,self_collision", [("tdcr3", True), ("tdcr4_ext", True),
+                                                 ("tdcr3", False)])
+def test_motion_program_matches_the_numpy_chains_and_self_distances(name,
+                                                                    self_collision) -> None:
+    """``motion_chains`` (the motion verdict's program, blocks of ``MOTION_ROWS``, the last
+    padded) gives numpy's body chains and ``check_many``'s self distances (+inf where the
+    robot's self-collision is off), also beyond θ max; under half a block, numpy's chains
+    and no distances."""
+    robot = Robot.from_file(MODELS / "robots" / f"{name}.json")
+    if not self_collision:
+        robot = Robot.from_dict({**robot.to_dict(), "self_collision": False})
+    for count in (program.MOTION_ROWS + 93, program.MOTION_ROWS // 2):
+        q = random_q(robot, count, seed=count)
+        q[::7, 0] = robot.segments[0].theta_max + 0.3
+        chains, own = program.motion_chains(robot, q)
+        assert chains.dtype == own.dtype == np.float64
+        np.testing.assert_allclose(chains, body_chain(robot, q), rtol=0, atol=1e-12)
+        want = check_many(robot, None, q).self_distance
+        np.testing.assert_allclose(own, want, rtol=0, atol=1e-12)
+        if not self_collision:
+            assert np.all(own == np.inf)
+        elif count > program.MOTION_ROWS:
+            assert (own < 0).any() and (own > 0).any()
+    q = random_q(robot, program.MOTION_ROWS // 2 - 1, seed=5)      # one motion's: numpy
+    chains, own = program.motion_chains(robot, q)
+    assert own is None and np.array_equal(chains, body_chain(robot, q))
