@@ -187,15 +187,17 @@ class ClearanceChecker:
             padded = np.empty((chunk, self.robot.dof), dtype=np.float32)
             padded[:len(block)] = block
             padded[len(block):] = block[:1]
-            values = self.programs[chunk](self.arrays, self.cells, jnp.asarray(padded))
+            # numpy, moved by the program's call: ``jnp.asarray`` first was an eager JAX
+            # operation on the host (a 256-row call 1.65 → 1.58 ms)
+            values = self.programs[chunk](self.arrays, self.cells, padded)
             out[start:start + len(block)] = np.asarray(values)[:len(block)]
             self.calls += 1
         if self._ask_others:
             self._ask_others = False
             for other in CHUNKS:
                 if other != chunk:
-                    self.programs[other].ahead(self.arrays, self.cells, jnp.zeros(
-                        (other, self.robot.dof), jnp.float32))
+                    self.programs[other].ahead(self.arrays, self.cells, np.zeros(
+                        (other, self.robot.dof), np.float32))
         return out
 
     def compile_all(self) -> None:
