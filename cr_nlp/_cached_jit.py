@@ -10,7 +10,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from ._programs import compile_ahead, compile_program
+from ._programs import compile_ahead, compile_program, hold
 
 
 class CachedProgram:
@@ -27,6 +27,7 @@ class CachedProgram:
         self.fn, self.name, self.batched, self.outputs = fn, name, batched, outputs
         self.static_argnums, self.by_shape = tuple(static_argnums), by_shape
         self._compiled: dict[Any, Any] = {}
+        hold(self)                                   # ``_programs.clear_memory`` empties it
 
     def __call__(self, *args: Any) -> Any:
         fn, args, signature = self._split(args)

@@ -139,6 +139,7 @@ def test_a_second_robot_of_the_same_shape_plans_on_the_first_ones_programs(
         verify_trajectory,
     )
     from cr_nlp.world import load_scene
+    from cr_nlp.world._motion import verify_trajectories
 
     scene = load_scene("lattice")
     tdcr3 = load_robot("tdcr3")
@@ -156,10 +157,14 @@ def test_a_second_robot_of_the_same_shape_plans_on_the_first_ones_programs(
         # Straight and perturbed guesses (a roadmap is built per robot, seconds each);
         # the roadmap's clearance program on its own below.
         results = planner.plan(starts, goals, init="straight")
+        # The motion verdict's program, which the planner's verdicts use only when enough
+        # motions finish together (timing): here on a motion of 401 configurations.
+        verify_trajectories(robot, scene, [np.linspace(starts[0], goals[0], 101)],
+                            planner.config.dt)
         checker = ClearanceChecker(robot, scene, planner.margin)
         clearances.append(checker(q_to_z_numpy(np.concatenate([starts, goals]))))
     assert _programs.stats.traced == 0 and _programs.stats.unkeyed == 0
-    assert _programs.stats.reused >= 2   # the roadmap clearance and the trajectory LM
+    assert _programs.stats.reused >= 3   # the roadmap clearance, trajectory LM, verdict
     assert any(r.success for r in results)   # the straight guesses of a problem may collide
     for result in results:
         assert verify_trajectory(thinner, scene, result.q, planner.config.dt).success == (
