@@ -96,7 +96,7 @@ class FclScene:
         self.box_lower = np.array([lo for lo, _ in boxes], dtype=float).reshape(-1, 3) - 1e-12
         self.box_upper = np.array([hi for _, hi in boxes], dtype=float).reshape(-1, 3) + 1e-12
         # float32 copies for the motion search's first, dense bounds (``_motion_check.
-        # _group_bounds``), and the largest coordinate or radius they hold, m.
+        # _tile_bounds``), and the largest coordinate or radius they hold, m.
         self.other_centres32, self.other_radii32, self.box_lower32, self.box_upper32 = (
             a.astype(np.float32) for a in (self.other_centres, self.other_radii,
                                            self.box_lower, self.box_upper))
