@@ -10,7 +10,8 @@ from typing import Any
 import jax
 import numpy as np
 
-from ._programs import compile_ahead, compile_program, hold
+from ._programs import compile_ahead, compile_program
+from .runtime import register
 
 
 class CachedProgram:
@@ -27,7 +28,11 @@ class CachedProgram:
         self.fn, self.name, self.batched, self.outputs = fn, name, batched, outputs
         self.static_argnums, self.by_shape = tuple(static_argnums), by_shape
         self._compiled: dict[Any, Any] = {}
-        hold(self)                                   # ``_programs.clear_memory`` empties it
+        register(self, weakly=True)                  # ``clear_caches`` empties it
+
+    def clear(self) -> None:
+        """Forget this function's programs (``runtime.clear_caches``)."""
+        self._compiled.clear()
 
     def __call__(self, *args: Any) -> Any:
         fn, args, signature = self._split(args)

@@ -38,7 +38,6 @@ import sys
 import threading
 import time
 import warnings
-import weakref
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -563,20 +562,7 @@ def _record_rate(rate: float, effort: str = "full") -> None:
         write_atomic(programs_dir() / f"seconds_per_op.{effort}.txt", f"{rate:.6g}".encode())
 
 
-_holders: weakref.WeakSet = weakref.WeakSet()
-"""Objects that keep programs of their own (``_cached_jit.CachedProgram``: its
-``_compiled``), emptied by ``clear_memory`` too."""
-
-
-def hold(holder: Any) -> None:
-    """Have ``clear_memory`` empty ``holder._compiled`` as well."""
-    _holders.add(holder)
-
-
 def clear_memory() -> None:
-    """Forget the programs compiled in this process, also those kept by the objects of
-    ``hold`` (the disk entries stay)."""
+    """Forget the programs compiled in this process (the disk entries stay)."""
     with _lock:
         _memory.clear()
-        for holder in list(_holders):
-            holder._compiled.clear()

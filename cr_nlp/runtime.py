@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import sys
+import weakref
 from collections.abc import Callable, Sequence
 from functools import lru_cache
 from pathlib import Path
@@ -37,6 +38,8 @@ ENVIRONMENT = {
 
 _CACHES: list[Any] = []
 """Every in-memory cache of the package (``cached`` functions, ``register``ed dicts)."""
+_HELD: weakref.WeakSet = weakref.WeakSet()
+"""Objects that keep caches of their own (``register(…, weakly=True)``), while they live."""
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -50,10 +53,11 @@ def cached(maxsize: int | None = 128) -> Callable[[F], F]:
     return wrap
 
 
-def register(cache: Any) -> Any:
+def register(cache: Any, weakly: bool = False) -> Any:
     """Register an in-memory cache (anything with ``clear()``) for ``clear_caches``;
-    returns it."""
-    _CACHES.append(cache)
+    returns it. ``weakly``: only while something else keeps it (an object made per robot,
+    e.g. ``_cached_jit.CachedProgram``)."""
+    (_HELD.add if weakly else _CACHES.append)(cache)
     return cache
 
 
@@ -61,9 +65,10 @@ def clear_caches() -> int:
     """Empty every in-memory cache of cr_nlp (compiled programs, scenes, roadmaps, seed
     tables, …; the files on disk stay): the next solver builds and loads afresh. Returns
     how many caches were cleared."""
-    for cache in _CACHES:
+    held = list(_HELD)
+    for cache in [*_CACHES, *held]:
         (cache.cache_clear if hasattr(cache, "cache_clear") else cache.clear)()
-    return len(_CACHES)
+    return len(_CACHES) + len(held)
 
 
 @lru_cache(maxsize=1)

@@ -143,14 +143,13 @@ def sigint_ignored() -> Iterator[None]:
 
 @pytest.fixture
 def program_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    """An empty cr_nlp program cache and no programs in memory (nor in the caches of
-    the functions that make them, e.g. the verdict's program per robot); counts reset."""
+    """An empty cr_nlp program cache and no programs in memory (``clear_caches``: also
+    those kept by the functions that make them, e.g. the verdict's program per robot, and
+    by ``cached_jit`` functions); counts reset."""
     from cr_nlp import _programs, clear_caches
 
     monkeypatch.setenv("CR_NLP_CACHE_DIR", str(tmp_path))
     clear_caches()
-    _programs.clear_memory()
     _programs.stats.__init__()
     yield tmp_path
     clear_caches()
-    _programs.clear_memory()

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import jax
+import numpy as np
 
 import cr_nlp
 from cr_nlp import _programs, runtime
@@ -66,8 +67,15 @@ def test_clear_caches_empties_every_registered_cache() -> None:
     table["a"] = 1
     assert runtime.clear_caches() >= 2
     assert not table and square(3) == 9 and calls == [3, 3]
-    # The package's own: compiled programs in memory, scenes' and roadmaps' tables.
+    # The package's own: compiled programs in memory, scenes' and roadmaps' tables, and
+    # the programs a cached_jit function keeps itself.
     assert any(cache is _programs._memory for cache in runtime._CACHES)
+    from cr_nlp._cached_jit import cached_jit
+
+    double = cached_jit(lambda x: 2.0 * x)
+    assert float(double(np.float32(1.5))) == 3.0 and double._compiled
+    runtime.clear_caches()
+    assert not double._compiled
 
 
 def test_every_environment_variable_the_package_reads_is_documented() -> None:

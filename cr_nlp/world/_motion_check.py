@@ -254,10 +254,18 @@ def _run_bounds(fscene: FclScene, centre: Xyz, reach: np.ndarray, rows: np.ndarr
                 runs: np.ndarray, parts: np.ndarray) -> np.ndarray:
     """``_tile_bounds`` of single runs (configuration ``rows``, run ``runs``, part
     ``parts``; (N,) each), float64."""
-    at = tuple(c[rows, runs] for c in centre)
+    return _ball_bounds(fscene, tuple(c[rows, runs] for c in centre), reach[rows, runs],
+                        parts)
+
+
+def _ball_bounds(fscene: FclScene, at: Xyz, reach: np.ndarray,
+                 parts: np.ndarray) -> np.ndarray:
+    """Lower bounds (N,) on the distance between balls (centres ``at``, coordinates (N,)
+    each; radii ``reach`` (N,)) and fcl parts ``parts`` (N,): the part's bounding sphere
+    and its axis-aligned box (``_box_distance``), float64."""
     gap = sub(at, tuple(fscene.other_centres[parts, k] for k in range(3)))
     return np.maximum(np.sqrt(dot(gap, gap)) - fscene.other_radii[parts],
-                      _box_distance(fscene, at, parts)) - reach[rows, runs]
+                      _box_distance(fscene, at, parts)) - reach
 
 
 def _box_distance(fscene: FclScene, at: Xyz, parts: np.ndarray) -> np.ndarray:
@@ -305,7 +313,6 @@ def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
     coarse = _tile_bounds(fscene, *balls, starts)
     tile_motion = motion[starts]
     reach = half + r
-    centres = tuple(fscene.other_centres[:, k] for k in range(3))
 
     def measure(k: int, capsule: fcl.CollisionObject, q: int) -> None:
         d = fcl_distance(capsule, objects[q])
@@ -320,10 +327,7 @@ def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
         ``below`` (per run), with their tight bounds."""
         bi, qi = np.repeat(bk, group), np.repeat(bq, group)
         pi = ((bg * group)[:, None] + np.arange(group)).ravel()
-        at = tuple(c[bi, pi] for c in mid)
-        gap = sub(at, tuple(c[qi] for c in centres))
-        loose = np.maximum(np.sqrt(dot(gap, gap)) - fscene.other_radii[qi],
-                           _box_distance(fscene, at, qi)) - reach[bi, pi]
+        loose = _ball_bounds(fscene, tuple(c[bi, pi] for c in mid), reach[bi, pi], qi)
         below = np.repeat(below, group)
         keep = np.flatnonzero(loose < below)
         bi, pi, qi = bi[keep], pi[keep], qi[keep]

@@ -85,6 +85,12 @@ def _self_distance(robot: Robot, q: jax.Array, z: list[Any]) -> jax.Array:
     return own - 2.0 * robot.backbone_radius
 
 
+def _checked_self_distance(robot: Robot, q: jax.Array, z: list[Any]) -> jax.Array:
+    """``_self_distance`` where the robot checks it, else +inf (B,)."""
+    return (_self_distance(robot, q, z) if robot.has_self_pairs
+            else jnp.full(q.shape[:-1], jnp.inf, q.dtype))
+
+
 def _geometry(robot: Robot, q: jax.Array, target_p: jax.Array,
               target_r: jax.Array) -> tuple[jax.Array, ...]:
     """``AnswerGeometry``'s fields for configurations q (B, 3n) and targets (positions
@@ -99,10 +105,9 @@ def _geometry(robot: Robot, q: jax.Array, target_p: jax.Array,
     error = pose_error(tip_p, tip_r.reshape(shape), target_p, target_r.reshape(shape))
     # trace(Rᵀ·R_target) = Σᵢⱼ Rᵢⱼ·R_targetᵢⱼ
     cos_angle = jnp.clip((jnp.sum(tip_r * target_r, axis=-1) - 1.0) / 2.0, -1.0, 1.0)
-    own = (_self_distance(robot, q, z) if robot.has_self_pairs
-           else jnp.full(q.shape[:-1], jnp.inf, q.dtype))
     return (tip_p, wxyz, error, jnp.linalg.norm(tip_p - target_p, axis=-1),
-            jnp.arccos(cos_angle), own, limit_violation_q(robot, q, jnp))
+            jnp.arccos(cos_angle), _checked_self_distance(robot, q, z),
+            limit_violation_q(robot, q, jnp))
 
 
 @cached(maxsize=16)
@@ -207,9 +212,7 @@ def _motion_geometry(robot: Robot, q: jax.Array) -> tuple[jax.Array, jax.Array]:
     """``motion_chains``' body chains (B, 1 + n·k, 3) and self distances (B,) of
     configurations q (B, 3n), in q's precision."""
     z = model_q_to_z(JAX, robot, q)
-    own = (_self_distance(robot, q, z) if robot.has_self_pairs
-           else jnp.full(q.shape[:-1], jnp.inf, q.dtype))
-    return _body_centres(JAX, robot, z), own
+    return _body_centres(JAX, robot, z), _checked_self_distance(robot, q, z)
 
 
 @cached(maxsize=16)
