@@ -91,11 +91,13 @@ class OneAtATimeLM(RecordingLM):
 
 
 def test_problems_are_verified_a_batch_at_a_time_and_every_one_is_judged():
-    """20 problems finishing one by one: verified ``VERIFY_BATCH`` at a time (the last few
-    once no chain runs), not in 20 calls; a failing problem still gets its round 2."""
+    """2·VERIFY_BATCH + 4 problems finishing one by one: verified ``VERIFY_BATCH`` at a
+    time (the last few once no chain runs), not one call each; a failing problem still
+    gets its round 2."""
     from cr_nlp.stages.refine._trajectory_select import VERIFY_BATCH
 
-    guesses = _guesses(20, 3)
+    count = 2 * VERIFY_BATCH + 4
+    guesses = _guesses(count, 3)
     ends = [(g[0, 0], g[0, -1]) for g in guesses]
     calls = []
 
@@ -106,9 +108,9 @@ def test_problems_are_verified_a_batch_at_a_time_and_every_one_is_judged():
 
     lm = OneAtATimeLM()
     sel = select_guesses(lm, guesses, ends, 0.35, None, 10, 1, verify)
-    assert [b[0].success for b in sel.best] == [p != 5 for p in range(20)]
+    assert [b[0].success for b in sel.best] == [p != 5 for p in range(count)]
     assert len(sel.candidates[5]) == 3                  # round 2: its two other guesses
-    assert len(lm.chains) == 20 + 2
-    assert sum(calls) == 20 + 2                          # each refined guess verified once
-    assert len(calls) <= -(-20 // VERIFY_BATCH) + 2      # not one call per problem
+    assert len(lm.chains) == count + 2
+    assert sum(calls) == count + 2                       # each refined guess verified once
+    assert len(calls) <= -(-count // VERIFY_BATCH) + 2   # not one call per problem
     assert max(calls) == VERIFY_BATCH
