@@ -145,8 +145,8 @@ def _tighten(r: float, fscene: FclScene, sa: np.ndarray, sb: np.ndarray, qi: np.
     bound, not tightened further: the callers drop it."""
     # The part's axis-aligned box: the piece's coordinate ranges miss it by at least the
     # largest gap along an axis.
-    gap = np.maximum(fscene.box_lower[qi] - np.maximum(sa, sb),
-                     np.minimum(sa, sb) - fscene.box_upper[qi]).max(axis=1)
+    gap = np.maximum(fscene.box_lower.take(qi, axis=0) - np.maximum(sa, sb),
+                     np.minimum(sa, sb) - fscene.box_upper.take(qi, axis=0)).max(axis=1)
     low = np.maximum(low, gap - r)
     open_ = np.flatnonzero(low < below)
     if len(open_) < len(low):
@@ -163,18 +163,18 @@ def _tighten_more(r: float, fscene: FclScene, sa: np.ndarray, sb: np.ndarray,
     u = sub(sb_, sa_)
     # Separated axis-aligned boxes (the piece's, the part's) are apart by their gaps along
     # all three axes together (where they overlap, ``_tighten``'s largest gap stays).
-    gap = np.maximum(np.maximum(fscene.box_lower[qi] - np.maximum(sa, sb),
-                                np.minimum(sa, sb) - fscene.box_upper[qi]), 0.0)
+    gap = np.maximum(np.maximum(fscene.box_lower.take(qi, axis=0) - np.maximum(sa, sb),
+                                np.minimum(sa, sb) - fscene.box_upper.take(qi, axis=0)), 0.0)
     apart = np.sqrt(np.einsum("ij,ij->i", gap, gap))
     low = np.where(apart > 0.0, np.maximum(low, apart - r), low)
     # The part's bounding sphere against the piece's segment.
-    centre = fscene.other_centres[qi]
+    centre = fscene.other_centres.take(qi, axis=0)
     low = np.maximum(low, point_segment(xyz(centre), sa_, u, dot(u, u))
                      - r - fscene.other_radii[qi])
     # Face planes n·x ≤ o: the capsule lies beyond one by min(n·a, n·b) − o − r.
-    n = (fscene.normals[0][qi], fscene.normals[1][qi], fscene.normals[2][qi])
+    n = tuple(c.take(qi, axis=0) for c in fscene.normals)
     beyond = np.minimum(dot(n, tuple(c[:, None] for c in sa_)),
-                        dot(n, tuple(c[:, None] for c in sb_))) - fscene.offsets[qi]
+                        dot(n, tuple(c[:, None] for c in sb_))) - fscene.offsets.take(qi, axis=0)
     low = np.maximum(low, beyond.max(axis=1) - r)
     # Capsules and cylinders lie in the capsule around their axis.
     axis = fscene.has_axis[qi]
