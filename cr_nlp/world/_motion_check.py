@@ -102,7 +102,7 @@ def check_motions(robot: Robot, scene: Scene | None, chains: Sequence[np.ndarray
     best = np.full(len(chains), np.inf)
     for rows in _rounds(fscene, counts, offsets, pieces, per_segment):
         obstacle[rows], part[rows] = _motion_obstacles(
-            robot.backbone_radius, fscene, every[rows], motion[rows], best,
+            robot.backbone_radius, fscene, every.take(rows, axis=0), motion[rows], best,
             _run_length(per_segment))
     names = np.array([*fscene.names, ""], dtype=object)      # part −1 (none): ""
     out = []
@@ -237,7 +237,7 @@ def _tile_bounds(fscene: FclScene, centre: Xyz, reach: np.ndarray,
     sizes = np.diff(np.r_[starts, count])[:, None]
     tile = tuple(np.add.reduceat(c, starts, axis=0) / sizes for c in centre)
     of = np.repeat(np.arange(len(starts)), sizes[:, 0])
-    off = sub(centre, tuple(c[of] for c in tile))
+    off = sub(centre, tuple(c.take(of, axis=0) for c in tile))
     tile_reach = np.maximum.reduceat(np.sqrt(dot(off, off)) + reach, starts, axis=0)
     size = max(fscene.extent, float(max(np.abs(c).max(initial=0.0) for c in tile)),
                float(tile_reach.max(initial=0.0)))
@@ -354,8 +354,8 @@ def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
     # that can beat it.
     seeds = np.full((len(best), 3), -1)                   # (configuration, piece, part)
     cut = np.maximum(best, 0.0)
-    flat = coarse.reshape(len(starts), -1).argmin(axis=1)
-    nearest = coarse.reshape(len(starts), -1)[np.arange(len(starts)), flat]
+    per_tile = coarse.reshape(len(starts), -1)
+    flat, nearest = per_tile.argmin(axis=1), per_tile.min(axis=1)
     near = np.flatnonzero(nearest < cut[tile_motion])
     near = near[np.lexsort((nearest[near], tile_motion[near]))]
     first = np.r_[0, np.flatnonzero(np.diff(tile_motion[near])) + 1]
@@ -384,7 +384,7 @@ def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
         return
     bi, pi, qi, low = expand(bk, bg, bq, cut[motion[bk]])
     mi = motion[bi]
-    seed = seeds[mi]
+    seed = seeds.take(mi, axis=0)
     open_ = (low < cut[mi]) & ~((bi == seed[:, 0]) & (pi == seed[:, 1])
                                 & (qi == seed[:, 2]))            # the seeds are measured
     order = np.flatnonzero(open_)

@@ -227,9 +227,9 @@ def _edge_free(checker: ClearanceChecker, za: np.ndarray, zb: np.ndarray, counts
         edge = np.repeat(np.arange(len(part)), part)
         offsets = np.arange(len(edge)) - np.repeat(np.cumsum(part) - part, part)
         t = (offsets + 1.0) / (part[edge] + 1.0)
-        a, b = za[first:last][edge], zb[first:last][edge]
+        a, b = za[first:last].take(edge, axis=0), zb[first:last].take(edge, axis=0)
         ok = checker(a + t[:, None] * (b - a)) >= margin
-        np.logical_and.at(free[first:last], edge[~ok], False)
+        free[first + edge[~ok]] = False
         first = last
     return free
 
