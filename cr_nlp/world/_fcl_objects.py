@@ -96,7 +96,7 @@ class FclScene:
         self.box_lower = np.array([lo for lo, _ in boxes], dtype=float).reshape(-1, 3) - 1e-12
         self.box_upper = np.array([hi for _, hi in boxes], dtype=float).reshape(-1, 3) + 1e-12
         # The same, a coordinate at a time (gathering from a 1-D array is the fast kind).
-        self.centre_xyz, self.lower_xyz, self.upper_xyz = (
+        self.other_centres_xyz, self.box_lower_xyz, self.box_upper_xyz = (
             tuple(np.ascontiguousarray(a[:, k]) for k in range(3))
             for a in (self.other_centres, self.box_lower, self.box_upper))
         # float32 copies for the motion search's first, dense bounds (``_motion_check.

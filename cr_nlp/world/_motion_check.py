@@ -265,7 +265,7 @@ def _ball_bounds(fscene: FclScene, at: Xyz, reach: np.ndarray,
     """Lower bounds (N,) on the distance between balls (centres ``at``, coordinates (N,)
     each; radii ``reach`` (N,)) and fcl parts ``parts`` (N,): the part's bounding sphere
     and its axis-aligned box (``_box_distance``), float64."""
-    gap = sub(at, _gather(fscene.centre_xyz, parts))
+    gap = sub(at, _gather(fscene.other_centres_xyz, parts))
     return np.maximum(np.sqrt(dot(gap, gap)) - fscene.other_radii.take(parts),
                       _box_distance(fscene, at, parts)) - reach
 
@@ -287,7 +287,7 @@ def _box_distance(fscene: FclScene, at: Xyz, parts: np.ndarray) -> np.ndarray:
     box is apart from it by its gaps along all three axes together; one inside, by the
     largest (negative) gap."""
     beyond = tuple(np.maximum(lower.take(parts) - c, c - upper.take(parts))
-                   for c, lower, upper in zip(at, fscene.lower_xyz, fscene.upper_xyz,
+                   for c, lower, upper in zip(at, fscene.box_lower_xyz, fscene.box_upper_xyz,
                                               strict=True))
     out = tuple(np.maximum(c, 0.0) for c in beyond)
     inside = np.maximum(np.maximum(beyond[0], beyond[1]), beyond[2])
