@@ -143,16 +143,16 @@ def verify_trajectories(robot: Robot, scene: Scene | None, qs: Sequence[Any], dt
     dense = z_to_q_numpy(_interpolate_z(q_to_z_numpy(waypoints), ends, samples))
     dense_ends = np.cumsum((sizes - 1) * samples + 1)
     # The body chain's last point is the tip: one forward kinematics pass, not two.
-    chains = own = None
+    chains = own = pieces = None
     if scene is not None or robot.has_self_pairs:
         from ._verdict_program import motion_chains
 
-        chains, own = motion_chains(robot, dense)
+        chains, own, pieces = motion_chains(robot, dense)
     tips = chains[:, -1] if chains is not None else tip_positions(robot, dense)
     lengths = tendon_series(robot, waypoints)
     limits = limit_violation_q(robot, waypoints)
     dense_spans = list(zip(np.r_[0, dense_ends[:-1]].tolist(), dense_ends.tolist(), strict=True))
-    motions = (check_motions(robot, scene, [chains[a:b] for a, b in dense_spans], own)
+    motions = (check_motions(robot, scene, [chains[a:b] for a, b in dense_spans], own, pieces)
                if chains is not None else [None] * len(qs))
     out = []
     for m, (start, stop) in enumerate(zip(np.r_[0, ends[:-1]].tolist(), ends.tolist(),

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import fcl
 import numpy as np
@@ -81,11 +81,13 @@ def check_motion(robot: Robot, scene: Scene | None, qs: Any,
 
 
 def check_motions(robot: Robot, scene: Scene | None, chains: Sequence[np.ndarray],
-                  own: np.ndarray | None = None) -> list[MotionCheck]:
+                  own: np.ndarray | None = None,
+                  pieces: Pieces | None = None) -> list[MotionCheck]:
     """``check_motion`` of several motions at once, given each one's body chains
     (B_m, 1 + n·k, 3; m): one report per motion, each what the motion gets alone.
-    ``own``: the self distances of all the motions' configurations in turn (ΣB_m,; m)
-    where the caller has them (``_verdict_program.motion_chains``)."""
+    ``own``: the self distances of all the motions' configurations in turn (ΣB_m,; m),
+    and ``pieces`` their chains' ``Pieces``, where the caller has them
+    (``_verdict_program.motion_chains``)."""
     if not len(chains):
         return []
     fscene = fcl_scene(scene)
@@ -93,17 +95,18 @@ def check_motions(robot: Robot, scene: Scene | None, chains: Sequence[np.ndarray
     counts = np.array([len(c) for c in chains])
     every = np.concatenate([np.asarray(c, dtype=np.float64) for c in chains])
     offsets = np.r_[0, np.cumsum(counts)]
-    pieces = every.shape[1] - 1
     motion = np.repeat(np.arange(len(chains)), counts)
     if own is None:
         own = _own_distances(robot, every, per_segment, motion)
     obstacle = np.full(len(every), np.inf)
     part = np.full(len(every), -1, dtype=np.int64)
     best = np.full(len(chains), np.inf)
-    for rows in _rounds(fscene, counts, offsets, pieces, per_segment):
+    for rows in _rounds(fscene, counts, offsets, every.shape[1] - 1, per_segment):
+        whole = len(rows) == len(every)              # one round: the rows in order
         obstacle[rows], part[rows] = _motion_obstacles(
-            robot.backbone_radius, fscene, every.take(rows, axis=0), motion[rows], best,
-            _run_length(per_segment))
+            robot.backbone_radius, fscene, every if whole else every.take(rows, axis=0),
+            motion[rows], best, _run_length(per_segment),
+            pieces if whole or pieces is None else pieces.rows(rows))
     names = np.array([*fscene.names, ""], dtype=object)      # part −1 (none): ""
     out = []
     for m, (start, stop) in enumerate(zip(offsets[:-1], offsets[1:], strict=True)):
@@ -168,13 +171,14 @@ def _rounds(fscene: FclScene, counts: np.ndarray, offsets: np.ndarray, pieces: i
 
 
 def _motion_obstacles(r: float, fscene: FclScene, chains: np.ndarray, motion: np.ndarray,
-                      best: np.ndarray, group: int) -> tuple[np.ndarray, np.ndarray]:
+                      best: np.ndarray, group: int,
+                      pieces: Pieces | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Obstacle distances (B,) and their parts (B,; −1: none) for body chains (B, points,
     3) of the motions ``motion`` (B,) whose smallest distances so far are ``best`` (one
     per motion, lowered in place to the exact smallest distance of each motion's
     configurations here and before). Each entry is negative where its configuration
     penetrates a part and never below its configuration's distance; it may stay above
-    it (``_fcl_motion_search``)."""
+    it (``_fcl_motion_search``; ``pieces``: the chains' ``Pieces`` if the caller has them)."""
     count = len(chains)
     obstacle = np.full(count, np.inf)
     part = np.full(count, -1, dtype=np.int64)
@@ -185,7 +189,7 @@ def _motion_obstacles(r: float, fscene: FclScene, chains: np.ndarray, motion: np
                          for c in (a, b)))
         np.minimum.at(best, motion, obstacle)
     if len(fscene.other_index):
-        _fcl_motion_search(r, fscene, a, b, motion, obstacle, part, best, group)
+        _fcl_motion_search(r, fscene, a, b, motion, obstacle, part, best, group, pieces)
     return obstacle, part
 
 
@@ -207,7 +211,36 @@ def _members(starts: np.ndarray, sizes: np.ndarray, tiles: np.ndarray) -> np.nda
     return np.repeat(starts[tiles], sizes) + np.arange(len(before)) - before
 
 
-def _run_balls(r: float, mid: Xyz, half: np.ndarray, group: int) -> tuple[Xyz, np.ndarray]:
+class Pieces(NamedTuple):
+    """What the motion search reads of the pieces of B body chains besides their ends
+    (``piece_geometry``; m)."""
+
+    mid: Xyz
+    """Mid points, coordinates (B, m) each."""
+    half: Any
+    """(B, m) half lengths."""
+    centre: Xyz
+    """Centres of the balls around runs of pieces (``_run_balls``), coordinates (B, runs)."""
+    reach: Any
+    """(B, runs) those balls' radii (r included)."""
+
+    def rows(self, rows: np.ndarray) -> Pieces:
+        """The pieces of configurations ``rows`` (numpy)."""
+        return Pieces(*(tuple(c.take(rows, axis=0) for c in f) if isinstance(f, tuple)
+                        else f.take(rows, axis=0) for f in self))
+
+
+def piece_geometry(r: float, x0: Xyz, x1: Xyz, group: int, xp: Any = np) -> Pieces:
+    """The ``Pieces`` of pieces x0–x1 (coordinates (B, m) each, m) of capsules of radius
+    r, runs of ``group`` pieces; ``xp`` numpy, or jax.numpy inside the motion verdict's
+    program (``_verdict_program.motion_chains``): the same formulas either way."""
+    mid = tuple(0.5 * (p + q) for p, q in zip(x0, x1, strict=True))
+    u = sub(x1, x0)
+    half = 0.5 * xp.sqrt(dot(u, u))
+    return Pieces(mid, half, *_run_balls(r, mid, half, group, xp))
+
+
+def _run_balls(r: float, mid: Xyz, half: Any, group: int, xp: Any = np) -> tuple[Xyz, Any]:
     """Balls around each run of ``group`` consecutive pieces (mid points ``mid``,
     coordinates (B, m) each; half lengths ``half`` (B, m)), capsules of radius r: their
     centres (the mean of the run's mid points; coordinates (B, m / group) each) and radii
@@ -216,7 +249,7 @@ def _run_balls(r: float, mid: Xyz, half: np.ndarray, group: int) -> tuple[Xyz, n
     mid = tuple(c.reshape(count, -1, group) for c in mid)
     centre = tuple(c.mean(axis=2) for c in mid)
     off = sub(mid, tuple(c[:, :, None] for c in centre))
-    return centre, (np.sqrt(dot(off, off)) + half.reshape(count, -1, group)).max(axis=2) + r
+    return centre, (xp.sqrt(dot(off, off)) + half.reshape(count, -1, group)).max(axis=2) + r
 
 
 def _tile_bounds(fscene: FclScene, centre: Xyz, reach: np.ndarray,
@@ -296,7 +329,7 @@ def _box_distance(fscene: FclScene, at: Xyz, parts: np.ndarray) -> np.ndarray:
 
 def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
                        motion: np.ndarray, obstacle: np.ndarray, part: np.ndarray,
-                       best: np.ndarray, group: int) -> None:
+                       best: np.ndarray, group: int, given: Pieces | None = None) -> None:
     """The fcl parts' share of ``_motion_obstacles``, for pieces a–b (B, m, 3): lower
     ``obstacle`` (B,) in place so that every configuration that penetrates a part gets a
     negative entry, ``part`` naming the part of each lowered entry, and lower ``best``
@@ -309,7 +342,8 @@ def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
     tile's ball can get below that are bounded one by one, then the pieces of those whose
     own ball can. The bounds of every motion are computed together; the
     distances measured are the ones ``check._fcl_search`` measures, on capsules built
-    alike.
+    alike. ``given``: the pieces' ``Pieces`` where the caller has them (else computed
+    here).
 
     Long: one search in three steps (bounds, seeds, the ordered queries) over shared arrays.
     """
@@ -318,10 +352,7 @@ def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
     objects, part_of = fscene.objects, fscene.other_index
     x0 = tuple(np.ascontiguousarray(a[..., k]) for k in range(3))
     x1 = tuple(np.ascontiguousarray(b[..., k]) for k in range(3))
-    mid = tuple(0.5 * (p + q) for p, q in zip(x0, x1, strict=True))
-    u = sub(x1, x0)
-    half = 0.5 * np.sqrt(dot(u, u))
-    balls = _run_balls(r, mid, half, group)
+    mid, half, *balls = piece_geometry(r, x0, x1, group) if given is None else given
     starts = _tiles(motion, _TILE_CONFIGURATIONS)
     sizes = np.diff(np.r_[starts, count])
     coarse = _tile_bounds(fscene, *balls, starts)
