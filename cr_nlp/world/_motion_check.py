@@ -182,14 +182,13 @@ def _motion_obstacles(r: float, fscene: FclScene, chains: np.ndarray, motion: np
     count = len(chains)
     obstacle = np.full(count, np.inf)
     part = np.full(count, -1, dtype=np.int64)
-    a, b = chains[:, :-1], chains[:, 1:]
+    x0, x1 = (tuple(np.ascontiguousarray(c[..., k]) for k in range(3))
+              for c in (chains[:, :-1], chains[:, 1:]))       # the pieces' ends
     if len(fscene.sphere_index):
-        obstacle, part = _sphere_distances(
-            r, fscene, *(tuple(np.ascontiguousarray(c[..., k]) for k in range(3))
-                         for c in (a, b)))
+        obstacle, part = _sphere_distances(r, fscene, x0, x1)
         np.minimum.at(best, motion, obstacle)
     if len(fscene.other_index):
-        _fcl_motion_search(r, fscene, a, b, motion, obstacle, part, best, group, pieces)
+        _fcl_motion_search(r, fscene, x0, x1, motion, obstacle, part, best, group, pieces)
     return obstacle, part
 
 
@@ -327,10 +326,10 @@ def _box_distance(fscene: FclScene, at: Xyz, parts: np.ndarray) -> np.ndarray:
     return np.where(inside > 0.0, np.sqrt(dot(out, out)), inside)
 
 
-def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
+def _fcl_motion_search(r: float, fscene: FclScene, x0: Xyz, x1: Xyz,
                        motion: np.ndarray, obstacle: np.ndarray, part: np.ndarray,
                        best: np.ndarray, group: int, given: Pieces | None = None) -> None:
-    """The fcl parts' share of ``_motion_obstacles``, for pieces a–b (B, m, 3): lower
+    """The fcl parts' share of ``_motion_obstacles``, for pieces x0–x1 (coordinates (B, m)): lower
     ``obstacle`` (B,) in place so that every configuration that penetrates a part gets a
     negative entry, ``part`` naming the part of each lowered entry, and lower ``best``
     (per motion) to each motion's exact smallest distance.
@@ -347,11 +346,9 @@ def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
 
     Long: one search in three steps (bounds, seeds, the ordered queries) over shared arrays.
     """
-    count, pieces = a.shape[:2]
+    count, pieces = x0[0].shape
     parts = len(fscene.other_index)
     objects, part_of = fscene.objects, fscene.other_index
-    x0 = tuple(np.ascontiguousarray(a[..., k]) for k in range(3))
-    x1 = tuple(np.ascontiguousarray(b[..., k]) for k in range(3))
     mid, half, *balls = piece_geometry(r, x0, x1, group) if given is None else given
     starts = _tiles(motion, _TILE_CONFIGURATIONS)
     sizes = np.diff(np.r_[starts, count])
@@ -403,7 +400,8 @@ def _fcl_motion_search(r: float, fscene: FclScene, a: np.ndarray, b: np.ndarray,
             m = motion[bi[s]]
             if tight[s] < cut[m]:
                 seeds[m] = bi[s], pi[s], qi[s]
-                measure(int(bi[s]), capsule_object(a[bi[s], pi[s]], b[bi[s], pi[s]], r),
+                ends = (np.array([c[bi[s], pi[s]] for c in x]) for x in (x0, x1))
+                measure(int(bi[s]), capsule_object(*ends, r),
                         int(part_of[qi[s]]))
     cut = np.maximum(best, 0.0)
     tk, bg, bq = np.nonzero(coarse < cut[tile_motion][:, None, None])
