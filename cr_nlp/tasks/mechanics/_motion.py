@@ -64,6 +64,10 @@ class TensionMotionVerification:
     """(T, n) tendon displacements of the solved shapes, m (pulled > 0)."""
     tension_rate: np.ndarray
     """(T − 1, n) (τₖ₊₁ − τₖ)/dt, N/s."""
+    failed_steps: np.ndarray
+    """Indices k of the steps (waypoint k → k + 1) that fail: a sample on them (its ends
+    included) did not converge or broke a bound, the clearance or the self-clearance, or
+    a tendon's rate broke its limit; ascending."""
 
 
 def interpolated(tensions: np.ndarray, samples_between: int) -> tuple[np.ndarray, np.ndarray]:
@@ -138,10 +142,17 @@ def verify_tension_motion(robot: Robot, scene: Scene | None, tensions: np.ndarra
             checked.obstacle_distance, initial=np.inf)), self_clearance=float(np.min(
                 checked.self_distance, initial=np.inf)))
     obstacle = np.asarray(checked.obstacle_distance, dtype=float)
+    failed = ~solved.converged | ~(verdicts.max_violation <= VIOLATION_TOLERANCE)
+    steps = np.flatnonzero(np.add.reduceat(failed, np.arange(0, len(samples) - 1,
+                                                              samples_between + 1))
+                           | failed[at[1:]] if len(tensions) > 1 else [])
+    steps = np.union1d(steps, np.flatnonzero(np.max(np.abs(rate), axis=1, initial=0.0)
+                                             - rate_max > VIOLATION_TOLERANCE))
     return TensionMotionVerification(
         success=converged and worst <= VIOLATION_TOLERANCE, reason=reason,
         violations=violations, max_violation=worst, converged=converged,
         min_clearance=float(np.min(obstacle, initial=np.inf)), clearance=obstacle[at],
         tip_position=np.array(solved.tip_position[at]), tip_wxyz=np.array(solved.tip_wxyz[at]),
         backbone=np.array(solved.positions[at]),
-        tendon_displacements=np.array(solved.tendon_displacements[at]), tension_rate=rate)
+        tendon_displacements=np.array(solved.tendon_displacements[at]), tension_rate=rate,
+        failed_steps=steps.astype(int))

@@ -23,8 +23,13 @@ search's legs run at the rate limit), it is solved by the banded LM over every w
 tension set, M(0) and tip, with the start and goal fixed: the equilibrium and the backbone
 clearance at every waypoint, and between neighbours the tip's step (a shorter tip path),
 a smoothness term and a hinge on the tension rate (``stages.refine``'s ``MotionTerms``).
-The refined motion is kept where it verifies and its tip path (fresh statics along the
-motion) is no longer, else the search's (``Stage.EXPLORE``; the notes say why).
+The LM has rows at the waypoints only, and a shortened motion can cut through an obstacle
+between two clear waypoints; where the verdict rejects the refined motion, the tension sets
+it checked on the failing steps become waypoints and the LM runs again (``repair_rounds``),
+and where that is still rejected, motions part of the way from the searched motion to the
+refined one are tried (``blends``; ``_motion_refine``). The refined motion is kept where it
+verifies and its tip path (fresh statics along the motion) is no longer, else the search's
+(``Stage.EXPLORE``; the notes say why).
 
 Exact mode (``exact=True``) polishes the motions the verdict rejects with Ipopt on the
 rod's own discrete equations (``stages.polish``'s ``polish_tension_motion``: every
@@ -57,22 +62,18 @@ from ...model.mechanics import require_mechanics
 from ...model.tendon_groups import tensions_of_configuration
 from ...stages.explore import leg_change
 from ...stages.polish import check_time_limit
-from ...stages.refine import (
-    LMConfig,
-    MotionTerms,
-    TensionTerms,
-    base_frame,
-    solve_motion,
-    tensions_of_unknowns,
-    unknowns_of,
-    waypoint_params,
-)
 from ...world.clearance import scene_arrays
 from ...world.scene import Scene, load_scene
 from .._result import Stage
 from .._timing import StageTiming
-from ._motion import interpolated, solve_and_check, verify_tension_motion
+from ._motion import (
+    TensionMotionVerification,
+    interpolated,
+    solve_and_check,
+    verify_tension_motion,
+)
 from ._motion_polish import polish_motion
+from ._motion_refine import mended, refine_chain, resampled
 from ._motion_result import TensionTrajectoryResult as TensionTrajectoryResult
 
 PROBLEM_KEYS = ("start", "goal")
@@ -103,7 +104,7 @@ class TensionTrajectoryConfig:
     """Seed of the via pool."""
     statics: StaticsConfig = StaticsConfig()
     """The rod discretisation of every forward solve."""
-    chain_iterations: int = 40
+    chain_iterations: int = 30
     """Iterations of the banded LM that refines each searched motion (0: the search's
     motion as it is)."""
     tip_path_weight: float = 1.0
@@ -123,6 +124,16 @@ class TensionTrajectoryConfig:
     path's 1: 10 let the shortened motions cut through obstacles)."""
     clearance_buffer: float = 0.002
     """The refine keeps the backbone's spheres this far beyond δ, m."""
+    repair_rounds: int = 2
+    """Rounds that mend a refined motion the verdict rejects: the checked samples of each
+    failing step (``samples_between`` tension sets between two waypoints, where the LM has
+    no rows) become waypoints, and the LM runs again on the whole motion."""
+    repair_iterations: int = 10
+    """LM iterations of each repair round."""
+    blends: tuple[float, ...] = (0.75, 0.5, 0.25)
+    """A refined motion still rejected after the repairs: motions this fraction of the way
+    from the searched motion (resampled to as many waypoints) to the refined one, verified
+    in turn; the first the verdict accepts is the refine's answer."""
     polish_accepted: bool = False
     """Exact mode: also polish a motion the verdict accepts (kept where the polish verifies)."""
     polish: Any = None
@@ -232,6 +243,16 @@ class TensionTrajectoryPlanner:
         bounds = np.cumsum([0, *(len(s) for s in samples)])
         return np.array([clear[a:b].all() for a, b in zip(bounds[:-1], bounds[1:],
                                                           strict=True)])
+
+    def _verify(self, tensions: np.ndarray, loads: StaticLoads,
+                dt: float | None = None) -> TensionMotionVerification:
+        """The verdict of a motion (T, n) N under ``loads`` with this planner's settings
+        (``_motion.verify_tension_motion``)."""
+        cfg = self.config
+        return verify_tension_motion(self.robot, self.scene, tensions,
+                                     cfg.dt if dt is None else dt, loads,
+                                     margin=cfg.safety_margin, rate_max=cfg.tension_rate_max,
+                                     samples_between=cfg.samples_between, statics=cfg.statics)
 
     def plan(self, starts: Any, goals: Any, *, tip_force: Any = None, tip_moment: Any = None,
              gravity: Any = None, distributed_force: Any = None,
@@ -344,19 +365,24 @@ class TensionTrajectoryPlanner:
 
     def _refined(self, index: int, searched: TensionTrajectoryResult, loads: StaticLoads,
                  timing: StageTiming) -> tuple[TensionTrajectoryResult, np.ndarray | None]:
-        """The searched motion refined by the banded LM (``refine_motion``), kept where it
-        verifies and is no worse (verified, then the shorter tip path), else the search's
-        (``Stage.EXPLORE``, the note says why); ``timing`` gets the seconds. Also the
-        refined tensions (None: no refine)."""
+        """The searched motion refined by the banded LM (``refine_motion``), mended where
+        the verdict rejects it (``_motion_refine.mended``), kept where it verifies and is no worse
+        (verified, then the shorter tip path), else the search's (``Stage.EXPLORE``, the
+        note says why); ``timing`` gets the seconds. Also the refined tensions (None: no
+        refine)."""
         if self.config.chain_iterations <= 0:
             return searched, None
         start = time.perf_counter()
         tensions = self.refine_motion(searched.tensions, loads)
-        timing.refine = time.perf_counter() - start
+        tensions, report, notes, verify = mended(
+            self.config, searched.tensions, tensions, partial(self._verify, loads=loads),
+            partial(refine_chain, self.robot, self.scene, self.config, loads=loads))
+        timing.refine = time.perf_counter() - start - verify
         start = time.perf_counter()
         refined = self._result(index, tensions[0], tensions[-1], np.ones(2, bool), tensions,
-                               [*searched.notes, "refined by the banded LM"], loads)
-        timing.verify = time.perf_counter() - start
+                               [*searched.notes, "refined by the banded LM", *notes], loads,
+                               report=report)
+        timing.verify = verify + time.perf_counter() - start
         length, before = (self.tip_path(r.tensions, loads) for r in (refined, searched))
         if refined.success and (not searched.success or length <= before):
             refined.notes.append(f"tip path {1e3 * length:.1f} mm (searched {1e3 * before:.1f})")
@@ -370,7 +396,7 @@ class TensionTrajectoryPlanner:
         """The length of the tip's path (m) along a motion (T, n) N, from fresh statics
         at ``samples`` tension sets evenly spaced along it (so that motions with different
         waypoint counts compare fairly)."""
-        dense = _resampled(np.asarray(tensions, float), samples)
+        dense = resampled(np.asarray(tensions, float), samples)
         every = loads.rows(np.zeros(samples, int))
         solved = solve_statics(self.robot, dense, every.tip_force, every.tip_moment,
                                every.gravity, self.config.statics,
@@ -386,34 +412,8 @@ class TensionTrajectoryPlanner:
         tip path weight ``tip_path_weight``); returns (T', n) N."""
         cfg = self.config
         count = max(len(tensions), math.ceil(cfg.time_slack * (len(tensions) - 1)) + 1)
-        tensions = _resampled(tensions, count)
-        every = loads.rows(np.zeros(count, int))
-        solved = solve_statics(self.robot, tensions, every.tip_force, every.tip_moment,
-                               every.gravity, cfg.statics,
-                               distributed_force=every.distributed_force,
-                               point_loads=every.point_load_lists())
-        tips = np.asarray(solved.tip_position)
-        shoot, params, _ = waypoint_params(self.robot, tips, np.full((count, 4), np.nan),
-                                           every, tip_weight=0.0)
-        arrays = (None if self.scene is None or not self.scene.parts
-                  else scene_arrays(self.scene, as_numpy=True))
-        waypoint = TensionTerms(self.robot, cfg.statics, shoot,
-                                clearance_weight=0.0 if arrays is None else cfg.clearance_weight,
-                                clearance_band=cfg.safety_margin + cfg.clearance_buffer,
-                                direct=True)
-        terms = MotionTerms(waypoint, rate_step=cfg.rate_margin * cfg.tension_rate_max * cfg.dt,
-                            smooth_weight=cfg.smooth_weight, rate_weight=cfg.rate_weight,
-                            tip_path_weight=cfg.tip_path_weight)
-        z0 = np.concatenate([unknowns_of(waypoint, tensions,
-                                         base_frame(self.robot, solved.base_moment)),
-                             params.target], axis=1)
-        free = np.ones_like(z0)
-        free[[0, -1], :waypoint.size] = 0.0      # the start and goal stay as they are
-        z, _, _ = solve_motion(terms, z0, params, arrays, free, cfg.chain_iterations,
-                               LMConfig(jacobian="differences", stall_tolerance=1e-6))
-        out = np.array(tensions_of_unknowns(waypoint, z))
-        out[0], out[-1] = tensions[0], tensions[-1]
-        return out
+        return refine_chain(self.robot, self.scene, cfg, resampled(tensions, count),
+                            cfg.chain_iterations, loads=loads)
 
     def _via_plan(self, start: np.ndarray, goal: np.ndarray,
                   loads: StaticLoads) -> tuple[np.ndarray, list[str]]:
@@ -508,17 +508,15 @@ class TensionTrajectoryPlanner:
 
     def _result(self, index: int, start: np.ndarray, goal: np.ndarray, ends_clear: np.ndarray,
                 plan: np.ndarray | None, notes: list[str], loads: StaticLoads,
-                dt: float | None = None, stage: Stage = Stage.REFINE
-                ) -> TensionTrajectoryResult:
-        """The judged result of one problem (refused where an end is not clear)."""
+                dt: float | None = None, stage: Stage = Stage.REFINE,
+                report: TensionMotionVerification | None = None) -> TensionTrajectoryResult:
+        """The judged result of one problem (refused where an end is not clear);
+        ``report``: the verdict of ``plan`` where the caller has it already."""
         cfg = self.config
         dt = cfg.dt if dt is None else dt
         tensions = np.stack([start, goal]) if plan is None else plan
-        report = verify_tension_motion(self.robot, self.scene, tensions, dt, loads,
-                                       margin=cfg.safety_margin,
-                                       rate_max=cfg.tension_rate_max,
-                                       samples_between=cfg.samples_between,
-                                       statics=cfg.statics)
+        if report is None:
+            report = self._verify(tensions, loads, dt)
         result = TensionTrajectoryResult(
             robot=self.robot, tensions=tensions, dt=dt, position=report.tip_position,
             wxyz=report.tip_wxyz, backbone=report.backbone, clearance=report.clearance,
@@ -536,14 +534,6 @@ class TensionTrajectoryPlanner:
             result.reason = (f"problem {index}: the {which} is not clear of the scene by "
                              f"{cfg.safety_margin:g} m (or its statics did not converge)")
         return result
-
-
-def _resampled(tensions: np.ndarray, count: int) -> np.ndarray:
-    """The piecewise-linear motion through ``tensions`` (T, n) N at ``count`` waypoints
-    evenly spaced in the waypoint index (the same path in tension space, slower)."""
-    old = np.linspace(0.0, 1.0, len(tensions))
-    new = np.linspace(0.0, 1.0, count)
-    return np.stack([np.interp(new, old, column) for column in tensions.T], axis=1)
 
 
 def _case_key(loads: StaticLoads) -> bytes:

@@ -200,6 +200,10 @@ CLUTTER_START = np.array([3.789121, 2.751595, 0.0, 0.89808, 5.689187, 0.0])
 CLUTTER_GOAL = np.array([5.039994, 0.0, 0.0, 3.876874, 2.343225, 0.0])
 
 
+UNMENDED = TensionTrajectoryConfig(repair_rounds=0, blends=())
+"""The refine without its repair: the refined motion the verdict rejects stays rejected."""
+
+
 @pytest.fixture(scope="module")
 def clutter() -> dict:
     from cr_nlp.bench.tension_clutter import clutter_scene
@@ -210,13 +214,14 @@ def clutter() -> dict:
 def test_exact_planning_rescues_the_refined_motion_the_verdict_rejected(clutter) -> None:
     """A problem of ``cr-nlp bench tension --suite clutter`` (16 spheres and boxes, seed 0):
     the banded LM shortens the search's motion, but the verdict finds the shortened motion
-    1.2 mm inside δ between its waypoints, so the penalty stages keep the search's. Exact
-    mode polishes the rejected refined motion (every waypoint and the samples the verdict
-    checks between them that come near, each a rod in the NLP; the clearance slots
-    re-assigned as it moves through the clutter) and keeps it: verified by fresh statics
-    and python-fcl, a shorter tip path."""
+    1.2 mm inside δ between its waypoints, so the penalty stages (without their repair
+    rounds and blends, which mend this one) keep the search's. Exact mode polishes the
+    rejected refined motion (every waypoint and the samples the verdict checks between
+    them that come near, each a rod in the NLP; the clearance slots re-assigned as it
+    moves through the clutter) and keeps it: verified by fresh statics and python-fcl, a
+    shorter tip path."""
     start, goal = CLUTTER_START, CLUTTER_GOAL
-    planner = TensionTrajectoryPlanner(RAO, clutter)
+    planner = TensionTrajectoryPlanner(RAO, clutter, UNMENDED)
     penalty = planner.plan(start, goal, gravity=GRAVITY, tip_force=PAYLOAD)[0]
     assert penalty.success and penalty.stage == "explore", penalty.notes
     assert "the refined motion was not kept: breaks the clearance" in penalty.notes[-1]
@@ -242,7 +247,8 @@ def test_samples_left_out_of_the_nlp_join_where_the_answer_passes_through_them(
 
     def planned(rounds: int):
         polish = TensionMotionPolishConfig(sample_margin=1e-6, sample_rounds=rounds)
-        planner = TensionTrajectoryPlanner(RAO, clutter, TensionTrajectoryConfig(polish=polish))
+        planner = TensionTrajectoryPlanner(RAO, clutter, dataclasses.replace(UNMENDED,
+                                                                             polish=polish))
         return planner, planner.plan(CLUTTER_START, CLUTTER_GOAL, gravity=GRAVITY,
                                      tip_force=PAYLOAD, exact=True)[0]
 

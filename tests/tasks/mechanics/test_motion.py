@@ -212,6 +212,73 @@ def test_a_plan_replayed_through_fresh_statics_keeps_its_clearance(planner) -> N
         assert checked.obstacle_distance.min() >= planner.config.safety_margin
 
 
+def test_the_verdict_names_the_steps_that_fail(planner) -> None:
+    """A motion whose waypoints are clear but whose straight step between two of them
+    passes through the ball (samples between them collide), and a step too fast: the
+    verdict names exactly those steps (k: waypoint k → k + 1)."""
+    from cr_nlp.model.loads import static_loads
+    from cr_nlp.tasks.mechanics._motion import interpolated, verify_tension_motion
+
+    loads = static_loads(1, planner.length, PAYLOAD, None, GRAVITY)
+    start, goal = np.array([0, 0, 0, 0, 0, 3.0]), np.array([0, 6.0, 0, 0, 0, 3.0])
+    motion = np.stack([start, start, goal, goal])
+    samples, at = interpolated(motion, 2)
+    replay = solve_statics(RAO, samples, PAYLOAD, None, GRAVITY)
+    distance = check_chains(RAO, planner.scene, replay.positions, 10).obstacle_distance
+    assert distance[at].min() >= 0.002 and distance[at[1]:at[2]].min() < 0.0
+    report = verify_tension_motion(RAO, planner.scene, motion, 10.0, loads, margin=0.002,
+                                   rate_max=50.0)
+    assert not report.success and report.failed_steps.tolist() == [1]
+    fast = verify_tension_motion(RAO, None, motion, 0.01, loads, margin=0.002,
+                                 rate_max=50.0)
+    assert "tension rate" in fast.reason and fast.failed_steps.tolist() == [1]
+    assert verify_tension_motion(RAO, None, motion, 10.0, loads, margin=0.002,
+                                 rate_max=50.0).failed_steps.tolist() == []
+
+
+def test_the_samples_of_a_step_made_waypoints_are_the_ones_the_verdict_checks() -> None:
+    from cr_nlp.tasks.mechanics._motion import interpolated
+    from cr_nlp.tasks.mechanics._motion_refine import with_samples
+
+    motion = np.random.default_rng(3).uniform(0.0, 6.0, (5, 6))
+    samples, _ = interpolated(motion, 2)
+    denser = with_samples(motion, np.array([1, 3]), 2)
+    np.testing.assert_allclose(denser, np.concatenate(
+        [motion[:2], samples[4:6], motion[2:4], samples[10:12], motion[4:]]), atol=1e-12)
+
+
+def test_a_refined_motion_that_cuts_an_obstacle_between_waypoints_is_mended() -> None:
+    """In the benchmark's clutter, a via plan whose refined motion (shorter) passes
+    through an obstacle between two waypoints: without the repair the search's motion is
+    kept; with it, the checked samples of that step become waypoints, the LM runs again,
+    and the answer keeps δ at every sample the verdict checks (replayed here by fresh
+    statics and python-fcl) with a shorter tip path than the search's."""
+    from cr_nlp import TensionTrajectoryConfig, TensionTrajectoryPlanner
+    from cr_nlp.bench.tension_clutter import clutter_scene
+    from cr_nlp.model.loads import static_loads
+    from cr_nlp.tasks.mechanics._motion import interpolated
+
+    scene = clutter_scene(RAO, 0)
+    start, goal = [3.9, 2.727, 0.0, 0.181, 0.0, 0.0], [4.629, 4.793, 0.0, 0.0, 0.0, 0.733]
+    plain = TensionTrajectoryPlanner(RAO, scene, TensionTrajectoryConfig(repair_rounds=0,
+                                                                         blends=()))
+    kept = plain.plan(start, goal, gravity=GRAVITY, tip_force=PAYLOAD)[0]
+    assert kept.success and kept.stage.value == "explore", kept.notes
+    assert kept.notes[-1].startswith("the refined motion was not kept"), kept.notes
+    planner = TensionTrajectoryPlanner(RAO, scene)
+    result = planner.plan(start, goal, gravity=GRAVITY, tip_force=PAYLOAD)[0]
+    assert result.success and result.stage.value == "refine", (result.reason, result.notes)
+    assert any(note.startswith("repair 1") for note in result.notes), result.notes
+    samples, _ = interpolated(result.tensions, planner.config.samples_between)
+    replay = solve_statics(RAO, samples, PAYLOAD, None, GRAVITY)
+    checked = check_chains(RAO, planner.scene, replay.positions, 10)
+    assert replay.converged.all() and checked.obstacle_distance.min() >= 0.002
+    assert np.abs(np.diff(result.tensions, axis=0)).max() / result.dt <= 50.0 + 1e-9
+    loads = static_loads(1, planner.length, PAYLOAD, None, GRAVITY)
+    assert planner.tip_path(result.tensions, loads) < 0.8 * planner.tip_path(kept.tensions,
+                                                                             loads)
+
+
 def test_a_via_pool_smaller_than_the_candidates_gives_a_failed_plan_not_an_error() -> None:
     """One via candidate (not clear): no via, no route through the roadmap of that one
     node (a search asking for 16 candidates of the 1 raised before), so the direct legs,
