@@ -15,7 +15,9 @@ rejects polished by Ipopt on the rod's equations):
   tension-rate limit, followed by ``TensionPathFollower``;
 - planning: ``problems`` start/goal pairs of clear random tension sets, planned by
   ``TensionTrajectoryPlanner`` and by its search alone (``chain_iterations=0``), with the median
-  ratio of the tip paths (fresh statics along each motion).
+  ratio of the tip paths (fresh statics along each motion) and beside it the median ratio
+  of the chord (the straight line between the start's and the goal's tips, which no tip
+  path can undercut) to the search's tip path: the ratio's lower bound.
 
 Success is every task's own verdict (fresh statics, python-fcl); times are the first
 call (compiles, pools) and the median of ``repeats`` later calls.
@@ -173,8 +175,13 @@ def bench_plan(robot: Any, scene: dict, problems: int, repeats: int, follower: A
             lambda mode=mode, runner=runner: runner.plan(
                 starts, goals, gravity=GRAVITY, tip_force=PAYLOAD, exact=mode == "exact"),
             repeats)
+        pairs = [(r, s) for r, s in zip(results, searched, strict=True)
+                 if r.success and s.success]
         ratio = [planner.tip_path(r.tensions, loads) / planner.tip_path(s.tensions, loads)
-                 for r, s in zip(results, searched, strict=True) if r.success and s.success]
+                 for r, s in pairs]
+        # no tip path is shorter than the straight line between its two ends
+        chord = [planner.tip_path(s.tensions[[0, -1]], loads, samples=2)
+                 / planner.tip_path(s.tensions, loads) for _, s in pairs]
         rows.append({
             "mode": mode, "problems": problems,
             "success_pct": 100.0 * np.mean([r.success for r in results]),
@@ -182,6 +189,7 @@ def bench_plan(robot: Any, scene: dict, problems: int, repeats: int, follower: A
             "refined_pct": 100.0 * np.mean([r.stage.value == "refine" for r in results]),
             "polished": sum(r.stage.value == "polish" for r in results),
             "tip_path_ratio": statistics.median(ratio) if ratio else float("nan"),
+            "chord_ratio": statistics.median(chord) if chord else float("nan"),
             "min_clearance_mm": 1e3 * min(r.min_clearance for r in results),
             "polish_s": max(r.timing.polish for r in results),
             "per_problem_s": median / max(problems, 1), "first_s": first})
@@ -213,6 +221,7 @@ PLAN_COLUMNS = [
     Column("search_success_pct", "search alone (%)", fixed(1)),
     Column("refined_pct", "refined kept (%)", fixed(1)), Column("polished", "polished"),
     Column("tip_path_ratio", "median tip path / search's", fixed(2)),
+    Column("chord_ratio", "its bound: median chord / search's", fixed(2)),
     Column("min_clearance_mm", "min clearance (mm)", fixed(1)),
     Column("polish_s", "largest polish (s)", fixed(1)),
     Column("per_problem_s", "s per problem", fixed(3)),

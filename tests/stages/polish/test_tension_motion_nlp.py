@@ -214,7 +214,7 @@ def clutter() -> dict:
 def test_exact_planning_rescues_the_refined_motion_the_verdict_rejected(clutter) -> None:
     """A problem of ``cr-nlp bench tension --suite clutter`` (16 spheres and boxes, seed 0):
     the banded LM shortens the search's motion, but the verdict finds the shortened motion
-    1.2 mm inside δ between its waypoints, so the penalty stages (without their repair
+    0.7 mm inside δ between its waypoints, so the penalty stages (without their repair
     rounds and blends, which mend this one) keep the search's. Exact mode polishes the
     rejected refined motion (every waypoint and the samples the verdict checks between
     them that come near, each a rod in the NLP; the clearance slots re-assigned as it
