@@ -11,9 +11,8 @@ dropped (lazy PRM). Every pair p attaches its start to the nodes ``start_nodes[p
   than the best goal distance (no later change can shorten the goal's path: weights are
   positive). One compiled program per padded pair count (``chunk_plan`` sizes).
 - ``"scipy"``: one ``scipy.sparse.csgraph.dijkstra`` call over the roadmap plus one
-  directed start node and one directed goal node per pair (a start node has only
-  outgoing edges and a goal node only incoming ones, so no path runs through another
-  pair's ends).
+  directed start node per pair (it has only outgoing edges, so no path runs through
+  another pair's start); a goal is reached through the best of its attachments.
 
 ``"auto"`` picks scipy on a CPU backend and the device search elsewhere (measured on a
 2-core CPU, see ``SEARCH_CHOICE``).
@@ -36,9 +35,9 @@ from .._chunks import chunk_plan
 SEARCH_BACKENDS = ("auto", "device", "scipy")
 SEARCH_CHOICE = "scipy on a CPU backend, device otherwise"
 """What ``"auto"`` picks. Measured with ``cr-nlp bench plan --search-pairs 1 20 1000``
-(tdcr3, shelf and cabinet roadmaps of 2048 nodes, 2-core CPU, 2026-11-23): scipy took
-8–13 ms for 1 pair, 12–20 ms for 20 and 0.64–0.75 s for 1000; the relaxation on the CPU
-15–21 ms, 15–31 ms and 1.5–1.6 s."""
+(tdcr3, shelf roadmap of 2048 nodes, 2-core CPU, 2026-12-05, the graph made without
+sorting): scipy took 0.9 ms for 1 pair, 5.3 ms for 20 and 0.25 s for 1000; the relaxation
+on the CPU 9.5 ms, 8.2 ms and 0.29 s."""
 SEARCH_CHUNK = 256
 """Most pairs per compiled search (the relaxation holds (N, D, pairs) sums: 50 MB in
 float32 for a 2048-node roadmap of degree 24)."""
@@ -211,34 +210,39 @@ def _relax(neighbours: jax.Array, weights: jax.Array, start_nodes: jax.Array,
 def _scipy_search(neighbours: np.ndarray, weights: np.ndarray, start_nodes: np.ndarray,
                   start_lengths: np.ndarray, goal_nodes: np.ndarray,
                   goal_lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The scipy backend: the roadmap's rows as they are (a neighbour table holds each
+    edge once) and one row per pair's start, made into a CSR graph without sorting, one
+    Dijkstra from every start, and each goal reached through the best of its attachments
+    (the device search's rule)."""
     n, pairs = len(neighbours), len(start_nodes)
     keep = np.isfinite(weights)
-    source = [np.repeat(np.arange(n), keep.sum(axis=1))]
-    target, length = [neighbours[keep]], [weights[keep]]
-    ok = np.isfinite(start_lengths)
-    source.append(n + np.repeat(np.arange(pairs), ok.sum(axis=1)))
-    target.append(start_nodes[ok])
-    length.append(start_lengths[ok])
-    ok = np.isfinite(goal_lengths)
-    source.append(goal_nodes[ok])
-    target.append(n + pairs + np.repeat(np.arange(pairs), ok.sum(axis=1)))
-    length.append(goal_lengths[ok])
-    size = n + 2 * pairs
-    source, target, length = (np.concatenate(x) for x in (source, target, length))
-    # The shortest of repeated edges (a sparse matrix would add them up).
-    order = np.lexsort((length, target, source))
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = (np.diff(source[order]) != 0) | (np.diff(target[order]) != 0)
-    order = order[first]
+    rows, nodes, lengths = _shortest_attachments(start_nodes, start_lengths)
+    counts = np.r_[keep.sum(axis=1), np.bincount(rows, minlength=pairs)]
     # Positive lengths only: csgraph reads an explicit zero as no edge.
-    graph = sp.csr_matrix((np.maximum(length[order], 1e-12), (source[order], target[order])),
-                          shape=(size, size))
+    graph = sp.csr_matrix((np.maximum(np.r_[weights[keep], lengths], 1e-12),
+                           np.r_[neighbours[keep], nodes], np.r_[0, np.cumsum(counts)]),
+                          shape=(n + pairs, n + pairs))
     dist, pred = dijkstra(graph, directed=True, indices=n + np.arange(pairs),
                           return_predecessors=True)
-    goal = n + pairs + np.arange(pairs)
-    rows = np.arange(pairs)
-    length_out = dist[rows, goal]
-    last = np.where(np.isfinite(length_out), pred[rows, goal], -1)
+    attached = np.isfinite(goal_lengths)
+    at = np.where(attached, goal_nodes, 0)
+    through = np.where(attached, np.take_along_axis(dist, at, axis=1) + goal_lengths, np.inf)
+    best = np.argmin(through, axis=1)[:, None]
+    length_out = np.take_along_axis(through, best, axis=1)[:, 0]
+    last = np.where(np.isfinite(length_out), np.take_along_axis(at, best, axis=1)[:, 0], -1)
     pred = pred[:, :n].astype(np.int64)
     pred[pred >= n] = -1
     return length_out, last, pred
+
+
+def _shortest_attachments(nodes: np.ndarray, lengths: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(pair, node, length) of the finite attachments (P, A), the shortest of a node
+    attached twice to one pair (a sparse matrix would add them up), by pair then node."""
+    pair, column = np.nonzero(np.isfinite(lengths))
+    node, length = nodes[pair, column], lengths[pair, column]
+    order = np.lexsort((length, node, pair))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = (np.diff(pair[order]) != 0) | (np.diff(node[order]) != 0)
+    order = order[first]
+    return pair[order], node[order], length[order]

@@ -135,6 +135,19 @@ def test_neighbour_table_holds_every_edge_once():
     assert (rebuilt != graph).nnz == 0
 
 
+@pytest.mark.parametrize("search", ["device", "scipy"])
+def test_an_end_attached_twice_to_a_node_counts_its_shorter_edge(search):
+    """A path 0 — 1 — 2 (lengths 1, 2); the start attached to node 0 at 0.5 and again at
+    0.25, the goal to node 2 at 0.75 and again at 0.125, and a pad (+inf) naming a node
+    out of range: 0.25 + 3 + 0.125, not a sum of the repeats."""
+    graph = sp.csr_matrix(([1.0, 1.0, 2.0, 2.0], ([0, 1, 1, 2], [1, 0, 2, 1])), shape=(3, 3))
+    neighbours, weights = neighbour_table(graph)
+    lengths, paths = shortest_paths(neighbours, weights, np.array([[0, 0, 99]]),
+                                    np.array([[0.5, 0.25, np.inf]]), np.array([[2, 2, 99]]),
+                                    np.array([[0.75, 0.125, np.inf]]), search)
+    assert lengths[0] == pytest.approx(3.375) and paths[0].tolist() == [0, 1, 2]
+
+
 @pytest.fixture(scope="module")
 def coarse_roadmap_problems(robot):
     """A small roadmap with one interior check per edge (so the dense query-time checks
