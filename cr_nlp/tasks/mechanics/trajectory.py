@@ -139,6 +139,16 @@ class TensionTrajectoryConfig:
     polish: Any = None
     """Exact mode's ``stages.polish.TensionMotionPolishConfig`` (None: its defaults)."""
 
+    def __post_init__(self) -> None:
+        if self.repair_rounds < 0:
+            raise ValueError(f"repair_rounds must be ≥ 0, got {self.repair_rounds}")
+        if self.repair_rounds and self.repair_iterations < 1:
+            raise ValueError(f"repair_iterations must be ≥ 1, got {self.repair_iterations}")
+        bad = [f for f in self.blends if not 0.0 < f < 1.0]
+        if bad:
+            raise ValueError(f"blends must be fractions between 0 and 1 (exclusive) of the "
+                             f"way from the searched motion to the refined one, got {bad[0]!r}")
+
 
 def check_tensions(robot: Robot, values: Any, where: str) -> np.ndarray:
     """One tension set (n,) N, checked: the robot's tendon count, finite, in

@@ -306,6 +306,19 @@ def test_bad_problems_name_the_problem_and_key(problem: dict, words: str) -> Non
         read_tension_problems(RAO, {"problems": [problem]})
 
 
+@pytest.mark.parametrize(("settings", "words"), [
+    ({"repair_rounds": -1}, "repair_rounds must be ≥ 0, got -1"),
+    ({"repair_iterations": 0}, "repair_iterations must be ≥ 1, got 0"),
+    ({"blends": (0.5, 1.5)}, "blends must be fractions between 0 and 1.*got 1.5"),
+])
+def test_bad_repair_settings_are_named(settings: dict, words: str) -> None:
+    from cr_nlp import TensionTrajectoryConfig
+
+    with pytest.raises(ValueError, match=words):
+        TensionTrajectoryConfig(**settings)
+    TensionTrajectoryConfig(repair_rounds=0, repair_iterations=0, blends=())   # no repair
+
+
 def test_trajectories_file_round_trip(planner, tmp_path) -> None:
     from cr_nlp import TensionTrajectoryResult, load_results
     from cr_nlp.tasks._result import write_json
