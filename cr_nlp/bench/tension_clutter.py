@@ -179,11 +179,12 @@ def bench_plan(robot: Any, scene: dict, problems: int, repeats: int, follower: A
             repeats)
         pairs = [(r, s) for r, s in zip(results, searched, strict=True)
                  if r.success and s.success]
-        ratio = [planner.tip_path(r.tensions, loads) / planner.tip_path(s.tensions, loads)
-                 for r, s in pairs]
+        search_path = [planner.tip_path(s.tensions, loads) for _, s in pairs]
+        ratio = [planner.tip_path(r.tensions, loads) / length
+                 for (r, _), length in zip(pairs, search_path, strict=True)]
         # no tip path is shorter than the straight line between its two ends
-        chord = [planner.tip_path(s.tensions[[0, -1]], loads, samples=2)
-                 / planner.tip_path(s.tensions, loads) for _, s in pairs]
+        chord = [planner.tip_path(s.tensions[[0, -1]], loads, samples=2) / length
+                 for (_, s), length in zip(pairs, search_path, strict=True)]
         # where the search needed via points: the share of its detour (its tip path
         # beyond the chord) that the plan removed
         detour = [(1.0 - a) / (1.0 - c) for a, c, (_, s) in zip(ratio, chord, pairs,

@@ -35,7 +35,7 @@ from ...stages.refine import (
 )
 from ...world.clearance import scene_arrays
 from ...world.scene import Scene
-from ._motion import TensionMotionVerification
+from ._motion import TensionMotionVerification, interpolated
 
 
 def refine_chain(robot: Robot, scene: Scene | None, config: Any, tensions: np.ndarray,
@@ -117,15 +117,14 @@ def mended(config: Any, searched: np.ndarray, tensions: np.ndarray,
 
 
 def with_samples(tensions: np.ndarray, steps: np.ndarray, between: int) -> np.ndarray:
-    """The motion (T, n) N with the ``between`` evenly spaced tension sets of each of the
-    ``steps`` (k: waypoint k → k + 1) inserted as waypoints: the sets the verdict checks
-    there (``_motion.interpolated``) become waypoints, the tension path unchanged."""
-    count = np.ones(len(tensions), int)
-    count[np.asarray(steps, int)] += between
-    at = np.repeat(np.arange(len(tensions)), count)
-    fraction = (np.arange(len(at)) - np.repeat(np.cumsum(count) - count, count)) / (between + 1.0)
-    after = np.minimum(at + 1, len(tensions) - 1)
-    return tensions[at] + fraction[:, None] * (tensions[after] - tensions[at])
+    """The motion (T, n) N with the ``between`` tension sets the verdict checks on each of
+    the ``steps`` (k: waypoint k → k + 1; ``_motion.interpolated``) made waypoints: the
+    tension path unchanged."""
+    samples, at = interpolated(tensions, between)
+    keep = np.zeros(len(samples), dtype=bool)
+    keep[at] = True
+    keep[(at[np.asarray(steps, int)][:, None] + np.arange(1, between + 1)).ravel()] = True
+    return samples[keep]
 
 
 def resampled(tensions: np.ndarray, count: int) -> np.ndarray:
