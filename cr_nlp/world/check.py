@@ -145,26 +145,27 @@ def _tighten(r: float, fscene: FclScene, sa: np.ndarray, sb: np.ndarray, qi: np.
     bound, not tightened further: the callers drop it."""
     # The part's axis-aligned box: the piece's coordinate ranges miss it by at least the
     # largest gap along an axis.
-    gap = np.maximum(fscene.box_lower.take(qi, axis=0) - np.maximum(sa, sb),
-                     np.minimum(sa, sb) - fscene.box_upper.take(qi, axis=0)).max(axis=1)
-    low = np.maximum(low, gap - r)
+    gaps = np.maximum(fscene.box_lower.take(qi, axis=0) - np.maximum(sa, sb),
+                      np.minimum(sa, sb) - fscene.box_upper.take(qi, axis=0))
+    low = np.maximum(low, gaps.max(axis=1) - r)
     open_ = np.flatnonzero(low < below)
     if len(open_) < len(low):
-        low[open_] = _tighten_more(r, fscene, sa[open_], sb[open_], qi[open_], low[open_])
+        low[open_] = _tighten_more(r, fscene, sa[open_], sb[open_], qi[open_], low[open_],
+                                   gaps[open_])
         return low
-    return _tighten_more(r, fscene, sa, sb, qi, low)
+    return _tighten_more(r, fscene, sa, sb, qi, low, gaps)
 
 
 def _tighten_more(r: float, fscene: FclScene, sa: np.ndarray, sb: np.ndarray,
-                  qi: np.ndarray, low: np.ndarray) -> np.ndarray:
-    """``_tighten``'s bounds past the axis-aligned box: the part's bounding sphere against
-    the piece's segment, face planes, the axis of capsules and cylinders."""
+                  qi: np.ndarray, low: np.ndarray, gaps: np.ndarray) -> np.ndarray:
+    """``_tighten``'s bounds past the axis-aligned box (``gaps`` (N, 3): the box's gaps
+    along each axis, from ``_tighten``): the part's bounding sphere against the piece's
+    segment, face planes, the axis of capsules and cylinders."""
     sa_, sb_ = xyz(sa), xyz(sb)
     u = sub(sb_, sa_)
     # Separated axis-aligned boxes (the piece's, the part's) are apart by their gaps along
     # all three axes together (where they overlap, ``_tighten``'s largest gap stays).
-    gap = np.maximum(np.maximum(fscene.box_lower.take(qi, axis=0) - np.maximum(sa, sb),
-                                np.minimum(sa, sb) - fscene.box_upper.take(qi, axis=0)), 0.0)
+    gap = np.maximum(gaps, 0.0)
     apart = np.sqrt(np.einsum("ij,ij->i", gap, gap))
     low = np.where(apart > 0.0, np.maximum(low, apart - r), low)
     # The part's bounding sphere against the piece's segment.
