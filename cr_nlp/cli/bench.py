@@ -308,13 +308,16 @@ def _add_tension(group: argparse._SubParsersAction) -> None:
 def _run_tension(args: argparse.Namespace) -> int:
     _check_repeats(args)
     if args.suite == "clutter":
-        from ..bench.tension_clutter import run_tension_clutter_benchmark
+        from ..bench.tension_clutter import CrowdedScene, run_tension_clutter_benchmark
 
-        run_tension_clutter_benchmark(robot=args.robot, targets=args.targets,
-                                      paths=args.paths, waypoints=args.waypoints or 60,
-                                      problems=args.problems, modes=tuple(args.modes),
-                                      repeats=args.repeats, seed=args.seed,
-                                      polish_accepted=args.polish_accepted, out=args.out)
+        try:
+            run_tension_clutter_benchmark(robot=args.robot, targets=args.targets,
+                                          paths=args.paths, waypoints=args.waypoints or 60,
+                                          problems=args.problems, modes=tuple(args.modes),
+                                          repeats=args.repeats, seed=args.seed,
+                                          polish_accepted=args.polish_accepted, out=args.out)
+        except CrowdedScene as exc:
+            raise UsageError(f"{exc} (try another --seed)") from exc
         _wrote(args, "tension_clutter")
         return 0
     if args.suite == "live":

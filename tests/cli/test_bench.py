@@ -34,6 +34,20 @@ def test_bad_repeats_is_a_usage_error(tmp_path: Path, capsys: pytest.CaptureFixt
     assert not (tmp_path / "out").exists()
 
 
+def test_a_crowded_clutter_scene_is_a_usage_error(
+        tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    from cr_nlp.bench import tension_clutter
+
+    def crowded(**_: object) -> None:
+        raise tension_clutter.CrowdedScene("clutter benchmark: 0 of 32 random tension sets")
+
+    monkeypatch.setattr(tension_clutter, "run_tension_clutter_benchmark", crowded)
+    assert main(["bench", "tension", "--suite", "clutter", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == ("cr-nlp bench: error: clutter benchmark: 0 of 32 random tension sets "
+                   "(try another --seed)")
+
+
 def test_the_report_writer_prints_and_writes_every_file(
         tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     rows = [{"robot": "tdcr3", "ms": 1.5, "note": None}, {"robot": "tdcr4_ext", "ms": 2.0}]
