@@ -301,7 +301,8 @@ def _add_tension(group: argparse._SubParsersAction) -> None:
                         "verdict accepts (times the exact stage on each)")
     add_common_options(p, "tension", repeats=3, robot=False, seed=True)
     p.add_argument("--robot", default="tdcr2_rao2021",
-                   help="robot with a mechanics block and 2×3 tendons (default tdcr2_rao2021)")
+                   help="robot with a mechanics block (default tdcr2_rao2021; the loop "
+                        "suite: 2×3 tendons)")
     p.set_defaults(run=_run_tension)
 
 
@@ -328,7 +329,14 @@ def _run_tension(args: argparse.Namespace) -> int:
         _wrote(args, "tension_live")
         return 0
     from ..bench.tension_motion import run_tension_motion_benchmark
+    from ..model import load_robot
 
+    robot = load_robot(args.robot)
+    if (robot.n_tendons, robot.tendons.per_segment) != (6, 3):
+        raise UsageError(f"the loop suite drives both segments of a 2×3-tendon robot; "
+                         f"--robot {args.robot} has {robot.n_tendons} tendons, "
+                         f"{robot.tendons.per_segment} per segment (--suite clutter runs any "
+                         "robot with a mechanics block)")
     run_tension_motion_benchmark(robot=args.robot, problems=args.problems,
                                  waypoints=args.waypoints or 100, repeats=args.repeats,
                                  seed=args.seed, out=args.out)

@@ -25,11 +25,11 @@ from cr_nlp.world.check import check_chains
 def test_no_clutter_obstacle_blocks_the_fitted_robot_everywhere() -> None:
     """On the fitted FTDCR rod (short, its segments bending from the base) obstacles drawn
     on the backbones' points near the base touched every loaded backbone, and no clear
-    tension set was left. Now each obstacle alone leaves most of 128 other loaded
+    tension set was left. Now each obstacle alone leaves most of 256 other loaded
     backbones clear by python-fcl, and the scene as a whole leaves clear equilibria."""
     robot = load_robot("ftdcr_v6_cosserat")
     scene = clutter_scene(robot, 0)
-    solved = solve_statics(robot, random_tensions(robot, 128, 99), PAYLOAD, None, GRAVITY)
+    solved = solve_statics(robot, random_tensions(robot, 256, 99), PAYLOAD, None, GRAVITY)
     chains = np.asarray(solved.positions)[solved.converged]
     per_segment = (chains.shape[1] - 1) // len(robot.segments)
     for obstacle in scene["obstacles"]:
@@ -37,8 +37,9 @@ def test_no_clutter_obstacle_blocks_the_fitted_robot_everywhere() -> None:
         touching = check_chains(robot, alone, chains, per_segment).obstacle_distance < 0.0
         assert touching.mean() < 0.7, obstacle["name"]
     follower = TensionPathFollower(robot, scene)
-    found = clear_tensions(follower, 8, np.random.default_rng(0), rounds=3)
-    assert found.shape == (8, robot.n_tendons)
+    # 64 sets: 256 candidates a round, the batch size the scene solved (one program)
+    found = clear_tensions(follower, 64, np.random.default_rng(0), rounds=3)
+    assert found.shape == (64, robot.n_tendons)
 
 
 def test_a_scene_without_clear_equilibria_is_named() -> None:

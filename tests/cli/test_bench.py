@@ -48,6 +48,14 @@ def test_a_crowded_clutter_scene_is_a_usage_error(
                    "(try another --seed)")
 
 
+def test_the_loop_suite_names_a_robot_it_cannot_drive(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    assert main(["bench", "tension", "--robot", "ftdcr_v6_cosserat", "--out",
+                 str(tmp_path)]) == 2
+    assert ("--robot ftdcr_v6_cosserat has 9 tendons, 3 per segment"
+            in capsys.readouterr().err)
+
+
 def test_the_report_writer_prints_and_writes_every_file(
         tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     rows = [{"robot": "tdcr3", "ms": 1.5, "note": None}, {"robot": "tdcr4_ext", "ms": 2.0}]
