@@ -57,6 +57,7 @@ from .._result import Stage
 from .._timing import StageTiming
 from ..paths import ReferencePath
 from ..readers import checked_path
+from ._follow_branches import BranchSearch, branch_search
 from ._motion import TensionMotionVerification, verify_tension_motion
 from ._motion_polish import polish_motion
 from ._motion_result import TensionFollowResult as TensionFollowResult
@@ -93,6 +94,18 @@ class TensionFollowConfig:
     """h of the chain's rate hinge rows h·max(0, |Δτ| − κ·τ̇_max·dt)/τ_max (m)."""
     rate_margin: float = 0.9
     """κ: the chain aims at this fraction of ``tension_rate_max``."""
+    branch_width: int = 8
+    """Where the verdict rejects both the chain and the per-waypoint answers: tension sets
+    kept per waypoint by the branch search (``_follow_branches``; 0: no search), whose
+    motion is then refined by the chain; kept where it verifies (on the fitted FTDCR rod
+    it followed a path the per-waypoint answers could not, 10–13 s)."""
+    branch_tries: int = 4
+    """LM runs from each kept set to the next waypoint (itself and moved copies)."""
+    branch_spread: float = 1.0
+    """The Gaussian move of those copies, N (on that path 0.5 N lost every branch)."""
+    branch_distinct: float = 1.0
+    """Kept sets differ by more than this on some tendon, N (0.2 N: copies of one branch,
+    every one lost by waypoint 39 with width 8)."""
     polish_accepted: bool = False
     """Exact mode: also polish a motion the verdict accepts (kept where the polish verifies)."""
     polish: Any = None
@@ -135,6 +148,7 @@ class TensionPathFollower:
         self.ik = TensionIKSolver(robot, scene, replace(
             config.ik, initial_damping=config.waypoint_damping, round_iterations=0))
         self.robot, self.scene = self.ik.robot, self.ik.scene
+        self._seeding: TensionIKSolver | None = None
 
     def follow(self, path: Any, *, dt: float | None = None, orientation: bool = False,
                tip_force: Any = None, tip_moment: Any = None, gravity: Any = None,
@@ -198,6 +212,15 @@ class TensionPathFollower:
             else:
                 alternative = smoothed
             timing.verify += time.perf_counter() - start
+        if not _whole(report, positions, self.config.tolerance):
+            found, note = self._branches(positions, quats, loads, reference.dt, timing)
+            if found is not None and _better(found[1], report, positions,
+                                             self.config.tolerance):
+                why = report.reason or "waypoints missed"
+                alternative, (chained, report, stage, notes) = chained, found
+                notes = [*notes, f"(the motion from the per-waypoint answers: {why})"]
+            else:
+                notes = [*notes, note]
         result = self._result(chained, reference, quats, loads, report, stage, notes)
         result.timing = timing
         if exact:
@@ -234,6 +257,43 @@ class TensionPathFollower:
 
         return polish_motion(result, candidates, polish, remake, timing, time_limit,
                              self.config.polish_accepted)
+
+    def _branches(self, positions: np.ndarray, quats: np.ndarray, loads: StaticLoads,
+                  dt: float, timing: StageTiming
+                  ) -> tuple[tuple[np.ndarray, TensionMotionVerification, Stage, list[str]]
+                             | None, str]:
+        """The branch search's motion (``_follow_branches``) and the chain over it, the
+        better of the two by the verdict: (tensions, verdict, stage, notes), or None where
+        the search is off or no branch reaches the last waypoint; and a note saying why
+        not. ``timing`` gets the seconds."""
+        cfg = self.config
+        if cfg.branch_width <= 0:
+            return None, "no branch search (branch_width 0)"
+        start = time.perf_counter()
+        if self._seeding is None:          # the IK's own first damping, for pool seeds
+            self._seeding = TensionIKSolver(self.robot, self.scene,
+                                            replace(cfg.ik, round_iterations=0))
+        motion, reached = branch_search(
+            self.ik, self._seeding, positions, quats, loads,
+            cfg.tension_rate_max * dt * (1 - 1e-9),
+            BranchSearch(cfg.branch_width, cfg.branch_tries, cfg.branch_spread,
+                         cfg.branch_distinct))
+        timing.explore += time.perf_counter() - start
+        if motion is None:
+            return None, f"the branch search lost every branch at waypoint {reached}"
+        start = time.perf_counter()
+        chained = self._chain(motion, dt, positions, quats, loads)
+        timing.refine += time.perf_counter() - start
+        start = time.perf_counter()
+        own, over = (self.verify_tensions(m, dt, loads) for m in (motion, chained))
+        timing.verify += time.perf_counter() - start
+        worse = "the branch search's motion was not better"
+        if _better(own, over, positions, cfg.tolerance):
+            return (motion, own, Stage.EXPLORE, [
+                f"branch search over the waypoints (the chain over it was worse: "
+                f"{over.reason or 'waypoints missed'})"]), worse
+        return (chained, over, Stage.REFINE, [
+            "branch search over the waypoints, then the banded LM over the whole motion"]), worse
 
     def _chain(self, tensions: np.ndarray, dt: float, positions: np.ndarray,
                quats: np.ndarray, loads: StaticLoads) -> np.ndarray:
@@ -378,14 +438,24 @@ class TensionPathFollower:
         return result
 
 
+def _reached(report: TensionMotionVerification, positions: np.ndarray,
+             tolerance: float) -> int:
+    """Waypoints (T, 3) m whose fresh tip is within ``tolerance`` (position only)."""
+    return int(np.sum(np.linalg.norm(report.tip_position - positions, axis=1) <= tolerance))
+
+
+def _whole(report: TensionMotionVerification, positions: np.ndarray, tolerance: float) -> bool:
+    """The motion verifies and reaches every waypoint (T, 3) m within ``tolerance``."""
+    return report.success and _reached(report, positions, tolerance) == len(positions)
+
+
 def _better(a: TensionMotionVerification, b: TensionMotionVerification,
             positions: np.ndarray, tolerance: float) -> bool:
     """Whether motion check ``a`` beats ``b`` on the path ``positions`` (T, 3) m: verified
     and every waypoint within ``tolerance`` first, then more waypoints reached, then the
     smaller largest violation (position only: a check of a fresh solve's tips)."""
-    reached = [int(np.sum(np.linalg.norm(r.tip_position - positions, axis=1) <= tolerance))
-               for r in (a, b)]
-    whole = [r.success and n == len(positions) for r, n in zip((a, b), reached, strict=True)]
+    reached = [_reached(r, positions, tolerance) for r in (a, b)]
+    whole = [_whole(r, positions, tolerance) for r in (a, b)]
     if whole[0] != whole[1]:
         return whole[0]
     if reached[0] != reached[1]:

@@ -57,6 +57,31 @@ def test_followed_tips_by_fresh_statics_are_on_the_path(followed: TensionFollowR
     assert rate.max() <= followed.tension_rate_max
 
 
+def test_the_branch_search_reaches_every_waypoint_within_the_rate(
+        follower: TensionPathFollower, path: np.ndarray) -> None:
+    """The follower's branch search (``_follow_branches``) on the loop: every waypoint's
+    tensions put the tip of a fresh statics solve on it, within the tension bounds, and no
+    tendon changes by more than the step between waypoints; with a step no branch keeps,
+    it names the waypoint where they were lost."""
+    from cr_nlp.model.loads import static_loads
+    from cr_nlp.tasks.mechanics._follow_branches import BranchSearch, branch_search
+
+    loads = static_loads(1, follower.ik.length, PAYLOAD, None, GRAVITY)
+    quats = np.full((len(path), 4), np.nan)
+    settings = BranchSearch(width=4, tries=2, spread=1.0, distinct=1.0)
+    step = 50.0 * 0.05
+    motion, reached = branch_search(follower.ik, follower.ik, path, quats, loads, step,
+                                    settings)
+    assert reached == len(path) and motion.shape == (len(path), RAO.n_tendons)
+    assert np.abs(np.diff(motion, axis=0)).max() <= step
+    assert motion.min() >= 0.0 and motion.max() <= float(RAO.mechanics.tension_max)
+    again = solve_statics(RAO, motion, PAYLOAD, None, GRAVITY)
+    assert again.converged.all()
+    assert np.linalg.norm(again.tip_position - path, axis=1).max() < 1e-4 + 1e-9
+    assert branch_search(follower.ik, follower.ik, path, quats, loads, 1e-6,
+                         settings) == (None, 1)
+
+
 def test_an_obstacle_on_the_motion_fails_the_verdict(follower: TensionPathFollower,
                                                      followed: TensionFollowResult) -> None:
     middle = followed.backbone[12, 15]      # a point of the body at waypoint 12
@@ -174,6 +199,31 @@ def test_the_fitted_robot_follows_a_path_under_its_gravity_and_its_commands_repl
     assert replay.converged.all()
     error = np.linalg.norm(replay.tip_position - truth.tip_position, axis=1)
     assert error.max() <= result.tolerance + 1e-6, error.max()
+
+
+@pytest.mark.slow  # the fitted rod's programs (about a minute of compiling)
+def test_the_fitted_robot_follows_in_clutter_where_waypoint_answers_change_branch() -> None:
+    """On the fitted FTDCR rod in its clutter scene, the first 30 waypoints of a path that a
+    clear motion traces at 9.6 N/s: the per-waypoint answers leave the motion's branch
+    and the chain over them stays in collision; the branch search finds a motion the
+    verdict accepts (fresh statics and python-fcl at every checked sample), within the
+    rate limit, every tip on the path."""
+    from cr_nlp.bench.tension_clutter import DT, RATE_MAX, clear_motions, clutter_scene
+    from cr_nlp.tasks.mechanics.follow import TensionFollowConfig
+
+    robot = load_robot("ftdcr_v6_cosserat")
+    follower = TensionPathFollower(robot, clutter_scene(robot, 0),
+                                   TensionFollowConfig(tension_rate_max=RATE_MAX))
+    motion = clear_motions(follower, 2, 60, 0.7, np.random.default_rng(0))[1][:30]
+    truth = solve_statics(robot, motion, PAYLOAD, None, GRAVITY)
+    result = follower.follow(truth.tip_position, dt=DT, gravity=GRAVITY, tip_force=PAYLOAD)
+    assert result.success, result.reason
+    assert result.notes[0].startswith("branch search"), result.notes
+    assert "in collision" in result.notes[-1]       # what the per-waypoint answers gave
+    assert follower.verify(result).success
+    assert np.abs(np.diff(result.tensions, axis=0)).max() / DT <= RATE_MAX
+    again = solve_statics(robot, result.tensions, PAYLOAD, None, GRAVITY)
+    assert np.linalg.norm(again.tip_position - truth.tip_position, axis=1).max() <= 1e-3
 
 
 # ---------------------------------------------------------------- planning
