@@ -98,7 +98,7 @@ class TensionFollowConfig:
     """Where the verdict rejects both the chain and the per-waypoint answers: tension sets
     kept per waypoint by the branch search (``_follow_branches``; 0: no search), whose
     motion is then refined by the chain; kept where it verifies (on the fitted FTDCR rod
-    it followed a path the per-waypoint answers could not, 10–13 s)."""
+    it followed 5 of 8 paths the per-waypoint answers could not, 10–23 s each)."""
     branch_tries: int = 4
     """LM runs from each kept set to the next waypoint (itself and moved copies)."""
     branch_spread: float = 1.0
