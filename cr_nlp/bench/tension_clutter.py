@@ -129,14 +129,12 @@ def clear_tensions(follower: Any, count: int, rng: np.random.Generator,
     screen = TensionTrajectoryPlanner(follower.robot, follower.scene)
     found: list[np.ndarray] = []
     for _ in range(rounds):
-        if sum(len(f) for f in found) >= count:
-            return np.concatenate(found)[:count]
         candidates = 0.6 * random_tensions(follower.robot, 4 * count,
                                            int(rng.integers(1 << 30)))
         found.append(candidates[screen.clear(candidates, loads)])
+        if sum(len(f) for f in found) >= count:
+            return np.concatenate(found)[:count]
     have = sum(len(f) for f in found)
-    if have >= count:
-        return np.concatenate(found)[:count]
     raise CrowdedScene(f"clutter benchmark: {have} of {rounds * 4 * count} random tension sets "
                      f"of {follower.robot.name} keep δ from the scene under the load, "
                      f"{count} wanted")
