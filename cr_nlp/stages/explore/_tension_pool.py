@@ -30,6 +30,7 @@ from ...model import Robot
 from ...model.cosserat import StaticsConfig, solve_statics
 from ...model.loads import StaticLoads
 from ...runtime import cache_dir
+from ...world.clearance import SceneArrays, backbone_clearance_numpy, chain_self_clearance_numpy
 
 FORMAT_VERSION = 2
 """Bumped when the cached file's content or the build procedure changes."""
@@ -70,6 +71,24 @@ class TensionPool:
         each of ``positions`` (B, 3) m."""
         _, order = self.tree.query(positions, k=[rank + 1])
         return order[:, 0]
+
+    def nearest_clear(self, positions: np.ndarray, rank: int, clear: np.ndarray,
+                      neighbours: int) -> np.ndarray:
+        """``nearest``, where among the ``neighbours + rank`` nearest sets the clear ones
+        (``clear`` (P,) True: ``clear_sets``) come first, in order of distance."""
+        k = min(len(self.tensions), neighbours + rank)
+        _, index = self.tree.query(positions, k=k)
+        order = np.argsort(~clear[index], axis=1, kind="stable")
+        return np.take_along_axis(index, order[:, rank:rank + 1], axis=1)[:, 0]
+
+    def clear_sets(self, robot: Robot, arrays: SceneArrays | None, band: float) -> np.ndarray:
+        """(P,) True where a set's backbone keeps ``band`` m from the scene's parts
+        (``arrays``, numpy; None: no scene) and from itself (segments at least two apart): a
+        quick sphere screen (the verdict's capsules are python-fcl's)."""
+        clear = backbone_clearance_numpy(robot.backbone_radius, arrays, self.backbones) >= band
+        if robot.has_self_pairs:
+            clear &= chain_self_clearance_numpy(robot, self.backbones) >= band
+        return clear
 
 
 def _pool_key(robot: Robot, loads: StaticLoads, size: int, seed: int,

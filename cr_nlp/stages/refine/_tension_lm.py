@@ -50,7 +50,7 @@ from ...model.cosserat import CaseLoads, StaticsConfig, backbone_equilibrium, mo
 from ...model.rotations import matrix_from_wxyz
 from ...model.tendon_groups import moments_from_tensions, tendon_groups, tensions_from_moments
 from ...runtime import cached
-from ...world.clearance import SceneArrays, kind_distances
+from ...world.clearance import SceneArrays, chain_self_pairs, kind_distances
 from ._banded_lm import ChainResidual, banded_lm_solve
 from ._lm import LMConfig, iteration_budget
 
@@ -73,6 +73,8 @@ class TensionTerms:
     """w of the clearance hinge rows (0: no rows; needs a scene)."""
     clearance_band: float = 0.0
     """Distance below which a backbone sphere is penalised, m (δ plus a buffer)."""
+    self_weight: float = 0.0
+    """w of the self-clearance hinge rows (0: none; robots of three or more segments)."""
     direct: bool = False
     """Solve in the tensions themselves even where the robot has tendon groups (a plan:
     its fixed start and goal may pull antagonistic tendons, which the group moments
@@ -179,6 +181,14 @@ def tensions_of_unknowns(terms: TensionTerms, z: np.ndarray) -> np.ndarray:
         return np.asarray(_tension_map(terms)(z), dtype=float)
 
 
+def moments_of_unknowns(terms: TensionTerms, z: np.ndarray, exact: np.ndarray) -> np.ndarray:
+    """(B, 3) M(0), N·m, base frame, of (B, size) unknowns: their own with ``shoot``, else
+    ``exact`` (the tip and point moments, which are M(0) without forces)."""
+    if not terms.shoot:
+        return np.asarray(exact, dtype=float)
+    return np.asarray(z, dtype=float)[:, terms.width:terms.width + 3] * moment_scale(terms.robot)
+
+
 def tensions_of_batch(terms: TensionTerms, z: jax.Array) -> jax.Array:
     """``tensions_of_unknowns`` traced, for a program that goes on with the tensions."""
     if terms.groups is None:
@@ -210,6 +220,17 @@ def clearance_rows(terms: TensionTerms, positions: jax.Array,
     return terms.clearance_weight * jnp.maximum(terms.clearance_band - nearest, 0.0)
 
 
+def self_rows(terms: TensionTerms, positions: jax.Array) -> jax.Array:
+    """w·max(0, band − d) for every pair of backbone spheres (robot points and midpoints,
+    the backbone radius) on segments at least two apart, d their signed distance, m."""
+    centres = jnp.concatenate([positions, 0.5 * (positions[1:] + positions[:-1])])
+    segments = len(terms.robot.segments)
+    i, j = chain_self_pairs(segments, (positions.shape[0] - 1) // segments)
+    gap = (jnp.linalg.norm(centres[i] - centres[j], axis=-1)
+           - 2.0 * terms.robot.backbone_radius)
+    return terms.self_weight * jnp.maximum(terms.clearance_band - gap, 0.0)
+
+
 def waypoint_residual(terms: TensionTerms, z: jax.Array, p: WaypointParams,
                       shared: SceneArrays | None) -> jax.Array:
     """The rows of one waypoint (see the module's docstring), metres."""
@@ -233,6 +254,8 @@ def waypoint_residual(terms: TensionTerms, z: jax.Array, p: WaypointParams,
         rows.append(EQUILIBRIUM_WEIGHT * terms.length * eq / scale)
     if terms.clearance_weight > 0.0 and shared is not None:
         rows.append(clearance_rows(terms, positions, shared))
+    if terms.self_weight > 0.0:
+        rows.append(self_rows(terms, positions))
     return jnp.concatenate(rows)
 
 

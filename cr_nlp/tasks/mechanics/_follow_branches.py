@@ -3,21 +3,23 @@ several branches of the redundant tension sets at once, for robots where the
 per-waypoint answers run into a dead end.
 
 A robot with more tendons than its tip has coordinates reaches most tips with many
-tension sets. Answers warm-started waypoint by waypoint follow one branch of them; on the
-fitted FTDCR rod (3 segments of 3 tendons) that branch reached the 20 N bound halfway
-along a path that a clear, slow motion traces, and the path was then reached only by
-jumping between branches (400 N/s, in collision between waypoints), and the banded LM over
-the whole motion, started from those answers, did not recover (13.8 mm inside an
-obstacle; from the traced motion plus 1 N of noise it converged).
+tension sets. Answers warm-started waypoint by waypoint (tensions and M(0) carried) follow
+one branch of them, and the branch the first answer sets out on can end: on the fitted
+FTDCR rod (3 segments of 3 tendons) in clutter, 7 of 12 paths that clear, slow motions
+trace ran into an obstacle or a tip the branch could not reach, and the banded LM over
+the whole motion, started from those answers, did not recover.
 
-The search keeps up to ``width`` tension sets per waypoint. Each is the warm start of
-``tries`` LM runs to the next waypoint, itself and ``tries − 1`` copies moved by Gaussian
-noise of ``spread`` N (clipped to the bounds), all in one batch; an answer joins where it
-passes the waypoint's own check (tip, bounds, clearance of the scene) and is within the
-rate limit of a kept predecessor, linked to its cheapest one (the cost: the sum over
-steps of the largest tendon change, N). The cheapest are kept, none within ``distinct`` N
-of another (distinct branches, not copies of one). The first waypoint's sets are the LM's
-answers from the pool's nearest seeds. Units: newtons, metres, seconds.
+The search keeps up to ``width`` tension sets per waypoint. Each is the warm start (with
+its M(0)) of ``tries`` LM runs to the next waypoint, itself and ``tries − 1`` copies moved
+by Gaussian noise of ``spread`` N (clipped to the bounds), all in one batch; an answer
+joins where it passes the waypoint's own check (tip, bounds, clearance of the scene and of
+itself), linked to its cheapest kept predecessor. The cost: the sum over steps of the
+largest tendon change, N, plus ``EXCESS_WEIGHT`` times its excess over the rate limit's
+step, so branches that keep the limit always come first and, where none does, the search
+carries on with those that break it least (the chain's rate rows and Ipopt start from
+there). The cheapest are kept, none within ``distinct`` N of another (distinct branches,
+not copies of one). The first waypoint's sets are the LM's answers from the pool's
+nearest clear seeds. Units: newtons, metres, seconds.
 """
 
 from __future__ import annotations
@@ -37,6 +39,11 @@ FIRST_ROUNDS = 4
 """Rounds of further pool seeds for the first waypoint while fewer than ``width`` distinct
 sets pass its check."""
 
+EXCESS_WEIGHT = 100.0
+"""Cost of a step's excess over the rate limit's step, per newton of steps: a branch that
+keeps the limit is always cheaper, and where none does the search carries on with those
+that break it least (a start for the chain's rate rows and for Ipopt)."""
+
 
 @dataclass(frozen=True)
 class BranchSearch:
@@ -54,42 +61,43 @@ def branch_search(ik: Any, seeding: Any, positions: np.ndarray, quats: np.ndarra
                   ) -> tuple[np.ndarray | None, int]:
     """Tension sets (T, n) N for the waypoints ``positions`` (T, 3) m (``quats`` (T, 4),
     NaN rows: position only) whose consecutive sets differ by at most ``step_max`` N per
-    tendon, each passing its waypoint's own check by ``ik`` (a ``TensionIKSolver`` whose LM
-    takes short first steps from a warm start); the first waypoint's from pool seeds by
+    tendon where a kept branch allows (else by as little beyond it as the search found),
+    each passing its waypoint's own check by ``ik`` (a ``TensionIKSolver`` whose LM takes
+    short first steps from a warm start); the first waypoint's from pool seeds by
     ``seeding`` (one whose LM starts undamped, as from a pool seed); ``loads`` one load
-    case. Returns (the cheapest motion, T), or (None, k) where no kept branch carries on
-    to waypoint k."""
+    case. Returns (the cheapest motion, T), or (None, k) where no answer from a kept
+    branch passes waypoint k's check."""
     rng = np.random.default_rng(settings.seed)
     tension_max = float(ik.robot.mechanics.tension_max)
-    found = []
+    found, found_moments = [], []
     for first in range(0, FIRST_ROUNDS * FIRST_SEEDS, FIRST_SEEDS):
-        seeds = np.concatenate([seeding._seeds(positions[:1], loads, rank)
-                                for rank in range(first, first + FIRST_SEEDS)])
-        answers, passed = _solved(seeding, seeds, positions, quats, loads, 0)
+        answers, moments, passed = first_answers(seeding, positions, quats, loads,
+                                                 range(first, first + FIRST_SEEDS))
         found.append(answers[passed])
+        found_moments.append(moments[passed])
         every = np.concatenate(found)
         kept = _distinct(every, np.arange(len(every)), settings)
         if len(kept) == settings.width:
             break
-    sets, cost = every[kept], np.zeros(len(kept))
+    sets, moments, cost = every[kept], np.concatenate(found_moments)[kept], np.zeros(len(kept))
     if not len(sets):
         return None, 0
     history = [(sets, np.full(len(sets), -1))]
     for k in range(1, len(positions)):
         moved = [np.clip(sets + rng.normal(0.0, settings.spread, sets.shape), 0.0,
                          tension_max) for _ in range(settings.tries - 1)]
-        answers, passed = _solved(ik, np.concatenate([sets, *moved]), positions, quats,
-                                  loads, k)
-        answers = answers[passed]
-        step = np.abs(answers[:, None, :] - sets[None, :, :]).max(axis=2)  # (new, kept)
-        total = np.where(step <= step_max, cost[None, :] + step, np.inf)
-        parent, total = total.argmin(axis=1), total.min(axis=1)
-        order = np.flatnonzero(np.isfinite(total))
-        if not len(order):
+        answers, moments, passed = _solved(ik, np.concatenate([sets, *moved]),
+                                           np.tile(moments, (settings.tries, 1)), positions,
+                                           quats, loads, k)
+        answers, moments = answers[passed], moments[passed]
+        if not len(answers):
             return None, k
-        order = order[np.argsort(total[order], kind="stable")]
+        step = np.abs(answers[:, None, :] - sets[None, :, :]).max(axis=2)  # (new, kept)
+        total = cost[None, :] + step + EXCESS_WEIGHT * np.maximum(step - step_max, 0.0)
+        parent, total = total.argmin(axis=1), total.min(axis=1)
+        order = np.argsort(total, kind="stable")
         kept = _distinct(answers, order, settings)
-        sets, cost = answers[kept], total[kept]
+        sets, moments, cost = answers[kept], moments[kept], total[kept]
         history.append((sets, parent[kept]))
     index = int(np.argmin(cost))
     motion = []
@@ -99,16 +107,28 @@ def branch_search(ik: Any, seeding: Any, positions: np.ndarray, quats: np.ndarra
     return np.array(motion[::-1]), len(positions)
 
 
-def _solved(ik: Any, starts: np.ndarray, positions: np.ndarray, quats: np.ndarray,
-            loads: StaticLoads, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """The LM's answers (B, n) N to waypoint k from ``starts`` (B, n) N, and (B,) True where
-    one passes the waypoint's own check."""
+def first_answers(seeding: Any, positions: np.ndarray, quats: np.ndarray, loads: StaticLoads,
+                  ranks: range) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The LM's answers (R, n) N to the first waypoint from the pool seeds of ``ranks``
+    (nearest tips first, clear ones first) by ``seeding``, their M(0) (R, 3) N·m, base
+    frame, and (R,) True where one passes the waypoint's own check."""
+    starts = [seeding._start(positions[:1], loads, rank) for rank in ranks]
+    return _solved(seeding, np.concatenate([t for t, _ in starts]),
+                   np.concatenate([m for _, m in starts]), positions, quats, loads, 0)
+
+
+def _solved(ik: Any, starts: np.ndarray, moments: np.ndarray | None, positions: np.ndarray,
+            quats: np.ndarray, loads: StaticLoads, k: int
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The LM's answers (B, n) N to waypoint k from ``starts`` (B, n) N with M(0)
+    ``moments`` (B, 3) N·m, base frame (None: from the tip moment), the answers' own M(0),
+    and (B,) True where one passes the waypoint's own check."""
     count = len(starts)
     where = np.repeat(positions[k:k + 1], count, axis=0)
     turn = np.repeat(quats[k:k + 1], count, axis=0)
     case = loads.rows(np.zeros(count, int))
-    answers = ik._lm(starts, where, turn, case)
-    return answers, ik._verdict(answers, where, turn, case, StageTiming()).success
+    answers, moments = ik._lm_carried(starts, where, turn, case, moments)
+    return answers, moments, ik._verdict(answers, where, turn, case, StageTiming()).success
 
 
 def _distinct(sets: np.ndarray, order: np.ndarray, settings: BranchSearch) -> np.ndarray:

@@ -94,6 +94,23 @@ class TensionIKResult(ResultIO):
     def __len__(self) -> int:
         return len(self.tensions)
 
+    def replace_rows(self, other: TensionIKResult, rows: np.ndarray,
+                     from_rows: np.ndarray) -> None:
+        """Rows ``rows`` of this result from rows ``from_rows`` of ``other`` (a solve of
+        the same targets, e.g. from other seeds)."""
+        for name in ("tensions", "position", "wxyz", "pose_error", "position_error",
+                     "rotation_error", "min_clearance", "max_violation", "success",
+                     "tendon_displacements", "base_moment"):
+            if getattr(self, name) is None or getattr(other, name) is None:
+                continue
+            values = np.array(getattr(self, name))
+            values[rows] = getattr(other, name)[from_rows]
+            setattr(self, name, values)
+        for k, values in other.violations.items():
+            self.violations[k][rows] = values[from_rows]
+        for i, j in zip(rows.tolist(), from_rows.tolist(), strict=True):
+            self.reason[i] = other.reason[j]
+
     def summary(self) -> dict[str, Any]:
         """Success rate and position errors in mm, for people."""
         ok = self.success

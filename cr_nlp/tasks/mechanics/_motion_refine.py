@@ -59,6 +59,7 @@ def refine_chain(robot: Robot, scene: Scene | None, config: Any, tensions: np.nd
     waypoint = TensionTerms(robot, cfg.statics, shoot,
                             clearance_weight=0.0 if arrays is None else cfg.clearance_weight,
                             clearance_band=cfg.safety_margin + cfg.clearance_buffer,
+                            self_weight=cfg.clearance_weight if robot.has_self_pairs else 0.0,
                             direct=True)
     terms = MotionTerms(waypoint, rate_step=cfg.rate_margin * cfg.tension_rate_max * cfg.dt,
                         smooth_weight=cfg.smooth_weight, rate_weight=cfg.rate_weight,

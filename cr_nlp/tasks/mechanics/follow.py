@@ -4,18 +4,22 @@ loads, one quasi-static motion judged as a whole, through the stages.
 
 - explore: each waypoint is a tension-space IK problem (``tasks.mechanics.ik``), solved in
   blocks of ``block`` consecutive waypoints in one batch, every waypoint of a block
-  warm-started from the answer before the block (the first from the seed pool); a
-  waypoint whose answer fails its own check is solved again from its predecessor's
-  answer, then from the pool's nearer seeds.
+  warm-started from the answer before the block: its tensions and its moment at the base
+  M(0), so the LM starts at an equilibrium and stays on that answer's branch (the first
+  waypoint from the nearest clear pool seeds); a waypoint whose answer fails its own check
+  is solved again from its predecessor's answer, then from the pool's nearer seeds.
 - refine: the whole motion at once by the banded LM (``stages.refine``'s
   ``solve_motion``): every waypoint's tip, equilibrium and clearance rows, and between
   neighbours a smoothness term and a hinge on the tension rate (aiming at ``rate_margin``
   of the limit). Solved together, the waypoints stay on one branch of the redundant
   tension sets and keep the rate limit, where waypoints solved one by one jump between
   branches.
-- where the refined motion does not verify, the per-waypoint answers are repaired (the
-  waypoint after a too-fast change solved again from the one before it) and the better
-  verified motion is kept; ``stage`` and ``notes`` say which.
+- where the refined motion does not verify (the branch the answers followed ran into an
+  obstacle, the tension bound or a tip it cannot reach), the branch search
+  (``_follow_branches``) carries several branches along the path at once and the chain
+  refines its cheapest motion; where that fails too, the per-waypoint answers are
+  repaired (the waypoint after a too-fast change solved again from the one before it).
+  The better verified motion is kept; ``stage`` and ``notes`` say which.
 
 The verdict (``tasks.mechanics._motion.verify_tension_motion``) is independent of the LM: a
 fresh forward statics solve at every waypoint and at ``samples_between`` interpolated
@@ -57,11 +61,14 @@ from .._result import Stage
 from .._timing import StageTiming
 from ..paths import ReferencePath
 from ..readers import checked_path
-from ._follow_branches import BranchSearch, branch_search
+from ._follow_branches import BranchSearch, branch_search, first_answers
 from ._motion import TensionMotionVerification, verify_tension_motion
 from ._motion_polish import polish_motion
 from ._motion_result import TensionFollowResult as TensionFollowResult
 from .ik import TensionIKConfig, TensionIKSolver
+
+SWEEP_SEEDS = 8
+"""Pool seeds (nearest tips first) of the first waypoint's LM runs, one batch."""
 
 
 @dataclass(frozen=True)
@@ -81,7 +88,8 @@ class TensionFollowConfig:
     """Waypoints solved together, each warm-started from the waypoint before the block."""
     smooth_passes: int = 16
     """Passes that re-solve the waypoint after a too-fast tension change from the one
-    before it (``TensionPathFollower._smooth``)."""
+    before it (``TensionPathFollower._smooth``), where the branch search found no motion
+    the verdict accepts."""
     retry_seeds: int = 2
     """Waypoints that fail are solved again from their predecessor, then from this many
     further pool seeds."""
@@ -95,14 +103,17 @@ class TensionFollowConfig:
     rate_margin: float = 0.9
     """κ: the chain aims at this fraction of ``tension_rate_max``."""
     branch_width: int = 8
-    """Where the verdict rejects both the chain and the per-waypoint answers: tension sets
+    """Where the verdict rejects the chain over the per-waypoint answers: tension sets
     kept per waypoint by the branch search (``_follow_branches``; 0: no search), whose
-    motion is then refined by the chain; kept where it verifies (on the fitted FTDCR rod
-    it followed 5 of 8 paths the per-waypoint answers could not, 10–23 s each)."""
-    branch_tries: int = 4
-    """LM runs from each kept set to the next waypoint (itself and moved copies)."""
+    motion is then refined by the chain; kept where it verifies (on the fitted FTDCR rod's
+    clutter scenes it followed the 7 of 12 paths the per-waypoint answers could not,
+    2.5–5 s of search each; width 6 lost one, 4 lost three)."""
+    branch_tries: int = 1
+    """LM runs from each kept set to the next waypoint (itself and ``tries − 1`` moved
+    copies). Before the LM carried M(0) from one waypoint to the next, 4 were needed; now
+    1 follows the same paths in 2.5–5 s instead of 7–12."""
     branch_spread: float = 1.0
-    """The Gaussian move of those copies, N (on that path 0.5 N lost every branch)."""
+    """The Gaussian move of those copies, N."""
     branch_distinct: float = 1.0
     """Kept sets differ by more than this on some tendon, N (0.2 N: copies of one branch,
     every one lost by waypoint 39 with width 8)."""
@@ -186,8 +197,8 @@ class TensionPathFollower:
         positions = reference.positions
         quats = (reference.wxyz if orientation else np.full((count, 4), np.nan))
         timing = StageTiming()
-        tensions = self._sweep(positions, quats, loads)
-        tensions = self._retry(tensions, positions, quats, loads)
+        tensions, moments = self._sweep(positions, quats, loads)
+        tensions, moments = self._retry(tensions, moments, positions, quats, loads)
         timing.explore = time.perf_counter() - start
         start = time.perf_counter()
         chained = self._chain(tensions, reference.dt, positions, quats, loads)
@@ -195,32 +206,34 @@ class TensionPathFollower:
         start = time.perf_counter()
         report = self.verify_tensions(chained, reference.dt, loads)
         timing.verify = time.perf_counter() - start
-        stage, notes = Stage.REFINE, ["banded LM over the whole motion"]
+        stage, notes = ((Stage.REFINE, ["banded LM over the whole motion"])
+                        if self.config.chain_iterations > 0 and count > 1 else
+                        (Stage.EXPLORE, ["per-waypoint answers (no chain refine)"]))
         alternative = None
-        missed = np.linalg.norm(report.tip_position - positions, axis=1) > self.config.tolerance
-        if not report.success or missed.any():  # the per-waypoint repair; the better motion
+        tolerance = self.config.tolerance
+        if not _whole(report, positions, tolerance):    # the branch search; the better motion
+            found, note = self._branches(positions, quats, loads, reference.dt, timing)
+            if found is not None and _better(found[1], report, positions, tolerance):
+                why = report.reason or "waypoints missed"
+                alternative, (chained, report, stage, notes) = chained, found
+                notes = [*notes, f"(the motion refined from the per-waypoint answers: {why})"]
+            else:
+                notes = [*notes, note]
+        if not _whole(report, positions, tolerance):    # the per-waypoint repair
             start = time.perf_counter()
-            smoothed = self._smooth(tensions, reference.dt, positions, quats, loads)
+            smoothed = self._smooth(tensions, moments, reference.dt, positions, quats, loads)
             timing.explore += time.perf_counter() - start
             start = time.perf_counter()
             other = self.verify_tensions(smoothed, reference.dt, loads)
-            if _better(other, report, positions, self.config.tolerance):
-                why = report.reason or f"{int(missed.sum())} waypoints missed"
+            if _better(other, report, positions, tolerance):
+                why = report.reason or "waypoints missed"
                 alternative, chained, report = chained, smoothed, other
                 stage, notes = Stage.EXPLORE, [
-                    f"per-waypoint answers (the motion refined as a whole was worse: {why})"]
-            else:
+                    f"per-waypoint answers (the motion refined as a whole was worse: {why})",
+                    *notes[1:]]
+            elif alternative is None:
                 alternative = smoothed
             timing.verify += time.perf_counter() - start
-        if not _whole(report, positions, self.config.tolerance):
-            found, note = self._branches(positions, quats, loads, reference.dt, timing)
-            if found is not None and _better(found[1], report, positions,
-                                             self.config.tolerance):
-                why = report.reason or "waypoints missed"
-                alternative, (chained, report, stage, notes) = chained, found
-                notes = [*notes, f"(the motion from the per-waypoint answers: {why})"]
-            else:
-                notes = [*notes, note]
         result = self._result(chained, reference, quats, loads, report, stage, notes)
         result.timing = timing
         if exact:
@@ -270,11 +283,8 @@ class TensionPathFollower:
         if cfg.branch_width <= 0:
             return None, "no branch search (branch_width 0)"
         start = time.perf_counter()
-        if self._seeding is None:          # the IK's own first damping, for pool seeds
-            self._seeding = TensionIKSolver(self.robot, self.scene,
-                                            replace(cfg.ik, round_iterations=0))
         motion, reached = branch_search(
-            self.ik, self._seeding, positions, quats, loads,
+            self.ik, self._seeding_ik(), positions, quats, loads,
             cfg.tension_rate_max * dt * (1 - 1e-9),
             BranchSearch(cfg.branch_width, cfg.branch_tries, cfg.branch_spread,
                          cfg.branch_distinct))
@@ -319,24 +329,48 @@ class TensionPathFollower:
         return tensions_of_unknowns(terms.waypoint, z)
 
     def _sweep(self, positions: np.ndarray, quats: np.ndarray,
-               loads: StaticLoads) -> np.ndarray:
-        """Blocks of waypoints, each warm-started from the answer before it."""
+               loads: StaticLoads) -> tuple[np.ndarray, np.ndarray]:
+        """Blocks of waypoints, each warm-started from the answer before it (its tensions
+        and M(0)): the tensions (T, n) N and their M(0) (T, 3) N·m, base frame."""
         count, block = len(positions), max(1, self.config.block)
         tensions = np.zeros((count, self.robot.n_tendons))
-        previous = self.ik._seeds(positions[:1], loads, 0)
+        moments = np.zeros((count, 3))
+        previous, moment = self._first(positions, quats, loads)
         for first in range(0, count, block):
             rows = np.arange(first, min(first + block, count))
-            tensions[rows] = self.ik._lm(np.repeat(previous, len(rows), axis=0),
-                                         positions[rows], quats[rows],
-                                         loads.rows(np.zeros(len(rows), int)))
-            previous = tensions[rows[-1:]]
-        return tensions
+            tensions[rows], moments[rows] = self.ik._lm_carried(
+                np.repeat(previous, len(rows), axis=0), positions[rows], quats[rows],
+                loads.rows(np.zeros(len(rows), int)),
+                None if moment is None else np.repeat(moment, len(rows), axis=0))
+            previous, moment = tensions[rows[-1:]], moments[rows[-1:]]
+        return tensions, moments
 
-    def _retry(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,
-               loads: StaticLoads) -> np.ndarray:
+    def _first(self, positions: np.ndarray, quats: np.ndarray,
+               loads: StaticLoads) -> tuple[np.ndarray, np.ndarray]:
+        """The first waypoint's answer (1, n) N and its M(0) (1, 3) N·m, base frame: the
+        IK's LM from the ``SWEEP_SEEDS`` nearest clear pool seeds, the nearest seed's answer
+        that passes the waypoint's check (else the closest tip). From the nearest seed by
+        the waypoints' short first steps it missed the tip by 8.6 mm on a fitted FTDCR
+        path."""
+        answers, moments, passed = first_answers(self._seeding_ik(), positions, quats,
+                                                 loads, range(SWEEP_SEEDS))
+        pick = int(np.argmax(passed)) if passed.any() else 0
+        return answers[pick:pick + 1], moments[pick:pick + 1]
+
+    def _seeding_ik(self) -> TensionIKSolver:
+        """The IK with its own first damping (long first steps, as from a pool seed); the
+        follower's ``ik`` takes short ones (a warm start keeps its branch)."""
+        if self._seeding is None:
+            self._seeding = self.ik.with_lm(round_iterations=0,
+                                            initial_damping=self.config.ik.initial_damping)
+        return self._seeding
+
+    def _retry(self, tensions: np.ndarray, moments: np.ndarray, positions: np.ndarray,
+               quats: np.ndarray, loads: StaticLoads) -> tuple[np.ndarray, np.ndarray]:
         """Waypoints whose own check fails, again from their predecessor's answer, then
         from further pool seeds; an attempt is kept where it passes its check (tip,
-        bounds, clearance of the scene), or fails it closer to the target."""
+        bounds, clearance of the scene), or fails it closer to the target. Returns the
+        tensions and their M(0) (``_sweep``'s)."""
         count = len(positions)
         check = self.ik._verdict(tensions, positions, quats, loads.rows(np.zeros(count, int)),
                                  StageTiming())
@@ -346,9 +380,13 @@ class TensionPathFollower:
             if not failed.size:
                 break
             part = loads.rows(np.zeros(len(failed), int))
-            seeds = (tensions[np.maximum(failed - 1, 0)] if attempt == 0
-                     else self.ik._seeds(positions[failed], part, attempt))
-            again = self.ik._lm(seeds, positions[failed], quats[failed], part)
+            if attempt == 0:
+                before = np.maximum(failed - 1, 0)
+                seeds, moment = tensions[before], moments[before]
+            else:
+                seeds, moment = self.ik._start(positions[failed], part, attempt)
+            again, again_moments = self.ik._lm_carried(seeds, positions[failed],
+                                                       quats[failed], part, moment)
             judged = self.ik._verdict(again, positions[failed], quats[failed], part,
                                       StageTiming())
             new_error = np.nan_to_num(judged.pose_error, nan=np.inf)
@@ -356,12 +394,13 @@ class TensionPathFollower:
             # the scene) beats any failed one; among failed ones the closer tip wins.
             better = judged.success | (new_error < error[failed])
             tensions[failed[better]] = again[better]
+            moments[failed[better]] = again_moments[better]
             error[failed[better]] = new_error[better]
             check.success[failed[better]] = judged.success[better]
-        return tensions
+        return tensions, moments
 
-    def _smooth(self, tensions: np.ndarray, dt: float, positions: np.ndarray,
-                quats: np.ndarray, loads: StaticLoads) -> np.ndarray:
+    def _smooth(self, tensions: np.ndarray, moments: np.ndarray, dt: float,
+                positions: np.ndarray, quats: np.ndarray, loads: StaticLoads) -> np.ndarray:
         """Where the tensions jump faster than ``tension_rate_max`` (a block's far
         waypoints landed on another tension set for the same tip), the waypoint after the
         jump is solved again from the one before it, pass after pass (each pass carries
@@ -375,7 +414,8 @@ class TensionPathFollower:
                 break
             rows = steps + 1
             part = loads.rows(np.zeros(len(rows), int))
-            again = self.ik._lm(tensions[steps], positions[rows], quats[rows], part)
+            again, again_moments = self.ik._lm_carried(tensions[steps], positions[rows],
+                                                       quats[rows], part, moments[steps])
             judged = self.ik._verdict(again, positions[rows], quats[rows], part,
                                       StageTiming())
             slower = np.max(np.abs(again - tensions[steps]), axis=1) / dt < rate[steps]
@@ -383,6 +423,7 @@ class TensionPathFollower:
             if not keep.any():
                 break
             tensions[rows[keep]] = again[keep]
+            moments[rows[keep]] = again_moments[keep]
         return tensions
 
     def verify_tensions(self, tensions: np.ndarray, dt: float,

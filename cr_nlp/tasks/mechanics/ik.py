@@ -68,6 +68,7 @@ from ...stages.refine import (
     box_bounds,
     iteration_budget,
     lm_solve,
+    moments_of_unknowns,
     project_box,
     tensions_of_unknowns,
     unknowns_of,
@@ -75,7 +76,7 @@ from ...stages.refine import (
     waypoint_residual,
 )
 from ...world.check import check_chains
-from ...world.clearance import SceneArrays, backbone_clearance_numpy, scene_arrays
+from ...world.clearance import SceneArrays, scene_arrays
 from ...world.scene import Scene, load_scene
 from ...world.verdict import judge_many
 from .._result import Stage
@@ -157,11 +158,13 @@ class TensionIKSolver:
         self._arrays = (None if self.scene is None or not self.scene.parts
                         else scene_arrays(self.scene, as_numpy=True))
         weight = config.clearance_weight if self._arrays is not None else 0.0
+        own = config.clearance_weight if self.robot.has_self_pairs else 0.0
         # One residual and projection object per solver and case (with or without M(0)
         # as an unknown): lm_solve compiles per object.
         self._terms = {shoot: TensionTerms(self.robot, config.statics, shoot,
                                            config.tension_weight, weight,
-                                           config.safety_margin + config.clearance_buffer)
+                                           config.safety_margin + config.clearance_buffer,
+                                           self_weight=own)
                        for shoot in (False, True)}
         self._residuals = {shoot: partial(waypoint_residual, terms)
                            for shoot, terms in self._terms.items()}
@@ -179,6 +182,16 @@ class TensionIKSolver:
             self._pools[key] = tension_pool(self.robot, loads, cfg.pool_size, cfg.seed,
                                             cfg.statics)
         return self._pools[key]
+
+    def with_lm(self, **changes: Any) -> TensionIKSolver:
+        """A solver of the same robot and scene with other LM ``iterations``, ``round_iterations``
+        or ``initial_damping``, sharing this one's seed pools and their clearance screens."""
+        unknown = set(changes) - {"iterations", "round_iterations", "initial_damping"}
+        if unknown:
+            raise ValueError(f"with_lm changes the LM's settings only, not {sorted(unknown)}")
+        other = TensionIKSolver(self.robot, self.scene, replace(self.config, **changes))
+        other._pools, other._pool_clear = self._pools, self._pool_clear
+        return other
 
     # ------------------------------------------------------------ solve
 
@@ -253,7 +266,7 @@ class TensionIKSolver:
             start = time.perf_counter()
             again = self._verdict(retry, positions[failed], quats[failed], part, timing)
             better = again.success | (again.pose_error < result.pose_error[failed])
-            _replace_rows(result, again, failed[better], np.flatnonzero(better))
+            result.replace_rows(again, failed[better], np.flatnonzero(better))
             stopped[failed[better]] = why[better]
             timing.verify += time.perf_counter() - start
         for i in np.flatnonzero(~result.success):   # why the LM left a rejected answer
@@ -313,7 +326,7 @@ class TensionIKSolver:
         for i, outcome in zip(rows.tolist(), accepted.outcomes, strict=True):
             if outcome.accepted:
                 judged, k = found[i]
-                _replace_rows(result, judged, np.array([i]), np.array([k]))
+                result.replace_rows(judged, np.array([i]), np.array([k]))
                 result.stage[i] = Stage.POLISH
             else:
                 result.notes[i].append(polish_note(outcome))
@@ -378,10 +391,6 @@ class TensionIKSolver:
         full.timing = part.timing
         return full
 
-    def _seeds(self, positions: np.ndarray, loads: StaticLoads, rank: int) -> np.ndarray:
-        """The pool tensions whose tip is the ``rank``-th nearest to each target (``_start``)."""
-        return self._start(positions, loads, rank)[0]
-
     def _start(self, positions: np.ndarray, loads: StaticLoads,
                rank: int) -> tuple[np.ndarray, np.ndarray | None]:
         """(tensions (B, n) N, their equilibria's M(0) (B, 3) N·m, base frame, or None): the
@@ -392,25 +401,20 @@ class TensionIKSolver:
         case = (loads.rows(np.zeros(1, int)) if shared
                 else static_loads(1, self.length))
         pool = self.pool(case)
-        if self._arrays is None:
+        if self._arrays is None and not self.robot.has_self_pairs:
             pick = pool.nearest(positions, rank)
-        else:  # among the nearest sets, the clear ones first (in order of distance)
-            clear = self._clear_pool(pool)
-            k = min(len(pool.tensions), SEED_NEIGHBOURS + rank)
-            _, index = pool.tree.query(positions, k=k)
-            order = np.argsort(~clear[index], axis=1, kind="stable")
-            pick = np.take_along_axis(index, order[:, rank:rank + 1], axis=1)[:, 0]
+        else:
+            pick = pool.nearest_clear(positions, rank, self._clear_pool(pool), SEED_NEIGHBOURS)
         moments = base_frame(self.robot, pool.base_moments[pick]) if shared else None
         return pool.tensions[pick], moments
 
     def _clear_pool(self, pool: TensionPool) -> np.ndarray:
-        """(P,) True where a pool set's backbone keeps δ + buffer from the scene (a quick
-        sphere screen, once per pool)."""
+        """(P,) True where a pool set's backbone keeps δ + buffer from the scene and from
+        itself (segments at least two apart): a quick sphere screen, once per pool."""
         key = id(pool)
         if key not in self._pool_clear:
-            band = self.config.safety_margin + self.config.clearance_buffer
-            self._pool_clear[key] = backbone_clearance_numpy(
-                self.robot.backbone_radius, self._arrays, pool.backbones) >= band
+            self._pool_clear[key] = pool.clear_sets(
+                self.robot, self._arrays, self.config.safety_margin + self.config.clearance_buffer)
         return self._pool_clear[key]
 
     def terms(self, shoot: bool) -> TensionTerms:
@@ -467,13 +471,35 @@ class TensionIKSolver:
         """LM from the given tensions (and M(0) (B, 3) N·m, base frame, where known: a warm
         start); returns the answer's tensions (B, n), N. The batch is padded to a power of
         two, at least ``smallest`` (a few compiled programs for every batch size)."""
-        return self._lm_stopped(tensions, positions, quats, loads, base_moment, smallest)[0]
+        terms, z, _, _ = self._lm_unknowns(tensions, positions, quats, loads, base_moment,
+                                           smallest)
+        return tensions_of_unknowns(terms, z)
+
+    def _lm_carried(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,
+                    loads: StaticLoads, base_moment: np.ndarray | None = None,
+                    smallest: int = 16) -> tuple[np.ndarray, np.ndarray]:
+        """``_lm`` and the answers' own M(0) (B, 3) N·m, base frame: the warm start of the
+        next waypoint's LM. Without it the LM starts M(0) from the tip moment, which under
+        gravity is far from the equilibrium, and closing that gap moves the tensions too
+        (on the fitted FTDCR rod 6–8 N from an exact answer, onto another branch)."""
+        terms, z, _, moment = self._lm_unknowns(tensions, positions, quats, loads,
+                                                base_moment, smallest)
+        return tensions_of_unknowns(terms, z), moments_of_unknowns(terms, z, moment)
 
     def _lm_stopped(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,
                     loads: StaticLoads, base_moment: np.ndarray | None = None,
                     smallest: int = 16) -> tuple[np.ndarray, np.ndarray]:
         """``_lm`` and why the LM stopped on each target ((B,) words of
-        ``stages.refine.STOP_REASONS``).
+        ``stages.refine.STOP_REASONS``)."""
+        terms, z, why, _ = self._lm_unknowns(tensions, positions, quats, loads, base_moment,
+                                             smallest)
+        return tensions_of_unknowns(terms, z), why
+
+    def _lm_unknowns(self, tensions: np.ndarray, positions: np.ndarray, quats: np.ndarray,
+                     loads: StaticLoads, base_moment: np.ndarray | None, smallest: int
+                     ) -> tuple[TensionTerms, np.ndarray, np.ndarray, np.ndarray]:
+        """The LM's (terms, answers' unknowns (B, size), why each stopped, the M(0) that
+        holds without forces).
 
         The LM runs in rounds of ``TensionIKConfig.round_iterations``: after each, only the
         targets still running go on, from where they stopped, in a batch padded to their
@@ -492,7 +518,7 @@ class TensionIKSolver:
             z[going], why[going] = self._lm_round(terms, z[going], part, trips, smallest)
             going = going[why[going] == "out of iterations"]
             left -= trips
-        return tensions_of_unknowns(terms, z), why
+        return terms, z, why, moment
 
     def _lm_round(self, terms: TensionTerms, z0: np.ndarray, params: WaypointParams,
                   iterations: int, smallest: int) -> tuple[np.ndarray, np.ndarray]:
@@ -565,23 +591,6 @@ class TensionIKSolver:
             point_loads=loads.point_load_lists(),
             tendon_displacements=np.array(statics.tendon_displacements), timing=timing,
             violations=dict(verdicts.violations), base_moment=np.array(statics.base_moment))
-
-
-def _replace_rows(result: TensionIKResult, other: TensionIKResult, rows: np.ndarray,
-                  from_rows: np.ndarray) -> None:
-    """Rows ``rows`` of ``result`` from rows ``from_rows`` of ``other`` (same targets)."""
-    for name in ("tensions", "position", "wxyz", "pose_error", "position_error",
-                 "rotation_error", "min_clearance", "max_violation", "success",
-                 "tendon_displacements", "base_moment"):
-        if getattr(result, name) is None or getattr(other, name) is None:
-            continue
-        values = np.array(getattr(result, name))
-        values[rows] = getattr(other, name)[from_rows]
-        setattr(result, name, values)
-    for k, values in other.violations.items():
-        result.violations[k][rows] = values[from_rows]
-    for i, j in zip(rows.tolist(), from_rows.tolist(), strict=True):
-        result.reason[i] = other.reason[j]
 
 
 def solve_tension_ik(robot: Robot | str | dict, positions: Any, wxyz: Any = None,

@@ -73,6 +73,32 @@ def test_round_trip_tensions_statics_ik_statics(solver: TensionIKSolver) -> None
                                atol=1e-12)
 
 
+def test_a_warm_start_with_its_moment_at_the_base_stays_at_its_equilibrium(
+        solver: TensionIKSolver) -> None:
+    """Under gravity and a payload M(0) is one of the LM's unknowns. Started from exact
+    answers with their equilibria's M(0) (``_lm_carried``: what the follower carries from
+    one waypoint to the next), the LM keeps each shape (fresh statics of its answer) and
+    returns that M(0); started from the tip moment instead, closing the equilibrium gap
+    moves the tensions as well, and the shapes leave by centimetres."""
+    from cr_nlp.stages.refine import base_frame
+
+    gravity, payload = [0.0, 0.0, -9.81], [0.0, 0.0, -0.005 * 9.81]
+    tensions = _random_tensions(8, seed=3)
+    truth = solve_statics(RAO, tensions, payload, None, gravity)
+    loads = static_loads(8, solver.length, payload, None, gravity)
+    free = np.full((8, 4), np.nan)
+    moments = base_frame(RAO, truth.base_moment)
+    answer, carried = solver._lm_carried(tensions, truth.tip_position, free, loads, moments)
+    again = solve_statics(RAO, answer, payload, None, gravity)
+    # (antagonistic sets come back as the least tensions of the same moments: same shape)
+    assert np.abs(again.positions - truth.positions).max() < 1e-4
+    assert np.linalg.norm(again.tip_position - truth.tip_position, axis=1).max() < 1e-8
+    np.testing.assert_allclose(carried, moments, atol=1e-4)
+    cold = solve_statics(RAO, solver._lm(tensions, truth.tip_position, free, loads), payload,
+                         None, gravity)
+    assert np.abs(cold.positions - truth.positions).max() > 0.01
+
+
 def test_round_trip_under_a_payload_held_mid_body(solver: TensionIKSolver, tmp_path) -> None:
     """A 20 g payload held at 0.25 m from the base, a sideways force on the tip and gravity
     on the backbone; the result file keeps the loads it was solved under."""
