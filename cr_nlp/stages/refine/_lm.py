@@ -220,7 +220,8 @@ def _budget(iterations: int, x64: bool) -> jax.Array:
 @partial(jax.jit, static_argnames=("residual", "project", "config"))
 def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any, shared: Any,
              free: jax.Array, iterations: jax.Array, config: LMConfig = LMConfig(),
-             bounds: tuple[jax.Array, jax.Array] | None = None) -> LMSolution:
+             bounds: tuple[jax.Array, jax.Array] | None = None,
+             damping: jax.Array | None = None) -> LMSolution:
     """Run projected LM on a batch.
 
     Long: one traced while_loop whose step helpers close over residual, bounds and config.
@@ -239,6 +240,9 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
             none). A variable on its bound whose gradient points out of the box is held
             there for the step (the projected-Newton active set), so that the step of the
             others is not spoiled by a clipped one.
+        damping: optional (B,) starting damping of each problem, replacing
+            ``config.initial_damping`` (data: solvers that differ only by it share one
+            compiled program).
 
     Returns:
         ``LMSolution``: z (B, n), final cost ½‖r‖² (B,), iterations used (scalar) and why
@@ -246,7 +250,7 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
     """
     if config.jacobian == "broyden":
         return _broyden_solve(residual, project, z0, params, shared, free, iterations,
-                              config, bounds)
+                              config, bounds, damping)
     dtype = z0.dtype
     free = free.astype(dtype)
     z0 = project(z0)
@@ -293,7 +297,7 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
 
     # Derived from z0 (not jnp.full) so that under shard_map they vary per shard too.
     zero = jnp.zeros_like(z0[:, 0])
-    lam0 = zero + jnp.asarray(config.initial_damping, dtype)
+    lam0 = zero + jnp.asarray(config.initial_damping if damping is None else damping, dtype)
     nu0 = zero + jnp.asarray(2.0, dtype)
     state = (z0, jnp.zeros_like(z0[:, :, None] * z0[:, None, :]), jnp.zeros_like(z0),
              zero + jnp.inf, z0, zero, lam0, nu0, zero > 0, (zero > 0).astype(jnp.int8),
@@ -340,7 +344,8 @@ def damped_trial(z: jax.Array, h: jax.Array, g: jax.Array, lam: jax.Array, free:
 
 def _broyden_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any,
                    shared: Any, free: jax.Array, iterations: jax.Array, config: LMConfig,
-                   bounds: tuple[jax.Array, jax.Array] | None) -> LMSolution:
+                   bounds: tuple[jax.Array, jax.Array] | None,
+                   damping: jax.Array | None = None) -> LMSolution:
     """``lm_solve`` with ``jacobian="broyden"``: the loop keeps J and r of the current
     iterate; a trip evaluates the trial point's residual only and updates J by Broyden's
     rule J += (r_t − r − J s) sᵀ / sᵀs along the step s (accepted or not: the secant
@@ -389,7 +394,8 @@ def _broyden_solve(residual: Residual, project: Projection, z0: jax.Array, param
     r0 = jax.eval_shape(lambda: each(z0, params, shared))
     j0 = jnp.zeros((*r0.shape, z0.shape[1]), dtype) + zero[:, None, None]
     state = (z0, j0, jnp.zeros(r0.shape, dtype) + zero[:, None], zero + jnp.inf, z0, zero,
-             zero + jnp.asarray(config.initial_damping, dtype), zero + jnp.asarray(2.0, dtype),
+             zero + jnp.asarray(config.initial_damping if damping is None else damping, dtype),
+             zero + jnp.asarray(2.0, dtype),
              zero > 0, (zero > 0).astype(jnp.int8), jnp.int32(-1))
     z, _, _, cost, *_, why, it = jax.lax.while_loop(running, body, state)
     out_of_iterations = jnp.asarray(STOP_REASONS.index("out of iterations"), jnp.int8)

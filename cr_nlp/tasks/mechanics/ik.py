@@ -190,7 +190,8 @@ class TensionIKSolver:
         if unknown:
             raise ValueError(f"with_lm changes the LM's settings only, not {sorted(unknown)}")
         other = TensionIKSolver(self.robot, self.scene, replace(self.config, **changes))
-        other._pools, other._pool_clear = self._pools, self._pool_clear
+        for name in ("_pools", "_pool_clear", "_terms", "_residuals", "_project"):
+            setattr(other, name, getattr(self, name))
         return other
 
     # ------------------------------------------------------------ solve
@@ -499,12 +500,9 @@ class TensionIKSolver:
                      loads: StaticLoads, base_moment: np.ndarray | None, smallest: int
                      ) -> tuple[TensionTerms, np.ndarray, np.ndarray, np.ndarray]:
         """The LM's (terms, answers' unknowns (B, size), why each stopped, the M(0) that
-        holds without forces).
-
-        The LM runs in rounds of ``TensionIKConfig.round_iterations``: after each, only the
-        targets still running go on, from where they stopped, in a batch padded to their
-        own count (most converge in the first round; a batch's loop runs until its last
-        problem stops, so the stragglers no longer keep the whole batch iterating)."""
+        holds without forces), in rounds of ``TensionIKConfig.round_iterations``: after each
+        only the targets still running go on, in a batch padded to their own count (a
+        batch's loop runs until its last problem stops: stragglers kept it iterating)."""
         cfg = self.config
         shoot, params, moment = self.waypoint_params(positions, quats, loads)
         terms = self._terms[shoot]
@@ -526,10 +524,12 @@ class TensionIKSolver:
         batch is padded to a power of two, at least ``smallest``."""
         dtype = self.config.statics.numpy_dtype
         size = max(smallest, 1 << (len(z0) - 1).bit_length())
-        with jax.enable_x64(dtype == np.float64):
+        config = self.waypoint_lm_config()   # its first damping as data: one program
+        with jax.enable_x64(dtype == np.float64):     # for the solvers of ``with_lm``
             solution = lm_solve(self._residuals[terms.shoot], self._project,
                                 *self.lm_arguments(z0, params, iterations, size - len(z0)),
-                                self.waypoint_lm_config(), bounds=box_bounds(terms, dtype))
+                                replace(config, initial_damping=0.0), box_bounds(terms, dtype),
+                                np.full(size, config.initial_damping, dtype))
             z = np.asarray(solution.z, dtype=float)[:len(z0)]
         return z, np.array(solution.reasons()[:len(z0)], dtype=object)
 

@@ -99,6 +99,27 @@ def test_a_warm_start_with_its_moment_at_the_base_stays_at_its_equilibrium(
     assert np.abs(cold.positions - truth.positions).max() > 0.01
 
 
+def test_a_solver_with_another_first_damping_runs_the_same_compiled_lm(
+        solver: TensionIKSolver) -> None:
+    """``with_lm`` (the follower's waypoint and seed LMs) shares the residuals and passes
+    the first damping as data: no new program, and its own damping still acts (from the
+    same starts its answers differ from the parent's)."""
+    from cr_nlp.stages.refine import lm_solve
+
+    truth = solve_statics(RAO, _random_tensions(4, seed=4))
+    loads = static_loads(4, solver.length)
+    free = np.full((4, 4), np.nan)
+    start = np.full((4, RAO.n_tendons), 1.0)
+    before = solver._lm(start, truth.tip_position, free, loads)
+    programs = lm_solve._cache_size()
+    other = solver.with_lm(initial_damping=10.0)
+    after = other._lm(start, truth.tip_position, free, loads)
+    assert lm_solve._cache_size() == programs
+    assert not np.allclose(after, before)
+    with pytest.raises(ValueError, match="pool_size"):
+        solver.with_lm(pool_size=16)
+
+
 def test_round_trip_under_a_payload_held_mid_body(solver: TensionIKSolver, tmp_path) -> None:
     """A 20 g payload held at 0.25 m from the base, a sideways force on the tip and gravity
     on the backbone; the result file keeps the loads it was solved under."""
