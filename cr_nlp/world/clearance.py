@@ -356,10 +356,10 @@ def backbone_clearance_numpy(radius: float, arrays: SceneArrays | None,
 
 
 @cache
-def chain_self_pairs(segments: int, per_segment: int) -> tuple[np.ndarray, np.ndarray]:
-    """Index pairs (i, j) of the spheres of a backbone chain of ``segments`` × ``per_segment``
-    pieces (its 1 + n·k points, then its n·k piece midpoints) whose pieces lie on segments
-    at least two apart (the verdict's self pairs)."""
+def chain_self_pairs(segments: int, per_segment: int) -> np.ndarray:
+    """(M, 2) index pairs of the spheres of a backbone chain of ``segments`` ×
+    ``per_segment`` pieces (its 1 + n·k points, then its n·k piece midpoints) whose pieces
+    lie on segments at least two apart (the verdict's self pairs)."""
     pieces = segments * per_segment
     point = np.arange(pieces + 1)
     low = np.r_[np.maximum(point - 1, 0) // per_segment, np.arange(pieces) // per_segment]
@@ -367,22 +367,25 @@ def chain_self_pairs(segments: int, per_segment: int) -> tuple[np.ndarray, np.nd
     # A point joins the pieces on each side: a pair counts where any piece of one lies
     # two segments from any piece of the other (the verdict's capsules hold both ends).
     apart = (high[:, None] - low[None, :] >= 2) | (high[None, :] - low[:, None] >= 2)
-    i, j = np.nonzero(np.triu(apart, 1))
-    return i, j
+    return np.stack(np.nonzero(np.triu(apart, 1)), axis=1)
 
 
-def chain_self_clearance_numpy(robot: Robot, chains: np.ndarray) -> np.ndarray:
-    """Float64 numpy: (B,) the smallest signed distance (m) between spheres of the backbone
-    radius at the points and piece midpoints of backbone chains (B, 1 + n·k, 3) m on
-    segments at least two apart (``chain_self_pairs``; inf for fewer than three segments)."""
-    chains = np.asarray(chains, dtype=np.float64)
+def chain_self_distances(robot: Robot, chains: Any, ops: Ops = JAX) -> Any:
+    """(…, M) signed distances (m) between spheres of the backbone radius at the points and
+    piece midpoints of backbone chains (…, 1 + n·k, 3) m on segments at least two apart
+    (``chain_self_pairs``; M = 0 for fewer than three segments; ``ops``: JAX or NUMPY)."""
+    xp = np if ops is NUMPY else jnp
+    centres = xp.concatenate([chains, 0.5 * (chains[..., 1:, :] + chains[..., :-1, :])], axis=-2)
     segments = len(robot.segments)
-    i, j = chain_self_pairs(segments, (chains.shape[1] - 1) // segments)
-    if not len(i):
-        return np.full(len(chains), np.inf)
-    centres = np.concatenate([chains, 0.5 * (chains[:, 1:] + chains[:, :-1])], axis=1)
-    gap = np.linalg.norm(centres[:, i] - centres[:, j], axis=-1) - 2.0 * robot.backbone_radius
-    return gap.min(axis=1)
+    pairs = chain_self_pairs(segments, (chains.shape[-2] - 1) // segments)
+    return _self_block(robot, centres, ops, pairs)
+
+
+def chain_self_clearance_numpy(robot: Robot, chains: Any) -> np.ndarray:
+    """Float64 numpy: (B,) the smallest of ``chain_self_distances`` of each chain (inf for
+    fewer than three segments)."""
+    distances = chain_self_distances(robot, np.asarray(chains, dtype=np.float64), NUMPY)
+    return distances.min(axis=-1, initial=np.inf)
 
 
 def all_pair_distances_numpy(robot: Robot, arrays: SceneArrays | None, z: Any,

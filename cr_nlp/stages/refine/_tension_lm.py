@@ -50,7 +50,7 @@ from ...model.cosserat import CaseLoads, StaticsConfig, backbone_equilibrium, mo
 from ...model.rotations import matrix_from_wxyz
 from ...model.tendon_groups import moments_from_tensions, tendon_groups, tensions_from_moments
 from ...runtime import cached
-from ...world.clearance import SceneArrays, chain_self_pairs, kind_distances
+from ...world.clearance import SceneArrays, chain_self_distances, kind_distances
 from ._banded_lm import ChainResidual, banded_lm_solve
 from ._lm import LMConfig, iteration_budget
 
@@ -222,12 +222,9 @@ def clearance_rows(terms: TensionTerms, positions: jax.Array,
 
 def self_rows(terms: TensionTerms, positions: jax.Array) -> jax.Array:
     """w·max(0, band − d) for every pair of backbone spheres (robot points and midpoints,
-    the backbone radius) on segments at least two apart, d their signed distance, m."""
-    centres = jnp.concatenate([positions, 0.5 * (positions[1:] + positions[:-1])])
-    segments = len(terms.robot.segments)
-    i, j = chain_self_pairs(segments, (positions.shape[0] - 1) // segments)
-    gap = (jnp.linalg.norm(centres[i] - centres[j], axis=-1)
-           - 2.0 * terms.robot.backbone_radius)
+    the backbone radius) on segments at least two apart, d their signed distance
+    (``world.clearance.chain_self_distances``), m."""
+    gap = chain_self_distances(terms.robot, positions)
     return terms.self_weight * jnp.maximum(terms.clearance_band - gap, 0.0)
 
 
