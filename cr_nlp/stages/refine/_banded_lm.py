@@ -61,6 +61,13 @@ class ChainResidual:
     """A cheaper form of ``unary``: the same rows with the same derivatives wherever
     ``near`` is False (e.g. the tracking rows alone and zeros for clearance penalties that
     vanish with their derivatives far from every obstacle). None: always ``unary``."""
+    tail_size: int = 0
+    """The last ``tail_size`` unknowns of a waypoint enter ``unary`` linearly (a plan's
+    tip unknowns, tied to the rod's tip): with difference Jacobians only the others are
+    perturbed (each perturbation is a pass of the rod) and ``unary_tail`` gives the rest."""
+    unary_tail: Callable[[jax.Array, Any, Any], jax.Array] | None = None
+    """(z_t, params_t, shared) → (m₁, ``tail_size``): ``unary``'s constant Jacobian with
+    respect to the last ``tail_size`` unknowns."""
     near: Callable[[jax.Array, Any, Any], jax.Array] | None = None
     """(z (T, d), params, shared) → bool: whether ``unary`` may differ from ``unary_far``
     anywhere on the chain z. Where False, the Jacobians come from ``unary_far`` (a
@@ -135,7 +142,10 @@ def chain_jacobians(terms: ChainResidual, z: jax.Array, params: Any,
         if fn is None:
             continue
         if k == 1 and differences:
-            j, r = difference_jacobian(fn, z, params, shared)
+            j, r = difference_jacobian(fn, z, params, shared, d - terms.tail_size)
+            if terms.tail_size:
+                tail = jax.vmap(terms.unary_tail, in_axes=(0, 0, None))(z, params, shared)
+                j = jnp.concatenate([j, tail.astype(j.dtype)], axis=2)
             out.append((1, r, j[:, :, None, :]))
             continue
         if k == 1 and terms.unary_far is not None and terms.near is not None:

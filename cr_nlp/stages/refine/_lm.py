@@ -110,15 +110,16 @@ def solve_spd_cholesky(a: jax.Array, b: jax.Array) -> jax.Array:
 
 
 def difference_jacobian(residual: Residual, z: jax.Array, params: Any,
-                 shared: Any) -> tuple[jax.Array, jax.Array]:
-    """(J (B, m, n), r (B, m)) by forward differences, all n + 1 points in one call."""
-    n = z.shape[-1]
-    h = jnp.sqrt(jnp.finfo(z.dtype).eps) * jnp.maximum(jnp.abs(z), 1.0)     # (B, n)
-    points = jnp.concatenate([z[:, None], z[:, None] + jnp.eye(n, dtype=z.dtype) * h[:, None]],
-                             axis=1)                                       # (B, n + 1, n)
+                        shared: Any, columns: int | None = None) -> tuple[jax.Array, jax.Array]:
+    """(J (B, m, k), r (B, m)) by forward differences over the first k = ``columns``
+    unknowns (None: all n), all k + 1 points in one call."""
+    k = z.shape[-1] if columns is None else columns
+    h = jnp.sqrt(jnp.finfo(z.dtype).eps) * jnp.maximum(jnp.abs(z[:, :k]), 1.0)   # (B, k)
+    steps = jnp.eye(z.shape[-1], dtype=z.dtype)[:k] * h[:, :, None]            # (B, k, n)
+    points = jnp.concatenate([z[:, None], z[:, None] + steps], axis=1)     # (B, k + 1, n)
     each = jax.vmap(jax.vmap(residual, in_axes=(0, None, None)), in_axes=(0, 0, None))
-    r = each(points, params, shared)                                       # (B, n + 1, m)
-    j = (r[:, 1:] - r[:, :1]) / h[:, :, None]                              # (B, n, m)
+    r = each(points, params, shared)                                       # (B, k + 1, m)
+    j = (r[:, 1:] - r[:, :1]) / h[:, :, None]                              # (B, k, m)
     return jnp.swapaxes(j, 1, 2), r[:, 0]
 
 

@@ -114,45 +114,78 @@ def verify_tension_motion(robot: Robot, scene: Scene | None, tensions: np.ndarra
         samples_between: interpolated tension sets checked between waypoints.
         statics: the rod discretisation of the fresh solves (default ``StaticsConfig()``).
     """
-    tensions = np.asarray(tensions, dtype=float)
-    bad = np.argwhere(~(tensions >= 0.0) | ~np.isfinite(tensions))
-    if bad.size:
-        k, j = bad[0]
-        raise ValueError(f"waypoint {k}: tendon {j + 1}: a tension must be a finite number "
-                         f"≥ 0 N (a tendon pulls), got {tensions[k, j]:g}")
-    samples, at = interpolated(tensions, samples_between)
-    solved, checked = solve_and_check(robot, scene, samples, loads, statics)
+    return verify_tension_motions(robot, scene, [tensions], dt, loads, margin=margin,
+                                  rate_max=rate_max, samples_between=samples_between,
+                                  statics=statics)[0]
+
+
+def verify_tension_motions(robot: Robot, scene: Scene | None, motions: list[np.ndarray],
+                           dt: float, loads: StaticLoads, *, margin: float, rate_max: float,
+                           samples_between: int = 2,
+                           statics: StaticsConfig | None = None
+                           ) -> list[TensionMotionVerification]:
+    """``verify_tension_motion`` of several motions (each (T_i, n) N), in order: the
+    samples of all of them solved and checked in one batch (a plan's searched and refined
+    motions of every problem; each report is the one its motion gets alone)."""
+    motions = [np.asarray(m, dtype=float) for m in motions]
+    for tensions in motions:
+        bad = np.argwhere(~(tensions >= 0.0) | ~np.isfinite(tensions))
+        if bad.size:
+            k, j = bad[0]
+            raise ValueError(f"waypoint {k}: tendon {j + 1}: a tension must be a finite "
+                             f"number ≥ 0 N (a tendon pulls), got {tensions[k, j]:g}")
+    if not motions:
+        return []
+    each = [interpolated(tensions, samples_between) for tensions in motions]
+    solved, checked = solve_and_check(robot, scene, np.concatenate([s for s, _ in each]),
+                                      loads, statics)
+    bounds = np.cumsum([0, *(len(s) for s, _ in each)])
+    return [_judged(robot, scene, tensions, dt, samples, at, solved, checked,
+                    slice(a, b), margin, rate_max, samples_between)
+            for tensions, (samples, at), a, b in zip(motions, each, bounds[:-1], bounds[1:],
+                                                     strict=True)]
+
+
+def _judged(robot: Robot, scene: Scene | None, tensions: np.ndarray, dt: float,
+            samples: np.ndarray, at: np.ndarray, solved: StaticsResult,
+            checked: CheckManyResult, rows: slice, margin: float, rate_max: float,
+            samples_between: int) -> TensionMotionVerification:
+    """The verdict of one motion from its ``rows`` of a batch's fresh solves and checks."""
+    converged_rows = solved.converged[rows]
+    obstacle = np.asarray(checked.obstacle_distance[rows], dtype=float)
+    own = np.asarray(checked.self_distance[rows], dtype=float)
     tension_max = float(robot.mechanics.tension_max)
     limits = np.maximum(np.max(-samples, axis=1), np.max(samples - tension_max, axis=1))
     verdicts = judge_many(margin=margin, limits=limits,
-                          min_clearance=None if scene is None else checked.obstacle_distance,
-                          self_clearance=checked.self_distance)
+                          min_clearance=None if scene is None else obstacle,
+                          self_clearance=own)
     rate = np.diff(tensions, axis=0) / dt
     violations = {k: float(np.max(v, initial=0.0)) for k, v in verdicts.violations.items()}
     violations["tension_rate"] = float(np.max(np.abs(rate) - rate_max, initial=0.0).clip(0.0))
     worst = max(violations.values())
-    converged = bool(solved.converged.all())
+    converged = bool(converged_rows.all())
     reason = ""
     if not converged:
-        bad = int(np.flatnonzero(~solved.converged)[0])
+        bad = int(np.flatnonzero(~converged_rows)[0])
         reason = (f"the forward statics did not converge at sample {bad} (waypoint "
                   f"{bad / (samples_between + 1):.2f})")
     else:
-        reason = failure_reason(violations, min_clearance=float(np.min(
-            checked.obstacle_distance, initial=np.inf)), self_clearance=float(np.min(
-                checked.self_distance, initial=np.inf)))
-    obstacle = np.asarray(checked.obstacle_distance, dtype=float)
-    failed = ~solved.converged | ~(verdicts.max_violation <= VIOLATION_TOLERANCE)
+        reason = failure_reason(violations, min_clearance=float(np.min(obstacle,
+                                                                       initial=np.inf)),
+                                self_clearance=float(np.min(own, initial=np.inf)))
+    failed = ~converged_rows | ~(verdicts.max_violation <= VIOLATION_TOLERANCE)
     steps = np.flatnonzero(np.add.reduceat(failed, np.arange(0, len(samples) - 1,
                                                               samples_between + 1))
                            | failed[at[1:]] if len(tensions) > 1 else [])
     steps = np.union1d(steps, np.flatnonzero(np.max(np.abs(rate), axis=1, initial=0.0)
                                              - rate_max > VIOLATION_TOLERANCE))
+    waypoints = rows.start + at
     return TensionMotionVerification(
         success=converged and worst <= VIOLATION_TOLERANCE, reason=reason,
         violations=violations, max_violation=worst, converged=converged,
         min_clearance=float(np.min(obstacle, initial=np.inf)), clearance=obstacle[at],
-        tip_position=np.array(solved.tip_position[at]), tip_wxyz=np.array(solved.tip_wxyz[at]),
-        backbone=np.array(solved.positions[at]),
-        tendon_displacements=np.array(solved.tendon_displacements[at]), tension_rate=rate,
-        failed_steps=steps.astype(int))
+        tip_position=np.array(solved.tip_position[waypoints]),
+        tip_wxyz=np.array(solved.tip_wxyz[waypoints]),
+        backbone=np.array(solved.positions[waypoints]),
+        tendon_displacements=np.array(solved.tendon_displacements[waypoints]),
+        tension_rate=rate, failed_steps=steps.astype(int))

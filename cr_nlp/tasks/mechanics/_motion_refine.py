@@ -16,8 +16,10 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
+import jax
 import numpy as np
 
 from ...model import Robot
@@ -28,13 +30,14 @@ from ...stages.refine import (
     MotionTerms,
     TensionTerms,
     base_frame,
-    solve_motion,
+    solve_motions,
     tensions_of_unknowns,
     unknowns_of,
     waypoint_params,
 )
 from ...world.clearance import scene_arrays
 from ...world.scene import Scene
+from .._timing import StageTiming
 from ._motion import TensionMotionVerification, interpolated
 
 
@@ -45,7 +48,18 @@ def refine_chain(robot: Robot, scene: Scene | None, config: Any, tensions: np.nd
     (``TensionTrajectoryConfig``: weights, δ, rate): each waypoint's equilibrium and
     backbone clearance, between neighbours the tip's step, a smoothness term and the
     tension-rate hinge (``stages.refine``'s ``solve_motion``); returns (T, n) N."""
+    return refine_chains(robot, scene, config, [tensions], iterations, loads=loads)[0]
+
+
+def refine_chains(robot: Robot, scene: Scene | None, config: Any, motions: list[np.ndarray],
+                  iterations: int, *, loads: StaticLoads) -> list[np.ndarray]:
+    """``refine_chain`` of several motions (each (T_i, n) N), in order, each refined as
+    it is alone: one statics solve for every waypoint's start, one vmapped LM per padded
+    length (``stages.refine``'s ``solve_motions``)."""
+    if not motions:
+        return []
     cfg = config
+    tensions = np.concatenate(motions)
     count = len(tensions)
     every = loads.rows(np.zeros(count, int))
     solved = solve_statics(robot, tensions, every.tip_force, every.tip_moment, every.gravity,
@@ -66,55 +80,124 @@ def refine_chain(robot: Robot, scene: Scene | None, config: Any, tensions: np.nd
                         tip_path_weight=cfg.tip_path_weight)
     z0 = np.concatenate([unknowns_of(waypoint, tensions, base_frame(robot, solved.base_moment)),
                          params.target], axis=1)
-    free = np.ones_like(z0)
-    free[[0, -1], :waypoint.size] = 0.0      # the start and goal stay as they are
-    z, _, _ = solve_motion(terms, z0, params, arrays, free, iterations,
-                           LMConfig(jacobian="differences", stall_tolerance=1e-6))
-    out = np.array(tensions_of_unknowns(waypoint, z))
-    out[0], out[-1] = tensions[0], tensions[-1]
+    bounds = np.cumsum([0, *(len(m) for m in motions)])
+    pieces = list(zip(bounds[:-1], bounds[1:], strict=True))
+    frees = []
+    for a, b in pieces:
+        free = np.ones_like(z0[a:b])
+        free[[0, -1], :waypoint.size] = 0.0      # the start and goal stay as they are
+        frees.append(free)
+    answers = solve_motions(
+        terms, [z0[a:b] for a, b in pieces],
+        [jax.tree_util.tree_map(lambda x, a=a, b=b: np.asarray(x)[a:b], params)
+         for a, b in pieces], arrays, frees, iterations,
+        LMConfig(jacobian="differences", stall_tolerance=1e-6))
+    out = []
+    for motion, (z, _, _) in zip(motions, answers, strict=True):
+        refined = np.array(tensions_of_unknowns(waypoint, z))
+        refined[0], refined[-1] = motion[0], motion[-1]
+        out.append(refined)
     return out
 
 
-def mended(config: Any, searched: np.ndarray, tensions: np.ndarray,
-           verify: Callable[[np.ndarray], TensionMotionVerification],
-           refine: Callable[[np.ndarray, int], np.ndarray]
-           ) -> tuple[np.ndarray, TensionMotionVerification, list[str], float]:
-    """A refined motion ``tensions`` (T, n) N, mended where ``verify`` rejects it: up to
+Mended = tuple[np.ndarray, TensionMotionVerification, list[str]]
+"""A mended motion (T, n) N, its verdict, and notes saying what ran."""
+
+
+def mended(config: Any, searched: list[np.ndarray], motions: list[np.ndarray],
+           verify: Callable[[list[np.ndarray]], list[TensionMotionVerification]],
+           refine: Callable[[list[np.ndarray], int], list[np.ndarray]]
+           ) -> tuple[list[Mended], float]:
+    """Refined motions (each (T, n) N), each mended where ``verify`` rejects it: up to
     ``config.repair_rounds`` times the checked samples of its failing steps become
     waypoints (``with_samples``) and ``refine`` runs ``config.repair_iterations`` LM
     iterations on the whole motion; still rejected, the first of ``config.blends``
-    (fractions of the way from ``searched``, resampled, to the refined motion) that
-    ``verify`` accepts. Returns (the motion, its verdict, notes saying what ran, seconds
-    spent in ``verify``)."""
-    seconds, notes = 0.0, []
+    (fractions of the way from its ``searched`` motion, resampled, to the refined one)
+    that ``verify`` accepts. ``verify`` and ``refine`` take lists: each round is one
+    batch over the motions that need it. Returns (per motion (the motion, its verdict,
+    notes saying what ran), seconds spent in ``verify``)."""
+    seconds = 0.0
+    motions = list(motions)
+    notes: list[list[str]] = [[] for _ in motions]
 
-    def judged(motion: np.ndarray) -> TensionMotionVerification:
+    def judged(batch: list[np.ndarray]) -> list[TensionMotionVerification]:
         nonlocal seconds
         begin = time.perf_counter()
-        report = verify(motion)
+        reports = verify(batch)
         seconds += time.perf_counter() - begin
-        return report
+        return reports
 
-    report = judged(tensions)
+    reports = judged(motions)
     for round_ in range(config.repair_rounds):
-        if report.success or not len(report.failed_steps):
+        todo = [i for i, r in enumerate(reports) if not r.success and len(r.failed_steps)]
+        if not todo:
             break
-        tensions = refine(with_samples(tensions, report.failed_steps,
-                                       config.samples_between), config.repair_iterations)
-        report = judged(tensions)
-        notes.append(f"repair {round_ + 1}: the samples the verdict checks on the steps it "
-                     "rejected made waypoints, refined again")
-    if report.success:
-        return tensions, report, notes, seconds
-    base = resampled(searched, len(tensions))
-    for fraction in config.blends:
-        blend = base + fraction * (tensions - base)
-        blended = judged(blend)
-        if blended.success:
-            notes.append(f"{fraction:g} of the way from the searched motion to the refined "
-                         f"one (the refined one: {report.reason})")
-            return blend, blended, notes, seconds
-    return tensions, report, notes, seconds
+        again = refine([with_samples(motions[i], reports[i].failed_steps,
+                                     config.samples_between) for i in todo],
+                       config.repair_iterations)
+        for i, motion, report in zip(todo, again, judged(again), strict=True):
+            motions[i], reports[i] = motion, report
+            notes[i].append(f"repair {round_ + 1}: the samples the verdict checks on the "
+                            "steps it rejected made waypoints, refined again")
+    failing = [i for i, r in enumerate(reports) if not r.success]
+    blends = [(i, fraction, base + fraction * (motions[i] - base))
+              for i in failing
+              for base in [resampled(searched[i], len(motions[i]))]
+              for fraction in config.blends]
+    chosen: set[int] = set()
+    for (i, fraction, blend), report in zip(blends, judged([b for _, _, b in blends]),
+                                            strict=True):
+        if report.success and i not in chosen:
+            chosen.add(i)
+            notes[i].append(f"{fraction:g} of the way from the searched motion to the "
+                            f"refined one (the refined one: {reports[i].reason})")
+            motions[i], reports[i] = blend, report
+    return list(zip(motions, reports, notes, strict=True)), seconds
+
+
+def refined_plans(planner: Any, planned: list[int], searched: list[Any], loads: StaticLoads,
+                  timings: list[StageTiming]) -> dict[int, tuple[Any, np.ndarray]]:
+    """The refine stage of a ``TensionTrajectoryPlanner`` (``planner``): the searched
+    motions (``searched``, results) of the problems ``planned`` refined by the banded LM
+    (its ``refine_motions``), mended where the verdict rejects them
+    (``mended``), each kept where it verifies and is no worse (verified,
+    then the shorter tip path), else the search's (``Stage.EXPLORE``, the note says
+    why); all problems in one batch per step, their seconds shared evenly in
+    ``timings``. Per problem: (the result, the refined tensions); none without a
+    refine."""
+    if planner.config.chain_iterations <= 0 or not planned:
+        return {}
+    start = time.perf_counter()
+    before = [searched[i] for i in planned]
+    motions = planner.refine_motions([r.tensions for r in before], loads)
+    answers, verify = mended(
+        planner.config, [r.tensions for r in before], motions,
+        partial(planner.verify_motions, loads=loads),
+        partial(refine_chains, planner.robot, planner.scene, planner.config, loads=loads))
+    refine = time.perf_counter() - start - verify
+    start = time.perf_counter()
+    refined = [planner._result(i, tensions[0], tensions[-1], np.ones(2, bool), tensions,
+                               [*searched[i].notes, "refined by the banded LM", *notes],
+                               loads, report=report)
+               for i, (tensions, report, notes) in zip(planned, answers, strict=True)]
+    lengths = planner.tip_paths([r.tensions for r in refined + before], loads)
+    verify += time.perf_counter() - start
+    out = {}
+    for k, i in enumerate(planned):
+        timings[i].refine = refine / len(planned)
+        timings[i].verify += verify / len(planned)
+        result, kept = refined[k], before[k]
+        length, shorter = lengths[k], lengths[len(planned) + k]
+        if result.success and (not kept.success or length <= shorter):
+            result.notes.append(f"tip path {1e3 * length:.1f} mm (searched "
+                                f"{1e3 * shorter:.1f})")
+        else:
+            why = (result.reason if not result.success else f"its tip path "
+                   f"{1e3 * length:.1f} mm is not shorter than {1e3 * shorter:.1f}")
+            kept.notes.append(f"the refined motion was not kept: {why}")
+            result = kept
+        out[i] = (result, answers[k][0])
+    return out
 
 
 def with_samples(tensions: np.ndarray, steps: np.ndarray, between: int) -> np.ndarray:

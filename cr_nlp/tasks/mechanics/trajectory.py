@@ -71,13 +71,17 @@ from ._motion import (
     interpolated,
     solve_and_check,
     verify_tension_motion,
+    verify_tension_motions,
 )
 from ._motion_polish import polish_motion
-from ._motion_refine import mended, refine_chain, resampled
+from ._motion_refine import refine_chains, refined_plans, resampled
 from ._motion_result import TensionTrajectoryResult as TensionTrajectoryResult
 
 PROBLEM_KEYS = ("start", "goal")
 """The keys of one problem of a tension problems file."""
+VIA_ROUNDS = (0, 4)
+"""Where each round of a problem's via screening starts among its candidates (cheapest
+first): the 4 cheapest, then the rest of ``via_candidates``."""
 
 
 @dataclass(frozen=True)
@@ -264,6 +268,16 @@ class TensionTrajectoryPlanner:
                                      margin=cfg.safety_margin, rate_max=cfg.tension_rate_max,
                                      samples_between=cfg.samples_between, statics=cfg.statics)
 
+    def verify_motions(self, motions: list[np.ndarray], loads: StaticLoads
+                     ) -> list[TensionMotionVerification]:
+        """The verdicts of several motions (T_i, n) N under ``loads`` with this planner's
+        settings, in one batch of fresh solves (``_motion.verify_tension_motions``)."""
+        cfg = self.config
+        return verify_tension_motions(self.robot, self.scene, motions, cfg.dt, loads,
+                                      margin=cfg.safety_margin, rate_max=cfg.tension_rate_max,
+                                      samples_between=cfg.samples_between,
+                                      statics=cfg.statics)
+
     def plan(self, starts: Any, goals: Any, *, tip_force: Any = None, tip_moment: Any = None,
              gravity: Any = None, distributed_force: Any = None,
              point_loads: Any = None, exact: bool = False,
@@ -288,8 +302,8 @@ class TensionTrajectoryPlanner:
         Raises:
             ValueError: a malformed tension set or load (naming the problem and key).
 
-        Long: the search's three steps (endpoints, direct legs, via points) and the
-        verdict, in order, over the whole batch.
+        Long: the search's three steps (endpoints, direct legs, via points), its verdicts,
+        the refine and exact mode, in order, each step over the whole batch.
         """
         check_time_limit(time_limit, "time_limit")
         begin = time.perf_counter()
@@ -311,20 +325,28 @@ class TensionTrajectoryPlanner:
         for i, plan, ok in zip(valid, direct, self._screen(direct, loads), strict=True):
             if ok:
                 plans[i], notes[i] = plan, ["direct leg"]
-        for i in valid:
-            if plans[i] is None:
-                plans[i], notes[i] = self._via_plan(starts[i], goals[i], loads)
+        todo = [i for i in valid if plans[i] is None]
+        for i, (plan, note) in zip(todo, self._via_plans(starts[todo], goals[todo], loads),
+                                   strict=True):
+            plans[i], notes[i] = plan, note
         explore = (time.perf_counter() - begin) / max(count, 1)
+        timings = [StageTiming(explore=explore) for _ in range(count)]
+        begin = time.perf_counter()
+        planned = [i for i in range(count) if plans[i] is not None]
+        reports = dict(zip(planned, self.verify_motions([plans[i] for i in planned], loads),
+                           strict=True))
+        searched = [self._result(i, starts[i], goals[i], ends_clear[:, i], plans[i],
+                                 notes[i], loads, stage=Stage.EXPLORE, report=reports.get(i))
+                    for i in range(count)]
+        for timing in timings:
+            timing.verify = (time.perf_counter() - begin) / max(count, 1)
+        refined = refined_plans(self, planned, searched, loads, timings)
         results = []
         for i in range(count):
-            timing = StageTiming(explore=explore)
-            searched = self._result(i, starts[i], goals[i], ends_clear[:, i], plans[i],
-                                    notes[i], loads, stage=Stage.EXPLORE)
-            result, refined = ((searched, None) if plans[i] is None
-                               else self._refined(i, searched, loads, timing))
-            result.timing = timing
+            result, motion = refined.get(i, (searched[i], None))
+            result.timing = timings[i]
             if exact:
-                result = self._polish(result, refined, loads, timing, time_limit)
+                result = self._polish(result, motion, loads, timings[i], time_limit)
             results.append(result)
         return results
 
@@ -364,7 +386,7 @@ class TensionTrajectoryPlanner:
                                  polish_accepted=True)
         if polished is result:        # not accepted: the note says why
             return result
-        length, kept = (self.tip_path(r.tensions, loads) for r in (polished, result))
+        length, kept = self.tip_paths([polished.tensions, result.tensions], loads)
         if length <= kept:
             polished.notes.append(f"tip path {1e3 * length:.1f} mm (the {result.stage.value}"
                                   f" stage's {1e3 * kept:.1f})")
@@ -373,46 +395,25 @@ class TensionTrajectoryPlanner:
                             f"{1e3 * length:.1f} mm is not shorter than {1e3 * kept:.1f}")
         return result   # its timing is ``timing`` and polish_motion set its exact_mode
 
-    def _refined(self, index: int, searched: TensionTrajectoryResult, loads: StaticLoads,
-                 timing: StageTiming) -> tuple[TensionTrajectoryResult, np.ndarray | None]:
-        """The searched motion refined by the banded LM (``refine_motion``), mended where
-        the verdict rejects it (``_motion_refine.mended``), kept where it verifies and is no worse
-        (verified, then the shorter tip path), else the search's (``Stage.EXPLORE``, the
-        note says why); ``timing`` gets the seconds. Also the refined tensions (None: no
-        refine)."""
-        if self.config.chain_iterations <= 0:
-            return searched, None
-        start = time.perf_counter()
-        tensions = self.refine_motion(searched.tensions, loads)
-        tensions, report, notes, verify = mended(
-            self.config, searched.tensions, tensions, partial(self._verify, loads=loads),
-            partial(refine_chain, self.robot, self.scene, self.config, loads=loads))
-        timing.refine = time.perf_counter() - start - verify
-        start = time.perf_counter()
-        refined = self._result(index, tensions[0], tensions[-1], np.ones(2, bool), tensions,
-                               [*searched.notes, "refined by the banded LM", *notes], loads,
-                               report=report)
-        timing.verify = verify + time.perf_counter() - start
-        length, before = (self.tip_path(r.tensions, loads) for r in (refined, searched))
-        if refined.success and (not searched.success or length <= before):
-            refined.notes.append(f"tip path {1e3 * length:.1f} mm (searched {1e3 * before:.1f})")
-            return refined, tensions
-        why = (refined.reason if not refined.success else
-               f"its tip path {1e3 * length:.1f} mm is not shorter than {1e3 * before:.1f}")
-        searched.notes.append(f"the refined motion was not kept: {why}")
-        return searched, tensions
-
     def tip_path(self, tensions: np.ndarray, loads: StaticLoads, samples: int = 64) -> float:
         """The length of the tip's path (m) along a motion (T, n) N, from fresh statics
         at ``samples`` tension sets evenly spaced along it (so that motions with different
         waypoint counts compare fairly)."""
-        dense = resampled(np.asarray(tensions, float), samples)
-        every = loads.rows(np.zeros(samples, int))
+        return float(self.tip_paths([tensions], loads, samples)[0])
+
+    def tip_paths(self, motions: list[np.ndarray], loads: StaticLoads,
+                  samples: int = 64) -> np.ndarray:
+        """``tip_path`` of several motions (m each), one statics solve for all."""
+        if not motions:
+            return np.zeros(0)
+        dense = np.concatenate([resampled(np.asarray(m, float), samples) for m in motions])
+        every = loads.rows(np.zeros(len(dense), int))
         solved = solve_statics(self.robot, dense, every.tip_force, every.tip_moment,
                                every.gravity, self.config.statics,
                                distributed_force=every.distributed_force,
                                point_loads=every.point_load_lists())
-        return _tip_path(np.asarray(solved.tip_position))
+        tips = np.asarray(solved.tip_position).reshape(len(motions), samples, 3)
+        return np.sum(np.linalg.norm(np.diff(tips, axis=1), axis=2), axis=1)
 
     def refine_motion(self, tensions: np.ndarray, loads: StaticLoads) -> np.ndarray:
         """A motion (T, n) N refined as a whole with its first and last tension sets
@@ -420,31 +421,54 @@ class TensionTrajectoryPlanner:
         equilibrium and backbone clearance, between neighbours the tip's step, a
         smoothness term and the tension-rate hinge (``stages.refine``'s ``solve_motion``,
         tip path weight ``tip_path_weight``); returns (T', n) N."""
-        cfg = self.config
-        count = max(len(tensions), math.ceil(cfg.time_slack * (len(tensions) - 1)) + 1)
-        return refine_chain(self.robot, self.scene, cfg, resampled(tensions, count),
-                            cfg.chain_iterations, loads=loads)
+        return self.refine_motions([tensions], loads)[0]
 
-    def _via_plan(self, start: np.ndarray, goal: np.ndarray,
-                  loads: StaticLoads) -> tuple[np.ndarray, list[str]]:
-        """The cheapest clear start → via → goal among the best via candidates, else the
-        quickest route through the roadmap (``roadmap``), else the direct legs (which the
-        verdict will fail, saying where)."""
+    def refine_motions(self, motions: list[np.ndarray], loads: StaticLoads
+                       ) -> list[np.ndarray]:
+        """``refine_motion`` of several motions (N), in order: one batched LM
+        (``_motion_refine.refine_chains``)."""
+        cfg = self.config
+        counts = [max(len(t), math.ceil(cfg.time_slack * (len(t) - 1)) + 1) for t in motions]
+        return refine_chains(self.robot, self.scene, cfg,
+                             [resampled(t, c) for t, c in zip(motions, counts, strict=True)],
+                             cfg.chain_iterations, loads=loads)
+
+    def _via_plans(self, starts: np.ndarray, goals: np.ndarray, loads: StaticLoads
+                   ) -> list[tuple[np.ndarray, list[str]]]:
+        """Per problem (starts, goals (B, n) N): the cheapest clear start → via → goal
+        among its best via candidates, else the quickest route through the roadmap
+        (``roadmap``), else the direct legs (which the verdict will fail, saying where).
+        The candidates are screened cheapest first in rounds (``VIA_ROUNDS``), every
+        problem's in one batch: most problems find a clear via among their first few."""
         vias = self.vias(loads)
-        cost = leg_change(vias, start) + leg_change(goal, vias)
-        order = np.argsort(cost)[:self.config.via_candidates]
-        plans = [self._legs([start, vias[k], goal]) for k in order]
-        clear = self._screen(plans, loads)
-        if clear.any():
-            k = int(np.flatnonzero(clear)[0])
-            return plans[k], [f"via tension set {int(order[k])} of the pool"]
+        orders = [np.argsort(leg_change(vias, a) + leg_change(b, vias))[
+            :self.config.via_candidates] for a, b in zip(starts, goals, strict=True)]
+        found: list[tuple[np.ndarray, list[str]] | None] = [None] * len(starts)
+        for first, last in zip(VIA_ROUNDS, (*VIA_ROUNDS[1:], None), strict=True):
+            candidates = [(k, int(j), self._legs([starts[k], vias[j], goals[k]]))
+                          for k in range(len(starts)) if found[k] is None
+                          for j in orders[k][first:last]]
+            for (k, j, plan), ok in zip(candidates, self._screen(
+                    [plan for _, _, plan in candidates], loads), strict=True):
+                if ok and found[k] is None:
+                    found[k] = plan, [f"via tension set {j} of the pool"]
+        for k in range(len(starts)):
+            if found[k] is None:
+                found[k] = self._route(starts[k], goals[k], loads, len(orders[k]))
+        return found
+
+    def _route(self, start: np.ndarray, goal: np.ndarray, loads: StaticLoads,
+               screened: int) -> tuple[np.ndarray, list[str]]:
+        """The quickest route through the roadmap, else the direct legs (no single via
+        among the ``screened`` cheapest was clear)."""
+        vias = self.vias(loads)
         route = self.roadmap(loads).route(start, goal, partial(self._screen_legs, loads),
                                           self.config.via_candidates)
         if route is not None:
             return self._legs([start, *vias[route], goal]), [
                 f"via tension sets {', '.join(map(str, route))} of the pool (the roadmap)"]
         return self._legs([start, goal]), [
-            f"no clear via among the {len(order)} cheapest of {len(vias)} candidates, nor a "
+            f"no clear via among the {screened} cheapest of {len(vias)} candidates, nor a "
             "route through the roadmap"]
 
     def roadmap(self, loads: StaticLoads) -> Any:
@@ -549,11 +573,6 @@ class TensionTrajectoryPlanner:
 def _case_key(loads: StaticLoads) -> bytes:
     """The bytes of a load case: what the planner's via sets and roadmap are kept under."""
     return b"".join(np.ascontiguousarray(a).tobytes() for a in loads.arrays())
-
-
-def _tip_path(tips: np.ndarray) -> float:
-    """The length of a polyline of tip positions (T, 3), m."""
-    return float(np.sum(np.linalg.norm(np.diff(tips, axis=0), axis=1)))
 
 
 def plan_tension_trajectories(robot: Robot | str | dict, starts: Any, goals: Any,
