@@ -61,13 +61,12 @@ class ChainResidual:
     """A cheaper form of ``unary``: the same rows with the same derivatives wherever
     ``near`` is False (e.g. the tracking rows alone and zeros for clearance penalties that
     vanish with their derivatives far from every obstacle). None: always ``unary``."""
-    tail_size: int = 0
-    """The last ``tail_size`` unknowns of a waypoint enter ``unary`` linearly (a plan's
-    tip unknowns, tied to the rod's tip): with difference Jacobians only the others are
-    perturbed (each perturbation is a pass of the rod) and ``unary_tail`` gives the rest."""
     unary_tail: Callable[[jax.Array, Any, Any], jax.Array] | None = None
-    """(z_t, params_t, shared) → (m₁, ``tail_size``): ``unary``'s constant Jacobian with
-    respect to the last ``tail_size`` unknowns."""
+    """(z_t, params_t, shared) → (m₁, k): ``unary``'s constant Jacobian with respect to
+    a waypoint's last k unknowns, which enter it linearly (a plan's tip unknowns, tied to
+    the rod's tip): with difference Jacobians only the others are perturbed (each
+    perturbation is a pass of the rod). (Only functions here: ``_by_shape`` walks a
+    dataclass of functions.)"""
     near: Callable[[jax.Array, Any, Any], jax.Array] | None = None
     """(z (T, d), params, shared) → bool: whether ``unary`` may differ from ``unary_far``
     anywhere on the chain z. Where False, the Jacobians come from ``unary_far`` (a
@@ -142,9 +141,11 @@ def chain_jacobians(terms: ChainResidual, z: jax.Array, params: Any,
         if fn is None:
             continue
         if k == 1 and differences:
-            j, r = difference_jacobian(fn, z, params, shared, d - terms.tail_size)
-            if terms.tail_size:
+            if terms.unary_tail is None:
+                j, r = difference_jacobian(fn, z, params, shared)
+            else:
                 tail = jax.vmap(terms.unary_tail, in_axes=(0, 0, None))(z, params, shared)
+                j, r = difference_jacobian(fn, z, params, shared, d - tail.shape[-1])
                 j = jnp.concatenate([j, tail.astype(j.dtype)], axis=2)
             out.append((1, r, j[:, :, None, :]))
             continue

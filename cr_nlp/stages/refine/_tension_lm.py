@@ -357,7 +357,7 @@ def motion_chain(terms: MotionTerms) -> ChainResidual:
         return ChainResidual(unary=partial(motion_unary, terms),
                              pair=partial(motion_pair, terms))
     return ChainResidual(unary=partial(motion_unary, terms), pair=partial(motion_pair, terms),
-                         tail_size=3, unary_tail=partial(motion_unary_tail, terms))
+                         unary_tail=partial(motion_unary_tail, terms))
 
 
 @cached(maxsize=32)
