@@ -99,7 +99,10 @@ def test_motions_refined_together_get_the_answers_each_gets_alone(planner, loads
 
 def test_the_tip_unknowns_jacobian_is_their_derivative(planner, loads) -> None:
     """A plan's tip unknowns enter its waypoint rows linearly: the constant Jacobian the
-    LM uses instead of differences (``motion_unary_tail``) is forward-mode autodiff's."""
+    LM uses instead of differences (``motion_unary_tail``) is the rows' change per unit
+    step of each tip unknown (exact for a linear dependence, any step)."""
+    from functools import partial
+
     from cr_nlp.model.cosserat import solve_statics
     from cr_nlp.stages.refine import (
         MotionTerms,
@@ -111,24 +114,29 @@ def test_the_tip_unknowns_jacobian_is_their_derivative(planner, loads) -> None:
     from cr_nlp.stages.refine._tension_lm import motion_unary, motion_unary_tail
     from cr_nlp.world.clearance import SceneArrays, scene_arrays
 
-    cfg = planner.config
     tensions = np.stack([STARTS[0], GOALS[0]])
     every = loads.rows(np.zeros(2, int))
     solved = solve_statics(RAO, tensions, PAYLOAD, None, GRAVITY)
     shoot, params, _ = waypoint_params(RAO, solved.tip_position, np.full((2, 4), np.nan),
                                        every, tip_weight=0.0)
-    waypoint = TensionTerms(RAO, cfg.statics, shoot, clearance_weight=100.0,
+    waypoint = TensionTerms(RAO, planner.config.statics, shoot, clearance_weight=100.0,
                             clearance_band=0.004, direct=True)
     terms = MotionTerms(waypoint, rate_step=2.0, tip_path_weight=1.0)
     z = np.concatenate([unknowns_of(waypoint, tensions, base_frame(RAO, solved.base_moment)),
                         params.target + 0.01], axis=1)
-    shared = SceneArrays(*(jax.numpy.asarray(a) for a in scene_arrays(planner.scene,
-                                                                      as_numpy=True)))
     with jax.enable_x64(True):
+        shared = SceneArrays(*(jax.numpy.asarray(a) for a in scene_arrays(planner.scene,
+                                                                          as_numpy=True)))
+        rows = jax.jit(partial(motion_unary, terms))
         for k in range(2):
             p = jax.tree_util.tree_map(lambda a, k=k: jax.numpy.asarray(np.asarray(a)[k]),
                                        params)
-            full = jax.jacfwd(lambda x, p=p: motion_unary(terms, x, p, shared))(z[k])
-            tail = motion_unary_tail(terms, z[k], p, shared)
-            np.testing.assert_allclose(tail, full[:, waypoint.size:], atol=1e-12)
-            assert np.abs(full[-3:, waypoint.size:]).max() == terms.tie_weight
+            tail = np.asarray(motion_unary_tail(terms, z[k], p, shared))
+            base = np.asarray(rows(z[k], p, shared))
+            assert tail.shape == (len(base), 3)
+            for j in range(3):
+                moved = z[k].copy()
+                moved[waypoint.size + j] += 0.05
+                change = (np.asarray(rows(moved, p, shared)) - base) / 0.05
+                np.testing.assert_allclose(tail[:, j], change, rtol=0, atol=1e-9)
+            assert np.abs(tail[-3:]).max() == terms.tie_weight
