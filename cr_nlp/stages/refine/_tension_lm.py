@@ -53,7 +53,7 @@ from ...model.tendon_groups import moments_from_tensions, tendon_groups, tension
 from ...runtime import cached
 from ...world.clearance import SceneArrays, chain_self_distances, kind_distances
 from ._banded_lm import ChainResidual, banded_lm_solve
-from ._lm import LMConfig, iteration_budget
+from ._lm import LMConfig, LMSolution, iteration_budget, lm_solve
 
 EQUILIBRIUM_WEIGHT = 10.0
 """Weight of the equilibrium rows against the tip rows (both in metres)."""
@@ -390,6 +390,28 @@ def _one(terms: ChainResidual, project: Any, z0: jax.Array, params: Any, shared:
          config: LMConfig) -> tuple[jax.Array, jax.Array, jax.Array]:
     """``banded_lm_solve`` on one chain (T, size)."""
     return banded_lm_solve(terms, project, z0, params, shared, free, iterations, config)
+
+
+def _waypoints(residual: Any, project: Any, z0: jax.Array, params: Any, shared: Any,
+               free: jax.Array, iterations: jax.Array, config: LMConfig, bounds: Any,
+               damping: jax.Array) -> tuple[jax.Array, ...]:
+    """``lm_solve`` on a batch of waypoints, its ``LMSolution`` as a plain tuple."""
+    return tuple(lm_solve(residual, project, z0, params, shared, free, iterations, config,
+                          bounds, damping))
+
+
+_lm_waypoints = cached_jit(_waypoints, name="the tension LM", outputs=4,
+                           static_argnums=(0, 1, 7))
+
+
+def solve_waypoints(residual: Any, project: Any, z0: Any, params: Any, shared: Any,
+                    free: Any, iterations: jax.Array, config: LMConfig,
+                    bounds: tuple[Any, Any], damping: Any) -> LMSolution:
+    """``lm_solve`` (arguments as there, ``bounds`` and ``damping`` given) through a
+    program compiled per shape and loaded from disk by a later process, not traced again
+    (the tension IK's rounds: 4 batch sizes, ~10 s of tracing in every process before)."""
+    return LMSolution(*_lm_waypoints(residual, project, z0, params, shared, free, iterations,
+                                     config, bounds, damping))
 
 
 # Compiled per shape and loaded from disk in a later process (not traced again).

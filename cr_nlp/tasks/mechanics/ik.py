@@ -67,9 +67,9 @@ from ...stages.refine import (
     base_frame,
     box_bounds,
     iteration_budget,
-    lm_solve,
     moments_of_unknowns,
     project_box,
+    solve_waypoints,
     tensions_of_unknowns,
     unknowns_of,
     waypoint_params,
@@ -159,8 +159,7 @@ class TensionIKSolver:
                         else scene_arrays(self.scene, as_numpy=True))
         weight = config.clearance_weight if self._arrays is not None else 0.0
         own = config.clearance_weight if self.robot.has_self_pairs else 0.0
-        # One residual and projection object per solver and case (with or without M(0)
-        # as an unknown): lm_solve compiles per object.
+        # One residual and projection object per case (M(0) an unknown or not): one program.
         self._terms = {shoot: TensionTerms(self.robot, config.statics, shoot,
                                            config.tension_weight, weight,
                                            config.safety_margin + config.clearance_buffer,
@@ -526,10 +525,11 @@ class TensionIKSolver:
         size = max(smallest, 1 << (len(z0) - 1).bit_length())
         config = self.waypoint_lm_config()   # its first damping as data: one program
         with jax.enable_x64(dtype == np.float64):     # for the solvers of ``with_lm``
-            solution = lm_solve(self._residuals[terms.shoot], self._project,
-                                *self.lm_arguments(z0, params, iterations, size - len(z0)),
-                                replace(config, initial_damping=0.0), box_bounds(terms, dtype),
-                                np.full(size, config.initial_damping, dtype))
+            solution = solve_waypoints(
+                self._residuals[terms.shoot], self._project,
+                *self.lm_arguments(z0, params, iterations, size - len(z0)),
+                replace(config, initial_damping=0.0), box_bounds(terms, dtype),
+                np.full(size, config.initial_damping, dtype))
             z = np.asarray(solution.z, dtype=float)[:len(z0)]
         return z, np.array(solution.reasons()[:len(z0)], dtype=object)
 

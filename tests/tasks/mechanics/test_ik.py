@@ -104,17 +104,17 @@ def test_a_solver_with_another_first_damping_runs_the_same_compiled_lm(
     """``with_lm`` (the follower's waypoint and seed LMs) shares the residuals and passes
     the first damping as data: no new program, and its own damping still acts (from the
     same starts its answers differ from the parent's)."""
-    from cr_nlp.stages.refine import lm_solve
+    from cr_nlp.stages.refine._tension_lm import _lm_waypoints
 
     truth = solve_statics(RAO, _random_tensions(4, seed=4))
     loads = static_loads(4, solver.length)
     free = np.full((4, 4), np.nan)
     start = np.full((4, RAO.n_tendons), 1.0)
     before = solver._lm(start, truth.tip_position, free, loads)
-    programs = lm_solve._cache_size()
+    programs = len(_lm_waypoints._compiled)
     other = solver.with_lm(initial_damping=10.0)
     after = other._lm(start, truth.tip_position, free, loads)
-    assert lm_solve._cache_size() == programs
+    assert len(_lm_waypoints._compiled) == programs
     assert not np.allclose(after, before)
     with pytest.raises(ValueError, match="pool_size"):
         solver.with_lm(pool_size=16)
