@@ -80,8 +80,7 @@ from ._motion_result import TensionTrajectoryResult as TensionTrajectoryResult
 PROBLEM_KEYS = ("start", "goal")
 """The keys of one problem of a tension problems file."""
 VIA_ROUNDS = (0, 4)
-"""Where each round of a problem's via screening starts among its candidates (cheapest
-first): the 4 cheapest, then the rest of ``via_candidates``."""
+"""Where each via screening round starts among a problem's candidates (cheapest first)."""
 
 
 @dataclass(frozen=True)
@@ -268,8 +267,8 @@ class TensionTrajectoryPlanner:
                                      margin=cfg.safety_margin, rate_max=cfg.tension_rate_max,
                                      samples_between=cfg.samples_between, statics=cfg.statics)
 
-    def verify_motions(self, motions: list[np.ndarray], loads: StaticLoads
-                     ) -> list[TensionMotionVerification]:
+    def verify_motions(self, motions: list[np.ndarray],
+                       loads: StaticLoads) -> list[TensionMotionVerification]:
         """The verdicts of several motions (T_i, n) N under ``loads`` with this planner's
         settings, in one batch of fresh solves (``_motion.verify_tension_motions``)."""
         cfg = self.config
@@ -440,6 +439,8 @@ class TensionTrajectoryPlanner:
         (``roadmap``), else the direct legs (which the verdict will fail, saying where).
         The candidates are screened cheapest first in rounds (``VIA_ROUNDS``), every
         problem's in one batch: most problems find a clear via among their first few."""
+        if not len(starts):
+            return []       # every direct leg clear: no via pool to build
         vias = self.vias(loads)
         orders = [np.argsort(leg_change(vias, a) + leg_change(b, vias))[
             :self.config.via_candidates] for a, b in zip(starts, goals, strict=True)]
@@ -459,8 +460,7 @@ class TensionTrajectoryPlanner:
 
     def _route(self, start: np.ndarray, goal: np.ndarray, loads: StaticLoads,
                screened: int) -> tuple[np.ndarray, list[str]]:
-        """The quickest route through the roadmap, else the direct legs (no single via
-        among the ``screened`` cheapest was clear)."""
+        """The roadmap's quickest route, else the direct legs (no clear single via)."""
         vias = self.vias(loads)
         route = self.roadmap(loads).route(start, goal, partial(self._screen_legs, loads),
                                           self.config.via_candidates)

@@ -55,6 +55,15 @@ def test_the_via_search_in_rounds_picks_the_cheapest_clear_via(planner, loads,
         np.testing.assert_array_equal(a, b)
 
 
+def test_a_batch_of_direct_legs_builds_no_via_pool() -> None:
+    """Where every problem's direct leg is clear (no scene), the planner neither solves nor
+    loads its pool of via sets."""
+    free = TensionTrajectoryPlanner(RAO)
+    results = free.plan(STARTS[:2], GOALS[:2], gravity=GRAVITY, tip_force=PAYLOAD)
+    assert [r.notes[0] for r in results] == ["direct leg", "direct leg"]
+    assert all(r.success for r in results) and free._vias == {}
+
+
 def test_several_motions_are_verified_as_each_alone(planner, loads) -> None:
     """The verdict of three motions in one batch of fresh solves is, field by field, the
     verdict each gets alone (one passes, one fails by its rate, one by the scene)."""
