@@ -180,23 +180,28 @@ def refined_plans(planner: Any, planned: list[int], searched: list[Any], loads: 
                                [*searched[i].notes, "refined by the banded LM", *notes],
                                loads, report=report)
                for i, (tensions, report, notes) in zip(planned, answers, strict=True)]
-    lengths = planner.tip_paths([r.tensions for r in refined + before], loads)
+    passed = [k for k, r in enumerate(refined) if r.success]   # the tip paths decide these
+    lengths = planner.tip_paths([refined[k].tensions for k in passed]
+                                + [before[k].tensions for k in passed], loads)
+    paths = {k: (lengths[n], lengths[len(passed) + n]) for n, k in enumerate(passed)}
     verify += time.perf_counter() - start
     out = {}
     for k, i in enumerate(planned):
         timings[i].refine = refine / len(planned)
         timings[i].verify += verify / len(planned)
         result, kept = refined[k], before[k]
-        length, shorter = lengths[k], lengths[len(planned) + k]
-        if result.success and (not kept.success or length <= shorter):
-            result.notes.append(f"tip path {1e3 * length:.1f} mm (searched "
-                                f"{1e3 * shorter:.1f})")
+        if not result.success:
+            why = result.reason
         else:
-            why = (result.reason if not result.success else f"its tip path "
-                   f"{1e3 * length:.1f} mm is not shorter than {1e3 * shorter:.1f}")
-            kept.notes.append(f"the refined motion was not kept: {why}")
-            result = kept
-        out[i] = (result, answers[k][0])
+            length, shorter = paths[k]
+            if not kept.success or length <= shorter:
+                result.notes.append(f"tip path {1e3 * length:.1f} mm (searched "
+                                    f"{1e3 * shorter:.1f})")
+                out[i] = (result, answers[k][0])
+                continue
+            why = f"its tip path {1e3 * length:.1f} mm is not shorter than {1e3 * shorter:.1f}"
+        kept.notes.append(f"the refined motion was not kept: {why}")
+        out[i] = (kept, answers[k][0])
     return out
 
 
