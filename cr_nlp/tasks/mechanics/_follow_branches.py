@@ -42,8 +42,9 @@ FIRST_ROUNDS = 4
 sets pass its check."""
 
 LM_BATCH = 8
-"""The smallest batch of the search's LM programs (the IK's is 16): a step of 8 sets
-(``branch_width``) 15–16 → 11 ms on tdcr2 in clutter."""
+"""The smallest batch of the follower's LM programs (the IK's is 16): its blocks of 8
+waypoints and the search's steps of 8 sets (``branch_width``); such a step 15–16 → 11 ms
+on tdcr2 in clutter."""
 
 EXCESS_WEIGHT = 100.0
 """Cost of a step's excess over the rate limit's step, per newton of steps: a branch that

@@ -140,10 +140,11 @@ def mended(config: Any, searched: list[np.ndarray], motions: list[np.ndarray],
             notes[i].append(f"repair {round_ + 1}: the samples the verdict checks on the "
                             "steps it rejected made waypoints, refined again")
     failing = [i for i, r in enumerate(reports) if not r.success]
-    blends = [(i, fraction, base + fraction * (motions[i] - base))
-              for i in failing
-              for base in [resampled(searched[i], len(motions[i]))]
-              for fraction in config.blends]
+    blends = []
+    for i in failing:
+        base = resampled(searched[i], len(motions[i]))
+        blends += [(i, fraction, base + fraction * (motions[i] - base))
+                   for fraction in config.blends]
     chosen: set[int] = set()
     for (i, fraction, blend), report in zip(blends, judged([b for _, _, b in blends]),
                                             strict=True):

@@ -61,7 +61,7 @@ from .._result import Stage
 from .._timing import StageTiming
 from ..paths import ReferencePath
 from ..readers import checked_path
-from ._follow_branches import BranchSearch, branch_search, first_answers
+from ._follow_branches import LM_BATCH, BranchSearch, branch_search, first_answers
 from ._motion import TensionMotionVerification, verify_tension_motion
 from ._motion_polish import polish_motion
 from ._motion_result import TensionFollowResult as TensionFollowResult
@@ -341,7 +341,8 @@ class TensionPathFollower:
             tensions[rows], moments[rows] = self.ik._lm_carried(
                 np.repeat(previous, len(rows), axis=0), positions[rows], quats[rows],
                 loads.rows(np.zeros(len(rows), int)),
-                None if moment is None else np.repeat(moment, len(rows), axis=0))
+                None if moment is None else np.repeat(moment, len(rows), axis=0),
+                smallest=LM_BATCH)
             previous, moment = tensions[rows[-1:]], moments[rows[-1:]]
         return tensions, moments
 
@@ -386,7 +387,8 @@ class TensionPathFollower:
             else:
                 seeds, moment = self.ik._start(positions[failed], part, attempt)
             again, again_moments = self.ik._lm_carried(seeds, positions[failed],
-                                                       quats[failed], part, moment)
+                                                       quats[failed], part, moment,
+                                                       smallest=LM_BATCH)
             judged = self.ik._verdict(again, positions[failed], quats[failed], part,
                                       StageTiming())
             new_error = np.nan_to_num(judged.pose_error, nan=np.inf)
@@ -415,7 +417,8 @@ class TensionPathFollower:
             rows = steps + 1
             part = loads.rows(np.zeros(len(rows), int))
             again, again_moments = self.ik._lm_carried(tensions[steps], positions[rows],
-                                                       quats[rows], part, moments[steps])
+                                                       quats[rows], part, moments[steps],
+                                                       smallest=LM_BATCH)
             judged = self.ik._verdict(again, positions[rows], quats[rows], part,
                                       StageTiming())
             slower = np.max(np.abs(again - tensions[steps]), axis=1) / dt < rate[steps]
