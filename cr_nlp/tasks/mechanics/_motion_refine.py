@@ -191,18 +191,16 @@ def refined_plans(planner: Any, planned: list[int], searched: list[Any], loads: 
         timings[i].refine = refine / len(planned)
         timings[i].verify += verify / len(planned)
         result, kept = refined[k], before[k]
-        if not result.success:
-            why = result.reason
+        length, shorter = paths.get(k, (np.nan, np.nan))   # measured where it passed
+        if result.success and (not kept.success or length <= shorter):
+            result.notes.append(f"tip path {1e3 * length:.1f} mm (searched "
+                                f"{1e3 * shorter:.1f})")
         else:
-            length, shorter = paths[k]
-            if not kept.success or length <= shorter:
-                result.notes.append(f"tip path {1e3 * length:.1f} mm (searched "
-                                    f"{1e3 * shorter:.1f})")
-                out[i] = (result, answers[k][0])
-                continue
-            why = f"its tip path {1e3 * length:.1f} mm is not shorter than {1e3 * shorter:.1f}"
-        kept.notes.append(f"the refined motion was not kept: {why}")
-        out[i] = (kept, answers[k][0])
+            why = (result.reason if not result.success else f"its tip path "
+                   f"{1e3 * length:.1f} mm is not shorter than {1e3 * shorter:.1f}")
+            kept.notes.append(f"the refined motion was not kept: {why}")
+            result = kept
+        out[i] = (result, answers[k][0])
     return out
 
 
