@@ -385,13 +385,6 @@ def _many(terms: ChainResidual, project: Any, z0: jax.Array, params: Any, shared
     return jax.vmap(one, in_axes=(0, 0, None, 0, None))(z0, params, shared, free, iterations)
 
 
-def _one(terms: ChainResidual, project: Any, z0: jax.Array, params: Any, shared: Any,
-         free: jax.Array, iterations: jax.Array,
-         config: LMConfig) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """``banded_lm_solve`` on one chain (T, size)."""
-    return banded_lm_solve(terms, project, z0, params, shared, free, iterations, config)
-
-
 def _waypoints(residual: Any, project: Any, z0: jax.Array, params: Any, shared: Any,
                free: jax.Array, iterations: jax.Array, config: LMConfig, bounds: Any,
                damping: jax.Array) -> tuple[jax.Array, ...]:
@@ -416,7 +409,8 @@ def solve_waypoints(residual: Any, project: Any, z0: Any, params: Any, shared: A
 
 # Compiled per shape and loaded from disk in a later process (not traced again).
 _banded_lm_many = cached_jit(_many, name="the motion LM", outputs=3, static_argnums=(0, 1, 7))
-_banded_lm_one = cached_jit(_one, name="the motion LM", outputs=3, static_argnums=(0, 1, 7))
+_banded_lm_one = cached_jit(banded_lm_solve, name="the motion LM", outputs=3,
+                            static_argnums=(0, 1, 7))
 
 
 def _padded_chain(a: Any, count: int) -> np.ndarray:

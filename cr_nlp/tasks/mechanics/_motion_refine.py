@@ -157,15 +157,17 @@ def mended(config: Any, searched: list[np.ndarray], motions: list[np.ndarray],
 
 
 def refined_plans(planner: Any, planned: list[int], searched: list[Any], loads: StaticLoads,
-                  timings: list[StageTiming]) -> dict[int, tuple[Any, np.ndarray]]:
+                  timings: list[StageTiming], judged: Callable[..., Any]
+                  ) -> dict[int, tuple[Any, np.ndarray]]:
     """The refine stage of a ``TensionTrajectoryPlanner`` (``planner``): the searched
     motions (``searched``, results) of the problems ``planned`` refined by the banded LM
     (its ``refine_motions``), mended where the verdict rejects them
     (``mended``), each kept where it verifies and is no worse (verified,
     then the shorter tip path), else the search's (``Stage.EXPLORE``, the note says
     why); all problems in one batch per step, their seconds shared evenly in
-    ``timings``. Per problem: (the result, the refined tensions); none without a
-    refine."""
+    ``timings``. ``judged``: the planner's maker of a judged result (problem index,
+    start, goal, ends clear, tensions, notes, loads, report=). Per problem: (the result,
+    the refined tensions); none without a refine."""
     if planner.config.chain_iterations <= 0 or not planned:
         return {}
     start = time.perf_counter()
@@ -177,9 +179,9 @@ def refined_plans(planner: Any, planned: list[int], searched: list[Any], loads: 
         partial(refine_chains, planner.robot, planner.scene, planner.config, loads=loads))
     refine = time.perf_counter() - start - verify
     start = time.perf_counter()
-    refined = [planner._result(i, tensions[0], tensions[-1], np.ones(2, bool), tensions,
-                               [*searched[i].notes, "refined by the banded LM", *notes],
-                               loads, report=report)
+    refined = [judged(i, tensions[0], tensions[-1], np.ones(2, bool), tensions,
+                      [*searched[i].notes, "refined by the banded LM", *notes], loads,
+                      report=report)
                for i, (tensions, report, notes) in zip(planned, answers, strict=True)]
     passed = [k for k, r in enumerate(refined) if r.success]   # the tip paths decide these
     lengths = planner.tip_paths([refined[k].tensions for k in passed]

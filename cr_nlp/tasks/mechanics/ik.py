@@ -18,8 +18,7 @@ The stages:
   ``tension_pool``: random tension sets solved once, cached on disk, so a new process
   under the same loads does not rebuild it); each target starts from the pool set whose
   tip is nearest;
-- refine: the batched LM (``stages.refine.lm_solve``), Jacobians by forward differences
-  over the unknowns (``TensionIKConfig.jacobian``);
+- refine: the batched LM (``stages.refine.lm_solve``; its Jacobians: ``TensionIKConfig.jacobian``);
 - verify, then again from the next-nearest pool sets for the targets that failed.
 - polish (``exact=True``): the answers the verdict rejects, polished by Ipopt on the rod's
   own discrete equations with the target, the tension bounds and the clearance as
@@ -36,6 +35,7 @@ safety margin. Units: metres, radians, newtons, N·m, m/s².
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, field, replace
 from functools import partial
@@ -184,13 +184,13 @@ class TensionIKSolver:
 
     def with_lm(self, **changes: Any) -> TensionIKSolver:
         """A solver of the same robot and scene with other LM ``iterations``, ``round_iterations``
-        or ``initial_damping``, sharing this one's seed pools and their clearance screens."""
+        or ``initial_damping``, sharing all else with this one (seed pools, their screens,
+        residuals: its compiled programs), none of which depends on the three."""
         unknown = set(changes) - {"iterations", "round_iterations", "initial_damping"}
         if unknown:
             raise ValueError(f"with_lm changes the LM's settings only, not {sorted(unknown)}")
-        other = TensionIKSolver(self.robot, self.scene, replace(self.config, **changes))
-        for name in ("_pools", "_pool_clear", "_terms", "_residuals", "_project"):
-            setattr(other, name, getattr(self, name))
+        other = copy.copy(self)
+        other.config = replace(self.config, **changes)
         return other
 
     # ------------------------------------------------------------ solve

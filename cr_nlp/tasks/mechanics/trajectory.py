@@ -339,7 +339,7 @@ class TensionTrajectoryPlanner:
                     for i in range(count)]
         for timing in timings:
             timing.verify = (time.perf_counter() - begin) / max(count, 1)
-        refined = refined_plans(self, planned, searched, loads, timings)
+        refined = refined_plans(self, planned, searched, loads, timings, self._result)
         results = []
         for i in range(count):
             result, motion = refined.get(i, (searched[i], None))

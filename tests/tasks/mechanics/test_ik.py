@@ -116,6 +116,7 @@ def test_a_solver_with_another_first_damping_runs_the_same_compiled_lm(
     after = other._lm(start, truth.tip_position, free, loads)
     assert len(_lm_waypoints._compiled) == programs
     assert not np.allclose(after, before)
+    assert other.config.initial_damping == 10.0 != solver.config.initial_damping
     with pytest.raises(ValueError, match="pool_size"):
         solver.with_lm(pool_size=16)
 
