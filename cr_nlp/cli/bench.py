@@ -1,4 +1,4 @@
-"""``cr-nlp bench ik|plan|follow|clearance|batch|statics|tension|startup|calibration``:
+"""``cr-nlp bench ik|plan|follow|clearance|batch|statics|tension|startup|calibration|profile``:
 benchmarks that print tables.
 
 Every benchmark gets the same options from ``add_common_options`` (``--out`` folder,
@@ -449,6 +449,33 @@ def _run_calibration(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------- profile
+
+
+def _add_profile(group: argparse._SubParsersAction) -> None:
+    p = group.add_parser("profile", help="where one warm IK solve's time goes: kernels or "
+                                         "ops per timeline (device streams, XLA threads, "
+                                         "host Python) from a jax.profiler trace")
+    p.add_argument("--targets", type=int, default=10_000,
+                   help="free IK targets of the traced solve (default 10000)")
+    p.add_argument("--top", type=int, default=25,
+                   help="costliest kernels or ops listed per timeline (default 25)")
+    add_common_options(p, "profile", seed=True)
+    p.set_defaults(run=_run_profile)
+
+
+def _run_profile(args: argparse.Namespace) -> int:
+    from ..bench.profile import run_profile_benchmark
+
+    if args.targets < 1 or args.top < 1:
+        raise UsageError(f"--targets and --top must be at least 1, got {args.targets} and "
+                         f"{args.top}")
+    run_profile_benchmark(robot=args.robot, targets=args.targets, seed=args.seed,
+                          top=args.top, out=args.out)
+    _wrote(args, "profile")
+    return 0
+
+
 BENCHMARKS = [_add_ik, _add_plan, _add_follow, _add_clearance, _add_batch, _add_statics,
-              _add_tension, _add_startup, _add_calibration]
+              _add_tension, _add_startup, _add_calibration, _add_profile]
 """The ``cr-nlp bench`` benchmarks, in ``--help`` order."""

@@ -14,7 +14,7 @@ from cr_nlp.bench._common import (
 )
 from cr_nlp.cli import build_parser, main
 
-BENCHMARKS = ("ik", "plan", "follow", "clearance", "batch")
+BENCHMARKS = ("ik", "plan", "follow", "clearance", "batch", "profile")
 
 
 @pytest.mark.parametrize("name", BENCHMARKS)
