@@ -1,7 +1,8 @@
 """Benchmark: where one warm IK solve's time goes, op by op (``cr-nlp bench profile``).
 
 One ``IKSolver`` (default ``IKConfig``, no obstacles) solves ``targets`` free targets of
-the robot twice (compile, warm-up), then once under ``jax.profiler.trace``. The trace
+the robot once (compiling or loading its programs), three times more (the warm wall, their
+median), then once under ``jax.profiler.trace``. The trace
 (an XSpace file, read back with ``jax.profiler.ProfileData``) is summed per timeline: on a
 GPU the device's streams, one row per kernel; on a CPU the XLA worker threads, one row
 per compiled operation; and the host's Python (inclusive times of nested calls). A
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import time
 from collections import defaultdict
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +39,7 @@ OP_COLUMNS = [Column("timeline", "timeline", str), Column("name", "kernel or op"
 """The columns of the ops table."""
 
 
-def kept_timeline(plane: str, line: str, names: Any) -> bool:
+def kept_timeline(plane: str, line: str, names: Iterable[str]) -> bool:
     """The timelines summed: a device's streams, the CPU's XLA worker threads and the
     host's Python thread (the one whose events are Python frames, ``$file:line name``);
     the trace's other host threads are the profiler's and the runtime's own."""
