@@ -270,8 +270,7 @@ def lm_solve(residual: Residual, project: Projection, z0: jax.Array, params: Any
         """JᵀJ (B, n, n), Jᵀr (B, n) over the free variables, and the cost ½‖r‖² (B,)."""
         j, r = jac_and_residual(z, params, shared)
         j = j * free
-        return (jnp.einsum("bmi,bmj->bij", j, j), jnp.einsum("bmi,bm->bi", j, r),
-                0.5 * jnp.sum(r * r, axis=-1))
+        return (*normal_products(j, r), 0.5 * jnp.sum(r * r, axis=-1))
 
     def trial(z: jax.Array, h: jax.Array, g: jax.Array,
               lam: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -315,6 +314,15 @@ def _running(config: LMConfig, iterations: jax.Array, state: tuple) -> jax.Array
     *_, done, it = state
     more = (~jnp.all(done) | (it < 0)) if config.stop_when_converged else True
     return (it < iterations) & more
+
+
+def normal_products(j: jax.Array, r: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """JᵀJ (B, n, n) and Jᵀr (B, n) of Jacobians j (B, m, n) and residuals r (B, m), as
+    products summed over the rows rather than batched matrix products: XLA's CPU backend
+    runs a batch of small matrix products as one slow operation (tdcr3's IK search: 18 % of
+    its time, 110 µs per LM iteration of 128 rows), where these fuse into the loop
+    (10 000 free tdcr3 targets: 2.29–2.35 s against 2.67–3.11 s, alternated)."""
+    return jnp.sum(j[:, :, :, None] * j[:, :, None, :], axis=1), jnp.sum(j * r[:, :, None], axis=1)
 
 
 def damped_trial(z: jax.Array, h: jax.Array, g: jax.Array, lam: jax.Array, free: jax.Array,
@@ -384,9 +392,8 @@ def _broyden_solve(residual: Residual, project: Projection, z0: jax.Array, param
         j = j_t      # the secant along a rejected step still describes the residual
         cost, done, lam, nu = verdict.cost, verdict.done, verdict.damping, verdict.growth
         why = jnp.where(why == 0, verdict.stop, why)
-        z_trial, predicted = damped_trial(z, jnp.einsum("bmi,bmj->bij", j, j),
-                                          jnp.einsum("bmi,bm->bi", j, r), lam, free,
-                                          project, solve, bounds)
+        z_trial, predicted = damped_trial(z, *normal_products(j, r), lam, free, project,
+                                          solve, bounds)
         return z, j, r, cost, z_trial, predicted, lam, nu, done, why, it + 1
 
     running = partial(_running, config, iterations)

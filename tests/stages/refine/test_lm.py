@@ -1,11 +1,12 @@
 """The one LM step rule (``stages.refine._lm.lm_step_rule``) that the dense and banded LMs share,
 against Nielsen's rule worked by hand."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from cr_nlp.stages.refine import STOP_REASONS, iteration_budget, lm_solve
-from cr_nlp.stages.refine._lm import LMConfig, lm_step_rule
+from cr_nlp.stages.refine._lm import LMConfig, lm_step_rule, normal_products
 
 CONFIG = LMConfig(give_up=((5, 1.0),))
 
@@ -151,3 +152,14 @@ def test_bad_jacobian_settings_are_named() -> None:
         LMConfig(jacobian="broyden", refresh=0)
     with pytest.raises(ValueError, match="broyden"):
         LMConfig(jacobian="secant")
+
+
+def test_normal_products_are_the_matrix_products() -> None:
+    """JᵀJ and Jᵀr as sums over the rows equal the batched matrix products (float64)."""
+    rng = np.random.default_rng(7)
+    j, r = rng.normal(size=(5, 13, 9)), rng.normal(size=(5, 13))
+    with jax.enable_x64(True):
+        h, g = normal_products(jnp.asarray(j), jnp.asarray(r))
+    np.testing.assert_allclose(np.asarray(h), np.swapaxes(j, 1, 2) @ j, rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(g), (np.swapaxes(j, 1, 2) @ r[..., None])[..., 0],
+                               rtol=1e-12)
