@@ -146,6 +146,12 @@ def base_frame(robot: Robot, world: np.ndarray) -> np.ndarray:
     return np.asarray(world, float) @ robot.base_rotation
 
 
+def world_frame(robot: Robot, base: np.ndarray) -> np.ndarray:
+    """Vectors (…, 3) of the robot's base frame in the world frame (``base_frame``'s
+    inverse)."""
+    return np.asarray(base, float) @ robot.base_rotation.T
+
+
 def tensions_of(terms: TensionTerms, z: jax.Array) -> jax.Array:
     """The tensions (n,) N of one waypoint's unknowns z."""
     groups = terms.groups

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from ...model.loads import StaticLoads
+from ...stages.refine import world_frame
 from .._timing import StageTiming
 
 FIRST_SEEDS = 24
@@ -136,7 +137,7 @@ def _solved(ik: Any, starts: np.ndarray, moments: np.ndarray | None, positions: 
     turn = np.repeat(quats[k:k + 1], count, axis=0)
     case = loads.rows(np.zeros(count, int))
     answers, moments = ik._lm_carried(starts, where, turn, case, moments, smallest=LM_BATCH)
-    statics = ik._forward(answers, case, moments @ ik.robot.base_rotation.T)
+    statics = ik._forward(answers, case, world_frame(ik.robot, moments))
     return answers, moments, ik._judge(statics, answers, where, turn, case,
                                        StageTiming()).success
 

@@ -66,3 +66,19 @@ def test_the_self_rows_see_the_verdicts_self_distance() -> None:
     np.testing.assert_allclose(rows.max(axis=1), weight * np.maximum(band - spheres, 0.0),
                                atol=1e-12)
     assert np.all(rows >= 0.0)
+
+
+def test_world_frame_undoes_base_frame_on_a_turned_base() -> None:
+    """``world_frame`` is ``base_frame``'s inverse, checked on a base turned 90° about x:
+    the base's z axis is the world's −y."""
+    from dataclasses import replace
+
+    from cr_nlp.stages.refine._tension_lm import base_frame, world_frame
+
+    half = np.sqrt(0.5)
+    turned = replace(FTDCR, base_wxyz=(half, half, 0.0, 0.0))
+    np.testing.assert_allclose(world_frame(turned, [0.0, 0.0, 1.0]), [0.0, -1.0, 0.0],
+                               atol=1e-15)
+    vectors = np.random.default_rng(2).normal(size=(5, 3))
+    np.testing.assert_allclose(world_frame(turned, base_frame(turned, vectors)), vectors,
+                               atol=1e-15)
